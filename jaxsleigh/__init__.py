@@ -1,0 +1,12 @@
+"""jaxsleigh: differentiable simulation of the Chaplygin sleigh under the discontinuous
+energy-shaping controller of Ferguson, Donaire and Middleton."""
+from .closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w, dissipation_w,
+                          state_from_w, state_to_w, vector_field, vector_field_w)
+from .control import control, control_w, measured_velocity, potential
+from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping
+from .params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_plant, plant_params,
+                     save_gains)
+from .simulate import Solution, simulate
+from .status import Status
+
+__version__ = "0.1.0"

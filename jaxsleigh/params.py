@@ -1,0 +1,200 @@
+"""Parameters of the plant and gains of the controller: small frozen pytrees.
+
+Numeric fields are leaves, so ``jax.grad`` / ``jax.vmap`` work over them. Build them with
+:func:`plant_params` and :func:`gains` (or the presets) to get eager validation with messages
+that say what to change; the raw ``NamedTuple`` constructors do no checking (they must also
+accept tracers inside transformed code).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
+
+__all__ = [
+    "PlantParams",
+    "Gains",
+    "plant_params",
+    "gains",
+    "paper_plant",
+    "paper_gains",
+    "load_gains",
+    "save_gains",
+    "gains_to_dict",
+    "gains_from_dict",
+]
+
+
+class PlantParams(NamedTuple):
+    r"""Chaplygin sleigh plant (paper eq. 1-2).
+
+    .. math:: M = \mathrm{diag}(m,\ J + m l^2), \qquad
+              J(p) = \frac{m l}{J + m l^2}\begin{bmatrix}0 & p_2\\ -p_2 & 0\end{bmatrix}
+
+    Attributes:
+      m: mass (> 0).
+      J: rotational inertia about the centre of mass (>= 0; ``J + m l^2`` must be > 0).
+      l: distance from the contact point to the centre of mass (>= 0; 0 is the knife edge).
+      damping: a model from :mod:`jaxsleigh.damping` (the paper's Coulomb approximation by default).
+    """
+
+    m: Any = 2.0
+    J: Any = 1.0
+    l: Any = 1.0
+    damping: Any = CoulombDamping()
+
+
+class Gains(NamedTuple):
+    r"""Gains of the discontinuous energy-shaping law (paper eq. 13).
+
+    .. math:: u = -Q_w^\top L w - \hat D \nabla_p H - \mathrm{diag}(0, k / w_1^2)\, \nabla_p H
+
+    Attributes:
+      L: (3,) diagonal of :math:`L` (each > 0).
+      k: singular damping gain (> 0).
+      D_hat: (2, 2) positive definite damping injection :math:`\hat D`.
+    """
+
+    L: Any
+    k: Any
+    D_hat: Any
+
+
+def _is_concrete(x) -> bool:
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x))
+
+
+def _finite_scalar(name, value, *, hint):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real number, got {value!r}. {hint}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}. {hint}")
+    return v
+
+
+def plant_params(m=2.0, J=1.0, l=1.0, damping="coulomb") -> PlantParams:
+    """Validated :class:`PlantParams` (defaults: the paper's m = 2, J = 1, l = 1, Coulomb damping).
+
+    ``damping`` is a model from :mod:`jaxsleigh.damping`, one of ``'coulomb' | 'viscous' | 'none'``,
+    or a callable ``D(q, p) -> (2, 2)`` (wrapped in :class:`~jaxsleigh.damping.CustomDamping`).
+    """
+    hint = "Plant parameters are (m, J, l): m > 0, J >= 0, l >= 0, e.g. --params 2,1,1."
+    m = _finite_scalar("m", m, hint=hint)
+    J = _finite_scalar("J", J, hint=hint)
+    l = _finite_scalar("l", l, hint=hint)
+    if m <= 0:
+        raise ValueError(f"mass m must be > 0, got {m}. {hint}")
+    if J < 0:
+        raise ValueError(f"inertia J must be >= 0, got {J}. {hint}")
+    if l < 0:
+        raise ValueError(f"offset l must be >= 0 (l = 0 is the knife edge), got {l}. {hint}")
+    if J + m * l * l <= 0:
+        raise ValueError(f"J + m l^2 must be > 0, got {J + m * l * l}. {hint}")
+    if isinstance(damping, str):
+        damping = damping_from_name(damping)
+    elif isinstance(damping, (CoulombDamping, ViscousDamping, NoDamping, CustomDamping)):
+        if isinstance(damping, CoulombDamping) and not (damping.eps > 0 and damping.scale >= 0):
+            raise ValueError(f"CoulombDamping needs eps > 0 and scale >= 0, got {damping}")
+        if isinstance(damping, ViscousDamping) and not (damping.c1 >= 0 and damping.c2 >= 0):
+            raise ValueError(f"ViscousDamping needs c1, c2 >= 0, got {damping}")
+    elif callable(damping):
+        damping = CustomDamping(damping)
+    else:
+        raise ValueError(f"damping must be a damping model, a name or a callable, got {damping!r}")
+    return PlantParams(m, J, l, damping)
+
+
+def gains(L=(2.0, 0.5, 0.8), k=0.1, D_hat=(4.0, 8.0)) -> Gains:
+    """Validated :class:`Gains` (defaults: the paper's ``L = diag(2, 0.5, 0.8)``, ``k = 0.1``,
+    ``D_hat = diag(4, 8)``). ``D_hat`` may be a length-2 diagonal or a 2x2 matrix."""
+    hint = ('Gains are {"L": [l1, l2, l3], "k": k, "D_hat": [d1, d2] or [[a, b], [c, d]]} '
+            "with every l_i > 0, k > 0 and D_hat symmetric positive definite.")
+    L_arr = np.asarray(L, dtype=float)
+    if L_arr.shape != (3,):
+        raise ValueError(f"L must have 3 entries (the diagonal of L), got shape {L_arr.shape}. {hint}")
+    if not np.all(np.isfinite(L_arr)) or np.any(L_arr <= 0):
+        raise ValueError(f"every entry of L must be finite and > 0, got {L_arr.tolist()}. {hint}")
+    k = _finite_scalar("k", k, hint=hint)
+    if k <= 0:
+        raise ValueError(f"k must be > 0 (k = 0 loses the invariance of theta != 0), got {k}. {hint}")
+    D = np.asarray(D_hat, dtype=float)
+    if D.shape == (2,):
+        D = np.diag(D)
+    if D.shape != (2, 2):
+        raise ValueError(f"D_hat must be a length-2 diagonal or a 2x2 matrix, got shape {D.shape}. {hint}")
+    if not np.all(np.isfinite(D)):
+        raise ValueError(f"D_hat must be finite, got {D.tolist()}. {hint}")
+    if not np.allclose(D, D.T, rtol=1e-12, atol=1e-12):
+        raise ValueError(f"D_hat must be symmetric, got {D.tolist()}. {hint}")
+    if np.linalg.eigvalsh(D).min() <= 0:
+        raise ValueError(f"D_hat must be positive definite, got eigenvalues "
+                         f"{np.linalg.eigvalsh(D).tolist()}. {hint}")
+    # numpy float64 leaves: jit casts them to the working dtype, float64 runs keep full precision
+    return Gains(L_arr, np.float64(k), D)
+
+
+def paper_plant() -> PlantParams:
+    """The plant of the paper's simulation: m = 2, J = 1, l = 1, Coulomb damping."""
+    return plant_params()
+
+
+def paper_gains() -> Gains:
+    """The gains of the paper's simulation: L = diag(2, 0.5, 0.8), k = 0.1, D_hat = diag(4, 8)."""
+    return gains()
+
+
+def gains_to_dict(g: Gains) -> dict:
+    """JSON-ready ``{"L": [...], "k": k, "D_hat": [[..], [..]]}``."""
+    return {"L": [float(x) for x in np.asarray(g.L)], "k": float(g.k),
+            "D_hat": np.asarray(g.D_hat, dtype=float).tolist()}
+
+
+def gains_from_dict(d: dict) -> Gains:
+    """Validated gains from the JSON format; missing keys take the paper's values."""
+    if not isinstance(d, dict):
+        raise ValueError(f"a gains file must hold a JSON object, got {type(d).__name__}")
+    unknown = set(d) - {"L", "k", "D_hat", "note", "meta"}
+    if unknown:
+        raise ValueError(f"unknown keys in gains: {sorted(unknown)}; expected L, k, D_hat")
+    base = gains_to_dict(paper_gains())
+    base.update({k: d[k] for k in ("L", "k", "D_hat") if k in d})
+    return gains(base["L"], base["k"], base["D_hat"])
+
+
+def load_gains(spec) -> Gains:
+    """Gains from a preset name (``'paper'``, ``'tuned'``) or a JSON file path."""
+    if isinstance(spec, Gains):
+        return spec
+    spec = str(spec)
+    if spec == "paper":
+        return paper_gains()
+    if spec == "tuned":
+        path = Path(__file__).parent / "presets" / "tuned.json"
+        if not path.exists():
+            raise ValueError("the 'tuned' preset is not available in this installation")
+    else:
+        path = Path(spec)
+        if not path.exists():
+            raise ValueError(f"gains file {spec!r} not found (or use the presets 'paper' / 'tuned')")
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"gains file {str(path)!r} is not valid JSON: {e}") from None
+    return gains_from_dict(d)
+
+
+def save_gains(g: Gains, path, **meta) -> None:
+    """Write gains in the JSON format (``meta`` is stored under ``"meta"``)."""
+    d = gains_to_dict(g)
+    if meta:
+        d["meta"] = meta
+    Path(path).write_text(json.dumps(d, indent=2) + "\n")

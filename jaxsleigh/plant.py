@@ -1,0 +1,79 @@
+r"""The Chaplygin sleigh plant in port-Hamiltonian form (paper eq. 1-2).
+
+.. math::
+    \dot q = Q(q) \nabla_p H, \qquad
+    \dot p = -Q^\top(q) \nabla_q H + (J(p) - D(q, p)) \nabla_p H + u, \qquad
+    H = \tfrac12 p^\top M^{-1} p
+
+Since :math:`H` does not depend on :math:`q`, :math:`\nabla_q H = 0`. The state of one trajectory
+is ``y = (x, y, theta, p1, p2)``; :math:`\nabla_p H = M^{-1} p = (v, \omega)` is the forward speed
+and the turning rate.
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .coordinates import Q
+from .params import PlantParams
+
+__all__ = [
+    "mass_matrix",
+    "inverse_mass",
+    "hamiltonian",
+    "velocity",
+    "gyroscopic",
+    "momentum_rhs",
+    "open_loop",
+    "open_loop_field",
+]
+
+
+def mass_matrix(params: PlantParams):
+    """:math:`M = \\mathrm{diag}(m, J + m l^2)` (eq. 2)."""
+    return jnp.diag(inverse_mass(params) ** -1)
+
+
+def inverse_mass(params: PlantParams):
+    """Diagonal of :math:`M^{-1}`, shape (2,)."""
+    m, J, l = params.m, params.J, params.l
+    return 1.0 / jnp.stack([jnp.asarray(m), jnp.asarray(J + m * l * l)])
+
+
+def velocity(p, params: PlantParams):
+    """:math:`\\nabla_p H = M^{-1} p = (v, \\omega)`."""
+    return inverse_mass(params).astype(p.dtype) * p
+
+
+def hamiltonian(p, params: PlantParams):
+    """Kinetic energy :math:`H = \\tfrac12 p^\\top M^{-1} p` (eq. 1)."""
+    return 0.5 * jnp.sum(p * velocity(p, params))
+
+
+def gyroscopic(p, params: PlantParams):
+    """:math:`J(p)`, skew-symmetric (eq. 2): :math:`\\frac{m l}{J + m l^2} p_2 [[0, 1], [-1, 0]]`."""
+    m, J, l = params.m, params.J, params.l
+    a = (m * l / (J + m * l * l)) * p[1]
+    zero = jnp.zeros_like(a)
+    return jnp.stack([jnp.stack([zero, a]), jnp.stack([-a, zero])])
+
+
+def momentum_rhs(q, p, u, params: PlantParams):
+    """:math:`\\dot p = (J(p) - D(q, p)) \\nabla_p H + u` (eq. 1 with :math:`\\nabla_q H = 0`).
+
+    ``q`` is only passed on to the damping model (the built-in ones ignore it).
+    """
+    v = velocity(p, params)
+    return (gyroscopic(p, params) - params.damping.matrix(q, p)) @ v + u
+
+
+def open_loop(q, p, u, params: PlantParams):
+    """Plant vector field ``(qdot, pdot)`` for a given input ``u`` (eq. 1)."""
+    return Q(q) @ velocity(p, params), momentum_rhs(q, p, u, params)
+
+
+def open_loop_field(t, y, params: PlantParams):
+    """Uncontrolled plant (``u = 0``) as ``f(t, y, args)`` with ``y = (x, y, theta, p1, p2)``."""
+    del t
+    q, p = y[:3], y[3:]
+    qdot, pdot = open_loop(q, p, jnp.zeros_like(p), params)
+    return jnp.concatenate([qdot, pdot])

@@ -1,0 +1,42 @@
+"""A progress bar for long host-side loops (tqdm when available and wanted, otherwise silent)."""
+from __future__ import annotations
+
+import sys
+
+__all__ = ["Progress"]
+
+
+class Progress:
+    """Context manager with ``update(fraction_done)``; ``enabled=None`` means 'on a terminal'."""
+
+    def __init__(self, enabled=None, desc: str = "", unit: str = "%"):
+        if enabled is None:
+            enabled = sys.stderr.isatty()
+        self._bar = None
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+            except ImportError:  # pragma: no cover - tqdm is a dependency
+                tqdm = None
+            if tqdm is not None:
+                self._bar = tqdm(total=1000, desc=desc, unit="", bar_format=(
+                    "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"))
+        self._last = 0
+
+    def update(self, fraction: float) -> None:
+        if self._bar is None:
+            return
+        now = int(round(1000 * min(max(fraction, 0.0), 1.0)))
+        if now > self._last:
+            self._bar.update(now - self._last)
+            self._last = now
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            if exc[0] is None:
+                self.update(1.0)
+            self._bar.close()
+        return False

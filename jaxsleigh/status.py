@@ -1,0 +1,40 @@
+"""Status codes of a trajectory (one ``int32`` per initial condition).
+
+Inside jitted code trouble is reported as data: the trajectory is frozen at its last good state,
+its status says why, and saved outputs after that point are NaN. Nothing is silently wrong.
+"""
+from __future__ import annotations
+
+import enum
+
+__all__ = ["Status", "DESCRIPTIONS", "describe"]
+
+
+class Status(enum.IntEnum):
+    OK = 0
+    SINGULAR_START = 1
+    INVALID_INPUT = 2
+    NONFINITE = 3
+    BUDGET_EXHAUSTED = 4
+    CROSSED_SINGULAR = 5
+    STEP_UNDERFLOW = 6
+
+
+DESCRIPTIONS = {
+    Status.OK: "reached the horizon",
+    Status.SINGULAR_START: ("starts on the singular set theta = 0 where the control law is undefined; "
+                            "not integrated, outputs NaN"),
+    Status.INVALID_INPUT: "non-finite initial condition; not integrated, outputs NaN",
+    Status.NONFINITE: ("fixed-step RK4 produced inf/NaN (unstable, usually near theta = 0); outputs NaN "
+                       "from then on; use the adaptive method or a smaller dt"),
+    Status.BUDGET_EXHAUSTED: ("the adaptive stepper used its step budget before the horizon; outputs NaN "
+                              "after the last time reached; raise max_steps"),
+    Status.CROSSED_SINGULAR: ("a fixed RK4 step jumped across theta = 0, which the exact closed loop never "
+                              "does; outputs NaN after; use the adaptive method or a smaller dt"),
+    Status.STEP_UNDERFLOW: "the adaptive step size fell below its floor; outputs NaN after the last time reached",
+}
+
+
+def describe() -> str:
+    """One line per code, for ``--help`` texts and file metadata."""
+    return "\n".join(f"{int(s)} = {s.name.lower()}: {DESCRIPTIONS[s]}" for s in Status)
