@@ -17,10 +17,11 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from .control import control, control_w, potential
-from .coordinates import Q, Q_w, q_to_w, w_to_q
+from .control import control, control_w_components, damping_injection_components, potential
+from .coordinates import Q_entries, Q_w_entries, q_to_w, w_to_q
+from .smallmat import matvec
 from .params import Gains, PlantParams
-from .plant import hamiltonian, momentum_rhs, velocity
+from .plant import hamiltonian, momentum_rhs, momentum_rhs_components, velocity, velocity_components
 
 __all__ = [
     "ClosedLoop",
@@ -48,19 +49,25 @@ def vector_field(t, y, args: ClosedLoop):
     """
     del t
     q, p = y[:3], y[3:]
-    qdot = Q(q) @ velocity(p, args.plant)
+    qdot = jnp.stack(matvec(Q_entries(q), velocity(p, args.plant)))
     u = control(q, qdot, args.gains)
     return jnp.concatenate([qdot, momentum_rhs(q, p, u, args.plant)])
 
 
 def vector_field_w(t, y, args: ClosedLoop):
-    """Closed loop in the chart ``y = (w1, w2, w3, p1, p2)`` (eq. 10 + eq. 13 = eq. 15)."""
+    """Closed loop in the chart ``y = (w1, w2, w3, p1, p2)`` (eq. 10 + eq. 13 = eq. 15).
+
+    Written on components, so ``y`` may be one state (5,) or a batch-last array (5, N).
+    """
     del t
-    w, p = y[:3], y[3:]
-    v = velocity(p, args.plant)
-    u = control_w(w, v, args.gains)
+    w, p = (y[0], y[1], y[2]), (y[3], y[4])
+    v = velocity_components(p, args.plant)
+    u = control_w_components(w, v, args.gains)
     # q is needed only by a damping model that depends on it; unused trig is removed by XLA.
-    return jnp.concatenate([Q_w(w) @ v, momentum_rhs(w_to_q(w), p, u, args.plant)])
+    q = w_to_q(y[:3])
+    wdot = matvec(Q_w_entries(w), v)
+    pdot = momentum_rhs_components(q, p, u, args.plant)
+    return jnp.stack(wdot + pdot).astype(y.dtype)
 
 
 def closed_loop_hamiltonian(y, args: ClosedLoop):
@@ -76,11 +83,10 @@ def closed_loop_hamiltonian_w(y, args: ClosedLoop):
 def dissipation_w(y, args: ClosedLoop):
     """:math:`-\\nabla_p H^\\top D_d \\nabla_p H` (eq. 18), the exact value of :math:`\\dot H_d`."""
     w, p = y[:3], y[3:]
-    v = velocity(p, args.plant)
-    g = args.gains
-    D_d = (args.plant.damping.matrix(w_to_q(w), p) + jnp.asarray(g.D_hat, p.dtype)
-           + jnp.diag(jnp.stack([jnp.zeros_like(w[0]), jnp.asarray(g.k, p.dtype) / w[0] ** 2])))
-    return -v @ D_d @ v
+    v = velocity_components(p, args.plant)
+    d = args.plant.damping.force(w_to_q(w), p, v)
+    inj = damping_injection_components(w, v, args.gains)
+    return -(v[0] * (d[0] + inj[0]) + v[1] * (d[1] + inj[1]))
 
 
 def state_to_w(y):

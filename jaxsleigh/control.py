@@ -15,30 +15,48 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .coordinates import Q, Q_w, q_to_w
+from .coordinates import Q_entries, Q_w_entries, q_to_w
 from .params import Gains
+from .smallmat import rmatvec
 
-__all__ = ["potential", "measured_velocity", "control_w", "control"]
+__all__ = ["potential", "measured_velocity", "damping_injection", "damping_injection_components", "control_w",
+           "control_w_components", "control"]
 
 
 def potential(w, gains: Gains):
     """Shaped potential :math:`\\tfrac12 w^\\top L w` (the second term of :math:`H_d`, eq. 15)."""
-    return 0.5 * jnp.sum(jnp.asarray(gains.L, w.dtype) * w * w)
+    return 0.5 * (gains.L[0] * w[0] ** 2 + gains.L[1] * w[1] ** 2 + gains.L[2] * w[2] ** 2).astype(w.dtype)
 
 
 def measured_velocity(q, qdot):
     """:math:`\\nabla_p H = Q(q)^\\top \\dot q` from measurements only (Remark 1, eq. 14)."""
-    return Q(q).T @ qdot
+    return jnp.stack(rmatvec(Q_entries(q), qdot))
+
+
+def damping_injection_components(w, v, gains: Gains):
+    """:math:`(\\hat D + D_i(w)) v` with :math:`D_i = \\mathrm{diag}(0, k / w_1^2)` (eq. 13), as a tuple."""
+    D = gains.D_hat
+    # D_i only acts on the turning rate; k / w1^2 is what keeps theta away from 0 (Lemma 2).
+    return (D[0, 0] * v[0] + D[0, 1] * v[1],
+            D[1, 0] * v[0] + (D[1, 1] + gains.k / (w[0] * w[0])) * v[1])
+
+
+def damping_injection(w, v, gains: Gains):
+    """:math:`(\\hat D + D_i(w)) v` as an array."""
+    return jnp.stack(damping_injection_components(w, v, gains)).astype(v.dtype)
+
+
+def control_w_components(w, v, gains: Gains):
+    """Control law (eq. 13) on sequences of components (one trajectory or batch-last arrays)."""
+    L = gains.L
+    force = rmatvec(Q_w_entries(w), (L[0] * w[0], L[1] * w[1], L[2] * w[2]))
+    inj = damping_injection_components(w, v, gains)
+    return (-force[0] - inj[0], -force[1] - inj[1])
 
 
 def control_w(w, v, gains: Gains):
     """Control law (eq. 13) from the w coordinates and :math:`v = \\nabla_p H`."""
-    L = jnp.asarray(gains.L, w.dtype)
-    D_hat = jnp.asarray(gains.D_hat, w.dtype)
-    k = jnp.asarray(gains.k, w.dtype)
-    # D_i only acts on the turning rate; k / w1^2 is what keeps theta away from 0 (Lemma 2).
-    d_i = jnp.stack([jnp.zeros_like(w[0]), k / (w[0] * w[0])])
-    return -(Q_w(w).T @ (L * w)) - D_hat @ v - d_i * v
+    return jnp.stack(control_w_components(w, v, gains)).astype(w.dtype)
 
 
 def control(q, qdot, gains: Gains):

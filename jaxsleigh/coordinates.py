@@ -28,7 +28,11 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .smallmat import as_array
+
 __all__ = [
+    "Q_entries",
+    "Q_w_entries",
     "Q",
     "f_z",
     "f_z_inv",
@@ -43,11 +47,15 @@ __all__ = [
 ]
 
 
+def Q_entries(q):
+    """Rows of :math:`Q(q)` (eq. 2), structural zeros and ones as literals (see :mod:`.smallmat`)."""
+    c, s = jnp.cos(q[2]), jnp.sin(q[2])
+    return ((c, 0), (s, 0), (0, 1))
+
+
 def Q(q):
     """Input/kinematic matrix of the plant, :math:`\\dot q = Q(q) \\nabla_p H` (paper eq. 2)."""
-    c, s = jnp.cos(q[2]), jnp.sin(q[2])
-    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
-    return jnp.stack([jnp.stack([c, zero]), jnp.stack([s, zero]), jnp.stack([zero, one])])
+    return as_array(Q_entries(q), q[2])
 
 
 def f_z(q):
@@ -65,13 +73,12 @@ def f_z_inv(z):
 
 def Q_z(z):
     """:math:`Q_z = \\frac{\\partial f_z}{\\partial q} Q` in z coordinates (eq. 6)."""
-    zero, one = jnp.zeros_like(z[0]), jnp.ones_like(z[0])
-    return jnp.stack([jnp.stack([zero, one]), jnp.stack([one, -z[2]]), jnp.stack([zero, z[1]])])
+    return as_array(((0, 1), (1, -z[2]), (0, z[1])), z[0])
 
 
 def Q_z_perp(z):
     """Full-rank left annihilator of :func:`Q_z`, :math:`[-z_2, 0, 1]` (eq. 7), shape (1, 3)."""
-    return jnp.stack([-z[1], jnp.zeros_like(z[0]), jnp.ones_like(z[0])])[None, :]
+    return as_array(((-z[1], 0, 1),), z[0])
 
 
 def f_w(z):
@@ -86,30 +93,27 @@ def f_w_inv(w):
     return jnp.stack([w[0], w[0] * (w[1] + w[2]), 0.5 * w[0] * w[0] * w[2]])
 
 
+def Q_w_entries(w):
+    """Rows of the **derived** :math:`Q_w(w)` (corrects eq. 11; see the module docstring)."""
+    w1, w2, w3 = w[0], w[1], w[2]
+    inv = 1.0 / w1
+    return ((0, 1),
+            (inv, -(3.0 * w2 + w3) * inv - 0.5 * w1 * w3),
+            (0, 2.0 * w2 * inv))
+
+
 def Q_w(w):
     """:math:`Q_w = \\frac{\\partial f_w}{\\partial z} Q_z|_{z = f_w^{-1}(w)}`, **derived** (corrects eq. 11).
 
     See the module docstring for the printed version and why it is wrong.
     """
-    w1, w2, w3 = w[0], w[1], w[2]
-    inv = 1.0 / w1
-    zero, one = jnp.zeros_like(w1), jnp.ones_like(w1)
-    return jnp.stack([
-        jnp.stack([zero, one]),
-        jnp.stack([inv, -(3.0 * w2 + w3) * inv - 0.5 * w1 * w3]),
-        jnp.stack([zero, 2.0 * w2 * inv]),
-    ])
+    return as_array(Q_w_entries(w), w[0])
 
 
 def Q_w_printed(w):
     """The paper's printed eq. 11 (**wrong**; kept only to show, in tests, that it breaks passivity)."""
     w1, w2, w3 = w[0], w[1], w[2]
-    zero, one = jnp.zeros_like(w1), jnp.ones_like(w1)
-    return jnp.stack([
-        jnp.stack([zero, one]),
-        jnp.stack([one, -2.0 * w2 / w1 - w3 - 0.5 * w1 * w1 * w3]),
-        jnp.stack([zero, 2.0 * w2 / (w1 * w1)]),
-    ])
+    return as_array(((0, 1), (1, -2.0 * w2 / w1 - w3 - 0.5 * w1 * w1 * w3), (0, 2.0 * w2 / (w1 * w1))), w1)
 
 
 def q_to_w(q):

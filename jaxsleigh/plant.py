@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .coordinates import Q
+from .coordinates import Q_entries
 from .params import PlantParams
+from .smallmat import as_array, matvec
 
 __all__ = [
     "mass_matrix",
@@ -22,7 +23,10 @@ __all__ = [
     "hamiltonian",
     "velocity",
     "gyroscopic",
+    "gyroscopic_entries",
     "momentum_rhs",
+    "momentum_rhs_components",
+    "velocity_components",
     "open_loop",
     "open_loop_field",
 ]
@@ -39,9 +43,15 @@ def inverse_mass(params: PlantParams):
     return 1.0 / jnp.stack([jnp.asarray(m), jnp.asarray(J + m * l * l)])
 
 
+def velocity_components(p, params: PlantParams):
+    """:math:`(v, \\omega) = M^{-1} p` as a tuple of components (``p`` a sequence of two)."""
+    m, J, l = params.m, params.J, params.l
+    return (p[0] / m, p[1] / (J + m * l * l))
+
+
 def velocity(p, params: PlantParams):
     """:math:`\\nabla_p H = M^{-1} p = (v, \\omega)`."""
-    return inverse_mass(params).astype(p.dtype) * p
+    return jnp.stack(velocity_components(p, params)).astype(p.dtype)
 
 
 def hamiltonian(p, params: PlantParams):
@@ -49,12 +59,24 @@ def hamiltonian(p, params: PlantParams):
     return 0.5 * jnp.sum(p * velocity(p, params))
 
 
-def gyroscopic(p, params: PlantParams):
-    """:math:`J(p)`, skew-symmetric (eq. 2): :math:`\\frac{m l}{J + m l^2} p_2 [[0, 1], [-1, 0]]`."""
+def gyroscopic_entries(p, params: PlantParams):
+    """Rows of :math:`J(p)` (eq. 2): :math:`\\frac{m l}{J + m l^2} p_2 [[0, 1], [-1, 0]]`."""
     m, J, l = params.m, params.J, params.l
     a = (m * l / (J + m * l * l)) * p[1]
-    zero = jnp.zeros_like(a)
-    return jnp.stack([jnp.stack([zero, a]), jnp.stack([-a, zero])])
+    return ((0, a), (-a, 0))
+
+
+def gyroscopic(p, params: PlantParams):
+    """:math:`J(p)`, skew-symmetric (eq. 2)."""
+    return as_array(gyroscopic_entries(p, params), p[1])
+
+
+def momentum_rhs_components(q, p, u, params: PlantParams):
+    """:func:`momentum_rhs` on sequences of components (one trajectory or batch-last arrays)."""
+    v = velocity_components(p, params)
+    gyro = matvec(gyroscopic_entries(p, params), v)
+    damp = params.damping.force(q, p, v)
+    return tuple(g - d + ui for g, d, ui in zip(gyro, damp, u))
 
 
 def momentum_rhs(q, p, u, params: PlantParams):
@@ -62,13 +84,12 @@ def momentum_rhs(q, p, u, params: PlantParams):
 
     ``q`` is only passed on to the damping model (the built-in ones ignore it).
     """
-    v = velocity(p, params)
-    return (gyroscopic(p, params) - params.damping.matrix(q, p)) @ v + u
+    return jnp.stack(momentum_rhs_components(q, p, u, params)).astype(p.dtype)
 
 
 def open_loop(q, p, u, params: PlantParams):
     """Plant vector field ``(qdot, pdot)`` for a given input ``u`` (eq. 1)."""
-    return Q(q) @ velocity(p, params), momentum_rhs(q, p, u, params)
+    return jnp.stack(matvec(Q_entries(q), velocity(p, params))), momentum_rhs(q, p, u, params)
 
 
 def open_loop_field(t, y, params: PlantParams):

@@ -12,16 +12,21 @@ __all__ = ["rk4_step", "rk4_stages", "solve_fixed"]
 
 
 def rk4_stages(f, t, y, h, args, k1):
-    """Classical RK4 from a known ``k1 = f(t, y)``; returns ``(y_next, k4)``."""
+    """Classical RK4 from a known ``k1 = f(t, y)``; returns ``(increment, k4)``, where
+    ``y + increment`` is the step's result.
+
+    Returning the increment lets callers mask a step as ``y + where(ok, increment, 0)``; on
+    XLA:CPU that ran ~2x faster than ``where(ok, y_next, y)``, which defeated fusion.
+    """
     k2 = f(t + 0.5 * h, y + (0.5 * h) * k1, args)
     k3 = f(t + 0.5 * h, y + (0.5 * h) * k2, args)
     k4 = f(t + h, y + h * k3, args)
-    return y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4
+    return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4
 
 
 def rk4_step(f, t, y, h, args):
     """One classical RK4 step of size ``h``."""
-    return rk4_stages(f, t, y, h, args, f(t, y, args))[0]
+    return y + rk4_stages(f, t, y, h, args, f(t, y, args))[0]
 
 
 def solve_fixed(f, y0, args, *, t0=0.0, dt, n_steps: int, save_every: int = 1, unroll: int = 1):
