@@ -1,9 +1,8 @@
 """Host-side driver of the stepper: input checks, the segment loop, batch compaction.
 
-The jitted kernel is ``vmap(run_segment)`` over a batch of trajectories. The driver calls it
-repeatedly until every trajectory is done (or out of budget). When few trajectories remain
-active, it gathers them into a smaller batch (a power of two, so few shapes get compiled): the
-cost then follows the sum of the steps each trajectory needs, not the batch's maximum.
+Two regimes share the stepper of :mod:`jaxsleigh.stepper`: :func:`drive_final` (ensembles: final
+state and on-line summaries, host loop over segments with batch compaction) and
+:func:`drive_saving` (decimated trajectories on a uniform save grid).
 """
 from __future__ import annotations
 
@@ -18,9 +17,10 @@ import numpy as np
 
 from .closed_loop import ClosedLoop, state_to_w
 from .status import Status
-from .stepper import Controls, StepState, init_state, run_segment
+from .stepper import Controls, StepState, init_batch, is_active, run_saving, run_segment
 
-__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive", "working_dtype", "default_max_steps", "METHODS"]
+__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "make_controls",
+           "working_dtype", "default_max_steps", "METHODS"]
 
 METHODS = ("adaptive", "rk4")
 
@@ -123,84 +123,108 @@ def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype) -> jax.Array:
     return jnp.asarray(yw, dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("n_out",))
-def _init_batch(y0w, status0, args, ctl, n_out):
-    return jax.vmap(init_state, in_axes=(0, 0, None, None, None))(y0w, status0, args, ctl, n_out)
+@functools.partial(jax.jit, static_argnames=())
+def _init_batch(y0w, status0, args, ctl):
+    return init_batch(y0w, status0, args, ctl)
 
 
 @functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive"), donate_argnums=(0,))
-def _segment_batch(state, args, save_times, ctl, n_attempts, adaptive):
-    seg = functools.partial(run_segment, n_attempts=n_attempts, adaptive=adaptive)
-    return jax.vmap(seg, in_axes=(0, None, None, None))(state, args, save_times, ctl)
+def _segment_batch(state, target, args, ctl, n_attempts, adaptive):
+    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive)
 
 
-def _active(state: StepState, n_out: int, max_steps: int) -> np.ndarray:
-    return np.asarray((state.status == Status.OK) & (state.j < n_out)
-                      & (state.n_accept + state.n_reject < max_steps))
+@functools.partial(jax.jit, static_argnames=("adaptive",), donate_argnums=(0,))
+def _saving_batch(state, save_times, args, ctl, adaptive):
+    return run_saving(state, save_times, args, ctl, adaptive=adaptive)
+
+
+def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None) -> Controls:
+    max_step = horizon.dt if max_step is None else max_step
+    return Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
+                    max_steps=jnp.asarray(max_steps, jnp.int32))
 
 
 def _bucket(n: int) -> int:
     return 1 << max(0, (n - 1).bit_length())
 
 
-def drive(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float, atol: float,
-          eps: float, max_steps: int, segment: int = 1024, compact: bool = True,
-          progress=None, sharding=None) -> StepState:
-    """Run the stepper on a batch until every trajectory is done or out of budget.
+def _finish(full: StepState, t_final: float) -> StepState:
+    """Mark trajectories that stopped short of the horizon while still OK (out of budget)."""
+    status = np.array(full.status)
+    status[(status == Status.OK) & (np.asarray(full.t) < t_final)] = Status.BUDGET_EXHAUSTED
+    return full._replace(status=status)
 
-    Returns the final :class:`~jaxsleigh.stepper.StepState` (batched, as NumPy arrays) with
-    trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` is an object
-    with ``update(fraction_done)`` or ``None``. ``sharding`` places the batch on devices.
+
+def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
+                atol: float, eps: float, max_steps: int, max_step=None, segment: int = 1000,
+                compact: bool = True, progress=None, sharding=None) -> StepState:
+    """Run a batch to the horizon keeping only the final state and the on-line summaries.
+
+    The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
+    trajectories are still active and, when at most a quarter are, gathers them into a smaller
+    batch (a power of two, >= 64, so few shapes compile): the cost then follows the sum over
+    trajectories of the steps each needs, not the batch's maximum.
+
+    Returns the final :class:`~jaxsleigh.stepper.StepState` as batch-last NumPy arrays, with
+    trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
+    ``update(fraction_done)``. ``sharding`` places the batch (its last axis) on devices.
     """
     dtype = y0w.dtype
     n = y0w.shape[0]
-    n_out = horizon.n_out
-    save_times = jnp.asarray(horizon.save_times(), dtype)
-    ctl = Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, rtol, atol, eps)),
-                   max_steps=jnp.asarray(max_steps, jnp.int32))
-    status0 = jnp.asarray(status0, jnp.int32)
+    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
+    target = jnp.asarray(horizon.t_final, dtype)
+    state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
     if sharding is not None:
-        y0w, status0 = jax.device_put((y0w, status0), sharding)
-    state = _init_batch(y0w, status0, args, ctl, n_out)
-    idx = np.arange(n)                       # rows of the current batch in the full batch
-    full = None                              # the full batch, filled as lanes are compacted away
-    used = 0
-    while True:
-        act = _active(state, n_out, max_steps)
+        state = jax.device_put(state, sharding)
+    idx = np.arange(n)                       # rows of the full batch held by the current batch
+    full = None                              # the full batch, as lanes are compacted away
+    for _ in range(-(-max_steps // segment) + 1):
+        act = np.asarray(is_active(state, target, ctl))
         if progress is not None:
-            t_now = np.asarray(state.t, np.float64)
-            done_frac = float(np.mean(np.where(act, t_now / horizon.t_final, 1.0)))
-            progress.update((n - idx.size + done_frac * idx.size) / n)
-        if not act.any() or used >= max_steps:
+            frac = np.where(act, np.asarray(state.t, np.float64) / horizon.t_final, 1.0)
+            progress.update((n - idx.size + frac.sum()) / n)
+        if not act.any():
             break
         if compact and idx.size > 64 and act.sum() <= idx.size // 4:
             keep = np.flatnonzero(act)
             size = _bucket(max(keep.size, 64))
-            pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
             host = jax.tree_util.tree_map(np.asarray, state)
-            if full is None:
-                full = host
-            else:
-                full = jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
-            # padded duplicates of the first lane recompute it; only the first copy is written back
-            state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[pad]), host)
+            full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
+            # pad with copies of one active lane; only real lanes are written back
+            pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
+            state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
             if sharding is not None:
                 state = jax.device_put(state, sharding)
             idx = np.concatenate([idx[keep], np.full(size - keep.size, -1)])
-        state = _segment_batch(state, args, save_times, ctl, segment, adaptive)
-        used += segment
+        state = _segment_batch(state, target, args, ctl, segment, adaptive)
     host = jax.tree_util.tree_map(np.asarray, state)
     full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
-    status = np.array(full.status)
-    left = (status == Status.OK) & (full.j < n_out)
-    status[left] = Status.BUDGET_EXHAUSTED
-    return full._replace(status=status)
+    return _finish(full, horizon.t_final)
+
+
+def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
+                 atol: float, eps: float, max_steps: int, max_step=None, block: int = 100, progress=None):
+    """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
+    shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
+    blocks of ``block`` save times (for the progress bar)."""
+    dtype = y0w.dtype
+    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
+    state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+    save_times = horizon.save_times()
+    out = []
+    for i in range(0, save_times.size, block):
+        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive)
+        out.append(np.asarray(ys))
+        if progress is not None:
+            progress.update(min(i + block, save_times.size) / save_times.size)
+    ys = np.moveaxis(np.concatenate(out, axis=0), -1, 0)     # (K, 5, N) blocks -> (N, K, 5)
+    return _finish(jax.tree_util.tree_map(np.asarray, state), horizon.t_final), ys
 
 
 def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
     out = np.array(full)
     real = idx >= 0
-    out[idx[real]] = part[real]
+    out[..., idx[real]] = part[..., real]
     return out
 
 
