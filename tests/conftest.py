@@ -1,0 +1,85 @@
+"""Shared fixtures of the jaxsleigh test suite.
+
+* ``x64``: runs the test inside ``jax.enable_x64(True)`` (identity checks are done in float64).
+* ``rng``: a NumPy generator with a fixed seed (every test is deterministic).
+* ``sample_q`` / ``sample_w`` / ``sample_states`` / ``sample_gains``: random points away from the
+  singular set ``theta = w1 = 0`` and random admissible gains.
+* ``paper_args``: the paper's plant and gains (eq. 31-32) as a ``ClosedLoop``.
+"""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+
+SEED = 20240611
+
+
+@pytest.fixture
+def x64():
+    """Compute in float64 for the duration of the test."""
+    with jax.enable_x64(True):
+        yield
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(SEED)
+
+
+def _signed_away_from_zero(rng, n, lo, hi):
+    return rng.choice([-1.0, 1.0], size=n) * rng.uniform(lo, hi, size=n)
+
+
+@pytest.fixture
+def sample_q(rng):
+    """``sample_q(n)`` -> (n, 3) configurations with ``0.2 <= |theta| <= 2.8``."""
+
+    def make(n, theta_lo=0.2, theta_hi=2.8, scale=3.0):
+        xy = rng.uniform(-scale, scale, size=(n, 2))
+        th = _signed_away_from_zero(rng, n, theta_lo, theta_hi)
+        return np.column_stack([xy, th])
+
+    return make
+
+
+@pytest.fixture
+def sample_w(rng):
+    """``sample_w(n)`` -> (n, 3) w-chart points with ``0.2 <= |w1| <= 2``."""
+
+    def make(n, w1_lo=0.2, w1_hi=2.0, scale=3.0):
+        w1 = _signed_away_from_zero(rng, n, w1_lo, w1_hi)
+        return np.column_stack([w1, rng.uniform(-scale, scale, size=(n, 2))])
+
+    return make
+
+
+@pytest.fixture
+def sample_states(sample_q, rng):
+    """``sample_states(n)`` -> (n, 5) physical states ``(x, y, theta, p1, p2)``."""
+
+    def make(n, p_scale=2.0, **kw):
+        return np.column_stack([sample_q(n, **kw), rng.normal(scale=p_scale, size=(n, 2))])
+
+    return make
+
+
+@pytest.fixture
+def sample_gains(rng):
+    """``sample_gains()`` -> validated random gains: L > 0, k > 0, D_hat symmetric PD (non-diagonal)."""
+
+    def make():
+        L = rng.uniform(0.1, 5.0, size=3)
+        k = rng.uniform(0.01, 2.0)
+        A = rng.normal(size=(2, 2))
+        D_hat = A @ A.T + rng.uniform(0.05, 3.0) * np.eye(2)
+        return js.gains(L, k, D_hat)
+
+    return make
+
+
+@pytest.fixture
+def paper_args():
+    return js.ClosedLoop(js.paper_plant(), js.paper_gains())

@@ -1,0 +1,212 @@
+"""The command line contract (``jaxsleigh simulate`` / ``jaxsleigh paper``) and the plotting layer."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxsleigh
+from jaxsleigh import plotting
+from jaxsleigh.cli import main
+from jaxsleigh.paper import PAPER_ICS
+from jaxsleigh.simulate import Solution
+from jaxsleigh.status import Status
+
+SIM_KEYS = {"t", "q", "p", "u", "Hd", "status", "n_steps", "settings_json", "dt", "t_final", "save_every",
+            "method", "dtype", "gains_L", "gains_k", "gains_D_hat", "params", "damping"}
+TINY = ["--t-final", "1", "--dt", "0.01", "--save-every", "10"]
+
+
+def _run(argv, capsys):
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_simulate_contract_and_settings_round_trip(tmp_path, capsys):
+    out = tmp_path / "run.npz"
+    # "--ic -3,..." (negative first entry, no '=') must work too
+    rc, stdout, err = _run(["simulate", "--ic", "-3,-2,pi/8", "--ic=3,2,-1.5", *TINY, "--out", str(out)], capsys)
+    assert rc == 0, err
+    assert "N=2" in stdout and "2 ok" in stdout and str(out) in stdout
+    with np.load(out, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    assert SIM_KEYS <= set(data)
+    n, T = 2, 11
+    assert data["t"].shape == (T,) and np.allclose(data["t"], np.linspace(0, 1, T))
+    assert data["q"].shape == (n, T, 3) and data["p"].shape == (n, T, 2) and data["u"].shape == (n, T, 2)
+    assert data["Hd"].shape == (n, T) and data["status"].shape == (n,) and data["n_steps"].shape == (n,)
+    assert data["status"].dtype.kind == "i" and np.all(data["status"] == 0)
+    np.testing.assert_allclose(data["q"][:, 0], [[-3, -2, math.pi / 8], [3, 2, -1.5]])
+    # scalar keys agree with the JSON settings, which agree with the library's defaults
+    s = json.loads(str(data["settings_json"]))
+    assert float(data["dt"]) == s["dt"] == 0.01 and float(data["t_final"]) == s["t_final"] == 1.0
+    assert int(data["save_every"]) == s["save_every"] == 10
+    assert str(data["method"]) == s["method"] == "adaptive" and str(data["dtype"]) == s["dtype"] == "float32"
+    np.testing.assert_array_equal(data["gains_L"], s["gains"]["L"])
+    assert float(data["gains_k"]) == s["gains"]["k"] == 0.1
+    np.testing.assert_array_equal(data["gains_D_hat"], [[4, 0], [0, 8]])
+    np.testing.assert_array_equal(data["params"], [2, 1, 1])
+    assert str(data["damping"]) == "coulomb" and s["plant"]["damping"] == "CoulombDamping"
+    np.testing.assert_allclose(np.asarray(s["ics"])[:, :3], [[-3, -2, math.pi / 8], [3, 2, -1.5]])
+    assert s["command"][:2] == ["jaxsleigh", "simulate"]
+    # the file holds what the library computes with those settings
+    ref = jaxsleigh.simulate(np.asarray(s["ics"]), t_final=s["t_final"], dt=s["dt"],
+                             save_every=s["save_every"], method=s["method"])
+    np.testing.assert_allclose(data["q"], ref.q, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(data["u"], ref.u, rtol=1e-5, atol=1e-5)
+
+
+def test_ics_file_gains_json_and_options(tmp_path, capsys):
+    ics = np.array([[1.0, -1.0, 0.7, 0.5, -0.2], [-2.0, 0.5, -2.0, 0.0, 0.0]])
+    np.save(tmp_path / "ics.npy", ics)
+    gains = {"L": [1.0, 0.4, 0.6], "k": 0.2, "D_hat": [[4.0, 1.0], [1.0, 8.0]]}
+    (tmp_path / "g.json").write_text(json.dumps(gains))
+    out = tmp_path / "g.npz"
+    rc, _, err = _run(["simulate", "--ics", str(tmp_path / "ics.npy"), *TINY, "--gains", str(tmp_path / "g.json"),
+                       "--params", "1.5,0.5,0.8", "--damping", "viscous", "--method", "rk4", "--out", str(out)],
+                      capsys)
+    assert rc == 0, err
+    with np.load(out) as z:
+        np.testing.assert_array_equal(z["gains_D_hat"], gains["D_hat"])
+        np.testing.assert_array_equal(z["gains_L"], gains["L"])
+        assert float(z["gains_k"]) == 0.2
+        np.testing.assert_array_equal(z["params"], [1.5, 0.5, 0.8])
+        assert str(z["damping"]) == "viscous" and str(z["method"]) == "rk4"
+        np.testing.assert_allclose(z["p"][:, 0], ics[:, 3:], atol=1e-6)   # momentum start kept
+        assert np.all(z["status"] == 0)
+
+
+def test_batch_with_a_singular_start_is_flagged(tmp_path, capsys):
+    rc, stdout, err = _run(["simulate", "--ic", "1,1,0", "--ic", "1,1,0.5", *TINY, "--out", str(tmp_path / "b")],
+                           capsys)
+    assert rc == 0, err
+    assert "1 of 2 initial conditions flagged" in err
+    assert "1 singular_start" in stdout
+    with np.load(tmp_path / "b.npz") as z:   # .npz appended
+        assert list(z["status"]) == [Status.SINGULAR_START, Status.OK]
+        assert np.all(np.isnan(z["q"][0])) and np.all(np.isfinite(z["q"][1]))
+
+
+def _write(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return str(p)
+
+
+@pytest.mark.parametrize("case, expect", [
+    (["--ic", "1,1,0"], "theta0 != 0"),
+    (["--ic", "1,1,nan"], "non-finite"),
+    (["--ic", "1,1,abc"], "could not parse --ic"),
+    (["--ic", "1,1"], "X,Y,THETA"),
+    (["--ic", "1,1,1", "--dt", "0"], "--dt must be a finite number > 0"),
+    (["--ic", "1,1,1", "--t-final", "1.005", "--dt", "0.01"], "whole multiple of --dt"),
+    (["--ic", "1,1,1", "--save-every", "3"], "--save-every"),
+    (["--ic", "1,1,1", "--params", "0,1,1"], "mass m must be > 0"),
+    (["--ic", "1,1,1", "--params", "2,1"], "--params"),
+    (["--ic", "1,1,1", "--gains", "BADGAINS"], "L must have 3 entries"),
+    (["--ic", "1,1,1", "--gains", "NOTJSON"], "not valid JSON"),
+    (["--ic", "1,1,1", "--gains", "missing.json"], "not found"),
+    (["--ics", "BADSHAPE"], "shape (2, 4)"),
+    (["--ics", "missing.npy"], "not found"),
+    (["--ic", "1,1,1", "--damping", "sticky"], "invalid choice"),
+    ([], "one of the arguments --ics --ic is required"),
+])
+def test_bad_input_exits_2_with_a_message(tmp_path, capsys, case, expect):
+    files = {"BADGAINS": _write(tmp_path, "bad.json", json.dumps({"L": [1, 2], "k": 0.1})),
+             "NOTJSON": _write(tmp_path, "not.json", "{L: 1"),
+             "missing.json": str(tmp_path / "missing.json"), "missing.npy": str(tmp_path / "missing.npy")}
+    np.save(tmp_path / "bad.npy", np.ones((2, 4)))
+    files["BADSHAPE"] = str(tmp_path / "bad.npy")
+    argv = ["simulate", *[files.get(a, a) for a in case], *([] if "--dt" in case else TINY[2:4]),
+            "--out", str(tmp_path / "x.npz")]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 2
+    assert err.startswith("jaxsleigh: error: ") and expect in err, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_help_documents_status_codes(capsys):
+    rc, stdout, _ = _run(["simulate", "--help"], capsys)
+    assert rc == 0
+    for s in Status:
+        assert f"{int(s)} = {s.name.lower()}" in stdout
+    assert "--save-every" in stdout and "--x64" in stdout
+
+
+def test_paper_subcommand_writes_every_figure(tmp_path, capsys):
+    out = tmp_path / "paper"
+    rc, stdout, err = _run(["paper", "--out", str(out), "--dt", "0.05", "--t-final", "1"], capsys)
+    assert rc == 0, err
+    for name in ("fig2_paths", "fig3_configuration", "fig4_momentum", "fig5_control", "fig_hamiltonian"):
+        f = out / f"{name}.png"
+        assert f.exists() and f.stat().st_size > 10_000, name
+        assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with np.load(out / "paper.npz") as z:
+        assert SIM_KEYS <= set(z.files)
+        assert z["q"].shape[0] == len(PAPER_ICS)
+        assert float(z["dt"]) == 0.05 and float(z["t_final"]) == 1.0
+    assert "(−3, −2, π/8)" in stdout
+
+
+def _tiny_solution(bad: bool = True) -> Solution:
+    t = np.linspace(0.0, 2.0, 21)
+    n = 3
+    q = np.stack([np.stack([(-1.0 + 0.3 * i) * np.exp(-t), 0.5 * np.exp(-t), (0.4 + 0.2 * i) * np.exp(-t)], -1)
+                  for i in range(n)])
+    p = np.stack([np.stack([np.exp(-t), -0.3 * np.exp(-t)], -1)] * n)
+    u = np.stack([np.stack([-50.0 * np.exp(-5 * t), 3 * np.exp(-t)], -1)] * n)
+    Hd = np.exp(-np.arange(n)[:, None] - t)
+    status = np.zeros(n, np.int32)
+    if bad:
+        status[2] = Status.BUDGET_EXHAUSTED
+        for a in (q, p, u):
+            a[2, 12:] = np.nan
+        Hd[2, 12:] = np.nan
+    settings = {"dtype": "float64", "method": "rk4", "dt": 0.01, "plant": {"m": 2.0, "J": 1.0, "l": 1.0}}
+    return Solution(t, q, p, u, Hd, status, np.full(n, 200), np.zeros(n), settings)
+
+
+@pytest.mark.parametrize("fn", [plotting.plot_paths, plotting.plot_configuration, plotting.plot_momentum,
+                                plotting.plot_control, plotting.plot_hamiltonian])
+def test_plotting_functions(tmp_path, fn):
+    sol = _tiny_solution()
+    fig = fn(sol)
+    assert "float64" in fig.get_suptitle() and "RK4" in fig.get_suptitle()
+    ax = fig.axes[0]
+    styles = [line.get_linestyle() for line in ax.get_lines() if not line.get_label().startswith("_")]
+    assert styles[:3] == ["-", "-", "--"]          # the run with status != 0 is dashed
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert any("budget_exhausted" in s for s in labels) and any("status ≠ 0" in s for s in labels)
+    path = plotting.save_figure(fig, tmp_path / "f.png")
+    assert path.stat().st_size > 5_000
+
+
+def test_plotting_into_given_axes_and_from_npz(tmp_path, capsys):
+    from matplotlib.figure import Figure
+
+    fig = Figure()
+    ax = fig.add_subplot()
+    assert plotting.plot_paths(_tiny_solution(bad=False), ax=ax) is fig
+    assert "float64" in ax.get_title()
+    assert plotting.format_start([-3, -2, math.pi / 8]) == "(−3, −2, π/8)"
+    assert plotting.format_start([3, -1, -2.5]) == "(3, −1, −2.5)"
+    g = plotting.sleigh_outline(1.0, 2.0, math.pi / 2, size=1.0)
+    np.testing.assert_allclose(g["com"], [1.0, 3.0], atol=1e-12)   # centre of mass l ahead
+
+
+def test_console_script_reports_errors_without_traceback(tmp_path):
+    exe = shutil.which("jaxsleigh")
+    cmd = [exe] if exe else [sys.executable, "-m", "jaxsleigh.cli"]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    r = subprocess.run([*cmd, "simulate", "--ic", "1,1,0", "--out", str(tmp_path / "x.npz")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.startswith("jaxsleigh: error: ") and "theta0" in r.stderr and "Traceback" not in r.stderr
