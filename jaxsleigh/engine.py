@@ -20,6 +20,7 @@ from .status import Status
 from .stepper import Controls, StepState, init_batch, is_active, run_saving, run_segment
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "make_controls",
+           "shard_batch", "batch_mesh",
            "working_dtype", "default_max_steps", "METHODS"]
 
 METHODS = ("adaptive", "rk4")
@@ -128,20 +129,38 @@ def _init_batch(y0w, status0, args, ctl):
     return init_batch(y0w, status0, args, ctl)
 
 
-@functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive"), donate_argnums=(0,))
-def _segment_batch(state, target, args, ctl, n_attempts, adaptive):
-    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive)
+@functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive", "monitor"), donate_argnums=(0,))
+def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True):
+    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive, monitor=monitor)
 
 
-@functools.partial(jax.jit, static_argnames=("adaptive",), donate_argnums=(0,))
-def _saving_batch(state, save_times, args, ctl, adaptive):
-    return run_saving(state, save_times, args, ctl, adaptive=adaptive)
+@functools.partial(jax.jit, static_argnames=("adaptive", "monitor"), donate_argnums=(0,))
+def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True):
+    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor)
 
 
 def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None) -> Controls:
     max_step = horizon.dt if max_step is None else max_step
     return Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
                     max_steps=jnp.asarray(max_steps, jnp.int32))
+
+
+def shard_batch(tree, mesh):
+    """Place every leaf of a batch-last pytree with its last axis split over ``mesh``'s devices."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    def put(a):
+        return jax.device_put(a, NamedSharding(mesh, PartitionSpec(*([None] * (np.ndim(a) - 1)), "batch")))
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def batch_mesh(devices=None):
+    """A 1-D mesh named ``"batch"`` over ``devices`` (default: all), or ``None`` for one device."""
+    from jax.sharding import Mesh
+
+    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
 
 def _bucket(n: int) -> int:
@@ -157,7 +176,7 @@ def _finish(full: StepState, t_final: float) -> StepState:
 
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
                 atol: float, eps: float, max_steps: int, max_step=None, segment: int = 1000,
-                compact: bool = True, progress=None, sharding=None) -> StepState:
+                compact: bool = True, monitor: bool = True, progress=None, mesh=None) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries.
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
@@ -167,15 +186,17 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
 
     Returns the final :class:`~jaxsleigh.stepper.StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
-    ``update(fraction_done)``. ``sharding`` places the batch (its last axis) on devices.
+    ``update(fraction_done)``. ``mesh`` (a 1-D :class:`jax.sharding.Mesh` with axis ``"batch"``)
+    shards the batch axis across its devices; the batch size must then be a multiple of the
+    device count.
     """
     dtype = y0w.dtype
     n = y0w.shape[0]
     ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
     target = jnp.asarray(horizon.t_final, dtype)
     state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
-    if sharding is not None:
-        state = jax.device_put(state, sharding)
+    if mesh is not None:
+        state = shard_batch(state, mesh)
     idx = np.arange(n)                       # rows of the full batch held by the current batch
     full = None                              # the full batch, as lanes are compacted away
     for _ in range(-(-max_steps // segment) + 1):
@@ -188,22 +209,25 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
         if compact and idx.size > 64 and act.sum() <= idx.size // 4:
             keep = np.flatnonzero(act)
             size = _bucket(max(keep.size, 64))
+            if mesh is not None:
+                size = -(-size // mesh.size) * mesh.size
             host = jax.tree_util.tree_map(np.asarray, state)
             full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
             # pad with copies of one active lane; only real lanes are written back
             pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
             state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
-            if sharding is not None:
-                state = jax.device_put(state, sharding)
+            if mesh is not None:
+                state = shard_batch(state, mesh)
             idx = np.concatenate([idx[keep], np.full(size - keep.size, -1)])
-        state = _segment_batch(state, target, args, ctl, segment, adaptive)
+        state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor)
     host = jax.tree_util.tree_map(np.asarray, state)
     full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
     return _finish(full, horizon.t_final)
 
 
 def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
-                 atol: float, eps: float, max_steps: int, max_step=None, block: int = 100, progress=None):
+                 atol: float, eps: float, max_steps: int, max_step=None, block: int = 100,
+                 monitor: bool = True, progress=None):
     """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar)."""
@@ -213,7 +237,7 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):
-        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive)
+        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive, monitor)
         out.append(np.asarray(ys))
         if progress is not None:
             progress.update(min(i + block, save_times.size) / save_times.size)

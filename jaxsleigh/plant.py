@@ -56,7 +56,8 @@ def velocity(p, params: PlantParams):
 
 def hamiltonian(p, params: PlantParams):
     """Kinetic energy :math:`H = \\tfrac12 p^\\top M^{-1} p` (eq. 1)."""
-    return 0.5 * jnp.sum(p * velocity(p, params))
+    v = velocity_components(p, params)
+    return 0.5 * (p[0] * v[0] + p[1] * v[1])
 
 
 def gyroscopic_entries(p, params: PlantParams):

@@ -18,6 +18,7 @@ class Status(enum.IntEnum):
     BUDGET_EXHAUSTED = 4
     CROSSED_SINGULAR = 5
     STEP_UNDERFLOW = 6
+    UNRELIABLE = 7
 
 
 DESCRIPTIONS = {
@@ -32,6 +33,8 @@ DESCRIPTIONS = {
     Status.CROSSED_SINGULAR: ("a fixed RK4 step jumped across theta = 0, which the exact closed loop never "
                               "does; outputs NaN after; use the adaptive method or a smaller dt"),
     Status.STEP_UNDERFLOW: "the adaptive step size fell below its floor; outputs NaN after the last time reached",
+    Status.UNRELIABLE: ("a fixed RK4 step increased H_d, which the exact closed loop never does (eq. 18): "
+                        "the step is too large there; outputs NaN after; use the adaptive method or a smaller dt"),
 }
 
 

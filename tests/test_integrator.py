@@ -180,7 +180,7 @@ def test_adaptive_converges_to_reference_as_rtol_tightens(paper_args):
     assert np.all(errs[0] / errs[-1] > 100), errs
     assert np.all(errs[-1] < 1e-6), errs
     # the fixed-step method at the same base step cannot do this: from the stiff paper start it
-    # jumps across theta = 0 and is flagged (not returned as silent garbage)
+    # raises H_d or jumps across theta = 0 and is flagged (not returned as silent garbage)
     fixed = js.simulate(_ADAPTIVE_STARTS[:1], t_final=t_final, dt=0.1, save_every=5, method="rk4", x64=True)
-    assert fixed.status[0] in (Status.CROSSED_SINGULAR, Status.NONFINITE)
+    assert fixed.status[0] in (Status.CROSSED_SINGULAR, Status.NONFINITE, Status.UNRELIABLE)
     assert np.isnan(fixed.q[0, -1]).all()
