@@ -72,7 +72,7 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
       ``{stem: Path}`` for the five figures and ``"npz"``.
     """
     from . import plotting
-    from .cli import write_npz
+    from .io import write_npz
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
