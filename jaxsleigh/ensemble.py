@@ -96,7 +96,7 @@ def _chunk_summaries(final, y0w, status0, args) -> dict:
     failed = ~ok
     yq[failed] = np.nan
     invalid = np.asarray(status0) != Status.OK
-    hd0 = np.asarray(_hd_batch(y0w, args), np.float64)
+    hd0 = np.array(_hd_batch(y0w, args), np.float64)
     hd0[invalid] = np.nan
     t_enter = np.asarray(final.t_enter, np.float64)
     return {
@@ -237,7 +237,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
                     final, ys = drive_saving(y0w, st, args, horizon, progress=_Sub(), **kw)
                     part = _chunk_summaries(final, y0w, st, args)
                     yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
-                    yq = np.asarray(jax.vmap(_to_q_batch)(jnp.asarray(yw)), np.float64)
+                    yq = np.array(jax.vmap(_to_q_batch)(jnp.asarray(yw)), np.float64)
                     yq[st != Status.OK] = np.nan
                     part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
                 part = {k: v[:hi - lo] for k, v in part.items()}

@@ -1,0 +1,221 @@
+"""The ensemble engine (issue 3): chunking, sharding, on-line summaries, the singular set."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+from jaxsleigh.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.engine import check_ics, drive_final, initial_w, make_horizon
+from jaxsleigh.ensemble import SUMMARY_FIELDS, run_ensemble
+from jaxsleigh.status import Status
+
+
+def _ics(n, seed=0, theta_lo=0.3):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-3, 3, (n, 2))
+    th = rng.uniform(theta_lo, np.pi, n) * rng.choice([-1, 1], n)
+    return np.column_stack([xy, th])
+
+
+def _assert_same(a, b, rtol=0.0):
+    for k in SUMMARY_FIELDS:
+        x, y = getattr(a, k), getattr(b, k)
+        if rtol == 0.0:
+            np.testing.assert_array_equal(x, y, err_msg=k)
+        else:
+            np.testing.assert_allclose(x, y, rtol=rtol, atol=0, err_msg=k)
+
+
+def test_chunked_equals_unchunked():
+    ics = _ics(40, seed=1)
+    kw = dict(t_final=20.0, eps=0.5, x64=True)
+    whole = run_ensemble(ics, chunk_size=64, **kw)
+    chunked = run_ensemble(ics, chunk_size=7, **kw)
+    assert np.all(whole.status == Status.OK)
+    _assert_same(whole, chunked, rtol=1e-12)
+
+
+def test_compaction_equals_no_compaction():
+    """Gathering the still-active trajectories into a smaller batch must not change any of them."""
+    ics5, st = check_ics(_ics(200, seed=2, theta_lo=0.05))
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+    hz = make_horizon(10.0, 0.01)
+    with jax.enable_x64(True):
+        y0 = initial_w(ics5, st, jnp.float64)
+        kw = dict(adaptive=True, rtol=1e-8, atol=1e-8, eps=0.1, max_steps=10 ** 5, max_step=0.1, segment=50)
+        a = drive_final(y0, st, args, hz, compact=True, **kw)
+        b = drive_final(y0, st, args, hz, compact=False, **kw)
+    # the starts need very different numbers of steps, so compaction really happened
+    assert a.n_accept.max() > 4 * np.median(a.n_accept)
+    for f in a._fields:
+        np.testing.assert_allclose(np.asarray(getattr(a, f), np.float64), np.asarray(getattr(b, f), np.float64),
+                                   rtol=1e-12, err_msg=f)
+
+
+def _T_eps_from_path(t, qn, eps):
+    inside = qn <= eps
+    if not inside[-1]:
+        return np.inf
+    out = np.flatnonzero(~inside)
+    return t[0] if out.size == 0 else t[out[-1] + 1]
+
+
+@pytest.mark.parametrize("method", ["rk4", "adaptive"])
+def test_summaries_equal_those_from_full_trajectories(method):
+    """On-line summaries inside the scan against the same quantities computed from the saved path.
+
+    With fixed steps every step is saved (save_every=1), so they must agree exactly; the adaptive
+    method samples more often than the save grid, so its T_eps may only be earlier by < one save
+    interval and min/max may only be more extreme."""
+    ics = _ics(24, seed=3)
+    eps, T = 0.6, 30.0
+    r = run_ensemble(ics, t_final=T, dt=0.01, eps=eps, method=method, save_every=1, x64=True)
+    assert np.all(r.status == Status.OK)
+    qn = np.linalg.norm(r.q_traj, axis=2)
+    T_path = np.array([_T_eps_from_path(r.t, qn[i], eps) for i in range(len(ics))])
+    assert np.isfinite(T_path).sum() >= 5 and (~np.isfinite(T_path)).sum() >= 1   # both kinds present
+    min_th = np.abs(r.q_traj[..., 2]).min(axis=1)
+    max_q = qn.max(axis=1)
+    np.testing.assert_allclose(r.q, r.q_traj[:, -1], rtol=1e-12, atol=1e-12)
+    if method == "rk4":
+        np.testing.assert_array_equal(np.isfinite(r.T_eps), np.isfinite(T_path))
+        fin = np.isfinite(T_path)
+        np.testing.assert_allclose(r.T_eps[fin], T_path[fin], rtol=1e-12)
+        np.testing.assert_allclose(r.min_abs_theta, min_th, rtol=1e-9)
+        np.testing.assert_allclose(r.max_excursion, max_q, rtol=1e-9)
+    else:
+        fin = np.isfinite(T_path) & np.isfinite(r.T_eps)
+        assert fin.sum() >= 5
+        assert np.all(r.T_eps[fin] <= T_path[fin] + 1e-9)
+        assert np.all(r.T_eps[fin] > T_path[fin] - 0.01 - 1e-9)
+        assert np.all(r.min_abs_theta <= min_th * (1 + 1e-9)) and np.all(r.max_excursion >= max_q * (1 - 1e-9))
+    np.testing.assert_allclose(r.Hd0, [float(js.closed_loop_hamiltonian(jnp.asarray(np.r_[ic, 0, 0]),
+                                                                        ClosedLoop(js.paper_plant(), js.paper_gains())))
+                                       for ic in ics], rtol=1e-6)
+    assert np.all(r.Hd_final <= r.Hd0)
+
+
+_SHARD_SCRIPT = textwrap.dedent("""
+    import json, sys, numpy as np, jax
+    from jaxsleigh.ensemble import run_ensemble, SUMMARY_FIELDS
+    assert jax.device_count() == 4, jax.devices()
+    ics = np.array(json.loads(sys.argv[1]))
+    out = {}
+    for name, dev in (("sharded", None), ("single", jax.devices()[:1])):
+        r = run_ensemble(ics, t_final=10.0, eps=0.5, x64=True, chunk_size=32, devices=dev)
+        out[name] = {k: np.asarray(getattr(r, k), np.float64).tolist() for k in SUMMARY_FIELDS}
+        out[name + "_devices"] = r.settings["devices"]
+    print("RESULT" + json.dumps(out))
+""")
+
+
+def test_sharded_equals_unsharded():
+    """Four (forced) host devices against one; the batch is split along its trajectory axis.
+    Equal to rounding (per-device batches of another size vectorise differently: ~1e-11)."""
+    ics = _ics(40, seed=4, theta_lo=0.1)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT, json.dumps(ics.tolist())], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.split("RESULT", 1)[1])
+    assert len(out["sharded_devices"]) == 4 and len(out["single_devices"]) == 1
+    for k in SUMMARY_FIELDS:
+        np.testing.assert_allclose(np.array(out["sharded"][k], dtype=float), np.array(out["single"][k], dtype=float),
+                                   rtol=1e-9, err_msg=k)
+
+
+def test_bad_rows_do_not_spoil_the_batch():
+    ics = _ics(6, seed=5)
+    bad = np.vstack([ics[:3], [[1.0, 1.0, 0.0]], [[np.nan, 0.0, 1.0]], ics[3:]])
+    with pytest.warns(UserWarning, match="2 of 8 initial conditions are invalid"):
+        r = run_ensemble(bad, t_final=5.0, x64=True)
+    good = run_ensemble(ics, t_final=5.0, x64=True)
+    assert r.status[3] == Status.SINGULAR_START and r.status[4] == Status.INVALID_INPUT
+    keep = np.r_[0:3, 5:8]
+    for k in SUMMARY_FIELDS:
+        np.testing.assert_allclose(np.asarray(getattr(r, k), float)[keep], np.asarray(getattr(good, k), float),
+                                   rtol=1e-12, err_msg=k)
+    assert np.isnan(r.q[3]).all() and np.isnan(r.T_eps[3]) and np.isnan(r.Hd0[4])
+
+
+def test_checkpoint_resume_gives_the_same_result(tmp_path):
+    ics = _ics(30, seed=6)
+    kw = dict(t_final=5.0, chunk_size=8)
+    full = run_ensemble(ics, **kw)
+    ck = tmp_path / "ck"
+    run_ensemble(ics, checkpoint_dir=ck, **kw)
+    chunks = sorted(ck.glob("chunk_*.npz"))
+    assert len(chunks) == 4
+    chunks[1].unlink()
+    chunks[3].unlink()                                      # as if killed after chunks 0 and 2
+    with pytest.raises(ValueError, match="resume"):
+        run_ensemble(ics, checkpoint_dir=ck, **kw)          # refuses to mix without --resume
+    resumed = run_ensemble(ics, checkpoint_dir=ck, resume=True, **kw)
+    _assert_same(full, resumed)
+    with pytest.raises(ValueError, match="other settings"):
+        run_ensemble(ics, checkpoint_dir=ck, resume=True, t_final=10.0, chunk_size=8)
+
+
+# --------------------------------------------------------------------------- near the singular set
+
+def _radau(y0, t_final):
+    from scipy.integrate import solve_ivp
+    with jax.enable_x64(True):
+        args = ClosedLoop(js.paper_plant(), js.paper_gains())
+        f = jax.jit(lambda y: vector_field(0.0, y, args))
+        jac = jax.jit(jax.jacfwd(lambda y: vector_field(0.0, y, args)))
+        sol = solve_ivp(lambda t, y: np.asarray(f(jnp.asarray(y))), (0.0, t_final), np.asarray(y0, float),
+                        method="Radau", rtol=1e-10, atol=1e-10, jac=lambda t, y: np.asarray(jac(jnp.asarray(y))))
+    assert sol.status == 0
+    return sol.y[:, -1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ic", [(1.0, 1.0, 1e-2), (-4.0, 5.0, -1e-2), (5.0, -5.0, 0.03)])
+def test_near_singular_matches_stiff_reference(ic):
+    """|theta0| = 1e-2 with |x|, |y| <= 5, float64 defaults: finite, and the final position within
+    1e-3 of the trajectory's largest excursion of a Radau (rtol 1e-10) reference."""
+    T = 30.0
+    r = run_ensemble(np.array([ic]), t_final=T, x64=True)
+    assert r.status[0] == Status.OK
+    ref = _radau(np.r_[ic, 0.0, 0.0], T)
+    err = np.abs(r.q[0] - ref[:3]).max()
+    assert err <= 1e-3 * r.max_excursion[0], (err, r.max_excursion[0])
+    assert r.max_excursion[0] > 100.0          # it really wandered far
+
+
+def test_tiny_theta0_budget_is_reported_then_raised():
+    """theta0 = 1e-3: the default budget runs out and says so; a larger budget gets through and agrees
+    with a tighter run (float64). The Radau comparison at this theta0 is in experiments/near_singular.py."""
+    ic = np.array([[3.0, 3.0, 1e-3]])
+    short = run_ensemble(ic, t_final=2.0, x64=True)
+    assert short.status[0] == Status.BUDGET_EXHAUSTED
+    assert 0.0 < short.t_reached[0] < 2.0 and np.isnan(short.q[0]).all()
+    ok = run_ensemble(ic, t_final=2.0, x64=True, max_steps=2_000_000)
+    tight = run_ensemble(ic, t_final=2.0, x64=True, max_steps=4_000_000, rtol=1e-10, atol=1e-10)
+    assert ok.status[0] == Status.OK and tight.status[0] == Status.OK
+    assert np.abs(ok.q[0] - tight.q[0]).max() <= 1e-6 * ok.max_excursion[0]
+    assert ok.max_excursion[0] > 1e5
+
+
+def test_starts_off_the_singular_set_never_go_nonfinite():
+    """theta0 down to 1e-2 anywhere in |x|, |y| <= 5 (float32 default): every trajectory ends OK
+    and finite (fixed RK4 at the same dt fails on some of them, and says so)."""
+    rng = np.random.default_rng(7)
+    n = 64
+    ics = np.column_stack([rng.uniform(-5, 5, (n, 2)), rng.choice([-1, 1], n) * 10 ** rng.uniform(-2, 0.5, n)])
+    r = run_ensemble(ics, t_final=20.0, max_steps=400_000)
+    assert np.all(r.status == Status.OK), np.bincount(r.status)
+    assert np.isfinite(r.q).all() and np.isfinite(r.Hd_final).all()
+    fixed = run_ensemble(ics, t_final=20.0, method="rk4")
+    assert np.any(fixed.status != Status.OK)
+    assert np.isnan(fixed.q[fixed.status != Status.OK]).all()
