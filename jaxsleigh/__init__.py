@@ -4,6 +4,7 @@ from .closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamil
                           state_from_w, state_to_w, vector_field, vector_field_w)
 from .control import control, control_w, measured_velocity, potential
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping
+from .ensemble import EnsembleResult, run_ensemble
 from .params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_plant, plant_params,
                      save_gains)
 from .simulate import Solution, simulate

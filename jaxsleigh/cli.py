@@ -355,7 +355,56 @@ def _cmd_paper(args) -> int:
 # entry point
 # ---------------------------------------------------------------------------------------------
 
-_SUBCOMMANDS = [_add_simulate, _add_paper]
+def _add_bench(subparsers) -> None:
+    p = subparsers.add_parser(
+        "bench", help="measure jaxsleigh's own throughput and accuracy (JSON)",
+        description=("Benchmark jaxsleigh on the measured workload (x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi), "
+                     "zero momentum): fixed-step RK4 throughput (final state only), correct trajectories per "
+                     "second of the default adaptive method (final-state error <= 1e-3 against a float64 "
+                     "reference), wrong or non-finite counts, peak memory. Compile time is excluded. "
+                     "Peers (plain vmap, NumPy, diffrax, scipy) are compared by experiments/bench_peers.py."))
+    p.add_argument("--json", action="store_true", help="print one JSON object (default: a short table)")
+    p.add_argument("--n-ics", type=int, default=4096, help="number of initial conditions (default 4096)")
+    p.add_argument("--t-final", type=float, default=100.0, help="horizon in s (default 100)")
+    p.add_argument("--dt", type=float, default=0.01, help="base step in s (default 0.01)")
+    p.add_argument("--x64", action="store_true", help="float64 (default float32)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the workload (default 0)")
+    p.add_argument("--repeats", type=int, default=1, help="timed repeats, best kept (default 1)")
+    p.add_argument("--cache", default=None, help="directory to cache the float64 reference in")
+    p.set_defaults(func=_cmd_bench)
+
+
+def _cmd_bench(args) -> int:
+    from .bench import bench
+
+    if args.n_ics < 1:
+        raise ValueError(f"--n-ics must be >= 1, got {args.n_ics}")
+    res = bench(n_ics=args.n_ics, t_final=args.t_final, dt=args.dt, x64=args.x64, seed=args.seed,
+                repeats=args.repeats, cache_dir=args.cache)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            if k != "machine":
+                print(f"{k:40s} {v:.4g}" if isinstance(v, float) else f"{k:40s} {v}")
+    return 0
+
+
+def _optional_subcommands():
+    """Subcommands living in their own modules (basins, tuning), registered when present."""
+    out = []
+    for mod, fn in (("cli_basin", "add_basin"), ("cli_tune", "add_tune")):
+        try:
+            module = __import__(f"{__package__}.{mod}", fromlist=[fn])
+        except ModuleNotFoundError as e:
+            if e.name != f"{__package__}.{mod}":
+                raise
+            continue
+        out.append(getattr(module, fn))
+    return out
+
+
+_SUBCOMMANDS = [_add_simulate, _add_paper, _add_bench, *_optional_subcommands()]
 
 
 def build_parser() -> argparse.ArgumentParser:
