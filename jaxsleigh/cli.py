@@ -29,7 +29,6 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .io import npz_path as _npz_path
 from .io import write_npz
 
 __all__ = ["main", "build_parser", "parse_ic"]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -192,6 +192,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     """
     dtype = y0w.dtype
     n = y0w.shape[0]
+    # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
+    segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
     target = jnp.asarray(horizon.t_final, dtype)
     state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)

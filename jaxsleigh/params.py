@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name

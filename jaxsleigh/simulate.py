@@ -5,7 +5,6 @@ batches with summaries only, see :mod:`jaxsleigh.ensemble`.
 """
 from __future__ import annotations
 
-import functools
 import time
 from typing import Any, NamedTuple, Optional
 
