@@ -42,13 +42,14 @@ def main():
     ap.add_argument("--t-final", type=float, default=100.0)
     ap.add_argument("--t-final-tiny", type=float, default=2.0, help="horizon at |theta0| = 1e-3")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--thetas", default="1e-1,3e-2,1e-2,3e-3,1e-3", help="comma list of |theta0|")
     ap.add_argument("--out", default="out/near_singular_accuracy.json")
     a = ap.parse_args()
     rng = np.random.default_rng(a.seed)
     rows = []
     print("| theta0 | start (x, y) | T [s] | dtype | status | steps | error / max excursion | max excursion [m] | Radau nfev |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for th in (1e-1, 3e-2, 1e-2, 3e-3, 1e-3):
+    for th in (float(v) for v in a.thetas.split(",")):
         T = a.t_final if th > 1.5e-3 else a.t_final_tiny
         for _ in range(a.n_per):
             x, y = rng.uniform(-5, 5, 2)
