@@ -15,10 +15,8 @@ message that says what to change: :func:`main` prints it as ``jaxsleigh: error: 
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import math
-import operator
 import sys
 import textwrap
 import time
@@ -29,6 +27,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .io import parse_number as _number
 from .io import write_npz
 
 __all__ = ["main", "build_parser", "parse_ic"]
@@ -50,39 +49,6 @@ class _Parser(argparse.ArgumentParser):
 # ---------------------------------------------------------------------------------------------
 # parsing of values
 # ---------------------------------------------------------------------------------------------
-
-_BINOPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv}
-_NAMES = {"pi": math.pi, "nan": math.nan, "inf": math.inf}
-
-
-def _number(text: str) -> float:
-    """A float from ``'0.39'``, ``'-pi/8'``, ``'3*pi/4'``, ``'1e-3'`` (numbers, pi, + - * /)."""
-
-    def ev(node):
-        if isinstance(node, ast.Expression):
-            return ev(node.body)
-        if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) \
-                and not isinstance(node.value, bool):
-            return float(node.value)
-        if isinstance(node, ast.Name) and node.id.lower() in _NAMES:
-            return _NAMES[node.id.lower()]
-        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
-            v = ev(node.operand)
-            return -v if isinstance(node.op, ast.USub) else v
-        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
-            return _BINOPS[type(node.op)](ev(node.left), ev(node.right))
-        raise ValueError
-
-    text = text.strip()
-    try:
-        return float(text)
-    except ValueError:
-        pass
-    try:
-        return ev(ast.parse(text, mode="eval"))
-    except (SyntaxError, ValueError, ZeroDivisionError, RecursionError):
-        raise ValueError(f"{text!r} is not a number") from None
-
 
 def parse_ic(text: str) -> list[float]:
     """``'X,Y,THETA'`` or ``'X,Y,THETA,P1,P2'`` -> list of floats (entries may use ``pi``)."""

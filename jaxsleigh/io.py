@@ -1,13 +1,16 @@
 """Files: the ``.npz`` written by ``jaxsleigh simulate`` and ``jaxsleigh paper`` (a stable contract)."""
 from __future__ import annotations
 
+import ast
 import json
+import math
+import operator
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["write_npz", "npz_path", "damping_name"]
+__all__ = ["write_npz", "npz_path", "damping_name", "parse_number"]
 
 
 def npz_path(path) -> Path:
@@ -56,3 +59,36 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
 def damping_name(class_name: str) -> str:
     return {"CoulombDamping": "coulomb", "ViscousDamping": "viscous", "NoDamping": "none"}.get(
         class_name, class_name)
+
+
+_BINOPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv}
+_NAMES = {"pi": math.pi, "nan": math.nan, "inf": math.inf}
+
+
+def parse_number(text: str) -> float:
+    """A float from ``'0.39'``, ``'-pi/8'``, ``'3*pi/4'``, ``'1e-3'`` (numbers, pi, + - * /)."""
+
+    def ev(node):
+        if isinstance(node, ast.Expression):
+            return ev(node.body)
+        if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) \
+                and not isinstance(node.value, bool):
+            return float(node.value)
+        if isinstance(node, ast.Name) and node.id.lower() in _NAMES:
+            return _NAMES[node.id.lower()]
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+            v = ev(node.operand)
+            return -v if isinstance(node.op, ast.USub) else v
+        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            return _BINOPS[type(node.op)](ev(node.left), ev(node.right))
+        raise ValueError
+
+    text = text.strip()
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        return ev(ast.parse(text, mode="eval"))
+    except (SyntaxError, ValueError, ZeroDivisionError, RecursionError, OverflowError):
+        raise ValueError(f"{text!r} is not a number") from None

@@ -216,7 +216,8 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         n_accept=s.n_accept + acc.astype(jnp.int32),
         n_reject=s.n_reject + rej.astype(jnp.int32),
         Hd=jnp.where(acc, Hd_new, s.Hd),
-        t_enter=jnp.where(acc, jnp.where(inside, jnp.minimum(s.t_enter, t_new), jnp.inf), s.t_enter).astype(dtype),
+        t_enter=jnp.where(acc, jnp.where(inside, jnp.minimum(s.t_enter, t_new + t_lo_new), jnp.inf),
+                          s.t_enter).astype(dtype),
         min_abs_theta=jnp.where(acc, jnp.minimum(s.min_abs_theta, jnp.abs(s.y[0] + dy[0])), s.min_abs_theta),
         max_q2=jnp.where(acc, jnp.maximum(s.max_q2, q2), s.max_q2),
     )

@@ -1,0 +1,289 @@
+"""``jaxsleigh basin``: convergence over a grid, Monte-Carlo samples or a file of starts.
+
+Registered by :func:`add_basin` (``jaxsleigh.cli`` lists it among its subcommands)::
+
+    jaxsleigh basin --x -3:3:128 --y -3:3:128 --theta pi/8 --out xy.npz --plot xy.png
+    jaxsleigh basin --x -3:3:128 --y 1 --theta -pi:pi:128 --out xtheta.npz
+    jaxsleigh basin --samples 100000 --seed 1 --out mc.npz
+    jaxsleigh basin --ics starts.npy --eps 0.05 --t-final 100 --x64 --out mine.npz
+
+Results are written chunk by chunk to ``FILE.npz.chunks/``; an interrupted run (Ctrl-C, a killed
+process) continues from the finished chunks when the same command is given again with
+``--resume``, and ends with the same ``.npz``, byte for byte. Wall time, devices, machine load and
+the command line go to a sidecar ``FILE.run.json``, never into the ``.npz``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import shutil
+import sys
+import textwrap
+import time
+import warnings
+from pathlib import Path
+
+__all__ = ["add_basin", "run_basin_command"]
+
+PROG = "jaxsleigh"
+
+
+def _positive_float(flag: str, example: str):
+    def conv(text):
+        from .basin import _number
+
+        try:
+            v = _number(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} must be a number, got {text!r} (e.g. {flag} {example})")
+        if not (math.isfinite(v) and v > 0):
+            raise argparse.ArgumentTypeError(f"{flag} must be a finite number > 0, got {text!r} "
+                                             f"(e.g. {flag} {example})")
+        return v
+    return conv
+
+
+def _whole(flag: str, example: str, minimum: int):
+    def conv(text):
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} must be a whole number, got {text!r} (e.g. {flag} {example})")
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"{flag} must be >= {minimum}, got {v} (e.g. {flag} {example})")
+        return v
+    return conv
+
+
+def _epilog() -> str:
+    from .status import describe
+
+    codes = "\n".join(textwrap.fill(line, width=96, initial_indent="  ", subsequent_indent="      ")
+                      for line in describe().splitlines())
+    return (
+        "starts (one of):\n"
+        "  grid     --x/--y/--theta, each LO:HI:N (N points, ends included) or one value (held fixed);\n"
+        "           none given: --x -3:3:64 --y -3:3:64 --theta pi/4; a coordinate not given is held at\n"
+        "           x = 1, y = 1, theta = pi/4. Values may use pi. Grid points with theta = 0 (the\n"
+        "           singular set) are flagged (status 1), not integrated, and left out of the fraction.\n"
+        "  samples  --samples N [--seed S]: uniform in the box given by --x/--y/--theta (LO:HI[:N], N\n"
+        "           ignored; default |x|, |y| <= 3, theta in (-pi, pi)).\n"
+        "  file     --ics FILE.npy: shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2].\n"
+        "A negative range may follow its flag directly (--x -3:3:64) or with '=' (--x=-3:3:64).\n\n"
+        "output .npz keys: ics (N,3|5), T_eps (N,) [inf: not settled by --t-final, nan: failed],\n"
+        "  status (N,), Hd0, Hd_final, min_abs_theta, max_excursion, n_steps, n_rejected (N,),\n"
+        "  q_final (N,3), p_final (N,2), converged, valid (N,) bool, fraction, fraction_se\n"
+        "  [sqrt(S(1-S)/N) over the valid starts], n_valid, n_converged, T_eps_percentiles (at\n"
+        "  T_eps_percentile_levels), kind, grid_shape, grid_axes, axis_x/axis_y/axis_theta (grids) or\n"
+        "  box/seed (samples), settings_json, eps, t_final, dt, method, dtype, max_steps, gains_L,\n"
+        "  gains_k, gains_D_hat, params (m,J,l), damping. Grid arrays reshape to grid_shape (slowest\n"
+        "  axis first); grid_axes lists the varying coordinates, fastest first.\n"
+        "  Sidecar FILE.run.json: wall time, devices, load, command (things that vary between runs).\n\n"
+        "status codes:\n" + codes + "\n\n"
+        "examples:\n"
+        "  jaxsleigh basin --x -3:3:128 --y -3:3:128 --theta pi/8 --out xy.npz --plot xy.png\n"
+        "  jaxsleigh basin --x -3:3:256 --y 1 --theta -pi:pi:256 --out xt.npz --plot xt.png\n"
+        "  jaxsleigh basin --samples 100000 --seed 1 --theta 0.05:pi --out mc.npz\n"
+        "  jaxsleigh basin ... --resume      (continue an interrupted run; same options)")
+
+
+def add_basin(subparsers) -> argparse.ArgumentParser:
+    """Register the ``basin`` subcommand on an ``argparse`` subparsers object; returns its parser."""
+    from .cli import _add_horizon_options, _add_model_options
+
+    p = subparsers.add_parser(
+        "basin", help="convergence time and basin of attraction over a grid, samples or a file of starts",
+        description="Integrate the closed loop (paper eq. 13) from many starts at rest and record, per start, "
+                    "the convergence time T_eps (the first time after which |q| <= --eps holds up to "
+                    "--t-final), the status, H_d(0), min |theta|, max |q| and the steps used; summarise the "
+                    "fraction converged (+- its standard error) and the distribution of T_eps. Chunks are "
+                    "checkpointed next to --out; --resume continues an interrupted run.",
+        epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    g = p.add_argument_group("starts")
+    g.add_argument("--x", metavar="LO:HI:N|X", help="x range or fixed x [m]")
+    g.add_argument("--y", metavar="LO:HI:N|Y", help="y range or fixed y [m]")
+    g.add_argument("--theta", metavar="LO:HI:N|THETA", help="theta range or fixed theta [rad] (e.g. -pi:pi:128)")
+    src = g.add_mutually_exclusive_group()
+    src.add_argument("--ics", metavar="FILE.npy", help="starts from a file, shape (N, 3) or (N, 5)")
+    src.add_argument("--samples", type=_whole("--samples", "100000", 1), metavar="N",
+                     help="N Monte-Carlo starts, uniform in the --x/--y/--theta box")
+    g.add_argument("--seed", type=_whole("--seed", "1", 0), metavar="S", help="seed of --samples (default 0)")
+    c = p.add_argument_group("convergence")
+    c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
+                   help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
+    _add_horizon_options(p, save_every=None)
+    _add_model_options(p)
+    r = p.add_argument_group("run")
+    r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1), default=None, metavar="N",
+                   help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
+                        "131072 per accelerator)")
+    r.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
+    r.add_argument("--keep-chunks", action="store_true",
+                   help="keep FILE.npz.chunks/ after the .npz is written (default: delete it)")
+    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="progress bar with ETA on stderr (default: only on a terminal)")
+    o = p.add_argument_group("output")
+    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
+    o.add_argument("--plot", metavar="FILE.png",
+                   help="also draw the convergence-time map, the fraction against theta0 and the T_eps distribution")
+    # "--x -3:3:64", "--theta -pi/2:pi/2:64": values, not options (argparse would read them as flags)
+    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
+    p.set_defaults(func=run_basin_command)
+    return p
+
+
+def _chunk_dir(out: Path) -> Path:
+    return out.with_name(out.name + ".chunks")
+
+
+def _sidecar(out: Path) -> Path:
+    return out.with_name(out.stem + ".run.json")
+
+
+def _load_ics(path: str):
+    import numpy as np
+
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"initial-conditions file {path!r} not found; give an existing .npy file of shape (N, 3) "
+                         f"or (N, 5), or use a grid (--x/--y/--theta) or --samples N")
+    try:
+        if p.suffix.lower() in (".txt", ".csv"):
+            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
+        else:
+            arr = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"could not read initial conditions from {path!r} ({e}); save them with numpy.save "
+                         f"as a float array of shape (N, 3) or (N, 5)") from None
+    if not isinstance(arr, np.ndarray) or not np.issubdtype(arr.dtype, np.number) or arr.ndim != 2 \
+            or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
+        raise ValueError(f"{path!r} holds {getattr(arr, 'shape', type(arr).__name__)}; initial conditions must "
+                         f"be a numeric array of shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2]")
+    return arr.astype(np.float64)
+
+
+def _starts_from_args(args):
+    from .basin import array_starts, grid_starts, parse_axis, sample_starts
+
+    coords = {"x": args.x, "y": args.y, "theta": args.theta}
+    if args.seed is not None and args.samples is None:
+        raise ValueError("--seed applies to --samples only; add --samples N or drop --seed")
+    if args.ics is not None:
+        given = [f"--{k}" for k, v in coords.items() if v is not None]
+        if given:
+            verb = "defines" if len(given) == 1 else "define"
+            raise ValueError(f"{' and '.join(given)} {verb} a grid or the --samples box and cannot be combined "
+                             f"with --ics; drop {'it' if len(given) == 1 else 'them'} or drop --ics")
+        return array_starts(_load_ics(args.ics), source=str(args.ics))
+    if args.samples is not None:
+        for k, v in coords.items():
+            if v is not None:
+                _check_box(v, f"--{k}")
+        return sample_starts(args.samples, seed=0 if args.seed is None else args.seed, **coords)
+    for k, v in coords.items():
+        if v is not None:
+            parse_axis(v, f"--{k}")          # the same checks as grid_starts, with the flag's name
+    return grid_starts(**coords)
+
+
+def _check_box(text: str, flag: str) -> None:
+    """An interval LO:HI (or LO:HI:N, N ignored) or one value, for the --samples box."""
+    from .basin import _number
+
+    parts = text.split(":")
+    hint = f"write LO:HI (e.g. {flag} {'-pi:pi' if flag == '--theta' else '-3:3'}) or one value to hold it fixed"
+    if len(parts) not in (1, 2, 3):
+        raise ValueError(f"could not parse {flag} {text!r}; {hint}")
+    try:
+        vals = [_number(s) for s in parts[:2]]
+    except ValueError as e:
+        raise ValueError(f"could not parse {flag} {text!r}: {e}; {hint}") from None
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"{flag} {text!r} has a non-finite bound; {hint}")
+    if len(vals) == 2 and not vals[0] < vals[1]:
+        raise ValueError(f"{flag} {text!r}: LO must be below HI; write e.g. {flag} "
+                         f"{min(vals):g}:{max(vals):g}")
+
+
+def _check_horizon(args) -> None:
+    n_steps = round(args.t_final / args.dt)
+    if n_steps < 1 or abs(n_steps * args.dt - args.t_final) > 1e-9 * max(1.0, args.t_final):
+        raise ValueError(f"--t-final {args.t_final:g} is not a whole multiple of --dt {args.dt:g}; "
+                         f"use e.g. --t-final {max(1, n_steps) * args.dt:g}")
+
+
+def _load() -> list:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:  # pragma: no cover - not on every platform
+        return []
+
+
+def run_basin_command(args) -> int:
+    """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns 0."""
+    from .basin import run_basin, save_basin
+    from .cli import _model_from_args
+    from .io import npz_path
+
+    _check_horizon(args)
+    starts = _starts_from_args(args)
+    plant, gains = _model_from_args(args)
+    out = npz_path(args.out)
+    chunks = _chunk_dir(out)
+    have_chunks = chunks.is_dir() and any(chunks.glob("chunk_*.npz"))
+    if have_chunks and not args.resume:
+        raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
+                         f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
+    n_reused = len(list(chunks.glob("chunk_*.npz"))) if have_chunks else 0
+    argv = list(getattr(args, "_argv", None) or [])
+    load_start = _load()
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = run_basin(starts, eps=args.eps, t_final=args.t_final, dt=args.dt, method=args.method,
+                            plant=plant, gains=gains, x64=args.x64, max_steps=args.max_steps,
+                            chunk_size=args.chunk_size, checkpoint_dir=chunks, resume=args.resume,
+                            progress=args.progress)
+    except KeyboardInterrupt:
+        print(f"{PROG} basin: interrupted; the finished chunks are in {chunks}/ - run the same command with "
+              f"--resume to continue", file=sys.stderr)
+        raise
+    except ValueError as e:
+        if str(e).startswith("checkpoint "):
+            raise ValueError(f"the chunks in {str(chunks)!r} were made with other options or starts than this "
+                             f"command; rerun the original command with --resume, or delete that folder to "
+                             f"start afresh") from None
+        raise
+    wall = time.perf_counter() - t0
+    for w in caught:
+        text = str(w.message)
+        if "initial conditions are invalid" in text:
+            continue                               # counted below
+        print(f"{PROG}: warning: {text}", file=sys.stderr)
+    n_flag = int((~res.valid).sum())
+    if n_flag:
+        print(f"{PROG}: warning: {n_flag} of {res.status.size} starts flagged and not integrated (theta0 = 0, "
+              f"the singular set, or non-finite); they are left out of the fraction", file=sys.stderr)
+    path = save_basin(out, res)
+    info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
+            "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
+            "loadavg_start": load_start, "loadavg_end": _load(), "cpu_count": os.cpu_count(), "summary": res.summary()}
+    side = _sidecar(out)
+    side.write_text(json.dumps(info, indent=1, default=str) + "\n")
+    if not args.keep_chunks:
+        shutil.rmtree(chunks, ignore_errors=True)
+    written = [str(path), str(side)]
+    if args.plot:
+        from .basin_plots import plot_basin
+        from .plotting import save_figure
+
+        written.append(str(save_figure(plot_basin(res), args.plot)))
+    print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
+    print(f"{PROG} basin: {wall:.1f} s wall ({res.settings['dtype']}, {res.settings['method']}"
+          f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
+    return 0

@@ -1,0 +1,400 @@
+"""Basin studies (:mod:`jaxsleigh.basin`), their figures and ``jaxsleigh basin``.
+
+Ground truth: ``T_eps`` from the on-line summaries equals ``T_eps`` read off full trajectories of
+:func:`jaxsleigh.simulate` (fixed-step RK4 saved at every step, float32 and float64); the converged
+set of the default float32 adaptive run agrees with a float64 reference; an interrupted run resumed
+from its chunks writes the same bytes as an uninterrupted one; the standard error of the fraction
+is the binomial one (formula and Monte-Carlo spread).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import jaxsleigh
+import jaxsleigh.ensemble
+from jaxsleigh import cli
+from jaxsleigh.basin import (Axis, BasinResult, BasinStarts, array_starts, fraction_by, fraction_converged,
+                             grid_starts, load_basin, parse_axis, path_length, power_law_fit, run_basin,
+                             sample_starts, save_basin)
+from jaxsleigh.cli_basin import add_basin
+from jaxsleigh.status import Status
+
+# a small x-y slice with a mix of converged and unsettled starts (10 of 24 converge)
+GRID = dict(x="-2:2:6", y="-1.5:1.5:4", theta=0.9)
+FAST = dict(eps=0.31, t_final=30.0, dt=0.05, method="rk4", progress=False)
+
+
+def _t_eps_from_trajectories(q: np.ndarray, t: np.ndarray, eps: float) -> np.ndarray:
+    """First saved time after which |q| <= eps at every later saved time (inf: never settles)."""
+    inside = np.linalg.norm(q, axis=-1) <= eps
+    out = np.full(q.shape[0], np.inf)
+    for i, row in enumerate(inside):
+        outside = np.flatnonzero(~row)
+        if outside.size == 0:
+            out[i] = t[0]
+        elif outside[-1] < t.size - 1:
+            out[i] = t[outside[-1] + 1]
+    return out
+
+
+@pytest.fixture(scope="module")
+def xt_result():
+    """A tiny x-theta map (theta = 0 row included) from the default adaptive float32 engine."""
+    with pytest.warns(UserWarning, match="6 of 30 initial conditions are invalid"):
+        return run_basin(grid_starts(x="-2:2:6", y=0.5, theta="-2.5:2.5:5"), eps=0.3, t_final=30.0, dt=0.05,
+                         progress=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# ground truth
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("x64", [False, True], ids=["float32", "float64"])
+def test_t_eps_equals_t_eps_of_full_trajectories(x64):
+    starts = grid_starts(**GRID)
+    res = run_basin(starts, x64=x64, **FAST)
+    sol = jaxsleigh.simulate(starts.ics, t_final=FAST["t_final"], dt=FAST["dt"], save_every=1, method="rk4",
+                             x64=x64)
+    assert np.all(res.status == Status.OK) and np.all(sol.status == Status.OK)
+    # no saved |q| is so close to eps that rounding could flip inside/outside
+    assert np.min(np.abs(np.linalg.norm(sol.q, axis=-1) - FAST["eps"])) > 1e-4
+    ref = _t_eps_from_trajectories(sol.q, sol.t, FAST["eps"])
+    assert 5 <= np.isfinite(ref).sum() <= 19, "the grid should mix converged and unsettled starts"
+    np.testing.assert_array_equal(np.isfinite(res.T_eps), np.isfinite(ref))
+    # float32 time is accumulated in float32: a few ulps per step
+    tol = 1e-3 if not x64 else 1e-9
+    np.testing.assert_allclose(res.T_eps[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=tol)
+    # the other summaries agree with the trajectories as well
+    np.testing.assert_allclose(res.Hd0, sol.Hd[:, 0], rtol=1e-5 if not x64 else 1e-12)
+    qn = np.linalg.norm(sol.q, axis=-1)
+    np.testing.assert_allclose(res.max_excursion, qn.max(axis=1), rtol=1e-5 if not x64 else 1e-12)
+    np.testing.assert_allclose(res.min_abs_theta, np.abs(sol.q[..., 2]).min(axis=1), rtol=1e-4 if not x64 else 1e-12)
+    assert np.all(res.n_steps == round(FAST["t_final"] / FAST["dt"]))
+    assert res.fraction == np.isfinite(ref).mean()
+
+
+def test_converged_set_agrees_with_float64_reference():
+    """Default engine (adaptive, float32) against float64 trajectories saved at every base step."""
+    starts = grid_starts(**GRID)
+    kw = dict(eps=0.31, t_final=30.0, dt=0.05)
+    res = run_basin(starts, progress=False, **kw)
+    ref_sol = jaxsleigh.simulate(starts.ics, save_every=1, x64=True, **{k: kw[k] for k in ("t_final", "dt")})
+    ref = _t_eps_from_trajectories(ref_sol.q, ref_sol.t, kw["eps"])
+    np.testing.assert_array_equal(res.converged, np.isfinite(ref))
+    both = np.isfinite(ref)
+    # adaptive steps (up to 10 dt) do not land on the save grid: T_eps agrees to a step
+    assert np.max(np.abs(res.T_eps[both] - ref[both])) <= 10 * kw["dt"] + 1e-6
+
+
+# ---------------------------------------------------------------------------------------------
+# summaries
+# ---------------------------------------------------------------------------------------------
+
+def _synthetic(status, T_eps) -> BasinResult:
+    n = len(status)
+    z = np.zeros(n)
+    return BasinResult(starts=array_starts(np.column_stack([z, z, np.ones(n)])), ics=np.zeros((n, 5)),
+                       T_eps=np.asarray(T_eps, float), status=np.asarray(status, np.int32), Hd0=z, Hd_final=z,
+                       min_abs_theta=z, max_excursion=z, n_steps=z.astype(int), n_rejected=z.astype(int),
+                       q_final=np.zeros((n, 3)), p_final=np.zeros((n, 2)),
+                       settings={"eps": 0.05, "t_final": 100.0, "dt": 0.01, "method": "rk4", "dtype": "float32"})
+
+
+def test_fraction_standard_error_on_a_synthetic_case():
+    # 100 of 400 converged: S = 1/4, se = sqrt(S (1 - S) / N)
+    s, se = fraction_converged(np.arange(400) < 100)
+    assert s == 0.25 and se == pytest.approx(math.sqrt(0.25 * 0.75 / 400), rel=1e-12)
+    assert fraction_converged(np.ones(10, bool)) == (1.0, 0.0)
+    assert all(math.isnan(v) for v in fraction_converged(np.ones(3, bool), np.zeros(3, bool)))
+    # flagged starts (theta0 = 0) leave N; failures and unsettled starts count as not converged
+    status = [Status.OK] * 6 + [Status.SINGULAR_START] * 3 + [Status.NONFINITE, Status.BUDGET_EXHAUSTED]
+    T = [10.0, 20.0, 30.0, np.inf, np.inf, 5.0, np.nan, np.nan, np.nan, np.nan, np.nan]
+    r = _synthetic(status, T)
+    assert r.valid.sum() == 8 and r.converged.sum() == 4 and r.failed.sum() == 2 and r.not_converged.sum() == 2
+    assert r.fraction == 0.5 and r.fraction_se == pytest.approx(math.sqrt(0.25 / 8))
+    d = r.summary()
+    assert d["n_flagged"] == 3 and d["T_eps_percentiles"]["p50"] == pytest.approx(15.0)
+    # the standard error is the spread of S over independent replicates
+    rng = np.random.default_rng(0)
+    p, n = 0.3, 500
+    draws = rng.random((4000, n)) < p
+    spread = np.std(draws.mean(axis=1))
+    ses = np.array([fraction_converged(d)[1] for d in draws[:200]])
+    assert spread == pytest.approx(math.sqrt(p * (1 - p) / n), rel=0.05)
+    assert np.mean(ses) == pytest.approx(spread, rel=0.05)
+
+
+def test_fraction_by_groups_and_bins():
+    v = np.array([1.0, 1.0, 2.0, 2.0, 2.0, 3.0])
+    conv = np.array([True, False, True, True, False, True])
+    c, f, se, n = fraction_by(v, conv)
+    np.testing.assert_array_equal(c, [1, 2, 3])
+    np.testing.assert_allclose(f, [0.5, 2 / 3, 1.0])
+    np.testing.assert_allclose(se, [math.sqrt(0.25 / 2), math.sqrt(2 / 9 / 3), 0.0])
+    np.testing.assert_array_equal(n, [2, 3, 1])
+    c, f, se, n = fraction_by(v, conv, bins=np.array([0.0, 1.5, 3.5]))
+    np.testing.assert_allclose(f, [0.5, 0.75])
+    np.testing.assert_array_equal(n, [2, 4])
+
+
+def test_power_law_fit_and_path_length():
+    x = np.geomspace(1e-3, 1e-1, 9)
+    fit = power_law_fit(x, 2.6 * x ** -4.0)
+    assert fit.exponent == pytest.approx(-4.0, abs=1e-12) and fit.prefactor == pytest.approx(2.6)
+    assert fit.exponent_se < 1e-10 and fit.r2 == pytest.approx(1.0)
+    noisy = power_law_fit(x, 3 * x ** 2 * np.exp(0.1 * np.sin(np.arange(9) * 2.0)))
+    assert abs(noisy.exponent - 2) < 3 * noisy.exponent_se + 0.05 and noisy.exponent_se > 0
+    with pytest.raises(ValueError, match="at least two points"):
+        power_law_fit([1.0], [1.0])
+    # a square of side 2, walked once, decimated at its corners; NaN after a failure is skipped
+    q = np.array([[0, 0, 1], [2, 0, 1], [2, 2, 1], [0, 2, 1], [0, 0, 1], [np.nan] * 3], float)
+    assert path_length(q) == pytest.approx(8.0)
+    np.testing.assert_allclose(path_length(np.stack([q, 2 * q])), [8.0, 16.0])
+
+
+# ---------------------------------------------------------------------------------------------
+# grids and samples
+# ---------------------------------------------------------------------------------------------
+
+def test_parse_axis_ranges_values_and_errors():
+    assert parse_axis("-3:3:64") == Axis(-3.0, 3.0, 64)
+    assert parse_axis("-pi:pi/2:5", "theta") == Axis(-math.pi, math.pi / 2, 5)
+    assert parse_axis("0.5") == Axis(0.5, 0.5, 1) and parse_axis(2) == Axis(2.0, 2.0, 1)
+    assert parse_axis((0, 1, 3)).n == 3
+    np.testing.assert_allclose(parse_axis("0:1:5").values(), [0, 0.25, 0.5, 0.75, 1])
+    assert parse_axis("-pi:pi:5", "theta").values()[2] == 0.0        # snapped onto the singular set
+    bad = {"-3:3": "LO:HI:N", "3:-3:8": "write e.g. --x -3:3:8", "a:1:4": "'a' is not a number",
+           "0:1:2.5": "whole number", "0:1:1": "N >= 2", "1:2:3:4": "LO:HI:N", "nan:1:3": "non-finite"}
+    for spec, fix in bad.items():
+        with pytest.raises(ValueError, match="--x") as e:
+            parse_axis(spec, "--x")
+        assert fix in str(e.value), (spec, str(e.value))
+
+
+def test_grid_layout_x_fastest_and_defaults():
+    g = grid_starts(x="0:3:4", y=1, theta="1:2:3")
+    assert g.kind == "grid" and g.shape == (3, 4) and g.axes == ("x", "theta")
+    assert g.ics.shape == (12, 3)
+    np.testing.assert_allclose(g.reshape(g.ics[:, 0])[0], [0, 1, 2, 3])         # rows run along x
+    np.testing.assert_allclose(g.reshape(g.ics[:, 2])[:, 0], [1, 1.5, 2])     # columns along theta
+    assert np.all(g.ics[:, 1] == 1.0)
+    d = grid_starts()
+    assert d.shape == (64, 64) and d.axes == ("x", "y") and np.allclose(d.ics[:, 2], math.pi / 4)
+    held = grid_starts(theta="-1:1:4")
+    assert held.axes == ("theta",) and np.all(held.ics[:, :2] == 1.0)
+    with pytest.raises(ValueError, match="singular set"):
+        grid_starts(x="-1:1:3", theta=0)
+
+
+def test_samples_are_reproducible_and_in_the_box():
+    a = sample_starts(1000, seed=3)
+    b = sample_starts(1000, seed=3)
+    np.testing.assert_array_equal(a.ics, b.ics)
+    assert not np.array_equal(a.ics, sample_starts(1000, seed=4).ics)
+    assert np.all(np.abs(a.ics[:, :2]) <= 3) and np.all(np.abs(a.ics[:, 2]) < math.pi)
+    assert a.ics[:, 0].std() > 1.5                          # really spread over the box
+    c = sample_starts(50, seed=0, x=2.0, theta="0.1:0.2:99")  # N of a range is ignored
+    assert np.all(c.ics[:, 0] == 2.0) and np.all((c.ics[:, 2] >= 0.1) & (c.ics[:, 2] <= 0.2))
+    for bad, msg in [(dict(n=0), "whole number >= 1"), (dict(n=5, seed=-1), "seed"),
+                     (dict(n=5, theta=0), "singular set")]:
+        with pytest.raises(ValueError, match=msg):
+            sample_starts(**bad)
+
+
+def test_theta_zero_is_flagged_and_left_out_of_the_fraction(xt_result):
+    r = xt_result
+    on_set = r.ics[:, 2] == 0.0
+    assert on_set.sum() == 6
+    assert np.all(r.status[on_set] == Status.SINGULAR_START) and np.all(np.isnan(r.T_eps[on_set]))
+    assert r.valid.sum() == 24 and r.fraction == pytest.approx(r.converged.sum() / 24)
+
+
+# ---------------------------------------------------------------------------------------------
+# files and figures
+# ---------------------------------------------------------------------------------------------
+
+def test_save_load_round_trip_and_deterministic_bytes(tmp_path, monkeypatch, xt_result):
+    import time
+
+    p1 = save_basin(tmp_path / "a.npz", xt_result)
+    real_time = time.time
+    monkeypatch.setattr(time, "time", lambda: real_time() + 400 * 86400)   # a later day: no timestamps leak
+    p2 = save_basin(tmp_path / "b", xt_result)
+    monkeypatch.undo()
+    assert p2.name == "b.npz" and p1.read_bytes() == p2.read_bytes()
+    with np.load(p1) as z:
+        keys = set(z.files)
+        assert {"ics", "T_eps", "status", "Hd0", "fraction", "fraction_se", "settings_json", "eps", "t_final",
+                "grid_shape", "grid_axes", "axis_x", "axis_theta", "n_steps", "max_excursion"} <= keys
+        assert z["ics"].shape == (30, 3) and tuple(z["grid_shape"]) == (5, 6)
+        assert list(z["grid_axes"]) == ["x", "theta"] and float(z["fraction"]) == xt_result.fraction
+        assert "wall" not in str(z["settings_json"])
+    back = load_basin(p1)
+    for k in ("T_eps", "status", "Hd0", "max_excursion", "n_steps", "q_final"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(xt_result, k))
+    assert back.starts.shape == (5, 6) and back.starts.axes == ("x", "theta")
+    assert back.fraction == xt_result.fraction and back.settings["eps"] == 0.3
+
+
+def test_plots_on_tiny_grids(tmp_path, xt_result):
+    from jaxsleigh import basin_plots as bp
+    from jaxsleigh.plotting import save_figure
+
+    figs = {
+        "overview": bp.plot_basin(xt_result),
+        "map": bp.plot_basin_map(xt_result),
+        "map_hd0": bp.plot_basin_map(xt_result, field="Hd0"),
+        "fraction": bp.plot_fraction_vs_theta(xt_result),
+        "fraction_log": bp.plot_fraction_vs_theta(xt_result, log_abs=True, bins=4),
+        "distance": bp.plot_fraction_vs_distance(xt_result),
+        "dist": bp.plot_t_eps_distribution(xt_result),
+        "scatter": bp.plot_t_eps_scatter(xt_result),
+        "laws": bp.plot_power_laws([0.1, 0.01], {"H": [1.0, 1e4]}, fits={"H": power_law_fit([0.1, 0.01], [1, 1e4])},
+                                   expected={"H": -4}),
+    }
+    for name, fig in figs.items():
+        path = save_figure(fig, tmp_path / f"{name}.png")
+        assert path.stat().st_size > 5000, name
+    # the map draws a heat map and the flat layer of starts without T_eps, and the singular line
+    ax = figs["map"].axes[0]
+    assert len(ax.collections) == 2 and any(line.get_linestyle() == "--" for line in ax.get_lines())
+    flat = ax.collections[1].get_array()
+    assert flat.count() == int((~xt_result.converged).sum())
+    samples = BasinResult(**{**xt_result._asdict(), "starts": array_starts(xt_result.ics)})
+    with pytest.raises(ValueError, match="two varying coordinates"):
+        bp.plot_basin_map(samples)
+    assert save_figure(bp.plot_basin(samples), tmp_path / "s.png").stat().st_size > 5000
+
+
+# ---------------------------------------------------------------------------------------------
+# command line
+# ---------------------------------------------------------------------------------------------
+
+@pytest.fixture
+def basin_main(monkeypatch, capsys):
+    """``jaxsleigh.cli.main`` with the basin subcommand registered; returns (rc, stdout, stderr)."""
+    import argparse
+
+    registered = any("basin" in (a.choices or {}) for a in cli.build_parser()._actions
+                     if isinstance(a, argparse._SubParsersAction))
+    if not registered:                  # until jaxsleigh.cli lists the subcommand itself
+        monkeypatch.setattr(cli, "_SUBCOMMANDS", [*cli._SUBCOMMANDS, add_basin])
+
+    def run(argv):
+        rc = cli.main(argv)
+        out, err = capsys.readouterr()
+        return rc, out, err
+
+    return run
+
+
+CLI_FAST = ["--x", "-2:2:6", "--y", "-1.5:1.5:4", "--theta", "0.9", "--eps", "0.31", "--t-final", "30", "--dt", "0.05",
+            "--method", "rk4", "--chunk-size", "6", "--no-progress"]
+
+
+def test_resume_after_interruption_writes_identical_bytes(tmp_path, monkeypatch, basin_main):
+    rc, out, err = basin_main(["basin", *CLI_FAST, "--out", str(tmp_path / "full.npz")])
+    assert rc == 0, err
+    assert "converged within 30 s" in out and "10/24" in out
+    full = (tmp_path / "full.npz").read_bytes()
+    assert not (tmp_path / "full.npz.chunks").exists()            # removed after a complete run
+
+    real = jaxsleigh.ensemble.drive_final
+    calls = []
+
+    def interrupted(*a, **k):                                     # Ctrl-C during the third chunk
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", interrupted)
+    out_b = tmp_path / "resumed.npz"
+    rc, _, err = basin_main(["basin", *CLI_FAST, "--out", str(out_b)])
+    assert rc == 130 and "--resume" in err and not out_b.exists()
+    chunks = tmp_path / "resumed.npz.chunks"
+    assert sorted(p.name for p in chunks.glob("chunk_*.npz")) == ["chunk_000000.npz", "chunk_000001.npz"]
+    # a fresh start over the chunks of an unfinished run is refused with the fix in the message
+    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", real)
+    rc, _, err = basin_main(["basin", *CLI_FAST, "--out", str(out_b)])
+    assert rc == 2 and "--resume" in err and "delete" in err
+    # --resume computes only the missing chunks and ends with the same file
+    calls.clear()
+    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    rc, out, err = basin_main(["basin", *CLI_FAST, "--resume", "--keep-chunks", "--out", str(out_b)])
+    assert rc == 0, err
+    assert len(calls) == 2 and "2 chunk(s) resumed" in out
+    assert out_b.read_bytes() == full
+    # a killed process can also lose a chunk file mid-way: resuming recomputes just that one
+    (chunks / "chunk_000002.npz").unlink()
+    calls.clear()
+    rc, _, err = basin_main(["basin", *CLI_FAST, "--resume", "--out", str(out_b)])
+    assert rc == 0, err
+    assert len(calls) == 1 and out_b.read_bytes() == full
+    # resuming with other settings is refused
+    rc, _, _ = basin_main(["basin", *CLI_FAST, "--out", str(tmp_path / "other.npz"), "--keep-chunks"])
+    assert rc == 0
+    rc, _, err = basin_main(["basin", *CLI_FAST, "--eps", "0.2", "--resume", "--out", str(tmp_path / "other.npz")])
+    assert rc == 2 and "other options or starts" in err
+
+
+def test_cli_outputs_plot_and_sidecar(tmp_path, basin_main):
+    import json
+
+    np.save(tmp_path / "ics.npy", np.array([[1.0, 1.0, 0.9], [0.5, -0.5, -2.0], [0.0, 0.0, 0.0]]))
+    rc, out, err = basin_main(["basin", "--ics", str(tmp_path / "ics.npy"), "--eps", "0.3", "--t-final", "30",
+                               "--dt", "0.05", "--out", str(tmp_path / "f.npz"), "--plot", str(tmp_path / "f.png")])
+    assert rc == 0, err
+    assert "1 of 3 starts flagged" in err
+    assert (tmp_path / "f.png").stat().st_size > 5000
+    side = json.loads((tmp_path / "f.run.json").read_text())
+    assert side["command"][:2] == ["jaxsleigh", "basin"] and side["wall_s"] > 0
+    with np.load(tmp_path / "f.npz") as z:
+        assert z["ics"].shape == (3, 3) and str(z["kind"]) == "array" and int(z["n_valid"]) == 2
+        assert list(z["status"])[2] == Status.SINGULAR_START
+    rc, _, err = basin_main(["basin", "--samples", "16", "--seed", "2", "--theta", "0.3:pi", "--t-final", "1",
+                             "--dt", "0.05", "--out", str(tmp_path / "s.npz")])
+    assert rc == 0, err
+    with np.load(tmp_path / "s.npz") as z:
+        np.testing.assert_array_equal(z["ics"], sample_starts(16, seed=2, theta="0.3:pi").ics)
+        assert int(z["seed"]) == 2 and z["box"][2, 0] == 0.3
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--x", "-3:3"], "write LO:HI:N (e.g. --x -3:3:64)"),
+    (["--theta", "pi:-pi:8"], "LO must be below HI"),
+    (["--y", "0:1:one"], "'one' is not a number"),
+    (["--theta", "0"], "singular set"),
+    (["--ics", "missing.npy"], "not found"),
+    (["--ics", "missing.npy", "--x", "1"], "cannot be combined with --ics"),
+    (["--seed", "3"], "--seed applies to --samples only"),
+    (["--samples", "10", "--theta", "1:0.5"], "write e.g. --theta 0.5:1"),
+    (["--samples", "0"], "--samples must be >= 1"),
+    (["--eps", "-1"], "--eps must be a finite number > 0"),
+    (["--t-final", "1.005"], "whole multiple of --dt"),
+    (["--gains", "nope.json"], "not found"),
+    (["--samples", "4", "--ics", "a.npy"], "not allowed with argument"),
+])
+def test_cli_bad_input_messages(tmp_path, basin_main, argv, message):
+    rc, out, err = basin_main(["basin", *argv, "--out", str(tmp_path / "x.npz")])
+    assert rc == 2 and message in err, err
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_negative_ranges_parse_without_equals_sign(basin_main):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_basin(parser.add_subparsers())
+    args = parser.parse_args(["basin", "--x", "-3:3:8", "--theta", "-pi:pi:8", "--y", "-1", "--out", "o.npz"])
+    assert (args.x, args.theta, args.y) == ("-3:3:8", "-pi:pi:8", "-1")
+
+
+def test_array_starts_validation():
+    assert array_starts([1.0, 2.0, 0.5]).ics.shape == (1, 3)
+    assert isinstance(array_starts(np.ones((4, 5))), BasinStarts)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        array_starts(np.ones((4, 4)))
