@@ -17,9 +17,10 @@ import numpy as np
 
 from .closed_loop import ClosedLoop, state_to_w
 from .status import Status
-from .stepper import Controls, StepState, init_batch, is_active, run_saving, run_segment
+from .stepper import Controls, StepState, init_batch, is_active, run_plain, run_saving, run_segment
 
-__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "make_controls",
+__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
+           "make_controls",
            "shard_batch", "batch_mesh",
            "working_dtype", "default_max_steps", "METHODS"]
 
@@ -245,6 +246,37 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
             progress.update(min(i + block, save_times.size) / save_times.size)
     ys = np.moveaxis(np.concatenate(out, axis=0), -1, 0)     # (K, 5, N) blocks -> (N, K, 5)
     return _finish(jax.tree_util.tree_map(np.asarray, state), horizon.t_final), ys
+
+
+@functools.partial(jax.jit, static_argnames=("n_steps",), donate_argnums=(0,))
+def _plain_batch(y, args, dt, n_steps):
+    return run_plain(y, args, dt, n_steps=n_steps)
+
+
+def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: int = 1000, progress=None):
+    """Plain fixed-step RK4 to the horizon, final state only; returns ``(y (N, 5), status (N,))``.
+
+    Status is judged at the end: ``NONFINITE`` if the state is not finite, ``CROSSED_SINGULAR`` if
+    theta ends with the other sign (an even number of crossings goes unseen; the stepper's
+    per-step checks and summaries cost about 2x on CPU, see ``run_ensemble(summaries=True)``)."""
+    dtype = y0w.dtype
+    y = jnp.asarray(np.where(np.asarray(status0)[:, None] == Status.OK, np.asarray(y0w), [1.0, 0, 0, 0, 0]),
+                    dtype).T
+    dt = jnp.asarray(horizon.dt, dtype)
+    done = 0
+    while done < horizon.n_steps:
+        k = min(segment, horizon.n_steps - done)
+        y = _plain_batch(y, args, dt, k)
+        done += k
+        if progress is not None:
+            progress.update(done / horizon.n_steps)
+    y = np.asarray(y).T
+    status = np.array(status0, np.int32)
+    ok = status == Status.OK
+    finite = np.all(np.isfinite(y), axis=1)
+    status[ok & ~finite] = Status.NONFINITE
+    status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
+    return y, status
 
 
 def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:

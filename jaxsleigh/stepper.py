@@ -41,11 +41,11 @@ import jax.numpy as jnp
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, vector_field_w
 from .coordinates import f_w_inv
-from .rk4 import rk4_stages
+from .rk4 import rk4_stages, rk4_step
 from .status import Status
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "is_active", "attempt", "run_segment", "run_to",
-           "run_saving", "q_norm2_w"]
+           "run_saving", "run_plain", "q_norm2_w"]
 
 # A step that would overshoot the next save time by less than this fraction is stretched onto it,
 # so that rounding in t never leaves a tiny last step.
@@ -275,3 +275,14 @@ def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, ada
         return c, jnp.where(there, c.y, jnp.nan)
 
     return jax.lax.scan(body, s, save_times)
+
+
+def run_plain(y, args: ClosedLoop, dt, *, n_steps: int, unroll: int = 1):
+    """Plain classical RK4 on a batch-last w-chart state ``y`` (5, N): ``n_steps`` steps of ``dt``,
+    nothing else (no masks, no summaries, no status). The fast path behind
+    ``run_ensemble(method="rk4", summaries=False)``, which judges each trajectory at the end."""
+
+    def body(c, _):
+        return rk4_step(vector_field_w, 0.0, c, dt, args), None
+
+    return jax.lax.scan(body, y, None, length=n_steps, unroll=unroll)[0]

@@ -219,3 +219,19 @@ def test_starts_off_the_singular_set_never_go_nonfinite():
     fixed = run_ensemble(ics, t_final=20.0, method="rk4")
     assert np.any(fixed.status != Status.OK)
     assert np.isnan(fixed.q[fixed.status != Status.OK]).all()
+
+
+def test_plain_fixed_path_equals_the_checked_stepper():
+    """run_ensemble(method='rk4', summaries=False) is plain RK4: same final states as the stepper's
+    fixed mode, status judged at the end, summaries NaN; it refuses other combinations."""
+    ics = np.vstack([_ics(16, seed=8), [[3.0, 3.0, 1e-3]]])
+    kw = dict(t_final=5.0, method="rk4", check_passivity=False, x64=True)
+    plain = run_ensemble(ics, summaries=False, **kw)
+    full = run_ensemble(ics, **kw)
+    ok = full.status == Status.OK
+    assert ok[:-1].all() and plain.status[-1] in (Status.NONFINITE, Status.CROSSED_SINGULAR)
+    np.testing.assert_allclose(plain.q[ok], full.q[ok], rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(plain.status[ok], Status.OK)
+    assert np.isnan(plain.T_eps).all() and np.isnan(plain.q[-1]).all()
+    with pytest.raises(ValueError, match="summaries=False"):
+        run_ensemble(ics, t_final=5.0, summaries=False)
