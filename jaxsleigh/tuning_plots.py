@@ -1,0 +1,212 @@
+"""Figures of gain tuning: the optimisation history, before/after paths and convergence times.
+
+* :func:`plot_history`: loss (valid and rejected candidates, running best), gradient norm and the
+  gains per iteration.
+* :func:`plot_paths_before_after`: paths of the contact point under two sets of gains, side by side.
+* :func:`plot_convergence_times`: empirical distribution (CDF) and histogram of ``T_eps`` per set
+  of gains, medians marked.
+* :func:`plot_per_plant`: median ``T_eps`` and the fraction converged per plant, per set of gains.
+
+Like :mod:`jaxsleigh.plotting`, everything builds :class:`matplotlib.figure.Figure` objects (no
+``pyplot``, no global state) and accepts ``ax``/``axes`` to draw into existing figures.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+
+from .plotting import _new_figure, plot_paths, save_figure
+
+__all__ = ["plot_history", "plot_paths_before_after", "plot_convergence_times", "plot_per_plant", "save_figure"]
+
+
+def _field(obj, name):
+    return obj[name] if isinstance(obj, Mapping) or hasattr(obj, "files") else getattr(obj, name)
+
+
+def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget: Optional[float] = None):
+    """Loss, gradient norm, integration cost (the probe's attempted steps) and gains per iteration.
+
+    Args:
+      history: a :class:`~jaxsleigh.tuning.TuneHistory` (or the ``.npz`` written by
+        :func:`~jaxsleigh.tuning.save_history`, or any mapping with its fields).
+      axes: four axes to draw into (default: a new figure).
+      probe_budget: drawn as a horizontal line on the cost panel when given.
+
+    Returns:
+      The :class:`matplotlib.figure.Figure`.
+    """
+    loss = np.asarray(_field(history, "loss"), float)
+    valid = np.asarray(_field(history, "valid"), bool)
+    best = np.asarray(_field(history, "best"), float)
+    gnorm = np.asarray(_field(history, "grad_norm"), float)
+    L = np.asarray(_field(history, "L"), float)
+    k = np.asarray(_field(history, "k"), float)
+    D = np.asarray(_field(history, "D_hat"), float)
+    try:
+        probe = np.asarray(_field(history, "probe_attempts"), float)
+    except (KeyError, AttributeError):
+        probe = np.full(loss.size, np.nan)
+    it = np.arange(loss.size)
+    if axes is None:
+        fig = _new_figure((7.0, 9.5))
+        axes = fig.subplots(4, 1, sharex=True)
+        own = True
+    else:
+        axes = list(axes)
+        if len(axes) != 4:
+            raise ValueError(f"need 4 axes, got {len(axes)}")
+        fig = axes[0].figure
+        own = False
+    ax = axes[0]
+    ax.plot(it[valid], loss[valid], ".-", color="C0", markersize=3, linewidth=1, label="candidate (valid)")
+    if np.any(~valid):
+        ax.plot(it[~valid], np.where(np.isfinite(loss[~valid]), loss[~valid], np.nanmax(loss[valid])), "x",
+                color="C3", label="rejected (failed lane, probe over budget or non-finite)")
+    ax.plot(it, best, color="k", linewidth=1.2, label="best valid")
+    ax.set_ylabel("loss (soft time outside\n|q| ≤ ε, ÷ horizon)")
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    ax = axes[1]
+    ax.semilogy(it, gnorm, color="C1", linewidth=1)
+    ax.set_ylabel("‖∇ loss‖ (log-gains)")
+    ax.grid(True, alpha=0.3, which="both")
+    ax = axes[2]
+    shown = np.isfinite(probe)
+    ax.semilogy(it[shown & valid], probe[shown & valid], ".", color="C2", markersize=3, label="probe (valid)")
+    if np.any(shown & ~valid):
+        ax.semilogy(it[shown & ~valid], probe[shown & ~valid], "x", color="C3", markersize=4, label="probe (rejected)")
+    if probe_budget is not None:
+        ax.axhline(probe_budget, color="k", linestyle="--", linewidth=1, label="probe budget")
+    ax.set_ylabel("most attempted steps\nof a probe per 100 s")
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3, which="both")
+    ax = axes[3]
+    for i in range(3):
+        ax.semilogy(it, L[:, i], color=f"C{i}", label=f"L{i + 1}")
+    ax.semilogy(it, k, color="C3", label="k")
+    eig = np.linalg.eigvalsh(0.5 * (D + np.swapaxes(D, -1, -2)))
+    ax.semilogy(it, eig[:, 0], color="C4", linestyle="--", label="λ_min(D̂)")
+    ax.semilogy(it, eig[:, 1], color="C5", linestyle="--", label="λ_max(D̂)")
+    ax.set_ylabel("gain")
+    ax.set_xlabel("iteration")
+    ax.legend(fontsize=8, ncol=3)
+    ax.grid(True, alpha=0.3, which="both")
+    axes[0].set_xlim(0, max(1, loss.size - 1))
+    if own:
+        fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def plot_paths_before_after(before, after, *, names: Sequence[str] = ("paper gains", "tuned gains"),
+                            axes=None, share: bool = True):
+    """Paths of the contact point under two sets of gains (two :class:`~jaxsleigh.simulate.Solution`
+    objects from the same starts), side by side; with ``share`` both panels get the same limits."""
+    if axes is None:
+        fig = _new_figure((12.0, 6.6))
+        axes = fig.subplots(1, 2)
+    else:
+        axes = list(axes)
+        fig = axes[0].figure
+    for ax, sol, name in zip(axes, (before, after), names):
+        plot_paths(sol, ax=ax, legend=ax is axes[-1])
+        ax.set_title(f"{name}: {ax.get_title()}", fontsize=9)
+    if share:
+        # equal aspect with 'datalim' cannot be shared between axes: set common limits instead
+        lims = []
+        for ax in axes:
+            ax.apply_aspect()
+            lims.append((ax.get_xlim(), ax.get_ylim()))
+        x0, x1 = min(l[0][0] for l in lims), max(l[0][1] for l in lims)
+        y0, y1 = min(l[1][0] for l in lims), max(l[1][1] for l in lims)
+        for ax in axes:
+            ax.set_aspect("equal", adjustable="box")
+            ax.set_xlim(x0, x1)
+            ax.set_ylim(y0, y1)
+    return fig
+
+
+def plot_convergence_times(times: Mapping[str, np.ndarray], *, horizon: float = 100.0, eps: float = 0.05,
+                           axes=None, title: Optional[str] = None):
+    """Distribution of the hard convergence time ``T_eps`` per set of gains.
+
+    ``times`` maps a label to the (N,) times (``inf``: not settled by ``horizon``; ``nan``: failed,
+    counted as not settled). Left: the fraction settled by time t (empirical CDF), medians marked;
+    right: histograms on a log time axis.
+    """
+    if axes is None:
+        fig = _new_figure((11.0, 4.2))
+        axes = fig.subplots(1, 2)
+    else:
+        axes = list(axes)
+        fig = axes[0].figure
+    finite_all = np.concatenate([np.asarray(T, float)[np.isfinite(T)] for T in times.values()] + [[horizon]])
+    lo = max(min(finite_all.min(), horizon) * 0.8, 1e-2)
+    bins = np.geomspace(lo, horizon, 40)
+    for i, (name, T) in enumerate(times.items()):
+        T = np.where(np.isnan(np.asarray(T, float)), np.inf, np.asarray(T, float))
+        n = T.size
+        ts = np.sort(T[np.isfinite(T)])
+        frac = np.arange(1, ts.size + 1) / n
+        med = float(np.median(T))
+        color = f"C{i}"
+        axes[0].step(np.concatenate([[0.0], ts, [horizon]]), np.concatenate([[0.0], frac, [frac[-1] if frac.size else 0]]),
+                     where="post", color=color,
+                     label=f"{name}: median {med:.1f} s, {100 * ts.size / n:.2f}% by {horizon:g} s (N = {n})")
+        if np.isfinite(med):
+            axes[0].axvline(med, color=color, linestyle=":", linewidth=1)
+        axes[1].hist(ts, bins=bins, color=color, alpha=0.55, label=name)
+    axes[0].set_xlim(0, horizon)
+    axes[0].set_ylim(0, 1.02)
+    axes[0].set_xlabel("time t [s]")
+    axes[0].set_ylabel(f"fraction with |q| ≤ {eps:g} from then on")
+    axes[0].legend(fontsize=8, loc="lower right")
+    axes[0].grid(True, alpha=0.3)
+    axes[1].set_xscale("log")
+    axes[1].set_xlabel(f"T_{eps:g} [s] (log scale)")
+    axes[1].set_ylabel("starts")
+    axes[1].legend(fontsize=8)
+    axes[1].grid(True, alpha=0.3)
+    fig.suptitle(title or f"Convergence time T_{eps:g} on held-out starts (accurate adaptive engine)", fontsize=11)
+    return fig
+
+
+def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, horizon: float = 100.0):
+    """Median ``T_eps`` (with its standard error) and fraction converged per plant.
+
+    ``table`` maps a plant label to ``{gains label: Validation}`` (:class:`~jaxsleigh.tuning.Validation`).
+    """
+    plants = list(table)
+    labels = list(next(iter(table.values())))
+    if axes is None:
+        fig = _new_figure((11.0, 4.4))
+        axes = fig.subplots(1, 2, sharey=True)
+    else:
+        axes = list(axes)
+        fig = axes[0].figure
+    y = np.arange(len(plants))
+    h = 0.8 / len(labels)
+    for j, lab in enumerate(labels):
+        med = np.array([table[p][lab].median for p in plants], float)
+        se = np.array([table[p][lab].median_se for p in plants], float)
+        frac = np.array([table[p][lab].frac_converged for p in plants], float)
+        fse = np.array([table[p][lab].frac_se for p in plants], float)
+        shown = np.where(np.isfinite(med), med, horizon)
+        axes[0].barh(y + (j - (len(labels) - 1) / 2) * h, shown, height=h, xerr=np.nan_to_num(se), color=f"C{j}",
+                     label=lab, hatch=None)
+        for yi, m in zip(y, med):
+            if not np.isfinite(m):
+                axes[0].text(horizon, yi + (j - (len(labels) - 1) / 2) * h, " > horizon", va="center", fontsize=7)
+        axes[1].barh(y + (j - (len(labels) - 1) / 2) * h, 100 * frac, height=h, xerr=100 * fse, color=f"C{j}",
+                     label=lab)
+    axes[0].set_yticks(y, plants, fontsize=8)
+    axes[0].invert_yaxis()
+    axes[0].set_xlabel("median T_0.05 [s]")
+    axes[0].grid(True, axis="x", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    axes[1].set_xlabel(f"converged by {horizon:g} s [%]")
+    axes[1].set_xlim(0, 100)
+    axes[1].grid(True, axis="x", alpha=0.3)
+    fig.suptitle("Robustness: the same gains on other plants (held-out starts, accurate engine)", fontsize=11)
+    return fig
