@@ -22,13 +22,12 @@ import textwrap
 import time
 import warnings
 from collections import Counter
-from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
 from .io import parse_number as _number
-from .io import write_npz
+from .io import load_ics, write_npz
 
 __all__ = ["main", "build_parser", "parse_ic"]
 
@@ -102,30 +101,9 @@ def _positive_int(flag: str, example: str):
     return conv
 
 
-def _load_ics_file(path: str) -> np.ndarray:
-    p = Path(path)
-    if not p.exists():
-        raise ValueError(f"initial-conditions file {path!r} not found; give an existing .npy file of "
-                         f"shape (N, 3) or (N, 5), or use --ic X,Y,THETA")
-    try:
-        if p.suffix.lower() in (".txt", ".csv"):
-            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
-        else:
-            arr = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"could not read initial conditions from {path!r} ({e}); save them with "
-                         f"numpy.save as a float array of shape (N, 3) or (N, 5)") from None
-    if not isinstance(arr, np.ndarray) or not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{path!r} must hold a numeric array of shape (N, 3) or (N, 5)")
-    if arr.ndim != 2 or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
-        raise ValueError(f"{path!r} holds an array of shape {arr.shape}; initial conditions must have "
-                         f"shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2] with N >= 1")
-    return arr.astype(np.float64)
-
-
 def _ics_from_args(args) -> np.ndarray:
     if args.ics is not None:
-        return _load_ics_file(args.ics)
+        return load_ics(args.ics, hint="use --ic X,Y,THETA")
     rows = [parse_ic(s) for s in args.ic]
     width = max(len(r) for r in rows)
     rows = [r + [0.0] * (width - len(r)) for r in rows]

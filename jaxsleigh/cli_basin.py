@@ -26,6 +26,8 @@ import time
 import warnings
 from pathlib import Path
 
+from .io import load_ics
+
 __all__ = ["add_basin", "run_basin_command"]
 
 PROG = "jaxsleigh"
@@ -144,28 +146,6 @@ def _sidecar(out: Path) -> Path:
     return out.with_name(out.stem + ".run.json")
 
 
-def _load_ics(path: str):
-    import numpy as np
-
-    p = Path(path)
-    if not p.exists():
-        raise ValueError(f"initial-conditions file {path!r} not found; give an existing .npy file of shape (N, 3) "
-                         f"or (N, 5), or use a grid (--x/--y/--theta) or --samples N")
-    try:
-        if p.suffix.lower() in (".txt", ".csv"):
-            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
-        else:
-            arr = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"could not read initial conditions from {path!r} ({e}); save them with numpy.save "
-                         f"as a float array of shape (N, 3) or (N, 5)") from None
-    if not isinstance(arr, np.ndarray) or not np.issubdtype(arr.dtype, np.number) or arr.ndim != 2 \
-            or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
-        raise ValueError(f"{path!r} holds {getattr(arr, 'shape', type(arr).__name__)}; initial conditions must "
-                         f"be a numeric array of shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2]")
-    return arr.astype(np.float64)
-
-
 def _starts_from_args(args):
     from .basin import array_starts, grid_starts, parse_axis, sample_starts
 
@@ -178,7 +158,8 @@ def _starts_from_args(args):
             verb = "defines" if len(given) == 1 else "define"
             raise ValueError(f"{' and '.join(given)} {verb} a grid or the --samples box and cannot be combined "
                              f"with --ics; drop {'it' if len(given) == 1 else 'them'} or drop --ics")
-        return array_starts(_load_ics(args.ics), source=str(args.ics))
+        return array_starts(load_ics(args.ics, hint="use a grid (--x/--y/--theta) or --samples N"),
+                            source=str(args.ics))
     if args.samples is not None:
         for k, v in coords.items():
             if v is not None:

@@ -10,7 +10,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["write_npz", "npz_path", "damping_name", "parse_number"]
+__all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics"]
 
 
 def npz_path(path) -> Path:
@@ -92,3 +92,28 @@ def parse_number(text: str) -> float:
         return ev(ast.parse(text, mode="eval"))
     except (SyntaxError, ValueError, ZeroDivisionError, RecursionError, OverflowError):
         raise ValueError(f"{text!r} is not a number") from None
+
+
+def load_ics(path, *, hint: str = "") -> np.ndarray:
+    """Initial conditions from a ``.npy`` (or ``.txt``/``.csv``) file: float64 (N, 3) or (N, 5).
+
+    Raises ``ValueError`` with a message naming the fix; ``hint`` names the command's alternative.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"initial-conditions file {path!r} not found; give an existing .npy file of "
+                         f"shape (N, 3) or (N, 5)" + (f", or {hint}" if hint else ""))
+    try:
+        if p.suffix.lower() in (".txt", ".csv"):
+            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
+        else:
+            arr = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"could not read initial conditions from {path!r} ({e}); save them with "
+                         f"numpy.save as a float array of shape (N, 3) or (N, 5)") from None
+    if not isinstance(arr, np.ndarray) or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{path!r} must hold a numeric array of shape (N, 3) or (N, 5)")
+    if arr.ndim != 2 or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
+        raise ValueError(f"{path!r} holds an array of shape {arr.shape}; initial conditions must have "
+                         f"shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2] with N >= 1")
+    return arr.astype(np.float64)
