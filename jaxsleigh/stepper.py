@@ -102,7 +102,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0) -> StepSta
     """
     dtype = y0w.dtype
     ok = status0 == Status.OK
-    # keep an invalid lane's arithmetic finite: it idles, but its lane still runs through vmap
+    # keep an invalid lane's arithmetic finite: it idles, but it is still computed with the batch
     y0w = jnp.where(ok, y0w, jnp.array([1.0, 0.0, 0.0, 0.0, 0.0], dtype))
     q2 = q_norm2_w(y0w[:3])
     t0 = jnp.asarray(t0, dtype)
@@ -152,7 +152,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     remaining = (target - s.t) - s.t_lo
     hit = remaining <= _STRETCH * s.h
     h = jnp.where(hit, remaining, s.h)
-    # an idle lane still computes (vmap); give it a harmless step
+    # an idle lane still computes (the whole batch steps together); give it a harmless step
     h = jnp.where(active, h, jnp.zeros_like(h))
 
     # fixed steps recompute k1 = f(y) (no FSAL): carrying f(y_new) across steps ran ~2x slower
