@@ -34,18 +34,10 @@ PROG = "jaxsleigh"
 
 
 def _positive_float(flag: str, example: str):
-    def conv(text):
-        from .basin import _number
+    # the command line's own converter; imported when the parser is built (cli imports this module)
+    from .cli import _positive_float as positive_float
 
-        try:
-            v = _number(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{flag} must be a number, got {text!r} (e.g. {flag} {example})")
-        if not (math.isfinite(v) and v > 0):
-            raise argparse.ArgumentTypeError(f"{flag} must be a finite number > 0, got {text!r} "
-                                             f"(e.g. {flag} {example})")
-        return v
-    return conv
+    return positive_float(flag, example)
 
 
 def _whole(flag: str, example: str, minimum: int):
