@@ -1,20 +1,114 @@
-"""The README's Python example runs as written and its assertions hold."""
+"""The README does what it says: its Python example runs, its shell commands run as written.
+
+Every line of the README's ``bash`` blocks is executed in a scratch directory exactly as written,
+except the two ``pip install`` steps, which the test environment has already done (the quick start's
+``jaxsleigh paper`` part after ``&&`` is run; the test command is the one ``.ci/run`` runs).
+"""
+from __future__ import annotations
+
+import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+TEXT = README.read_text()
+
+QUICK_START = "pip install -e . && jaxsleigh paper --out out/paper"
+TEST_COMMAND = 'pip install -e ".[test]" && python -m pytest -q'
+
+
+def _blocks(lang):
+    return re.findall(rf"```{lang}\n(.*?)```", TEXT, re.S)
+
+
+def _command_lines():
+    return [ln.strip() for block in _blocks("bash") for ln in block.splitlines() if ln.strip()]
+
+
+def _run(line: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run one README line in bash, with this interpreter's ``bin`` first on PATH (so ``jaxsleigh``
+    and ``python`` are the ones installed with the package under test, as after ``pip install``)."""
+    env = dict(os.environ)
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    proc = subprocess.run(["bash", "-euo", "pipefail", "-c", line], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    assert proc.returncode == 0, f"README command failed (exit {proc.returncode}): {line}\n{proc.stderr[-3000:]}"
+    return proc
 
 
 def test_readme_python_example_runs():
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
-    assert blocks, "README has no python example"
-    for code in blocks:
-        exec(compile(code, "README.md", "exec"), {})
+    blocks = _blocks("python")
+    assert len(blocks) == 1, "README should have exactly one Python example"
+    exec(compile(blocks[0], "README.md", "exec"), {})
 
 
-def test_readme_commands_are_the_ones_ci_runs():
-    text = README.read_text()
-    ci = (README.parent / ".ci" / "run").read_text()
-    test_cmd = 'pip install -e ".[test]" && python -m pytest -q'
-    assert test_cmd in text and test_cmd in ci
-    assert "pip install -e . && jaxsleigh paper --out out/paper" in text
+def test_readme_has_only_commands_that_are_tested():
+    """Every shell line is either one of the two install commands or a command run below."""
+    lines = _command_lines()
+    assert lines.count(QUICK_START) == 1 and lines.count(TEST_COMMAND) == 1, lines
+    for line in lines:
+        if line in (QUICK_START, TEST_COMMAND):
+            continue
+        assert line.startswith(("jaxsleigh ", "python -c ")), f"README line is not run by the tests: {line}"
+
+
+def test_readme_test_command_is_the_one_ci_runs():
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert TEST_COMMAND in [ln.strip() for ln in ci], ".ci/run must run the README's test command verbatim"
+
+
+@pytest.mark.slow
+def test_readme_quick_start_runs(tmp_path):
+    """``pip install -e .`` is what produced this environment; run the rest of the line as written."""
+    assert (ROOT / "pyproject.toml").exists()
+    _run(QUICK_START.split(" && ", 1)[1], tmp_path)
+    out = tmp_path / "out" / "paper"
+    figures = sorted(p.name for p in out.glob("*.png"))
+    assert figures == ["fig2_paths.png", "fig3_configuration.png", "fig4_momentum.png", "fig5_control.png",
+                       "fig_hamiltonian.png"], figures
+    for p in out.glob("*.png"):
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with np.load(out / "paper.npz") as run:
+        assert run["q"].shape[0] == 6 and np.all(run["status"] == 0)
+        hd = run["Hd"]
+        assert np.all(np.diff(hd, axis=1) <= 1e-4 * hd[:, :1])       # H_d never increases
+
+
+@pytest.mark.slow
+def test_readme_cli_block_runs_as_written(tmp_path):
+    lines = [ln for ln in _command_lines() if ln not in (QUICK_START, TEST_COMMAND)]
+    assert any(ln.startswith("jaxsleigh simulate") for ln in lines)
+    for line in lines:
+        _run(line, tmp_path)
+
+    with np.load(tmp_path / "run.npz") as run:                       # two starts, 100 s, every 10th step
+        assert run["q"].shape == (2, 1001, 3) and np.all(run["status"] == 0)
+        assert np.all(np.linalg.norm(run["q"][:, -1], axis=-1) < 0.1)
+    with np.load(tmp_path / "run_tuned.npz") as run:                 # the 'tuned' preset, float64
+        settings = json.loads(str(run["settings_json"]))
+        assert settings["dtype"] == "float64" and np.all(run["status"] == 0)
+        assert run["q"].shape[0] == 3 and np.all(np.isfinite(run["q"]))
+        assert np.all(np.linalg.norm(run["q"][:, -1], axis=-1) < 0.05)   # tuned gains settle well within 100 s
+    with np.load(tmp_path / "basin.npz") as b:
+        assert b["T_eps"].size == 32 * 32 and np.all(b["status"] == 0)
+        assert 0.0 < float(b["fraction"]) < 1.0                      # some starts settle within 100 s, some not
+    assert (tmp_path / "basin.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_readme_links_resolve():
+    for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", TEXT):
+        if "://" in target:
+            continue
+        assert (ROOT / target).exists(), f"README links to {target}, which does not exist"
+
+
+def test_readme_fits_on_two_screens():
+    assert len(TEXT.splitlines()) <= 100, len(TEXT.splitlines())
+    assert len(TEXT.split()) <= 900, len(TEXT.split())
