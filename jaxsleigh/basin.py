@@ -37,9 +37,11 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .ensemble import run_ensemble
+from .io import atomic_write, npz_path
 from .io import parse_number as _number
 from .params import Gains, PlantParams
-from .status import Status, describe
+from .status import NOT_INTEGRATED, Status, describe
+from .validate import check_memory, whole
 
 __all__ = [
     "COORDS",
@@ -72,7 +74,7 @@ DEFAULT_BOX = {"x": (-3.0, 3.0), "y": (-3.0, 3.0), "theta": (-math.pi, math.pi)}
 #: Percentiles of T_eps reported in summaries.
 PERCENTILES = (10.0, 25.0, 50.0, 75.0, 90.0)
 
-_FLAGGED = (Status.SINGULAR_START, Status.INVALID_INPUT)
+_FLAGGED = NOT_INTEGRATED
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,6 +144,9 @@ def parse_axis(spec, name: str = "x") -> Axis:
         if n < 2:
             raise ValueError(f"{name} {spec!r}: a range needs N >= 2 points; to hold {name} fixed write one value "
                              f"(e.g. {name} {_fmt(lo)})")
+        if lo == hi:
+            raise ValueError(f"{name} {spec!r}: LO and HI are equal; to hold {name} fixed write one value "
+                             f"(e.g. {name} {_fmt(lo)}), for a range write e.g. {name} {_fmt(lo)}:{_fmt(lo + 1)}:{n}")
         if not lo < hi:
             raise ValueError(f"{name} {spec!r}: LO must be below HI; write e.g. {name} "
                              f"{_fmt(min(lo, hi))}:{_fmt(max(lo, hi))}:{n}")
@@ -204,6 +209,7 @@ def grid_starts(x=None, y=None, theta=None) -> BasinStarts:
         raise ValueError("theta = 0 is the singular set, where the control law is undefined; hold theta at a "
                          "non-zero value (e.g. --theta 1e-3) or give it a range (e.g. --theta -pi:pi:64)")
     varying = tuple(c for c in COORDS if not axes[c].fixed)
+    check_memory(math.prod(axes[c].n for c in COORDS), "grid_starts")
     slow_first = varying[::-1]
     if varying:
         mesh = np.meshgrid(*[axes[c].values() for c in slow_first], indexing="ij")
@@ -226,11 +232,9 @@ def sample_starts(n: int, *, seed: int = 0, x=None, y=None, theta=None) -> Basin
     reproducible from ``seed`` (NumPy's PCG64). A sample with ``theta = 0`` exactly would be
     flagged as singular by :func:`run_basin` (probability ~1e-16 per sample).
     """
-    if int(n) != n or n < 1:
-        raise ValueError(f"the number of samples must be a whole number >= 1, got {n!r}")
-    if int(seed) != seed or seed < 0:
-        raise ValueError(f"the seed must be a whole number >= 0, got {seed!r}")
-    n, seed = int(n), int(seed)
+    n = whole("n", n, maximum=2**62, example=100000)
+    seed = whole("seed", seed, minimum=0, maximum=2**63 - 1, example=1)
+    check_memory(n, "sample_starts")
     box = {}
     for c, v in (("x", x), ("y", y), ("theta", theta)):
         if v is None:
@@ -471,9 +475,10 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
                        rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
                        resume=resume, progress=progress)
-    settings = {k: v for k, v in res.settings.items() if k not in ("wall_s", "devices", "save_every")}
+    varying = ("wall_s", "devices", "chunks_reused")
+    settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every",)}
     settings["starts"] = starts.spec
-    run_info = {"wall_s": res.settings.get("wall_s"), "devices": res.settings.get("devices")}
+    run_info = {k: res.settings.get(k) for k in varying}
     return BasinResult(
         starts=starts, ics=res.ics, T_eps=res.T_eps, status=res.status, Hd0=res.Hd0, Hd_final=res.Hd_final,
         min_abs_theta=res.min_abs_theta, max_excursion=res.max_excursion, n_steps=res.n_steps,
@@ -488,23 +493,20 @@ _PER_START = ("T_eps", "status", "Hd0", "Hd_final", "min_abs_theta", "max_excurs
               "q_final", "p_final")
 
 
-def _npz_path(path) -> Path:
-    p = Path(path)
-    return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
-
-
 def _write_npz_deterministic(path: Path, arrays: dict) -> None:
-    """Like ``np.savez_compressed`` but with fixed zip timestamps: equal inputs, equal bytes."""
-    tmp = path.with_name(path.name + ".tmp")
-    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for key, val in arrays.items():
-            buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.asanyarray(val), allow_pickle=False)
-            info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, buf.getvalue())
-    tmp.replace(path)
+    """Like ``np.savez_compressed`` but with fixed zip timestamps (equal inputs, equal bytes),
+    written atomically."""
+    def write(f):
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for key, val in arrays.items():
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.asanyarray(val), allow_pickle=False)
+                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                zf.writestr(info, buf.getvalue())
+
+    atomic_write(path, write)
 
 
 def save_basin(path, result: BasinResult) -> Path:
@@ -525,7 +527,7 @@ def save_basin(path, result: BasinResult) -> Path:
     """
     from .io import damping_name
 
-    path = _npz_path(path)
+    path = npz_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     r = result
     s = r.settings
@@ -565,8 +567,12 @@ def save_basin(path, result: BasinResult) -> Path:
 
 def load_basin(path) -> BasinResult:
     """Read an ``.npz`` written by :func:`save_basin` (or ``jaxsleigh basin``)."""
-    with np.load(_npz_path(path), allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
+    try:
+        with np.load(npz_path(path), allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"cannot read basin file {str(path)!r} ({type(e).__name__}: {e}); give a file written "
+                         f"by jaxsleigh basin / save_basin") from None
     if "settings_json" not in data or "T_eps" not in data:
         raise ValueError(f"{str(path)!r} is not a basin file (written by jaxsleigh basin / save_basin)")
     settings = json.loads(str(data["settings_json"]))

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .closed_loop import ClosedLoop, state_to_w
+from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
 from .status import Status
 from .stepper import Controls, StepState, init_batch, is_active, run_plain, run_saving, run_segment
 
@@ -53,44 +53,108 @@ class Horizon(NamedTuple):
         return np.concatenate([[0.0], self.save_times()])
 
 
-def make_horizon(t_final, dt, save_every=None) -> Horizon:
-    """Validated horizon; ``save_every=None`` saves the final state only."""
+#: Most base steps (t_final / dt) of one run: the step budget (20x that, adaptive) must fit the
+#: engine's int32 counters.
+MAX_BASE_STEPS = 50_000_000
+
+
+def make_horizon(t_final, dt, save_every=None, *, flags=None) -> Horizon:
+    """Validated horizon; ``save_every=None`` saves the final state only. ``flags`` maps the
+    keywords ``t_final``, ``dt``, ``save_every`` to the names used in messages (command-line flags)."""
+    f = (lambda n: (flags or {}).get(n, n))
     try:
         t_final, dt = float(t_final), float(dt)
     except (TypeError, ValueError):
-        raise ValueError(f"t_final and dt must be numbers, got {t_final!r}, {dt!r}") from None
+        raise ValueError(f"{f('t_final')} and {f('dt')} must be numbers, got {t_final!r}, {dt!r}") from None
     if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a finite number > 0, got {dt}")
+        raise ValueError(f"{f('dt')} must be a finite number > 0, got {dt}")
     if not (math.isfinite(t_final) and t_final > 0):
-        raise ValueError(f"t_final must be a finite number > 0, got {t_final}")
-    n_steps = int(round(t_final / dt))
+        raise ValueError(f"{f('t_final')} must be a finite number > 0, got {t_final}")
+    ratio = t_final / dt
+    if not ratio <= MAX_BASE_STEPS + 0.5:
+        raise ValueError(f"{f('t_final')} / {f('dt')} = {ratio:.3g} base steps is more than one run can take "
+                         f"({MAX_BASE_STEPS:.0e}); use a larger {f('dt')} (the adaptive method grows its step "
+                         f"by itself) or a shorter {f('t_final')}")
+    n_steps = int(round(ratio))
     if n_steps < 1 or abs(n_steps * dt - t_final) > 1e-9 * max(1.0, t_final):
-        raise ValueError(f"t_final={t_final} must be a whole multiple of dt={dt} "
-                         f"(e.g. dt={t_final / max(1, n_steps)})")
+        raise ValueError(f"{f('t_final')} {t_final:g} must be a whole multiple of {f('dt')} {dt:g} "
+                         f"(e.g. {f('t_final')} {max(1, n_steps) * dt:g} or {f('dt')} {t_final / max(1, n_steps):g})")
     if save_every is None:
         save_every = n_steps
-    if int(save_every) != save_every or save_every < 1:
-        raise ValueError(f"save_every must be a whole number >= 1, got {save_every}")
+    if isinstance(save_every, bool) or int(save_every) != save_every or save_every < 1:
+        raise ValueError(f"{f('save_every')} must be a whole number >= 1, got {save_every}")
     save_every = int(save_every)
     if n_steps % save_every:
-        raise ValueError(f"the number of steps t_final/dt = {n_steps} must be a multiple of "
-                         f"save_every = {save_every}")
+        raise ValueError(f"the {n_steps} base steps ({f('t_final')} / {f('dt')}) are not a multiple of "
+                         f"{f('save_every')} {save_every}; use a {f('save_every')} that divides {n_steps} (e.g. 1)")
     return Horizon(t_final, dt, n_steps, save_every)
 
 
-def check_ics(ics) -> tuple[np.ndarray, np.ndarray]:
+_WHY = {
+    Status.SINGULAR_START: "theta0 = 0 is on the singular set, where the control law is undefined; "
+                           "start with theta0 != 0 (e.g. 1e-3)",
+    Status.INVALID_INPUT: "it has a non-finite entry",
+    Status.OUT_OF_RANGE: "|theta0| is so small that the start overflows the working precision (w ~ 1/theta0^2); "
+                         "use float64 (x64=True, --x64) or a larger |theta0|",
+}
+
+
+def _rows(idx: np.ndarray, limit: int = 5) -> str:
+    shown = ", ".join(str(int(i)) for i in idx[:limit])
+    return f"row{'s' if idx.size > 1 else ''} {shown}" + (f" and {idx.size - limit} more" if idx.size > limit else "")
+
+
+def _representable(ics5: np.ndarray, dtype, block: int = 1 << 16) -> np.ndarray:
+    """Rows whose w-chart state, vector field and H_d are finite (with room) in ``dtype``: computed
+    in float64 in blocks (memory bounded by the block), compared with the dtype's range."""
+    from .params import paper_gains, paper_plant
+
+    big = float(np.finfo(np.dtype(dtype)).max) * 1e-4
+    args = ClosedLoop(paper_plant(), paper_gains())
+    ok = np.zeros(ics5.shape[0], bool)
+    with jax.enable_x64(True):
+        for lo in range(0, ics5.shape[0], block):
+            yw, hd, fw = _w_check(jnp.asarray(ics5[lo:lo + block], jnp.float64), args)
+            yw, hd, fw = np.asarray(yw), np.asarray(hd), np.asarray(fw)
+            ok[lo:lo + block] = (np.all(np.abs(yw) < big, axis=1) & (np.abs(hd) < big)
+                                 & np.all(np.abs(fw) < big, axis=1))
+    return ok
+
+
+@jax.jit
+def _w_check(ics, args):
+    def one(y):
+        yw = state_to_w(y)
+        return yw, closed_loop_hamiltonian_w(yw, args), vector_field_w(0.0, yw, args)
+
+    return jax.vmap(one)(ics)
+
+
+def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.ndarray, np.ndarray]:
     """Validate initial conditions; returns ``(ics (N, 5) float64, status0 (N,) int32)``.
 
     ``ics`` is ``(3,)``/``(5,)`` for one start or ``(N, 3)``/``(N, 5)`` for many: ``(x, y, theta)``
-    with zero momentum, or ``(x, y, theta, p1, p2)``. Starts on the singular set ``theta = 0`` or
-    with non-finite entries are flagged (not integrated); if *every* start is bad this raises,
-    and a single bad start raises with a message that says what to change.
+    with zero momentum, or ``(x, y, theta, p1, p2)``. Rows on the singular set ``theta = 0``
+    (status ``SINGULAR_START``), with non-finite entries (``INVALID_INPUT``) or, with ``dtype``
+    given, so close to it that they overflow that precision (``OUT_OF_RANGE``) are flagged, not
+    integrated, and named in one :class:`~jaxsleigh.errors.FlaggedStartsWarning`; the other rows
+    are computed. A single start that is bad, or a batch whose every row is, raises ``ValueError``
+    with a message that says what to change.
     """
-    arr = np.asarray(ics, dtype=np.float64) if not isinstance(ics, np.ndarray) else ics.astype(np.float64)
+    from .errors import FlaggedStartsWarning
+
+    try:
+        raw = np.asarray(ics)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}s must be an array of numbers, got {type(ics).__name__}") from None
+    if raw.dtype == bool or np.iscomplexobj(raw) or not np.issubdtype(raw.dtype, np.number):
+        raise ValueError(f"{name}s must be real numbers (x, y, theta[, p1, p2]), got an array of "
+                         f"dtype {raw.dtype}")
+    arr = raw.astype(np.float64)
     if arr.ndim == 1:
         arr = arr[None]
     if arr.ndim != 2 or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
-        raise ValueError(f"initial conditions must have shape (3,), (5,), (N, 3) or (N, 5) "
+        raise ValueError(f"{name}s must have shape (3,), (5,), (N, 3) or (N, 5) "
                          f"[(x, y, theta) or (x, y, theta, p1, p2)], got {np.shape(ics)}")
     if arr.shape[1] == 3:
         arr = np.concatenate([arr, np.zeros((arr.shape[0], 2))], axis=1)
@@ -98,30 +162,38 @@ def check_ics(ics) -> tuple[np.ndarray, np.ndarray]:
     finite = np.all(np.isfinite(arr), axis=1)
     status[~finite] = Status.INVALID_INPUT
     status[finite & (arr[:, 2] == 0.0)] = Status.SINGULAR_START
+    if dtype is not None:
+        cand = np.flatnonzero(status == Status.OK)
+        rep = _representable(arr[cand], dtype)
+        status[cand[~rep]] = Status.OUT_OF_RANGE
     bad = np.flatnonzero(status)
     if bad.size:
         first = int(bad[0])
-        why = ("theta0 = 0 is on the singular set where the control law is undefined; "
-               "start with theta0 != 0 (e.g. 1e-3)" if status[first] == Status.SINGULAR_START
-               else "it has a non-finite entry")
-        msg = f"initial condition {first} {arr[first].tolist()} is invalid: {why}"
+        msg = f"{name} {first} {arr[first].tolist()} is invalid: {_WHY[Status(int(status[first]))]}"
         if bad.size == arr.shape[0]:
             if arr.shape[0] == 1:
                 raise ValueError(msg)
-            raise ValueError(f"all {arr.shape[0]} initial conditions are invalid; first: {msg}")
-        warnings.warn(f"{bad.size} of {arr.shape[0]} initial conditions are invalid and are flagged "
-                      f"in `status` (outputs NaN), not integrated; first: {msg}", stacklevel=3)
+            raise ValueError(f"all {arr.shape[0]} {name}s are invalid; first: {msg}")
+        parts = []
+        for code in np.unique(status[bad]):
+            idx = np.flatnonzero(status == code)
+            parts.append(f"{_rows(idx)} (status {int(code)} {Status(int(code)).name.lower()}: "
+                         f"{_WHY[Status(int(code))]})")
+        warnings.warn(FlaggedStartsWarning(
+            f"{bad.size} of {arr.shape[0]} {name}s flagged and not integrated (outputs NaN, the rest are "
+            f"computed): " + "; ".join(parts), rows=bad, status=status[bad]), stacklevel=3)
     return arr, status
 
 
 def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype) -> jax.Array:
-    """Map validated physical starts to the w chart, in float64 then cast to ``dtype``."""
+    """Map validated physical starts to the w chart, in float64 then cast to ``dtype``. Rows whose
+    ``status0`` is not OK get a harmless placeholder (they are never stepped)."""
     safe = np.where(status0[:, None] == 0, ics5, np.array([1.0, 0.0, 1.0, 0.0, 0.0]))
     with jax.enable_x64(True):
         yw = np.asarray(jax.vmap(state_to_w)(jnp.asarray(safe, jnp.float64)))
     if np.any(~np.isfinite(yw[status0 == 0])):
         raise ValueError("an initial condition overflows the w chart (|theta0| too small for this "
-                         "precision); use |theta0| >= 1e-150")
+                         "precision); check the starts with check_ics(ics, dtype) first, or use |theta0| >= 1e-150")
     return jnp.asarray(yw, dtype)
 
 
@@ -289,4 +361,4 @@ def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
 def default_max_steps(horizon: Horizon, adaptive: bool) -> int:
     """Per-trajectory budget of attempted steps: the base steps, plus 20x room when adaptive."""
     base = horizon.n_steps + horizon.n_out + 8
-    return 20 * base if adaptive else base
+    return min(20 * base if adaptive else base, 2**31 - 2)

@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
-from pathlib import Path
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -28,12 +26,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w
-from .engine import (METHODS, batch_mesh, check_ics, default_max_steps, drive_final, drive_plain, drive_saving,
-                     initial_w, make_horizon)
-from .params import Gains, PlantParams, gains_to_dict, paper_gains, paper_plant
+from .checkpoint import ChunkStore
+from .config import solve_config
+from .engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
+from .params import PlantParams
 from .progress import Progress
-from .simulate import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict
 from .status import Status
+from .validate import check_memory, whole
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
@@ -136,13 +135,7 @@ def _settings_key(settings: dict, ics: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def _save_atomic(path: Path, **arrays) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Gains] = None,
+def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, method: str = "adaptive",
                  rtol: Optional[float] = None, atol: Optional[float] = None, max_step: Optional[float] = None,
                  max_steps: Optional[int] = None, x64: bool = False, save_every: Optional[int] = None,
@@ -168,81 +161,67 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
         (``T_eps``, ``min_abs_theta``, ``max_excursion`` come back NaN); the status is judged at
         the end (non-finite, or theta ended with the other sign). The fastest mode.
       devices: devices to shard each chunk over (default: all of ``jax.devices()``).
-      checkpoint_dir: write every finished chunk there; with ``resume=True`` reuse the finished
-        chunks of an earlier run with the same settings and initial conditions.
+      checkpoint_dir: write every finished chunk there (atomically: a file is either complete or
+        absent); with ``resume=True`` reuse the finished chunks of an earlier run with the same
+        settings and initial conditions. Every chunk carries the fingerprint of the run that wrote
+        it and is checked on reuse: a chunk of another run stops the run with a
+        :class:`~jaxsleigh.errors.CheckpointError` (results are never mixed), a damaged one is named
+        in a :class:`~jaxsleigh.errors.DamagedCheckpointWarning` and recomputed.
       progress: ``True``/``False``/``None`` (auto: on a terminal).
 
     Returns:
       :class:`EnsembleResult`.
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    horizon = make_horizon(t_final, dt, save_every)
-    if save_every is None:
-        horizon = horizon._replace(save_every=horizon.n_steps)
-    try:
-        eps = float(eps)
-    except (TypeError, ValueError):
-        raise ValueError(f"eps must be a number, got {eps!r}") from None
-    if not (np.isfinite(eps) and eps > 0):
-        raise ValueError(f"eps must be a finite number > 0, got {eps}")
+    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
+                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
+                       check_passivity=check_passivity)
+    horizon = cfg.horizon
+    if not isinstance(summaries, (bool, np.bool_)):
+        raise ValueError(f"summaries must be True or False, got {summaries!r}")
     if not summaries and (method != "rk4" or check_passivity or save_every is not None):
         raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
                          "check_passivity=False and no save_every")
-    if int(chunk_size) < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-    ics5, status0 = check_ics(ics)
-    plant = paper_plant() if plant is None else plant
-    gains = paper_gains() if gains is None else gains
-    adaptive = method == "adaptive"
+    chunk_size = whole("chunk_size", chunk_size, example=65536)
+    segment = whole("segment", segment, example=1000)
+    if not isinstance(resume, (bool, np.bool_)):
+        raise ValueError(f"resume must be True or False, got {resume!r}")
+    if resume and checkpoint_dir is None:
+        raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
+    n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
+    check_memory(n_rows, "run_ensemble")
+    ics5, status0 = check_ics(ics, cfg.dtype)
+    plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
+    rtol, atol, max_step, max_steps = cfg.rtol, cfg.atol, cfg.max_step, cfg.max_steps
     mesh = batch_mesh(devices)
     n_dev = 1 if mesh is None else mesh.size
-    with jax.enable_x64(bool(x64)):
+    with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
-        rtol = DEFAULT_RTOL[dtype.name] if rtol is None else float(rtol)
-        atol = DEFAULT_ATOL[dtype.name] if atol is None else float(atol)
-        max_steps = default_max_steps(horizon, adaptive) if max_steps is None else int(max_steps)
-        max_step = MAX_STEP_FACTOR * horizon.dt if max_step is None else float(max_step)
         settings = {
-            "plant": plant_to_dict(plant), "gains": gains_to_dict(gains), "t_final": horizon.t_final,
-            "dt": horizon.dt, "eps": eps, "method": method, "rtol": rtol, "atol": atol,
-            "max_step": max_step, "max_steps": max_steps, "dtype": dtype.name,
-            "save_every": save_every, "chunk_size": int(chunk_size), "check_passivity": check_passivity,
-            "summaries": summaries,
+            **cfg.settings(), "save_every": save_every, "chunk_size": chunk_size, "summaries": bool(summaries),
             "devices": [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])],
         }
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
         chunk = -(-chunk // n_dev) * n_dev
-        ckpt = None
+        store = None
         if checkpoint_dir is not None:
-            ckpt = Path(checkpoint_dir)
-            ckpt.mkdir(parents=True, exist_ok=True)
-            key = _settings_key(settings, ics5)
-            manifest = ckpt / "manifest.json"
-            if manifest.exists() and resume:
-                old = json.loads(manifest.read_text())
-                if old.get("key") != key:
-                    raise ValueError(f"checkpoint {str(ckpt)!r} was made with other settings or initial "
-                                     "conditions; use a new --checkpoint directory or drop --resume")
-            elif manifest.exists() and any(ckpt.glob("chunk_*.npz")) and not resume:
-                raise ValueError(f"checkpoint {str(ckpt)!r} already holds chunks; pass resume=True "
-                                 "(--resume) to continue it or choose another directory")
-            manifest.write_text(json.dumps({"key": key, "n": n, "chunk": chunk, "settings": settings},
-                                           indent=1, default=str))
+            store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
+            store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "settings": settings})
         args = ClosedLoop(plant, gains)
-        parts = []
+        parts, reused = [], 0
+        fields = SUMMARY_FIELDS + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
         with Progress(progress, desc=f"ensemble ({n} ics)") as bar:
             starts = list(range(0, n, chunk))
             for ci, lo in enumerate(starts):
                 hi = min(lo + chunk, n)
-                path = None if ckpt is None else ckpt / f"chunk_{ci:06d}.npz"
-                if path is not None and resume and path.exists():
-                    with np.load(path) as z:
-                        parts.append({k: z[k] for k in z.files})
-                    bar.update(hi / n)
-                    continue
+                if store is not None and resume:
+                    part = store.load(ci, hi - lo, fields=fields)
+                    if part is not None:
+                        parts.append(part)
+                        reused += 1
+                        bar.update(hi / n)
+                        continue
                 pad = chunk - (hi - lo)
                 st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
                 ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
@@ -269,11 +248,12 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
                     yq[st != Status.OK] = np.nan
                     part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
                 part = {k: v[:hi - lo] for k, v in part.items()}
-                if path is not None:
-                    _save_atomic(path, **part)
+                if store is not None:
+                    store.save(ci, part)
                 parts.append(part)
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
     settings["wall_s"] = time.perf_counter() - t_start
+    settings["chunks_reused"] = reused
     traj = {}
     if save_every is not None:
         traj = {"t": horizon.t(), "q_traj": out.pop("q_traj"), "p_traj": out.pop("p_traj")}

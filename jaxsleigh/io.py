@@ -5,12 +5,13 @@ import ast
 import json
 import math
 import operator
+import os
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics"]
+__all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text"]
 
 
 def npz_path(path) -> Path:
@@ -40,8 +41,8 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     settings = {**s, "ics": ics.tolist(), "command": list(command) if command is not None else None,
                 "status_codes": describe()}
     plant, g = s["plant"], s["gains"]
-    np.savez_compressed(
-        path,
+    atomic_write(path, lambda f: np.savez_compressed(
+        f,
         t=np.asarray(sol.t), q=np.asarray(sol.q), p=np.asarray(sol.p), u=np.asarray(sol.u),
         Hd=np.asarray(sol.Hd), status=np.asarray(sol.status, dtype=np.int32),
         n_steps=np.asarray(sol.n_steps), n_rejected=np.asarray(sol.n_rejected), ics=ics,
@@ -52,7 +53,7 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
         gains_D_hat=np.asarray(g["D_hat"], dtype=np.float64),
         params=np.array([plant["m"], plant["J"], plant["l"]], dtype=np.float64),
         damping=np.array(damping_name(plant["damping"])),
-    )
+    ))
     return path
 
 
@@ -100,20 +101,95 @@ def load_ics(path, *, hint: str = "") -> np.ndarray:
     Raises ``ValueError`` with a message naming the fix; ``hint`` names the command's alternative.
     """
     p = Path(path)
-    if not p.exists():
-        raise ValueError(f"initial-conditions file {path!r} not found; give an existing .npy file of "
+    fix = "save them with numpy.save as a real float array of shape (N, 3) or (N, 5)"
+    if not p.is_file():
+        what = "is a folder" if p.is_dir() else "not found"
+        raise ValueError(f"initial-conditions file {str(path)!r} {what}; give an existing .npy file of "
                          f"shape (N, 3) or (N, 5)" + (f", or {hint}" if hint else ""))
+    text = p.suffix.lower() in (".txt", ".csv")
     try:
-        if p.suffix.lower() in (".txt", ".csv"):
+        if text:
             arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
         else:
+            with open(p, "rb") as f:
+                magic = f.read(6)
+            if magic != b"\x93NUMPY":
+                kind = "an empty file" if not magic else (
+                    "text (a CSV or text table? name it .csv or .txt)" if _looks_like_text(p) else "not a .npy file")
+                raise ValueError(f"{str(path)!r} is {kind}, not a NumPy .npy file; {fix}")
             arr = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"could not read initial conditions from {path!r} ({e}); save them with "
-                         f"numpy.save as a float array of shape (N, 3) or (N, 5)") from None
-    if not isinstance(arr, np.ndarray) or not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{path!r} must hold a numeric array of shape (N, 3) or (N, 5)")
+    except ValueError as e:
+        if str(e).startswith(repr(str(path))):
+            raise
+        raise ValueError(f"could not read initial conditions from {str(path)!r} ({e}); {fix}") from None
+    except (OSError, EOFError) as e:
+        raise ValueError(f"could not read initial conditions from {str(path)!r} ({type(e).__name__}: {e}); "
+                         f"{fix}") from None
+    if not isinstance(arr, np.ndarray) or arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{str(path)!r} must hold a numeric array of shape (N, 3) or (N, 5)")
+    if np.iscomplexobj(arr):
+        raise ValueError(f"{str(path)!r} holds complex numbers (dtype {arr.dtype}); initial conditions are real: "
+                         f"{fix}")
     if arr.ndim != 2 or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
-        raise ValueError(f"{path!r} holds an array of shape {arr.shape}; initial conditions must have "
+        raise ValueError(f"{str(path)!r} holds an array of shape {arr.shape}; initial conditions must have "
                          f"shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2] with N >= 1")
     return arr.astype(np.float64)
+
+
+def _looks_like_text(p: Path) -> bool:
+    with open(p, "rb") as f:
+        head = f.read(512)
+    try:
+        head.decode("ascii")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+# ---------------------------------------------------------------------------------------------
+# atomic writes: a file is either complete or absent, never half-written
+# ---------------------------------------------------------------------------------------------
+
+def _tmp_name(path: Path) -> Path:
+    # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # pragma: no cover - not every platform opens folders
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path, write) -> Path:
+    """Write ``path`` through ``write(file_object)`` into a temporary file in the same folder,
+    flush it to disk (fsync) and rename it into place: readers see the old file or the complete
+    new one, also after a crash or a kill."""
+    path = Path(path)
+    tmp = _tmp_name(path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def atomic_write_text(path, text: str) -> Path:
+    """:func:`atomic_write` of a UTF-8 text."""
+    return atomic_write(path, lambda f: f.write(text.encode("utf-8")))

@@ -8,7 +8,6 @@ accept tracers inside transformed code).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -25,6 +24,7 @@ __all__ = [
     "paper_plant",
     "paper_gains",
     "load_gains",
+    "preset_names",
     "save_gains",
     "gains_to_dict",
     "gains_from_dict",
@@ -71,13 +71,28 @@ def _is_concrete(x) -> bool:
 
 
 def _finite_scalar(name, value, *, hint):
+    from .validate import real
+
     try:
-        v = float(value)
+        return real(name, value)
+    except ValueError as e:
+        raise ValueError(f"{e}. {hint}") from None
+
+
+def _real_array(name, value, *, hint) -> np.ndarray:
+    """A float64 array from real numbers only (no bools, complex numbers or strings)."""
+    arr = np.asarray(value)
+    if arr.dtype == bool or np.iscomplexobj(arr) or not (np.issubdtype(arr.dtype, np.number)
+                                                          or arr.dtype == object):
+        raise ValueError(f"{name} must hold real numbers, got {value!r}. {hint}")
+    if arr.dtype == object:
+        flat = list(arr.ravel())
+        if any(isinstance(v, (bool, np.bool_, str, complex)) for v in flat):
+            raise ValueError(f"{name} must hold real numbers, got {value!r}. {hint}")
+    try:
+        return arr.astype(float)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}. {hint}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {v}. {hint}")
-    return v
+        raise ValueError(f"{name} must hold real numbers, got {value!r}. {hint}") from None
 
 
 def plant_params(m=2.0, J=1.0, l=1.0, damping="coulomb") -> PlantParams:
@@ -101,10 +116,16 @@ def plant_params(m=2.0, J=1.0, l=1.0, damping="coulomb") -> PlantParams:
     if isinstance(damping, str):
         damping = damping_from_name(damping)
     elif isinstance(damping, (CoulombDamping, ViscousDamping, NoDamping, CustomDamping)):
-        if isinstance(damping, CoulombDamping) and not (damping.eps > 0 and damping.scale >= 0):
-            raise ValueError(f"CoulombDamping needs eps > 0 and scale >= 0, got {damping}")
-        if isinstance(damping, ViscousDamping) and not (damping.c1 >= 0 and damping.c2 >= 0):
-            raise ValueError(f"ViscousDamping needs c1, c2 >= 0, got {damping}")
+        if isinstance(damping, CoulombDamping):
+            eps_ = _finite_scalar("CoulombDamping.eps", damping.eps, hint="e.g. CoulombDamping(eps=0.1, scale=1.0)")
+            scale = _finite_scalar("CoulombDamping.scale", damping.scale, hint="e.g. CoulombDamping(eps=0.1, scale=1.0)")
+            if not (eps_ > 0 and scale >= 0):
+                raise ValueError(f"CoulombDamping needs eps > 0 and scale >= 0, got {damping}")
+        if isinstance(damping, ViscousDamping):
+            c1 = _finite_scalar("ViscousDamping.c1", damping.c1, hint="e.g. ViscousDamping(c1=1.0, c2=1.0)")
+            c2 = _finite_scalar("ViscousDamping.c2", damping.c2, hint="e.g. ViscousDamping(c1=1.0, c2=1.0)")
+            if not (c1 >= 0 and c2 >= 0):
+                raise ValueError(f"ViscousDamping needs c1, c2 >= 0, got {damping}")
     elif callable(damping):
         damping = CustomDamping(damping)
     else:
@@ -117,7 +138,7 @@ def gains(L=(2.0, 0.5, 0.8), k=0.1, D_hat=(4.0, 8.0)) -> Gains:
     ``D_hat = diag(4, 8)``). ``D_hat`` may be a length-2 diagonal or a 2x2 matrix."""
     hint = ('Gains are {"L": [l1, l2, l3], "k": k, "D_hat": [d1, d2] or [[a, b], [c, d]]} '
             "with every l_i > 0, k > 0 and D_hat symmetric positive definite.")
-    L_arr = np.asarray(L, dtype=float)
+    L_arr = _real_array("L", L, hint=hint)
     if L_arr.shape != (3,):
         raise ValueError(f"L must have 3 entries (the diagonal of L), got shape {L_arr.shape}. {hint}")
     if not np.all(np.isfinite(L_arr)) or np.any(L_arr <= 0):
@@ -125,7 +146,7 @@ def gains(L=(2.0, 0.5, 0.8), k=0.1, D_hat=(4.0, 8.0)) -> Gains:
     k = _finite_scalar("k", k, hint=hint)
     if k <= 0:
         raise ValueError(f"k must be > 0 (k = 0 loses the invariance of theta != 0), got {k}. {hint}")
-    D = np.asarray(D_hat, dtype=float)
+    D = _real_array("D_hat", D_hat, hint=hint)
     if D.shape == (2,):
         D = np.diag(D)
     if D.shape != (2, 2):
@@ -157,43 +178,61 @@ def gains_to_dict(g: Gains) -> dict:
             "D_hat": np.asarray(g.D_hat, dtype=float).tolist()}
 
 
-def gains_from_dict(d: dict) -> Gains:
-    """Validated gains from the JSON format; missing keys take the paper's values."""
+def gains_from_dict(d: dict, *, source: str = "gains") -> Gains:
+    """Validated gains from the JSON format ``{"L": [..], "k": k, "D_hat": [..]}``; every key is
+    required (a file that omits one is refused rather than silently completed with the paper's)."""
     if not isinstance(d, dict):
-        raise ValueError(f"a gains file must hold a JSON object, got {type(d).__name__}")
+        raise ValueError(f"{source} must hold a JSON object, got {type(d).__name__}")
     unknown = set(d) - {"L", "k", "D_hat", "note", "meta"}
     if unknown:
-        raise ValueError(f"unknown keys in gains: {sorted(unknown)}; expected L, k, D_hat")
-    base = gains_to_dict(paper_gains())
-    base.update({k: d[k] for k in ("L", "k", "D_hat") if k in d})
-    return gains(base["L"], base["k"], base["D_hat"])
+        raise ValueError(f"unknown keys in {source}: {sorted(unknown)}; expected L, k, D_hat")
+    missing = [k for k in ("L", "k", "D_hat") if k not in d]
+    if missing:
+        paper = gains_to_dict(paper_gains())
+        raise ValueError(f"{source} lacks {', '.join(missing)}; give every one of L, k, D_hat (the paper's: "
+                         + ", ".join(f'"{k}": {json.dumps(paper[k])}' for k in missing) + ")")
+    try:
+        return gains(d["L"], d["k"], d["D_hat"])
+    except ValueError as e:
+        raise ValueError(f"{source}: {e}") from None
+
+
+def preset_names() -> list[str]:
+    """Names of the shipped gain presets (``'paper'`` and one per ``presets/*.json``)."""
+    return ["paper"] + sorted(p.stem for p in (Path(__file__).parent / "presets").glob("*.json"))
 
 
 def load_gains(spec) -> Gains:
-    """Gains from a preset name (``'paper'``, ``'tuned'``) or a JSON file path."""
+    """Gains from a preset name (:func:`preset_names`: ``'paper'``, ``'tuned'``, ...) or a JSON file."""
     if isinstance(spec, Gains):
         return spec
     spec = str(spec)
     if spec == "paper":
         return paper_gains()
-    if spec == "tuned":
-        path = Path(__file__).parent / "presets" / "tuned.json"
-        if not path.exists():
-            raise ValueError("the 'tuned' preset is not available in this installation")
-    else:
+    presets = preset_names()
+    path = Path(__file__).parent / "presets" / f"{spec}.json"
+    if spec not in presets:
         path = Path(spec)
-        if not path.exists():
-            raise ValueError(f"gains file {spec!r} not found (or use the presets 'paper' / 'tuned')")
+        if not path.is_file():
+            what = "is a folder" if path.is_dir() else "not found"
+            raise ValueError(f"gains file {spec!r} {what}; give a JSON gains file or a preset "
+                             f"({', '.join(repr(n) for n in presets)})")
     try:
         d = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"gains file {str(path)!r} is not valid JSON: {e}") from None
-    return gains_from_dict(d)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"gains file {str(path)!r} is not valid JSON ({e}); write "
+                         '{"L": [l1, l2, l3], "k": k, "D_hat": [d1, d2]}') from None
+    except OSError as e:
+        raise ValueError(f"cannot read gains file {str(path)!r} ({e.strerror or e})") from None
+    return gains_from_dict(d, source=f"gains file {str(path)!r}")
 
 
 def save_gains(g: Gains, path, **meta) -> None:
     """Write gains in the JSON format (``meta`` is stored under ``"meta"``)."""
+    from .io import atomic_write_text
+
     d = gains_to_dict(g)
     if meta:
         d["meta"] = meta
-    Path(path).write_text(json.dumps(d, indent=2) + "\n")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(d, indent=2, default=str) + "\n")

@@ -13,21 +13,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w
+from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, solve_config  # noqa: F401
 from .control import control_w
 from .coordinates import w_to_q
-from .engine import METHODS, check_ics, default_max_steps, drive_saving, initial_w, make_horizon
-from .params import Gains, PlantParams, gains_to_dict, paper_gains, paper_plant
+from .engine import check_ics, drive_saving, initial_w
+from .params import PlantParams
 from .plant import velocity
 from .progress import Progress
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
-
-# Tolerances of the adaptive method, per dtype (chosen from measured accuracy, see README).
-DEFAULT_RTOL = {"float32": 1e-6, "float64": 1e-8}
-DEFAULT_ATOL = {"float32": 1e-6, "float64": 1e-8}
-# Largest adaptive step, in base steps: at 0.1 s the adaptive method needs ~1300 steps per 100 s
-# on typical starts (against 10^4 fixed steps) with final-state errors ~1e-6 (float32).
-MAX_STEP_FACTOR = 10
 
 
 class Solution(NamedTuple):
@@ -66,14 +60,7 @@ def _outputs(yw, args: ClosedLoop):
     return jax.vmap(jax.vmap(one))(yw)
 
 
-def plant_to_dict(plant: PlantParams) -> dict:
-    d = plant.damping
-    return {"m": float(plant.m), "J": float(plant.J), "l": float(plant.l),
-            "damping": type(d).__name__, "damping_params": {k: float(v) for k, v in d._asdict().items()}
-            if hasattr(d, "_asdict") else repr(d)}
-
-
-def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Gains] = None,
+def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
              t_final: float = 100.0, dt: float = 0.01, save_every: int = 10,
              method: str = "adaptive", rtol: Optional[float] = None, atol: Optional[float] = None,
              max_step: Optional[float] = None, max_steps: Optional[int] = None, x64: bool = False,
@@ -83,7 +70,8 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Gains]
     Args:
       ics: ``(3,)``, ``(5,)``, ``(N, 3)`` or ``(N, 5)``: ``(x, y, theta[, p1, p2])``.
       plant, gains: defaults are the paper's (m = 2, J = 1, l = 1, Coulomb; L = diag(2, .5, .8),
-        k = 0.1, D_hat = diag(4, 8)).
+        k = 0.1, D_hat = diag(4, 8)). ``gains`` may also be a preset name (``"tuned"``) or a
+        gains-file path. Both are validated eagerly (``ValueError`` saying what to change).
       t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``).
       save_every: keep every ``save_every``-th base step (the saved grid is uniform in time).
       method: ``"adaptive"`` (default: RK4 with per-trajectory error control, starting at ``dt``;
@@ -97,43 +85,32 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Optional[Gains]
 
     Returns:
       :class:`Solution`, as NumPy arrays.
+
+    Raises:
+      ValueError: any bad option, or a single start (or every start of a batch) that cannot be
+        integrated. A bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in
+        a :class:`~jaxsleigh.errors.FlaggedStartsWarning`; the other rows are computed.
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    horizon = make_horizon(t_final, dt, save_every)
-    ics5, status0 = check_ics(ics)
-    plant = paper_plant() if plant is None else plant
-    gains = paper_gains() if gains is None else gains
-    adaptive = method == "adaptive"
-    with jax.enable_x64(bool(x64)):
+    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
+                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64)
+    horizon = cfg.horizon
+    ics5, status0 = check_ics(ics, cfg.dtype)
+    with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
-        rtol = DEFAULT_RTOL[dtype.name] if rtol is None else float(rtol)
-        atol = DEFAULT_ATOL[dtype.name] if atol is None else float(atol)
-        if not (rtol > 0 and atol > 0):
-            raise ValueError(f"rtol and atol must be > 0, got {rtol}, {atol}")
-        max_steps = default_max_steps(horizon, adaptive) if max_steps is None else int(max_steps)
-        max_step = MAX_STEP_FACTOR * horizon.dt if max_step is None else float(max_step)
-        if not max_step > 0:
-            raise ValueError(f"max_step must be > 0, got {max_step}")
-        if max_steps < horizon.n_steps:
-            raise ValueError(f"max_steps={max_steps} is below the {horizon.n_steps} base steps of the horizon")
-        args = ClosedLoop(plant, gains)
+        args = ClosedLoop(cfg.plant, cfg.gains)
         y0w = initial_w(ics5, status0, dtype)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
-            final, ys = drive_saving(y0w, status0, args, horizon, adaptive=adaptive, rtol=rtol, atol=atol,
-                                     eps=0.05, max_steps=max_steps, max_step=max_step,
+            final, ys = drive_saving(y0w, status0, args, horizon, adaptive=cfg.adaptive, rtol=cfg.rtol,
+                                     atol=cfg.atol, eps=cfg.eps, max_steps=cfg.max_steps, max_step=cfg.max_step,
                                      progress=bar)
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
         q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), args))
-    settings = {
-        "plant": plant_to_dict(plant), "gains": gains_to_dict(gains),
-        "t_final": horizon.t_final, "dt": horizon.dt, "save_every": horizon.save_every,
-        "method": method, "rtol": rtol, "atol": atol, "max_step": max_step, "max_steps": max_steps,
-        "dtype": dtype.name, "wall_s": time.perf_counter() - t_start,
-    }
+    settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start}
+    settings.pop("check_passivity")
+    settings.pop("eps")
     # restore the exact initial state (the w chart round trip rounds it in float32)
     q[:, 0] = np.where(bad[:, None], np.nan, ics5[:, :3])
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Status", "DESCRIPTIONS", "describe"]
+__all__ = ["Status", "DESCRIPTIONS", "NOT_INTEGRATED", "describe", "counts_in_words"]
 
 
 class Status(enum.IntEnum):
@@ -19,6 +19,7 @@ class Status(enum.IntEnum):
     CROSSED_SINGULAR = 5
     STEP_UNDERFLOW = 6
     UNRELIABLE = 7
+    OUT_OF_RANGE = 8
 
 
 DESCRIPTIONS = {
@@ -35,9 +36,24 @@ DESCRIPTIONS = {
     Status.STEP_UNDERFLOW: "the adaptive step size fell below its floor; outputs NaN after the last time reached",
     Status.UNRELIABLE: ("a fixed RK4 step increased H_d, which the exact closed loop never does (eq. 18): "
                         "the step is too large there; outputs NaN after; use the adaptive method or a smaller dt"),
+    Status.OUT_OF_RANGE: ("the start is so close to theta = 0 that its w-chart state (~ 1/theta0^2) or H_d overflows "
+                          "the working precision; not integrated, outputs NaN; use float64 (x64=True, --x64) "
+                          "or a larger |theta0|"),
 }
+
+#: Codes of starts that were flagged before integration (never stepped).
+NOT_INTEGRATED = (Status.SINGULAR_START, Status.INVALID_INPUT, Status.OUT_OF_RANGE)
 
 
 def describe() -> str:
     """One line per code, for ``--help`` texts and file metadata."""
     return "\n".join(f"{int(s)} = {s.name.lower()}: {DESCRIPTIONS[s]}" for s in Status)
+
+
+def counts_in_words(status) -> str:
+    """``'2 ok, 1 singular_start'``: how many trajectories ended with each status, by name."""
+    import numpy as np
+
+    codes, counts = np.unique(np.asarray(status, dtype=np.int64), return_counts=True)
+    names = {int(s): s.name.lower() for s in Status}
+    return ", ".join(f"{int(n)} {names.get(int(c), f'code {int(c)}')}" for c, n in zip(codes, counts))

@@ -84,7 +84,8 @@ __all__ = [
     "PlantDistribution", "sample_plants", "validation_plants",
     "LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "soft_convergence", "objective",
     "make_value_and_grad", "GRADIENT_MODES",
-    "TuneConfig", "TuneHistory", "TuneResult", "make_optimizer", "tune", "save_history", "load_history",
+    "TuneConfig", "TuneHistory", "TuneResult", "TuningInterrupted", "make_optimizer", "tune", "save_history",
+    "load_history",
     "Validation", "validate", "markdown_table",
 ]
 
@@ -669,7 +670,8 @@ def _validate_number(name, v, *, integer=False, positive=True):
 def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneConfig(),
          loss: LossConfig = LossConfig(), tune=None, plant: Optional[PlantParams] = None,
          robust: Optional[PlantDistribution] = None, guard=None, x64: bool = False,
-         d_floor: float = D_FLOOR, progress: Any = None, callback: Optional[Callable] = None) -> TuneResult:
+         d_floor: float = D_FLOOR, progress: Any = None, callback: Optional[Callable] = None,
+         checkpoint=None, resume: bool = False) -> TuneResult:
     """Tune the gains by gradient descent on the soft convergence time.
 
     Args:
@@ -684,6 +686,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
       guard: guard starts (default :func:`guard_starts`, ``|theta0|`` in {0.05, 0.1} at the corners).
       x64: compute in float64 (default float32).
       progress: progress bar (``None``: on a terminal); callback: ``callback(i, row_dict)`` per iteration.
+      checkpoint: a file (``.npz``) where the optimiser's whole state is written, atomically, after
+        every iteration; ``resume=True`` continues from it (the run's settings must be the same:
+        they are fingerprinted) and ends with the result an uninterrupted run would have given.
 
     Returns:
       :class:`TuneResult` whose ``gains`` are the best *valid* candidate (every training and guard
@@ -695,6 +700,8 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
       ValueError: bad settings, or starting gains that are not a valid candidate (the message
         says which check failed and what to change).
       RuntimeError: no candidate passed the final check.
+      TuningInterrupted: Ctrl-C during the loop; its ``partial`` is a :class:`TuneResult` with the
+        best valid gains so far (not re-checked with the accurate engine) and the history.
     """
     names = parse_tune(tune)
     steps = _validate_number("steps", config.steps, integer=True)
@@ -722,46 +729,77 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         groups = _plant_groups(ics.shape[0], plant, robust, config.seed + 1)
         probes, n_accepted = None, 0
         rows, best, last_valid, valid_points = [], None, None, []
-        scale, rejections = 1.0, 0
-        with _Bar(progress, steps) as bar:
-            for it in range(steps):
-                (value, aux), grad = vg(trainable, frozen, data, cfg)
-                value = float(value)
-                gnorm = float(optax.tree.norm(grad))
-                valid = bool(aux["valid"]) and math.isfinite(gnorm)
-                probe_attempts = float("nan")
-                if valid and config.probe:
-                    g = _gains_numpy(trainable, frozen, d_floor, g0, names)
-                    refresh = probes is None or n_accepted % max(1, int(config.probe_refresh)) == 0
-                    sets = [(ics[idx], p0) for idx, _, p0 in groups] if refresh else probes
-                    valid, attempts = _probe(g, sets, float(loss.probe_t_final), int(config.probe_budget), x64)
-                    probe_attempts = float(max(a.max() for a in attempts))
-                    if refresh and valid:
-                        probes = _hardest(sets, attempts, int(config.probe))
-                row = _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, time.perf_counter() - t_start)
-                row["probe_attempts"] = probe_attempts
-                if valid:
-                    rejections = 0
-                    if best is None or value < best[0]:
-                        best = (value, it, trainable)
-                    valid_points.append((value, it, trainable))
-                    n_accepted += 1
-                    last_valid = (trainable, opt_state, grad)
-                    scale = min(1.0, 1.25 * scale)
-                else:
-                    if last_valid is None:
-                        raise ValueError(_invalid_start_message(aux, value, gnorm, probe_attempts, config))
-                    # backtrack: redo the last valid step, half as long
-                    rejections += 1
-                    scale *= 0.5
-                trainable, opt_state = apply(opt, *last_valid, jnp.asarray(scale, dtype))
-                row["best"] = best[0]
-                rows.append(row)
-                bar.update(it, row)
-                if callback is not None:
-                    callback(it, row)
-                if rejections >= config.max_rejections or scale < config.min_scale:
-                    break
+        scale, rejections, it0 = 1.0, 0, 0
+        store = None
+        if checkpoint is not None:
+            store = _TunerCheckpoint(checkpoint, _tune_fingerprint(g0, names, config, loss, plant, robust, guard,
+                                                                    x64, d_floor, starts, ics))
+            if resume:
+                st = store.load(trainable, opt_state, groups)
+                if st is not None:
+                    (trainable, opt_state, last_valid, best, valid_points, rows, scale, rejections,
+                     n_accepted, probes, it0) = st
+            elif store.path.exists():
+                raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
+                                 "resume=True (--resume) to continue it, or delete it to start afresh")
+        if checkpoint is None and resume:
+            raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
+        try:
+            with _Bar(progress, steps) as bar:
+                bar.skip(it0)
+                for it in range(it0, steps):
+                    (value, aux), grad = vg(trainable, frozen, data, cfg)
+                    value = float(value)
+                    gnorm = float(optax.tree.norm(grad))
+                    valid = bool(aux["valid"]) and math.isfinite(gnorm)
+                    probe_attempts = float("nan")
+                    if valid and config.probe:
+                        g = _gains_numpy(trainable, frozen, d_floor, g0, names)
+                        refresh = probes is None or n_accepted % max(1, int(config.probe_refresh)) == 0
+                        sets = [(ics[idx], p0) for idx, _, p0 in groups] if refresh else probes
+                        valid, attempts = _probe(g, sets, float(loss.probe_t_final), int(config.probe_budget), x64)
+                        probe_attempts = float(max(a.max() for a in attempts))
+                        if refresh and valid:
+                            probes = _hardest(sets, attempts, int(config.probe))
+                    row = _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, time.perf_counter() - t_start)
+                    row["probe_attempts"] = probe_attempts
+                    if valid:
+                        rejections = 0
+                        if best is None or value < best[0]:
+                            best = (value, it, trainable)
+                        valid_points.append((value, it, trainable))
+                        n_accepted += 1
+                        last_valid = (trainable, opt_state, grad)
+                        scale = min(1.0, 1.25 * scale)
+                    else:
+                        if last_valid is None:
+                            raise ValueError(_invalid_start_message(aux, value, gnorm, probe_attempts, config))
+                        # backtrack: redo the last valid step, half as long
+                        rejections += 1
+                        scale *= 0.5
+                    trainable, opt_state = apply(opt, *last_valid, jnp.asarray(scale, dtype))
+                    row["best"] = best[0]
+                    rows.append(row)
+                    stop = rejections >= config.max_rejections or scale < config.min_scale
+                    if store is not None:
+                        store.save(it + 1 if not stop else steps, trainable, opt_state, last_valid, best,
+                                   valid_points, rows, scale, rejections, n_accepted, probes, groups)
+                    bar.update(it, row)
+                    if callback is not None:
+                        callback(it, row)
+                    if stop:
+                        break
+        except KeyboardInterrupt:
+            partial = None
+            if best is not None:
+                history = TuneHistory(**{f: np.asarray([r[f] for r in rows]) for f in TuneHistory._fields})
+                partial = TuneResult(_gains_numpy(best[2], frozen, d_floor, g0, names), g0, float(best[0]),
+                                     float(rows[0]["loss"]), int(best[1]), history,
+                                     {"interrupted": True, "verified_iteration": None, "iterations_run": len(rows),
+                                      "dtype": "float64" if x64 else "float32", "tuned": list(names),
+                                      "loss": {k: float(v) for k, v in loss._asdict().items()},
+                                      "method": "interrupted; best valid candidate so far, not re-checked"})
+            raise TuningInterrupted(partial, None if store is None else store.path) from None
         history = TuneHistory(**{f: np.asarray([r[f] for r in rows]) for f in TuneHistory._fields})
         best_gains = _gains_numpy(best[2], frozen, d_floor, g0, names)
     verified = None
@@ -863,8 +901,9 @@ def _invalid_start_message(aux, value, gnorm, probe_attempts, config) -> str:
                 f"{n_bad} training and {g_bad} guard lanes failed or ran out of their step budget); "
                 f"raise n_attempts, shorten t_final or start from other gains")
     return (f"the starting gains fail the integration-cost probe: a training start needs more than "
-            f"probe_budget = {config.probe_budget} attempted steps over the validation horizon (got "
-            f"{probe_attempts:.0f}); raise probe_budget or start from other gains")
+            f"probe_budget = {config.probe_budget} attempted steps to simulate the validation horizon (it "
+            f"stopped after {probe_attempts:.0f} without reaching it); raise probe_budget (the paper's gains need "
+            f"about 1,400 per 100 s, the engine's default budget is 200,180) or start from other gains")
 
 
 class _Bar:
@@ -878,6 +917,11 @@ class _Bar:
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=total, desc="tune", unit="it")
+
+    def skip(self, n):
+        """Count ``n`` iterations done by an earlier (resumed) run."""
+        if self._bar is not None and n:
+            self._bar.update(n)
 
     def update(self, it, row):
         if self._bar is not None:
@@ -894,11 +938,129 @@ class _Bar:
         return False
 
 
+class TuningInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`tune`. ``partial``: a :class:`TuneResult` with the best valid gains so far
+    (``None`` if no candidate was valid yet); ``checkpoint``: the file to resume from (or ``None``)."""
+
+    def __init__(self, partial, checkpoint):
+        super().__init__("tuning interrupted")
+        self.partial = partial
+        self.checkpoint = checkpoint
+
+
+def _tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics) -> str:
+    import hashlib
+    import json
+
+    from .config import plant_to_dict
+
+    doc = {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
+           "loss": {k: float(v) for k, v in loss._asdict().items()},
+           "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
+           "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
+           "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
+    h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
+    h.update(np.ascontiguousarray(ics, np.float64).tobytes())
+    return h.hexdigest()
+
+
+class _TunerCheckpoint:
+    """The optimiser's whole state in one ``.npz`` (pytree leaves by position), written atomically."""
+
+    _ROW_FIELDS = TuneHistory._fields
+
+    def __init__(self, path, key: str):
+        self.path = Path(path)
+        self.key = key
+
+    def save(self, it, trainable, opt_state, last_valid, best, valid_points, rows, scale, rejections,
+             n_accepted, probes, groups) -> None:
+        from .io import atomic_write
+
+        arrays = {"key": np.array(self.key), "it": np.int64(it), "scale": np.float64(scale),
+                  "rejections": np.int64(rejections), "n_accepted": np.int64(n_accepted)}
+
+        def put(prefix, tree):
+            for i, leaf in enumerate(jax.tree_util.tree_leaves(tree)):
+                arrays[f"{prefix}/{i}"] = np.asarray(leaf)
+
+        put("trainable", trainable)
+        put("opt_state", opt_state)
+        if last_valid is not None:
+            put("last_valid/trainable", last_valid[0])
+            put("last_valid/opt_state", last_valid[1])
+            put("last_valid/grad", last_valid[2])
+        if best is not None:
+            arrays["best/value"], arrays["best/it"] = np.float64(best[0]), np.int64(best[1])
+            put("best/trainable", best[2])
+        arrays["valid/value"] = np.asarray([v for v, _, _ in valid_points], np.float64)
+        arrays["valid/it"] = np.asarray([i for _, i, _ in valid_points], np.int64)
+        for j, (_, _, tr) in enumerate(valid_points):
+            put(f"valid/{j}", tr)
+        for f in self._ROW_FIELDS:
+            arrays[f"rows/{f}"] = np.asarray([r[f] for r in rows])
+        if probes is not None:
+            for j, (pstarts, _) in enumerate(probes):
+                arrays[f"probes/{j}"] = np.asarray(pstarts)
+        atomic_write(self.path, lambda fh: np.savez(fh, **arrays))
+
+    def load(self, trainable, opt_state, groups):
+        """The saved state, restructured like ``trainable`` / ``opt_state``; ``None`` if no file."""
+        import zipfile
+
+        if not self.path.exists():
+            return None
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                a = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} is damaged ({type(e).__name__}: {e}); delete it "
+                             "and start afresh (without --resume)") from None
+        if str(a.get("key")) != self.key:
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings; rerun "
+                             "that command with --resume, or delete the checkpoint to start afresh")
+
+        def get(prefix, like):
+            leaves, tdef = jax.tree_util.tree_flatten(like)
+            return jax.tree_util.tree_unflatten(
+                tdef, [jnp.asarray(a[f"{prefix}/{i}"], jnp.asarray(l).dtype) for i, l in enumerate(leaves)])
+
+        last_valid = None
+        if "last_valid/trainable/0" in a:
+            last_valid = (get("last_valid/trainable", trainable), get("last_valid/opt_state", opt_state),
+                          get("last_valid/grad", trainable))
+        best = None
+        if "best/value" in a:
+            best = (float(a["best/value"]), int(a["best/it"]), get("best/trainable", trainable))
+        valid_points = [(float(v), int(i), get(f"valid/{j}", trainable))
+                        for j, (v, i) in enumerate(zip(a["valid/value"], a["valid/it"]))]
+        n_rows = len(a[f"rows/{self._ROW_FIELDS[0]}"])
+        rows = [{f: _scalar(a[f"rows/{f}"][r]) for f in self._ROW_FIELDS} for r in range(n_rows)]
+        probes = None
+        if "probes/0" in a:
+            probes = [(a[f"probes/{j}"], groups[j][2]) for j in range(len(groups)) if f"probes/{j}" in a]
+        return (get("trainable", trainable), get("opt_state", opt_state), last_valid, best, valid_points, rows,
+                float(a["scale"]), int(a["rejections"]), int(a["n_accepted"]), probes, int(a["it"]))
+
+
+def _scalar(x):
+    x = np.asarray(x)
+    if x.ndim:
+        return x
+    if x.dtype == bool:
+        return bool(x)
+    return x.item()
+
+
 def save_history(history: TuneHistory, path, **extra) -> Path:
     """Write the history as ``.npz`` (one key per field, plus ``extra`` arrays)."""
+    from .io import atomic_write
+
     path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **history._asdict(), **{k: np.asarray(v) for k, v in extra.items()})
+    atomic_write(path, lambda f: np.savez(f, **history._asdict(), **{k: np.asarray(v) for k, v in extra.items()}))
     return path
 
 

@@ -16,10 +16,11 @@ import pytest
 import jaxsleigh
 import jaxsleigh.ensemble
 from jaxsleigh import cli
+from jaxsleigh.cli.basin import add_basin
+from jaxsleigh.errors import FlaggedStartsWarning
 from jaxsleigh.basin import (Axis, BasinResult, BasinStarts, array_starts, fraction_by, fraction_converged,
                              grid_starts, load_basin, parse_axis, path_length, power_law_fit, run_basin,
                              sample_starts, save_basin)
-from jaxsleigh.cli_basin import add_basin
 from jaxsleigh.status import Status
 
 # a small x-y slice with a mix of converged and unsettled starts (10 of 24 converge)
@@ -43,7 +44,7 @@ def _t_eps_from_trajectories(q: np.ndarray, t: np.ndarray, eps: float) -> np.nda
 @pytest.fixture(scope="module")
 def xt_result():
     """A tiny x-theta map (theta = 0 row included) from the default adaptive float32 engine."""
-    with pytest.warns(UserWarning, match="6 of 30 initial conditions are invalid"):
+    with pytest.warns(FlaggedStartsWarning, match="6 of 30 initial conditions flagged"):
         return run_basin(grid_starts(x="-2:2:6", y=0.5, theta="-2.5:2.5:5"), eps=0.3, t_final=30.0, dt=0.05,
                          progress=False)
 
@@ -198,7 +199,7 @@ def test_samples_are_reproducible_and_in_the_box():
     assert a.ics[:, 0].std() > 1.5                          # really spread over the box
     c = sample_starts(50, seed=0, x=2.0, theta="0.1:0.2:99")  # N of a range is ignored
     assert np.all(c.ics[:, 0] == 2.0) and np.all((c.ics[:, 2] >= 0.1) & (c.ics[:, 2] <= 0.2))
-    for bad, msg in [(dict(n=0), "whole number >= 1"), (dict(n=5, seed=-1), "seed"),
+    for bad, msg in [(dict(n=0), "n must be >= 1"), (dict(n=5, seed=-1), "seed must be >= 0"), (dict(n=1.5), "whole"),
                      (dict(n=5, theta=0), "singular set")]:
         with pytest.raises(ValueError, match=msg):
             sample_starts(**bad)
@@ -276,13 +277,6 @@ def test_plots_on_tiny_grids(tmp_path, xt_result):
 @pytest.fixture
 def basin_main(monkeypatch, capsys):
     """``jaxsleigh.cli.main`` with the basin subcommand registered; returns (rc, stdout, stderr)."""
-    import argparse
-
-    registered = any("basin" in (a.choices or {}) for a in cli.build_parser()._actions
-                     if isinstance(a, argparse._SubParsersAction))
-    if not registered:                  # until jaxsleigh.cli lists the subcommand itself
-        monkeypatch.setattr(cli, "_SUBCOMMANDS", [*cli._SUBCOMMANDS, add_basin])
-
     def run(argv):
         rc = cli.main(argv)
         out, err = capsys.readouterr()
@@ -338,7 +332,7 @@ def test_resume_after_interruption_writes_identical_bytes(tmp_path, monkeypatch,
     rc, _, _ = basin_main(["basin", *CLI_FAST, "--out", str(tmp_path / "other.npz"), "--keep-chunks"])
     assert rc == 0
     rc, _, err = basin_main(["basin", *CLI_FAST, "--eps", "0.2", "--resume", "--out", str(tmp_path / "other.npz")])
-    assert rc == 2 and "other options or starts" in err
+    assert rc == 2 and "other settings or initial conditions" in err and "--resume" in err
 
 
 def test_cli_outputs_plot_and_sidecar(tmp_path, basin_main):

@@ -34,7 +34,7 @@ def test_simulate_contract_and_settings_round_trip(tmp_path, capsys):
     # "--ic -3,..." (negative first entry, no '=') must work too
     rc, stdout, err = _run(["simulate", "--ic", "-3,-2,pi/8", "--ic=3,2,-1.5", *TINY, "--out", str(out)], capsys)
     assert rc == 0, err
-    assert "N=2" in stdout and "2 ok" in stdout and str(out) in stdout
+    assert "2 trajectories: 2 ok" in stdout and str(out) in stdout
     with np.load(out, allow_pickle=False) as z:
         data = {k: z[k] for k in z.files}
     assert SIM_KEYS <= set(data)
@@ -119,7 +119,7 @@ def _write(tmp_path, name, text):
     ([], "one of the arguments --ics --ic is required"),
 ])
 def test_bad_input_exits_2_with_a_message(tmp_path, capsys, case, expect):
-    files = {"BADGAINS": _write(tmp_path, "bad.json", json.dumps({"L": [1, 2], "k": 0.1})),
+    files = {"BADGAINS": _write(tmp_path, "bad.json", json.dumps({"L": [1, 2], "k": 0.1, "D_hat": [1, 1]})),
              "NOTJSON": _write(tmp_path, "not.json", "{L: 1"),
              "missing.json": str(tmp_path / "missing.json"), "missing.npy": str(tmp_path / "missing.npy")}
     np.save(tmp_path / "bad.npy", np.ones((2, 4)))

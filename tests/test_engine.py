@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
+from jaxsleigh.errors import FlaggedStartsWarning
 from jaxsleigh.closed_loop import ClosedLoop, vector_field
 from jaxsleigh.engine import check_ics, drive_final, initial_w, make_horizon
 from jaxsleigh.ensemble import SUMMARY_FIELDS, run_ensemble
@@ -136,7 +137,7 @@ def test_sharded_equals_unsharded():
 def test_bad_rows_do_not_spoil_the_batch():
     ics = _ics(6, seed=5)
     bad = np.vstack([ics[:3], [[1.0, 1.0, 0.0]], [[np.nan, 0.0, 1.0]], ics[3:]])
-    with pytest.warns(UserWarning, match="2 of 8 initial conditions are invalid"):
+    with pytest.warns(FlaggedStartsWarning, match="2 of 8 initial conditions flagged"):
         r = run_ensemble(bad, t_final=5.0, x64=True)
     good = run_ensemble(ics, t_final=5.0, x64=True)
     assert r.status[3] == Status.SINGULAR_START and r.status[4] == Status.INVALID_INPUT

@@ -14,7 +14,7 @@ from jax.flatten_util import ravel_pytree
 import jaxsleigh as js
 from jaxsleigh import tuning as tu
 from jaxsleigh.cli import main as cli_main
-from jaxsleigh.cli_tune import add_tune
+from jaxsleigh.cli.tune import add_tune
 from jaxsleigh.ensemble import run_ensemble
 from jaxsleigh.status import Status
 

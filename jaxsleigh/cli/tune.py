@@ -10,9 +10,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+from .common import (EXIT_INTERRUPTED, PROG, add_model_options, add_progress_option, check_outputs, model_from_args,
+                     number, whole)
 
 __all__ = ["add_tune"]
 
@@ -37,8 +42,6 @@ examples:
 
 def add_tune(subparsers) -> None:
     """Register ``tune`` on an ``argparse`` subparsers object."""
-    from .cli import _add_model_options, _add_progress_option, _positive_float, _positive_int
-
     p = subparsers.add_parser(
         "tune", help="tune the gains for fast convergence (gradients through the integrator)",
         description="Tune the controller's gains (L, k, D_hat) by gradient descent (optax Adam) on a smooth "
@@ -46,13 +49,16 @@ def add_tune(subparsers) -> None:
                     "the best valid gains as a gains JSON file.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, metavar="FILE.json", help="output gains file")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options)")
     g = p.add_argument_group("optimiser")
-    g.add_argument("--steps", type=_positive_int("--steps", "150"), default=150, metavar="N",
+    g.add_argument("--steps", type=whole("--steps", "150"), default=150, metavar="N",
                    help="optimiser iterations (default 150)")
-    g.add_argument("--batch", type=_positive_int("--batch", "256"), default=256, metavar="B",
+    g.add_argument("--batch", type=whole("--batch", "256"), default=256, metavar="B",
                    help="training starts (default 256)")
-    g.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the training starts (default 0)")
-    g.add_argument("--lr", type=_positive_float("--lr", "0.05"), default=0.05, metavar="LR",
+    g.add_argument("--seed", type=whole("--seed", "0", minimum=0, maximum=2**62), default=0, metavar="S",
+                   help="seed of the training starts (default 0)")
+    g.add_argument("--lr", type=number("--lr", "0.05"), default=0.05, metavar="LR",
                    help="peak learning rate of Adam on the log-gains (default 0.05)")
     g.add_argument("--tune", default="L,k,D_hat", metavar="L,k,D_hat",
                    help="the gains to tune, a comma-separated subset of L, k, D_hat; the others stay at "
@@ -64,48 +70,74 @@ def add_tune(subparsers) -> None:
                    help="gradients: forward mode (default; fastest for the 7 gain parameters) or reverse "
                         "mode with checkpointed segments")
     h = p.add_argument_group("objective")
-    h.add_argument("--t-final", type=_positive_float("--t-final", "30"), default=30.0, metavar="T",
+    h.add_argument("--t-final", type=number("--t-final", "30"), default=30.0, metavar="T",
                    help="training horizon in seconds (default 30)")
-    h.add_argument("--dt", type=_positive_float("--dt", "0.01"), default=0.01, metavar="DT",
+    h.add_argument("--dt", type=number("--dt", "0.01"), default=0.01, metavar="DT",
                    help="first step of the adaptive RK4; steps never exceed 10 DT (default 0.01)")
-    h.add_argument("--n-attempts", type=_positive_int("--n-attempts", "4000"), default=4000, metavar="N",
+    h.add_argument("--n-attempts", type=whole("--n-attempts", "4000"), default=4000, metavar="N",
                    help="budget of attempted steps per lane; a lane that needs more rejects the candidate "
                         "(default 4000)")
-    h.add_argument("--probe-budget", type=_positive_int("--probe-budget", "100000"), default=100000, metavar="N",
+    h.add_argument("--probe-budget", type=whole("--probe-budget", "100000"), default=100000, metavar="N",
                    help="most attempted steps any training start may need to simulate 100 s with the tuned "
                         "gains (the engine's default budget is 200180; default 100000)")
-    _add_model_options(p)
+    add_model_options(p)
     p.add_argument("--history", default=None, metavar="FILE.npz",
                    help="also write the history (loss, gains, gradient norm per iteration)")
-    p.add_argument("--validate", type=int, default=256, metavar="N",
+    p.add_argument("--validate", type=whole("--validate", "256", minimum=0), default=256, metavar="N",
                    help="held-out starts for the final check with the accurate engine (0: skip; default 256)")
-    _add_progress_option(p)
+    add_progress_option(p)
     p.set_defaults(func=_cmd_tune)
 
 
+def _checkpoint_path(out) -> Path:
+    out = Path(out)
+    return out.with_name(out.name + ".ckpt.npz")
+
+
 def _cmd_tune(args) -> int:
-    from . import tuning
-    from .cli import PROG, _model_from_args
-    from .params import gains_to_dict, save_gains
+    from .. import tuning
+    from ..params import gains_to_dict, save_gains
 
     names = tuning.parse_tune(args.tune)
-    if args.validate < 0:
-        raise ValueError(f"--validate must be >= 0, got {args.validate}")
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
-    plant, gains0 = _model_from_args(args)
+    plant, gains0 = model_from_args(args)
+    ckpt = _checkpoint_path(args.out)
+    check_outputs(args.out, args.history, ckpt)
+    if ckpt.exists() and not args.resume:
+        raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted tuning run for {args.out!r}; add "
+                         f"--resume (with the same options) to continue it, or delete it to start afresh")
+    if args.resume and not ckpt.exists():
+        raise ValueError(f"--resume: no checkpoint {str(ckpt)!r} to continue from; run without --resume")
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)
     loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt)
     robust = tuning.PlantDistribution() if args.robust else None
+    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     t0 = time.perf_counter()
     try:
         res = tuning.tune(gains0, config=config, loss=loss, tune=names, plant=None if args.robust else plant,
-                          robust=robust, x64=args.x64, progress=args.progress)
+                          robust=robust, x64=args.x64, progress=args.progress, checkpoint=ckpt, resume=args.resume)
     except RuntimeError as e:          # no candidate passed the final check: say what to change
         raise ValueError(str(e)) from None
+    except tuning.TuningInterrupted as stop:
+        part = stop.partial
+        if part is None:
+            print(f"{PROG} tune: interrupted before any valid candidate; nothing written. Continue with the same "
+                  f"command and --resume", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        save_gains(part.gains, args.out, how="jaxsleigh tune, INTERRUPTED: the best valid candidate so far, "
+                   "not re-checked with the accurate engine", command=command, interrupted=True,
+                   best_loss=part.best_loss, best_iteration=part.best_iteration,
+                   iterations_run=part.settings["iterations_run"])
+        written = [str(args.out)]
+        if args.history:
+            written.append(str(tuning.save_history(part.history, args.history)))
+        print(f"{PROG} tune: interrupted after {part.settings['iterations_run']} iterations; wrote the best valid "
+              f"gains so far (loss {part.best_loss:.4f}, not re-checked) to {', '.join(written)}; continue with "
+              f"the same command and --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
     wall = time.perf_counter() - t0
-    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     meta = {
         "how": f"jaxsleigh tune: {res.settings['method']}",
         "command": command, "tuned": list(names), "initial_gains": gains_to_dict(res.initial),
@@ -117,6 +149,11 @@ def _cmd_tune(args) -> int:
     }
     print(f"{PROG} tune: loss {res.initial_loss:.4f} -> {res.best_loss:.4f} (iteration {res.best_iteration} of "
           f"{res.settings['iterations_run']}), {wall:.1f} s wall ({res.settings['dtype']}, {args.mode} mode)")
+    save_gains(res.gains, args.out, **meta)   # written before the validation, so it cannot be lost
+    if args.history:
+        path = tuning.save_history(res.history, args.history)
+        print(f"{PROG} tune: wrote history {path}")
+    ckpt.unlink(missing_ok=True)
     if args.validate:
         ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
         rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64),
@@ -126,10 +163,7 @@ def _cmd_tune(args) -> int:
                                   "frac_se": v.frac_se, "n_failed": v.n_failed}
                               for k, v in rows.items()}
         print(tuning.markdown_table(rows))
-    save_gains(res.gains, args.out, **meta)
-    if args.history:
-        path = tuning.save_history(res.history, args.history)
-        print(f"{PROG} tune: wrote history {path}")
+        save_gains(res.gains, args.out, **meta)
     g = res.gains
     print(f"{PROG} tune: wrote {args.out}: L = {np.round(g.L, 4).tolist()}, k = {float(g.k):.4g}, "
           f"D_hat = {np.round(g.D_hat, 4).tolist()}")

@@ -21,42 +21,25 @@ import os
 import re
 import shutil
 import sys
-import textwrap
 import time
 import warnings
 from pathlib import Path
 
-from .io import load_ics
+from ..errors import FlaggedStartsWarning
+from ..io import load_ics
+from .common import (FLAGS, PROG, add_horizon_options, add_model_options, check_outputs,
+                     exit_code, model_from_args, report_warnings, status_epilog)
+from .common import number as _positive_float
+from .common import whole as _whole_flag
 
 __all__ = ["add_basin", "run_basin_command"]
 
-PROG = "jaxsleigh"
 
-
-def _positive_float(flag: str, example: str):
-    # the command line's own converter; imported when the parser is built (cli imports this module)
-    from .cli import _positive_float as positive_float
-
-    return positive_float(flag, example)
-
-
-def _whole(flag: str, example: str, minimum: int):
-    def conv(text):
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{flag} must be a whole number, got {text!r} (e.g. {flag} {example})")
-        if v < minimum:
-            raise argparse.ArgumentTypeError(f"{flag} must be >= {minimum}, got {v} (e.g. {flag} {example})")
-        return v
-    return conv
+def _whole(flag: str, example: str, minimum: int, maximum: int = 2**62):
+    return _whole_flag(flag, example, minimum=minimum, maximum=maximum)
 
 
 def _epilog() -> str:
-    from .status import describe
-
-    codes = "\n".join(textwrap.fill(line, width=96, initial_indent="  ", subsequent_indent="      ")
-                      for line in describe().splitlines())
     return (
         "starts (one of):\n"
         "  grid     --x/--y/--theta, each LO:HI:N (N points, ends included) or one value (held fixed);\n"
@@ -75,8 +58,11 @@ def _epilog() -> str:
         "  box/seed (samples), settings_json, eps, t_final, dt, method, dtype, max_steps, gains_L,\n"
         "  gains_k, gains_D_hat, params (m,J,l), damping. Grid arrays reshape to grid_shape (slowest\n"
         "  axis first); grid_axes lists the varying coordinates, fastest first.\n"
-        "  Sidecar FILE.run.json: wall time, devices, load, command (things that vary between runs).\n\n"
-        "status codes:\n" + codes + "\n\n"
+        "  Sidecar FILE.run.json: wall time, devices, load, command (things that vary between runs).\n"
+        "The map shows which starts SETTLED within --t-final (|q| <= --eps from T_eps on), not a basin of\n"
+        "attraction in the control sense: the paper argues convergence from every start off theta = 0, and\n"
+        "grey means 'not settled by --t-final', not 'diverges'.\n\n"
+        + status_epilog() + "\n\n"
         "examples:\n"
         "  jaxsleigh basin --x -3:3:128 --y -3:3:128 --theta pi/8 --out xy.npz --plot xy.png\n"
         "  jaxsleigh basin --x -3:3:256 --y 1 --theta -pi:pi:256 --out xt.npz --plot xt.png\n"
@@ -86,8 +72,6 @@ def _epilog() -> str:
 
 def add_basin(subparsers) -> argparse.ArgumentParser:
     """Register the ``basin`` subcommand on an ``argparse`` subparsers object; returns its parser."""
-    from .cli import _add_horizon_options, _add_model_options
-
     p = subparsers.add_parser(
         "basin", help="convergence time and basin of attraction over a grid, samples or a file of starts",
         description="Integrate the closed loop (paper eq. 13) from many starts at rest and record, per start, "
@@ -104,14 +88,15 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
     src.add_argument("--ics", metavar="FILE.npy", help="starts from a file, shape (N, 3) or (N, 5)")
     src.add_argument("--samples", type=_whole("--samples", "100000", 1), metavar="N",
                      help="N Monte-Carlo starts, uniform in the --x/--y/--theta box")
-    g.add_argument("--seed", type=_whole("--seed", "1", 0), metavar="S", help="seed of --samples (default 0)")
+    g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
+                   help="seed of --samples (default 0)")
     c = p.add_argument_group("convergence")
     c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
-    _add_horizon_options(p, save_every=None)
-    _add_model_options(p)
+    add_horizon_options(p, save_every=None)
+    add_model_options(p)
     r = p.add_argument_group("run")
-    r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1), default=None, metavar="N",
+    r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None, metavar="N",
                    help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
                         "131072 per accelerator)")
     r.add_argument("--resume", action="store_true",
@@ -139,7 +124,7 @@ def _sidecar(out: Path) -> Path:
 
 
 def _starts_from_args(args):
-    from .basin import array_starts, grid_starts, parse_axis, sample_starts
+    from ..basin import array_starts, grid_starts, parse_axis, sample_starts
 
     coords = {"x": args.x, "y": args.y, "theta": args.theta}
     if args.seed is not None and args.samples is None:
@@ -165,7 +150,7 @@ def _starts_from_args(args):
 
 def _check_box(text: str, flag: str) -> None:
     """An interval LO:HI (or LO:HI:N, N ignored) or one value, for the --samples box."""
-    from .basin import _number
+    from ..io import parse_number as _number
 
     parts = text.split(":")
     hint = f"write LO:HI (e.g. {flag} {'-pi:pi' if flag == '--theta' else '-3:3'}) or one value to hold it fixed"
@@ -182,13 +167,6 @@ def _check_box(text: str, flag: str) -> None:
                          f"{min(vals):g}:{max(vals):g}")
 
 
-def _check_horizon(args) -> None:
-    n_steps = round(args.t_final / args.dt)
-    if n_steps < 1 or abs(n_steps * args.dt - args.t_final) > 1e-9 * max(1.0, args.t_final):
-        raise ValueError(f"--t-final {args.t_final:g} is not a whole multiple of --dt {args.dt:g}; "
-                         f"use e.g. --t-final {max(1, n_steps) * args.dt:g}")
-
-
 def _load() -> list:
     try:
         return [round(v, 2) for v in os.getloadavg()]
@@ -197,21 +175,24 @@ def _load() -> list:
 
 
 def run_basin_command(args) -> int:
-    """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns 0."""
-    from .basin import run_basin, save_basin
-    from .cli import _model_from_args
-    from .io import npz_path
+    """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns the exit code."""
+    from ..basin import run_basin, save_basin
+    from ..config import solve_config
+    from ..errors import CheckpointError
+    from ..io import atomic_write_text, npz_path
 
-    _check_horizon(args)
+    plant, gains = model_from_args(args)
+    solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
+                 max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
     starts = _starts_from_args(args)
-    plant, gains = _model_from_args(args)
     out = npz_path(args.out)
     chunks = _chunk_dir(out)
+    side = _sidecar(out)
+    check_outputs(out, side, args.plot, folders=[chunks])
     have_chunks = chunks.is_dir() and any(chunks.glob("chunk_*.npz"))
     if have_chunks and not args.resume:
         raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
                          f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
-    n_reused = len(list(chunks.glob("chunk_*.npz"))) if have_chunks else 0
     argv = list(getattr(args, "_argv", None) or [])
     load_start = _load()
     t0 = time.perf_counter()
@@ -226,37 +207,32 @@ def run_basin_command(args) -> int:
         print(f"{PROG} basin: interrupted; the finished chunks are in {chunks}/ - run the same command with "
               f"--resume to continue", file=sys.stderr)
         raise
-    except ValueError as e:
-        if str(e).startswith("checkpoint "):
-            raise ValueError(f"the chunks in {str(chunks)!r} were made with other options or starts than this "
-                             f"command; rerun the original command with --resume, or delete that folder to "
-                             f"start afresh") from None
-        raise
+    except CheckpointError as e:
+        raise ValueError(f"{e} (the chunks in {str(chunks)!r} belong to another command than this one: rerun the "
+                         f"original command with --resume, or delete that folder to start afresh)") from None
     wall = time.perf_counter() - t0
-    for w in caught:
-        text = str(w.message)
-        if "initial conditions are invalid" in text:
-            continue                               # counted below
-        print(f"{PROG}: warning: {text}", file=sys.stderr)
+    report_warnings(caught, skip=(FlaggedStartsWarning,))
     n_flag = int((~res.valid).sum())
     if n_flag:
-        print(f"{PROG}: warning: {n_flag} of {res.status.size} starts flagged and not integrated (theta0 = 0, "
-              f"the singular set, or non-finite); they are left out of the fraction", file=sys.stderr)
+        first = next((w.message for w in caught if isinstance(w.message, FlaggedStartsWarning)), None)
+        print(f"{PROG}: warning: {n_flag} of {res.status.size} starts flagged and not integrated; they are left out "
+              f"of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
+              file=sys.stderr)
     path = save_basin(out, res)
+    n_reused = int((res.run_info or {}).get("chunks_reused") or 0)
     info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
             "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
             "loadavg_start": load_start, "loadavg_end": _load(), "cpu_count": os.cpu_count(), "summary": res.summary()}
-    side = _sidecar(out)
-    side.write_text(json.dumps(info, indent=1, default=str) + "\n")
+    atomic_write_text(side, json.dumps(info, indent=1, default=str) + "\n")
     if not args.keep_chunks:
         shutil.rmtree(chunks, ignore_errors=True)
     written = [str(path), str(side)]
     if args.plot:
-        from .basin_plots import plot_basin
-        from .plotting import save_figure
+        from ..basin_plots import plot_basin
+        from ..plotting import save_figure
 
         written.append(str(save_figure(plot_basin(res), args.plot)))
     print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
     print(f"{PROG} basin: {wall:.1f} s wall ({res.settings['dtype']}, {res.settings['method']}"
           f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
-    return 0
+    return exit_code(res.status)

@@ -1,0 +1,91 @@
+"""The ``jaxsleigh`` command line.
+
+Subcommands (one module each; shared helpers in :mod:`jaxsleigh.cli.common`)::
+
+    jaxsleigh simulate --ic=-3,-2,pi/8 --ic 3,2,-pi/2 --t-final 100 --out run.npz
+    jaxsleigh paper --out out/paper
+    jaxsleigh basin --x -3:3:128 --y -3:3:128 --theta pi/8 --out xy.npz --plot xy.png
+    jaxsleigh tune --out gains.json
+    jaxsleigh bench --json
+
+Adding a subcommand ``name``: a module with ``add_<name>(subparsers)`` that creates its parser
+(``subparsers.add_parser("name", ...)``), adds its options (the shared groups of
+:mod:`~jaxsleigh.cli.common` are there to reuse) and ends with ``parser.set_defaults(func=handler)``,
+where ``handler(args) -> int`` is the exit code; then list it in :data:`SUBCOMMANDS`. Handlers report
+bad input by raising ``ValueError`` with a message that says what to change: :func:`main` prints it
+as ``jaxsleigh: error: ...`` and returns 2. Exit codes: :data:`~jaxsleigh.cli.common.EXIT_CODES`.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Optional, Sequence
+
+from .basin import add_basin
+from .bench import add_bench
+from .common import EXIT_INTERRUPTED, EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic
+from .paper import add_paper
+from .simulate import add_simulate
+from .tune import add_tune
+
+__all__ = ["main", "build_parser", "parse_ic", "SUBCOMMANDS"]
+
+SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune]
+
+
+def build_parser() -> Parser:
+    """The top-level parser with every registered subcommand."""
+    import argparse
+
+    from .. import __version__
+    from .common import EXIT_CODES
+
+    parser = Parser(prog=PROG, description="Chaplygin sleigh under discontinuous energy-shaping control (JAX).",
+                    epilog="exit codes:\n" + "\n".join(f"  {c} = {t}" for c, t in EXIT_CODES.items())
+                    + "\n\nCompiled programs are cached in ~/.cache/jaxsleigh/jax (JAXSLEIGH_CACHE_DIR to move "
+                      "it,\nJAXSLEIGH_NO_COMPILE_CACHE=1 or --no-compile-cache to turn it off).",
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--no-compile-cache", action="store_true",
+                        help="do not use the persistent compilation cache (every process compiles afresh)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """``--ic -3,-2,0.4`` -> ``--ic=-3,-2,0.4`` (argparse would read ``-3,...`` as an option)."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in ("--ic", "--params") and i + 1 < len(argv) and argv[i + 1].startswith("-") \
+                and "," in argv[i + 1]:
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(a)
+            i += 1
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run the command line; returns the exit code (0 ok, 2 bad input, 3 no trajectory OK, 130 interrupted)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        parser = build_parser()
+        args = parser.parse_args(_join_negative_values(argv))
+        if getattr(args, "func", None) is None:
+            parser.print_help(sys.stderr)
+            return EXIT_USAGE
+        if not args.no_compile_cache:
+            enable_compilation_cache()
+        args._argv = argv
+        return int(args.func(args) or 0)
+    except SystemExit as e:              # --help, --version
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    except (ValueError, OSError) as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED

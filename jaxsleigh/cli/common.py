@@ -1,0 +1,279 @@
+"""What every subcommand of the command line shares: the parser class, value converters, option
+groups, output-path checks, how warnings and statuses are reported, exit codes and the
+compilation cache.
+
+Exit codes (:data:`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
+was computed); 3 the run finished but no trajectory ended OK; 130 interrupted (Ctrl-C; what was
+finished is kept, see ``--resume``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import textwrap
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..io import load_ics
+from ..io import parse_number as _number
+
+__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError",
+           "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
+           "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
+           "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache"]
+
+PROG = "jaxsleigh"
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_NONE_OK = 3
+EXIT_INTERRUPTED = 130
+EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
+              EXIT_USAGE: "bad input; nothing was computed (the message says what to change)",
+              EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts)",
+              EXIT_INTERRUPTED: "interrupted (Ctrl-C); finished work is kept (--resume continues)"}
+
+#: Keyword -> flag, so that messages of the shared validation name the flag the user typed.
+FLAGS = {"t_final": "--t-final", "dt": "--dt", "save_every": "--save-every", "method": "--method",
+         "max_steps": "--max-steps", "x64": "--x64", "eps": "--eps", "rtol": "--rtol", "atol": "--atol",
+         "chunk_size": "--chunk-size", "seed": "--seed"}
+
+
+class UsageError(ValueError):
+    """An argparse usage error, reported like any other bad input."""
+
+
+class Parser(argparse.ArgumentParser):
+    """ArgumentParser that raises instead of exiting, so ``main`` returns an exit code."""
+
+    def error(self, message):
+        raise UsageError(f"{message} (see '{self.prog} --help')")
+
+
+# ---------------------------------------------------------------------------------------------
+# values
+# ---------------------------------------------------------------------------------------------
+
+def number(flag: str, example: str, *, positive: bool = True, nonnegative: bool = False):
+    """argparse ``type=``: a finite number (may use ``pi``), ``> 0`` by default."""
+    def conv(text):
+        try:
+            v = _number(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} must be a number, got {text!r} (e.g. {flag} {example})")
+        if not math.isfinite(v) or (positive and not v > 0) or (nonnegative and v < 0):
+            need = "> 0" if positive else ">= 0" if nonnegative else "finite"
+            raise argparse.ArgumentTypeError(f"{flag} must be a finite number {need}, got {text!r} "
+                                             f"(e.g. {flag} {example})")
+        return v
+    return conv
+
+
+def whole(flag: str, example: str, minimum: int = 1, maximum: int = 2**31 - 2):
+    """argparse ``type=``: a whole number in ``[minimum, maximum]``."""
+    def conv(text):
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} must be a whole number, got {text!r} (e.g. {flag} {example})")
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"{flag} must be >= {minimum}, got {v} (e.g. {flag} {example})")
+        if v > maximum:
+            raise argparse.ArgumentTypeError(f"{flag} must be <= {maximum}, got {v} (e.g. {flag} {example})")
+        return v
+    return conv
+
+
+def parse_ic(text: str) -> list[float]:
+    """``'X,Y,THETA'`` or ``'X,Y,THETA,P1,P2'`` -> list of floats (entries may use ``pi``)."""
+    hint = ("expected X,Y,THETA or X,Y,THETA,P1,P2 separated by commas, e.g. --ic=-3,-2,pi/8 "
+            "(write --ic=... when the first number is negative)")
+    parts = text.split(",")
+    if len(parts) not in (3, 5):
+        raise ValueError(f"could not parse --ic {text!r}: got {len(parts)} entries; {hint}")
+    try:
+        vals = [_number(s) for s in parts]
+    except ValueError as e:
+        raise ValueError(f"could not parse --ic {text!r}: {e}; {hint}") from None
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"--ic {text!r} has a non-finite entry; give finite numbers, e.g. --ic 1,1,0.5")
+    return vals
+
+
+def parse_triple(text: str, flag: str, example: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        if len(parts) != 3:
+            raise ValueError(f"got {len(parts)} entries")
+        return tuple(_number(s) for s in parts)
+    except ValueError as e:
+        raise ValueError(f"could not parse {flag} {text!r}: {e}; expected three comma-separated "
+                         f"numbers, e.g. {flag} {example}") from None
+
+
+def ics_from_args(args) -> np.ndarray:
+    """Starts from ``--ics FILE`` or repeated ``--ic X,Y,THETA[,P1,P2]``."""
+    if args.ics is not None:
+        return load_ics(args.ics, hint="use --ic X,Y,THETA")
+    rows = [parse_ic(s) for s in args.ic]
+    width = max(len(r) for r in rows)
+    rows = [r + [0.0] * (width - len(r)) for r in rows]
+    return np.asarray(rows, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------
+# option groups
+# ---------------------------------------------------------------------------------------------
+
+def add_model_options(parser) -> None:
+    """--gains, --params, --damping, --x64."""
+    from ..params import preset_names
+
+    names = preset_names()
+    g = parser.add_argument_group("model")
+    g.add_argument("--gains", default="paper", metavar="FILE.json|" + "|".join(names),
+                   help='controller gains: a JSON file {"L": [l1, l2, l3], "k": k, "D_hat": [d1, d2] or '
+                        '[[a, b], [c, d]]} (every key required) or a preset: ' + ", ".join(names)
+                        + " (default: paper = L diag(2, .5, .8), k 0.1, D_hat diag(4, 8))")
+    g.add_argument("--params", default="2,1,1", metavar="M,J,L",
+                   help="plant mass m [kg], inertia J [kg m^2] about the centre of mass and offset l [m] "
+                        "of the centre of mass from the contact point (default: 2,1,1, the paper's)")
+    g.add_argument("--damping", default="coulomb", choices=["coulomb", "viscous", "none"],
+                   help="open-loop friction of the plant (default: coulomb, the paper's "
+                        "D = diag(1/sqrt(0.1 + p_i^2)))")
+    g.add_argument("--x64", action="store_true", help="compute in float64 (default: float32)")
+
+
+def model_from_args(args):
+    """(plant, gains) from the options of :func:`add_model_options`."""
+    from ..params import load_gains, plant_params
+
+    m, J, l = parse_triple(args.params, "--params", "2,1,1")
+    plant = plant_params(m, J, l, damping=args.damping)
+    gains = load_gains(args.gains)
+    return plant, gains
+
+
+def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, save_every: Optional[int] = 10,
+                        method: bool = True) -> None:
+    """--t-final, --dt[, --save-every][, --method, --max-steps]."""
+    g = parser.add_argument_group("integration")
+    g.add_argument("--t-final", type=number("--t-final", "100"), default=t_final, metavar="T",
+                   help=f"horizon in seconds (a whole multiple of --dt; default {t_final:g})")
+    g.add_argument("--dt", type=number("--dt", "0.01"), default=dt, metavar="DT",
+                   help=f"base step in seconds (default {dt:g}): the step of --method rk4; the adaptive "
+                        "method starts with it and grows its step up to 10 DT where the error allows")
+    if save_every is not None:
+        g.add_argument("--save-every", type=whole("--save-every", "10"), default=save_every, metavar="K",
+                       help=f"keep every K-th base step (default {save_every}; t-final/dt must be a multiple of K)")
+    if method:
+        g.add_argument("--method", choices=["adaptive", "rk4"], default="adaptive",
+                       help="adaptive: RK4 with per-trajectory error control, steps from DT up to 10 DT, accurate "
+                            "near theta = 0 (default); rk4: classical fixed-step RK4 at --dt (fast, but it can be "
+                            "wrong or unstable for stiff starts and strong gains, e.g. the tuned preset needs "
+                            "--dt 0.001)")
+        g.add_argument("--max-steps", type=whole("--max-steps", "2000000"), default=None, metavar="N",
+                       help="budget of attempted steps per trajectory (default: 20x the base steps for "
+                            "adaptive; at most 2147483646); a run that exhausts it gets status 4")
+
+
+def add_progress_option(parser) -> None:
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bar on stderr (default: only on a terminal)")
+
+
+# ---------------------------------------------------------------------------------------------
+# outputs, warnings, statuses
+# ---------------------------------------------------------------------------------------------
+
+def check_outputs(*paths, folders=()) -> None:
+    """Before any work: every output file can be written (its folder is created if needed) and
+    every output folder is writable. Raises ``ValueError`` naming the path."""
+    from ..validate import writable_dir, writable_path
+
+    for p in paths:
+        if p is not None:
+            writable_path(p)
+    for d in folders:
+        if d is not None:
+            writable_dir(d)
+
+
+def report_warnings(caught, *, skip=()) -> None:
+    """Print caught warnings as ``jaxsleigh: warning: ...``; warnings of the types in ``skip`` are
+    left out (the caller reports them its own way)."""
+    for w in caught:
+        if isinstance(w.message, tuple(skip)):
+            continue
+        print(f"{PROG}: warning: {w.message}", file=sys.stderr)
+
+
+def status_line(status) -> str:
+    """``'3 trajectories: 2 ok, 1 singular_start'`` (statuses by name)."""
+    from ..status import counts_in_words
+
+    n = int(np.size(status))
+    return f"{n} trajector{'y' if n == 1 else 'ies'}: {counts_in_words(status)}"
+
+
+def exit_code(status) -> int:
+    """:data:`EXIT_OK` if any trajectory ended OK, else :data:`EXIT_NONE_OK` (with a message)."""
+    from ..status import Status
+
+    if np.any(np.asarray(status) == Status.OK):
+        return EXIT_OK
+    print(f"{PROG}: error: no trajectory ended OK ({status_line(status)}); see the status codes in --help "
+          f"(exit code {EXIT_NONE_OK})", file=sys.stderr)
+    return EXIT_NONE_OK
+
+
+def status_epilog() -> str:
+    """The status codes and exit codes, formatted for a ``--help`` epilog."""
+    from ..status import describe
+
+    codes = "\n".join(textwrap.fill(line, width=96, initial_indent="  ", subsequent_indent="      ")
+                      for line in describe().splitlines())
+    exits = "\n".join(f"  {c} = {t}" for c, t in EXIT_CODES.items())
+    return f"status codes (one per trajectory):\n{codes}\n\nexit codes:\n{exits}"
+
+
+# ---------------------------------------------------------------------------------------------
+# compilation cache
+# ---------------------------------------------------------------------------------------------
+
+def compilation_cache_dir() -> Optional[Path]:
+    """Where compiled programs are kept between processes: ``$JAXSLEIGH_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/jaxsleigh/jax`` (``~/.cache/jaxsleigh/jax``); ``None`` when turned off with
+    ``JAXSLEIGH_NO_COMPILE_CACHE=1`` (or ``--no-compile-cache``)."""
+    if os.environ.get("JAXSLEIGH_NO_COMPILE_CACHE", "").strip() not in ("", "0"):
+        return None
+    if os.environ.get("JAXSLEIGH_CACHE_DIR"):
+        return Path(os.environ["JAXSLEIGH_CACHE_DIR"])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "jaxsleigh" / "jax"
+
+
+def enable_compilation_cache() -> Optional[Path]:
+    """Turn on JAX's persistent compilation cache for this process (the command line does this
+    at start): a second process compiles nothing it compiled before. Returns the folder, or
+    ``None`` if it is turned off or cannot be created (then JAX compiles as usual)."""
+    d = compilation_cache_dir()
+    if d is None:
+        return None
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    import jax
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        jax.config.update("jax_compilation_cache_dir", str(d))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return d

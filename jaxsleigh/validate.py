@@ -1,0 +1,163 @@
+"""Eager checks of what users pass in: one place, the same messages for the API and the command line.
+
+Every function raises ``ValueError`` with a message that names the argument (``name``: the Python
+keyword, or the command-line flag when the command line calls it) and says what to write instead.
+Numbers that are really something else (``True``, a complex number, a string) are refused, not
+converted.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+import os
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+__all__ = ["INT32_MAX", "real", "whole", "as_gains", "as_plant", "check_memory", "writable_path",
+           "writable_dir"]
+
+#: The largest step budget the engine's int32 counters hold.
+INT32_MAX = 2**31 - 1
+
+
+def _example(name: str, example) -> str:
+    if example is None:
+        return ""
+    return f" (e.g. {name} {example})" if name.startswith("-") else f" (e.g. {name}={example})"
+
+
+def real(name: str, value, *, positive: bool = False, nonnegative: bool = False, example=None,
+         maximum: Optional[float] = None) -> float:
+    """A finite real number (a Python or NumPy int/float; not a bool, complex or string)."""
+    ex = _example(name, example)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or isinstance(value, str):
+        if isinstance(value, np.ndarray) and value.ndim == 0 and np.issubdtype(value.dtype, np.number) \
+                and not np.issubdtype(value.dtype, np.complexfloating) and value.dtype != bool:
+            value = value.item()
+        else:
+            raise ValueError(f"{name} must be a real number, got {value!r}{ex}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}{ex}")
+    if positive and not v > 0:
+        raise ValueError(f"{name} must be > 0, got {v:g}{ex}")
+    if nonnegative and v < 0:
+        raise ValueError(f"{name} must be >= 0, got {v:g}{ex}")
+    if maximum is not None and v > maximum:
+        raise ValueError(f"{name} must be <= {maximum:g}, got {v:g}{ex}")
+    return v
+
+
+def whole(name: str, value, *, minimum: int = 1, maximum: int = INT32_MAX, example=None) -> int:
+    """A whole number in ``[minimum, maximum]`` (``1.0`` is accepted, ``1.5`` and ``True`` are not)."""
+    ex = _example(name, example)
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, str) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a whole number, got {value!r}{ex}")
+    if isinstance(value, numbers.Integral):
+        v = int(value)
+    else:
+        f = float(value)
+        if not (math.isfinite(f) and f == int(f)):
+            raise ValueError(f"{name} must be a whole number, got {value!r}{ex}")
+        v = int(f)
+    if v < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {v}{ex}")
+    if v > maximum:
+        raise ValueError(f"{name} must be <= {maximum}, got {v}{ex}")
+    return v
+
+
+def as_gains(g, name: str = "gains"):
+    """Validated :class:`~jaxsleigh.params.Gains` from ``None`` (the paper's), a preset name
+    (``"paper"``, ``"tuned"``, ...), a gains-file path, a dict in the file format, or a ``Gains``
+    (re-checked: every ``L_i > 0``, ``k > 0``, ``D_hat`` symmetric positive definite)."""
+    from .params import Gains, gains, gains_from_dict, load_gains, paper_gains
+
+    if g is None:
+        return paper_gains()
+    if isinstance(g, (str, Path)):
+        return load_gains(g)
+    if isinstance(g, dict):
+        return gains_from_dict(g)
+    if isinstance(g, Gains):
+        for leaf_name, leaf in zip(Gains._fields, g):
+            arr = np.asarray(leaf)
+            if arr.dtype == bool or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+                raise ValueError(f"{name}.{leaf_name} must be real numbers, got {leaf!r}")
+        return gains(g.L, g.k, g.D_hat)
+    raise ValueError(f"{name} must be a Gains (jaxsleigh.gains(...)), a preset name ('paper', 'tuned'), "
+                     f"a gains JSON file or a dict, got {type(g).__name__}")
+
+
+def as_plant(p, name: str = "plant"):
+    """Validated :class:`~jaxsleigh.params.PlantParams` from ``None`` (the paper's) or a
+    ``PlantParams`` (re-checked: ``m > 0``, ``J >= 0``, ``l >= 0``, a known damping model)."""
+    from .params import PlantParams, paper_plant, plant_params
+
+    if p is None:
+        return paper_plant()
+    if isinstance(p, PlantParams):
+        for leaf_name in ("m", "J", "l"):
+            leaf = getattr(p, leaf_name)
+            real(f"{name}.{leaf_name}", leaf)
+        return plant_params(p.m, p.J, p.l, damping=p.damping)
+    raise ValueError(f"{name} must be a PlantParams (jaxsleigh.plant_params(m, J, l, damping)), "
+                     f"got {type(p).__name__}")
+
+
+def _available_bytes() -> Optional[int]:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not on every platform
+        return None
+
+
+#: Host memory a run keeps per start (the start, the per-start results, and their copy in the file).
+BYTES_PER_START = 400
+
+
+def check_memory(n: int, what: str, *, bytes_per_start: int = BYTES_PER_START, fraction: float = 0.8) -> None:
+    """Refuse, before any work, a run whose per-start inputs and results would not fit in memory."""
+    need = int(n) * bytes_per_start
+    have = _available_bytes()
+    if have is not None and need > fraction * have:
+        raise ValueError(f"{what}: {n:,} starts need about {need / 2**30:.1f} GiB of host memory for the starts "
+                         f"and their results, more than the {have / 2**30:.1f} GiB available; use fewer starts "
+                         f"(a coarser grid, fewer --samples) or split the study into several runs")
+
+
+def writable_dir(path, what: str = "output folder") -> Path:
+    """Create ``path`` (a folder) if needed and check that files can be written in it."""
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        raise ValueError(f"the {what} {str(d)!r} exists and is not a folder; choose another path")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        probe = d / f".jaxsleigh-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"cannot write into the {what} {str(d)!r} ({e.strerror or e}); choose a writable "
+                         f"location") from None
+    return d
+
+
+def writable_path(path, what: str = "output file") -> Path:
+    """Check, before any work, that ``path`` can be written: its folder is created if needed and
+    must be writable, and the path must not be a folder. Returns it as a ``Path``."""
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"the {what} {str(p)!r} is a folder; give a file name (e.g. {str(p / 'out')!r})")
+    writable_dir(p.parent if str(p.parent) else Path("."), what=f"folder of the {what}")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ValueError(f"the {what} {str(p)!r} exists and is not writable; choose another path")
+    return p
