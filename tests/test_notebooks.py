@@ -1,17 +1,112 @@
-"""Every notebook in ``notebooks/`` runs from top to bottom without error (public API, small sizes).
+"""The notebooks are committed executed (the docs show their outputs), and they still run and still
+produce those outputs.
 
-The notebooks are committed without outputs; this executes each one in a fresh ``python3`` kernel with
-``nbclient`` (working directory: ``notebooks/``). New notebooks are picked up by the glob.
+* Fast checks on the committed files: every code cell was run, top to bottom in one session, with no
+  error; the figures are there; the key printed results are there.
+* ``@slow``: each notebook is executed again from scratch in a fresh ``python3`` kernel with
+  ``nbclient`` (working directory ``notebooks/``); every cell must produce the same kinds of output as
+  the committed one (the same number of figures, printed text where there was printed text), and
+  the key results must hold again. New notebooks are picked up by the glob and need an entry in
+  ``KEY_RESULTS``.
+
+To refresh the committed outputs after a change:
+``jupyter nbconvert --to notebook --execute --inplace notebooks/*.ipynb``.
 """
 from __future__ import annotations
 
 import importlib.util
+import re
 from pathlib import Path
 
 import pytest
 
-NOTEBOOKS = sorted((Path(__file__).resolve().parent.parent / "notebooks").glob("*.ipynb"))
+ROOT = Path(__file__).resolve().parent.parent
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 TIMEOUT_S = 600          # per cell; each notebook is meant to run in well under a minute
+
+
+def _float(pattern, text):
+    m = re.search(pattern, text)
+    assert m, f"no match for {pattern!r} in the notebook's printed output"
+    return [float(g) for g in m.groups()]
+
+
+def _paper(text):
+    rise, = _float(r"largest relative increase of H_d between samples: (\S+)", text)
+    assert rise < 1e-4                                     # H_d does not increase (eq. 18)
+    assert len(re.findall(r"H_d\(0\) = +[\d.e+]+ +T_eps = ", text)) == 6   # the six paper starts
+
+
+def _singular(text):
+    e11, = _float(r"\(1, 1\): H_d\(0\) ~ \S+ theta0\^\((-?[\d.]+) \+-", text)
+    e10, = _float(r"\(1, 0\): H_d\(0\) ~ \S+ theta0\^\((-?[\d.]+) \+-", text)
+    assert -4.1 < e11 < -3.95 and -2.05 < e10 < -1.95       # H_d(0) ~ theta0^-4, and ^-2 on y0 = 0
+    assert "status 4 BUDGET_EXHAUSTED" in text and "status 0 OK" in text
+
+
+def _basins(text):
+    assert "identical files: True" in text                 # a resumed run writes the same bytes
+    s, se = _float(r"S = ([\d.]+) \+- ([\d.]+)", text)
+    assert 0.5 < s < 1.0 and 0 < se < 0.05
+
+
+def _tuning(text):
+    before, after = _float(r"loss ([\d.]+) -> ([\d.]+); valid candidates", text)
+    assert after <= before
+    fwd_rev = re.findall(r"loss (\S+) \(forward\) (\S+) \(reverse\)", text)
+    assert fwd_rev and float(fwd_rev[0][0]) == pytest.approx(float(fwd_rev[0][1]), rel=1e-5)
+
+
+#: what each notebook must print (its own print statements, not the library's wording)
+KEY_RESULTS = {
+    "01_paper_reproduction.ipynb": _paper,
+    "02_singular_set.ipynb": _singular,
+    "03_basins.ipynb": _basins,
+    "04_gain_tuning.ipynb": _tuning,
+}
+
+
+def _code_cells(nb):
+    return [c for c in nb.cells if c.cell_type == "code"]
+
+
+def _signature(nb):
+    """Per code cell: (figures, printed something on stdout, errors)."""
+    sig = []
+    for cell in _code_cells(nb):
+        outs = cell.get("outputs", [])
+        sig.append((sum("image/png" in o.get("data", {}) for o in outs),
+                    any(o.output_type == "stream" and o.name == "stdout" for o in outs),
+                    sum(o.output_type == "error" for o in outs)))
+    return sig
+
+
+def _stdout(nb):
+    return "".join(o.text for c in _code_cells(nb) for o in c.get("outputs", [])
+                   if o.output_type == "stream" and o.name == "stdout")
+
+
+def test_every_notebook_has_key_results():
+    assert len(NOTEBOOKS) >= 4
+    assert sorted(KEY_RESULTS) == [p.name for p in NOTEBOOKS]
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_notebook_is_committed_executed(path):
+    nbformat = pytest.importorskip("nbformat")
+    nb = nbformat.read(path, as_version=4)
+    cells = _code_cells(nb)
+    counts = [c.execution_count for c in cells]
+    assert counts == list(range(1, len(cells) + 1)), \
+        f"{path.name}: not executed top to bottom in one session (execution counts {counts}); re-execute it"
+    sig = _signature(nb)
+    assert not any(err for *_, err in sig), f"{path.name} is committed with an error output"
+    assert sum(n for n, *_ in sig) >= 1, f"{path.name} is committed without figures"
+    for c in cells:
+        for o in c.outputs:
+            if o.output_type == "stream" and o.name == "stderr":
+                assert "Traceback" not in o.text, f"{path.name}: a traceback on stderr"
+    KEY_RESULTS[path.name](_stdout(nb))
 
 
 def _why_not_runnable():
@@ -29,19 +124,21 @@ def _why_not_runnable():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
-def test_notebook_runs(path):
+def test_notebook_runs_and_reproduces_its_outputs(path):
     why = _why_not_runnable()
     if why:
         pytest.skip(why)
     import nbformat
     from nbclient import NotebookClient
 
-    nb = nbformat.read(path, as_version=4)
-    assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), \
-        f"{path.name} is committed with outputs; clear them"
-    NotebookClient(nb, timeout=TIMEOUT_S, kernel_name="python3",
+    committed = nbformat.read(path, as_version=4)
+    fresh = nbformat.read(path, as_version=4)
+    for cell in _code_cells(fresh):
+        cell.outputs, cell.execution_count = [], None
+    NotebookClient(fresh, timeout=TIMEOUT_S, kernel_name="python3", record_timing=False,
                    resources={"metadata": {"path": str(path.parent)}}).execute()
-
-
-def test_there_are_notebooks():
-    assert len(NOTEBOOKS) >= 3, [p.name for p in NOTEBOOKS]
+    got, want = _signature(fresh), _signature(committed)
+    diff = [(i, g, w) for i, (g, w) in enumerate(zip(got, want)) if g != w]
+    assert not diff, (f"{path.name}: outputs differ from the committed ones (code cell, (figures, stdout, "
+                      f"errors) now, committed): {diff}; re-execute the notebook and commit it")
+    KEY_RESULTS[path.name](_stdout(fresh))
