@@ -76,7 +76,27 @@ class ChunkStore:
                 raise CheckpointError(f"checkpoint {str(self.folder)!r} was made with other settings or initial "
                                       "conditions than this run; rerun the original command with --resume, or "
                                       "delete that folder (or drop --resume) to start afresh")
+        if resume:
+            for path in have:                 # before anything is written: never adopt another run's folder
+                key = self._key_of(path)
+                if key is not None and key != self.key:
+                    raise self._foreign(path)
         atomic_write_text(self.manifest, json.dumps({"key": self.key, **manifest}, indent=1, default=str) + "\n")
+
+    @staticmethod
+    def _key_of(path: Path) -> Optional[str]:
+        """The fingerprint stored in a chunk ('' for a chunk without one), ``None`` if unreadable."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return str(z[_KEY]) if _KEY in z.files else ""
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError):
+            return None
+
+    def _foreign(self, path: Path) -> CheckpointError:
+        return CheckpointError(
+            f"checkpoint chunk {str(path)!r} was written by a different run (other settings, seed, starts or "
+            f"chunk size, or jaxsleigh 0.1, whose chunks carry no fingerprint); results of two runs are never "
+            f"mixed: rerun the command that made it with --resume, or delete {str(self.folder)!r} to start afresh")
 
     def save(self, index: int, arrays: dict) -> Path:
         """Write chunk ``index`` atomically, tagged with the run's fingerprint."""
@@ -101,11 +121,7 @@ class ChunkStore:
             return None
         key = data.pop(_KEY, None)
         if key is None or str(key) != self.key:
-            raise CheckpointError(
-                f"checkpoint chunk {str(path)!r} was written by a different run (other settings, seed, starts or "
-                f"chunk size{'; or by jaxsleigh 0.1, whose chunks carry no fingerprint' if key is None else ''}); "
-                f"results of two runs are never mixed: rerun the command that made it with --resume, or delete "
-                f"{str(self.folder)!r} to start afresh")
+            raise self._foreign(path)
         if fields is not None and set(data) != set(fields):
             self._damaged(path, f"holds fields {sorted(data)}, expected {sorted(fields)}")
             return None

@@ -178,7 +178,6 @@ def run_basin_command(args) -> int:
     """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns the exit code."""
     from ..basin import run_basin, save_basin
     from ..config import solve_config
-    from ..errors import CheckpointError
     from ..io import atomic_write_text, npz_path
 
     plant, gains = model_from_args(args)
@@ -207,9 +206,6 @@ def run_basin_command(args) -> int:
         print(f"{PROG} basin: interrupted; the finished chunks are in {chunks}/ - run the same command with "
               f"--resume to continue", file=sys.stderr)
         raise
-    except CheckpointError as e:
-        raise ValueError(f"{e} (the chunks in {str(chunks)!r} belong to another command than this one: rerun the "
-                         f"original command with --resume, or delete that folder to start afresh)") from None
     wall = time.perf_counter() - t0
     report_warnings(caught, skip=(FlaggedStartsWarning,))
     n_flag = int((~res.valid).sum())

@@ -1,0 +1,113 @@
+"""Property-based fuzzing of the input layer (Hypothesis).
+
+The contract: whatever a user passes, the answer is a ``ValueError`` that names what to change, or a
+result whose bad rows are flagged by their status; never a traceback, never a silent NaN (a row
+with status OK is finite everywhere; a row that is not finite or sits on theta = 0 is flagged).
+"""
+from __future__ import annotations
+
+import importlib
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import jaxsleigh as js
+from jaxsleigh import cli
+from jaxsleigh.config import solve_config
+from jaxsleigh.errors import JaxsleighWarning
+from jaxsleigh.status import NOT_INTEGRATED, Status
+
+FUZZ = settings(max_examples=60, deadline=None, derandomize=True,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+
+special = st.sampled_from([0.0, -0.0, np.nan, np.inf, -np.inf, 1e-200, -1e-30, 1e-8, 1e30, 1e300, 3.0, -2.5, 0.5])
+coord = st.one_of(special, st.floats(-10, 10, allow_nan=False))
+weird = st.one_of(special, st.floats(-100, 100), st.booleans(), st.just("x"), st.complex_numbers(max_magnitude=5),
+                  st.just(None), st.integers(-3, 3))
+
+
+@FUZZ
+@given(ics=st.lists(st.lists(coord, min_size=3, max_size=3), min_size=3, max_size=3),
+       L=st.one_of(st.lists(weird, min_size=3, max_size=3), st.lists(st.floats(0.1, 5), min_size=3, max_size=3),
+                   st.lists(weird, min_size=1, max_size=4)),
+       k=st.one_of(weird, st.floats(0.01, 1)),
+       D=st.one_of(st.lists(st.floats(0.5, 9), min_size=2, max_size=2), st.lists(weird, min_size=2, max_size=2)))
+def test_simulate_answers_any_input_with_a_message_or_flagged_rows(ics, L, k, D):
+    arr = np.array(ics, dtype=float)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", JaxsleighWarning)   # flagged rows are checked below
+            sol = js.simulate(arr, gains=js.Gains(L, k, D), t_final=0.05, dt=0.01, save_every=1)
+    except ValueError as e:
+        assert len(str(e)) > 10
+        return
+    ok = sol.status == Status.OK
+    for field in (sol.q, sol.p, sol.u, sol.Hd):
+        assert np.all(np.isfinite(field[ok])), "a row with status OK holds a non-finite value"
+    nonfinite_rows = ~np.all(np.isfinite(sol.q.reshape(len(ok), -1)), axis=1)
+    assert np.all(~ok[nonfinite_rows]), "a NaN in a row whose status says OK"
+    bad_input = ~np.all(np.isfinite(arr), axis=1) | (arr[:, 2] == 0)
+    assert np.all(np.isin(sol.status[bad_input], NOT_INTEGRATED))
+    assert np.all(np.isnan(sol.q[np.isin(sol.status, NOT_INTEGRATED)]))
+
+
+@FUZZ
+@given(t_final=weird, dt=weird, save_every=weird, method=st.sampled_from(["adaptive", "rk4", "euler", 3]),
+       rtol=st.one_of(st.none(), weird), max_step=st.one_of(st.none(), weird),
+       max_steps=st.one_of(st.none(), weird, st.integers(-5, 2**40)), x64=st.one_of(st.booleans(), weird),
+       eps=weird)
+def test_solve_config_accepts_exactly_the_valid_options(t_final, dt, save_every, method, rtol, max_step, max_steps,
+                                                         x64, eps):
+    try:
+        cfg = solve_config(t_final=t_final, dt=dt, save_every=save_every, method=method, rtol=rtol,
+                           max_step=max_step, max_steps=max_steps, x64=x64, eps=eps)
+    except ValueError as e:
+        assert len(str(e)) > 10
+        return
+    h = cfg.horizon
+    assert 1 <= h.n_steps and h.n_steps % h.save_every == 0
+    assert np.isfinite([h.t_final, h.dt, cfg.rtol, cfg.atol, cfg.max_step, cfg.eps]).all()
+    assert min(h.dt, cfg.rtol, cfg.atol, cfg.max_step, cfg.eps) > 0
+    assert 1 <= cfg.max_steps < 2**31 - 1 and isinstance(cfg.max_steps, int)
+    assert cfg.method in ("adaptive", "rk4") and isinstance(cfg.x64, bool)
+
+
+class _Reached(Exception):
+    """Raised by the stub integrator: validation passed and the work would start."""
+
+
+TOKENS = ["0", "-1", "nan", "inf", "-inf", "1e300", "1e-300", "pi", "-pi/8", "abc", "", "3000000000", "1.5",
+          "10", "0.01", "1,1", "1,1,0", "1,1,0.5", "2,1,1", "0,1,1", "1,1,1,1,1", "--x64", "tuned", "paper",
+          "nope.json", "1e-30"]
+
+
+@FUZZ
+@given(opts=st.lists(st.tuples(st.sampled_from(["--t-final", "--dt", "--save-every", "--max-steps", "--ic",
+                                                 "--params", "--gains", "--method", "--damping"]),
+                               st.sampled_from(TOKENS)), min_size=1, max_size=5))
+def test_the_command_line_never_shows_a_traceback(tmp_path, capsys, monkeypatch, opts):
+    def stub(*a, **k):
+        raise _Reached
+
+    monkeypatch.setattr(importlib.import_module("jaxsleigh.cli.simulate"), "simulate", stub, raising=False)
+    monkeypatch.setattr(importlib.import_module("jaxsleigh.simulate"), "drive_saving", stub)
+    argv = ["simulate", "--out", str(tmp_path / "x.npz")]
+    for flag, value in opts:
+        argv += [flag, value]
+    if "--ic" not in argv:
+        argv += ["--ic", "1,1,0.5"]
+    try:
+        rc = cli.main(argv)
+    except _Reached:
+        return
+    _, err = capsys.readouterr()
+    assert rc == 2 and err.startswith("jaxsleigh: error: ") and "Traceback" not in err, (argv, err)
+
+
+@pytest.mark.parametrize("value", [True, 1 + 2j, "1", None, [1.0], np.array([1.0, 2.0])])
+def test_scalar_options_refuse_what_is_not_a_number(value):
+    with pytest.raises(ValueError, match="t_final"):
+        solve_config(t_final=value)
