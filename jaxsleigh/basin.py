@@ -444,7 +444,7 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
               x64: bool = False, rtol: Optional[float] = None, atol: Optional[float] = None,
               max_steps: Optional[int] = None, check_passivity: bool = True,
               chunk_size: Optional[int] = None, devices: Any = None, checkpoint_dir=None,
-              resume: bool = False, progress: Any = None) -> BasinResult:
+              resume: bool = False, progress: Any = None, shard: Optional[tuple] = None) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence.
 
     Args:
@@ -460,21 +460,25 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
       checkpoint_dir: write every finished chunk there; ``resume=True`` reuses the finished chunks
         of an interrupted run with the same settings and starts.
       progress: progress bar with ETA (``None``: on a terminal).
+      shard: ``(index, count)``: compute only this process's share of the chunks into
+        ``checkpoint_dir`` and return ``None`` (see :func:`jaxsleigh.ensemble.run_ensemble`).
 
     Returns:
-      :class:`BasinResult`.
+      :class:`BasinResult` (``None`` with ``shard``).
     """
     import jax
 
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
     if chunk_size is None:
-        n_dev = len(jax.devices()) if devices is None else len(list(devices))
+        n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
         chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
     res = run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
                        rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
-                       resume=resume, progress=progress)
+                       resume=resume, progress=progress, shard=shard)
+    if res is None:                               # a shard of a multi-process run: chunks written
+        return None
     varying = ("wall_s", "devices", "chunks_reused")
     settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every",)}
     settings["starts"] = starts.spec

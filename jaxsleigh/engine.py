@@ -229,10 +229,11 @@ def shard_batch(tree, mesh):
 
 
 def batch_mesh(devices=None):
-    """A 1-D mesh named ``"batch"`` over ``devices`` (default: all), or ``None`` for one device."""
+    """A 1-D mesh named ``"batch"`` over ``devices`` (default: all of this process's devices, so a
+    process of a multi-process run shards over its own), or ``None`` for one device."""
     from jax.sharding import Mesh
 
-    devices = jax.devices() if devices is None else list(devices)
+    devices = jax.local_devices() if devices is None else list(devices)
     return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
 

@@ -142,7 +142,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  chunk_size: int = 65536, segment: int = 1000, check_passivity: bool = True,
                  summaries: bool = True,
                  devices: Any = None, checkpoint_dir=None, resume: bool = False,
-                 progress: Any = None) -> EnsembleResult:
+                 progress: Any = None, shard: Optional[tuple] = None) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
     Args:
@@ -168,9 +168,13 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         :class:`~jaxsleigh.errors.CheckpointError` (results are never mixed), a damaged one is named
         in a :class:`~jaxsleigh.errors.DamagedCheckpointWarning` and recomputed.
       progress: ``True``/``False``/``None`` (auto: on a terminal).
+      shard: ``(index, count)``: compute only the chunks ``i`` with ``i % count == index`` (those not
+        already in ``checkpoint_dir`` when resuming), write them there and return ``None``. This is
+        how several processes share one run (:mod:`jaxsleigh.distributed`); a later call without
+        ``shard`` assembles the result from the chunks.
 
     Returns:
-      :class:`EnsembleResult`.
+      :class:`EnsembleResult` (``None`` with ``shard``).
     """
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
@@ -182,6 +186,11 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
                          "check_passivity=False and no save_every")
     chunk_size = whole("chunk_size", chunk_size, example=65536)
+    if shard is not None:
+        if checkpoint_dir is None:
+            raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")
+        count = whole("shard count", shard[1])
+        shard = (whole("shard index", shard[0], minimum=0, maximum=count - 1), count)
     segment = whole("segment", segment, example=1000)
     if not isinstance(resume, (bool, np.bool_)):
         raise ValueError(f"resume must be True or False, got {resume!r}")
@@ -215,6 +224,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
             starts = list(range(0, n, chunk))
             for ci, lo in enumerate(starts):
                 hi = min(lo + chunk, n)
+                if shard is not None and ci % shard[1] != shard[0]:
+                    continue
                 if store is not None and resume:
                     part = store.load(ci, hi - lo, fields=fields)
                     if part is not None:
@@ -250,7 +261,10 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                 part = {k: v[:hi - lo] for k, v in part.items()}
                 if store is not None:
                     store.save(ci, part)
-                parts.append(part)
+                if shard is None:
+                    parts.append(part)
+        if shard is not None:
+            return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
     settings["wall_s"] = time.perf_counter() - t_start
     settings["chunks_reused"] = reused
