@@ -7,7 +7,11 @@ __all__ = ["Progress"]
 
 
 class Progress:
-    """Context manager with ``update(fraction_done)``; ``enabled=None`` means 'on a terminal'."""
+    """Context manager with ``update(fraction_done)``; ``enabled=None`` means 'on a terminal'.
+
+    Until the first progress is reported the bar says "compiling": the first call of a jitted
+    kernel compiles it (seconds), which is otherwise a bar frozen at 0 %.
+    """
 
     def __init__(self, enabled=None, desc: str = "", unit: str = "%"):
         if enabled is None:
@@ -19,14 +23,17 @@ class Progress:
             except ImportError:  # pragma: no cover - tqdm is a dependency
                 tqdm = None
             if tqdm is not None:
-                self._bar = tqdm(total=1000, desc=desc, unit="", bar_format=(
+                self._bar = tqdm(total=1000, desc=f"{desc} (compiling)", unit="", bar_format=(
                     "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"))
+        self._desc = desc
         self._last = 0
 
     def update(self, fraction: float) -> None:
         if self._bar is None:
             return
         now = int(round(1000 * min(max(fraction, 0.0), 1.0)))
+        if now > 0 and self._last == 0:
+            self._bar.desc = self._desc
         if now > self._last:
             self._bar.update(now - self._last)
             self._last = now

@@ -324,3 +324,24 @@ def test_probe_budget_message_says_what_happened(tmp_path, capsys):
     rc, _, err = run_cli(["tune", "--out", tmp_path / "g.json", "--steps", "1", "--batch", "8", "--t-final", "5",
                           "--probe-budget", "1", "--validate", "0", "--no-progress"], capsys)
     assert rc == 2 and "probe_budget = 1" in err and "(got 1)" not in err and "stopped after" in err, err
+
+
+# ---------------------------------------------------------------------------------------------
+# compile once per machine: the command line's persistent compilation cache
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("off", [False, True])
+def test_command_line_fills_the_compilation_cache_unless_turned_off(tmp_path, off):
+    import os
+    import subprocess
+    import sys
+
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXSLEIGH_CACHE_DIR": str(cache)}
+    if off:
+        env["JAXSLEIGH_NO_COMPILE_CACHE"] = "1"
+    r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "simulate", "--ic", "1,1,0.5", "--t-final", "0.1",
+                        "--out", str(tmp_path / "r.npz")], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    entries = list(cache.rglob("*")) if cache.exists() else []
+    assert (len(entries) == 0) if off else (len(entries) >= 3), entries
