@@ -7,9 +7,14 @@ reference: the adaptive method at rtol = atol = 1e-11, which ``tests/test_refere
 """
 from __future__ import annotations
 
+import ctypes
+import os
 import platform
 import resource
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Optional
@@ -20,7 +25,8 @@ import numpy as np
 from .ensemble import run_ensemble
 from .status import Status
 
-__all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine"]
+__all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine",
+           "C_REFERENCE_SOURCE", "build_c_reference", "c_reference_run", "c_limit"]
 
 CORRECT_TOL = 1e-3
 
@@ -85,6 +91,167 @@ def _timed(fn, repeats: int = 1):
     return best, out
 
 
+
+# ---------------------------------------------------------------------------------------------------
+# The C limit (issue 12): a hand-vectorised C RK4 of the same w-chart closed loop, timed against the
+# plain fixed-step path in one interleaved run.
+
+#: the C reference (a repository checkout has it; an installed package may not)
+C_REFERENCE_SOURCE = Path(__file__).resolve().parent.parent / "experiments" / "c_reference" / "rk4_w.c"
+#: compiler flags: -O3 -march=native, no -ffast-math; -fno-math-errno only lets gcc vectorise sqrtf
+#: (its argument eps + p^2 is never negative, so no result changes)
+C_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-shared", "-fPIC")
+
+
+class _CParams(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_float) for name in
+                ("m", "J", "l", "d_eps", "d_scale", "L1", "L2", "L3", "k", "D11", "D12", "D21", "D22")]
+
+
+def build_c_reference(out_dir=None, source=None):
+    """Compile the C reference into a shared library; returns ``(path, None)`` or ``(None, reason)``."""
+    source = Path(source) if source is not None else C_REFERENCE_SOURCE
+    if not source.exists():
+        return None, f"C reference source not found ({source}); run from a repository checkout"
+    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+    if cc is None:
+        return None, "no C compiler (gcc or cc) on PATH"
+    out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="jaxsleigh_c_"))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lib = out_dir / "librk4_w.so"
+    cmd = [cc, *C_FLAGS, str(source), "-o", str(lib), "-lm"]
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.SubprocessError) as e:
+        return None, f"C build failed to run: {e}"
+    if r.returncode != 0:
+        return None, f"C build failed ({' '.join(cmd)}): {r.stderr.strip()[:400]}"
+    return lib, None
+
+
+def _c_params(args) -> _CParams:
+    plant, g = args.plant, args.gains
+    d = plant.damping
+    if type(d).__name__ != "CoulombDamping":
+        raise NotImplementedError("the C reference implements the paper's Coulomb damping only")
+    L = np.asarray(g.L, np.float64)
+    D = np.asarray(g.D_hat, np.float64).ravel()
+    return _CParams(float(plant.m), float(plant.J), float(plant.l), float(d.eps), float(d.scale),
+                    *(float(v) for v in L), float(g.k), *(float(v) for v in D))
+
+
+def c_reference_run(lib, y0w, args, dt, n_steps, n_threads: int = 1):
+    """Run the C reference on w-chart starts ``y0w`` (N, 5) float32; returns the final (N, 5).
+    ``lib``: a path from :func:`build_c_reference` or a loaded ``ctypes.CDLL``."""
+    if not isinstance(lib, ctypes.CDLL):
+        lib = ctypes.CDLL(str(lib))
+    fn = lib.rk4w_run
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_long, ctypes.c_long, ctypes.c_float, ctypes.POINTER(_CParams),
+                   ctypes.c_int]
+    y = np.ascontiguousarray(np.asarray(y0w, np.float32).T)          # (5, N) structure of arrays
+    params = _c_params(args)
+    fn(y.ctypes.data, y.shape[1], int(n_steps), float(dt), ctypes.byref(params), int(n_threads))
+    return y.T.copy()
+
+
+def _summary(xs):
+    xs = np.asarray(xs, np.float64)
+    return {"median": float(np.median(xs)), "min": float(xs.min()), "max": float(xs.max()),
+            "values": [float(x) for x in xs]}
+
+
+def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, lib=None, build_dir=None,
+            log=None) -> dict:
+    """The plain fixed-step path against the C reference in ONE interleaved timing run.
+
+    Each repetition times the C program (one thread, via ctypes) and
+    ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, ...)`` back to back,
+    alternating which goes first; compile and warm-up runs are not timed. Throughput is
+    trajectory-steps per second of wall time and per second of CPU time (``time.process_time``:
+    all threads of this process, so a JAX run on two cores is charged for both). ``ratio_cpu`` is
+    JAX / C per CPU second, per repetition (median and range reported). Agreement: final states
+    (w chart) of C and of the JAX path from the same float32 starts, relative to each state's
+    largest component, on the tame starts (those whose float32 and float64 fixed-step results
+    agree to 1e-3, i.e. where rounding is not amplified). Returns a dict; ``available`` False with
+    ``reason`` when the C program cannot be built (float64 runs are not compared either)."""
+    import jax.numpy as jnp
+
+    from .closed_loop import ClosedLoop
+    from .engine import check_ics, drive_plain, initial_w, make_horizon
+    from .params import paper_gains, paper_plant
+
+    log = log or (lambda *a: None)
+    if jnp.zeros(()).dtype != jnp.float32:
+        return {"available": False, "reason": "the C reference is float32; run without x64"}
+    if lib is None:
+        lib, reason = build_c_reference(build_dir)
+        if lib is None:
+            return {"available": False, "reason": reason}
+    lib = ctypes.CDLL(str(lib))
+    ics = np.asarray(ics, np.float64)
+    n = ics.shape[0]
+    horizon = make_horizon(t_final, dt)
+    steps = horizon.n_steps
+    args = ClosedLoop(paper_plant(), paper_gains())
+    ics5, status0 = check_ics(ics)
+    y0w = initial_w(ics5, status0, jnp.float32)
+    kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
+
+    def run_c():
+        return c_reference_run(lib, y0w, args, dt, steps)
+
+    def run_jax():
+        return run_ensemble(ics, **kw)
+
+    run_c()
+    run_jax()                                            # compile and warm up; not timed
+    rec = {"c": {"wall": [], "cpu": []}, "jax": {"wall": [], "cpu": []}}
+    for r in range(max(1, repeats)):
+        order = (("c", run_c), ("jax", run_jax)) if r % 2 == 0 else (("jax", run_jax), ("c", run_c))
+        for name, fn in order:
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            rec[name]["wall"].append(time.perf_counter() - w0)
+            rec[name]["cpu"].append(time.process_time() - c0)
+        log(f"  repetition {r + 1}: C {rec['c']['cpu'][-1]:.3f} s cpu / {rec['c']['wall'][-1]:.3f} s wall, "
+            f"JAX {rec['jax']['cpu'][-1]:.3f} s cpu / {rec['jax']['wall'][-1]:.3f} s wall")
+    work = n * steps
+    out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
+           "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": 1,
+           "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
+                         f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
+    for name in ("c", "jax"):
+        out[f"{name}_traj_steps_per_cpu_s"] = _summary([work / c for c in rec[name]["cpu"]])
+        out[f"{name}_traj_steps_per_wall_s"] = _summary([work / w for w in rec[name]["wall"]])
+    out["ratio_cpu"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec["jax"]["cpu"])])
+    out["ratio_wall"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec["jax"]["wall"])])
+
+    # agreement of the final states, w chart, same float32 starts
+    yc = run_c()
+    yj, st = drive_plain(y0w, status0, args, horizon)
+    import jax
+    with jax.enable_x64(True):
+        y64, _ = drive_plain(jnp.asarray(np.asarray(y0w), jnp.float64), status0, args, horizon)
+    scale = np.maximum(np.max(np.abs(y64), axis=1), 1e-30)
+    tame = (status0 == 0) & np.all(np.isfinite(yj), axis=1) & (np.max(np.abs(yj - y64), axis=1) / scale <= 1e-3)
+    rel_cj = np.max(np.abs(yc - yj), axis=1) / scale
+    rel_32 = np.max(np.abs(yj - y64), axis=1) / scale
+    fin = np.all(np.isfinite(yc), axis=1) == np.all(np.isfinite(yj), axis=1)
+    out["agreement"] = {
+        "n_tame": int(tame.sum()),
+        "c_vs_jax_rel_max_tame": float(rel_cj[tame].max()) if tame.any() else None,
+        "c_vs_jax_rel_median_tame": float(np.median(rel_cj[tame])) if tame.any() else None,
+        "c_vs_jax_rel_p99_tame": float(np.quantile(rel_cj[tame], 0.99)) if tame.any() else None,
+        "float32_vs_float64_rel_median_tame": float(np.median(rel_32[tame])) if tame.any() else None,
+        "float32_vs_float64_rel_max_tame": float(rel_32[tame].max()) if tame.any() else None,
+        "bitwise_equal_rows": int(np.all(yc == yj, axis=1).sum()),
+        "finiteness_mismatch": int((~fin).sum()),
+        "c_vs_jax_rel_max_all_finite": float(np.nanmax(np.where(np.isfinite(rel_cj), rel_cj, np.nan))),
+    }
+    return out
+
+
 def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool = False, seed: int = 0,
           repeats: int = 1, cache_dir: Optional[str] = None) -> dict:
     """jaxsleigh's own figures on the workload: see the module docstring and the README."""
@@ -104,6 +271,15 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
     err_acc = final_state_error(r_acc.q, r_acc.p, ref)
     correct = (r_acc.status == Status.OK) & (err_acc <= CORRECT_TOL)
     err_rk4 = final_state_error(r_rk4.q, r_rk4.p, ref)
+    # the plain fixed-step path against the C reference, one interleaved run (float32 only)
+    if x64:
+        lim = {"available": False, "reason": "the C reference is float32; run without --x64"}
+    else:
+        try:
+            lim = c_limit(ics, t_final=t_final, dt=dt, repeats=max(3, repeats))
+        except Exception as e:                      # a broken toolchain must not lose the other figures
+            lim = {"available": False, "reason": f"{type(e).__name__}: {e}"}
+    ok_lim = lim.get("available", False)
     return {
         "n_ics": n_ics, "steps": steps, "t_final": t_final, "dt": dt,
         "dtype": r_acc.settings["dtype"], "device": machine()["devices"][0], "n_devices": jax.device_count(),
@@ -121,5 +297,13 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
         "accurate_max_steps": int(r_acc.n_steps.max()),
         "accurate_wall_s": wall_acc, "rk4_wall_s": wall_rk4,
         "peak_rss_mb": peak_rss_mb(),
+        # JAX / C trajectory-steps per CPU second (median over interleaved repetitions), or None
+        "c_limit_ratio": lim["ratio_cpu"]["median"] if ok_lim else None,
+        "c_limit_ratio_range": [lim["ratio_cpu"]["min"], lim["ratio_cpu"]["max"]] if ok_lim else None,
+        "c_limit_ratio_wall": lim["ratio_wall"]["median"] if ok_lim else None,
+        "c_limit_traj_steps_per_cpu_s": lim["c_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
+        "traj_steps_per_cpu_s": lim["jax_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
+        "c_limit_reason": None if ok_lim else lim.get("reason"),
+        "c_limit": lim,
         "machine": machine(),
     }

@@ -1,0 +1,91 @@
+r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the same closed loop (issue 12).
+
+    python experiments/bench_c_limit.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--seed 0]
+                                        [--repeats 7] [--devices 1] [--out out/bench_c_limit.json]
+
+Builds ``experiments/c_reference/rk4_w.c`` with ``gcc -O3 -march=native -fno-math-errno`` (no
+-ffast-math) if a compiler is present, else prints why and exits 0 with ``available: false``. Then,
+in ONE interleaved timing run (C and JAX repetitions alternate, their order flips every repetition,
+compile and warm-up excluded) on the workload of :func:`jaxsleigh.bench.workload` (x, y ~ U(-3, 3),
+|theta0| ~ U(0.3, pi) with random sign, zero momentum; float32, final state only) it reports
+trajectory-steps/s of both per CPU second (``time.process_time``: every thread of the process) and
+per wall second, the ratio JAX / C, and the agreement of the final states (w chart).
+
+The C program runs on one thread (per core). The JAX call timed is
+``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, t_final, dt, progress=False)``.
+``--devices 2`` sets ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` before JAX is imported,
+so the plain path splits the batch over two host devices (two cores); the JSON records the flag.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n-ics", type=int, default=4096)
+    ap.add_argument("--t-final", type=float, default=100.0)
+    ap.add_argument("--dt", type=float, default=0.01)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeats", type=int, default=7, help="interleaved C/JAX repetitions (default 7)")
+    ap.add_argument("--devices", type=int, default=1,
+                    help="host devices for JAX (>1 sets XLA_FLAGS=--xla_force_host_platform_device_count)")
+    ap.add_argument("--build-dir", default="out/c_reference", help="where the C library is built")
+    ap.add_argument("--out", default="out/bench_c_limit.json")
+    a = ap.parse_args(argv)
+    if a.devices > 1:
+        if "jax" in sys.modules:
+            ap.error("--devices needs to set XLA_FLAGS before JAX is imported")
+        flag = f"--xla_force_host_platform_device_count={a.devices}"
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+
+    import jax
+
+    from jaxsleigh.bench import build_c_reference, c_limit, machine, workload
+
+    log = lambda *m: print(*m, file=sys.stderr, flush=True)  # noqa: E731
+    lib, reason = build_c_reference(a.build_dir)
+    mach = machine()
+    mach["os_cpu_count"] = os.cpu_count()
+    mach["xla_flags"] = os.environ.get("XLA_FLAGS", "")
+    if lib is None:
+        print(f"C limit skipped: {reason}")
+        res = {"available": False, "reason": reason}
+    else:
+        log(f"C reference built: {lib}; JAX on {jax.devices()}; {a.repeats} interleaved repetitions ...")
+        res = c_limit(workload(a.n_ics, a.seed), t_final=a.t_final, dt=a.dt, repeats=a.repeats, lib=lib, log=log)
+        c, j = res["c_traj_steps_per_cpu_s"], res["jax_traj_steps_per_cpu_s"]
+        cw, jw = res["c_traj_steps_per_wall_s"], res["jax_traj_steps_per_wall_s"]
+        rc, rw = res["ratio_cpu"], res["ratio_wall"]
+        ag = res["agreement"]
+        print(f"workload: {res['n_ics']} starts (seed {a.seed}), {res['steps']} steps of dt = {a.dt:g}, float32, "
+              f"final state only; JAX devices: {len(jax.devices())} (XLA_FLAGS='{mach['xla_flags']}'); "
+              f"C: one thread, {res['c_flags']}")
+        print("trajectory-steps/s, median [min, max] over the interleaved repetitions:")
+        print(f"  C    per CPU s {c['median']:.3e} [{c['min']:.3e}, {c['max']:.3e}]   "
+              f"wall {cw['median']:.3e} [{cw['min']:.3e}, {cw['max']:.3e}]")
+        print(f"  JAX  per CPU s {j['median']:.3e} [{j['min']:.3e}, {j['max']:.3e}]   "
+              f"wall {jw['median']:.3e} [{jw['min']:.3e}, {jw['max']:.3e}]")
+        print(f"  JAX / C: CPU time {rc['median']:.3f} [{rc['min']:.3f}, {rc['max']:.3f}], "
+              f"wall {rw['median']:.3f} [{rw['min']:.3f}, {rw['max']:.3f}]")
+        print(f"agreement of the final states (w chart, relative to each state's largest component), "
+              f"{ag['n_tame']} tame starts: C vs JAX median {ag['c_vs_jax_rel_median_tame']:.2e}, "
+              f"p99 {ag['c_vs_jax_rel_p99_tame']:.2e}, max {ag['c_vs_jax_rel_max_tame']:.2e}; "
+              f"float32 vs float64 (same scheme) median {ag['float32_vs_float64_rel_median_tame']:.2e}, "
+              f"max {ag['float32_vs_float64_rel_max_tame']:.2e}; finiteness mismatches "
+              f"{ag['finiteness_mismatch']}, bitwise-equal rows {ag['bitwise_equal_rows']}")
+    res["machine"] = mach
+    res["command"] = "python experiments/bench_c_limit.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1) + "\n")
+    log(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
