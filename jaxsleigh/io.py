@@ -6,6 +6,7 @@ import json
 import math
 import operator
 import os
+import platform
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -26,7 +27,9 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     ``status (N,)``, ``n_steps (N,)``, ``n_rejected (N,)``, ``ics (N, 5)``; ``settings_json`` (the
     solution's settings plus ``ics``, ``command`` and the status legend, as JSON) and the scalars
     ``dt, t_final, save_every, method, dtype, gains_L, gains_k, gains_D_hat, params (m, J, l),
-    damping``. Returns the path written (``.npz`` appended when missing).
+    damping``; and the per-trajectory summaries of :attr:`Solution.effort` (``u_peak (N, 2)``,
+    ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
+    Returns the path written (``.npz`` appended when missing).
     """
     from .status import describe
 
@@ -53,6 +56,7 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
         gains_D_hat=np.asarray(g["D_hat"], dtype=np.float64),
         params=np.array([plant["m"], plant["J"], plant["l"]], dtype=np.float64),
         damping=np.array(damping_name(plant["damping"])),
+        **{k: np.asarray(v) for k, v in (getattr(sol, "effort", None) or {}).items()},
     ))
     return path
 
@@ -151,8 +155,10 @@ def _looks_like_text(p: Path) -> bool:
 # ---------------------------------------------------------------------------------------------
 
 def _tmp_name(path: Path) -> Path:
-    # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches; the host name
+    # keeps two processes of a multi-host run (same pid, shared folder) apart
+    host = "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64]
+    return path.with_name(f".{path.name}.{host}.{os.getpid()}.tmp")
 
 
 def _fsync_dir(folder: Path) -> None:
