@@ -27,8 +27,8 @@ from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
 from ..io import load_ics
-from .common import (FLAGS, PROG, add_horizon_options, add_model_options, check_outputs,
-                     exit_code, model_from_args, report_warnings, status_epilog)
+from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
+                     check_outputs, exit_code, model_from_args, report_warnings, run_distributed, status_epilog)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 
@@ -109,6 +109,7 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
     o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
     o.add_argument("--plot", metavar="FILE.png",
                    help="also draw the convergence-time map, the fraction against theta0 and the T_eps distribution")
+    add_distributed_options(p)
     # "--x -3:3:64", "--theta -pi/2:pi/2:64": values, not options (argparse would read them as flags)
     p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
     p.set_defaults(func=run_basin_command)
@@ -175,10 +176,20 @@ def _load() -> list:
 
 
 def run_basin_command(args) -> int:
-    """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns the exit code."""
-    from ..basin import run_basin, save_basin
+    """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns the exit code.
+
+    With ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process
+    computes its share of the chunks and process 0 writes the output (see
+    :func:`~jaxsleigh.cli.common.run_distributed`).
+    """
+    return run_distributed(args, check=lambda: _check(args), compute=_compute, assemble=_assemble,
+                           prepare=_prepare, shared_dirs=lambda st: [st["chunks"]])
+
+
+def _check(args) -> dict:
+    """Validate everything before any work; nothing is written (folders are created)."""
     from ..config import solve_config
-    from ..io import atomic_write_text, npz_path
+    from ..io import npz_path
 
     plant, gains = model_from_args(args)
     solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
@@ -188,23 +199,66 @@ def run_basin_command(args) -> int:
     chunks = _chunk_dir(out)
     side = _sidecar(out)
     check_outputs(out, side, args.plot, folders=[chunks])
-    have_chunks = chunks.is_dir() and any(chunks.glob("chunk_*.npz"))
-    if have_chunks and not args.resume:
+    have = sorted(chunks.glob("chunk_*.npz")) if chunks.is_dir() else []
+    if have and not args.resume:
         raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
                          f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
-    argv = list(getattr(args, "_argv", None) or [])
-    load_start = _load()
+    return {"args": args, "plant": plant, "gains": gains, "starts": starts, "out": out, "chunks": chunks,
+            "side": side, "had": len(have), "load_start": _load(), "t0": time.perf_counter()}
+
+
+def _prepare(st: dict) -> None:
+    """A fresh multi-process run (no --resume; the folder holds no chunks, as checked): drop the
+    manifest of an earlier run that ended before its first chunk, since every process opens the
+    folder with resume=True."""
+    if not st["args"].resume:
+        (st["chunks"] / "manifest.json").unlink(missing_ok=True)
+
+
+def _run_kw(st: dict) -> dict:
+    a = st["args"]
+    return dict(eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method, plant=st["plant"], gains=st["gains"],
+                x64=a.x64, max_steps=a.max_steps, chunk_size=a.chunk_size, checkpoint_dir=st["chunks"],
+                progress=a.progress)
+
+
+def _interrupted(st: dict) -> None:
+    print(f"{PROG} basin: interrupted; the finished chunks are in {st['chunks']}/ - run the same command with "
+          f"--resume to continue", file=sys.stderr)
+
+
+def _compute(st: dict, shard: tuple) -> None:
+    """One process's share of the chunks of a multi-process run."""
+    from ..basin import run_basin
+
     t0 = time.perf_counter()
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = run_basin(starts, eps=args.eps, t_final=args.t_final, dt=args.dt, method=args.method,
-                            plant=plant, gains=gains, x64=args.x64, max_steps=args.max_steps,
-                            chunk_size=args.chunk_size, checkpoint_dir=chunks, resume=args.resume,
-                            progress=args.progress)
+            run_basin(st["starts"], resume=True, shard=shard, **_run_kw(st))
     except KeyboardInterrupt:
-        print(f"{PROG} basin: interrupted; the finished chunks are in {chunks}/ - run the same command with "
-              f"--resume to continue", file=sys.stderr)
+        _interrupted(st)
+        raise
+    report_warnings(caught, skip=(FlaggedStartsWarning,))
+    if shard[0] != 0:
+        print(f"{PROG} basin: process {shard[0]} of {shard[1]}: share of the chunks done in "
+              f"{time.perf_counter() - t0:.1f} s; process 0 writes {st['out']}", file=sys.stderr)
+
+
+def _assemble(st: dict, multi: bool) -> int:
+    """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
+    from ..basin import run_basin, save_basin
+    from ..io import atomic_write_text
+
+    args, out, chunks, side = st["args"], st["out"], st["chunks"], st["side"]
+    argv = list(getattr(args, "_argv", None) or [])
+    t0 = st["t0"]
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = run_basin(st["starts"], resume=True if multi else args.resume, **_run_kw(st))
+    except KeyboardInterrupt:
+        _interrupted(st)
         raise
     wall = time.perf_counter() - t0
     report_warnings(caught, skip=(FlaggedStartsWarning,))
@@ -215,10 +269,16 @@ def run_basin_command(args) -> int:
               f"of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
               file=sys.stderr)
     path = save_basin(out, res)
-    n_reused = int((res.run_info or {}).get("chunks_reused") or 0)
+    # several processes: every chunk is read back here; "resumed" counts those of an earlier run
+    n_reused = st["had"] if multi else int((res.run_info or {}).get("chunks_reused") or 0)
     info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
             "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
-            "loadavg_start": load_start, "loadavg_end": _load(), "cpu_count": os.cpu_count(), "summary": res.summary()}
+            "loadavg_start": st["load_start"], "loadavg_end": _load(), "cpu_count": os.cpu_count(),
+            "summary": res.summary()}
+    if multi:
+        import jax
+
+        info["processes"] = jax.process_count()
     atomic_write_text(side, json.dumps(info, indent=1, default=str) + "\n")
     if not args.keep_chunks:
         shutil.rmtree(chunks, ignore_errors=True)
@@ -229,6 +289,7 @@ def run_basin_command(args) -> int:
 
         written.append(str(save_figure(plot_basin(res), args.plot)))
     print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
-    print(f"{PROG} basin: {wall:.1f} s wall ({res.settings['dtype']}, {res.settings['method']}"
+    procs = f", {info['processes']} processes" if multi else ""
+    print(f"{PROG} basin: {wall:.1f} s wall ({res.settings['dtype']}, {res.settings['method']}{procs}"
           f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
     return exit_code(res.status)

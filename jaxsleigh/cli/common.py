@@ -9,6 +9,7 @@ finished is kept, see ``--resume``).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -25,7 +26,8 @@ from ..io import parse_number as _number
 __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
-           "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache"]
+           "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
+           "add_distributed_options", "run_distributed"]
 
 PROG = "jaxsleigh"
 
@@ -277,3 +279,63 @@ def enable_compilation_cache() -> Optional[Path]:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return d
+
+
+# ---------------------------------------------------------------------------------------------
+# several processes (jax.distributed)
+# ---------------------------------------------------------------------------------------------
+
+def add_distributed_options(parser) -> None:
+    """--coordinator HOST:PORT, --num-processes N, --process-id I (all three or none; see
+    :func:`run_distributed`)."""
+    g = parser.add_argument_group(
+        "processes", "several processes or hosts share the run through jax.distributed; start the same command "
+                     "in every process (only --process-id differs). Give all three options, or none under "
+                     "SLURM (srun) / Open MPI (mpirun), where they are detected. The checkpoint folder must be on "
+                     "a filesystem that every process sees; process 0 writes the output.")
+    g.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="address of process 0 and a free port for the coordinator (e.g. 10.0.0.1:12345)")
+    g.add_argument("--num-processes", type=whole("--num-processes", "2"), metavar="N",
+                   help="number of processes in the run")
+    g.add_argument("--process-id", type=whole("--process-id", "0", minimum=0), metavar="I",
+                   help="this process's id, 0..N-1 (0 runs the coordinator and writes the output)")
+
+
+#: Options that may differ between the processes of one run (everything else must be equal).
+_PER_PROCESS = {"coordinator", "num_processes", "process_id", "progress", "no_compile_cache", "func", "_argv"}
+
+
+def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:
+    """Run a chunked subcommand in one process or, with the options of
+    :func:`add_distributed_options` (or under SLURM / Open MPI), in several; returns the exit code.
+
+    Call it first thing in the handler, before any JAX computation (it starts
+    ``jax.distributed``). The subcommand provides:
+
+    * ``check()``: validate the input and the outputs, refuse a checkpoint folder that holds chunks
+      without ``--resume`` (raise ``ValueError``; write nothing besides creating folders); return a
+      state passed to the other steps;
+    * ``compute(state, (index, count))``: write this process's share of the chunks
+      (``run_basin(..., checkpoint_dir=..., resume=True, shard=(index, count))``);
+    * ``assemble(state, multi)``: write the outputs and return the exit code. ``multi`` is
+      ``True`` when several processes computed the chunks: read them with ``resume=True``; it
+      is ``False`` in a single-process run, which does all the work here as before;
+    * ``prepare(state)`` (optional): run by process 0 only, after every process has passed
+      ``check``, before anyone computes (e.g. remove the stale manifest of a fresh run);
+    * ``shared_dirs(state)`` (optional): the checkpoint folders, checked to be shared.
+
+    In a multi-process run every process checks, the verdicts are exchanged (a refusal anywhere is
+    reported by every process, exit code 2, before any chunk is written), every process computes its
+    share, process 0 assembles and writes, and every process returns process 0's exit code. The
+    options (except the three above and ``--progress``) must be equal in every process.
+    """
+    from ..distributed import run_shared, start
+
+    cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
+                    getattr(args, "process_id", None))
+    if cluster is None:
+        return int(assemble(check(), False))
+    options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
+    options = json.loads(json.dumps(options, default=str))
+    return run_shared(cluster, check=check, compute=compute, assemble=lambda state: assemble(state, True),
+                      prepare=prepare, shared_dirs=shared_dirs or (lambda state: []), options=options)
