@@ -44,7 +44,9 @@ def test_site_builds_with_api_reference(site):
         assert f'id="jaxsleigh.{name}"' in api, f"API reference lacks jaxsleigh.{name}"
     # the docstrings themselves are rendered, not only the headings
     assert "Simulate the closed loop" in api
-    assert "Differentiable tuning of the controller" in (site / "api" / "tuning" / "index.html").read_text()
+    tuning = (site / "api" / "tuning" / "index.html").read_text()
+    for name in ("tune", "TuneConfig", "LossConfig", "make_value_and_grad", "validate"):
+        assert f'id="jaxsleigh.tuning.{name}"' in tuning, f"tuning API reference lacks {name}"
 
 
 def test_notebook_pages_show_executed_outputs(site):
