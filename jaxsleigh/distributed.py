@@ -222,7 +222,7 @@ def run_shared(cluster: Cluster, *, check: Callable[[], Any], compute: Callable[
     state, error = None, None
     try:
         state = check()
-    except ValueError as e:
+    except (ValueError, OSError) as e:
         error = str(e)
     devices = f"{jax.default_backend()} x {len(jax.local_devices())}"
     cluster.agree("checked", error, options=options, local_devices=devices)
