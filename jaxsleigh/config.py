@@ -40,6 +40,8 @@ class SolveConfig(NamedTuple):
     eps: float
     x64: bool
     check_passivity: bool
+    #: number of per-trajectory parameter lanes (``None``: one plant and one set of gains)
+    lanes: Optional[int] = None
 
     @property
     def adaptive(self) -> bool:
@@ -52,18 +54,29 @@ class SolveConfig(NamedTuple):
 
     def settings(self) -> dict:
         """JSON-ready record of the configuration (written into every result file)."""
-        return {
+        out = {
             "plant": plant_to_dict(self.plant), "gains": gains_to_dict(self.gains),
             "t_final": self.horizon.t_final, "dt": self.horizon.dt, "eps": self.eps, "method": self.method,
             "rtol": self.rtol, "atol": self.atol, "max_step": self.max_step, "max_steps": self.max_steps,
             "dtype": self.dtype, "check_passivity": self.check_passivity,
         }
+        if self.lanes is not None:
+            from .lanes import lanes_digest
+
+            out["lanes"] = self.lanes
+            out["lanes_sha256"] = lanes_digest(self.plant, self.gains)
+        return out
 
 
 def plant_to_dict(plant: PlantParams) -> dict:
+    """JSON-ready record; a leaf that varies per trajectory is recorded as ``{"per_trajectory": P,
+    "min": .., "max": ..}`` (the values themselves go with the rows, see ``lane_table``)."""
+    from .lanes import _lane_record
+
+    num = (lambda v: float(v) if np.ndim(v) == 0 else _lane_record(v))  # noqa: E731
     d = plant.damping
-    return {"m": float(plant.m), "J": float(plant.J), "l": float(plant.l),
-            "damping": type(d).__name__, "damping_params": {k: float(v) for k, v in d._asdict().items()}
+    return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
+            "damping": type(d).__name__, "damping_params": {k: num(v) for k, v in d._asdict().items()}
             if hasattr(d, "_asdict") else repr(d)}
 
 
@@ -92,8 +105,14 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
     for name, v in (("check_passivity", check_passivity),):
         if not isinstance(v, (bool, np.bool_)) and v not in (0, 1):
             raise ValueError(f"{f(name)} must be True or False, got {v!r}")
-    plant = as_plant(plant)
-    gains = as_gains(gains)
+    from .lanes import check_lanes, lane_count
+
+    lanes = lane_count(plant, gains)
+    if lanes is None:
+        plant = as_plant(plant)
+        gains = as_gains(gains)
+    else:                                      # per-trajectory leaves: every lane checked at once
+        plant, gains = check_lanes(plant, gains, flags=flags)
     t_final = real(f("t_final"), t_final, positive=True, example=100, maximum=1e30)
     dt = real(f("dt"), dt, positive=True, example=0.01)
     if save_every is not None:
@@ -116,4 +135,4 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
                              f"horizon (t_final / dt) that fixed-step RK4 takes; raise it to at least "
                              f"{horizon.n_steps}")
     return SolveConfig(plant, gains, horizon, method, rtol, atol, max_step, max_steps, eps, x64,
-                       bool(check_passivity))
+                       bool(check_passivity), lanes)

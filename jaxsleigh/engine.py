@@ -263,16 +263,29 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     ``update(fraction_done)``. ``mesh`` (a 1-D :class:`jax.sharding.Mesh` with axis ``"batch"``)
     shards the batch axis across its devices; the batch size must then be a multiple of the
     device count.
+
+    ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
+    :mod:`jaxsleigh.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
     """
+    from .lanes import broadcast_lanes, has_lanes, init_batch_lanes, take_lanes
+
     dtype = y0w.dtype
     n = y0w.shape[0]
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
     target = jnp.asarray(horizon.t_final, dtype)
-    state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+    lanes = has_lanes(args.plant, args.gains)
+    if lanes:                                # per-lane parameters: one lane per trajectory of the batch
+        lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
+        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
+        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+    else:
+        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
     if mesh is not None:
         state = shard_batch(state, mesh)
+        if lanes:
+            args = shard_batch(args, mesh)
     idx = np.arange(n)                       # rows of the full batch held by the current batch
     full = None                              # the full batch, as lanes are compacted away
     for _ in range(-(-max_steps // segment) + 1):
@@ -292,8 +305,13 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
             # pad with copies of one active lane; only real lanes are written back
             pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
             state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
+            if lanes:                        # the parameters follow their trajectories
+                lane_host = take_lanes(lane_host, pad)
+                args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
             if mesh is not None:
                 state = shard_batch(state, mesh)
+                if lanes:
+                    args = shard_batch(args, mesh)
             idx = np.concatenate([idx[keep], np.full(size - keep.size, -1)])
         state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor)
     host = jax.tree_util.tree_map(np.asarray, state)
@@ -306,10 +324,18 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
                  monitor: bool = True, progress=None):
     """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
-    blocks of ``block`` save times (for the progress bar)."""
+    blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
+    leaves, as in :func:`drive_final`."""
+    from .lanes import broadcast_lanes, has_lanes, init_batch_lanes
+
     dtype = y0w.dtype
     ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
-    state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+    if has_lanes(args.plant, args.gains):
+        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
+                                      ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))
+        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+    else:
+        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):

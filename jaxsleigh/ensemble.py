@@ -52,6 +52,9 @@ class EnsembleResult(NamedTuple):
       t, q_traj, p_traj: decimated trajectories ``(T,)``, ``(N, T, 3)``, ``(N, T, 2)`` when
         ``save_every`` was given, else ``None``.
       settings: everything that produced the result.
+      params: with per-trajectory parameters, the values each row used: ``{name: (N,)}`` with
+        names ``m, J, l``, the damping's numbers, ``k, l1, l2, l3, d11, d12, d22``
+        (:func:`jaxsleigh.lanes.lane_table`); ``None`` for one plant and one set of gains.
     """
 
     ics: np.ndarray
@@ -70,6 +73,7 @@ class EnsembleResult(NamedTuple):
     t: Optional[np.ndarray] = None
     q_traj: Optional[np.ndarray] = None
     p_traj: Optional[np.ndarray] = None
+    params: Optional[dict] = None
 
     def converged(self) -> np.ndarray:
         """Boolean (N,): OK and settled within the horizon."""
@@ -79,6 +83,19 @@ class EnsembleResult(NamedTuple):
 @jax.jit
 def _hd_batch(yw, args):
     return jax.vmap(closed_loop_hamiltonian_w, in_axes=(0, None))(yw, args)
+
+
+@jax.jit
+def _hd_lanes(yw, args):
+    # closed_loop_hamiltonian_w broadcasts over a trailing batch axis, per-lane args included
+    return closed_loop_hamiltonian_w(yw.T, args)
+
+
+def _hd_any(yw, args):
+    """H_d of a batch ``yw`` (N, 5) under one plant or per-lane (canonical) ``args``."""
+    from .lanes import has_lanes
+
+    return _hd_lanes(yw, args) if has_lanes(args.plant, args.gains) else _hd_batch(yw, args)
 
 
 @jax.jit
@@ -95,7 +112,7 @@ def _chunk_summaries(final, y0w, status0, args) -> dict:
     failed = ~ok
     yq[failed] = np.nan
     invalid = np.asarray(status0) != Status.OK
-    hd0 = np.array(_hd_batch(y0w, args), np.float64)
+    hd0 = np.array(_hd_any(y0w, args), np.float64)
     hd0[invalid] = np.nan
     t_enter = np.asarray(final.t_enter, np.float64)
     return {
@@ -148,6 +165,11 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     Args:
       ics: ``(N, 3)`` or ``(N, 5)`` initial conditions (see :func:`jaxsleigh.simulate`). Invalid
         rows (theta = 0, non-finite) are flagged in ``status`` and the rest are computed.
+      plant, gains: as in :func:`jaxsleigh.simulate`; their leaves may also vary per trajectory,
+        with a trailing axis of size N (or 1): ``m``, ``J``, ``l``, ``k`` and the damping's numbers
+        ``(N,)``, ``L`` ``(3, N)``, ``D_hat`` ``(2, 2, N)`` (:mod:`jaxsleigh.lanes`; build them with
+        ``stack_plants`` / ``stack_gains``). Changing the values does not recompile; the rows'
+        values come back in ``params``.
       eps: radius of the ball ``|q| <= eps`` defining ``T_eps``.
       method, dt, rtol, atol, max_step, max_steps, x64: as in :func:`jaxsleigh.simulate`.
       save_every: also keep decimated trajectories every ``save_every`` base steps (memory
@@ -200,6 +222,17 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     check_memory(n_rows, "run_ensemble")
     ics5, status0 = check_ics(ics, cfg.dtype)
     plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
+    lane_args = None
+    if cfg.lanes is not None:
+        from .lanes import broadcast_lanes
+
+        if cfg.lanes not in (1, ics5.shape[0]):
+            raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are {ics5.shape[0]} "
+                             f"initial conditions; give one value per initial condition (or one for all)")
+        if not summaries:
+            raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
+                             "per-trajectory parameters need summaries=True")
+        lane_args = ClosedLoop(*broadcast_lanes(plant, gains, ics5.shape[0]))
     rtol, atol, max_step, max_steps = cfg.rtol, cfg.atol, cfg.max_step, cfg.max_steps
     mesh = batch_mesh(devices)
     n_dev = 1 if mesh is None else mesh.size
@@ -237,6 +270,10 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                 st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
                 ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
                 y0w = initial_w(ic, st, dtype)
+                if lane_args is not None:      # this chunk's lanes; padding rows reuse its first
+                    from .lanes import take_lanes
+
+                    args = take_lanes(lane_args, np.concatenate([np.arange(lo, hi), np.full(pad, lo)]))
 
                 class _Sub:  # maps this chunk's progress onto the whole run
                     def update(self, frac, lo=lo, hi=hi):
@@ -271,4 +308,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     traj = {}
     if save_every is not None:
         traj = {"t": horizon.t(), "q_traj": out.pop("q_traj"), "p_traj": out.pop("p_traj")}
+    if lane_args is not None:
+        from .lanes import lane_table
+
+        traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
     return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj)

@@ -173,9 +173,15 @@ def paper_gains() -> Gains:
 
 
 def gains_to_dict(g: Gains) -> dict:
-    """JSON-ready ``{"L": [...], "k": k, "D_hat": [[..], [..]]}``."""
-    return {"L": [float(x) for x in np.asarray(g.L)], "k": float(g.k),
-            "D_hat": np.asarray(g.D_hat, dtype=float).tolist()}
+    """JSON-ready ``{"L": [...], "k": k, "D_hat": [[..], [..]]}``; a leaf that varies per trajectory
+    (a trailing lane axis, see :mod:`jaxsleigh.lanes`) is recorded as ``{"per_trajectory": P, "min",
+    "max"}``."""
+    from .lanes import _lane_record
+
+    L, D = np.asarray(g.L, dtype=float), np.asarray(g.D_hat, dtype=float)
+    return {"L": [float(x) for x in L] if L.ndim == 1 else _lane_record(L),
+            "k": float(g.k) if np.ndim(g.k) == 0 else _lane_record(g.k),
+            "D_hat": D.tolist() if D.ndim <= 2 else _lane_record(D)}
 
 
 def gains_from_dict(d: dict, *, source: str = "gains") -> Gains:

@@ -60,6 +60,13 @@ def _outputs(yw, args: ClosedLoop):
     return jax.vmap(jax.vmap(one))(yw)
 
 
+@jax.jit
+def _outputs_lanes(yw, args: ClosedLoop):
+    """:func:`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
+    axes = jax.tree_util.tree_map(lambda _: -1, args)
+    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a), in_axes=(0, axes))(yw, args)
+
+
 def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
              t_final: float = 100.0, dt: float = 0.01, save_every: int = 10,
              method: str = "adaptive", rtol: Optional[float] = None, atol: Optional[float] = None,
@@ -72,6 +79,9 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       plant, gains: defaults are the paper's (m = 2, J = 1, l = 1, Coulomb; L = diag(2, .5, .8),
         k = 0.1, D_hat = diag(4, 8)). ``gains`` may also be a preset name (``"tuned"``) or a
         gains-file path. Both are validated eagerly (``ValueError`` saying what to change).
+        Leaves may vary per trajectory (a trailing axis of size N or 1, see
+        :func:`jaxsleigh.run_ensemble` and :mod:`jaxsleigh.lanes`); ``settings["params"]`` then
+        holds the values each trajectory used.
       t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``).
       save_every: keep every ``save_every``-th base step (the saved grid is uniform in time).
       method: ``"adaptive"`` (default: RK4 with per-trajectory error control, starting at ``dt``;
@@ -98,6 +108,13 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
         args = ClosedLoop(cfg.plant, cfg.gains)
+        if cfg.lanes is not None:
+            from .lanes import broadcast_lanes
+
+            if cfg.lanes not in (1, ics5.shape[0]):
+                raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
+                                 f"{ics5.shape[0]} initial conditions; give one value per initial condition")
+            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.gains, ics5.shape[0]))
         y0w = initial_w(ics5, status0, dtype)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
@@ -107,8 +124,13 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
-        q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), args))
+        outputs = _outputs if cfg.lanes is None else (lambda y, a: tuple(o[:, 0] for o in _outputs_lanes(y, a)))
+        q, u, Hd = (np.array(a) for a in outputs(jnp.asarray(yw), args))
     settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start}
+    if cfg.lanes is not None:
+        from .lanes import lane_table
+
+        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.gains, ics5.shape[0]).items()}
     settings.pop("check_passivity")
     settings.pop("eps")
     # restore the exact initial state (the w chart round trip rounds it in float32)
