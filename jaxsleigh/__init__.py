@@ -10,5 +10,6 @@ from .params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_p
                      save_gains)
 from .simulate import Solution, simulate
 from .status import Status
+from .sweep import SweepResult, load_sweep, save_sweep, sweep
 
 __version__ = "0.1.0"

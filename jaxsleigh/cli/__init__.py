@@ -25,11 +25,12 @@ from .bench import add_bench
 from .common import EXIT_INTERRUPTED, EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic
 from .paper import add_paper
 from .simulate import add_simulate
+from .sweep import add_sweep
 from .tune import add_tune
 
 __all__ = ["main", "build_parser", "parse_ic", "SUBCOMMANDS"]
 
-SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune]
+SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_sweep]
 
 
 def build_parser() -> Parser:

@@ -1,0 +1,172 @@
+"""``jaxsleigh sweep``: convergence over a range (or a grid) of gains or plant parameters.
+
+Registered by :func:`add_sweep`::
+
+    jaxsleigh sweep --param k=0.01:1:9:log --samples 512 --out k.npz --plot k.png
+    jaxsleigh sweep --param m=0.5:8:5:log --param l=0:2:5 --samples 256 --out ml.npz --plot ml.png
+    jaxsleigh sweep --param coulomb_scale=0:4:5 --ics starts.npy --x64 --out friction.npz
+
+Every start runs under every value (set) as one chunked, checkpointed ensemble
+(:func:`jaxsleigh.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
+interrupted run, ending with the same ``.npz``, byte for byte. Wall time, devices and the command
+go to ``FILE.run.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+import time
+import warnings
+
+from ..errors import FlaggedStartsWarning
+from .basin import _chunk_dir, _load, _sidecar, _starts_from_args, _whole
+from .common import (FLAGS, PROG, add_horizon_options, add_model_options, check_outputs, exit_code,
+                     model_from_args, report_warnings, status_epilog)
+from .common import number as _positive_float
+
+__all__ = ["add_sweep", "run_sweep_command"]
+
+#: starts when none are given: Monte-Carlo samples in basin's default box
+DEFAULT_SAMPLES = 256
+
+
+def _epilog() -> str:
+    from ..sweep import PARAM_NAMES
+
+    return (
+        "parameters (--param NAME=LO:HI:P[:log], once or twice; two make a P1 x P2 grid):\n"
+        f"  NAME: {', '.join(PARAM_NAMES)}\n"
+        "  gains k, l1..l3 (diag L), d11, d22, d12 (D_hat); plant m, J, l (l = 0: the knife edge);\n"
+        "  coulomb_eps, coulomb_scale (with --damping coulomb), c1, c2 (with --damping viscous).\n"
+        "  P values from LO to HI (ends included), evenly spaced, or log-spaced with ':log' (LO > 0).\n"
+        "  What is not swept comes from --gains, --params, --damping. Inadmissible values (m <= 0,\n"
+        "  k <= 0, D_hat not positive definite, ...) are refused before anything runs.\n\n"
+        "starts (as in 'jaxsleigh basin'): a grid --x/--y/--theta, --samples N [--seed S] in the\n"
+        f"  --x/--y/--theta box, or --ics FILE.npy; none given: --samples {DEFAULT_SAMPLES} --seed 0.\n\n"
+        "output .npz keys: names (n_params,), values (P, n_params), grid_shape, ics (N, 5),\n"
+        "  T_eps (P, N) [inf: not settled by --t-final, nan: failed], status (P, N), n_steps,\n"
+        "  min_abs_theta, Hd0 (P, N), fraction, fraction_se [sqrt(S(1-S)/N) over the valid starts],\n"
+        "  n_valid, n_converged (P,), T_eps_percentiles (P, 5) at T_eps_percentile_levels,\n"
+        "  status_counts (P, K) for status_codes (K,), axis_<NAME> and axis_log (the grid's axes),\n"
+        "  settings_json, eps, t_final, dt, method, dtype, max_steps, gains_L, gains_k, gains_D_hat,\n"
+        "  params (m,J,l), damping (the base values of what is not swept).\n"
+        "  Sidecar FILE.run.json: wall time, devices, load, command.\n\n"
+        + status_epilog() + "\n\n"
+        "examples:\n"
+        "  jaxsleigh sweep --param k=0.01:1:9:log --samples 512 --out k.npz --plot k.png\n"
+        "  jaxsleigh sweep --param m=0.5:8:5:log --param l=0:2:5 --out ml.npz --plot ml.png\n"
+        "  jaxsleigh sweep ... --resume      (continue an interrupted run; same options)")
+
+
+def add_sweep(subparsers) -> argparse.ArgumentParser:
+    """Register the ``sweep`` subcommand; returns its parser."""
+    p = subparsers.add_parser(
+        "sweep", help="fraction converged and T_eps over a range or grid of gains / plant parameters",
+        description="Run a set of starts under every value of one parameter (or every pair of two) as one "
+                    "chunked, checkpointed ensemble, and summarise per value: the fraction of valid starts "
+                    "that converged within --t-final (+- its standard error), the T_eps percentiles and the "
+                    "statuses. --resume continues an interrupted run.",
+        epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--param", action="append", required=True, metavar="NAME=LO:HI:P[:log]",
+                   help="parameter and its values (repeat once for a 2-D grid)")
+    g = p.add_argument_group("starts")
+    g.add_argument("--x", metavar="LO:HI:N|X", help="x range or fixed x [m]")
+    g.add_argument("--y", metavar="LO:HI:N|Y", help="y range or fixed y [m]")
+    g.add_argument("--theta", metavar="LO:HI:N|THETA", help="theta range or fixed theta [rad]")
+    src = g.add_mutually_exclusive_group()
+    src.add_argument("--ics", metavar="FILE.npy", help="starts from a file, shape (N, 3) or (N, 5)")
+    src.add_argument("--samples", type=_whole("--samples", "256", 1), metavar="N",
+                     help=f"N Monte-Carlo starts, uniform in the --x/--y/--theta box (default {DEFAULT_SAMPLES} "
+                          "when no starts are given)")
+    g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
+                   help="seed of --samples (default 0)")
+    c = p.add_argument_group("convergence")
+    c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
+                   help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
+    add_horizon_options(p, save_every=None)
+    add_model_options(p)
+    r = p.add_argument_group("run")
+    r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None,
+                   metavar="N", help="rows (start x value) integrated and checkpointed at once (default 16384 "
+                                     "per CPU device, 131072 per accelerator); bounds the memory")
+    r.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
+    r.add_argument("--keep-chunks", action="store_true", help="keep FILE.npz.chunks/ after the .npz is written")
+    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="progress bar with ETA on stderr (default: only on a terminal)")
+    o = p.add_argument_group("output")
+    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
+    o.add_argument("--plot", metavar="FILE.png",
+                   help="also draw the fraction and T_eps percentiles against the parameter (a heat map for two)")
+    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
+    p.set_defaults(func=run_sweep_command)
+    return p
+
+
+def run_sweep_command(args) -> int:
+    """Handler of ``jaxsleigh sweep``; returns the exit code."""
+    from ..config import solve_config
+    from ..io import atomic_write_text, npz_path
+    from ..sweep import apply_params, param_grid, parse_param, save_sweep, sweep
+
+    if len(args.param) > 2:
+        raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
+    axes = [parse_param(s) for s in args.param]          # eager: a bad range names its --param
+    labels = {a.name: f"--param {s}" for a, s in zip(axes, args.param)}
+    names, values, _ = param_grid(axes)
+    plant, gains = model_from_args(args)
+    apply_params(names, values, plant, gains, labels=labels)
+    solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
+                 max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
+    if args.ics is None and args.samples is None and args.x is None and args.y is None and args.theta is None:
+        args.samples = DEFAULT_SAMPLES
+    starts = _starts_from_args(args)
+    out = npz_path(args.out)
+    chunks, side = _chunk_dir(out), _sidecar(out)
+    check_outputs(out, side, args.plot, folders=[chunks])
+    if chunks.is_dir() and any(chunks.glob("chunk_*.npz")) and not args.resume:
+        raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
+                         f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
+    argv = list(getattr(args, "_argv", None) or [])
+    load_start = _load()
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = sweep(starts, axes, plant=plant, gains=gains, eps=args.eps, t_final=args.t_final, dt=args.dt,
+                        method=args.method, x64=args.x64, max_steps=args.max_steps, chunk_size=args.chunk_size,
+                        checkpoint_dir=chunks, resume=args.resume, progress=args.progress, labels=labels)
+    except KeyboardInterrupt:
+        print(f"{PROG} sweep: interrupted; the finished chunks are in {chunks}/ - run the same command with "
+              f"--resume to continue", file=sys.stderr)
+        raise
+    wall = time.perf_counter() - t0
+    report_warnings(caught, skip=(FlaggedStartsWarning,))
+    n_flag = int((~res.valid[0]).sum())
+    if n_flag:
+        print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 or "
+              f"not finite); they are left out of the fractions", file=sys.stderr)
+    path = save_sweep(out, res)
+    n_reused = int((res.run_info or {}).get("chunks_reused") or 0)
+    S, se = res.fractions()
+    info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
+            "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
+            "loadavg_start": load_start, "loadavg_end": _load(),
+            "fraction": S.tolist(), "fraction_se": se.tolist()}
+    atomic_write_text(side, json.dumps(info, indent=1, default=str) + "\n")
+    if not args.keep_chunks:
+        shutil.rmtree(chunks, ignore_errors=True)
+    written = [str(path), str(side)]
+    if args.plot:
+        from ..plotting import save_figure
+        from ..sweep_plots import plot_sweep
+
+        written.append(str(save_figure(plot_sweep(res), args.plot)))
+    print(res.table())
+    print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts in {wall:.1f} s wall "
+          f"({res.settings['dtype']}, {res.settings['method']}"
+          f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
+    return exit_code(res.status)
