@@ -1,7 +1,8 @@
 r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the same closed loop (issue 12).
 
     python experiments/bench_c_limit.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--seed 0]
-                                        [--repeats 7] [--devices 1] [--out out/bench_c_limit.json]
+                                        [--repeats 7] [--devices 1] [--whole-batch] [--vector-width 512]
+                                        [--out out/bench_c_limit.json]
 
 Builds ``experiments/c_reference/rk4_w.c`` with ``gcc -O3 -march=native -fno-math-errno`` (no
 -ffast-math) if a compiler is present, else prints why and exits 0 with ``available: false``. Then,
@@ -35,6 +36,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=7, help="interleaved C/JAX repetitions (default 7)")
     ap.add_argument("--devices", type=int, default=1,
                     help="host devices for JAX (>1 sets XLA_FLAGS=--xla_force_host_platform_device_count)")
+    ap.add_argument("--whole-batch", action="store_true",
+                    help="also time the earlier kernel (one scan over the whole batch) in the same rotation")
+    ap.add_argument("--vector-width", type=int, default=None,
+                    help="also time drive_plain(vector_width=...) (XLA:CPU preferred SIMD width) in the rotation")
     ap.add_argument("--build-dir", default="out/c_reference", help="where the C library is built")
     ap.add_argument("--out", default="out/bench_c_limit.json")
     a = ap.parse_args(argv)
@@ -58,7 +63,9 @@ def main(argv=None) -> int:
         res = {"available": False, "reason": reason}
     else:
         log(f"C reference built: {lib}; JAX on {jax.devices()}; {a.repeats} interleaved repetitions ...")
-        res = c_limit(workload(a.n_ics, a.seed), t_final=a.t_final, dt=a.dt, repeats=a.repeats, lib=lib, log=log)
+        res = c_limit(workload(a.n_ics, a.seed), t_final=a.t_final, dt=a.dt, repeats=a.repeats, lib=lib, log=log,
+                      whole_batch=a.whole_batch,
+                      variants={f"jax_vw{a.vector_width}": {"vector_width": a.vector_width}} if a.vector_width else None)
         c, j = res["c_traj_steps_per_cpu_s"], res["jax_traj_steps_per_cpu_s"]
         cw, jw = res["c_traj_steps_per_wall_s"], res["jax_traj_steps_per_wall_s"]
         rc, rw = res["ratio_cpu"], res["ratio_wall"]
@@ -71,8 +78,17 @@ def main(argv=None) -> int:
               f"wall {cw['median']:.3e} [{cw['min']:.3e}, {cw['max']:.3e}]")
         print(f"  JAX  per CPU s {j['median']:.3e} [{j['min']:.3e}, {j['max']:.3e}]   "
               f"wall {jw['median']:.3e} [{jw['min']:.3e}, {jw['max']:.3e}]")
+        extra = (["whole_batch"] if a.whole_batch else []) + ([f"vw{a.vector_width}"] if a.vector_width else [])
+        for v in extra:
+            ow, oc = res[f"jax_{v}_traj_steps_per_wall_s"], res[f"jax_{v}_traj_steps_per_cpu_s"]
+            print(f"  JAX {v:12s} per CPU s {oc['median']:.3e} [{oc['min']:.3e}, {oc['max']:.3e}]"
+                  f"   wall {ow['median']:.3e} [{ow['min']:.3e}, {ow['max']:.3e}]")
         print(f"  JAX / C: CPU time {rc['median']:.3f} [{rc['min']:.3f}, {rc['max']:.3f}], "
               f"wall {rw['median']:.3f} [{rw['min']:.3f}, {rw['max']:.3f}]")
+        for v in extra:
+            r0, w0 = res[f"ratio_cpu_{v}"], res[f"ratio_wall_{v}"]
+            print(f"  JAX {v} / C: CPU time {r0['median']:.3f} [{r0['min']:.3f}, {r0['max']:.3f}], "
+                  f"wall {w0['median']:.3f} [{w0['min']:.3f}, {w0['max']:.3f}]")
         print(f"agreement of the final states (w chart, relative to each state's largest component), "
               f"{ag['n_tame']} tame starts: C vs JAX median {ag['c_vs_jax_rel_median_tame']:.2e}, "
               f"p99 {ag['c_vs_jax_rel_p99_tame']:.2e}, max {ag['c_vs_jax_rel_max_tame']:.2e}; "

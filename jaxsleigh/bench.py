@@ -162,7 +162,7 @@ def _summary(xs):
 
 
 def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, lib=None, build_dir=None,
-            log=None) -> dict:
+            log=None, whole_batch: bool = False, variants: Optional[dict] = None) -> dict:
     """The plain fixed-step path against the C reference in ONE interleaved timing run.
 
     Each repetition times the C program (one thread, via ctypes) and
@@ -173,8 +173,13 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     JAX / C per CPU second, per repetition (median and range reported). Agreement: final states
     (w chart) of C and of the JAX path from the same float32 starts, relative to each state's
     largest component, on the tame starts (those whose float32 and float64 fixed-step results
-    agree to 1e-3, i.e. where rounding is not amplified). Returns a dict; ``available`` False with
-    ``reason`` when the C program cannot be built (float64 runs are not compared either)."""
+    agree to 1e-3, i.e. where rounding is not amplified). ``whole_batch`` also times, in the same
+    rotation, the same call with the earlier kernel (one scan over the whole batch,
+    ``drive_plain(block=None)``) as ``jax_whole_batch``: a before/after in one run. ``variants``
+    (``{name: drive_plain keyword arguments}``, e.g. ``{"jax_vw512": {"vector_width": 512}}``) times
+    more such variants of the call the same way. Returns a dict;
+    ``available`` False with ``reason`` when the C program cannot be built (float64 runs are not
+    compared either)."""
     import jax.numpy as jnp
 
     from .closed_loop import ClosedLoop
@@ -204,28 +209,50 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     def run_jax():
         return run_ensemble(ics, **kw)
 
-    run_c()
-    run_jax()                                            # compile and warm up; not timed
-    rec = {"c": {"wall": [], "cpu": []}, "jax": {"wall": [], "cpu": []}}
+    contestants = [("c", run_c), ("jax", run_jax)]
+    variants = dict(variants or {})
+    if whole_batch:
+        variants["jax_whole_batch"] = {"block": None}
+    for vname, vkw in variants.items():
+        import functools
+
+        from . import ensemble as _ensemble
+
+        def run_variant(vkw=vkw):
+            orig = _ensemble.drive_plain
+            _ensemble.drive_plain = functools.partial(orig, **vkw)
+            try:
+                return run_ensemble(ics, **kw)
+            finally:
+                _ensemble.drive_plain = orig
+
+        contestants.append((vname, run_variant))
+    for _, fn in contestants:
+        fn()                                             # compile and warm up; not timed
+    rec = {name: {"wall": [], "cpu": []} for name, _ in contestants}
     for r in range(max(1, repeats)):
-        order = (("c", run_c), ("jax", run_jax)) if r % 2 == 0 else (("jax", run_jax), ("c", run_c))
+        order = contestants if r % 2 == 0 else contestants[::-1]
         for name, fn in order:
             w0, c0 = time.perf_counter(), time.process_time()
             fn()
             rec[name]["wall"].append(time.perf_counter() - w0)
             rec[name]["cpu"].append(time.process_time() - c0)
-        log(f"  repetition {r + 1}: C {rec['c']['cpu'][-1]:.3f} s cpu / {rec['c']['wall'][-1]:.3f} s wall, "
-            f"JAX {rec['jax']['cpu'][-1]:.3f} s cpu / {rec['jax']['wall'][-1]:.3f} s wall")
+        log(f"  repetition {r + 1}: " + ", ".join(f"{name} {v['cpu'][-1]:.3f} s cpu / {v['wall'][-1]:.3f} s wall"
+                                                   for name, v in rec.items()))
     work = n * steps
     out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
            "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": 1,
            "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
                          f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
-    for name in ("c", "jax"):
+    for name in rec:
         out[f"{name}_traj_steps_per_cpu_s"] = _summary([work / c for c in rec[name]["cpu"]])
         out[f"{name}_traj_steps_per_wall_s"] = _summary([work / w for w in rec[name]["wall"]])
     out["ratio_cpu"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec["jax"]["cpu"])])
     out["ratio_wall"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec["jax"]["wall"])])
+    for vname in variants:
+        suffix = vname[len("jax_"):] if vname.startswith("jax_") else vname
+        out[f"ratio_cpu_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec[vname]["cpu"])])
+        out[f"ratio_wall_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec[vname]["wall"])])
 
     # agreement of the final states, w chart, same float32 starts
     yc = run_c()

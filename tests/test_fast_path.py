@@ -158,3 +158,14 @@ def test_c_reference_agrees_to_rounding(tmp_path):
     y_c = c_reference_run(lib, y0, ARGS, 0.01, hz.n_steps)
     rel = _rel(y_c, y_jax)
     assert np.max(rel) < 1e-4 and np.median(rel) < 1e-6, (np.max(rel), np.median(rel))
+
+
+def test_wider_vectors_agree_to_rounding():
+    """``vector_width=512`` (opt-in, CPU): not bitwise, but the same status and final states to
+    float32 rounding."""
+    y0, st = _w(_tame(2 * PLAIN_BLOCK, seed=13))
+    hz = make_horizon(10.0, 0.01)
+    y_def, s_def = drive_plain(y0, st, ARGS, hz)
+    y_wide, s_wide = drive_plain(y0, st, ARGS, hz, vector_width=512)
+    np.testing.assert_array_equal(s_wide, s_def)
+    assert np.max(_rel(y_wide, y_def)) < 1e-5
