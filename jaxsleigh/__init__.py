@@ -11,5 +11,6 @@ from .params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_p
 from .simulate import Solution, simulate
 from .status import Status
 from .sweep import SweepResult, load_sweep, save_sweep, sweep
+from . import errors, observers  # noqa: F401
 
 __version__ = "0.1.0"

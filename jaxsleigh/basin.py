@@ -360,6 +360,8 @@ class BasinResult(NamedTuple):
       settings: plant, gains, eps, horizon, method, dtype, tolerances, budget, chunk size, starts.
       run_info: wall time and devices of the run that produced it (not saved in the ``.npz``: they
         vary between runs); ``None`` when loaded from a file.
+      u_peak, u_norm_peak, u_energy, u_abs_int: control effort (see
+        :class:`~jaxsleigh.ensemble.EnsembleResult`); ``None`` in files of jaxsleigh 0.1.
     """
 
     starts: BasinStarts
@@ -376,6 +378,10 @@ class BasinResult(NamedTuple):
     p_final: np.ndarray
     settings: dict
     run_info: Optional[dict] = None
+    u_peak: Optional[np.ndarray] = None
+    u_norm_peak: Optional[np.ndarray] = None
+    u_energy: Optional[np.ndarray] = None
+    u_abs_int: Optional[np.ndarray] = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -486,7 +492,8 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
     return BasinResult(
         starts=starts, ics=res.ics, T_eps=res.T_eps, status=res.status, Hd0=res.Hd0, Hd_final=res.Hd_final,
         min_abs_theta=res.min_abs_theta, max_excursion=res.max_excursion, n_steps=res.n_steps,
-        n_rejected=res.n_rejected, q_final=res.q, p_final=res.p, settings=settings, run_info=run_info)
+        n_rejected=res.n_rejected, q_final=res.q, p_final=res.p, settings=settings, run_info=run_info,
+        u_peak=res.u_peak, u_norm_peak=res.u_norm_peak, u_energy=res.u_energy, u_abs_int=res.u_abs_int)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -495,6 +502,7 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
 
 _PER_START = ("T_eps", "status", "Hd0", "Hd_final", "min_abs_theta", "max_excursion", "n_steps", "n_rejected",
               "q_final", "p_final")
+_EFFORT = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int")
 
 
 def _write_npz_deterministic(path: Path, arrays: dict) -> None:
@@ -540,6 +548,7 @@ def save_basin(path, result: BasinResult) -> Path:
     settings = {**s, "status_codes": describe()}
     arrays = {"ics": np.asarray(st.ics, np.float64)}
     arrays.update({k: np.asarray(getattr(r, k)) for k in _PER_START})
+    arrays.update({k: np.asarray(getattr(r, k)) for k in _EFFORT if getattr(r, k) is not None})
     arrays.update(
         converged=r.converged, valid=r.valid,
         fraction=np.float64(summ["fraction"]), fraction_se=np.float64(summ["fraction_se"]),
@@ -585,7 +594,7 @@ def load_basin(path) -> BasinResult:
     starts = _starts_from_spec(ics, settings["starts"])
     ics5 = ics if ics.shape[1] == 5 else np.concatenate([ics, np.zeros((ics.shape[0], 2))], axis=1)
     return BasinResult(starts=starts, ics=ics5, settings=settings, run_info=None,
-                       **{k: data[k] for k in _PER_START})
+                       **{k: data[k] for k in _PER_START}, **{k: data[k] for k in _EFFORT if k in data})
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,6 +27,7 @@ __all__ = [
     "ClosedLoop",
     "vector_field",
     "vector_field_w",
+    "vector_field_w_control",
     "closed_loop_hamiltonian",
     "closed_loop_hamiltonian_w",
     "dissipation_w",
@@ -59,6 +60,12 @@ def vector_field_w(t, y, args: ClosedLoop):
 
     Written on components, so ``y`` may be one state (5,) or a batch-last array (5, N).
     """
+    return vector_field_w_control(t, y, args)[0]
+
+
+def vector_field_w_control(t, y, args: ClosedLoop):
+    """:func:`vector_field_w` and the control ``u`` (a tuple of two components) it applies: the
+    observers of control effort read ``u`` without a second evaluation of the law."""
     del t
     w, p = (y[0], y[1], y[2]), (y[3], y[4])
     v = velocity_components(p, args.plant)
@@ -67,7 +74,7 @@ def vector_field_w(t, y, args: ClosedLoop):
     q = w_to_q(y[:3])
     wdot = matvec(Q_w_entries(w), v)
     pdot = momentum_rhs_components(q, p, u, args.plant)
-    return jnp.stack(wdot + pdot).astype(y.dtype)
+    return jnp.stack(wdot + pdot).astype(y.dtype), u
 
 
 def closed_loop_hamiltonian(y, args: ClosedLoop):

@@ -28,6 +28,7 @@ import numpy as np
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w
 from .checkpoint import ChunkStore
 from .config import solve_config
+from .observers import DEFAULT_OBSERVERS, collect
 from .engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from .params import PlantParams
 from .progress import Progress
@@ -37,11 +38,11 @@ from .validate import check_memory, whole
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
 SUMMARY_FIELDS = ("q", "p", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
-                  "n_steps", "n_rejected", "status")
+                  "n_steps", "n_rejected", "status", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
 
 
 class EnsembleResult(NamedTuple):
-    """Per-initial-condition results (NumPy arrays, first axis N) and the settings.
+    r"""Per-initial-condition results (NumPy arrays, first axis N) and the settings.
 
     Attributes:
       ics: (N, 5) initial conditions ``(x, y, theta, p1, p2)``.
@@ -49,6 +50,10 @@ class EnsembleResult(NamedTuple):
       T_eps: (N,) convergence time (``inf``: not settled by the horizon; ``nan``: failed).
       min_abs_theta, max_excursion, Hd0, Hd_final, t_reached: (N,) on-line summaries.
       n_steps, n_rejected, status: (N,) integers.
+      u_peak: (N, 2) largest ``|u_1|`` [N] and ``|u_2|`` [N m] over the run; u_norm_peak: (N,)
+        largest ``||u||``; u_energy: (N,) control energy :math:`\int_0^T \|u\|^2 dt`; u_abs_int: (N,)
+        :math:`\int_0^T \|u\| dt` (RK4-order quadrature, :class:`~jaxsleigh.observers.ControlEffort`;
+        up to the time reached; NaN for starts not integrated and on the plain fixed-step path).
       t, q_traj, p_traj: decimated trajectories ``(T,)``, ``(N, T, 3)``, ``(N, T, 2)`` when
         ``save_every`` was given, else ``None``.
       settings: everything that produced the result.
@@ -69,6 +74,10 @@ class EnsembleResult(NamedTuple):
     n_steps: np.ndarray
     n_rejected: np.ndarray
     status: np.ndarray
+    u_peak: np.ndarray
+    u_norm_peak: np.ndarray
+    u_energy: np.ndarray
+    u_abs_int: np.ndarray
     settings: dict
     t: Optional[np.ndarray] = None
     q_traj: Optional[np.ndarray] = None
@@ -114,12 +123,10 @@ def _chunk_summaries(final, y0w, status0, args) -> dict:
     invalid = np.asarray(status0) != Status.OK
     hd0 = np.array(_hd_any(y0w, args), np.float64)
     hd0[invalid] = np.nan
-    t_enter = np.asarray(final.t_enter, np.float64)
-    return {
+    obs = collect(DEFAULT_OBSERVERS, final.obs, final.quad)
+    out = {
         "q": yq[:, :3], "p": yq[:, 3:],
-        "T_eps": np.where(ok, t_enter, np.nan),
-        "min_abs_theta": np.where(invalid, np.nan, np.asarray(final.min_abs_theta, np.float64)),
-        "max_excursion": np.where(invalid, np.nan, np.sqrt(np.asarray(final.max_q2, np.float64))),
+        "T_eps": np.where(ok, obs["T_eps"], np.nan),
         "Hd0": hd0,
         "Hd_final": np.where(ok, np.asarray(final.Hd, np.float64), np.nan),
         "t_reached": np.where(invalid, np.nan, np.asarray(final.t, np.float64)),
@@ -127,6 +134,10 @@ def _chunk_summaries(final, y0w, status0, args) -> dict:
         "n_rejected": np.asarray(final.n_reject, np.int64),
         "status": status.astype(np.int32),
     }
+    for k in ("min_abs_theta", "max_excursion", "u_peak", "u_norm_peak", "u_energy", "u_abs_int"):
+        v = obs[k]
+        out[k] = np.where(invalid.reshape((-1,) + (1,) * (v.ndim - 1)), np.nan, v)
+    return out
 
 
 def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
@@ -142,7 +153,8 @@ def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
     return {"q": yq[:, :3], "p": yq[:, 3:], "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
             "Hd0": hd0, "Hd_final": np.where(ok, hd, np.nan), "t_reached": np.where(ok, horizon.t_final, np.nan),
             "n_steps": np.where(invalid, 0, horizon.n_steps).astype(np.int64),
-            "n_rejected": np.zeros(len(status), np.int64), "status": status.astype(np.int32)}
+            "n_rejected": np.zeros(len(status), np.int64), "status": status.astype(np.int32),
+            "u_peak": np.full((len(status), 2), np.nan), "u_norm_peak": nan, "u_energy": nan, "u_abs_int": nan}
 
 
 def _settings_key(settings: dict, ics: np.ndarray) -> str:

@@ -27,7 +27,9 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     ``status (N,)``, ``n_steps (N,)``, ``n_rejected (N,)``, ``ics (N, 5)``; ``settings_json`` (the
     solution's settings plus ``ics``, ``command`` and the status legend, as JSON) and the scalars
     ``dt, t_final, save_every, method, dtype, gains_L, gains_k, gains_D_hat, params (m, J, l),
-    damping``. Returns the path written (``.npz`` appended when missing).
+    damping``; and the per-trajectory summaries of :attr:`Solution.effort` (``u_peak (N, 2)``,
+    ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
+    Returns the path written (``.npz`` appended when missing).
     """
     from .status import describe
 
@@ -54,6 +56,7 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
         gains_D_hat=np.asarray(g["D_hat"], dtype=np.float64),
         params=np.array([plant["m"], plant["J"], plant["l"]], dtype=np.float64),
         damping=np.array(damping_name(plant["damping"])),
+        **{k: np.asarray(v) for k, v in (getattr(sol, "effort", None) or {}).items()},
     ))
     return path
 

@@ -17,6 +17,7 @@ from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, 
 from .control import control_w
 from .coordinates import w_to_q
 from .engine import check_ics, drive_saving, initial_w
+from .observers import DEFAULT_OBSERVERS, collect
 from .params import PlantParams
 from .plant import velocity
 from .progress import Progress
@@ -25,7 +26,7 @@ __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
 
 class Solution(NamedTuple):
-    """Decimated closed-loop trajectories.
+    r"""Decimated closed-loop trajectories.
 
     Attributes:
       t: (T,) saved times (0 included).
@@ -35,6 +36,10 @@ class Solution(NamedTuple):
       Hd: (N, T) closed-loop Hamiltonian.
       status: (N,) :class:`~jaxsleigh.status.Status` codes.
       n_steps: (N,) accepted steps; ``n_rejected``: (N,) rejected attempts.
+      effort: per-trajectory control effort and the other on-line summaries over the horizon
+        (``u_peak`` (N, 2), ``u_norm_peak``, ``u_energy`` = :math:`\int \|u\|^2 dt`, ``u_abs_int``,
+        ``T_eps``, ``min_abs_theta``, ``max_excursion``; see :mod:`jaxsleigh.observers`),
+        integrated to RK4 order along every step, not from the saved samples.
       settings: what produced it (plant, gains, horizon, method, dtype, tolerances).
     """
 
@@ -47,6 +52,7 @@ class Solution(NamedTuple):
     n_steps: np.ndarray
     n_rejected: np.ndarray
     settings: dict
+    effort: Optional[dict] = None
 
 
 @jax.jit
@@ -135,6 +141,10 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     settings.pop("eps")
     # restore the exact initial state (the w chart round trip rounds it in float32)
     q[:, 0] = np.where(bad[:, None], np.nan, ics5[:, :3])
+    effort = collect(DEFAULT_OBSERVERS, final.obs, final.quad)
+    for k, v in effort.items():
+        v[bad] = np.nan
+    effort["T_eps"] = np.where(np.asarray(final.status) == 0, effort["T_eps"], np.nan)
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
                     n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),
-                    settings=settings)
+                    settings=settings, effort=effort)

@@ -39,8 +39,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, vector_field_w
-from .coordinates import f_w_inv
+from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, vector_field_w, vector_field_w_control
+from .observers import DEFAULT_OBSERVERS, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
 from .rk4 import rk4_stages, rk4_step
 from .status import Status
 
@@ -83,38 +83,57 @@ class StepState(NamedTuple):
     n_accept: jax.Array   # int32
     n_reject: jax.Array   # int32
     Hd: jax.Array         # closed-loop Hamiltonian H_d(y)
-    t_enter: jax.Array    # start of the current stay in |q| <= eps (inf while outside)
-    min_abs_theta: jax.Array
-    max_q2: jax.Array     # largest |q|^2 so far
+    obs: tuple            # one tuple of arrays per observer (jaxsleigh.observers)
+    quad: jax.Array       # (m,) quadrature rows of the observers, integrated with the RK4 weights
+    g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
 
 
-def q_norm2_w(w):
-    """:math:`|q|^2` from ``w`` without trigonometry: :math:`f_z` only rotates (x, y), so
-    :math:`|q| = |z| = |f_w^{-1}(w)|`."""
-    z = f_w_inv(w)
-    return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
+def _integrands(observers, y, u, dtype):
+    rows = [g for o in observers for g in o.integrand(y, u)]
+    return jnp.stack(rows).astype(dtype) if rows else jnp.zeros((0,) + y.shape[1:], dtype)
 
 
-def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0) -> StepState:
+def _needs_control(observers) -> bool:
+    return any(o.needs_control or o.n_quad for o in observers)
+
+
+def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=DEFAULT_OBSERVERS) -> StepState:
     """Carry for one trajectory starting at the w-chart state ``y0w`` with status ``status0``.
 
     A trajectory whose ``status0`` is not OK is never stepped; pass any finite ``y0w`` for it.
+    ``observers`` (:mod:`jaxsleigh.observers`) are the on-line summaries carried along.
     """
     dtype = y0w.dtype
     ok = status0 == Status.OK
     # keep an invalid lane's arithmetic finite: it idles, but it is still computed with the batch
     y0w = jnp.where(ok, y0w, jnp.array([1.0, 0.0, 0.0, 0.0, 0.0], dtype))
-    q2 = q_norm2_w(y0w[:3])
     t0 = jnp.asarray(t0, dtype)
+    k1, u0 = vector_field_w_control(t0, y0w, args)
+    g1 = _integrands(observers, y0w, u0, dtype)
     return StepState(
         t=t0, t_lo=jnp.zeros((), dtype), y=y0w,
-        k1=vector_field_w(t0, y0w, args), h=jnp.asarray(ctl.dt, dtype),
+        k1=k1, h=jnp.asarray(ctl.dt, dtype),
         status=jnp.asarray(status0, jnp.int32),
         n_accept=jnp.zeros((), jnp.int32), n_reject=jnp.zeros((), jnp.int32),
         Hd=closed_loop_hamiltonian_w(y0w, args),
-        t_enter=jnp.where(q2 <= ctl.eps * ctl.eps, t0, jnp.inf).astype(dtype),
-        min_abs_theta=jnp.abs(y0w[0]), max_q2=q2,
+        obs=tuple(o.init(t0, y0w, u0, ctl) for o in observers),
+        quad=jnp.zeros_like(g1), g1=g1,
     )
+
+
+def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
+    """Classical RK4 from ``k1`` (as :func:`~jaxsleigh.rk4.rk4_stages`) that also integrates the
+    observers' integrands over the same stages: returns ``(dy, k4, dq)``."""
+    f = vector_field_w_control
+    y2 = y + (0.5 * h) * k1
+    k2, u2 = f(t + 0.5 * h, y2, args)
+    y3 = y + (0.5 * h) * k2
+    k3, u3 = f(t + 0.5 * h, y3, args)
+    y4 = y + h * k3
+    k4, u4 = f(t + h, y4, args)
+    g2, g3, g4 = (_integrands(observers, yi, ui, y.dtype) for yi, ui in ((y2, u2), (y3, u3), (y4, u4)))
+    w = h / 6.0
+    return w * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4, w * (g1 + 2.0 * g2 + 2.0 * g3 + g4)
 
 
 def _all_finite(*xs):
@@ -137,11 +156,12 @@ def is_active(s: StepState, target, ctl: Controls):
 
 
 def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-            monitor: bool = True) -> StepState:
+            monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
     """One attempted step towards the time ``target`` (a no-op once there, failed or out of
     budget). A step that reaches ``target`` lands on it exactly. ``monitor`` (static) turns the
     passivity monitor on; off, fixed RK4 runs ~2x faster on CPU but a step that increases
-    H_d goes unnoticed.
+    H_d goes unnoticed. ``observers`` (static, :mod:`jaxsleigh.observers`) are updated after
+    every accepted step; their quadrature rows are integrated with the step's RK4 weights.
 
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
     trailing batch axis, so it also steps a batch-last batch (``y`` (5, N), scalars (N,))."""
@@ -155,16 +175,22 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     # an idle lane still computes (the whole batch steps together); give it a harmless step
     h = jnp.where(active, h, jnp.zeros_like(h))
 
-    # fixed steps recompute k1 = f(y) (no FSAL): carrying f(y_new) across steps ran ~2x slower
-    # on XLA:CPU there, and fixed RK4 needs no fifth evaluation for an error estimate
-    k1 = s.k1 if adaptive else f(s.t, s.y, args)
-    dy, k4 = rk4_stages(f, s.t, s.y, h, args, k1)
-    y_new = s.y + dy
-    if adaptive:
-        k5 = f(s.t + h, y_new, args)
-        finite = _all_finite(y_new, k5)
+    # Without observers of the control, fixed steps recompute k1 = f(y) (no FSAL): carrying
+    # f(y_new) across steps ran ~2x slower on XLA:CPU there, and fixed RK4 needs no fifth
+    # evaluation for an error estimate. Observers of u need f(y_new) anyway (u comes with it).
+    fsal = adaptive or _needs_control(observers)
+    k1 = s.k1 if fsal else f(s.t, s.y, args)
+    if s.quad.shape[0]:
+        dy, k4, dq = _stages_with_quadrature(s.t, s.y, h, args, k1, s.g1, observers)
     else:
-        k5 = s.k1
+        dy, k4 = rk4_stages(f, s.t, s.y, h, args, k1)
+        dq = s.quad
+    y_new = s.y + dy
+    if fsal:
+        k5, u_new = vector_field_w_control(s.t + h, y_new, args)
+        finite = _all_finite(y_new, k5) if adaptive else _all_finite(y_new)
+    else:
+        k5, u_new = s.k1, None
         finite = _all_finite(y_new)
     crossed = jnp.sign(y_new[0]) != jnp.sign(s.y[0])
     # Passivity monitor: the exact flow never increases H_d (eq. 18); a step that does (beyond
@@ -204,8 +230,11 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     t_hi, t_err = _two_sum(s.t, h)
     t_new = jnp.where(hit, target, t_hi)
     t_lo_new = jnp.where(hit, jnp.zeros_like(s.t_lo), s.t_lo + t_err)
-    q2 = q_norm2_w(y_new[:3])
-    inside = q2 <= ctl.eps * ctl.eps
+    if s.quad.shape[0]:
+        g_new = _integrands(observers, y_new, u_new, dtype)
+        quad, g1 = jnp.where(acc, s.quad + dq, s.quad), jnp.where(acc, g_new, s.g1)
+    else:
+        quad, g1 = s.quad, s.g1
     return StepState(
         t=jnp.where(acc, t_new, s.t),
         t_lo=jnp.where(acc, t_lo_new, s.t_lo),
@@ -216,27 +245,26 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         n_accept=s.n_accept + acc.astype(jnp.int32),
         n_reject=s.n_reject + rej.astype(jnp.int32),
         Hd=jnp.where(acc, Hd_new, s.Hd),
-        t_enter=jnp.where(acc, jnp.where(inside, jnp.minimum(s.t_enter, t_new + t_lo_new), jnp.inf),
-                          s.t_enter).astype(dtype),
-        min_abs_theta=jnp.where(acc, jnp.minimum(s.min_abs_theta, jnp.abs(s.y[0] + dy[0])), s.min_abs_theta),
-        max_q2=jnp.where(acc, jnp.maximum(s.max_q2, q2), s.max_q2),
+        obs=tuple(o.update(st, t_new + t_lo_new, y_new, u_new, acc, ctl) for o, st in zip(observers, s.obs)),
+        quad=quad, g1=g1,
     )
 
 
-def init_batch(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0) -> StepState:
+def init_batch(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=DEFAULT_OBSERVERS) -> StepState:
     """:func:`init_state` for a batch ``y0w`` of shape (N, 5); the result is batch-last."""
-    return jax.vmap(init_state, in_axes=(0, 0, None, None, None), out_axes=-1)(y0w, status0, args, ctl, t0)
+    init = functools.partial(init_state, observers=observers)
+    return jax.vmap(init, in_axes=(0, 0, None, None, None), out_axes=-1)(y0w, status0, args, ctl, t0)
 
 
-def _batched_attempt(adaptive: bool, monitor: bool = True):
+def _batched_attempt(adaptive: bool, monitor: bool = True, observers=DEFAULT_OBSERVERS):
     # attempt() broadcasts over the trailing batch axis; applying it to the batch directly keeps
     # XLA in the (5, N) layout. vmap(in_axes=-1) made it transpose to (N, 5) and re-derive the
     # step inside every per-field fusion: 3x slower on CPU (measured, 4096 trajectories).
-    return functools.partial(attempt, adaptive=adaptive, monitor=monitor)
+    return functools.partial(attempt, adaptive=adaptive, monitor=monitor, observers=observers)
 
 
 def run_segment(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_attempts: int,
-                adaptive: bool, monitor: bool = True, unroll: int = 1) -> StepState:
+                adaptive: bool, monitor: bool = True, unroll: int = 1, observers=DEFAULT_OBSERVERS) -> StepState:
     """``n_attempts`` attempted steps towards ``target`` of a batch of trajectories.
 
     ``s`` is batch-*last* (every field has the batch as its trailing axis): the scan carries
@@ -244,7 +272,7 @@ def run_segment(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_atte
     ran ~3x faster than ``vmap`` of a whole scan (whose carry is batch-first). ``jit`` at the
     call site.
     """
-    step = _batched_attempt(adaptive, monitor)
+    step = _batched_attempt(adaptive, monitor, observers)
 
     def body(c, _):
         return step(c, target, args, ctl), None
@@ -254,9 +282,9 @@ def run_segment(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_atte
 
 
 def run_to(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-           monitor: bool = True) -> StepState:
+           monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
     """Step a batch (batch-last) until every trajectory has reached ``target`` or stopped."""
-    step = _batched_attempt(adaptive, monitor)
+    step = _batched_attempt(adaptive, monitor, observers)
 
     def cond(c):
         return jnp.any(is_active(c, jnp.asarray(target, c.y.dtype), ctl))
@@ -265,12 +293,12 @@ def run_to(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: b
 
 
 def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-               monitor: bool = True):
+               monitor: bool = True, observers=DEFAULT_OBSERVERS):
     """Step a batch through ``save_times`` (shape (K,)), returning ``(state, ys)`` with ``ys`` of
     shape (K, 5, N): the states at the save times (NaN where a trajectory never got there)."""
 
     def body(c, target):
-        c = run_to(c, target, args, ctl, adaptive=adaptive, monitor=monitor)
+        c = run_to(c, target, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
         there = c.t >= target.astype(c.t.dtype)
         return c, jnp.where(there, c.y, jnp.nan)
 

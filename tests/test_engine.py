@@ -57,9 +57,9 @@ def test_compaction_equals_no_compaction():
         b = drive_final(y0, st, args, hz, compact=False, **kw)
     # the starts need very different numbers of steps, so compaction really happened
     assert a.n_accept.max() > 4 * np.median(a.n_accept)
-    for f in a._fields:
-        np.testing.assert_allclose(np.asarray(getattr(a, f), np.float64), np.asarray(getattr(b, f), np.float64),
-                                   rtol=1e-12, err_msg=f)
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(np.asarray(x, np.float64), np.asarray(y, np.float64), rtol=1e-12,
+                                   err_msg=jax.tree_util.keystr(path))
 
 
 def _T_eps_from_path(t, qn, eps):

@@ -1,0 +1,163 @@
+r"""Observers of the step: on-line summaries of a trajectory, as pluggable pieces.
+
+The stepper (:mod:`jaxsleigh.stepper`) carries, next to the state, one small state per observer and
+updates it after every attempted step (only accepted steps count). An observer may also ask for
+*quadrature* rows: integrands :math:`g(y, u)` that the stepper integrates with the step's own RK4
+weights, :math:`Q_{n+1} = Q_n + \tfrac{h}{6}(g_1 + 2 g_2 + 2 g_3 + g_4)` over the stage states, i.e.
+to the integrator's fourth order (not a post-hoc sum of saved samples).
+
+An observer is a frozen dataclass (hashable: it is a static argument of the jitted stepper) with
+
+* ``fields``: the names of its results;
+* ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``;
+* ``init(t0, y, u, ctl)`` -> tuple of arrays (its state at the start);
+* ``update(state, t_new, y_new, u_new, acc, ctl)`` -> state after a step (``acc``: the mask of
+  trajectories whose step was accepted; ``t_new``/``y_new``/``u_new``: after it);
+* ``integrand(y, u)`` -> tuple of ``n_quad`` arrays;
+* ``results(state, quad)`` -> dict of host NumPy arrays (batch axis first).
+
+Every array broadcasts over a trailing batch axis (``y`` is (5,) or (5, N)). The built-ins:
+:class:`ConvergenceTime` (``T_eps``), :class:`ClosestApproach` (``min_abs_theta``),
+:class:`Excursion` (``max_excursion``), :class:`ControlEffort` (``u_peak``, ``u_norm_peak``,
+``u_energy``, ``u_abs_int``). :data:`DEFAULT_OBSERVERS` are on in every ensemble and simulation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+
+from .coordinates import f_w_inv
+
+__all__ = ["ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
+           "observer_fields", "collect", "q_norm2_w"]
+
+
+def q_norm2_w(w):
+    """:math:`|q|^2` from ``w`` without trigonometry: :math:`f_z` only rotates (x, y), so
+    :math:`|q| = |z| = |f_w^{-1}(w)|`."""
+    z = f_w_inv(w)
+    return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
+
+
+def _np(a) -> np.ndarray:
+    return np.array(np.moveaxis(np.asarray(a, np.float64), -1, 0) if np.ndim(a) > 1 else np.asarray(a, np.float64))
+
+
+@dataclass(frozen=True)
+class ConvergenceTime:
+    r"""``T_eps``: the start of the last stay in the ball :math:`|q| \le \epsilon` (``ctl.eps``),
+    i.e. the first time after which every accepted step ends inside it (``inf`` while outside)."""
+
+    fields: ClassVar[tuple] = ("T_eps",)
+    n_quad: ClassVar[int] = 0
+    needs_control: ClassVar[bool] = False
+
+    def init(self, t0, y, u, ctl):
+        inside = q_norm2_w(y[:3]) <= ctl.eps * ctl.eps
+        return (jnp.where(inside, t0, jnp.inf).astype(y.dtype),)
+
+    def update(self, state, t_new, y_new, u_new, acc, ctl):
+        (t_enter,) = state
+        inside = q_norm2_w(y_new[:3]) <= ctl.eps * ctl.eps
+        return (jnp.where(acc, jnp.where(inside, jnp.minimum(t_enter, t_new), jnp.inf), t_enter)
+                .astype(t_enter.dtype),)
+
+    def integrand(self, y, u):
+        return ()
+
+    def results(self, state, quad):
+        return {"T_eps": _np(state[0])}
+
+
+@dataclass(frozen=True)
+class ClosestApproach:
+    r"""``min_abs_theta``: :math:`\min_t |\theta(t)|` over the accepted steps (the singular set)."""
+
+    fields: ClassVar[tuple] = ("min_abs_theta",)
+    n_quad: ClassVar[int] = 0
+    needs_control: ClassVar[bool] = False
+
+    def init(self, t0, y, u, ctl):
+        return (jnp.abs(y[0]),)
+
+    def update(self, state, t_new, y_new, u_new, acc, ctl):
+        return (jnp.where(acc, jnp.minimum(state[0], jnp.abs(y_new[0])), state[0]),)
+
+    def integrand(self, y, u):
+        return ()
+
+    def results(self, state, quad):
+        return {"min_abs_theta": _np(state[0])}
+
+
+@dataclass(frozen=True)
+class Excursion:
+    r"""``max_excursion``: :math:`\max_t |q(t)|` over the accepted steps."""
+
+    fields: ClassVar[tuple] = ("max_excursion",)
+    n_quad: ClassVar[int] = 0
+    needs_control: ClassVar[bool] = False
+
+    def init(self, t0, y, u, ctl):
+        return (q_norm2_w(y[:3]),)
+
+    def update(self, state, t_new, y_new, u_new, acc, ctl):
+        return (jnp.where(acc, jnp.maximum(state[0], q_norm2_w(y_new[:3])), state[0]),)
+
+    def integrand(self, y, u):
+        return ()
+
+    def results(self, state, quad):
+        return {"max_excursion": np.sqrt(_np(state[0]))}
+
+
+@dataclass(frozen=True)
+class ControlEffort:
+    r"""Control effort over the horizon, in the paper's units (``u`` is a generalised force: the
+    forward force in N and the turning moment in N m):
+
+    * ``u_peak`` (N, 2): :math:`\max_t |u_i(t)|` per component, ``u_norm_peak``:
+      :math:`\max_t \|u(t)\|`, both over the accepted steps' end points and the start;
+    * ``u_energy``: :math:`\int_0^T \|u\|^2 dt` and ``u_abs_int``: :math:`\int_0^T \|u\| dt`,
+      quadrature rows integrated with the step's RK4 weights (fourth order).
+    """
+
+    fields: ClassVar[tuple] = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int")
+    n_quad: ClassVar[int] = 2
+    needs_control: ClassVar[bool] = True
+
+    def init(self, t0, y, u, ctl):
+        return (jnp.abs(u[0]), jnp.abs(u[1]), jnp.sqrt(u[0] * u[0] + u[1] * u[1]))
+
+    def update(self, state, t_new, y_new, u_new, acc, ctl):
+        new = self.init(t_new, y_new, u_new, ctl)
+        return tuple(jnp.where(acc, jnp.maximum(a, b), a) for a, b in zip(state, new))
+
+    def integrand(self, y, u):
+        e = u[0] * u[0] + u[1] * u[1]
+        return (e, jnp.sqrt(e))
+
+    def results(self, state, quad):
+        return {"u_peak": np.stack([_np(state[0]), _np(state[1])], axis=-1), "u_norm_peak": _np(state[2]),
+                "u_energy": _np(quad[0]), "u_abs_int": _np(quad[1])}
+
+
+#: The observers of every ensemble, basin study and simulation.
+DEFAULT_OBSERVERS = (ConvergenceTime(), ClosestApproach(), Excursion(), ControlEffort())
+
+
+def observer_fields(observers) -> tuple:
+    """The result names of ``observers``, in order."""
+    return tuple(f for o in observers for f in o.fields)
+
+
+def collect(observers, obs_state, quad) -> dict:
+    """Host results of every observer (``obs_state``, ``quad`` from the stepper's final state)."""
+    out, row = {}, 0
+    for o, st in zip(observers, obs_state):
+        out.update(o.results(st, tuple(quad[row + i] for i in range(o.n_quad))))
+        row += o.n_quad
+    return out
