@@ -7,7 +7,8 @@ __all__ = ["Progress"]
 
 
 class Progress:
-    """Context manager with ``update(fraction_done)``; ``enabled=None`` means 'on a terminal'.
+    """Context manager with ``update(fraction_done)`` and ``postfix(name=value, ...)``; ``enabled=None``
+    means 'on a terminal'.
 
     Until the first progress is reported the bar says "compiling": the first call of a jitted
     kernel compiles it (seconds), which is otherwise a bar frozen at 0 %.
@@ -24,7 +25,7 @@ class Progress:
                 tqdm = None
             if tqdm is not None:
                 self._bar = tqdm(total=1000, desc=f"{desc} (compiling)", unit="", bar_format=(
-                    "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"))
+                    "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}{postfix}]"))
         self._desc = desc
         self._last = 0
 
@@ -37,6 +38,11 @@ class Progress:
         if now > self._last:
             self._bar.update(now - self._last)
             self._last = now
+
+    def postfix(self, **values) -> None:
+        """Show ``name=value`` pairs after the times (e.g. the tuner's loss); shown with the next update."""
+        if self._bar is not None:
+            self._bar.set_postfix(values, refresh=False)
 
     def __enter__(self):
         return self

@@ -147,7 +147,7 @@ def test_small_tune_improves_keeps_frozen_gains_and_returns_valid_gains(small_ru
     assert not np.allclose(res.gains.L, js.paper_gains().L) and res.gains.k != js.paper_gains().k
     # the returned gains: every training start, guard start and held-out start (|theta0| down to
     # 0.05) is integrated with status OK by the accurate engine
-    train = tu.sample_starts(tu.UniformStarts(), config.batch, config.seed)
+    train = tu.draw_starts(tu.UniformStarts(), config.batch, config.seed)
     held = tu.UniformStarts(theta_min=0.05)(np.random.default_rng(777), 24)
     ics = np.concatenate([train, tu.guard_starts(), held, [[1.0, 1.0, 0.05], [-2.0, 0.5, -0.05]]])
     r = run_ensemble(ics, gains=res.gains, t_final=30.0, progress=False)

@@ -1,0 +1,125 @@
+"""Checkpoint and resume of the tuner: the optimiser's whole state in one fingerprinted ``.npz``, written
+atomically after every iteration, and :class:`TuningInterrupted` (Ctrl-C keeps the best gains so far)."""
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..params import gains_to_dict
+
+__all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint"]
+
+
+class TuningInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`~jaxsleigh.tuning.tune`. ``partial``: a :class:`~jaxsleigh.tuning.TuneResult`
+    with the best valid gains so far (``None`` if no candidate was valid yet); ``checkpoint``: the file
+    to resume from (or ``None``)."""
+
+    def __init__(self, partial, checkpoint):
+        super().__init__("tuning interrupted")
+        self.partial = partial
+        self.checkpoint = checkpoint
+
+
+def tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics) -> str:
+    """A hash of everything that determines a tuning run (a checkpoint only resumes the same run)."""
+    from ..config import plant_to_dict
+
+    doc = {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
+           "loss": {k: float(v) for k, v in loss._asdict().items()},
+           "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
+           "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
+           "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
+    h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
+    h.update(np.ascontiguousarray(ics, np.float64).tobytes())
+    return h.hexdigest()
+
+
+class TunerCheckpoint:
+    """The optimiser's whole state in one ``.npz`` (pytree leaves by position), written atomically.
+
+    The state: the iteration, the current parameters and optax state (which, with the backtracking
+    wrapper, holds the last valid point), the best and every valid candidate, the history rows, the
+    host counters and scalars (``scalars``: e.g. the augmented Lagrangian's multiplier) and the probe set.
+    """
+
+    def __init__(self, path, key: str, row_fields):
+        self.path = Path(path)
+        self.key = key
+        self._row_fields = tuple(row_fields)
+
+    def save(self, it, trainable, opt_state, best, valid_points, rows, scalars: dict, probes) -> None:
+        from ..io import atomic_write
+
+        arrays = {"key": np.array(self.key), "it": np.int64(it)}
+        for k, v in scalars.items():
+            arrays[f"scalar/{k}"] = np.float64(v)
+
+        def put(prefix, tree):
+            for i, leaf in enumerate(jax.tree_util.tree_leaves(tree)):
+                arrays[f"{prefix}/{i}"] = np.asarray(leaf)
+
+        put("trainable", trainable)
+        put("opt_state", opt_state)
+        if best is not None:
+            arrays["best/value"], arrays["best/it"] = np.float64(best[0]), np.int64(best[1])
+            put("best/trainable", best[2])
+        arrays["valid/value"] = np.asarray([v for v, _, _ in valid_points], np.float64)
+        arrays["valid/it"] = np.asarray([i for _, i, _ in valid_points], np.int64)
+        for j, (_, _, tr) in enumerate(valid_points):
+            put(f"valid/{j}", tr)
+        for f in self._row_fields:
+            arrays[f"rows/{f}"] = np.asarray([r[f] for r in rows])
+        if probes is not None:
+            for j, (pstarts, _) in enumerate(probes):
+                arrays[f"probes/{j}"] = np.asarray(pstarts)
+        atomic_write(self.path, lambda fh: np.savez(fh, **arrays))
+
+    def load(self, trainable, opt_state, groups):
+        """``(it, trainable, opt_state, best, valid_points, rows, scalars, probes)`` restructured like
+        ``trainable`` / ``opt_state``; ``None`` if there is no file."""
+        if not self.path.exists():
+            return None
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                a = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} is damaged ({type(e).__name__}: {e}); delete it "
+                             "and start afresh (without --resume)") from None
+        if str(a.get("key")) != self.key:
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings; rerun "
+                             "that command with --resume, or delete the checkpoint to start afresh")
+
+        def get(prefix, like):
+            leaves, tdef = jax.tree_util.tree_flatten(like)
+            return jax.tree_util.tree_unflatten(
+                tdef, [jnp.asarray(a[f"{prefix}/{i}"], jnp.asarray(leaf).dtype) for i, leaf in enumerate(leaves)])
+
+        best = None
+        if "best/value" in a:
+            best = (float(a["best/value"]), int(a["best/it"]), get("best/trainable", trainable))
+        valid_points = [(float(v), int(i), get(f"valid/{j}", trainable))
+                        for j, (v, i) in enumerate(zip(a["valid/value"], a["valid/it"]))]
+        n_rows = len(a[f"rows/{self._row_fields[0]}"])
+        rows = [{f: _scalar(a[f"rows/{f}"][r]) for f in self._row_fields} for r in range(n_rows)]
+        scalars = {k.split("/", 1)[1]: float(v) for k, v in a.items() if k.startswith("scalar/")}
+        probes = None
+        if "probes/0" in a:
+            probes = [(a[f"probes/{j}"], groups[j][2]) for j in range(len(groups)) if f"probes/{j}" in a]
+        return (int(a["it"]), get("trainable", trainable), get("opt_state", opt_state), best, valid_points, rows,
+                scalars, probes)
+
+
+def _scalar(x):
+    x = np.asarray(x)
+    if x.ndim:
+        return x
+    if x.dtype == bool:
+        return bool(x)
+    return x.item()

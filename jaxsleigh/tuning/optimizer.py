@@ -1,0 +1,459 @@
+r"""The optimiser loop: optax Adam (clipped, warm-up + cosine) with backtracking on invalid candidates,
+safety probes, checkpoint/resume and the final check with the accurate engine (see the package
+docstring for what makes a candidate valid).
+
+Backtracking is an optax-style wrapper (:func:`backtracking`): its ``update`` takes ``valid=`` as an
+extra argument; a valid candidate becomes the new anchor (and the step grows back by ``grow`` up to 1),
+an invalid one is replaced by the anchor's step shrunk by ``shrink``. The wrapper's state is a pytree
+of arrays, so the whole optimiser can be ``vmap``'ed (one lane per effort budget, see
+:mod:`jaxsleigh.tuning.pareto`).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ..params import Gains, PlantParams, gains_to_dict, load_gains
+from ..progress import Progress
+from .checkpoint import TunerCheckpoint, TuningInterrupted, tune_fingerprint
+from .gradients import GRADIENT_MODES, make_value_and_grad
+from .objective import LossConfig, make_training_set
+from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_params, parse_tune, params_from_gains, \
+    split_params
+from .probes import check, hardest, probe
+from .starts import PlantDistribution, UniformStarts, draw_starts, guard_starts, plant_groups
+
+__all__ = ["TuneConfig", "TuneHistory", "TuneResult", "BacktrackState", "backtracking", "make_optimizer", "tune"]
+
+
+class TuneConfig(NamedTuple):
+    """Settings of :func:`tune` that are not the objective's (see :class:`LossConfig` for those).
+
+    Attributes:
+      steps: optimiser iterations (each evaluates one candidate).
+      batch: training starts; seed: their seed (and the plants' in robust tuning).
+      lr: peak learning rate of Adam in the unconstrained coordinates (log-gains).
+      clip: global-norm gradient clipping.
+      warmup: iterations of linear warm-up; the rate then decays by cosine to ``lr * final_lr``.
+      n_attempts: budget of attempted steps per lane (the scan's length).
+      segment: attempts per checkpointed segment.
+      mode: ``"forward"`` (default, faster for the <= 7 gain parameters) or ``"reverse"`` gradients.
+      max_rejections: stop after this many invalid candidates in a row, or once backtracking has
+        shrunk the step below ``min_scale`` of the schedule's (the best valid point is then on the
+        boundary of the valid set: typically the probe's step budget).
+      probe: training starts probed per candidate (those that needed the most steps at the last
+        refresh; 0: no probe).
+      probe_budget: attempted steps per probe start over ``probe_t_final`` (the engine's default
+        budget for 100 s is ~2e5).
+      probe_refresh: every this many accepted candidates (and at the first) the whole training
+        batch is probed and the probe set re-chosen.
+      verify: after the loop, check up to this many of the best valid candidates (best first) with
+        the accurate engine (:func:`~jaxsleigh.ensemble.run_ensemble`, default budget) on all
+        training and guard starts over ``probe_t_final``, and return the first whose trajectories
+        all end with status OK (0: skip).
+    """
+
+    steps: int = 150
+    batch: int = 256
+    seed: int = 0
+    lr: float = 0.05
+    clip: float = 1.0
+    warmup: int = 5
+    final_lr: float = 0.1
+    n_attempts: int = 4000
+    segment: int = 100
+    mode: str = "forward"
+    max_rejections: int = 12
+    min_scale: float = 1e-3
+    probe: int = 16
+    probe_budget: int = 100000
+    probe_refresh: int = 25
+    verify: int = 5
+
+
+class TuneHistory(NamedTuple):
+    """One row per iteration (NumPy arrays).
+
+    Attributes:
+      loss, grad_norm: objective and global norm of its gradient at the candidate.
+      L (n, 3), k (n,), D_hat (n, 2, 2): the candidate's gains.
+      valid: candidate accepted; best: running best valid loss.
+      median_soft: median soft convergence time S of the batch [s];
+      median_passage: median first-passage time into the stopping ball (inf: not reached) [s].
+      max_attempts: largest number of attempts of a training or guard lane (training integrator);
+      probe_attempts: largest number of attempted steps of a probed start over the validation
+        horizon (accurate engine; nan: not probed); lr_scale: backtracking factor; wall: [s].
+      soft_loss: the objective's time part f (``loss`` is f plus the augmented-Lagrangian terms);
+      energy: geometric-mean control energy of the batch (training integration) [N^2 s];
+      constraint: g = log(energy / energy_budget) (<= 0: within the budget; -inf without one);
+      multiplier: the augmented Lagrangian's lambda at the candidate; feasible: valid and g <= 0;
+      probe_active: the integration-cost probe rejected this candidate (the step budget, not the
+        objective, would have shaped the answer there).
+    """
+
+    loss: np.ndarray
+    grad_norm: np.ndarray
+    L: np.ndarray
+    k: np.ndarray
+    D_hat: np.ndarray
+    valid: np.ndarray
+    best: np.ndarray
+    median_soft: np.ndarray
+    median_passage: np.ndarray
+    max_attempts: np.ndarray
+    probe_attempts: np.ndarray
+    lr_scale: np.ndarray
+    wall: np.ndarray
+    soft_loss: np.ndarray
+    energy: np.ndarray
+    constraint: np.ndarray
+    multiplier: np.ndarray
+    feasible: np.ndarray
+    probe_active: np.ndarray
+
+
+class TuneResult(NamedTuple):
+    """What :func:`tune` returns.
+
+    Attributes:
+      gains: the best valid gains found that passed the final check (validated
+        :class:`~jaxsleigh.params.Gains`; frozen gains are the initial ones, bit for bit).
+      initial: the starting gains.
+      best_loss, initial_loss: objective at ``gains`` and at ``initial``.
+      best_iteration: iteration at which ``gains`` was evaluated (``settings["verified_iteration"]``).
+      history: :class:`TuneHistory`.
+      settings: everything that produced the result (JSON-ready).
+    """
+
+    gains: Gains
+    initial: Gains
+    best_loss: float
+    initial_loss: float
+    best_iteration: int
+    history: TuneHistory
+    settings: dict
+
+
+
+
+#: ranks an infeasible candidate (over the effort budget) after every feasible one
+_INFEASIBLE = 1e6
+
+
+class BacktrackState(NamedTuple):
+    """State of :func:`backtracking`: the inner state that produced the current parameters, the anchor
+    (last valid parameters, the inner state there and their gradient) and the step scale."""
+
+    inner: Any
+    last_params: Any
+    last_inner: Any
+    last_grad: Any
+    scale: jax.Array
+
+
+def backtracking(inner: optax.GradientTransformation, *, grow: float = 1.25, shrink: float = 0.5,
+                 max_scale: float = 1.0) -> optax.GradientTransformationExtraArgs:
+    """Wrap ``inner`` so that an invalid candidate is never stepped from.
+
+    ``update(grads, state, params, valid=...)``: if ``valid``, ``params`` (with ``grads`` and the inner
+    state that produced them) become the anchor and the scale grows by ``grow`` (at most ``max_scale``);
+    otherwise the scale shrinks by ``shrink``. Either way the returned updates move ``params`` to
+    ``anchor + scale * inner_step(anchor)`` (so a rejected candidate is replaced by a shorter step from the
+    last valid point). Pure and traceable: ``valid`` may be a traced boolean, and the wrapper vmaps.
+    """
+
+    def init_fn(params):
+        st = inner.init(params)
+        leaf = jax.tree_util.tree_leaves(params)[0]
+        return BacktrackState(st, params, st, jax.tree_util.tree_map(jnp.zeros_like, params),
+                              jnp.ones((), jnp.asarray(leaf).dtype))
+
+    def update_fn(updates, state, params=None, *, valid=True, **extra):
+        del extra
+        valid = jnp.asarray(valid)
+
+        def pick(a, b):
+            return jax.tree_util.tree_map(lambda x, y: jnp.where(valid, x, y), a, b)
+
+        anchor = pick(params, state.last_params)
+        anchor_inner = pick(state.inner, state.last_inner)
+        anchor_grad = pick(updates, state.last_grad)
+        scale = jnp.where(valid, jnp.minimum(max_scale, grow * state.scale), shrink * state.scale).astype(state.scale.dtype)
+        step, inner_new = inner.update(anchor_grad, anchor_inner, anchor)
+        new = jax.tree_util.tree_map(lambda p, s: p + scale * s, anchor, step)
+        out = jax.tree_util.tree_map(lambda n, p: n - p, new, params)
+        return out, BacktrackState(inner_new, anchor, anchor_inner, anchor_grad, scale)
+
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+
+
+def make_optimizer(lr: float, steps: int, *, clip: float = 1.0, warmup: int = 5, final_lr: float = 0.1):
+    """Adam with global-norm clipping and a warm-up + cosine-decay schedule, wrapped in :func:`backtracking`."""
+    schedule = optax.warmup_cosine_decay_schedule(init_value=0.1 * lr, peak_value=lr,
+                                                  warmup_steps=max(1, min(warmup, steps - 1)),
+                                                  decay_steps=max(2, steps), end_value=final_lr * lr)
+    return backtracking(optax.chain(optax.clip_by_global_norm(clip), optax.adam(schedule)))
+
+
+def _step(opt, trainable, opt_state, grad, valid):
+    updates, opt_state = opt.update(grad, opt_state, trainable, valid=valid)
+    return optax.apply_updates(trainable, updates), opt_state
+
+
+class _Bar:
+    """The tuner's progress: the library's :class:`~jaxsleigh.progress.Progress` counting iterations,
+    with the loss in its postfix (``enabled=None``: on a terminal)."""
+
+    def __init__(self, enabled, total):
+        self._total = max(1, int(total))
+        self._bar = Progress(enabled, desc="tune")
+
+    def skip(self, n):
+        """Count ``n`` iterations done by an earlier (resumed) run."""
+        if n:
+            self._bar.update(n / self._total)
+
+    def update(self, it, row):
+        self._bar.postfix(loss=f"{row['loss']:.4f}", best=f"{row['best']:.4f}", ok="yes" if row["valid"] else "no")
+        self._bar.update((it + 1) / self._total)
+
+    def __enter__(self):
+        self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self._bar.__exit__(*exc)
+
+
+def _validate_number(name, v, *, integer=False, positive=True):
+    try:
+        x = int(v) if integer else float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {v!r}") from None
+    if integer and x != v:
+        raise ValueError(f"{name} must be a whole number, got {v!r}")
+    if not math.isfinite(x) or (positive and x <= 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    return x
+
+
+def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneConfig(),
+         loss: LossConfig = LossConfig(), tune=None, plant: Optional[PlantParams] = None,
+         robust: Optional[PlantDistribution] = None, guard=None, x64: bool = False,
+         d_floor: float = D_FLOOR, progress: Any = None, callback: Optional[Callable] = None,
+         checkpoint=None, resume: bool = False) -> TuneResult:
+    """Tune the gains by gradient descent on the soft convergence time.
+
+    Args:
+      gains0: starting gains (``Gains``, a preset name or a JSON path).
+      starts: the distribution of training starts: a sampler ``(rng, n) -> (n, 3|5)`` (default
+        :class:`UniformStarts`: ``|x|, |y| <= 3``, ``|theta0|`` in ``(0.3, pi)``) or a fixed array.
+      config: :class:`TuneConfig` (iterations, batch, seed, learning rate, budgets, gradient mode).
+      loss: :class:`LossConfig` (horizon, tolerances, eps, temperature, penalty weights).
+      tune: the gains to tune, a subset of ``"L", "k", "D_hat"`` (``"L,k"``); the rest stay frozen.
+      plant: the plant (default: the paper's); robust: a :class:`PlantDistribution` to average the
+        objective over sampled plants instead.
+      guard: guard starts (default :func:`guard_starts`, ``|theta0|`` in {0.05, 0.1} at the corners).
+      x64: compute in float64 (default float32).
+      progress: progress bar (``None``: on a terminal); callback: ``callback(i, row_dict)`` per iteration.
+      checkpoint: a file (``.npz``) where the optimiser's whole state is written, atomically, after
+        every iteration; ``resume=True`` continues from it (the run's settings must be the same:
+        they are fingerprinted) and ends with the result an uninterrupted run would have given.
+
+    Returns:
+      :class:`TuneResult` whose ``gains`` are the best *valid* candidate (every training and guard
+      lane reached its horizon or the ball with status OK, loss and gradient finite, the probed
+      starts within ``probe_budget`` steps for 100 s) that also passed the final check with the
+      accurate engine on all training and guard starts over ``loss.probe_t_final``.
+
+    Raises:
+      ValueError: bad settings, or starting gains that are not a valid candidate (the message
+        says which check failed and what to change).
+      RuntimeError: no candidate passed the final check.
+      TuningInterrupted: Ctrl-C during the loop; its ``partial`` is a :class:`TuneResult` with the
+        best valid gains so far (not re-checked with the accurate engine) and the history.
+    """
+    names = parse_tune(tune)
+    steps = _validate_number("steps", config.steps, integer=True)
+    batch = _validate_number("batch", config.batch, integer=True)
+    _validate_number("lr", config.lr)
+    _validate_number("t_final", loss.t_final)
+    _validate_number("dt", loss.dt)
+    if config.mode not in GRADIENT_MODES:
+        raise ValueError(f"mode must be one of {GRADIENT_MODES}, got {config.mode!r}")
+    g0 = load_gains(gains0)
+    ics = draw_starts(starts, batch, config.seed)
+    theta0 = params_from_gains(g0, d_floor=d_floor)
+    t_start = time.perf_counter()
+    with jax.enable_x64(bool(x64)):
+        dtype = jnp.zeros(()).dtype
+        data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
+        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
+        theta = GainParams(*(jnp.asarray(x, dtype) for x in theta0))
+        trainable, frozen = split_params(theta, names)
+        vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
+                                 d_floor=d_floor)
+        opt = make_optimizer(config.lr, steps, clip=config.clip, warmup=config.warmup, final_lr=config.final_lr)
+        opt_state = opt.init(trainable)
+        step = jax.jit(_step, static_argnums=0)
+        groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
+        probes, n_accepted = None, 0
+        rows, best, valid_points = [], None, []
+        rejections, it0 = 0, 0
+        lam, budgeted = float(loss.multiplier), math.isfinite(float(loss.energy_budget))
+        store = None
+        if checkpoint is not None:
+            store = TunerCheckpoint(checkpoint, tune_fingerprint(g0, names, config, loss, plant, robust, guard,
+                                                                 x64, d_floor, starts, ics), TuneHistory._fields)
+            if resume:
+                st = store.load(trainable, opt_state, groups)
+                if st is not None:
+                    it0, trainable, opt_state, best, valid_points, rows, scalars, probes = st
+                    rejections, n_accepted = int(scalars["rejections"]), int(scalars["n_accepted"])
+                    lam = float(scalars["multiplier"])
+            elif store.path.exists():
+                raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
+                                 "resume=True (--resume) to continue it, or delete it to start afresh")
+        if checkpoint is None and resume:
+            raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
+        try:
+            with _Bar(progress, steps) as bar:
+                bar.skip(it0)
+                for it in range(it0, steps):
+                    cfg = cfg._replace(multiplier=jnp.asarray(lam, dtype))
+                    (value, aux), grad = vg(trainable, frozen, data, cfg)
+                    value = float(value)
+                    gnorm = float(optax.tree.norm(grad))
+                    valid = bool(aux["valid"]) and math.isfinite(gnorm)
+                    probe_attempts, probed = float("nan"), valid
+                    if valid and config.probe:
+                        g = gains_numpy(trainable, frozen, d_floor, g0, names)
+                        refresh = probes is None or n_accepted % max(1, int(config.probe_refresh)) == 0
+                        sets = [(ics[idx], p0) for idx, _, p0 in groups] if refresh else probes
+                        valid, attempts = probe(g, sets, float(loss.probe_t_final), int(config.probe_budget), x64)
+                        probe_attempts = float(max(a.max() for a in attempts))
+                        if refresh and valid:
+                            probes = hardest(sets, attempts, int(config.probe))
+                    scale = float(opt_state.scale)
+                    row = _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, time.perf_counter() - t_start)
+                    row["probe_attempts"] = probe_attempts
+                    row["probe_active"] = bool(probed and config.probe and not valid)
+                    row["multiplier"] = lam
+                    row["feasible"] = bool(valid and row["constraint"] <= 0)
+                    if valid:
+                        rejections = 0
+                        # feasible candidates rank by f; infeasible ones after them, by their violation
+                        score = row["soft_loss"] if row["feasible"] else _INFEASIBLE + row["constraint"]
+                        if best is None or score < best[0]:
+                            best = (score, it, trainable)
+                        valid_points.append((score, it, trainable))
+                        n_accepted += 1
+                        if budgeted:         # dual step of the augmented Lagrangian
+                            lam = max(0.0, lam + float(loss.dual_step) * row["constraint"])
+                    else:
+                        if n_accepted == 0:
+                            raise ValueError(_invalid_start_message(aux, value, gnorm, probe_attempts, config))
+                        rejections += 1     # backtrack: the wrapper redoes the last valid step, half as long
+                    trainable, opt_state = step(opt, trainable, opt_state, grad, jnp.asarray(valid))
+                    row["best"] = best[0]
+                    rows.append(row)
+                    stop = rejections >= config.max_rejections or float(opt_state.scale) < config.min_scale
+                    if store is not None:
+                        store.save(it + 1 if not stop else steps, trainable, opt_state, best, valid_points, rows,
+                                   {"rejections": rejections, "n_accepted": n_accepted, "multiplier": lam}, probes)
+                    bar.update(it, row)
+                    if callback is not None:
+                        callback(it, row)
+                    if stop:
+                        break
+        except KeyboardInterrupt:
+            partial = None
+            if best is not None:
+                history = TuneHistory(**{f: np.asarray([r[f] for r in rows]) for f in TuneHistory._fields})
+                partial = TuneResult(gains_numpy(best[2], frozen, d_floor, g0, names), g0, float(best[0]),
+                                     float(rows[0]["loss"]), int(best[1]), history,
+                                     {"interrupted": True, "verified_iteration": None, "iterations_run": len(rows),
+                                      "dtype": "float64" if x64 else "float32", "tuned": list(names),
+                                      "loss": {k: float(v) for k, v in loss._asdict().items()},
+                                      "method": "interrupted; best valid candidate so far, not re-checked"})
+            raise TuningInterrupted(partial, None if store is None else store.path) from None
+        history = TuneHistory(**{f: np.asarray([r[f] for r in rows]) for f in TuneHistory._fields})
+        best_gains = gains_numpy(best[2], frozen, d_floor, g0, names)
+    verified, probe_at_result = None, None
+    if config.verify:
+        guard_ics = guard_starts() if guard is None else np.asarray(guard, dtype=np.float64)
+        checks = [(ics[idx], p0) for idx, _, p0 in groups]
+        if guard_ics.size:
+            checks.append((guard_ics, groups[0][2]))
+        why = ""
+        for value, it, tr in sorted(valid_points, key=lambda p: p[0])[:int(config.verify)]:
+            with jax.enable_x64(bool(x64)):
+                g = gains_numpy(tr, frozen, d_floor, g0, names)
+            attempts = []
+            why = check(g, checks, float(loss.probe_t_final), x64, attempts)
+            if not why:
+                n_train = len(groups)
+                most = int(max(a.max() for a in attempts[:n_train]))
+                probe_at_result = {"max_attempts_training_starts": most, "probe_budget": int(config.probe_budget),
+                                   "active": bool(config.probe) and most > int(config.probe_budget)}
+            if not why:
+                best, best_gains, verified = (value, it, tr), g, it
+                break
+        if verified is None:
+            raise RuntimeError(f"none of the {min(len(valid_points), int(config.verify))} best valid candidates "
+                               f"passed the check with the accurate engine over {float(loss.probe_t_final):g} s on "
+                               f"the training and guard starts (last: {why}); tune with a smaller learning rate, "
+                               f"fewer steps or a smaller probe_budget")
+    settings = {
+        "method": "gradient descent (optax Adam, clipped, warm-up + cosine, backtracking) on the soft convergence "
+                  "time" + (f" subject to a geometric-mean control energy <= {float(loss.energy_budget):.4g} "
+                            "(augmented Lagrangian)" if budgeted else "") +
+                  ", adaptive RK4 in the w chart, gradients through the integrator",
+        "tuned": list(names), "initial_gains": gains_to_dict(g0), "config": config._asdict(),
+        "loss": {k: float(v) for k, v in loss._asdict().items()}, "x64": bool(x64),
+        "dtype": "float64" if x64 else "float32", "robust": None if robust is None else robust._asdict(),
+        "starts": repr(starts) if callable(starts) else "fixed array", "n_guard": int(data.guard.shape[0]),
+        "iterations_run": len(rows), "wall_s": time.perf_counter() - t_start, "d_floor": d_floor,
+        "verified_iteration": verified, "probe_at_result": probe_at_result,
+        "energy_budget": float(loss.energy_budget), "final_multiplier": lam,
+    }
+    return TuneResult(best_gains, g0, float(best[0]), float(rows[0]["loss"]), int(best[1]), history, settings)
+
+
+def _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, wall) -> dict:
+    g = gains_from_params(merge_params(trainable, frozen), d_floor=d_floor)
+    lanes = aux["lanes"]
+    att = np.asarray(lanes.n_attempts)
+    if aux["guard"] is not None:
+        att = np.concatenate([att, np.asarray(aux["guard"].n_attempts)])
+    passage = np.where(np.asarray(lanes.stopped), np.asarray(lanes.t, np.float64), np.inf)
+    return {"loss": value, "grad_norm": gnorm, "L": np.asarray(g.L, np.float64), "k": float(g.k),
+            "probe_attempts": float("nan"),
+            "D_hat": np.asarray(g.D_hat, np.float64), "valid": valid,
+            "median_soft": float(np.median(np.asarray(lanes.soft_time, np.float64))),
+            "median_passage": float(np.median(passage)), "max_attempts": int(att.max()),
+            "lr_scale": scale, "wall": wall, "soft_loss": float(aux["soft"]), "energy": float(aux["energy"]),
+            "constraint": float(aux["constraint"]), "multiplier": float("nan"), "feasible": False,
+            "probe_active": False}
+
+
+def _invalid_start_message(aux, value, gnorm, probe_attempts, config) -> str:
+    lanes, guard = aux["lanes"], aux["guard"]
+    n_bad = int(np.sum(~np.asarray(lanes.ok)))
+    g_bad = 0 if guard is None else int(np.sum(~np.asarray(guard.ok)))
+    if n_bad or g_bad or not (math.isfinite(value) and math.isfinite(gnorm)):
+        return (f"the starting gains are not a valid candidate (loss {value}, gradient norm {gnorm}, "
+                f"{n_bad} training and {g_bad} guard lanes failed or ran out of their step budget); "
+                f"raise n_attempts, shorten t_final or start from other gains")
+    return (f"the starting gains fail the integration-cost probe: a training start needs more than "
+            f"probe_budget = {config.probe_budget} attempted steps to simulate the validation horizon (it "
+            f"stopped after {probe_attempts:.0f} without reaching it); raise probe_budget (the paper's gains need "
+            f"about 1,400 per 100 s, the engine's default budget is 200,180) or start from other gains")
+
+

@@ -1,0 +1,360 @@
+r"""The time-effort Pareto front: the fastest gains for each control-energy budget.
+
+Each point minimises the soft convergence time subject to "geometric-mean control energy of the
+training batch <= budget" (:func:`~jaxsleigh.tuning.objective`, augmented Lagrangian) and is then
+re-evaluated on held-out starts with the accurate engine (:func:`~jaxsleigh.tuning.validate`). Two
+ways to compute the front (``method``):
+
+* ``"warm"``: budgets in increasing order, each point started from the previous point's gains and
+  multiplier, with ``warm_steps`` iterations (the first point gets ``config.steps``);
+* ``"vmap"``: every point from the same start, ``config.steps`` iterations, the whole optimiser
+  (parameters, optax state with the backtracking wrapper, multiplier) ``jax.vmap``'ed over the budgets:
+  one XLA call evaluates every budget's candidate per iteration.
+
+:func:`random_search` is the derivative-free baseline with the same number of objective evaluations.
+``experiments/pareto_front.py`` measures which method is faster (see the how-to for the numbers).
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ..params import Gains, PlantParams, gains_to_dict, load_gains
+from ..progress import Progress
+from .gradients import make_value_and_grad
+from .objective import LossConfig, make_training_set, objective
+from .optimizer import _INFEASIBLE, TuneConfig, TuneHistory, _row, _step, make_optimizer, tune
+from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, split_params
+from .probes import check, hardest, probe
+from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
+from .validation import Validation, validate, validation_dict
+
+__all__ = ["FrontPoint", "Front", "training_energy", "default_budgets", "budgets_between", "pareto_front", "random_search", "evaluate_front",
+           "front_dict", "save_front", "load_front", "point_gains", "FRONT_METHODS"]
+
+FRONT_METHODS = ("warm", "vmap")
+
+
+class FrontPoint(NamedTuple):
+    """One point of the front.
+
+    Attributes:
+      budget: the training budget :math:`E_{max}` on the geometric-mean control energy [N^2 s].
+      gains: the point's gains (validated).
+      train: figures of the optimisation (soft loss, training energy, iteration, probe at the result).
+      evaluation: :class:`~jaxsleigh.tuning.Validation` on held-out starts (``None`` until
+        :func:`evaluate_front`).
+      history: the point's :class:`~jaxsleigh.tuning.TuneHistory` (``None`` for random search).
+    """
+
+    budget: float
+    gains: Gains
+    train: dict
+    evaluation: Optional[Validation] = None
+    history: Optional[TuneHistory] = None
+
+
+class Front(NamedTuple):
+    """A computed front: its points (increasing budget), the method, the optimisation's wall time and
+    number of objective evaluations, and the settings."""
+
+    points: list
+    method: str
+    wall_s: float
+    evaluations: int
+    settings: dict
+
+
+def training_energy(gains, *, starts=UniformStarts(), config: TuneConfig = TuneConfig(),
+                    loss: LossConfig = LossConfig(), plant: Optional[PlantParams] = None, x64: bool = False,
+                    d_floor: float = D_FLOOR) -> dict:
+    """The training objective at ``gains`` (one evaluation, no gradient): ``{"energy": geometric-mean
+    control energy, "soft_loss": f, "valid": bool}`` on the starts the tuner would train on."""
+    ics = draw_starts(starts, config.batch, config.seed)
+    with jax.enable_x64(bool(x64)):
+        dtype = jnp.zeros(()).dtype
+        data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
+        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss._replace(energy_budget=float("inf"), multiplier=0.0)))
+        theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(gains, d_floor=d_floor)))
+        tr, fr = split_params(theta, None)
+        _, aux = _value(config.n_attempts, config.segment, d_floor)(tr, fr, data, cfg)
+    return {"energy": float(aux["energy"]), "soft_loss": float(aux["soft"]), "valid": bool(aux["valid"])}
+
+
+@functools.lru_cache(maxsize=8)
+def _value(n_attempts, segment, d_floor):
+    return jax.jit(lambda tr, fr, d, c: objective(tr, fr, d, c, n_attempts=int(n_attempts), segment=int(segment),
+                                                  d_floor=float(d_floor)))
+
+
+def default_budgets(n: int, *, below: float = 4.0, above: float = 2.0, **kw) -> np.ndarray:
+    """``n`` budgets from the paper's gains' training energy / ``below`` to ``tuned``'s x ``above``
+    (``kw``: as :func:`training_energy`)."""
+    lo = training_energy("paper", **kw)["energy"] / below
+    hi = training_energy("tuned", **kw)["energy"] * above
+    return budgets_between(lo, hi, n)
+
+
+def budgets_between(lo: float, hi: float, n: int) -> np.ndarray:
+    """``n`` budgets spaced geometrically from ``lo`` to ``hi`` (energies span decades)."""
+    if not (0 < lo < hi) or n < 1:
+        raise ValueError(f"need 0 < lo < hi and n >= 1, got lo={lo}, hi={hi}, n={n}")
+    return np.geomspace(lo, hi, int(n)) if n > 1 else np.array([math.sqrt(lo * hi)])
+
+
+def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=UniformStarts(),
+                 config: TuneConfig = TuneConfig(), loss: LossConfig = LossConfig(), warm_steps: Optional[int] = None,
+                 tune_names=None, plant: Optional[PlantParams] = None, x64: bool = False,
+                 d_floor: float = D_FLOOR, progress: Any = None) -> Front:
+    """Tune one set of gains per energy budget (``budgets``, sorted increasing) with ``method``
+    (``"warm"`` or ``"vmap"``, module docstring). The same training starts (``starts``,
+    ``config.seed``) serve every point. Returns a :class:`Front` whose points are not yet evaluated
+    on held-out starts (:func:`evaluate_front`)."""
+    if method not in FRONT_METHODS:
+        raise ValueError(f"method must be one of {FRONT_METHODS}, got {method!r}")
+    budgets = np.sort(np.asarray(budgets, np.float64).ravel())
+    if budgets.size == 0 or not np.all(np.isfinite(budgets)) or np.any(budgets <= 0):
+        raise ValueError(f"budgets must be finite and > 0, got {budgets.tolist()}")
+    t0 = time.perf_counter()
+    if method == "warm":
+        warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
+        points, evals, g, lam = [], 0, gains0, float(loss.multiplier)
+        for j, b in enumerate(budgets):
+            cfg_j = config if j == 0 else config._replace(steps=warm_steps, warmup=1)
+            res = tune(g, starts=starts, config=cfg_j, loss=loss._replace(energy_budget=float(b), multiplier=lam),
+                       tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
+            evals += res.settings["iterations_run"]
+            points.append(_point(b, res.gains, res.history, res.best_iteration, res.settings))
+            g, lam = res.gains, float(res.settings["final_multiplier"])
+    else:
+        points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress)
+    wall = time.perf_counter() - t0
+    settings = {"method": method, "budgets": budgets.tolist(), "config": config._asdict(),
+                "loss": {k: float(v) for k, v in loss._asdict().items() if k != "energy_budget"},
+                "warm_steps": warm_steps if method == "warm" else None, "x64": bool(x64),
+                "gains0": gains_to_dict(load_gains(gains0)), "tuned": list(parse_tune(tune_names)),
+                "starts": repr(starts) if callable(starts) else "fixed array"}
+    return Front(points, method, wall, evals, settings)
+
+
+def _point(budget, gains, history, it, settings) -> FrontPoint:
+    train = {"best_iteration": int(it), "soft_loss": float(history.soft_loss[it]),
+             "training_energy": float(history.energy[it]), "constraint": float(history.constraint[it]),
+             "feasible": bool(history.feasible[it]), "iterations_run": int(len(history.loss)),
+             "probe_at_result": settings.get("probe_at_result"),
+             "probe_active_iterations": int(np.sum(history.probe_active))}
+    return FrontPoint(float(budget), gains, train, None, history)
+
+
+def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress):
+    """The whole optimiser vmapped over budgets (same safety contract as :func:`tune`, no checkpoint)."""
+    names = parse_tune(tune_names)
+    g0 = load_gains(gains0)
+    ics = draw_starts(starts, config.batch, config.seed)
+    nb = budgets.size
+    with jax.enable_x64(bool(x64)):
+        dtype = jnp.zeros(()).dtype
+        data = make_training_set(ics, plant=plant, guard=None, seed=config.seed + 1, dtype=dtype)
+        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
+        theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
+        trainable, frozen = split_params(theta, names)
+        trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (nb,) + jnp.shape(x)), trainable)
+        vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
+                                 d_floor=d_floor)
+        cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
+        vgb = jax.jit(jax.vmap(vg, in_axes=(0, None, None, cfg_axes)))
+        opt = make_optimizer(config.lr, config.steps, clip=config.clip, warmup=config.warmup,
+                             final_lr=config.final_lr)
+        opt_state = jax.vmap(opt.init)(trainable)
+        stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: _step(opt, tr, st, gr, v)))
+        groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
+        lam = np.full(nb, float(loss.multiplier))
+        best = [None] * nb
+        valid_points = [[] for _ in range(nb)]
+        rows = [[] for _ in range(nb)]
+        probes = [None] * nb
+        n_acc = np.zeros(nb, int)
+        rej = np.zeros(nb, int)
+        alive = np.ones(nb, bool)
+        t_start = time.perf_counter()
+        evals = 0
+        with Progress(progress, desc=f"front (vmap x{nb})") as bar:
+            for it in range(config.steps):
+                c = cfg._replace(energy_budget=jnp.asarray(budgets, dtype), multiplier=jnp.asarray(lam, dtype))
+                (values, aux), grads = vgb(trainable, frozen, data, c)
+                evals += int(alive.sum())
+                gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
+                ok = np.asarray(aux["valid"]) & np.isfinite(gn)
+                scales = np.asarray(opt_state.scale)
+                for b in range(nb):
+                    if not alive[b]:
+                        ok[b] = False
+                        continue
+                    tr_b = jax.tree_util.tree_map(lambda x: x[b], trainable)
+                    aux_b = jax.tree_util.tree_map(lambda x: x[b], aux)
+                    valid, probed, pa = bool(ok[b]), bool(ok[b]), float("nan")
+                    if valid and config.probe:
+                        g = gains_numpy(tr_b, frozen, d_floor, g0, names)
+                        refresh = probes[b] is None or n_acc[b] % max(1, int(config.probe_refresh)) == 0
+                        sets = [(ics[idx], p0) for idx, _, p0 in groups] if refresh else probes[b]
+                        valid, attempts = probe(g, sets, float(loss.probe_t_final), int(config.probe_budget), x64)
+                        pa = float(max(a.max() for a in attempts))
+                        if refresh and valid:
+                            probes[b] = hardest(sets, attempts, int(config.probe))
+                    row = _row(float(values[b]), float(gn[b]), valid, tr_b, frozen, aux_b, float(scales[b]), d_floor,
+                               time.perf_counter() - t_start)
+                    row.update(probe_attempts=pa, probe_active=bool(probed and config.probe and not valid),
+                               multiplier=float(lam[b]), feasible=bool(valid and row["constraint"] <= 0))
+                    if valid:
+                        score = row["soft_loss"] if row["feasible"] else _INFEASIBLE + row["constraint"]
+                        if best[b] is None or score < best[b][0]:
+                            best[b] = (score, it, tr_b)
+                        valid_points[b].append((score, it, tr_b))
+                        n_acc[b] += 1
+                        rej[b] = 0
+                        lam[b] = max(0.0, lam[b] + float(loss.dual_step) * row["constraint"])
+                    else:
+                        if n_acc[b] == 0:
+                            raise ValueError(f"the starting gains are not a valid candidate for budget {budgets[b]:.4g}")
+                        rej[b] += 1
+                    ok[b] = valid
+                    row["best"] = best[b][0]
+                    rows[b].append(row)
+                trainable, opt_state = stepb(trainable, opt_state, grads, jnp.asarray(ok))
+                alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
+                bar.update((it + 1) / config.steps)
+                bar.postfix(feasible=int(sum(r[-1]["feasible"] for r in rows if r)))
+                if not alive.any():
+                    break
+    points = []
+    guard_ics = guard_starts()
+    for b in range(nb):
+        history = TuneHistory(**{f: np.asarray([r[f] for r in rows[b]]) for f in TuneHistory._fields})
+        chosen, pa = None, None
+        checks = [(ics[idx], p0) for idx, _, p0 in groups] + [(guard_ics, groups[0][2])]
+        for score, it, tr in sorted(valid_points[b], key=lambda p: p[0])[:max(1, int(config.verify))]:
+            with jax.enable_x64(bool(x64)):
+                g = gains_numpy(tr, frozen, d_floor, g0, names)
+            attempts = []
+            if not config.verify or not check(g, checks, float(loss.probe_t_final), x64, attempts):
+                chosen = (it, g)
+                if attempts:
+                    most = int(max(a.max() for a in attempts[:len(groups)]))
+                    pa = {"max_attempts_training_starts": most, "probe_budget": int(config.probe_budget),
+                          "active": bool(config.probe) and most > int(config.probe_budget)}
+                break
+        if chosen is None:
+            raise RuntimeError(f"no candidate for budget {budgets[b]:.4g} passed the final check")
+        points.append(_point(budgets[b], chosen[1], history, chosen[0], {"probe_at_result": pa}))
+    return points, evals
+
+
+def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: TuneConfig = TuneConfig(),
+                  loss: LossConfig = LossConfig(), box=None, seed: int = 0, plant: Optional[PlantParams] = None,
+                  x64: bool = False, d_floor: float = D_FLOOR, progress: Any = None) -> Front:
+    """The derivative-free baseline: ``n_evals`` gains drawn log-uniformly in ``box`` (default: each
+    unconstrained parameter over the span of the paper's and ``tuned``'s, widened by 1 on each side),
+    each scored by the same training objective (value only, same starts and integrator); per budget
+    the valid candidate with the lowest soft time whose training energy is within it."""
+    budgets = np.sort(np.asarray(budgets, np.float64).ravel())
+    ics = draw_starts(starts, config.batch, config.seed)
+    a = np.concatenate([np.ravel(x) for x in params_from_gains("paper", d_floor=d_floor)])
+    b = np.concatenate([np.ravel(x) for x in params_from_gains("tuned", d_floor=d_floor)])
+    lo, hi = (np.minimum(a, b) - 1.0, np.maximum(a, b) + 1.0) if box is None else map(np.asarray, box)
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    cands = []
+    with jax.enable_x64(bool(x64)):
+        dtype = jnp.zeros(()).dtype
+        data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
+        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss._replace(energy_budget=float("inf"), multiplier=0.0)))
+        f = _value(config.n_attempts, config.segment, d_floor)
+        with Progress(progress, desc="random search") as bar:
+            for i in range(int(n_evals)):
+                v = rng.uniform(lo, hi)
+                theta = GainParams(jnp.asarray(v[:3], dtype), jnp.asarray(v[3], dtype), jnp.asarray(v[4:], dtype))
+                tr, fr = split_params(theta, None)
+                value, aux = f(tr, fr, data, cfg)
+                if bool(aux["valid"]):
+                    cands.append((float(aux["soft"]), float(aux["energy"]), v))
+                bar.update((i + 1) / n_evals)
+    points = []
+    for bgt in budgets:
+        ok = [c for c in cands if c[1] <= bgt]
+        if not ok:
+            continue
+        soft, energy, v = min(ok, key=lambda c: c[0])
+        g = gains_from_params(GainParams(v[:3], v[3], v[4:]), d_floor=d_floor)
+        from ..params import gains as make_gains
+
+        g = make_gains(np.asarray(g.L, np.float64), float(g.k), np.asarray(g.D_hat, np.float64))
+        points.append(FrontPoint(float(bgt), g, {"soft_loss": soft, "training_energy": energy, "feasible": True}))
+    return Front(points, "random", time.perf_counter() - t0, int(n_evals),
+                 {"n_evals": int(n_evals), "valid": len(cands), "box": [np.asarray(lo).tolist(), np.asarray(hi).tolist()],
+                  "seed": seed, "budgets": budgets.tolist()})
+
+
+def evaluate_front(front: Front, ics, *, plant: Optional[PlantParams] = None, x64: bool = False,
+                   t_final: float = 100.0) -> Front:
+    """Re-evaluate every point on held-out starts ``ics`` with the accurate engine (median T_0.05 and
+    its s.e., converged fraction, median energy and peak |u|, mean adaptive steps)."""
+    pts = [p._replace(evaluation=validate(p.gains, ics, plant=plant, x64=x64, t_final=t_final)) for p in front.points]
+    return front._replace(points=pts)
+
+
+def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> dict:
+    """The JSON document of a front: per point the gains (the gains-file format: ``L``, ``k``,
+    ``D_hat``), the budget, the training figures and the held-out evaluation; ``references``
+    (``{name: Validation}``, e.g. paper / tuned) and ``meta`` alongside."""
+    def pdict(p: FrontPoint) -> dict:
+        d = {**gains_to_dict(p.gains), "budget": p.budget, "train": p.train}
+        if p.evaluation is not None:
+            d["evaluation"] = validation_dict(p.evaluation)
+        return d
+
+    return json.loads(json.dumps(
+        {"method": front.method, "wall_s": front.wall_s, "evaluations": front.evaluations,
+         "settings": front.settings, "points": [pdict(p) for p in front.points],
+         "references": {k: validation_dict(v) for k, v in (references or {}).items()}, **meta},
+        default=_json_default))
+
+
+def save_front(front: Front, path, *, references: Optional[dict] = None, **meta) -> Path:
+    """Write :func:`front_dict` as JSON (atomically); each point loads with ``jaxsleigh.load_gains``
+    after :func:`point_gains`."""
+    from ..io import atomic_write
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(front_dict(front, references=references, **meta), indent=2)
+    atomic_write(path, lambda fh: fh.write(text.encode()))
+    return path
+
+
+def point_gains(point: dict) -> Gains:
+    """The gains of one point of a front document."""
+    from ..params import gains as make_gains
+
+    return make_gains(point["L"], point["k"], point["D_hat"])
+
+
+def _json_default(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def load_front(path) -> dict:
+    """Read a ``front.json`` (a dict; each point's gains load with ``jaxsleigh.load_gains(point)``)."""
+    return json.loads(Path(path).read_text())

@@ -1,0 +1,131 @@
+"""Validation of gains with the accurate engine (:func:`~jaxsleigh.ensemble.run_ensemble`), never
+with the training discretisation: convergence times and their tables."""
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple, Optional
+
+import numpy as np
+
+from ..params import PlantParams, load_gains
+from ..status import Status
+
+__all__ = ["Validation", "validate", "markdown_table", "validation_dict"]
+
+
+class Validation(NamedTuple):
+    r"""Hard convergence times measured by :func:`jaxsleigh.ensemble.run_ensemble`.
+
+    Attributes:
+      T_eps: (N,) convergence times (inf: not settled by the horizon; nan: failed).
+      median, median_se: median ``T_eps`` over all starts (inf if half did not settle) and its
+        bootstrap standard error.
+      frac_converged, frac_se: fraction settled within the horizon, binomial standard error.
+      n, n_failed: starts and starts whose status is not OK; status: (N,) codes.
+      mean_steps: accepted adaptive steps per trajectory over the horizon (the cost of simulating).
+      max_attempts: most attempted steps of one trajectory (the engine's default budget for 100 s
+        is 200180; a trajectory that needs more ends with status BUDGET_EXHAUSTED).
+      settings: of the ensemble run.
+      energy: (N,) control energy :math:`\int_0^T |u|^2 dt` [N^2 s]; u_peak: (N,) largest
+        :math:`|u|` [N]; median_energy, median_peak_u: their medians over the starts that did not
+        fail; n_crossed: starts that failed or whose theta changed sign (crossed the singular set).
+    """
+
+    T_eps: np.ndarray
+    median: float
+    median_se: float
+    frac_converged: float
+    frac_se: float
+    n: int
+    n_failed: int
+    status: np.ndarray
+    mean_steps: float
+    max_attempts: int
+    settings: dict
+    energy: Optional[np.ndarray] = None
+    u_peak: Optional[np.ndarray] = None
+    median_energy: float = float("nan")
+    median_peak_u: float = float("nan")
+    n_crossed: int = 0
+
+
+def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0, eps: float = 0.05,
+             x64: bool = False, n_boot: int = 1000, seed: int = 0, progress: Any = None, **ensemble_kw) -> Validation:
+    """Measure ``T_eps`` and the control effort with the accurate engine
+    (:func:`~jaxsleigh.ensemble.run_ensemble`, adaptive RK4, default tolerances), never with the
+    training discretisation. The effort comes from the engine's on-line
+    :class:`~jaxsleigh.observers.ControlEffort` quadrature (RK4 order) when it reports one; otherwise
+    from a second run saving every base step (trapezoid on the saved samples)."""
+    from ..ensemble import run_ensemble
+
+    g = load_gains(gains)
+    r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64,
+                     progress=progress, **ensemble_kw)
+    T = np.where(r.status == Status.OK, r.T_eps, np.nan)
+    n = T.size
+    conv = np.isfinite(T)
+    frac = float(conv.mean())
+    # failures count as not converged (inf) in the median
+    Tm = np.where(np.isnan(T), np.inf, T)
+    med = float(np.median(Tm))
+    rng = np.random.default_rng(seed)
+    boots = np.median(Tm[rng.integers(0, n, size=(n_boot, n))], axis=1)
+    se = float(np.std(boots)) if np.all(np.isfinite(boots)) else float("nan")
+    ok = r.status == Status.OK
+    energy, peak = _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw)
+    th0 = np.asarray(r.ics)[:, 2]
+    th1 = np.asarray(r.q)[:, 2]
+    crossed = ~ok | (np.sign(th1) != np.sign(th0)) | ~(np.asarray(r.min_abs_theta) > 0)
+    return Validation(T, med, se, frac, math.sqrt(max(frac * (1 - frac), 0.0) / n), n,
+                      int(np.sum(~ok)), r.status, float(np.mean(r.n_steps)),
+                      int(np.max(r.n_steps + r.n_rejected)), r.settings, energy, peak,
+                      float(np.median(energy[ok])) if ok.any() else float("nan"),
+                      float(np.median(peak[ok])) if ok.any() else float("nan"), int(np.sum(crossed)))
+
+
+def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarray, np.ndarray]:
+    """``(energy, peak |u|)`` per start: the engine's observers, else a saved-path quadrature."""
+    if getattr(r, "u_energy", None) is not None:
+        return np.asarray(r.u_energy, np.float64), np.asarray(r.u_norm_peak, np.float64)
+    import jax.numpy as jnp
+
+    from ..control import control_w_components
+    from ..coordinates import q_to_w
+    from ..ensemble import run_ensemble
+    from ..params import paper_plant
+    from ..plant import velocity_components
+
+    p = paper_plant() if plant is None else plant
+    s = run_ensemble(ics, plant=p, gains=g, t_final=t_final, eps=eps, x64=x64, save_every=1, progress=False,
+                     **ensemble_kw)
+    w = np.asarray(q_to_w(jnp.moveaxis(jnp.asarray(s.q_traj), -1, 0)), np.float64)
+    v = velocity_components(np.moveaxis(np.asarray(s.p_traj, np.float64), -1, 0), p)
+    u = np.stack([np.asarray(c, np.float64) for c in control_w_components(w, v, g)])
+    e = np.sum(u * u, axis=0)
+    return np.trapezoid(e, s.t, axis=-1), np.sqrt(e.max(axis=-1))
+
+
+def markdown_table(rows: dict) -> str:
+    """``{name: Validation}`` -> a markdown table: median T_eps, fraction converged, median control
+    energy and peak |u|, mean adaptive steps."""
+    lines = ["| gains | N | median T_0.05 [s] | converged by horizon | median energy ∫\\|u\\|² dt | "
+             "median peak \\|u\\| | mean adaptive steps | status not OK |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, v in rows.items():
+        lines.append(f"| {name} | {v.n} | {v.median:.2f} ± {v.median_se:.2f} | "
+                     f"{100 * v.frac_converged:.1f}% ± {100 * v.frac_se:.1f}% | {v.median_energy:.4g} | "
+                     f"{v.median_peak_u:.3g} | {v.mean_steps:,.0f} | {v.n_failed} |")
+    return "\n".join(lines)
+
+
+def validation_dict(v: Validation, **extra) -> dict:
+    """The figures of a :class:`Validation` as a JSON-ready dict (``extra`` merged in)."""
+    def num(x):
+        x = float(x)
+        return x if math.isfinite(x) else str(x)
+
+    return {"n": v.n, "median_T_0.05_s": num(v.median), "median_se_s": num(v.median_se),
+            "frac_converged": v.frac_converged, "frac_se": v.frac_se, "median_energy": num(v.median_energy),
+            "median_peak_u": num(v.median_peak_u), "mean_adaptive_steps": v.mean_steps,
+            "max_attempts": v.max_attempts, "n_status_not_ok": v.n_failed, "n_crossed_theta0": v.n_crossed,
+            **extra}
