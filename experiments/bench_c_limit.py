@@ -2,6 +2,7 @@ r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the sam
 
     python experiments/bench_c_limit.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--seed 0]
                                         [--repeats 7] [--devices 1] [--whole-batch] [--vector-width 512]
+                                        [--c-variants strict,shared_recip,rsqrt_nr]
                                         [--out out/bench_c_limit.json]
 
 Builds ``experiments/c_reference/rk4_w.c`` with ``gcc -O3 -march=native -fno-math-errno`` (no
@@ -40,6 +41,9 @@ def main(argv=None) -> int:
                     help="also time the earlier kernel (one scan over the whole batch) in the same rotation")
     ap.add_argument("--vector-width", type=int, default=None,
                     help="also time drive_plain(vector_width=...) (XLA:CPU preferred SIMD width) in the rotation")
+    ap.add_argument("--c-variants", default="",
+                    help="comma-separated builds of the C program also timed in the rotation: "
+                         "strict (literal 6 divisions), shared_recip, rsqrt_nr (XLA's rsqrt); see rk4_w.c")
     ap.add_argument("--build-dir", default="out/c_reference", help="where the C library is built")
     ap.add_argument("--out", default="out/bench_c_limit.json")
     a = ap.parse_args(argv)
@@ -64,12 +68,13 @@ def main(argv=None) -> int:
     else:
         log(f"C reference built: {lib}; JAX on {jax.devices()}; {a.repeats} interleaved repetitions ...")
         res = c_limit(workload(a.n_ics, a.seed), t_final=a.t_final, dt=a.dt, repeats=a.repeats, lib=lib, log=log,
-                      whole_batch=a.whole_batch,
+                      whole_batch=a.whole_batch, c_variants=[v for v in a.c_variants.split(",") if v],
                       variants={f"jax_vw{a.vector_width}": {"vector_width": a.vector_width}} if a.vector_width else None)
         c, j = res["c_traj_steps_per_cpu_s"], res["jax_traj_steps_per_cpu_s"]
         cw, jw = res["c_traj_steps_per_wall_s"], res["jax_traj_steps_per_wall_s"]
         rc, rw = res["ratio_cpu"], res["ratio_wall"]
         ag = res["agreement"]
+        print(f"C reference: {res['c_divider_ops_per_evaluation']} divisions + square roots per evaluation")
         print(f"workload: {res['n_ics']} starts (seed {a.seed}), {res['steps']} steps of dt = {a.dt:g}, float32, "
               f"final state only; JAX devices: {len(jax.devices())} (XLA_FLAGS='{mach['xla_flags']}'); "
               f"C: one thread, {res['c_flags']}")
@@ -83,6 +88,13 @@ def main(argv=None) -> int:
             ow, oc = res[f"jax_{v}_traj_steps_per_wall_s"], res[f"jax_{v}_traj_steps_per_cpu_s"]
             print(f"  JAX {v:12s} per CPU s {oc['median']:.3e} [{oc['min']:.3e}, {oc['max']:.3e}]"
                   f"   wall {ow['median']:.3e} [{ow['min']:.3e}, {ow['max']:.3e}]")
+        for cv in [v for v in a.c_variants.split(",") if v]:
+            o = res[f"c_{cv}_traj_steps_per_cpu_s"]
+            r0 = res[f"ratio_cpu_vs_c_{cv}"]
+            print(f"  C {cv:12s} per CPU s {o['median']:.3e} [{o['min']:.3e}, {o['max']:.3e}]   "
+                  f"({res[f'c_{cv}_divider_ops_per_evaluation']} divider ops / evaluation; JAX / it: CPU time "
+                  f"{r0['median']:.3f} [{r0['min']:.3f}, {r0['max']:.3f}]; final states vs the C reference: median "
+                  f"{ag[f'c_{cv}_vs_c_rel_median_tame']:.2e}, max {ag[f'c_{cv}_vs_c_rel_max_tame']:.2e})")
         print(f"  JAX / C: CPU time {rc['median']:.3f} [{rc['min']:.3f}, {rc['max']:.3f}], "
               f"wall {rw['median']:.3f} [{rw['min']:.3f}, {rw['max']:.3f}]")
         for v in extra:

@@ -26,7 +26,7 @@ from .ensemble import run_ensemble
 from .status import Status
 
 __all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine",
-           "C_REFERENCE_SOURCE", "build_c_reference", "c_reference_run", "c_limit"]
+           "C_REFERENCE_SOURCE", "C_VARIANTS", "build_c_reference", "c_reference_run", "c_limit"]
 
 CORRECT_TOL = 1e-3
 
@@ -101,6 +101,10 @@ C_REFERENCE_SOURCE = Path(__file__).resolve().parent.parent / "experiments" / "c
 #: compiler flags: -O3 -march=native, no -ffast-math; -fno-math-errno only lets gcc vectorise sqrtf
 #: (its argument eps + p^2 is never negative, so no result changes)
 C_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-shared", "-fPIC")
+#: variants of the C reference (preprocessor macros of rk4_w.c), timed only on request: the literal
+#: 6-division form, one shared division, and XLA's rsqrt (estimate + Newton step); the default build
+#: (3 IEEE divisions + 2 IEEE square roots per evaluation) is the reference of ``c_limit_ratio``
+C_VARIANTS = {"strict": ("RK4W_STRICT",), "shared_recip": ("RK4W_SHARED_RECIP",), "rsqrt_nr": ("RK4W_RSQRT_NR",)}
 
 
 class _CParams(ctypes.Structure):
@@ -108,8 +112,9 @@ class _CParams(ctypes.Structure):
                 ("m", "J", "l", "d_eps", "d_scale", "L1", "L2", "L3", "k", "D11", "D12", "D21", "D22")]
 
 
-def build_c_reference(out_dir=None, source=None):
-    """Compile the C reference into a shared library; returns ``(path, None)`` or ``(None, reason)``."""
+def build_c_reference(out_dir=None, source=None, defines=()):
+    """Compile the C reference into a shared library; returns ``(path, None)`` or ``(None, reason)``.
+    ``defines``: preprocessor macros selecting a variant (see :data:`C_VARIANTS`)."""
     source = Path(source) if source is not None else C_REFERENCE_SOURCE
     if not source.exists():
         return None, f"C reference source not found ({source}); run from a repository checkout"
@@ -118,8 +123,8 @@ def build_c_reference(out_dir=None, source=None):
         return None, "no C compiler (gcc or cc) on PATH"
     out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="jaxsleigh_c_"))
     out_dir.mkdir(parents=True, exist_ok=True)
-    lib = out_dir / "librk4_w.so"
-    cmd = [cc, *C_FLAGS, str(source), "-o", str(lib), "-lm"]
+    lib = out_dir / ("librk4_w" + "".join(f"_{d.lower()}" for d in defines) + ".so")
+    cmd = [cc, *C_FLAGS, *(f"-D{d}" for d in defines), str(source), "-o", str(lib), "-lm"]
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     except (OSError, subprocess.SubprocessError) as e:
@@ -155,6 +160,16 @@ def c_reference_run(lib, y0w, args, dt, n_steps, n_threads: int = 1):
     return y.T.copy()
 
 
+def _divider_ops(lib):
+    """Divisions + square roots per field evaluation of a C build (None for an older source)."""
+    try:
+        fn = lib.rk4w_divider_ops
+    except AttributeError:
+        return None
+    fn.restype = ctypes.c_int
+    return int(fn())
+
+
 def _summary(xs):
     xs = np.asarray(xs, np.float64)
     return {"median": float(np.median(xs)), "min": float(xs.min()), "max": float(xs.max()),
@@ -162,7 +177,8 @@ def _summary(xs):
 
 
 def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, lib=None, build_dir=None,
-            log=None, whole_batch: bool = False, variants: Optional[dict] = None) -> dict:
+            log=None, whole_batch: bool = False, variants: Optional[dict] = None,
+            c_variants: Optional[list] = None) -> dict:
     """The plain fixed-step path against the C reference in ONE interleaved timing run.
 
     Each repetition times the C program (one thread, via ctypes) and
@@ -177,7 +193,9 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     rotation, the same call with the earlier kernel (one scan over the whole batch,
     ``drive_plain(block=None)``) as ``jax_whole_batch``: a before/after in one run. ``variants``
     (``{name: drive_plain keyword arguments}``, e.g. ``{"jax_vw512": {"vector_width": 512}}``) times
-    more such variants of the call the same way. Returns a dict;
+    more such variants of the call the same way. ``c_variants`` (names from :data:`C_VARIANTS`)
+    times those builds of the C program in the same rotation (``c_<name>_...`` throughputs and
+    ``ratio_cpu_vs_c_<name>``: JAX / that build). Returns a dict;
     ``available`` False with ``reason`` when the C program cannot be built (float64 runs are not
     compared either)."""
     import jax.numpy as jnp
@@ -193,7 +211,14 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
         lib, reason = build_c_reference(build_dir)
         if lib is None:
             return {"available": False, "reason": reason}
+    lib_path = Path(str(lib))
     lib = ctypes.CDLL(str(lib))
+    c_libs = {}
+    for cv in c_variants or []:
+        vlib, vreason = build_c_reference(lib_path.parent, defines=C_VARIANTS[cv])
+        if vlib is None:
+            raise RuntimeError(f"C variant {cv}: {vreason}")
+        c_libs[cv] = ctypes.CDLL(str(vlib))
     ics = np.asarray(ics, np.float64)
     n = ics.shape[0]
     horizon = make_horizon(t_final, dt)
@@ -210,6 +235,8 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
         return run_ensemble(ics, **kw)
 
     contestants = [("c", run_c), ("jax", run_jax)]
+    for cv, vl in c_libs.items():
+        contestants.append((f"c_{cv}", lambda vl=vl: c_reference_run(vl, y0w, args, dt, steps)))
     variants = dict(variants or {})
     if whole_batch:
         variants["jax_whole_batch"] = {"block": None}
@@ -242,6 +269,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     work = n * steps
     out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
            "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": 1,
+           "c_divider_ops_per_evaluation": _divider_ops(lib),
            "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
                          f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
     for name in rec:
@@ -249,6 +277,10 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
         out[f"{name}_traj_steps_per_wall_s"] = _summary([work / w for w in rec[name]["wall"]])
     out["ratio_cpu"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec["jax"]["cpu"])])
     out["ratio_wall"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec["jax"]["wall"])])
+    for cv, vl in c_libs.items():
+        out[f"c_{cv}_divider_ops_per_evaluation"] = _divider_ops(vl)
+        out[f"ratio_cpu_vs_c_{cv}"] = _summary([c / j for c, j in zip(rec[f"c_{cv}"]["cpu"], rec["jax"]["cpu"])])
+        out[f"ratio_wall_vs_c_{cv}"] = _summary([c / j for c, j in zip(rec[f"c_{cv}"]["wall"], rec["jax"]["wall"])])
     for vname in variants:
         suffix = vname[len("jax_"):] if vname.startswith("jax_") else vname
         out[f"ratio_cpu_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec[vname]["cpu"])])
@@ -256,6 +288,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
 
     # agreement of the final states, w chart, same float32 starts
     yc = run_c()
+    yc_var = {cv: c_reference_run(vl, y0w, args, dt, steps) for cv, vl in c_libs.items()}
     yj, st = drive_plain(y0w, status0, args, horizon)
     import jax
     with jax.enable_x64(True):
@@ -276,6 +309,10 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
         "finiteness_mismatch": int((~fin).sum()),
         "c_vs_jax_rel_max_all_finite": float(np.nanmax(np.where(np.isfinite(rel_cj), rel_cj, np.nan))),
     }
+    for cv, yv in yc_var.items():
+        rel_v = np.max(np.abs(yv - yc), axis=1) / scale
+        out["agreement"][f"c_{cv}_vs_c_rel_median_tame"] = float(np.median(rel_v[tame])) if tame.any() else None
+        out["agreement"][f"c_{cv}_vs_c_rel_max_tame"] = float(rel_v[tame].max()) if tame.any() else None
     return out
 
 

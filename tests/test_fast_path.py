@@ -145,11 +145,14 @@ def test_two_host_devices_agree_to_rounding():
     assert np.max(_rel(np.array(out["two"]), np.array(out["one"]))) < 1e-5
 
 
-def test_c_reference_agrees_to_rounding(tmp_path):
-    """The C reference of experiments/ (built when a compiler exists) against the fast path."""
-    from jaxsleigh.bench import build_c_reference, c_reference_run
+@pytest.mark.parametrize("variant", [None, "strict", "shared_recip", "rsqrt_nr"])
+def test_c_reference_agrees_to_rounding(tmp_path, variant):
+    """The C reference of experiments/ (built when a compiler exists) against the fast path; the
+    default build (fewer divisions) and the measured variants (jaxsleigh.bench.C_VARIANTS) alike
+    (rsqrt_nr needs AVX-512: without it the build fails and the case is skipped)."""
+    from jaxsleigh.bench import C_VARIANTS, build_c_reference, c_reference_run
 
-    lib, reason = build_c_reference(tmp_path)
+    lib, reason = build_c_reference(tmp_path, defines=C_VARIANTS[variant] if variant else ())
     if lib is None:
         pytest.skip(reason)
     y0, st = _w(_tame(300, seed=9))
