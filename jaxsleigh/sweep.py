@@ -10,7 +10,8 @@ resumable, sharded over devices, compiled once (changing the values never recomp
 Rows are ordered value-major: row ``p * N + i`` is start ``i`` under value set ``p``, so the
 per-start results reshape to ``(P, N)``. Per value the sweep summarises the fraction of valid
 starts that converged (+- its binomial standard error), the ``T_eps`` percentiles of the converged
-starts and the statuses (failures by kind).
+starts, the statuses (failures by kind) and the control effort of the converged starts (median
+control energy :math:`\int_0^T \|u\|^2 dt` and median peak :math:`\|u\|`).
 
 Parameters (``NAME`` of ``--param NAME=LO:HI:P[:log]``):
 
@@ -222,7 +223,8 @@ class SweepResult(NamedTuple):
         ``(P,)`` for explicit value sets; axes: the :class:`ParamAxis` of a grid (``()`` otherwise).
       starts: the :class:`~jaxsleigh.basin.BasinStarts`; ics: ``(N, 5)``.
       T_eps, status, n_steps, min_abs_theta, Hd0: ``(P, N)`` per-row results.
-      effort: ``{name: (P, N)}`` control-effort summaries when the engine records them (else empty).
+      effort: ``{name: (P, N)}`` control-effort summaries when the engine records them (else empty);
+        :meth:`effort_medians` summarises them per value set.
       settings: base plant and gains, the sweep, the starts, the solver settings.
       run_info: wall time, devices, chunks reused (not saved: they vary between runs).
     """
@@ -267,21 +269,54 @@ class SweepResult(NamedTuple):
         """``(P, len(q))`` percentiles of ``T_eps`` of the converged starts (NaN where none converged)."""
         return np.array([t_eps_percentiles(t[c], q) for t, c in zip(self.T_eps, self.converged)])
 
+    def effort_medians(self) -> dict:
+        """Per value set, the medians over the **converged** starts of the control effort:
+        ``{"u_energy_median": (P,), "u_norm_peak_median": (P,)}`` (control energy
+        :math:`\\int_0^T \\|u\\|^2 dt` up to the horizon, largest :math:`\\|u\\|`); NaN where none
+        converged or the effort was not recorded; ``{}`` when the run recorded no effort."""
+        out = {}
+        for k in EFFORT_MEDIANS:
+            if k in self.effort:
+                out[f"{k}_median"] = _medians(self.effort[k], self.converged)
+        return out
+
     def status_counts(self) -> tuple[np.ndarray, np.ndarray]:
         """``(codes (K,), counts (P, K))``: how many starts of each value set ended with each status."""
         codes = np.array(sorted(int(s) for s in Status), np.int32)
         return codes, (self.status[..., None] == codes).sum(axis=1).astype(np.int64)
 
     def table(self) -> str:
-        """One line per value set: the values, fraction +- s.e., median T_eps, failures."""
+        """One line per value set: the values, fraction +- s.e., median T_eps, failures and (when
+        recorded) the median control energy of the converged starts."""
         S, se = self.fractions()
         med = self.percentiles((50.0,))[:, 0]
-        lines = [" ".join(f"{n:>10}" for n in self.names) + "   fraction +- s.e.   median T_eps   failed"]
+        eff = self.effort_medians()
+        energy = eff.get("u_energy_median")
+        head = "   fraction +- s.e.   median T_eps   failed" + ("   median int|u|^2" if energy is not None else "")
+        lines = [" ".join(f"{n:>10}" for n in self.names) + head]
         failed = (self.valid & (self.status != Status.OK)).sum(axis=1)
         for p in range(self.values.shape[0]):
             vals = " ".join(f"{v:10.4g}" for v in self.values[p])
-            lines.append(f"{vals}   {S[p]:.3f} +- {se[p]:.3f}      {med[p]:9.3g}      {failed[p]}")
+            line = f"{vals}   {S[p]:.3f} +- {se[p]:.3f}      {med[p]:9.3g}      {failed[p]:6d}"
+            if energy is not None:
+                line += f"   {energy[p]:16.4g}"
+            lines.append(line)
         return "\n".join(lines)
+
+
+#: effort summaries whose per-value medians (over the converged starts) a sweep reports
+EFFORT_MEDIANS = ("u_energy", "u_norm_peak")
+
+
+def _medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Row-wise median of the finite ``values`` where ``mask`` (NaN for a row with none)."""
+    v = np.asarray(values, np.float64)
+    out = np.full(v.shape[0], np.nan)
+    for p in range(v.shape[0]):
+        x = v[p][mask[p] & np.isfinite(v[p])]
+        if x.size:
+            out[p] = np.median(x)
+    return out
 
 
 def _as_starts(starts) -> BasinStarts:
@@ -377,7 +412,8 @@ def save_sweep(path, result: SweepResult) -> Path:
     per value set and start ``T_eps``, ``status``, ``n_steps``, ``min_abs_theta``, ``Hd0`` (P, N)
     (and the control-effort summaries when recorded); per value set ``fraction``, ``fraction_se``,
     ``n_valid``, ``n_converged`` (P,), ``T_eps_percentiles`` (P, 5) at ``T_eps_percentile_levels``,
-    ``status_counts`` (P, K) for the codes ``status_codes`` (K,); for grids ``axis_<name>`` (the
+    ``status_counts`` (P, K) for the codes ``status_codes`` (K,), and with the effort recorded
+    ``u_energy_median``, ``u_norm_peak_median`` (P,) over the converged starts; for grids ``axis_<name>`` (the
     values of each axis) and ``axis_log``; the settings as JSON (``settings_json``, with the status
     legend) and as scalars ``eps, t_final, dt, method, dtype, max_steps``, the base ``gains_L,
     gains_k, gains_D_hat, params (m, J, l), damping``.
@@ -402,6 +438,7 @@ def save_sweep(path, result: SweepResult) -> Path:
         "status_codes": codes, "status_counts": counts,
     }
     arrays.update({k: np.asarray(v, np.float64) for k, v in sorted(r.effort.items())})
+    arrays.update(r.effort_medians())
     for a in r.axes:
         arrays[f"axis_{a.name}"] = a.values()
     if r.axes:

@@ -23,19 +23,41 @@ def _subtitle(res: SweepResult) -> str:
             f"from T_eps to {s.get('t_final', 0):g} s; {s.get('dtype', '')}")
 
 
+def _has_effort(res: SweepResult) -> bool:
+    eff = res.effort_medians()
+    return bool(eff) and any(np.isfinite(v).any() for v in eff.values())
+
+
 def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
-    """Two panels against parameter ``res.names[column]``: the fraction converged (+- 1 s.e.) and the
-    ``T_eps`` percentiles 10/50/90 of the converged starts (25-75 shaded)."""
+    """Panels against parameter ``res.names[column]``: the fraction converged (+- 1 s.e.), the
+    ``T_eps`` percentiles 10/50/90 of the converged starts (25-75 shaded) and, when the effort was
+    recorded, the median control energy and median peak ``||u||`` of the converged starts (a third
+    panel; pass two ``axes`` to leave it out)."""
     if axes is None:
-        fig = _new_figure((11.0, 4.2))
-        axes = fig.subplots(1, 2)
-    ax_f, ax_t = axes
+        n = 3 if _has_effort(res) else 2
+        fig = _new_figure((5.4 * n, 4.2))
+        axes = fig.subplots(1, n)
+    ax_f, ax_t = axes[0], axes[1]
     fig = ax_f.figure
     x = res.values[:, column]
     order = np.argsort(x, kind="stable")
     x = x[order]
     S, se = (a[order] for a in res.fractions())
     pct = res.percentiles()[order]
+    if len(axes) > 2:
+        eff = res.effort_medians()
+        ax_e = axes[2]
+        e = eff.get("u_energy_median", np.full(x.size, np.nan))[order]
+        pk = eff.get("u_norm_peak_median", np.full(x.size, np.nan))[order]
+        ax_e.plot(x, e, "o-", ms=4, color="C2", label=r"median $\int_0^T \|u\|^2 dt$")
+        ax_e.set_ylabel(r"control energy $\int_0^T \|u\|^2 dt$ of the converged", color="C2")
+        ax_p = ax_e.twinx()
+        ax_p.plot(x, pk, "s--", ms=4, color="C4", label=r"median peak $\|u\|$")
+        ax_p.set_ylabel(r"peak $\|u\|$ of the converged", color="C4")
+        fin = e[np.isfinite(e)]
+        if fin.size > 1 and fin.min() > 0 and fin.max() / fin.min() > 20:
+            ax_e.set_yscale("log")
+        ax_e.legend(handles=ax_e.get_lines() + ax_p.get_lines(), fontsize=8)
     ax_f.errorbar(x, S, yerr=se, marker="o", ms=4, capsize=3, color="C0")
     ax_f.set_ylim(-0.03, 1.03)
     ax_f.set_ylabel("fraction converged")
@@ -44,6 +66,7 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
         ax_t.plot(x, pct[:, [0, 2, 4][j]], ls, color="C1", marker="o" if q == 50 else None, ms=4, label=f"p{q}")
     ax_t.set_ylabel("T_eps of the converged [s]")
     ax_t.legend(fontsize=8)
+    axes = list(axes)
     log = any(a.log for a in res.axes if a.name == res.names[column]) or (
         not res.axes and np.all(x > 0) and x.max() / x.min() > 20)
     for ax in axes:
@@ -56,13 +79,15 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
 
 
 def plot_sweep_grid(res: SweepResult, axes=None):
-    """Two heat maps over a grid of two parameters: the fraction converged and the median ``T_eps``
-    (rows: the first parameter, columns: the second)."""
+    """Heat maps over a grid of two parameters: the fraction converged, the median ``T_eps`` and,
+    when the effort was recorded, the median control energy of the converged starts (rows: the
+    first parameter, columns: the second; pass two ``axes`` to leave the third out)."""
     if len(res.grid_shape) != 2:
         raise ValueError("a heat map needs a sweep over two parameters (two --param)")
     if axes is None:
-        fig = _new_figure((11.5, 4.6))
-        axes = fig.subplots(1, 2)
+        n = 3 if _has_effort(res) else 2
+        fig = _new_figure((5.75 * n, 4.6))
+        axes = fig.subplots(1, n)
     fig = axes[0].figure
     n1, n2 = res.grid_shape
     a1, a2 = res.axes if res.axes else (None, None)
@@ -70,8 +95,13 @@ def plot_sweep_grid(res: SweepResult, axes=None):
     v2 = res.values[:n2, 1]
     S = res.fraction.reshape(n1, n2)
     med = res.percentiles((50.0,))[:, 0].reshape(n1, n2)
-    for ax, data, title, cmap, vr in ((axes[0], S, "fraction converged", "viridis", (0, 1)),
-                                      (axes[1], med, "median T_eps of the converged [s]", "magma_r", (None, None))):
+    panels = [(axes[0], S, "fraction converged", "viridis", (0, 1)),
+              (axes[1], med, "median T_eps of the converged [s]", "magma_r", (None, None))]
+    if len(axes) > 2:
+        energy = res.effort_medians().get("u_energy_median", np.full(n1 * n2, np.nan)).reshape(n1, n2)
+        panels.append((axes[2], energy, r"median $\int_0^T \|u\|^2 dt$ of the converged", "cividis",
+                       (None, None)))
+    for ax, data, title, cmap, vr in panels:
         im = ax.imshow(data, origin="lower", aspect="auto", cmap=cmap, vmin=vr[0], vmax=vr[1],
                        extent=(-0.5, n2 - 0.5, -0.5, n1 - 0.5))
         ax.set_xticks(range(n2), [f"{v:.3g}" for v in v2], rotation=45 if n2 > 6 else 0, fontsize=8)

@@ -2,6 +2,8 @@
 
 * a sweep equals the separate runs it replaces (same status, same T_eps to rounding, per start and
   value), across chunk boundaries, for gains and plant parameters (knife edge included);
+* the effort summaries per value (median control energy and peak ||u|| of the converged starts)
+  equal the medians of the separate runs;
 * changing the values does not recompile (the jit caches of the stepper's kernels do not grow);
 * per-lane runs of the knife edge and of a sampled plant with viscous damping agree with scipy's
   DOP853 (rtol 1e-10, float64) integrating the physical-chart vector field;
@@ -34,16 +36,43 @@ def ml_sweep():
     return sweep(STARTS, ["m=1:3:2", "l=0:1.5:2"], x64=True, chunk_size=5, progress=False, **FAST)
 
 
-def test_sweep_equals_separate_runs(ml_sweep):
+@pytest.fixture(scope="module")
+def ml_separate(ml_sweep):
+    """The separate runs that ``ml_sweep`` replaces, one per value set."""
+    return [jaxsleigh.run_ensemble(STARTS.ics, plant=plant_params(m, 1.0, l), x64=True, progress=False, **FAST)
+            for m, l in ml_sweep.values]
+
+
+def test_sweep_equals_separate_runs(ml_sweep, ml_separate):
     r = ml_sweep
     assert r.T_eps.shape == r.status.shape == (4, 6) and r.grid_shape == (2, 2)
     np.testing.assert_array_equal(r.values, [[1, 0], [1, 1.5], [3, 0], [3, 1.5]])
     assert 0 < r.converged.sum() < r.converged.size           # the check means something
-    for p, (m, l) in enumerate(r.values):
-        one = jaxsleigh.run_ensemble(STARTS.ics, plant=plant_params(m, 1.0, l), x64=True, progress=False, **FAST)
+    for p, one in enumerate(ml_separate):
         np.testing.assert_array_equal(r.status[p], one.status)
         np.testing.assert_array_equal(np.isfinite(r.T_eps[p]), np.isfinite(one.T_eps))
         np.testing.assert_allclose(r.T_eps[p], one.T_eps, rtol=1e-9, atol=1e-9)
+
+
+def test_effort_medians_equal_those_of_separate_runs(ml_sweep, ml_separate, tmp_path):
+    """Per value set: the median control energy and peak ||u|| of the converged starts."""
+    med = ml_sweep.effort_medians()
+    assert set(med) == {"u_energy_median", "u_norm_peak_median"}
+    for p, one in enumerate(ml_separate):
+        c = one.converged()
+        assert c.any()                                         # every value set has converged starts
+        np.testing.assert_allclose(med["u_energy_median"][p], np.median(one.u_energy[c]), rtol=1e-9)
+        np.testing.assert_allclose(med["u_norm_peak_median"][p], np.median(one.u_norm_peak[c]), rtol=1e-9)
+    assert np.all(med["u_energy_median"] > 0) and np.all(med["u_norm_peak_median"] > 0)
+    path = save_sweep(tmp_path / "e.npz", ml_sweep)
+    with np.load(path) as z:
+        for k, v in med.items():
+            assert z[k].shape == (4,)
+            np.testing.assert_array_equal(z[k], v)
+    assert "median int|u|^2" in ml_sweep.table()
+    # a value set with no converged start has NaN medians, without warnings
+    none = ml_sweep._replace(T_eps=np.full_like(ml_sweep.T_eps, np.inf))
+    assert all(np.isnan(v).all() for v in none.effort_medians().values())
 
 
 def test_gain_sweep_equals_separate_runs_and_does_not_recompile():
@@ -137,7 +166,7 @@ CLI = ["sweep", "--param", "k=0.05:0.4:3:log", "--samples", "6", "--seed", "3", 
 KEYS = {"names", "values", "ics", "T_eps", "status", "fraction", "fraction_se", "T_eps_percentiles",
         "status_counts", "status_codes", "n_valid", "n_converged", "grid_shape", "axis_k", "settings_json",
         "eps", "t_final", "dt", "method", "dtype", "max_steps", "gains_L", "gains_k", "gains_D_hat", "params",
-        "damping"}
+        "damping", "u_energy", "u_norm_peak", "u_energy_median", "u_norm_peak_median"}
 
 
 def test_cli_writes_documented_keys_and_resumes_byte_identically(tmp_path, monkeypatch, capsys):
