@@ -17,6 +17,7 @@ import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
 from .status import Status
+from .observers import DEFAULT_OBSERVERS
 from .stepper import Controls, StepState, init_batch, is_active, run_plain, run_saving, run_segment
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
@@ -197,19 +198,20 @@ def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype) -> jax.Array:
     return jnp.asarray(yw, dtype)
 
 
-@functools.partial(jax.jit, static_argnames=())
-def _init_batch(y0w, status0, args, ctl):
-    return init_batch(y0w, status0, args, ctl)
+@functools.partial(jax.jit, static_argnames=("observers",))
+def _init_batch(y0w, status0, args, ctl, observers=DEFAULT_OBSERVERS):
+    return init_batch(y0w, status0, args, ctl, observers=observers)
 
 
-@functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive", "monitor"), donate_argnums=(0,))
-def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True):
-    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive, monitor=monitor)
+@functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
+def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
+    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive, monitor=monitor,
+                       observers=observers)
 
 
-@functools.partial(jax.jit, static_argnames=("adaptive", "monitor"), donate_argnums=(0,))
-def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True):
-    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor)
+@functools.partial(jax.jit, static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
+def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
+    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
 
 
 def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None) -> Controls:
@@ -250,8 +252,10 @@ def _finish(full: StepState, t_final: float) -> StepState:
 
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
                 atol: float, eps: float, max_steps: int, max_step=None, segment: int = 1000,
-                compact: bool = True, monitor: bool = True, progress=None, mesh=None) -> StepState:
-    """Run a batch to the horizon keeping only the final state and the on-line summaries.
+                compact: bool = True, monitor: bool = True, progress=None, mesh=None,
+                observers=DEFAULT_OBSERVERS) -> StepState:
+    """Run a batch to the horizon keeping only the final state and the on-line summaries
+    (``observers``, :mod:`jaxsleigh.observers`).
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
@@ -279,9 +283,9 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     if lanes:                                # per-lane parameters: one lane per trajectory of the batch
         lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
-        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
     else:
-        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
     if mesh is not None:
         state = shard_batch(state, mesh)
         if lanes:
@@ -313,7 +317,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
                 if lanes:
                     args = shard_batch(args, mesh)
             idx = np.concatenate([idx[keep], np.full(size - keep.size, -1)])
-        state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor)
+        state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor, observers)
     host = jax.tree_util.tree_map(np.asarray, state)
     full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
     return _finish(full, horizon.t_final)
@@ -321,7 +325,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
 
 def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
                  atol: float, eps: float, max_steps: int, max_step=None, block: int = 100,
-                 monitor: bool = True, progress=None):
+                 monitor: bool = True, progress=None, observers=DEFAULT_OBSERVERS):
     """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
@@ -333,13 +337,14 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
     if has_lanes(args.plant, args.gains):
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
                                       ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))
-        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
     else:
-        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl)
+        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):
-        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive, monitor)
+        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive, monitor,
+                                  observers)
         out.append(np.asarray(ys))
         if progress is not None:
             progress.update(min(i + block, save_times.size) / save_times.size)

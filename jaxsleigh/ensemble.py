@@ -83,6 +83,7 @@ class EnsembleResult(NamedTuple):
     q_traj: Optional[np.ndarray] = None
     p_traj: Optional[np.ndarray] = None
     params: Optional[dict] = None
+    observed: Optional[dict] = None
 
     def converged(self) -> np.ndarray:
         """Boolean (N,): OK and settled within the horizon."""
@@ -112,8 +113,9 @@ def _to_q_batch(yw):
     return jax.vmap(state_from_w)(yw)
 
 
-def _chunk_summaries(final, y0w, status0, args) -> dict:
-    """Host-side summaries of one chunk from the final (batch-last) stepper state."""
+def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> dict:
+    """Host-side summaries of one chunk from the final (batch-last) stepper state. Standard
+    summaries that no observer provides are NaN; other observers' results are added by name."""
     status = np.asarray(final.status)
     ok = status == Status.OK
     y = np.moveaxis(np.asarray(final.y), -1, 0)
@@ -123,10 +125,14 @@ def _chunk_summaries(final, y0w, status0, args) -> dict:
     invalid = np.asarray(status0) != Status.OK
     hd0 = np.array(_hd_any(y0w, args), np.float64)
     hd0[invalid] = np.nan
-    obs = collect(DEFAULT_OBSERVERS, final.obs, final.quad)
+    obs = collect(observers, final.obs, final.quad)
+    n = status.shape[0]
+    for k, shape in (("T_eps", ()), ("min_abs_theta", ()), ("max_excursion", ()), ("u_peak", (2,)),
+                     ("u_norm_peak", ()), ("u_energy", ()), ("u_abs_int", ())):
+        obs.setdefault(k, np.full((n,) + shape, np.nan))
     out = {
         "q": yq[:, :3], "p": yq[:, 3:],
-        "T_eps": np.where(ok, obs["T_eps"], np.nan),
+        "T_eps": np.where(ok, obs.pop("T_eps"), np.nan),
         "Hd0": hd0,
         "Hd_final": np.where(ok, np.asarray(final.Hd, np.float64), np.nan),
         "t_reached": np.where(invalid, np.nan, np.asarray(final.t, np.float64)),
@@ -134,8 +140,7 @@ def _chunk_summaries(final, y0w, status0, args) -> dict:
         "n_rejected": np.asarray(final.n_reject, np.int64),
         "status": status.astype(np.int32),
     }
-    for k in ("min_abs_theta", "max_excursion", "u_peak", "u_norm_peak", "u_energy", "u_abs_int"):
-        v = obs[k]
+    for k, v in obs.items():
         out[k] = np.where(invalid.reshape((-1,) + (1,) * (v.ndim - 1)), np.nan, v)
     return out
 
@@ -171,7 +176,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  chunk_size: int = 65536, segment: int = 1000, check_passivity: bool = True,
                  summaries: bool = True,
                  devices: Any = None, checkpoint_dir=None, resume: bool = False,
-                 progress: Any = None, shard: Optional[tuple] = None) -> Optional[EnsembleResult]:
+                 progress: Any = None, shard: Optional[tuple] = None,
+                 observers: Optional[tuple] = None) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
     Args:
@@ -194,6 +200,9 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         ``save_every``) runs plain RK4 for the final state only: no per-step checks or summaries
         (``T_eps``, ``min_abs_theta``, ``max_excursion`` come back NaN); the status is judged at
         the end (non-finite, or theta ended with the other sign). The fastest mode.
+      observers: the on-line summaries (:mod:`jaxsleigh.observers`; default
+        :data:`~jaxsleigh.observers.DEFAULT_OBSERVERS`). The standard fields of the result that no
+        given observer provides are NaN; other observers' results are in ``result.observed``.
       devices: devices to shard each chunk over (default: all of ``jax.devices()``).
       checkpoint_dir: write every finished chunk there (atomically: a file is either complete or
         absent); with ``resume=True`` reuse the finished chunks of an earlier run with the same
@@ -254,6 +263,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
             **cfg.settings(), "save_every": save_every, "chunk_size": chunk_size, "summaries": bool(summaries),
             "devices": [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])],
         }
+        if observers is not None:
+            settings["observers"] = [repr(o) for o in observers]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
         chunk = -(-chunk // n_dev) * n_dev
@@ -263,7 +274,9 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
             store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "settings": settings})
         args = ClosedLoop(plant, gains)
         parts, reused = [], 0
-        fields = SUMMARY_FIELDS + (("q_traj", "p_traj") if save_every is not None else ())
+        observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
+        extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
+        fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
         with Progress(progress, desc=f"ensemble ({n} ics)") as bar:
             starts = list(range(0, n, chunk))
@@ -298,11 +311,11 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                                                          progress=_Sub()), y0w, st, args, horizon)
                 elif save_every is None:
                     final = drive_final(y0w, st, args, horizon, segment=segment, progress=_Sub(),
-                                        mesh=mesh, **kw)
-                    part = _chunk_summaries(final, y0w, st, args)
+                                        mesh=mesh, observers=observers, **kw)
+                    part = _chunk_summaries(final, y0w, st, args, observers)
                 else:
-                    final, ys = drive_saving(y0w, st, args, horizon, progress=_Sub(), **kw)
-                    part = _chunk_summaries(final, y0w, st, args)
+                    final, ys = drive_saving(y0w, st, args, horizon, progress=_Sub(), observers=observers, **kw)
+                    part = _chunk_summaries(final, y0w, st, args, observers)
                     yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
                     yq = np.array(jax.vmap(_to_q_batch)(jnp.asarray(yw)), np.float64)
                     yq[st != Status.OK] = np.nan
@@ -324,4 +337,6 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         from .lanes import lane_table
 
         traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
-    return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj)
+    observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
+    return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,
+                          observed=observed or None)

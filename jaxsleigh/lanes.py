@@ -21,6 +21,8 @@ of one run share the family and differ in its numbers.
 """
 from __future__ import annotations
 
+import functools
+
 import hashlib
 from typing import Any, Optional, Sequence
 
@@ -263,11 +265,13 @@ def _lane_record(leaf) -> Any:
     return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
 
 
-@jax.jit
-def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl):
+@functools.partial(jax.jit, static_argnames=("observers",))
+def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl, observers=None):
     """:func:`~jaxsleigh.stepper.init_batch` with canonical per-lane ``args`` (every leaf's last axis
     is the batch): the result is batch-last."""
+    from .observers import DEFAULT_OBSERVERS
     from .stepper import init_state
 
+    init = functools.partial(init_state, observers=DEFAULT_OBSERVERS if observers is None else observers)
     axes = jax.tree_util.tree_map(lambda _: -1, args)
-    return jax.vmap(init_state, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)
+    return jax.vmap(init, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)

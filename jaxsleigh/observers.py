@@ -11,8 +11,9 @@ An observer is a frozen dataclass (hashable: it is a static argument of the jitt
 * ``fields``: the names of its results;
 * ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``;
 * ``init(t0, y, u, ctl)`` -> tuple of arrays (its state at the start);
-* ``update(state, t_new, y_new, u_new, acc, ctl)`` -> state after a step (``acc``: the mask of
-  trajectories whose step was accepted; ``t_new``/``y_new``/``u_new``: after it);
+* ``update(state, step, ctl)`` -> state after an attempted step; ``step`` is a :class:`StepInfo`
+  (``acc``: the mask of trajectories whose step was accepted; the state, its derivative and the
+  control before and after; the step's start time and size, for the step's dense output);
 * ``integrand(y, u)`` -> tuple of ``n_quad`` arrays;
 * ``results(state, quad)`` -> dict of host NumPy arrays (batch axis first).
 
@@ -24,14 +25,15 @@ Every array broadcasts over a trailing batch axis (``y`` is (5,) or (5, N)). The
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .coordinates import f_w_inv
 
-__all__ = ["ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
+__all__ = ["StepInfo", "hermite", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
            "observer_fields", "collect", "q_norm2_w"]
 
 
@@ -42,28 +44,85 @@ def q_norm2_w(w):
     return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
 
 
+class StepInfo(NamedTuple):
+    """What an observer sees of one attempted step (every field broadcasts over the batch)."""
+
+    t: jax.Array          # start of the step
+    h: jax.Array          # its size (0 where a lane idles)
+    t_new: jax.Array      # its end, compensated (t + h up to rounding)
+    y: jax.Array          # (5,) state at the start
+    y_new: jax.Array      # (5,) state at the end
+    k1: jax.Array         # (5,) f(t, y)
+    k5: jax.Array         # (5,) f(t + h, y_new); None without FSAL
+    u_new: tuple          # control (u1, u2) at y_new; None if no observer needs it
+    acc: jax.Array        # bool: the step was accepted
+
+
+def hermite(step: StepInfo, theta, rows=slice(0, 3)):
+    r"""The step's dense output: the cubic Hermite interpolant through ``(y, k1)`` and
+    ``(y_new, k5)`` at the fraction ``theta`` of the step (rows ``rows``, default ``w``). RK4 with
+    these end-point derivatives is third-order accurate in between (the classical RK4 dense output
+    of Hairer, Norsett & Wanner, II.6)."""
+    t2, t3 = theta * theta, theta * theta * theta
+    h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + theta, 3 * t2 - 2 * t3, t3 - t2
+    y0, y1, f0, f1 = step.y[rows], step.y_new[rows], step.k1[rows], step.k5[rows]
+    return h00 * y0 + h01 * y1 + step.h * (h10 * f0 + h11 * f1)
+
+
 def _np(a) -> np.ndarray:
     return np.array(np.moveaxis(np.asarray(a, np.float64), -1, 0) if np.ndim(a) > 1 else np.asarray(a, np.float64))
 
 
 @dataclass(frozen=True)
 class ConvergenceTime:
-    r"""``T_eps``: the start of the last stay in the ball :math:`|q| \le \epsilon` (``ctl.eps``),
-    i.e. the first time after which every accepted step ends inside it (``inf`` while outside)."""
+    r"""``T_eps``: the start of the last stay in the ball :math:`|q| \le \epsilon` (``ctl.eps``), i.e.
+    the first time after which the trajectory stays inside (``inf`` while it is outside).
+
+    Located inside each step on the step's dense output (:func:`hermite`): ``samples`` points per
+    step tell whether the trajectory left the ball during the step, and ``bisections`` halvings
+    locate the last entry, to ``h / (samples 2^bisections)``. So ``T_eps`` keeps its resolution
+    however long the steps grow.
+    """
+
+    samples: int = 4
+    bisections: int = 12
 
     fields: ClassVar[tuple] = ("T_eps",)
     n_quad: ClassVar[int] = 0
     needs_control: ClassVar[bool] = False
+    needs_dense: ClassVar[bool] = True
 
     def init(self, t0, y, u, ctl):
         inside = q_norm2_w(y[:3]) <= ctl.eps * ctl.eps
         return (jnp.where(inside, t0, jnp.inf).astype(y.dtype),)
 
-    def update(self, state, t_new, y_new, u_new, acc, ctl):
+    def update(self, state, step, ctl):
         (t_enter,) = state
-        inside = q_norm2_w(y_new[:3]) <= ctl.eps * ctl.eps
-        return (jnp.where(acc, jnp.where(inside, jnp.minimum(t_enter, t_new), jnp.inf), t_enter)
-                .astype(t_enter.dtype),)
+        dtype = t_enter.dtype
+        eps2 = ctl.eps * ctl.eps
+        outside = lambda th: q_norm2_w(hermite(step, th)) > eps2  # noqa: E731
+        inside_end = q_norm2_w(step.y_new[:3]) <= eps2
+        # the last sample point (theta = j / samples, j < samples) outside the ball; -1 if none
+        last_out = jnp.full(inside_end.shape, -1, jnp.int32)
+        for j in range(self.samples):
+            th = jnp.asarray(j / self.samples, dtype)
+            out_j = (q_norm2_w(step.y[:3]) > eps2) if j == 0 else outside(th)
+            last_out = jnp.where(out_j, j, last_out)
+        # bisect between that point (outside) and the next one (inside, or the end) for the entry
+        lo = last_out.astype(dtype) / self.samples
+        hi = jnp.minimum(lo + 1.0 / self.samples, 1.0)
+
+        def bisect(_, bracket):
+            lo, hi = bracket
+            mid = 0.5 * (lo + hi)
+            o = outside(mid)
+            return jnp.where(o, mid, lo), jnp.where(o, hi, mid)
+
+        # a loop, not unrolled: the step's program stays small (compile time) for any count
+        lo, hi = jax.lax.fori_loop(0, self.bisections, bisect, (lo, hi))
+        entry = jnp.where(hi >= 1.0, step.t_new, step.t + hi * step.h).astype(dtype)
+        new = jnp.where(inside_end, jnp.where(last_out >= 0, entry, t_enter), jnp.inf)
+        return (jnp.where(step.acc, new, t_enter).astype(dtype),)
 
     def integrand(self, y, u):
         return ()
@@ -79,12 +138,13 @@ class ClosestApproach:
     fields: ClassVar[tuple] = ("min_abs_theta",)
     n_quad: ClassVar[int] = 0
     needs_control: ClassVar[bool] = False
+    needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl):
         return (jnp.abs(y[0]),)
 
-    def update(self, state, t_new, y_new, u_new, acc, ctl):
-        return (jnp.where(acc, jnp.minimum(state[0], jnp.abs(y_new[0])), state[0]),)
+    def update(self, state, step, ctl):
+        return (jnp.where(step.acc, jnp.minimum(state[0], jnp.abs(step.y_new[0])), state[0]),)
 
     def integrand(self, y, u):
         return ()
@@ -100,12 +160,13 @@ class Excursion:
     fields: ClassVar[tuple] = ("max_excursion",)
     n_quad: ClassVar[int] = 0
     needs_control: ClassVar[bool] = False
+    needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl):
         return (q_norm2_w(y[:3]),)
 
-    def update(self, state, t_new, y_new, u_new, acc, ctl):
-        return (jnp.where(acc, jnp.maximum(state[0], q_norm2_w(y_new[:3])), state[0]),)
+    def update(self, state, step, ctl):
+        return (jnp.where(step.acc, jnp.maximum(state[0], q_norm2_w(step.y_new[:3])), state[0]),)
 
     def integrand(self, y, u):
         return ()
@@ -128,13 +189,14 @@ class ControlEffort:
     fields: ClassVar[tuple] = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int")
     n_quad: ClassVar[int] = 2
     needs_control: ClassVar[bool] = True
+    needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl):
         return (jnp.abs(u[0]), jnp.abs(u[1]), jnp.sqrt(u[0] * u[0] + u[1] * u[1]))
 
-    def update(self, state, t_new, y_new, u_new, acc, ctl):
-        new = self.init(t_new, y_new, u_new, ctl)
-        return tuple(jnp.where(acc, jnp.maximum(a, b), a) for a, b in zip(state, new))
+    def update(self, state, step, ctl):
+        new = self.init(step.t_new, step.y_new, step.u_new, ctl)
+        return tuple(jnp.where(step.acc, jnp.maximum(a, b), a) for a, b in zip(state, new))
 
     def integrand(self, y, u):
         e = u[0] * u[0] + u[1] * u[1]

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, vector_field_w, vector_field_w_control
-from .observers import DEFAULT_OBSERVERS, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
+from .observers import DEFAULT_OBSERVERS, StepInfo, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
 from .rk4 import rk4_stages, rk4_step
 from .status import Status
 
@@ -93,8 +93,9 @@ def _integrands(observers, y, u, dtype):
     return jnp.stack(rows).astype(dtype) if rows else jnp.zeros((0,) + y.shape[1:], dtype)
 
 
-def _needs_control(observers) -> bool:
-    return any(o.needs_control or o.n_quad for o in observers)
+def _needs_fsal(observers) -> bool:
+    """Whether some observer needs f(y_new) (dense output) or the control at y_new."""
+    return any(o.needs_control or o.n_quad or getattr(o, "needs_dense", False) for o in observers)
 
 
 def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=DEFAULT_OBSERVERS) -> StepState:
@@ -175,10 +176,10 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     # an idle lane still computes (the whole batch steps together); give it a harmless step
     h = jnp.where(active, h, jnp.zeros_like(h))
 
-    # Without observers of the control, fixed steps recompute k1 = f(y) (no FSAL): carrying
-    # f(y_new) across steps ran ~2x slower on XLA:CPU there, and fixed RK4 needs no fifth
-    # evaluation for an error estimate. Observers of u need f(y_new) anyway (u comes with it).
-    fsal = adaptive or _needs_control(observers)
+    # Without observers of the control or of the dense output, fixed steps recompute k1 = f(y)
+    # (no FSAL): carrying f(y_new) across steps ran ~2x slower on XLA:CPU there, and fixed RK4
+    # needs no fifth evaluation for an error estimate. Those observers need f(y_new) anyway.
+    fsal = adaptive or _needs_fsal(observers)
     k1 = s.k1 if fsal else f(s.t, s.y, args)
     if s.quad.shape[0]:
         dy, k4, dq = _stages_with_quadrature(s.t, s.y, h, args, k1, s.g1, observers)
@@ -230,6 +231,8 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     t_hi, t_err = _two_sum(s.t, h)
     t_new = jnp.where(hit, target, t_hi)
     t_lo_new = jnp.where(hit, jnp.zeros_like(s.t_lo), s.t_lo + t_err)
+    info = StepInfo(t=s.t, h=h, t_new=t_new + t_lo_new, y=s.y, y_new=y_new, k1=k1, k5=k5 if fsal else None,
+                    u_new=u_new, acc=acc)
     if s.quad.shape[0]:
         g_new = _integrands(observers, y_new, u_new, dtype)
         quad, g1 = jnp.where(acc, s.quad + dq, s.quad), jnp.where(acc, g_new, s.g1)
@@ -245,7 +248,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         n_accept=s.n_accept + acc.astype(jnp.int32),
         n_reject=s.n_reject + rej.astype(jnp.int32),
         Hd=jnp.where(acc, Hd_new, s.Hd),
-        obs=tuple(o.update(st, t_new + t_lo_new, y_new, u_new, acc, ctl) for o, st in zip(observers, s.obs)),
+        obs=tuple(o.update(st, info, ctl) for o, st in zip(observers, s.obs)),
         quad=quad, g1=g1,
     )
 

@@ -114,3 +114,56 @@ def test_effort_is_nan_where_a_start_was_not_integrated():
     with pytest.warns(js.errors.FlaggedStartsWarning):
         res = js.run_ensemble([[1.0, 1.0, 0.5], [1.0, 1.0, 0.0]], t_final=1.0, progress=False)
     assert np.isfinite(res.u_energy[0]) and np.isnan(res.u_energy[1]) and np.all(np.isnan(res.u_peak[1]))
+
+
+# ---------------------------------------------------------------------------------------------
+# T_eps on the step's dense output
+# ---------------------------------------------------------------------------------------------
+
+def _step(y, y_new, k1, k5, t=10.0, h=1.0):
+    from jaxsleigh.observers import StepInfo
+
+    a = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    return StepInfo(t=a(t), h=a(h), t_new=a(t + h), y=a(y), y_new=a(y_new), k1=a(k1), k5=a(k5), u_new=None,
+                    acc=jnp.asarray(True))
+
+
+@pytest.mark.usefixtures("x64")
+def test_convergence_time_locates_the_entry_inside_a_step():
+    from jaxsleigh.observers import ConvergenceTime
+    from jaxsleigh.stepper import Controls
+
+    ctl = Controls(*(jnp.asarray(v, jnp.float64) for v in (0.01, 0.1, 1e-8, 1e-8, 0.05)), max_steps=jnp.asarray(10))
+    ct = ConvergenceTime()
+    # |q| = |w1| along w = (w1, 0, 0); w1 falls linearly from 0.2 to 0.02: it enters at w1 = 0.05
+    d = [-0.18, 0, 0, 0, 0]
+    (t,) = ct.update((jnp.asarray(jnp.inf),), _step([0.2, 0, 0, 0, 0], [0.02, 0, 0, 0, 0], d, d), ctl)
+    assert abs(float(t) - (10.0 + 0.15 / 0.18)) < 1e-3
+    # inside at both ends but outside in between (w1 = 0.01 + s - s^2 on the dense output): the stay
+    # that counts starts at the re-entry, s = (1 + sqrt(0.84)) / 2, not before the step
+    (t,) = ct.update((jnp.asarray(3.0),), _step([0.01, 0, 0, 0, 0], [0.01, 0, 0, 0, 0], [1, 0, 0, 0, 0],
+                                                  [-1, 0, 0, 0, 0]), ctl)
+    assert abs(float(t) - (10.0 + (1 + np.sqrt(0.84)) / 2)) < 1e-3
+    # the 0.1 release's rule (samples=1, bisections=0) takes the end of the entering step instead
+    (t,) = ConvergenceTime(1, 0).update((jnp.asarray(jnp.inf),), _step([0.2, 0, 0, 0, 0], [0.02, 0, 0, 0, 0], d, d),
+                                        ctl)
+    assert float(t) == 11.0
+    # a step that ends outside resets it; a rejected step changes nothing
+    (t,) = ct.update((jnp.asarray(3.0),), _step([0.02, 0, 0, 0, 0], [0.2, 0, 0, 0, 0], [0.18] + [0] * 4,
+                                                  [0.18] + [0] * 4), ctl)
+    assert float(t) == np.inf
+    s = _step([0.02, 0, 0, 0, 0], [0.2, 0, 0, 0, 0], [0.18] + [0] * 4, [0.18] + [0] * 4)._replace(
+        acc=jnp.asarray(False))
+    assert float(ct.update((jnp.asarray(3.0),), s, ctl)[0]) == 3.0
+
+
+def test_dense_t_eps_with_long_steps_matches_a_float64_reference():
+    """With steps up to 1 s (100 dt), T_eps stays within 1e-3 s of a float64 run at 1e-11."""
+    from jaxsleigh.bench import workload
+
+    ics = workload(24, seed=3)
+    ref = js.run_ensemble(ics, x64=True, rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000, progress=False)
+    res = js.run_ensemble(ics, max_step=1.0, progress=False)
+    both = np.isfinite(ref.T_eps) & np.isfinite(res.T_eps)
+    assert both.sum() >= 18 and np.array_equal(np.isfinite(ref.T_eps), np.isfinite(res.T_eps))
+    assert np.max(np.abs(res.T_eps[both] - ref.T_eps[both])) < 1e-3

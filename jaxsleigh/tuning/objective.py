@@ -16,6 +16,7 @@ from ..engine import check_ics, initial_w
 from ..params import Gains, PlantParams
 from ..plant import velocity_components
 from ..status import Status
+from ..observers import ClosestApproach, Excursion
 from ..stepper import Controls, StepState, attempt, init_state, is_active, q_norm2_w
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
@@ -23,6 +24,8 @@ from .starts import PlantDistribution, guard_starts, plant_groups
 
 __all__ = ["LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "soft_convergence", "objective"]
 
+#: The stepper's observers inside the differentiated objective: only what LaneSummary reports.
+_OBSERVERS = (ClosestApproach(), Excursion())
 
 
 class LossConfig(NamedTuple):
@@ -148,7 +151,8 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
     theta_b = jnp.asarray(cfg.theta_barrier, dtype)
     r_stop2 = jnp.square(jnp.asarray(cfg.stop_fraction, dtype) * eps)
     in_axes = (0, 0, ClosedLoop(_plant_axes(plant), None), None)
-    s0 = jax.vmap(init_state, in_axes=in_axes, out_axes=-1)(y0w, jnp.zeros(n, jnp.int32), args, ctl)
+    s0 = jax.vmap(functools.partial(init_state, observers=_OBSERVERS), in_axes=in_axes,
+                  out_axes=-1)(y0w, jnp.zeros(n, jnp.int32), args, ctl)
     if adaptive:
         sc = ctl.atol + ctl.rtol * jnp.abs(s0.y)
         d0 = jnp.sqrt(jnp.mean(jnp.square(s0.y / sc), axis=0))
@@ -163,7 +167,7 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
 
     def body(carry, _):
         s, soft, bar, (energy, e0, peak2) = carry
-        s_new = attempt(s, target_of(s), args, ctl, adaptive=adaptive)
+        s_new = attempt(s, target_of(s), args, ctl, adaptive=adaptive, observers=_OBSERVERS)
         h = (s_new.t - s.t) + (s_new.t_lo - s.t_lo)       # 0 unless accepted; no gradient (times are fixed)
         phi0, phi1 = _soft_indicator(s.y, eps, tau), _soft_indicator(s_new.y, eps, tau)
         soft = soft + h * 0.5 * (phi0 + phi1)
@@ -193,8 +197,9 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
     ok = (s.status == Status.OK) & (stopped | (s.t >= T))
     # a failed lane counts as never converging for the rest of the horizon (value only)
     soft = soft + jax.lax.stop_gradient(jnp.where(ok, 0.0, jnp.maximum(T - s.t, 0.0)))
-    lanes = LaneSummary(soft, bar, ok, stopped, s.t, s.status, s.n_accept + s.n_reject, s.min_abs_theta,
-                        jnp.sqrt(s.max_q2))
+    (min_abs_theta,), (max_q2,) = s.obs
+    lanes = LaneSummary(soft, bar, ok, stopped, s.t, s.status, s.n_accept + s.n_reject, min_abs_theta,
+                       jnp.sqrt(max_q2))
     return lanes._replace(energy=energy, u_peak=jnp.sqrt(peak2))
 
 
