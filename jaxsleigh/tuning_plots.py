@@ -6,6 +6,10 @@
 * :func:`plot_convergence_times`: empirical distribution (CDF) and histogram of ``T_eps`` per set
   of gains, medians marked.
 * :func:`plot_per_plant`: median ``T_eps`` and the fraction converged per plant, per set of gains.
+* :func:`plot_effort_history`: the effort-budgeted run: training energy against its budget, the
+  multiplier, and the integration-cost probe against its budget with the returned iteration marked.
+* :func:`plot_front`: the time-effort Pareto front (median T_0.05 against median control energy on
+  held-out starts) with reference gains and a random-search baseline.
 
 Like :mod:`jaxsleigh.plotting`, everything builds :class:`matplotlib.figure.Figure` objects (no
 ``pyplot``, no global state) and accepts ``ax``/``axes`` to draw into existing figures.
@@ -18,7 +22,8 @@ import numpy as np
 
 from .plotting import _new_figure, plot_paths, save_figure
 
-__all__ = ["plot_history", "plot_paths_before_after", "plot_convergence_times", "plot_per_plant", "save_figure"]
+__all__ = ["plot_history", "plot_paths_before_after", "plot_convergence_times", "plot_per_plant",
+           "plot_effort_history", "plot_front", "save_figure"]
 
 
 def _field(obj, name):
@@ -210,3 +215,111 @@ def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, hori
     axes[1].grid(True, axis="x", alpha=0.3)
     fig.suptitle("Robustness: the same gains on other plants (held-out starts, accurate engine)", fontsize=11)
     return fig
+
+
+def plot_effort_history(history, *, budget: float, probe_budget: Optional[float] = None,
+                        returned: Optional[int] = None, axes=None, title: str = "Effort-budgeted tuning"):
+    """Three panels per iteration: the batch's geometric-mean control energy against ``budget``; the
+    soft time f and the augmented Lagrangian's multiplier; the probe's most attempted steps per 100 s
+    against ``probe_budget`` (rejections by the probe marked). ``returned``: the iteration whose gains
+    were returned, marked on every panel (where the probe's steps sit far below its budget, the
+    integrator did not shape the answer)."""
+    energy = np.asarray(_field(history, "energy"), float)
+    soft = np.asarray(_field(history, "soft_loss"), float)
+    lam = np.asarray(_field(history, "multiplier"), float)
+    probe = np.asarray(_field(history, "probe_attempts"), float)
+    active = np.asarray(_field(history, "probe_active"), bool)
+    valid = np.asarray(_field(history, "valid"), bool)
+    it = np.arange(energy.size)
+    if axes is None:
+        fig = _new_figure((7.0, 7.5))
+        axes = fig.subplots(3, 1, sharex=True)
+        own = True
+    else:
+        axes = list(axes)
+        fig, own = axes[0].figure, False
+    ax = axes[0]
+    ax.semilogy(it[valid], energy[valid], ".-", color="C0", markersize=3, linewidth=1, label="candidate")
+    ax.axhline(budget, color="k", linestyle="--", linewidth=1, label="energy budget")
+    ax.set_ylabel("geometric-mean\n∫|u|² dt (training)")
+    ax = axes[1]
+    ax.plot(it[valid], soft[valid], ".-", color="C1", markersize=3, linewidth=1, label="soft time f")
+    ax.set_ylabel("f (soft time ÷ horizon)")
+    ax2 = ax.twinx()
+    ax2.plot(it, lam, color="C4", linewidth=1, label="multiplier λ")
+    ax2.set_ylabel("λ", color="C4")
+    ax = axes[2]
+    shown = np.isfinite(probe)
+    ax.semilogy(it[shown & ~active], probe[shown & ~active], ".", color="C2", markersize=3, label="probe within budget")
+    if np.any(active):
+        ax.semilogy(it[active], probe[active], "x", color="C3", markersize=5, label="probe active (rejected)")
+    if probe_budget is not None:
+        ax.axhline(probe_budget, color="k", linestyle="--", linewidth=1, label="probe budget")
+    ax.set_ylabel("most attempted steps\nof a probe per 100 s")
+    ax.set_xlabel("iteration")
+    for a in axes:
+        if returned is not None:
+            a.axvline(returned, color="C3", linewidth=1, alpha=0.6, label="returned gains" if a is axes[0] else None)
+        a.grid(True, alpha=0.3, which="both")
+        a.legend(fontsize=8, loc="best")
+    if own:
+        fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def _front_xy(points):
+    e = np.array([float(p["evaluation"]["median_energy"]) for p in points])
+    t = np.array([float(p["evaluation"]["median_T_0.05_s"]) for p in points])
+    se = np.array([float(p["evaluation"]["median_se_s"]) for p in points])
+    return e, t, np.where(np.isfinite(se), se, 0.0)
+
+
+def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references: Optional[Mapping] = None,
+               highlight: Optional[Mapping] = None, ax=None, title: str = "Time-effort Pareto front"):
+    """Median T_0.05 (± s.e.) against median control energy on held-out starts, log-log.
+
+    Args:
+      front: a front document (:func:`jaxsleigh.tuning.front_dict` / ``front.json``) whose points
+        were evaluated.
+      baseline: another front document (e.g. :func:`jaxsleigh.tuning.random_search`), drawn dashed.
+      references: ``{name: figures}`` (the documents' ``references`` entries, e.g. paper and tuned;
+        default: ``front["references"]``), drawn as labelled markers.
+      highlight: ``{name: figures}`` to mark specially (e.g. the ``balanced`` preset).
+    """
+    if ax is None:
+        fig = _new_figure((7.0, 5.0))
+        ax = fig.add_subplot(1, 1, 1)
+    fig = ax.figure
+    pts = [p for p in front["points"] if "evaluation" in p]
+    e, t, se = _front_xy(pts)
+    ax.errorbar(e, t, yerr=se, fmt="o-", color="C0", markersize=4, capsize=2,
+                label=f"gradient front ({front.get('method', '')}, {front.get('evaluations', '?')} evaluations)")
+    if baseline is not None:
+        bp = [p for p in baseline["points"] if "evaluation" in p]
+        if bp:
+            be, bt, bse = _front_xy(bp)
+            ax.errorbar(be, bt, yerr=bse, fmt="s--", color="C7", markersize=4, capsize=2,
+                        label=f"random search ({baseline.get('evaluations', '?')} evaluations)")
+    refs = front.get("references", {}) if references is None else references
+    markers = {"paper": ("*", "C3"), "tuned": ("D", "C2")}
+    for name, r in refs.items():
+        m, c = markers.get(name, ("^", "C5"))
+        ax.errorbar([float(r["median_energy"])], [float(r["median_T_0.05_s"])],
+                    yerr=[[_finite(r["median_se_s"])], [_finite(r["median_se_s"])]], fmt=m, color=c, markersize=11,
+                    capsize=2, label=f"{name} gains")
+    for name, r in (highlight or {}).items():
+        ax.plot([float(r["median_energy"])], [float(r["median_T_0.05_s"])], "o", markersize=13, markerfacecolor="none",
+                markeredgecolor="C1", markeredgewidth=2, label=name)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("median control energy ∫₀¹⁰⁰ |u|² dt on held-out starts")
+    ax.set_ylabel("median T_0.05 on held-out starts [s]")
+    ax.grid(True, alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=11)
+    return fig
+
+
+def _finite(x) -> float:
+    x = float(x)
+    return x if np.isfinite(x) else 0.0

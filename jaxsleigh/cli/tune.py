@@ -2,6 +2,9 @@
 
     jaxsleigh tune --out gains.json [--steps N] [--batch B] [--seed S] [--lr LR] [--t-final T] [--dt DT]
                    [--tune L,k,D_hat] [--robust] [--x64] [--history FILE.npz] [--validate N]
+                   [--energy-budget E]
+    jaxsleigh tune --pareto N --out front.json [--front-method warm|vmap] [--budgets LO:HI]
+                   [--warm-steps N] [--baseline] [--plot front.png] [--validate N] ...
 
 The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the subcommand with
 :func:`add_tune` (it is a thin layer over :func:`jaxsleigh.tuning.tune`).
@@ -32,8 +35,19 @@ backtracks; the best valid gains that also pass a final 100 s check of every tra
 start with the accurate engine are written. --validate N then measures T_0.05 with the accurate
 ensemble engine on N held-out starts (seed --seed + 1000) for the initial and the tuned gains.
 
+--energy-budget E adds a budget on the batch's geometric-mean control energy int |u|^2 dt
+(augmented Lagrangian; the paper's gains spend about 29 on the default 30 s training horizon).
+--pareto N computes N such tunings for budgets from a quarter of the paper's gains' training energy
+to twice the 'tuned' preset's (or --budgets LO:HI), re-evaluates each on --validate held-out starts
+(seed --seed + 1000) with the accurate engine over 100 s and writes front.json: per point the gains
+(gains-file format) and median T_0.05 +- s.e., converged fraction, median energy, median peak |u|,
+mean adaptive steps; with the paper's and 'tuned' gains as references and, with --baseline, a
+random search spending the same number of objective evaluations.
+
 examples:
   jaxsleigh tune --out gains.json
+  jaxsleigh tune --out slow.json --energy-budget 29
+  jaxsleigh tune --pareto 6 --out front.json --plot front.png --baseline
   jaxsleigh tune --out gains.json --tune k,D_hat --steps 60 --history history.npz
   jaxsleigh tune --out robust.json --robust --steps 200
   jaxsleigh simulate --ic=-3,-2,pi/8 --gains gains.json --out run.npz
@@ -48,7 +62,8 @@ def add_tune(subparsers) -> None:
                     "surrogate of the convergence time, differentiating through the integrator, and write "
                     "the best valid gains as a gains JSON file.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, metavar="FILE.json", help="output gains file")
+    p.add_argument("--out", required=True, metavar="FILE.json",
+                   help="output gains file (with --pareto: the front's JSON file)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options)")
     g = p.add_argument_group("optimiser")
@@ -80,6 +95,22 @@ def add_tune(subparsers) -> None:
     h.add_argument("--probe-budget", type=whole("--probe-budget", "100000"), default=100000, metavar="N",
                    help="most attempted steps any training start may need to simulate 100 s with the tuned "
                         "gains (the engine's default budget is 200180; default 100000)")
+    h.add_argument("--energy-budget", type=number("--energy-budget", "29"), default=None, metavar="E",
+                   help="budget on the training batch's geometric-mean control energy int |u|^2 dt "
+                        "(default: none, the fastest gains the step budget allows)")
+    f = p.add_argument_group("Pareto front")
+    f.add_argument("--pareto", type=whole("--pareto", "6"), default=None, metavar="N",
+                   help="compute N points of the time-effort front instead of one set of gains")
+    f.add_argument("--front-method", choices=["warm", "vmap"], default="warm",
+                   help="warm: budgets in turn, each from the last point's gains (default); vmap: every budget "
+                        "at once, the optimiser vmapped over budgets")
+    f.add_argument("--budgets", default=None, metavar="LO:HI",
+                   help="energy budgets (geometric spacing; default: paper's training energy / 4 to tuned's x 2)")
+    f.add_argument("--warm-steps", type=whole("--warm-steps", "40"), default=None, metavar="N",
+                   help="iterations of each warm-started point after the first (default --steps / 2)")
+    f.add_argument("--baseline", action="store_true",
+                   help="also run a random search with the same number of objective evaluations")
+    f.add_argument("--plot", default=None, metavar="FILE.png", help="draw the front")
     add_model_options(p)
     p.add_argument("--history", default=None, metavar="FILE.npz",
                    help="also write the history (loss, gains, gradient norm per iteration)")
@@ -98,6 +129,8 @@ def _cmd_tune(args) -> int:
     from .. import tuning
     from ..params import gains_to_dict, save_gains
 
+    if args.pareto is not None:
+        return _cmd_pareto(args)
     names = tuning.parse_tune(args.tune)
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
@@ -111,7 +144,8 @@ def _cmd_tune(args) -> int:
         raise ValueError(f"--resume: no checkpoint {str(ckpt)!r} to continue from; run without --resume")
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)
-    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt)
+    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt,
+                             energy_budget=math.inf if args.energy_budget is None else args.energy_budget)
     robust = tuning.PlantDistribution() if args.robust else None
     command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     t0 = time.perf_counter()
@@ -170,6 +204,60 @@ def _cmd_tune(args) -> int:
     return 0
 
 
+def _cmd_pareto(args) -> int:
+    from .. import tuning
+    from ..params import gains_to_dict, load_gains
+
+    if args.robust or args.resume or args.history or args.energy_budget is not None:
+        raise ValueError("--pareto computes its own budgets and has no checkpoint or history file: drop --robust, "
+                         "--resume, --history and --energy-budget")
+    plant, gains0 = model_from_args(args)
+    check_outputs(args.out, args.plot)
+    names = tuning.parse_tune(args.tune)
+    config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
+                               n_attempts=args.n_attempts, probe_budget=args.probe_budget)
+    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt)
+    kw = dict(config=config, loss=loss, plant=plant, x64=args.x64)
+    if args.budgets:
+        try:
+            lo, hi = (float(x) for x in args.budgets.split(":"))
+        except ValueError:
+            raise ValueError(f"--budgets must be LO:HI (e.g. --budgets 7:2400), got {args.budgets!r}") from None
+        budgets = tuning.budgets_between(lo, hi, args.pareto)
+    else:
+        budgets = tuning.default_budgets(args.pareto, **kw)
+    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
+    front = tuning.pareto_front(budgets, method=args.front_method, gains0=gains0, warm_steps=args.warm_steps,
+                                tune_names=names, progress=args.progress, **kw)
+    print(f"{PROG} tune: {len(front.points)} points ({args.front_method}) in {front.wall_s:.1f} s, "
+          f"{front.evaluations} objective evaluations")
+    refs, baseline = {}, None
+    if args.validate:
+        ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
+        front = tuning.evaluate_front(front, ics, plant=plant, x64=args.x64)
+        refs = {"paper": tuning.validate("paper", ics, plant=plant, x64=args.x64),
+                "tuned": tuning.validate("tuned", ics, plant=plant, x64=args.x64)}
+        if args.baseline:
+            baseline = tuning.random_search(budgets, front.evaluations, seed=args.seed, progress=args.progress,
+                                            **kw)
+            baseline = tuning.evaluate_front(baseline, ics, plant=plant, x64=args.x64)
+        rows = {**refs, **{f"budget {p.budget:.3g}": p.evaluation for p in front.points}}
+        print(tuning.markdown_table(rows))
+    meta = {"command": command, "held_out": {"n": args.validate, "seed": args.seed + 1000,
+                                             "starts": repr(tuning.UniformStarts())},
+            "initial_gains": gains_to_dict(load_gains(gains0))}
+    if baseline is not None:
+        meta["baseline"] = tuning.front_dict(baseline)
+    tuning.save_front(front, args.out, references=refs, **meta)
+    if args.plot and args.validate:
+        from .. import tuning_plots as tp
+
+        doc = tuning.load_front(args.out)
+        tp.save_figure(tp.plot_front(doc, baseline=doc.get("baseline")), args.plot)
+    print(f"{PROG} tune: wrote {args.out}" + (f" and {args.plot}" if args.plot and args.validate else ""))
+    return 0
+
+
 def _canonical_argv(args) -> list:
     """The options that determine the result, as a command line (when the caller's argv is unknown)."""
     argv = ["tune", "--out", str(args.out), "--steps", str(args.steps), "--batch", str(args.batch),
@@ -177,6 +265,13 @@ def _canonical_argv(args) -> list:
             "--t-final", repr(args.t_final), "--dt", repr(args.dt), "--n-attempts", str(args.n_attempts),
             "--probe-budget", str(args.probe_budget),
             "--gains", str(args.gains), "--params", args.params, "--damping", args.damping]
+    if getattr(args, "energy_budget", None) is not None:
+        argv += ["--energy-budget", repr(args.energy_budget)]
+    if getattr(args, "pareto", None) is not None:
+        argv += ["--pareto", str(args.pareto), "--front-method", args.front_method]
+        argv += ["--budgets", args.budgets] if args.budgets else []
+        argv += ["--warm-steps", str(args.warm_steps)] if args.warm_steps else []
+        argv += ["--baseline"] if args.baseline else []
     return argv + (["--robust"] if args.robust else []) + (["--x64"] if args.x64 else [])
 
 
