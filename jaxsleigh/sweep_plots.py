@@ -50,10 +50,11 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
         e = eff.get("u_energy_median", np.full(x.size, np.nan))[order]
         pk = eff.get("u_norm_peak_median", np.full(x.size, np.nan))[order]
         ax_e.plot(x, e, "o-", ms=4, color="C2", label=r"median $\int_0^T \|u\|^2 dt$")
-        ax_e.set_ylabel(r"control energy $\int_0^T \|u\|^2 dt$ of the converged", color="C2")
+        ax_e.set_ylabel("median control energy", color="C2")
         ax_p = ax_e.twinx()
         ax_p.plot(x, pk, "s--", ms=4, color="C4", label=r"median peak $\|u\|$")
-        ax_p.set_ylabel(r"peak $\|u\|$ of the converged", color="C4")
+        ax_p.set_ylabel(r"median peak $\|u\|$", color="C4")
+        ax_e.set_title("control effort of the converged starts", fontsize=10)
         fin = e[np.isfinite(e)]
         if fin.size > 1 and fin.min() > 0 and fin.max() / fin.min() > 20:
             ax_e.set_yscale("log")

@@ -57,12 +57,43 @@ def _tuning(text):
     assert fwd_rev and float(fwd_rev[0][0]) == pytest.approx(float(fwd_rev[0][1]), rel=1e-5)
 
 
+def _floats(pattern, text):
+    """The numbers (``nan`` included) of the line that ``pattern`` starts."""
+    m = re.search(pattern + r"(.*)", text)
+    assert m, f"no match for {pattern!r} in the notebook's printed output"
+    return [float(v) for v in re.findall(r"nan|[-+]?[\d.]+(?:e[-+]?\d+)?", m.group(1))]
+
+
+def _sweeps(text):
+    import numpy as np
+
+    S = np.array(_floats(r"fraction converged against k: ", text))
+    T = np.array(_floats(r"median T_eps against k: ", text))
+    assert S.size == T.size == 7 and np.all((S >= 0) & (S <= 1))
+    assert np.all(np.diff(S) <= 0.05)                      # fewer settle within T as k grows ...
+    assert S[0] >= 0.9 and S[-1] <= 0.1                    # ... all at small k, (almost) none at k = 1
+    t = T[np.isfinite(T)]
+    assert t.size >= 5 and np.all(np.diff(t) > 0)          # and those that do settle later
+    assert np.all(np.isnan(T[S == 0]))
+    knife = np.array(_floats(r"knife edge l = 0: fraction converged ", text))
+    assert knife.size == 4 and np.all(knife >= 0.9)        # the knife edge converges like l > 0
+    lo, hi = _float(r"l > 0: fraction converged ([\d.]+) \.\. ([\d.]+); every start status OK: True", text)
+    assert 0.8 <= lo <= hi <= 1
+    e = np.array(_floats(r"median control energy at m = \S+ kg against l: ", text))
+    assert e.size == 5 and np.all(e > 0) and e[-1] > 5 * e[0]   # a large offset costs more effort
+    plants = [float(v) for v in re.findall(r"eps [\d.]+:  S = ([\d.]+) \+-", text)]
+    assert len(plants) == 8 and all(0 <= v <= 1 for v in plants)
+    assert plants[0] >= 0.9 and plants[-1] <= 0.5           # sorted by friction: strong friction degrades
+    assert "sampled plants: every start status OK: True" in text
+
+
 #: what each notebook must print (its own print statements, not the library's wording)
 KEY_RESULTS = {
     "01_paper_reproduction.ipynb": _paper,
     "02_singular_set.ipynb": _singular,
     "03_basins.ipynb": _basins,
     "04_gain_tuning.ipynb": _tuning,
+    "05_parameter_sweeps.ipynb": _sweeps,
 }
 
 
