@@ -328,7 +328,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
           rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
           check_passivity: bool = True, chunk_size: Optional[int] = None, devices: Any = None,
           checkpoint_dir=None, resume: bool = False, progress: Any = None,
-          labels: Optional[Mapping[str, str]] = None) -> SweepResult:
+          labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None) -> Optional[SweepResult]:
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
 
     Args:
@@ -345,9 +345,12 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
         :func:`~jaxsleigh.basin.run_basin`): memory is bounded by the chunk, not by ``P * N``.
       checkpoint_dir, resume, progress, devices: as in :func:`~jaxsleigh.ensemble.run_ensemble`.
       labels: parameter name -> text naming it in error messages (the CLI passes its ``--param``).
+      shard: ``(index, count)``: compute only this process's share of the chunks into
+        ``checkpoint_dir`` and return ``None`` (a multi-process run, :mod:`jaxsleigh.distributed`);
+        a later call without ``shard`` and with ``resume=True`` assembles the result from them.
 
     Returns:
-      :class:`SweepResult`.
+      :class:`SweepResult` (``None`` with ``shard``).
     """
     import jax
 
@@ -385,7 +388,9 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     res = run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, gains=lg, t_final=t_final, dt=dt, eps=eps,
                        method=method, rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
-                       resume=resume, progress=progress)
+                       resume=resume, progress=progress, shard=shard)
+    if res is None:                                # a shard of a multi-process run: chunks written
+        return None
     varying = ("wall_s", "devices", "chunks_reused")
     settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every", "plant", "gains")}
     settings.update(plant=plant_to_dict(base_plant), gains=gains_to_dict(base_gains), starts=st.spec,

@@ -1,7 +1,8 @@
 """Multi-process runs (issue 11): several local CPU processes joined by ``jax.distributed`` write the
 same ``.npz``, byte for byte, as one process; a killed process loses only its unfinished chunks and
 ``--resume`` by another number of processes recomputes exactly those; bad or inconsistent
-options and stale checkpoint folders are refused by every process before anything is written.
+options and stale checkpoint folders are refused by every process before anything is written; a
+2-process ``jaxsleigh sweep`` writes the single-process bytes too.
 
 The processes are real ones (``python -m jaxsleigh.cli basin ...`` on 127.0.0.1, a free port,
 ``JAX_PLATFORMS=cpu``) with a small workload (200 Monte-Carlo starts, 2 s horizon, chunks of 16).
@@ -39,15 +40,16 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def _cmd(out, extra=()):
-    return [sys.executable, "-m", "jaxsleigh.cli", "basin", *WORK, "--out", str(out), *extra]
+def _cmd(out, extra=(), work=None):
+    work = ["basin", *WORK] if work is None else work
+    return [sys.executable, "-m", "jaxsleigh.cli", *work, "--out", str(out), *extra]
 
 
-def _launch(n, out, extra=(), per_process=None):
+def _launch(n, out, extra=(), per_process=None, work=None):
     """Start ``n`` processes of one run; ``per_process(i)`` adds options to process ``i``."""
     port = _port()
     return [subprocess.Popen(_cmd(out, [*extra, "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(n),
-                                        "--process-id", str(i), *(per_process(i) if per_process else [])]),
+                                        "--process-id", str(i), *(per_process(i) if per_process else [])], work),
                              env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             for i in range(n)]
 
@@ -66,8 +68,8 @@ def _wait(procs, timeout=120):
     return results
 
 
-def _run(n, out, extra=()):
-    res = _wait(_launch(n, out, extra))
+def _run(n, out, extra=(), work=None):
+    res = _wait(_launch(n, out, extra, work=work))
     for i, (rc, o, e) in enumerate(res):
         assert rc == 0, f"process {i} of {n}: exit {rc}\n{o}\n{e[-3000:]}"
     return res
@@ -143,6 +145,28 @@ def test_processes_write_the_single_process_bytes(tmp_path, reference, n):
     assert "N = 200" in res[0][1]                                  # process 0 reports the summary
     for rc, o, e in res[1:]:
         assert o == "" and "process 0 writes" in e
+
+
+#: a small sweep: 3 values of k x 24 starts = 72 rows in 5 chunks of 16
+SWEEP = ["sweep", "--param", "k=0.05:0.4:3:log", "--samples", "24", "--seed", "3", "--t-final", "2",
+         "--chunk-size", "16", "--no-progress"]
+
+
+@pytest.mark.slow
+def test_sweep_processes_write_the_single_process_bytes(tmp_path, capsys):
+    assert main([*SWEEP, "--out", str(tmp_path / "x.npz"), "--coordinator", "127.0.0.1:1234"]) == 2
+    assert "go together" in capsys.readouterr().err                # the options of basin, checked alike
+    single = tmp_path / "single.npz"
+    r = subprocess.run(_cmd(single, work=SWEEP), env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "multi.npz"
+    res = _run(2, out, work=SWEEP)
+    assert out.read_bytes() == single.read_bytes()
+    assert not (tmp_path / "multi.npz.chunks").exists()
+    info = json.loads((tmp_path / "multi.run.json").read_text())
+    assert info["processes"] == 2 and info["chunks_reused"] == 0
+    assert "2 processes" in res[0][1] and "fraction +- s.e." in res[0][1]   # process 0 reports the table
+    assert res[1][1] == "" and "process 0 writes" in res[1][2]
 
 
 def _chunk_index(p: Path) -> int:

@@ -9,12 +9,15 @@ Registered by :func:`add_sweep`::
 Every start runs under every value (set) as one chunked, checkpointed ensemble
 (:func:`jaxsleigh.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
 interrupted run, ending with the same ``.npz``, byte for byte. Wall time, devices and the command
-go to ``FILE.run.json``.
+go to ``FILE.run.json``. With ``--coordinator/--num-processes/--process-id`` (or under SLURM /
+Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
+(:func:`~jaxsleigh.cli.common.run_distributed`), and process 0 writes the same ``.npz``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import sys
@@ -23,8 +26,8 @@ import warnings
 
 from ..errors import FlaggedStartsWarning
 from .basin import _chunk_dir, _load, _sidecar, _starts_from_args, _whole
-from .common import (FLAGS, PROG, add_horizon_options, add_model_options, check_outputs, exit_code,
-                     model_from_args, report_warnings, status_epilog)
+from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options, check_outputs,
+                     exit_code, model_from_args, report_warnings, run_distributed, status_epilog)
 from .common import number as _positive_float
 
 __all__ = ["add_sweep", "run_sweep_command"]
@@ -60,7 +63,9 @@ def _epilog() -> str:
         "examples:\n"
         "  jaxsleigh sweep --param k=0.01:1:9:log --samples 512 --out k.npz --plot k.png\n"
         "  jaxsleigh sweep --param m=0.5:8:5:log --param l=0:2:5 --out ml.npz --plot ml.png\n"
-        "  jaxsleigh sweep ... --resume      (continue an interrupted run; same options)")
+        "  jaxsleigh sweep ... --resume      (continue an interrupted run; same options)\n"
+        "  jaxsleigh sweep ... --coordinator 10.0.0.1:12345 --num-processes 4 --process-id I\n"
+        "                                    (one of 4 processes sharing the chunks; process 0 writes)")
 
 
 def add_sweep(subparsers) -> argparse.ArgumentParser:
@@ -103,16 +108,28 @@ def add_sweep(subparsers) -> argparse.ArgumentParser:
     o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
     o.add_argument("--plot", metavar="FILE.png",
                    help="also draw the fraction and T_eps percentiles against the parameter (a heat map for two)")
+    add_distributed_options(p)
     p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
     p.set_defaults(func=run_sweep_command)
     return p
 
 
 def run_sweep_command(args) -> int:
-    """Handler of ``jaxsleigh sweep``; returns the exit code."""
+    """Handler of ``jaxsleigh sweep``; returns the exit code.
+
+    With ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process
+    computes its share of the chunks and process 0 writes the output, the same bytes as one process
+    (see :func:`~jaxsleigh.cli.common.run_distributed`).
+    """
+    return run_distributed(args, check=lambda: _check(args), compute=_compute, assemble=_assemble,
+                           prepare=_prepare, shared_dirs=lambda st: [st["chunks"]])
+
+
+def _check(args) -> dict:
+    """Validate everything before any work (a bad range names its --param); nothing is written."""
     from ..config import solve_config
-    from ..io import atomic_write_text, npz_path
-    from ..sweep import apply_params, param_grid, parse_param, save_sweep, sweep
+    from ..io import npz_path
+    from ..sweep import apply_params, param_grid, parse_param
 
     if len(args.param) > 2:
         raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
@@ -129,35 +146,84 @@ def run_sweep_command(args) -> int:
     out = npz_path(args.out)
     chunks, side = _chunk_dir(out), _sidecar(out)
     check_outputs(out, side, args.plot, folders=[chunks])
-    if chunks.is_dir() and any(chunks.glob("chunk_*.npz")) and not args.resume:
+    have = sorted(chunks.glob("chunk_*.npz")) if chunks.is_dir() else []
+    if have and not args.resume:
         raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
                          f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
-    argv = list(getattr(args, "_argv", None) or [])
-    load_start = _load()
+    return {"args": args, "axes": axes, "labels": labels, "plant": plant, "gains": gains, "starts": starts,
+            "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": _load(),
+            "t0": time.perf_counter()}
+
+
+def _prepare(st: dict) -> None:
+    """A fresh multi-process run: drop the manifest of an earlier run that ended before its first
+    chunk (every process opens the folder with resume=True)."""
+    if not st["args"].resume:
+        (st["chunks"] / "manifest.json").unlink(missing_ok=True)
+
+
+def _run_kw(st: dict) -> dict:
+    a = st["args"]
+    return dict(plant=st["plant"], gains=st["gains"], eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method,
+                x64=a.x64, max_steps=a.max_steps, chunk_size=a.chunk_size, checkpoint_dir=st["chunks"],
+                progress=a.progress, labels=st["labels"])
+
+
+def _interrupted(st: dict) -> None:
+    print(f"{PROG} sweep: interrupted; the finished chunks are in {st['chunks']}/ - run the same command with "
+          f"--resume to continue", file=sys.stderr)
+
+
+def _compute(st: dict, shard: tuple) -> None:
+    """One process's share of the chunks of a multi-process run."""
+    from ..sweep import sweep
+
     t0 = time.perf_counter()
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = sweep(starts, axes, plant=plant, gains=gains, eps=args.eps, t_final=args.t_final, dt=args.dt,
-                        method=args.method, x64=args.x64, max_steps=args.max_steps, chunk_size=args.chunk_size,
-                        checkpoint_dir=chunks, resume=args.resume, progress=args.progress, labels=labels)
+            sweep(st["starts"], st["axes"], resume=True, shard=shard, **_run_kw(st))
     except KeyboardInterrupt:
-        print(f"{PROG} sweep: interrupted; the finished chunks are in {chunks}/ - run the same command with "
-              f"--resume to continue", file=sys.stderr)
+        _interrupted(st)
         raise
-    wall = time.perf_counter() - t0
+    report_warnings(caught, skip=(FlaggedStartsWarning,))
+    if shard[0] != 0:
+        print(f"{PROG} sweep: process {shard[0]} of {shard[1]}: share of the chunks done in "
+              f"{time.perf_counter() - t0:.1f} s; process 0 writes {st['out']}", file=sys.stderr)
+
+
+def _assemble(st: dict, multi: bool) -> int:
+    """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
+    from ..io import atomic_write_text
+    from ..sweep import save_sweep, sweep
+
+    args, out, chunks, side = st["args"], st["out"], st["chunks"], st["side"]
+    argv = list(getattr(args, "_argv", None) or [])
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = sweep(st["starts"], st["axes"], resume=True if multi else args.resume, **_run_kw(st))
+    except KeyboardInterrupt:
+        _interrupted(st)
+        raise
+    wall = time.perf_counter() - st["t0"]
     report_warnings(caught, skip=(FlaggedStartsWarning,))
     n_flag = int((~res.valid[0]).sum())
     if n_flag:
         print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 or "
               f"not finite); they are left out of the fractions", file=sys.stderr)
     path = save_sweep(out, res)
-    n_reused = int((res.run_info or {}).get("chunks_reused") or 0)
+    # several processes: every chunk is read back here; "resumed" counts those of an earlier run
+    n_reused = st["had"] if multi else int((res.run_info or {}).get("chunks_reused") or 0)
     S, se = res.fractions()
     info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
             "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
-            "loadavg_start": load_start, "loadavg_end": _load(),
+            "loadavg_start": st["load_start"], "loadavg_end": _load(), "cpu_count": os.cpu_count(),
             "fraction": S.tolist(), "fraction_se": se.tolist()}
+    if multi:
+        import jax
+
+        info["processes"] = jax.process_count()
     atomic_write_text(side, json.dumps(info, indent=1, default=str) + "\n")
     if not args.keep_chunks:
         shutil.rmtree(chunks, ignore_errors=True)
@@ -168,7 +234,8 @@ def run_sweep_command(args) -> int:
 
         written.append(str(save_figure(plot_sweep(res), args.plot)))
     print(res.table())
+    procs = f", {info['processes']} processes" if multi else ""
     print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts in {wall:.1f} s wall "
-          f"({res.settings['dtype']}, {res.settings['method']}"
+          f"({res.settings['dtype']}, {res.settings['method']}{procs}"
           f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
     return exit_code(res.status)
