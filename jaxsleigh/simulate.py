@@ -132,7 +132,8 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         yw[bad] = np.nan
         outputs = _outputs if cfg.lanes is None else (lambda y, a: tuple(o[:, 0] for o in _outputs_lanes(y, a)))
         q, u, Hd = (np.array(a) for a in outputs(jnp.asarray(yw), args))
-    settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start}
+    settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start,
+                "devices": [str(jax.devices()[0])]}   # where it ran: named on every figure of it
     if cfg.lanes is not None:
         from .lanes import lane_table
 
