@@ -13,8 +13,9 @@
 * :func:`plot_power_laws`: log-log data with fitted power laws (the singular-set study).
 
 As in :mod:`jaxsleigh.plotting`, figures are :class:`matplotlib.figure.Figure` objects built without
-``pyplot`` (no backend, no global state); pass ``ax`` to draw into your own axes; save with
-:func:`jaxsleigh.plotting.save_figure`. Titles name the dtype, method, step, ``eps`` and horizon.
+``pyplot`` (no backend, no global state; :mod:`jaxsleigh.plot_base`); pass ``ax`` to draw into your
+own axes; save with :func:`jaxsleigh.plotting.save_figure`. Titles name the dtype, method, step, ``eps``
+and horizon; a stamp along the top edge adds the tolerances and the device (when the result holds it).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from typing import Mapping, Optional
 import numpy as np
 
 from .basin import BasinResult, fraction_by, fraction_converged, t_eps_percentiles
+from .plot_base import figure_and_axes, new_figure, provenance, stamp
 
 __all__ = [
     "plot_basin_map",
@@ -52,32 +54,14 @@ _FIELDS = {
     "n_steps": "accepted steps",
     "Hd_final": "H_d(T) [J]",
 }
-_METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4"}
-
-
-def _new_figure(figsize):
-    from matplotlib.figure import Figure  # no pyplot: no backend, no global state
-
-    return Figure(figsize=figsize, layout="constrained")
-
-
-def _own(ax, figsize):
-    if ax is None:
-        fig = _new_figure(figsize)
-        return fig, fig.add_subplot(1, 1, 1), True
-    return ax.figure, ax, False
 
 
 def _provenance(res: BasinResult) -> str:
-    s = res.settings
-    parts = [str(s.get("dtype", "?")), _METHOD_NAMES.get(s.get("method"), str(s.get("method")))]
-    if "dt" in s:
-        parts.append(f"dt = {float(s['dt']):g} s")
-    if "eps" in s:
-        parts.append(f"ε = {float(s['eps']):g}")
-    if "t_final" in s:
-        parts.append(f"T = {float(s['t_final']):g} s")
-    return ", ".join(parts)
+    return provenance(res.settings, fields=("dt", "eps", "t_final"))
+
+
+def _stamp(fig, res: BasinResult) -> None:
+    stamp(fig, res.settings, res.run_info)
 
 
 def _fraction_text(res: BasinResult) -> str:
@@ -141,7 +125,7 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
         raise ValueError(f"unknown field {field!r}; choose one of {sorted(_FIELDS)}")
     h_name, v_name = st.axes
     hv, vv = st.axis(h_name).values(), st.axis(v_name).values()
-    fig, ax, own = _own(ax, (7.2, 6.4))
+    fig, ax, own = figure_and_axes(ax, (7.2, 6.4))
     data = np.asarray(res.map(field), dtype=float)
     cat = st.reshape(_categories(res))
     if field == "T_eps":
@@ -182,10 +166,14 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
     at = ", ".join(f"{'θ₀' if c == 'theta' else c + '₀'} = {st.axis(c).lo:.4g}" for c in fixed)
     if "theta" in fixed:
         at += " (the singular set θ = 0 is not in this slice)"
-    name = "Convergence time T_ε" if field == "T_eps" else _FIELDS.get(field, field)
+    # T_eps maps show which starts settled within the horizon (grey: not by T), not a basin of
+    # attraction in the control sense
+    name = "Convergence time T_ε of the starts settled within the horizon" if field == "T_eps" \
+        else _FIELDS.get(field, field)
     title = f"{name} at {at}" if at else name
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
+        _stamp(fig, res)
     else:
         ax.set_title(f"{title}\n({_fraction_text(res)})", fontsize=9)
     if colorbar and mesh is not None:
@@ -208,7 +196,7 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
     distinct values; otherwise (samples) 24 bins. ``log_abs=True`` plots against ``|theta0|`` on a
     log axis (log-spaced bins), which resolves the approach to the singular set.
     """
-    fig, ax, own = _own(ax, (6.4, 4.2))
+    fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
     theta = res.ics[:, 2]
     x = np.abs(theta) if log_abs else theta
     ok = res.valid & np.isfinite(x) & ((x > 0) if log_abs else True)
@@ -234,6 +222,7 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
     sub = f"{_provenance(res)}; {_fraction_text(res)}"
     if own:
         fig.suptitle(f"{title}\n({sub})", fontsize=10)
+        _stamp(fig, res)
     else:
         ax.set_title(title, fontsize=9)
     return fig
@@ -242,7 +231,7 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
 def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16):
     """Fraction converged against the initial distance :math:`\\sqrt{x_0^2 + y_0^2}` (equal-width
     bins, ``± se`` bars): the view of an x-y slice at fixed heading."""
-    fig, ax, own = _own(ax, (6.4, 4.2))
+    fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
     r = np.hypot(res.ics[:, 0], res.ics[:, 1])
     c, f, se, n = fraction_by(r, res.converged, res.valid, bins=bins)
     ax.errorbar(c, f, yerr=se, fmt="o-", markersize=3, linewidth=1.0, capsize=2, color="C0",
@@ -255,6 +244,7 @@ def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16):
     title = "Fraction converged against the initial distance"
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
+        _stamp(fig, res)
     else:
         ax.set_title(title, fontsize=9)
     return fig
@@ -263,7 +253,7 @@ def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16):
 def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40):
     """Histogram of ``T_eps`` of the converged starts and, on the right axis, the fraction of valid
     starts converged by time t (which ends at the fraction converged at the horizon)."""
-    fig, ax, own = _own(ax, (6.4, 4.2))
+    fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
     t_final = float(res.settings.get("t_final", np.nanmax(res.T_eps[res.converged], initial=1.0)))
     T = res.T_eps[res.converged]
     n_valid = int(res.valid.sum())
@@ -290,6 +280,7 @@ def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40):
     title = "Distribution of the convergence time"
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
+        _stamp(fig, res)
     else:
         ax.set_title(title, fontsize=9)
     return fig
@@ -298,7 +289,7 @@ def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40):
 def plot_t_eps_scatter(res: BasinResult, ax=None):
     """``T_eps`` against ``|theta0|`` (log x); starts not settled by the horizon are drawn at the
     horizon (grey triangles), failed ones there too (red crosses)."""
-    fig, ax, own = _own(ax, (6.4, 4.6))
+    fig, ax, own = figure_and_axes(ax, (6.4, 4.6))
     th = np.abs(res.ics[:, 2])
     t_final = float(res.settings.get("t_final", 1.0))
     conv, nc, fail = res.converged, res.not_converged, res.failed
@@ -320,6 +311,7 @@ def plot_t_eps_scatter(res: BasinResult, ax=None):
     title = "Convergence time against the distance to the singular set"
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
+        _stamp(fig, res)
     else:
         ax.set_title(title, fontsize=9)
     return fig
@@ -328,8 +320,9 @@ def plot_t_eps_scatter(res: BasinResult, ax=None):
 def plot_basin(res: BasinResult):
     """Overview: the ``T_eps`` map (2-D grids) or the ``T_eps``-against-``|theta0|`` scatter, the
     fraction against ``theta0`` (against the initial distance when ``theta0`` is the same for all
-    starts) and the ``T_eps`` distribution."""
-    fig = _new_figure((13.0, 6.2))
+    starts) and the ``T_eps`` distribution. The title says what the map is: which starts settled
+    within the horizon (grey: not by ``T``), not a basin of attraction in the control sense."""
+    fig = new_figure((13.0, 6.2))
     gs = fig.add_gridspec(2, 2, width_ratios=[1.35, 1.0])
     main = fig.add_subplot(gs[:, 0])
     if res.starts.kind == "grid" and len(res.starts.axes) == 2:
@@ -341,7 +334,8 @@ def plot_basin(res: BasinResult):
     else:
         plot_fraction_vs_distance(res, fig.add_subplot(gs[0, 1]))
     plot_t_eps_distribution(res, fig.add_subplot(gs[1, 1]))
-    fig.suptitle(f"Basin of attraction of the origin ({_provenance(res)})", fontsize=11)
+    fig.suptitle(f"Starts settled within the horizon: |q| ≤ ε from T_ε to T ({_provenance(res)})", fontsize=11)
+    _stamp(fig, res)
     return fig
 
 
@@ -357,7 +351,7 @@ def plot_power_laws(x, series: Mapping[str, np.ndarray], ax=None, *, fits: Optio
       fit_ranges: label -> ``(lo, hi)``, the range of ``x`` the fit used (default: the series').
       expected: label -> the exponent expected from theory, added to the legend.
     """
-    fig, ax, own = _own(ax, (6.2, 4.6))
+    fig, ax, own = figure_and_axes(ax, (6.2, 4.6))
     x = np.asarray(x, dtype=float)
     for i, (label, y) in enumerate(series.items()):
         y = np.asarray(y, dtype=float)

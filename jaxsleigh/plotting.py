@@ -9,12 +9,14 @@
 Figures are built with the object-oriented API (:class:`matplotlib.figure.Figure`), never through
 ``pyplot``: nothing here selects a backend or touches global GUI state, so the module works on
 headless machines and inside other applications. To draw into your own figure, pass ``ax`` /
-``axes`` (e.g. from ``plt.subplots``). :func:`save_figure` writes PNG/PDF/SVG files.
+``axes`` (e.g. from ``plt.subplots``). :func:`save_figure` writes PNG/PDF/SVG files. The scaffolding
+(figures, provenance, saving) is shared with the other plotting modules in :mod:`jaxsleigh.plot_base`.
 
 Each function accepts a ``Solution``, a mapping with the same keys (e.g. the ``.npz`` file written
 by ``jaxsleigh simulate``, see :func:`load_solution`) or any object with those attributes. Every
-figure's title names the dtype and integration method that produced it; trajectories whose status
-is not ``OK`` are drawn dashed and flagged in the legend.
+figure's title names the dtype and integration method that produced it, and a stamp along its top
+edge adds the step, tolerances and the device (:func:`jaxsleigh.plot_base.stamp`); trajectories
+whose status is not ``OK`` are drawn dashed and flagged in the legend.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .plot_base import new_figure, provenance, save_figure, stamp
 from .status import Status
 
 __all__ = [
@@ -41,7 +44,7 @@ __all__ = [
     "save_figure",
 ]
 
-_METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4"}
+_new_figure = new_figure   # the former private name, still imported by jaxsleigh.sweep_plots
 
 
 # ---------------------------------------------------------------------------------------------
@@ -99,13 +102,7 @@ def _batched(a):
 
 def _provenance(sol) -> str:
     """``'float32, adaptive RK4, dt = 0.01 s'`` from the settings (what produced the figure)."""
-    s = _settings(sol)
-    dtype = s.get("dtype", "dtype unknown")
-    method = s.get("method", "method unknown")
-    parts = [str(dtype), _METHOD_NAMES.get(method, str(method))]
-    if "dt" in s:
-        parts.append(f"dt = {float(s['dt']):g} s")
-    return ", ".join(parts)
+    return provenance(_settings(sol))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -197,27 +194,13 @@ def _ncol(labels, width_chars: int = 110) -> int:
 # figure helpers
 # ---------------------------------------------------------------------------------------------
 
-def _new_figure(figsize):
-    from matplotlib.figure import Figure  # no pyplot: no backend, no global state
-
-    return Figure(figsize=figsize, layout="constrained")
-
-
-def save_figure(fig, path, *, dpi: int = 150) -> Path:
-    """Save ``fig`` (format from the suffix), creating parent folders; returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    return path
-
-
 def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsize=None,
                  labels=None, legend=True):
     """Stacked time histories: ``series`` is a list of (N, T) arrays, one axis each."""
     t, q, status = _arrays(sol)
     n_ax = len(series)
     if axes is None:
-        fig = _new_figure(figsize or (7.0, 1.9 * n_ax + 1.2))
+        fig = new_figure(figsize or (7.0, 1.9 * n_ax + 1.2))
         axes = fig.subplots(n_ax, 1, sharex=True)
         axes = np.atleast_1d(axes)
         own = True
@@ -239,6 +222,7 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
     axes[0].set_xlim(t[0], t[-1])
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)})", fontsize=11)
+        stamp(fig, _settings(sol))
     else:
         axes[0].set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:
@@ -327,7 +311,7 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
         glyph_size = min(l_val if l_val > 0 else 0.5, 0.07 * max(extent, 1e-3))
     own = ax is None
     if own:
-        fig = _new_figure((6.6, 7.6))
+        fig = new_figure((6.6, 7.6))
         ax = fig.add_subplot(1, 1, 1)
     else:
         fig = ax.figure
@@ -354,6 +338,7 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     title = "Paths of the contact point (x, y)"
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)}, t ∈ [0, {t[-1]:g}] s)", fontsize=11)
+        stamp(fig, _settings(sol))
     else:
         ax.set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:

@@ -20,7 +20,8 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from .plotting import _new_figure, plot_paths, save_figure
+from .plot_base import new_figure, save_figure
+from .plotting import plot_paths
 
 __all__ = ["plot_history", "plot_paths_before_after", "plot_convergence_times", "plot_per_plant",
            "plot_effort_history", "plot_front", "save_figure"]
@@ -55,7 +56,7 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
         probe = np.full(loss.size, np.nan)
     it = np.arange(loss.size)
     if axes is None:
-        fig = _new_figure((7.0, 9.5))
+        fig = new_figure((7.0, 9.5))
         axes = fig.subplots(4, 1, sharex=True)
         own = True
     else:
@@ -109,7 +110,7 @@ def plot_paths_before_after(before, after, *, names: Sequence[str] = ("paper gai
     """Paths of the contact point under two sets of gains (two :class:`~jaxsleigh.simulate.Solution`
     objects from the same starts), side by side; with ``share`` both panels get the same limits."""
     if axes is None:
-        fig = _new_figure((12.0, 6.6))
+        fig = new_figure((12.0, 6.6))
         axes = fig.subplots(1, 2)
     else:
         axes = list(axes)
@@ -141,7 +142,7 @@ def plot_convergence_times(times: Mapping[str, np.ndarray], *, horizon: float = 
     right: histograms on a log time axis.
     """
     if axes is None:
-        fig = _new_figure((11.0, 4.2))
+        fig = new_figure((11.0, 4.2))
         axes = fig.subplots(1, 2)
     else:
         axes = list(axes)
@@ -185,7 +186,7 @@ def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, hori
     plants = list(table)
     labels = list(next(iter(table.values())))
     if axes is None:
-        fig = _new_figure((11.0, 4.4))
+        fig = new_figure((11.0, 4.4))
         axes = fig.subplots(1, 2, sharey=True)
     else:
         axes = list(axes)
@@ -232,7 +233,7 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
     valid = np.asarray(_field(history, "valid"), bool)
     it = np.arange(energy.size)
     if axes is None:
-        fig = _new_figure((7.0, 7.5))
+        fig = new_figure((7.0, 7.5))
         axes = fig.subplots(3, 1, sharex=True)
         own = True
     else:
@@ -287,7 +288,7 @@ def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references
       highlight: ``{name: figures}`` to mark specially (e.g. the ``balanced`` preset).
     """
     if ax is None:
-        fig = _new_figure((7.0, 5.0))
+        fig = new_figure((7.0, 5.0))
         ax = fig.add_subplot(1, 1, 1)
     fig = ax.figure
     pts = [p for p in front["points"] if "evaluation" in p]
