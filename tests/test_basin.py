@@ -240,34 +240,119 @@ def test_save_load_round_trip_and_deterministic_bytes(tmp_path, monkeypatch, xt_
     assert back.fraction == xt_result.fraction and back.settings["eps"] == 0.3
 
 
-def test_plots_on_tiny_grids(tmp_path, xt_result):
-    from jaxsleigh import basin_plots as bp
-    from jaxsleigh.plotting import save_figure
+def _stamp_text(fig):
+    from jaxsleigh.plot_base import STAMP_GID
 
-    figs = {
-        "overview": bp.plot_basin(xt_result),
-        "map": bp.plot_basin_map(xt_result),
-        "map_hd0": bp.plot_basin_map(xt_result, field="Hd0"),
-        "fraction": bp.plot_fraction_vs_theta(xt_result),
-        "fraction_log": bp.plot_fraction_vs_theta(xt_result, log_abs=True, bins=4),
-        "distance": bp.plot_fraction_vs_distance(xt_result),
-        "dist": bp.plot_t_eps_distribution(xt_result),
-        "scatter": bp.plot_t_eps_scatter(xt_result),
-        "laws": bp.plot_power_laws([0.1, 0.01], {"H": [1.0, 1e4]}, fits={"H": power_law_fit([0.1, 0.01], [1, 1e4])},
-                                   expected={"H": -4}),
-    }
-    for name, fig in figs.items():
-        path = save_figure(fig, tmp_path / f"{name}.png")
-        assert path.stat().st_size > 5000, name
-    # the map draws a heat map and the flat layer of starts without T_eps, and the singular line
-    ax = figs["map"].axes[0]
-    assert len(ax.collections) == 2 and any(line.get_linestyle() == "--" for line in ax.get_lines())
-    flat = ax.collections[1].get_array()
-    assert flat.count() == int((~xt_result.converged).sum())
+    (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
+    return text
+
+
+def test_basin_map_shows_the_t_eps_map(xt_result):
+    from jaxsleigh import basin_plots as bp
+
+    fig = bp.plot_basin_map(xt_result)
+    ax, cbar_ax = fig.axes
+    title = fig.get_suptitle()
+    assert "settled within the horizon" in title and "basin of attraction" not in title.lower()
+    assert "float32" in title and "ε = 0.3" in title and "T = 30 s" in title
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x₀ [m]", "θ₀ [rad]")
+    assert "T_ε" in cbar_ax.get_ylabel() and "log scale" in cbar_ax.get_ylabel()
+    # the heat map holds T_eps of the converged starts (floored at dt for the log scale), nothing else
+    heat, flat = ax.collections
+    T = xt_result.starts.reshape(xt_result.T_eps)
+    conv = xt_result.starts.reshape(xt_result.converged)
+    expected = np.where(conv, np.maximum(T, 0.05), np.nan)
+    np.testing.assert_array_equal(np.ma.filled(heat.get_array().astype(float), np.nan).reshape(T.shape), expected)
+    assert heat.norm.vmax == 30.0                                  # the colour scale reaches the horizon
+    # the flat layer: 1 = not settled by T, 2 = failed, 3 = theta0 = 0 (not integrated)
+    cats = np.ma.filled(flat.get_array(), 0).reshape(T.shape)
+    np.testing.assert_array_equal(cats == 1, xt_result.starts.reshape(xt_result.not_converged))
+    np.testing.assert_array_equal(cats == 3, ~xt_result.starts.reshape(xt_result.valid))
+    assert (cats == 3).sum() == 6
+    # the singular set theta = 0 is a dashed horizontal line at 0
+    (line,) = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
+    np.testing.assert_array_equal(line.get_ydata(), [0, 0])
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "not settled by T (T_ε = ∞)" in legend and "θ₀ = 0: not integrated" in legend
+    assert "singular set θ = 0" in legend
+    # provenance: dtype, method and the device the run was on
+    text = _stamp_text(fig)
+    assert text.startswith("float32  ·  adaptive RK4") and f"device {xt_result.run_info['devices'][0]}" in text
+
+
+def test_basin_map_of_another_field(xt_result):
+    from jaxsleigh import basin_plots as bp
+
+    fig = bp.plot_basin_map(xt_result, field="Hd0")
+    heat = fig.axes[0].collections[0]
+    Hd0 = xt_result.starts.reshape(xt_result.Hd0)
+    shown = xt_result.starts.reshape(xt_result.valid & ~xt_result.failed)
+    got = np.ma.filled(heat.get_array().astype(float), np.nan).reshape(Hd0.shape)
+    np.testing.assert_allclose(got[shown], Hd0[shown], rtol=1e-6)
+    assert np.all(np.isnan(got[~shown]))
+    assert fig.get_suptitle().startswith("\nH_d(0) [J] at y₀ = 0.5") and "H_d(0)" in fig.axes[1].get_ylabel()
+
+
+def test_fraction_distribution_scatter_and_power_law_figures(xt_result):
+    from jaxsleigh import basin_plots as bp
+
+    res = xt_result
+    # fraction against theta0: one point per grid row, the binomial fraction and its error bars
+    fig = bp.plot_fraction_vs_theta(res)
+    ax = fig.axes[0]
+    c, f, se, n = fraction_by(res.ics[:, 2], res.converged, res.valid)
+    (bars,) = ax.containers
+    assert bars.get_label() == "fraction converged ± s.e."
+    points = bars.lines[0]
+    np.testing.assert_array_equal(points.get_xdata(), c)
+    np.testing.assert_array_equal(points.get_ydata(), f)
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("θ₀ [rad]", "fraction converged")
+    assert "float32" in fig.get_suptitle() and "float32" in _stamp_text(fig)
+    # against the distance
+    fig = bp.plot_fraction_vs_distance(res, bins=3)
+    c, f, se, n = fraction_by(np.hypot(res.ics[:, 0], res.ics[:, 1]), res.converged, res.valid, bins=3)
+    np.testing.assert_array_equal(fig.axes[0].containers[0].lines[0].get_ydata(), f)
+    # distribution: every converged start in one bin, and the fraction by t ends at the fraction
+    fig = bp.plot_t_eps_distribution(res)
+    ax, right = fig.axes
+    assert sum(p.get_height() for p in ax.patches) == res.converged.sum()
+    assert right.get_lines()[0].get_ydata()[-1] == pytest.approx(res.converged.sum() / res.valid.sum())
+    assert ax.get_xlabel() == "T_ε [s]" and ax.get_xlim() == (0.0, 30.0)
+    # scatter: converged starts at (|theta0|, T_eps), the others at the horizon
+    fig = bp.plot_t_eps_scatter(res)
+    conv, nc, _ = fig.axes[0].collections
+    np.testing.assert_array_equal(conv.get_offsets(), np.column_stack(
+        [np.abs(res.ics[res.converged, 2]), np.maximum(res.T_eps[res.converged], 0.05)]))
+    np.testing.assert_array_equal(nc.get_offsets()[:, 1], 30.0)
+    assert len(nc.get_offsets()) == res.not_converged.sum()
+    # power laws: the points and the fitted line
+    fit = power_law_fit([0.1, 0.01], [1, 1e4])
+    fig = bp.plot_power_laws([0.1, 0.01], {"H": [1.0, 1e4]}, fits={"H": fit}, expected={"H": -4}, title="laws")
+    pts, curve = fig.axes[0].get_lines()
+    np.testing.assert_array_equal(pts.get_ydata(), [1.0, 1e4])
+    np.testing.assert_allclose(curve.get_ydata(), fit(curve.get_xdata()))
+    assert fig.axes[0].get_xscale() == fig.axes[0].get_yscale() == "log"
+    assert "slope -4.00" in fig.axes[0].get_legend().get_texts()[0].get_text()
+
+
+def test_basin_overview_says_settled_within_the_horizon(xt_result):
+    from jaxsleigh import basin_plots as bp
+
+    fig = bp.plot_basin(xt_result)
+    title = fig.get_suptitle()
+    assert "settled within the horizon" in title and "basin of attraction" not in title.lower()
+    assert "float32" in title and "float32" in _stamp_text(fig)
+    # map + colour bar, fraction against theta0, distribution + its right axis
+    assert len(fig.axes) == 5
+    assert fig.axes[0].get_ylabel() == "θ₀ [rad]" and fig.axes[2].get_xlabel() == "θ₀ [rad]"
+    assert fig.axes[3].get_xlabel() == "T_ε [s]"
+    # starts that are not a grid: the scatter instead of the map
     samples = BasinResult(**{**xt_result._asdict(), "starts": array_starts(xt_result.ics)})
     with pytest.raises(ValueError, match="two varying coordinates"):
         bp.plot_basin_map(samples)
-    assert save_figure(bp.plot_basin(samples), tmp_path / "s.png").stat().st_size > 5000
+    fig = bp.plot_basin(samples)
+    assert fig.axes[0].get_ylabel() == "T_ε [s]" and fig.axes[0].get_xscale() == "log"
+    assert fig.axes[1].get_xscale() == "log"                    # fraction against |theta0| for samples
 
 
 # ---------------------------------------------------------------------------------------------
@@ -343,7 +428,9 @@ def test_cli_outputs_plot_and_sidecar(tmp_path, basin_main):
                                "--dt", "0.05", "--out", str(tmp_path / "f.npz"), "--plot", str(tmp_path / "f.png")])
     assert rc == 0, err
     assert "1 of 3 starts flagged" in err
-    assert (tmp_path / "f.png").stat().st_size > 5000
+    from matplotlib.image import imread
+
+    assert imread(tmp_path / "f.png").shape[:2] == (930, 1950)      # plot_basin's 13 x 6.2 in at 150 dpi
     side = json.loads((tmp_path / "f.run.json").read_text())
     assert side["command"][:2] == ["jaxsleigh", "basin"] and side["wall_s"] > 0
     with np.load(tmp_path / "f.npz") as z:

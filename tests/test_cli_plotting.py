@@ -174,19 +174,98 @@ def _tiny_solution(bad: bool = True) -> Solution:
     return Solution(t, q, p, u, Hd, status, np.full(n, 200), np.zeros(n), settings)
 
 
-@pytest.mark.parametrize("fn", [plotting.plot_paths, plotting.plot_configuration, plotting.plot_momentum,
-                                plotting.plot_control, plotting.plot_hamiltonian])
-def test_plotting_functions(tmp_path, fn):
+def _data_lines(ax):
+    return [line for line in ax.get_lines() if not line.get_label().startswith("_")]
+
+
+# plotting function -> (y-labels of its axes, the arrays each axis must show, one row per run)
+_FIGURES = {
+    "plot_configuration": (["x [m]", "y [m]", "θ [rad]"], lambda s: [s.q[..., 0], s.q[..., 1], s.q[..., 2]]),
+    "plot_momentum": (["p₁ [kg m/s]", "p₂ [kg m²/s]"], lambda s: [s.p[..., 0], s.p[..., 1]]),
+    "plot_control": (["u₁ [N] (symlog)", "u₂ [N m] (symlog)"], lambda s: [s.u[..., 0], s.u[..., 1]]),
+    "plot_hamiltonian": (["H_d [J]"], lambda s: [s.Hd]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_FIGURES))
+def test_time_histories_plot_the_solution(name):
     sol = _tiny_solution()
-    fig = fn(sol)
-    assert "float64" in fig.get_suptitle() and "RK4" in fig.get_suptitle()
-    ax = fig.axes[0]
-    styles = [line.get_linestyle() for line in ax.get_lines() if not line.get_label().startswith("_")]
-    assert styles[:3] == ["-", "-", "--"]          # the run with status != 0 is dashed
+    fig = getattr(plotting, name)(sol)
+    ylabels, expected = _FIGURES[name]
+    assert [ax.get_ylabel() for ax in fig.axes] == ylabels
+    assert fig.axes[-1].get_xlabel() == "time t [s]"
+    for ax, data in zip(fig.axes, expected(sol)):
+        lines = _data_lines(ax)
+        assert len(lines) == sol.q.shape[0]
+        for i, line in enumerate(lines):
+            np.testing.assert_array_equal(line.get_xdata(), sol.t)
+            np.testing.assert_array_equal(line.get_ydata(), data[i])      # NaN after the failed run stopped
+        assert [line.get_linestyle() for line in lines] == ["-", "-", "--"]   # status != 0 is dashed
+    if name == "plot_hamiltonian":
+        assert fig.axes[0].get_yscale() == "log"
+    if name == "plot_control":
+        assert {ax.get_yscale() for ax in fig.axes} == {"symlog"}
+    title = fig.get_suptitle()
+    assert "float64" in title and "fixed-step RK4" in title and "dt = 0.01 s" in title
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
-    assert any("budget_exhausted" in s for s in labels) and any("status ≠ 0" in s for s in labels)
-    path = plotting.save_figure(fig, tmp_path / "f.png")
-    assert path.stat().st_size > 5_000
+    assert labels[:2] == ["(−1, 0.5, 0.4)", "(−0.7, 0.5, 0.6)"]
+    assert "budget_exhausted" in labels[2] and any("status ≠ 0" in s for s in labels)
+
+
+def test_paths_plot_the_contact_point_and_the_sleigh():
+    from matplotlib.patches import Polygon
+
+    sol = _tiny_solution()
+    fig = plotting.plot_paths(sol)
+    (ax,) = fig.axes
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x [m]", "y [m]")
+    assert "Paths of the contact point" in fig.get_suptitle() and "t ∈ [0, 2] s" in fig.get_suptitle()
+    lines = _data_lines(ax)
+    assert len(lines) == 3
+    for i, line in enumerate(lines):
+        np.testing.assert_array_equal(line.get_xdata(), sol.q[i, :, 0])
+        np.testing.assert_array_equal(line.get_ydata(), sol.q[i, :, 1])
+    # a ghosted sleigh at each start and the solid target
+    bodies = [p for p in ax.patches if isinstance(p, Polygon)]
+    assert len(bodies) == 4
+    assert sorted(p.get_alpha() for p in bodies) == [0.3, 0.3, 0.3, 1.0]
+    target = next(p for p in bodies if p.get_alpha() == 1.0)
+    np.testing.assert_allclose(target.get_xy()[:5], plotting.sleigh_outline(0, 0, 0, size=0.07 * 1.0)["body"],
+                               atol=0.05)
+    # the failed run's last finite point is marked with a cross
+    crosses = [line for line in ax.get_lines() if line.get_marker() == "x"]
+    assert len(crosses) == 1
+    np.testing.assert_array_equal(crosses[0].get_xydata()[0], sol.q[2, 11, :2])
+
+
+def test_provenance_stamp_names_dtype_method_and_device():
+    from jaxsleigh.plot_base import STAMP_GID
+
+    sol = _tiny_solution()
+    for fn in (plotting.plot_paths, plotting.plot_configuration):
+        fig = fn(sol)
+        (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
+        assert text.startswith("float64  ·  fixed-step RK4  ·  dt = 0.01 s")
+        assert "device not recorded" in text            # the synthetic solution does not say where it ran
+    settings = {**sol.settings, "dtype": "float32", "method": "adaptive", "rtol": 1e-6, "atol": 1e-9,
+                "devices": ["cuda:0"]}
+    fig = plotting.plot_momentum(sol._replace(settings=settings))
+    (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
+    assert "float32" in text and "float64" not in text and "adaptive RK4" in text
+    assert "rtol = 1e-06, atol = 1e-09" in text and "device cuda:0" in text
+    assert "float32" in fig.get_suptitle()
+    # a real run records its device, and the figure drawn from its file names it
+    real = jaxsleigh.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01, method="rk4")
+    fig = plotting.plot_hamiltonian(real)
+    (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
+    assert text.startswith("float32") and f"device {real.settings['devices'][0]}" in text
+
+
+def test_save_figure_writes_the_format_of_the_suffix(tmp_path):
+    fig = plotting.plot_configuration(_tiny_solution())
+    for suffix, magic in ((".png", b"\x89PNG\r\n\x1a\n"), (".pdf", b"%PDF"), (".svg", b"<?xml")):
+        path = plotting.save_figure(fig, tmp_path / "sub" / f"f{suffix}")
+        assert path.read_bytes()[:len(magic)] == magic
 
 
 def test_plotting_into_given_axes_and_from_npz(tmp_path, capsys):
