@@ -15,6 +15,13 @@ averaged over a batch of starts (``tau`` is the temperature: the band
 :math:`\phi = 0` there the stopped integral has the same value and exact gradient as the full one as
 long as the trajectory stays in the ball (validation with the accurate engine checks that it does).
 
+**Effort.** The same scan accumulates the control energy :math:`E = \int |u|^2 dt` (trapezoid on the
+accepted steps, differentiable), and the loss may carry a budget on the batch's geometric-mean energy,
+enforced by an augmented Lagrangian (:func:`~jaxsleigh.tuning.objective` argues the choice):
+minimise the soft time subject to "effort <= budget". :mod:`~jaxsleigh.tuning.pareto` sweeps the
+budget (the time-effort front); the ``balanced`` preset is its fastest point within the paper's
+gains' energy.
+
 **Numerical safety.** Lanes are integrated in the w chart by the engine's adaptive RK4
 (:func:`jaxsleigh.stepper.attempt`: steps that cross :math:`\theta = 0`, go non-finite or increase
 :math:`H_d` are rejected and retried smaller) with a fixed budget of attempts per lane, as one
@@ -32,8 +39,11 @@ default budget runs out). Each candidate is therefore also *probed*: the trainin
 the most steps (an active set, re-found every ``probe_refresh`` accepted candidates by running the
 whole training batch) are integrated over the validation horizon (100 s) by the accurate engine
 with a budget of ``probe_budget`` attempted steps each (half the engine's default); a start that
-needs more makes the candidate invalid. In effect the tuner minimises the soft convergence time
-subject to "every training start needs at most ``probe_budget`` steps for 100 s".
+needs more makes the candidate invalid. Without an effort budget the tuner in effect minimises the soft
+convergence time subject to "every training start needs at most ``probe_budget`` steps for 100 s"
+(the ``tuned`` preset is shaped by that limit); with one, the probe stays as a safety guard and the
+history records whether it was active (``probe_active``; ``settings["probe_at_result"]`` for the
+returned gains).
 
 The optimiser loop (:func:`tune`) rejects every invalid candidate (non-OK lane, non-finite loss or
 gradient, on the training batch and on a *guard* set of starts with :math:`|\theta_0|` down to

@@ -5,8 +5,9 @@ training batch <= budget" (:func:`~jaxsleigh.tuning.objective`, augmented Lagran
 re-evaluated on held-out starts with the accurate engine (:func:`~jaxsleigh.tuning.validate`). Two
 ways to compute the front (``method``):
 
-* ``"warm"``: budgets in increasing order, each point started from the previous point's gains and
-  multiplier, with ``warm_steps`` iterations (the first point gets ``config.steps``);
+* ``"warm"``: the first point is the budget nearest the starting gains' own training energy
+  (``config.steps`` iterations from them); then up the front and down from the first point, each
+  started from its neighbour's gains and multiplier with ``warm_steps`` iterations;
 * ``"vmap"``: every point from the same start, ``config.steps`` iterations, the whole optimiser
   (parameters, optax state with the backtracking wrapper, multiplier) ``jax.vmap``'ed over the budgets:
   one XLA call evaluates every budget's candidate per iteration.
@@ -127,14 +128,23 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
-        points, evals, g, lam = [], 0, gains0, float(loss.multiplier)
-        for j, b in enumerate(budgets):
-            cfg_j = config if j == 0 else config._replace(steps=warm_steps, warmup=1)
-            res = tune(g, starts=starts, config=cfg_j, loss=loss._replace(energy_budget=float(b), multiplier=lam),
+        # the chain starts at the budget nearest the starting gains' own energy (gains0 is feasible
+        # there, nothing to undo), goes up the front, then down from its first point
+        e0 = training_energy(gains0, starts=starts, config=config, loss=loss, plant=plant, x64=x64,
+                             d_floor=d_floor)["energy"]
+        j0 = int(np.argmin(np.abs(np.log(budgets) - math.log(e0))))
+        order = list(range(j0, budgets.size)) + list(range(j0 - 1, -1, -1))
+        found, evals = {}, 1
+        for j in order:
+            src = found.get(j - 1 if j > j0 else j + 1)
+            g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
+            cfg_j = config if src is None else config._replace(steps=warm_steps, warmup=1)
+            res = tune(g, starts=starts, config=cfg_j,
+                       loss=loss._replace(energy_budget=float(budgets[j]), multiplier=lam),
                        tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
             evals += res.settings["iterations_run"]
-            points.append(_point(b, res.gains, res.history, res.best_iteration, res.settings))
-            g, lam = res.gains, float(res.settings["final_multiplier"])
+            found[j] = _point(budgets[j], res.gains, res.history, res.best_iteration, res.settings)
+        points = [found[j] for j in range(budgets.size)]
     else:
         points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress)
     wall = time.perf_counter() - t0
@@ -151,7 +161,8 @@ def _point(budget, gains, history, it, settings) -> FrontPoint:
              "training_energy": float(history.energy[it]), "constraint": float(history.constraint[it]),
              "feasible": bool(history.feasible[it]), "iterations_run": int(len(history.loss)),
              "probe_at_result": settings.get("probe_at_result"),
-             "probe_active_iterations": int(np.sum(history.probe_active))}
+             "probe_active_iterations": int(np.sum(history.probe_active)),
+             "final_multiplier": float(settings.get("final_multiplier", float("nan")))}
     return FrontPoint(float(budget), gains, train, None, history)
 
 
