@@ -1,4 +1,8 @@
-r"""Basins of attraction: which starts reach and keep :math:`|q| \le \epsilon`, and how fast.
+r"""Where starts settle: which reach and keep :math:`|q| \le \epsilon` within the horizon, and how fast.
+
+(The command is called ``basin``, but a map of it is not a basin of attraction in the control sense:
+the paper argues convergence from every start off :math:`\theta = 0`; a start that has not settled
+by the horizon is "not settled yet", not "diverges".)
 
 A basin study integrates the closed loop from many starts with :func:`jaxsleigh.ensemble.run_ensemble`
 (chunked, checkpointed, sharded over devices) and keeps, per start, the convergence time

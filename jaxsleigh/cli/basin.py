@@ -73,7 +73,7 @@ def _epilog() -> str:
 def add_basin(subparsers) -> argparse.ArgumentParser:
     """Register the ``basin`` subcommand on an ``argparse`` subparsers object; returns its parser."""
     p = subparsers.add_parser(
-        "basin", help="convergence time and basin of attraction over a grid, samples or a file of starts",
+        "basin", help="which starts settle within the horizon, and how fast: a grid, samples or a file of starts",
         description="Integrate the closed loop (paper eq. 13) from many starts at rest and record, per start, "
                     "the convergence time T_eps (the first time after which |q| <= --eps holds up to "
                     "--t-final), the status, H_d(0), min |theta|, max |q| and the steps used; summarise the "
