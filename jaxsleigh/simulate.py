@@ -93,7 +93,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       method: ``"adaptive"`` (default: RK4 with per-trajectory error control, starting at ``dt``;
         accurate near theta = 0) or ``"rk4"`` (classical fixed-step RK4 at ``dt``).
       rtol, atol: tolerances of ``"adaptive"`` (defaults per dtype, see ``DEFAULT_RTOL``).
-      max_step: largest adaptive step (default ``10 * dt``; steps also never pass a save time).
+      max_step: largest adaptive step (default ``100 * dt``; steps also never pass a save time).
       max_steps: budget of attempted steps per trajectory (default: 20x the base steps when
         adaptive); a trajectory that runs out gets status ``BUDGET_EXHAUSTED``.
       x64: compute in float64 (default float32).

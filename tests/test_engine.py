@@ -74,9 +74,10 @@ def _T_eps_from_path(t, qn, eps):
 def test_summaries_equal_those_from_full_trajectories(method):
     """On-line summaries inside the scan against the same quantities computed from the saved path.
 
-    With fixed steps every step is saved (save_every=1), so they must agree exactly; the adaptive
-    method samples more often than the save grid, so its T_eps may only be earlier by < one save
-    interval and min/max may only be more extreme."""
+    With fixed steps every step is saved (save_every=1), so min/max must agree exactly and T_eps,
+    located on the dense output inside the step that entered the ball, lies within that step; the
+    adaptive method samples more often than the save grid, so its T_eps may only be earlier by < one
+    save interval and min/max may only be more extreme."""
     ics = _ics(24, seed=3)
     eps, T = 0.6, 30.0
     r = run_ensemble(ics, t_final=T, dt=0.01, eps=eps, method=method, save_every=1, x64=True)
@@ -90,7 +91,7 @@ def test_summaries_equal_those_from_full_trajectories(method):
     if method == "rk4":
         np.testing.assert_array_equal(np.isfinite(r.T_eps), np.isfinite(T_path))
         fin = np.isfinite(T_path)
-        np.testing.assert_allclose(r.T_eps[fin], T_path[fin], rtol=1e-12)
+        assert np.all(r.T_eps[fin] <= T_path[fin] + 1e-9) and np.all(r.T_eps[fin] > T_path[fin] - 0.01 - 1e-9)
         np.testing.assert_allclose(r.min_abs_theta, min_th, rtol=1e-9)
         np.testing.assert_allclose(r.max_excursion, max_q, rtol=1e-9)
     else:

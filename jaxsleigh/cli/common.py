@@ -169,13 +169,13 @@ def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, sav
                    help=f"horizon in seconds (a whole multiple of --dt; default {t_final:g})")
     g.add_argument("--dt", type=number("--dt", "0.01"), default=dt, metavar="DT",
                    help=f"base step in seconds (default {dt:g}): the step of --method rk4; the adaptive "
-                        "method starts with it and grows its step up to 10 DT where the error allows")
+                        "method starts with it and grows its step up to 100 DT where the error allows")
     if save_every is not None:
         g.add_argument("--save-every", type=whole("--save-every", "10"), default=save_every, metavar="K",
                        help=f"keep every K-th base step (default {save_every}; t-final/dt must be a multiple of K)")
     if method:
         g.add_argument("--method", choices=["adaptive", "rk4"], default="adaptive",
-                       help="adaptive: RK4 with per-trajectory error control, steps from DT up to 10 DT, accurate "
+                       help="adaptive: RK4 with per-trajectory error control, steps from DT up to 100 DT, accurate "
                             "near theta = 0 (default); rk4: classical fixed-step RK4 at --dt (fast, but it can be "
                             "wrong or unstable for stiff starts and strong gains, e.g. the tuned preset needs "
                             "--dt 0.001)")
