@@ -44,6 +44,7 @@ def _validation_dict(v: tu.Validation, seed: int) -> dict:
     return {"n": v.n, "seed": seed, "median_T_0.05_s": v.median, "median_se_s": v.median_se,
             "frac_converged_100s": v.frac_converged, "frac_se": v.frac_se, "n_status_not_ok": v.n_failed,
             "mean_adaptive_steps": v.mean_steps, "max_attempts": v.max_attempts,
+            "median_energy": v.median_energy, "median_peak_u": v.median_peak_u, "n_crossed_theta0": v.n_crossed,
             "engine": "run_ensemble, method adaptive, " + str(v.settings.get("dtype")) +
                       f", rtol {v.settings.get('rtol')}, atol {v.settings.get('atol')}, t_final 100 s"}
 

@@ -184,7 +184,8 @@ def backtracking(inner: optax.GradientTransformation, *, grow: float = 1.25, shr
         anchor = pick(params, state.last_params)
         anchor_inner = pick(state.inner, state.last_inner)
         anchor_grad = pick(updates, state.last_grad)
-        scale = jnp.where(valid, jnp.minimum(max_scale, grow * state.scale), shrink * state.scale).astype(state.scale.dtype)
+        scale = jnp.where(valid, jnp.minimum(max_scale, grow * state.scale), shrink * state.scale)
+        scale = scale.astype(state.scale.dtype)
         step, inner_new = inner.update(anchor_grad, anchor_inner, anchor)
         new = jax.tree_util.tree_map(lambda p, s: p + scale * s, anchor, step)
         out = jax.tree_util.tree_map(lambda n, p: n - p, new, params)
@@ -341,7 +342,8 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
                         if refresh and valid:
                             probes = hardest(sets, attempts, int(config.probe))
                     scale = float(opt_state.scale)
-                    row = _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, time.perf_counter() - t_start)
+                    row = _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor,
+                               time.perf_counter() - t_start)
                     row["probe_attempts"] = probe_attempts
                     row["probe_active"] = bool(probed and config.probe and not valid)
                     row["multiplier"] = lam

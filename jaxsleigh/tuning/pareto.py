@@ -39,7 +39,8 @@ from .probes import check, hardest, probe
 from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
 from .validation import Validation, validate, validation_dict
 
-__all__ = ["FrontPoint", "Front", "training_energy", "default_budgets", "budgets_between", "pareto_front", "random_search", "evaluate_front",
+__all__ = ["FrontPoint", "Front", "training_energy", "default_budgets", "budgets_between", "pareto_front",
+           "random_search", "evaluate_front",
            "front_dict", "save_front", "load_front", "point_gains", "FRONT_METHODS"]
 
 FRONT_METHODS = ("warm", "vmap")
@@ -235,7 +236,8 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
                         lam[b] = max(0.0, lam[b] + float(loss.dual_step) * row["constraint"])
                     else:
                         if n_acc[b] == 0:
-                            raise ValueError(f"the starting gains are not a valid candidate for budget {budgets[b]:.4g}")
+                            raise ValueError(f"the starting gains are not a valid candidate for budget "
+                                             f"{budgets[b]:.4g}")
                         rej[b] += 1
                     ok[b] = valid
                     row["best"] = best[b][0]
@@ -310,7 +312,8 @@ def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: Tune
         g = make_gains(np.asarray(g.L, np.float64), float(g.k), np.asarray(g.D_hat, np.float64))
         points.append(FrontPoint(float(bgt), g, {"soft_loss": soft, "training_energy": energy, "feasible": True}))
     return Front(points, "random", time.perf_counter() - t0, int(n_evals),
-                 {"n_evals": int(n_evals), "valid": len(cands), "box": [np.asarray(lo).tolist(), np.asarray(hi).tolist()],
+                 {"n_evals": int(n_evals), "valid": len(cands),
+                  "box": [np.asarray(lo).tolist(), np.asarray(hi).tolist()],
                   "seed": seed, "budgets": budgets.tolist()})
 
 

@@ -1,0 +1,198 @@
+"""Effort-budgeted tuning and the time-effort front: the backtracking wrapper, the control energy
+accumulated in the objective's scan, the augmented Lagrangian's gradient, the budget honoured, the
+front (both methods, JSON, command line) and the shipped `balanced` preset."""
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.flatten_util import ravel_pytree
+
+import jaxsleigh as js
+from jaxsleigh import tuning as tu
+from jaxsleigh.cli import main as cli_main
+
+# shapes and static settings shared with tests/test_tuning.py (one compilation per session)
+SMALL = dict(batch=24, n_attempts=2000)
+SMALL_LOSS = tu.LossConfig(t_final=15.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# backtracking as an optax wrapper
+# ---------------------------------------------------------------------------------------------
+
+def test_backtracking_redoes_the_last_valid_step_shorter_and_vmaps():
+    opt = tu.backtracking(optax.sgd(1.0))
+    p0 = {"a": jnp.array([1.0, 2.0])}
+    g0 = {"a": jnp.array([1.0, -1.0])}
+    st = opt.init(p0)
+    u, st = opt.update(g0, st, p0, valid=True)
+    p1 = optax.apply_updates(p0, u)
+    np.testing.assert_allclose(p1["a"], [0.0, 3.0])
+    # p1 is invalid: its gradient is ignored, the step from p0 is redone half as long
+    u, st = opt.update({"a": jnp.array([1e3, 1e3])}, st, p1, valid=False)
+    p2 = optax.apply_updates(p1, u)
+    np.testing.assert_allclose(p2["a"], [0.5, 2.5])
+    assert float(st.scale) == 0.5
+    # valid again: a step from p2 with its own gradient, the scale grows back
+    u, st = opt.update(g0, st, p2, valid=True)
+    np.testing.assert_allclose(optax.apply_updates(p2, u)["a"], [0.5 - 0.625, 2.5 + 0.625])
+    # vmapped: one lane valid, one not
+    P = {"a": jnp.stack([p1["a"], p1["a"]])}
+    S = jax.vmap(opt.init)({"a": jnp.stack([p0["a"], p0["a"]])})
+    G = {"a": jnp.stack([g0["a"], g0["a"]])}
+    U, S = jax.vmap(lambda g, s, p, v: opt.update(g, s, p, valid=v))(G, S, P, jnp.array([True, False]))
+    out = optax.apply_updates(P, U)["a"]
+    np.testing.assert_allclose(out[0], [-1.0, 4.0])    # stepped from p1
+    np.testing.assert_allclose(out[1], [1.0, 2.0])     # lane 1 goes back to its anchor p0 (no gradient there yet)
+
+
+# ---------------------------------------------------------------------------------------------
+# the control energy inside the objective
+# ---------------------------------------------------------------------------------------------
+
+_ICS = np.array([[1.0, -0.5, 0.8], [-0.6, 0.4, -1.2], [0.3, 0.2, 0.5]])
+
+
+def _setup(gains, **loss):
+    data = tu.make_training_set(_ICS, guard=np.zeros((0, 3)))
+    cfg = tu.LossConfig(*(jnp.asarray(v) for v in tu.LossConfig(**loss)))
+    theta = tu.GainParams(*(jnp.asarray(x) for x in tu.params_from_gains(gains)))
+    trainable, frozen = tu.split_params(theta, None)
+    return data, cfg, trainable, frozen
+
+
+@pytest.mark.usefixtures("x64")
+def test_objective_energy_agrees_with_the_accurate_engine():
+    """int |u|^2 dt accumulated (trapezoid) in the objective's scan = the engine's effort over the
+    same horizon (no lane stops: stop_fraction tiny), float64, tight tolerances."""
+    data, cfg, tr, fr = _setup("paper", t_final=5.0, stop_fraction=1e-6, rtol=1e-8, atol=1e-8)
+    _, aux = tu.objective(tr, fr, data, cfg, n_attempts=6000)
+    assert np.all(np.asarray(aux["lanes"].t) == 5.0)
+    v = tu.validate("paper", _ICS, t_final=5.0, x64=True, rtol=1e-9, atol=1e-9)
+    # trapezoid (second order) on the adaptive steps vs the engine's RK4-order quadrature
+    np.testing.assert_allclose(np.asarray(aux["lanes"].energy), v.energy, rtol=1e-3)
+    assert float(aux["energy"]) == pytest.approx(np.exp(np.mean(np.log(v.energy))), rel=1e-3)
+    np.testing.assert_allclose(np.asarray(aux["lanes"].u_peak), v.u_peak, rtol=5e-3)
+
+
+@pytest.mark.usefixtures("x64")
+def test_augmented_lagrangian_gradient_equals_central_differences():
+    """Fixed RK4 steps: the loss with an active budget (lambda > 0, g > 0) is smooth in the gains and
+    its AD gradient matches central differences; without a budget the loss is the soft time exactly."""
+    data, cfg, tr, fr = _setup("paper", t_final=2.0)
+    kw = dict(n_attempts=220, adaptive=False)
+    (value0, aux0), _ = tu.make_value_and_grad(mode="reverse", **kw)(tr, fr, data, cfg)
+    assert float(value0) == float(aux0["soft"]) and np.isneginf(float(aux0["constraint"]))
+    cfg = cfg._replace(energy_budget=jnp.asarray(0.5 * float(aux0["energy"])), multiplier=jnp.asarray(0.3),
+                       penalty=jnp.asarray(2.0))
+    (value, aux), grad = tu.make_value_and_grad(mode="reverse", **kw)(tr, fr, data, cfg)
+    assert float(aux["constraint"]) == pytest.approx(np.log(2.0))
+    assert float(value) > float(aux["soft"]) + 0.3 * np.log(2.0)
+    flat, unravel = ravel_pytree(tr)
+    f = jax.jit(lambda v: tu.objective(unravel(v), fr, data, cfg, **kw)[0])
+    h = 1e-5
+    fd = np.array([(f(flat + h * e) - f(flat - h * e)) / (2 * h) for e in np.eye(flat.size)])
+    np.testing.assert_allclose(np.asarray(ravel_pytree(grad)[0]), fd, rtol=1e-6, atol=1e-7 * np.max(np.abs(fd)))
+
+
+# ---------------------------------------------------------------------------------------------
+# a budgeted run honours its budget; the probe is a guard, inactive at the result
+# ---------------------------------------------------------------------------------------------
+
+def test_budgeted_tune_returns_gains_within_the_budget_with_the_probe_inactive():
+    config = tu.TuneConfig(steps=8, lr=0.2, warmup=1, seed=3, verify=2, **SMALL)
+    e_paper = tu.training_energy("paper", config=config, loss=SMALL_LOSS)["energy"]
+    budget = 2.0 * e_paper
+    res = tu.tune("paper", config=config, loss=SMALL_LOSS._replace(energy_budget=budget), tune="L,k", progress=False)
+    h, i = res.history, res.best_iteration
+    assert h.feasible[i] and h.energy[i] <= budget and h.constraint[i] <= 0
+    assert h.soft_loss[i] < h.soft_loss[0]                       # faster than the paper's gains
+    assert res.best_loss == pytest.approx(h.soft_loss[i])
+    assert np.all(h.multiplier >= 0) and not h.probe_active[i]
+    pr = res.settings["probe_at_result"]
+    assert pr["active"] is False and pr["max_attempts_training_starts"] < pr["probe_budget"]
+    assert tu.training_energy(res.gains, config=config, loss=SMALL_LOSS)["energy"] == pytest.approx(h.energy[i],
+                                                                                                    rel=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# the front: both methods, its JSON, the command line
+# ---------------------------------------------------------------------------------------------
+
+TINY = tu.TuneConfig(steps=3, batch=8, lr=0.2, warmup=1, seed=1, n_attempts=1500, probe=4, verify=1)
+TINY_LOSS = tu.LossConfig(t_final=10.0)
+
+
+@pytest.mark.parametrize("method", ["warm", "vmap"])
+def test_front_points_respect_their_budgets(method, tmp_path):
+    e = tu.training_energy("paper", config=TINY, loss=TINY_LOSS)["energy"]
+    budgets = [0.5 * e, 3.0 * e]
+    front = tu.pareto_front(budgets, method=method, config=TINY, loss=TINY_LOSS, warm_steps=2, tune_names="L,k")
+    assert front.method == method and len(front.points) == 2 and front.evaluations >= 4
+    for p, b in zip(front.points, budgets):
+        assert p.budget == pytest.approx(b)
+        if p.train["feasible"]:
+            assert p.train["training_energy"] <= b * (1 + 1e-6)
+        js.gains(p.gains.L, p.gains.k, p.gains.D_hat)
+    held = tu.UniformStarts()(np.random.default_rng(9), 4)
+    front = tu.evaluate_front(front, held, t_final=10.0)
+    path = tu.save_front(front, tmp_path / "front.json", references={"paper": tu.validate("paper", held, t_final=10.0)})
+    doc = tu.load_front(path)
+    assert len(doc["points"]) == 2 and set(doc["references"]) == {"paper"}
+    for p in doc["points"]:
+        assert {"L", "k", "D_hat", "budget", "evaluation"} <= set(p)
+        assert {"median_T_0.05_s", "median_se_s", "frac_converged", "median_energy", "median_peak_u",
+                "mean_adaptive_steps"} <= set(p["evaluation"])
+        tu.point_gains(p)
+
+
+def test_cli_pareto_writes_the_front_and_its_figure(tmp_path, capsys):
+    out, png = tmp_path / "front.json", tmp_path / "front.png"
+    rc = cli_main(["tune", "--pareto", "2", "--out", str(out), "--plot", str(png), "--steps", "2", "--warm-steps", "1",
+                   "--batch", "8", "--t-final", "10", "--n-attempts", "1500", "--tune", "L,k", "--validate", "4",
+                   "--budgets", "5:50", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads(out.read_text())
+    assert [round(p["budget"]) for p in doc["points"]] == [5, 50]
+    assert set(doc["references"]) == {"paper", "tuned"} and doc["command"][:2] == ["jaxsleigh", "tune"]
+    assert png.stat().st_size > 10_000
+
+
+# ---------------------------------------------------------------------------------------------
+# the shipped preset
+# ---------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def balanced_vs_paper():
+    ics = tu.UniformStarts()(np.random.default_rng(20240613), 192)
+    return tu.validate("paper", ics), tu.validate("balanced", ics)
+
+
+def test_balanced_preset_is_faster_at_no_more_energy(balanced_vs_paper):
+    """`balanced` on starts the tuner never saw (experiments/pareto_front.py checks 256 others):
+    median control energy no higher than the paper's gains' (within the median's sampling noise), no fewer
+    converged, no start failing or
+    crossing theta = 0, and a shorter median T_0.05. The converged fractions are compared within one
+    binomial standard error (192 starts cannot resolve the ~1% difference the experiment measured)."""
+    preset = __import__("pathlib").Path(js.__file__).parent / "presets" / "balanced.json"
+    meta = json.loads(preset.read_text())["meta"]
+    assert "how" in meta and {"paper", "balanced", "tuned"} <= set(meta["validation"])
+    paper, bal = balanced_vs_paper
+    assert bal.n_failed == 0 and bal.n_crossed == 0
+    # per-start energies span three decades, so the median of 192 moves by a few %: balanced's median
+    # energy was 0.91x the paper's on the experiment's 256 starts, 1.02x on these
+    assert bal.median_energy <= 1.05 * paper.median_energy
+    assert bal.frac_converged >= paper.frac_converged - paper.frac_se
+    assert bal.median < paper.median
+
+
+@pytest.mark.xfail(strict=True, reason="issue 9's target (median T_0.05 >= 2x shorter than the paper's at equal "
+                                       "energy) is not reached: gradient descent on this objective finds ~1.2x")
+def test_balanced_preset_meets_the_2x_target(balanced_vs_paper):
+    paper, bal = balanced_vs_paper
+    assert 2 * bal.median <= paper.median
