@@ -1,33 +1,33 @@
-r"""Where starts settle: which reach and keep :math:`|q| \le \epsilon` within the horizon, and how fast.
+r"""Where starts settle: which reach and keep \(|q| \le \epsilon\) within the horizon, and how fast.
 
 (The command is called ``basin``, but a map of it is not a basin of attraction in the control sense:
-the paper argues convergence from every start off :math:`\theta = 0`; a start that has not settled
+the paper argues convergence from every start off \(\theta = 0\); a start that has not settled
 by the horizon is "not settled yet", not "diverges".)
 
-A basin study integrates the closed loop from many starts with :func:`jaxsleigh.ensemble.run_ensemble`
+A basin study integrates the closed loop from many starts with `jaxsleigh.ensemble.run_ensemble`
 (chunked, checkpointed, sharded over devices) and keeps, per start, the convergence time
-``T_eps``, the status, :math:`H_d(0)`, the closest approach to the singular set
-(``min_abs_theta``), the largest :math:`|q|` (``max_excursion``) and the steps used.
+``T_eps``, the status, \(H_d(0)\), the closest approach to the singular set
+(``min_abs_theta``), the largest \(|q|\) (``max_excursion``) and the steps used.
 
 Starts come from
 
-* :func:`grid_starts`: a grid over any slice of :math:`(x, y, \theta)`: each coordinate is a range
+* `grid_starts`: a grid over any slice of \((x, y, \theta)\): each coordinate is a range
   ``"LO:HI:N"`` or one fixed value (an x-y map at fixed heading, an x-theta or y-theta map at
   fixed position, a line, or a 3-D grid);
-* :func:`sample_starts`: Monte-Carlo samples, uniform in a box;
-* :func:`array_starts`: a user's ``(N, 3)`` or ``(N, 5)`` array.
+* `sample_starts`: Monte-Carlo samples, uniform in a box;
+* `array_starts`: a user's ``(N, 3)`` or ``(N, 5)`` array.
 
-:func:`run_basin` returns a :class:`BasinResult`; its summary is the fraction :math:`S` of valid
-starts that converged within the horizon, with standard error :math:`\sqrt{S(1-S)/N}`
-(:func:`fraction_converged`), and the distribution of ``T_eps``. :func:`save_basin` writes it to
+`run_basin` returns a `BasinResult`; its summary is the fraction \(S\) of valid
+starts that converged within the horizon, with standard error \(\sqrt{S(1-S)/N}\)
+(`fraction_converged`), and the distribution of ``T_eps``. `save_basin` writes it to
 an ``.npz`` whose bytes depend only on the inputs (no wall time, no zip timestamps), so a resumed
-run ends with the same file as an uninterrupted one; :func:`load_basin` reads it back.
+run ends with the same file as an uninterrupted one; `load_basin` reads it back.
 
-Starts on the singular set :math:`\theta_0 = 0` (where the control law is undefined) are flagged
-with status ``SINGULAR_START``, not integrated, and left out of :math:`N` in the fraction.
+Starts on the singular set \(\theta_0 = 0\) (where the control law is undefined) are flagged
+with status ``SINGULAR_START``, not integrated, and left out of \(N\) in the fraction.
 
-Two small analyses serve the singular-set study: :func:`power_law_fit` (log-log least squares
-with the slope's standard error) and :func:`path_length` (of decimated paths).
+Two small analyses serve the singular-set study: `power_law_fit` (log-log least squares
+with the slope's standard error) and `path_length` (of decimated paths).
 """
 from __future__ import annotations
 
@@ -106,7 +106,7 @@ class Axis(NamedTuple):
 
 
 def parse_axis(spec, name: str = "x") -> Axis:
-    """A grid axis from ``"LO:HI:N"``, ``"VALUE"``, a number, ``(lo, hi, n)`` or an :class:`Axis`.
+    """A grid axis from ``"LO:HI:N"``, ``"VALUE"``, a number, ``(lo, hi, n)`` or an `Axis`.
 
     Numbers may be written with ``pi`` (``"-pi:pi:64"``, ``"pi/8"``). ``name`` is used in the
     error messages (e.g. ``"--theta"``), which say what to write instead.
@@ -181,7 +181,7 @@ class BasinStarts(NamedTuple):
     spec: dict
 
     def axis(self, name: str) -> Axis:
-        """The :class:`Axis` of coordinate ``name`` of a grid (fixed coordinates have ``n = 1``)."""
+        """The `Axis` of coordinate ``name`` of a grid (fixed coordinates have ``n = 1``)."""
         if self.kind != "grid":
             raise ValueError(f"starts of kind {self.kind!r} have no grid axes")
         return Axis(*self.spec[name])
@@ -193,7 +193,7 @@ class BasinStarts(NamedTuple):
 
 
 def grid_starts(x=None, y=None, theta=None) -> BasinStarts:
-    r"""Starts on a grid over a slice of :math:`(x, y, \theta)`, at rest.
+    r"""Starts on a grid over a slice of \((x, y, \theta)\), at rest.
 
     Each coordinate is a range (``"LO:HI:N"`` or ``(lo, hi, n)``) or one value (held fixed). With
     none given the slice is ``x, y in [-3, 3]`` (64 x 64) at ``theta = pi/4``; otherwise a
@@ -203,7 +203,7 @@ def grid_starts(x=None, y=None, theta=None) -> BasinStarts:
     ``grid_starts(x="-3:3:128", y=1, theta="-pi:pi:128")`` (x-theta map at y = 1).
 
     Grid points with ``theta = 0`` exactly lie on the singular set: they are kept (so the grid
-    stays rectangular) and flagged by :func:`run_basin`. A fixed ``theta = 0`` is an error.
+    stays rectangular) and flagged by `run_basin`. A fixed ``theta = 0`` is an error.
     """
     given = {"x": x, "y": y, "theta": theta}
     if all(v is None for v in given.values()):
@@ -229,12 +229,12 @@ def grid_starts(x=None, y=None, theta=None) -> BasinStarts:
 
 
 def sample_starts(n: int, *, seed: int = 0, x=None, y=None, theta=None) -> BasinStarts:
-    r"""``n`` starts at rest, uniform in a box of :math:`(x, y, \theta)`.
+    r"""``n`` starts at rest, uniform in a box of \((x, y, \theta)\).
 
     Each coordinate is an interval (``"LO:HI"``, ``"LO:HI:N"`` with ``N`` ignored, ``(lo, hi)``)
     or one value (held fixed); defaults: ``|x|, |y| <= 3``, ``theta in (-pi, pi)``. The draw is
     reproducible from ``seed`` (NumPy's PCG64). A sample with ``theta = 0`` exactly would be
-    flagged as singular by :func:`run_basin` (probability ~1e-16 per sample).
+    flagged as singular by `run_basin` (probability ~1e-16 per sample).
     """
     n = whole("n", n, maximum=2**62, example=100000)
     seed = whole("seed", seed, minimum=0, maximum=2**63 - 1, example=1)
@@ -287,12 +287,12 @@ def _starts_from_spec(ics: np.ndarray, spec: dict) -> BasinStarts:
 # ---------------------------------------------------------------------------------------------
 
 def fraction_converged(converged, valid=None) -> tuple[float, float]:
-    r"""Fraction :math:`S` of the valid starts that converged, and its standard error.
+    r"""Fraction \(S\) of the valid starts that converged, and its standard error.
 
-    .. math:: S = \frac{n_\mathrm{conv}}{N}, \qquad \mathrm{se}(S) = \sqrt{\frac{S (1 - S)}{N}}
+    \[ S = \frac{n_\mathrm{conv}}{N}, \qquad \mathrm{se}(S) = \sqrt{\frac{S (1 - S)}{N}} \]
 
-    (binomial; zero when :math:`S` is 0 or 1). ``valid`` (bool, default all) selects the starts
-    counted in :math:`N`. Returns ``(nan, nan)`` when :math:`N = 0`.
+    (binomial; zero when \(S\) is 0 or 1). ``valid`` (bool, default all) selects the starts
+    counted in \(N\). Returns ``(nan, nan)`` when \(N = 0\).
     """
     conv = np.asarray(converged, dtype=bool).ravel()
     ok = np.ones_like(conv) if valid is None else np.asarray(valid, dtype=bool).ravel()
@@ -350,22 +350,22 @@ class BasinResult(NamedTuple):
     """Per-start results of a basin study (NumPy arrays, first axis N), the starts and the settings.
 
     Attributes:
-      starts: the :class:`BasinStarts` (grid shape and axes, or samples' box and seed).
+      starts: the `BasinStarts` (grid shape and axes, or samples' box and seed).
       ics: ``(N, 5)`` initial conditions ``(x, y, theta, p1, p2)``.
-      T_eps: convergence time [s]: the first time after which :math:`|q| \\le \\epsilon` holds at
+      T_eps: convergence time [s]: the first time after which \\(|q| \\le \\epsilon\\) holds at
         every accepted step up to the horizon; ``inf``: not settled by then; ``nan``: failed or
         not integrated.
-      status: :class:`~jaxsleigh.status.Status` codes.
-      Hd0, Hd_final: :math:`H_d` at the start and at the horizon.
-      min_abs_theta: closest approach to the singular set, :math:`\\min_t |\\theta(t)|`.
-      max_excursion: :math:`\\max_t |q(t)|`.
+      status: `Status` codes.
+      Hd0, Hd_final: \\(H_d\\) at the start and at the horizon.
+      min_abs_theta: closest approach to the singular set, \\(\\min_t |\\theta(t)|\\).
+      max_excursion: \\(\\max_t |q(t)|\\).
       n_steps, n_rejected: accepted and rejected steps.
       q_final, p_final: ``(N, 3)``, ``(N, 2)`` state at the horizon (NaN if failed).
       settings: plant, gains, eps, horizon, method, dtype, tolerances, budget, chunk size, starts.
       run_info: wall time and devices of the run that produced it (not saved in the ``.npz``: they
         vary between runs); ``None`` when loaded from a file.
       u_peak, u_norm_peak, u_energy, u_abs_int: control effort (see
-        :class:`~jaxsleigh.ensemble.EnsembleResult`); ``None`` in files of jaxsleigh 0.1.
+        `EnsembleResult`); ``None`` in files of jaxsleigh 0.1.
     """
 
     starts: BasinStarts
@@ -414,7 +414,7 @@ class BasinResult(NamedTuple):
 
     @property
     def fraction_se(self) -> float:
-        """Standard error :math:`\\sqrt{S(1-S)/N}` of :attr:`fraction`."""
+        """Standard error \\(\\sqrt{S(1-S)/N}\\) of `fraction`."""
         return fraction_converged(self.converged, self.valid)[1]
 
     def map(self, name: str = "T_eps") -> np.ndarray:
@@ -458,11 +458,11 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
     r"""Integrate the closed loop from every start and summarise convergence.
 
     Args:
-      starts: a :class:`BasinStarts` (:func:`grid_starts`, :func:`sample_starts`) or an
+      starts: a `BasinStarts` (`grid_starts`, `sample_starts`) or an
         ``(N, 3)`` / ``(N, 5)`` array.
-      eps: radius of the ball :math:`|q| \le \epsilon` of ``T_eps``.
+      eps: radius of the ball \(|q| \le \epsilon\) of ``T_eps``.
       t_final, dt, method, plant, gains, x64, rtol, atol, max_steps, check_passivity: as in
-        :func:`jaxsleigh.ensemble.run_ensemble` (defaults: the paper's plant and gains, 100 s,
+        `jaxsleigh.ensemble.run_ensemble` (defaults: the paper's plant and gains, 100 s,
         adaptive RK4, float32).
       chunk_size: starts integrated at once and written per checkpoint (default 16384 on CPU,
         131072 on accelerators; times the number of devices).
@@ -471,10 +471,10 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
         of an interrupted run with the same settings and starts.
       progress: progress bar with ETA (``None``: on a terminal).
       shard: ``(index, count)``: compute only this process's share of the chunks into
-        ``checkpoint_dir`` and return ``None`` (see :func:`jaxsleigh.ensemble.run_ensemble`).
+        ``checkpoint_dir`` and return ``None`` (see `jaxsleigh.ensemble.run_ensemble`).
 
     Returns:
-      :class:`BasinResult` (``None`` with ``shard``).
+      `BasinResult` (``None`` with ``shard``).
     """
     import jax
 
@@ -526,7 +526,7 @@ def _write_npz_deterministic(path: Path, arrays: dict) -> None:
 
 
 def save_basin(path, result: BasinResult) -> Path:
-    """Write a :class:`BasinResult` to ``.npz`` (appended when missing); returns the path.
+    """Write a `BasinResult` to ``.npz`` (appended when missing); returns the path.
 
     Keys: the starts ``ics`` ``(N, 3)`` or ``(N, 5)`` (as given); per start ``T_eps``, ``status``,
     ``Hd0``, ``Hd_final``, ``min_abs_theta``, ``max_excursion``, ``n_steps``, ``n_rejected``,
@@ -583,7 +583,7 @@ def save_basin(path, result: BasinResult) -> Path:
 
 
 def load_basin(path) -> BasinResult:
-    """Read an ``.npz`` written by :func:`save_basin` (or ``jaxsleigh basin``)."""
+    """Read an ``.npz`` written by `save_basin` (or ``jaxsleigh basin``)."""
     try:
         with np.load(npz_path(path), allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -606,12 +606,12 @@ def load_basin(path) -> BasinResult:
 # ---------------------------------------------------------------------------------------------
 
 class PowerLawFit(NamedTuple):
-    r"""Least-squares fit :math:`\log y = \log c + a \log x` (so :math:`y \approx c\,x^a`).
+    r"""Least-squares fit \(\log y = \log c + a \log x\) (so \(y \approx c\,x^a\)).
 
     Attributes:
-      exponent: :math:`a`.
+      exponent: \(a\).
       exponent_se: its standard error (from the residuals; ``nan`` with two points).
-      prefactor: :math:`c`.
+      prefactor: \(c\).
       r2: coefficient of determination in log-log.
       n: points used.
     """
@@ -627,7 +627,7 @@ class PowerLawFit(NamedTuple):
 
 
 def power_law_fit(x, y) -> PowerLawFit:
-    """Fit :math:`y = c\\,x^a` by least squares in log-log over the points with ``x, y > 0`` finite."""
+    """Fit \\(y = c\\,x^a\\) by least squares in log-log over the points with ``x, y > 0`` finite."""
     x = np.asarray(x, dtype=float).ravel()
     y = np.asarray(y, dtype=float).ravel()
     ok = np.isfinite(x) & np.isfinite(y) & (x > 0) & (y > 0)
@@ -647,7 +647,7 @@ def power_law_fit(x, y) -> PowerLawFit:
 
 
 def path_length(q) -> np.ndarray:
-    """Length of the path of the contact point: :math:`\\sum |\\Delta (x, y)|` over a decimated
+    """Length of the path of the contact point: \\(\\sum |\\Delta (x, y)|\\) over a decimated
     trajectory ``q`` of shape ``(T, 3)`` or ``(N, T, 3)`` (NaN samples, after a failure, are
     skipped). Decimation cuts corners: save finely enough (see the singular-set study)."""
     q = np.asarray(q, dtype=float)

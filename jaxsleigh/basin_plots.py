@@ -1,20 +1,20 @@
-"""Figures of basin studies and of the singular-set study, from a :class:`~jaxsleigh.basin.BasinResult`.
+"""Figures of basin studies and of the singular-set study, from a `BasinResult`.
 
-* :func:`plot_basin_map`: convergence time ``T_eps`` over a 2-D grid as a heat map with a log colour
+* `plot_basin_map`: convergence time ``T_eps`` over a 2-D grid as a heat map with a log colour
   scale; starts that did not settle within the horizon, that failed, and that lie on the singular
   set (not integrated) each have their own flat colour, and the singular set ``theta = 0`` is drawn.
   Other per-start fields (``Hd0``, ``max_excursion``, ``n_steps``, ``min_abs_theta``) too.
-* :func:`plot_fraction_vs_theta`: fraction converged against ``theta0`` with standard-error bars;
-  :func:`plot_fraction_vs_distance`: the same against the initial distance ``|(x0, y0)|``.
-* :func:`plot_t_eps_distribution`: histogram of ``T_eps`` and the fraction converged by time t.
-* :func:`plot_t_eps_scatter`: ``T_eps`` against ``|theta0|`` (for samples and files of starts).
-* :func:`plot_basin`: the overview (map or scatter, fraction, distribution) drawn by
+* `plot_fraction_vs_theta`: fraction converged against ``theta0`` with standard-error bars;
+  `plot_fraction_vs_distance`: the same against the initial distance ``|(x0, y0)|``.
+* `plot_t_eps_distribution`: histogram of ``T_eps`` and the fraction converged by time t.
+* `plot_t_eps_scatter`: ``T_eps`` against ``|theta0|`` (for samples and files of starts).
+* `plot_basin`: the overview (map or scatter, fraction, distribution) drawn by
   ``jaxsleigh basin --plot``.
-* :func:`plot_power_laws`: log-log data with fitted power laws (the singular-set study).
+* `plot_power_laws`: log-log data with fitted power laws (the singular-set study).
 
-As in :mod:`jaxsleigh.plotting`, figures are :class:`matplotlib.figure.Figure` objects built without
-``pyplot`` (no backend, no global state; :mod:`jaxsleigh.plot_base`); pass ``ax`` to draw into your
-own axes; save with :func:`jaxsleigh.plotting.save_figure`. Titles name the dtype, method, step, ``eps``
+As in `jaxsleigh.plotting`, figures are `matplotlib.figure.Figure` objects built without
+``pyplot`` (no backend, no global state; `jaxsleigh.plot_base`); pass ``ax`` to draw into your
+own axes; save with `jaxsleigh.plotting.save_figure`. Titles name the dtype, method, step, ``eps``
 and horizon; a stamp along the top edge adds the tolerances and the device (when the result holds it).
 """
 from __future__ import annotations
@@ -112,7 +112,7 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
     (an x-y map at fixed ``theta0`` does not meet it; the title says so).
 
     Returns:
-      The :class:`matplotlib.figure.Figure`.
+      The `matplotlib.figure.Figure`.
     """
     from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
 
@@ -229,7 +229,7 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
 
 
 def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16):
-    """Fraction converged against the initial distance :math:`\\sqrt{x_0^2 + y_0^2}` (equal-width
+    """Fraction converged against the initial distance \\(\\sqrt{x_0^2 + y_0^2}\\) (equal-width
     bins, ``± se`` bars): the view of an x-y slice at fixed heading."""
     fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
     r = np.hypot(res.ics[:, 0], res.ics[:, 1])
@@ -347,7 +347,7 @@ def plot_power_laws(x, series: Mapping[str, np.ndarray], ax=None, *, fits: Optio
     Args:
       x: (n,) abscissa (e.g. ``|theta0|``).
       series: label -> (n,) values (non-finite or non-positive points are skipped).
-      fits: label -> :class:`~jaxsleigh.basin.PowerLawFit`, drawn as a line.
+      fits: label -> `PowerLawFit`, drawn as a line.
       fit_ranges: label -> ``(lo, hi)``, the range of ``x`` the fit used (default: the series').
       expected: label -> the exponent expected from theory, added to the legend.
     """

@@ -114,7 +114,7 @@ class _CParams(ctypes.Structure):
 
 def build_c_reference(out_dir=None, source=None, defines=()):
     """Compile the C reference into a shared library; returns ``(path, None)`` or ``(None, reason)``.
-    ``defines``: preprocessor macros selecting a variant (see :data:`C_VARIANTS`)."""
+    ``defines``: preprocessor macros selecting a variant (see `C_VARIANTS`)."""
     source = Path(source) if source is not None else C_REFERENCE_SOURCE
     if not source.exists():
         return None, f"C reference source not found ({source}); run from a repository checkout"
@@ -147,7 +147,7 @@ def _c_params(args) -> _CParams:
 
 def c_reference_run(lib, y0w, args, dt, n_steps, n_threads: int = 1):
     """Run the C reference on w-chart starts ``y0w`` (N, 5) float32; returns the final (N, 5).
-    ``lib``: a path from :func:`build_c_reference` or a loaded ``ctypes.CDLL``."""
+    ``lib``: a path from `build_c_reference` or a loaded ``ctypes.CDLL``."""
     if not isinstance(lib, ctypes.CDLL):
         lib = ctypes.CDLL(str(lib))
     fn = lib.rk4w_run
@@ -193,7 +193,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     rotation, the same call with the earlier kernel (one scan over the whole batch,
     ``drive_plain(block=None)``) as ``jax_whole_batch``: a before/after in one run. ``variants``
     (``{name: drive_plain keyword arguments}``, e.g. ``{"jax_vw512": {"vector_width": 512}}``) times
-    more such variants of the call the same way. ``c_variants`` (names from :data:`C_VARIANTS`)
+    more such variants of the call the same way. ``c_variants`` (names from `C_VARIANTS`)
     times those builds of the C program in the same rotation (``c_<name>_...`` throughputs and
     ``ratio_cpu_vs_c_<name>``: JAX / that build). Returns a dict;
     ``available`` False with ``reason`` when the C program cannot be built (float64 runs are not

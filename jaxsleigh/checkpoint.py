@@ -1,13 +1,13 @@
 """Chunk checkpoints of long runs: nothing lost when a run is interrupted, nothing mixed on resume.
 
-A :class:`ChunkStore` is a folder of ``chunk_NNNNNN.npz`` files plus a ``manifest.json``. Every
+A `ChunkStore` is a folder of ``chunk_NNNNNN.npz`` files plus a ``manifest.json``. Every
 chunk carries the fingerprint of the run that wrote it (a hash of the settings and of *all* the
 starts) and is checked on reuse whether or not the manifest exists:
 
 * a chunk of another run (other settings, seed, starts or chunk size) stops the run with a
-  :class:`~jaxsleigh.errors.CheckpointError` naming the file and the fix: results are never mixed;
+  `CheckpointError` naming the file and the fix: results are never mixed;
 * a damaged chunk (empty, truncated, corrupt, wrong length) is named in a
-  :class:`~jaxsleigh.errors.DamagedCheckpointWarning` and recomputed;
+  `DamagedCheckpointWarning` and recomputed;
 * files are written atomically (temporary file, fsync, rename): a kill leaves either the complete
   chunk or none, and leftover temporary files are hidden names that are never read as chunks.
 """
@@ -107,7 +107,7 @@ class ChunkStore:
 
     def load(self, index: int, rows: int, fields=None) -> Optional[dict]:
         """Chunk ``index`` if it exists, belongs to this run and holds ``rows`` rows; ``None`` if it
-        is missing or damaged (then it is recomputed); :class:`CheckpointError` if another run
+        is missing or damaged (then it is recomputed); `CheckpointError` if another run
         wrote it. ``fields``: the names the chunk must hold (all of them, no others)."""
         path = self.path(index)
         if not path.exists():

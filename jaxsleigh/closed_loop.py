@@ -2,14 +2,14 @@ r"""The closed loop: the plant (eq. 1) driven by the control law (eq. 13), compo
 
 Two charts of the same system, both as ``f(t, y, args)`` with ``args = ClosedLoop(plant, gains)``:
 
-* :func:`vector_field` in the physical state ``y = (x, y, theta, p1, p2)``;
-* :func:`vector_field_w` in ``y = (w1, w2, w3, p1, p2)``, the paper's eq. 15 chart. There the
-  closed loop is port-Hamiltonian with :math:`H_d = \tfrac12 p^\top M^{-1} p + \tfrac12 w^\top L w`
-  and :math:`D_d = D + \hat D + D_i` (eq. 15-16), so ``w`` stays in the bounded set
-  :math:`H_d \le H_d(0)` and the right-hand side needs no trigonometry. The ensemble engine
+* `vector_field` in the physical state ``y = (x, y, theta, p1, p2)``;
+* `vector_field_w` in ``y = (w1, w2, w3, p1, p2)``, the paper's eq. 15 chart. There the
+  closed loop is port-Hamiltonian with \(H_d = \tfrac12 p^\top M^{-1} p + \tfrac12 w^\top L w\)
+  and \(D_d = D + \hat D + D_i\) (eq. 15-16), so ``w`` stays in the bounded set
+  \(H_d \le H_d(0)\) and the right-hand side needs no trigonometry. The ensemble engine
   integrates in this chart.
 
-Along either, :math:`\dot H_d = -\nabla_p H^\top D_d \nabla_p H \le 0` (eq. 18).
+Along either, \(\dot H_d = -\nabla_p H^\top D_d \nabla_p H \le 0\) (eq. 18).
 """
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def vector_field_w(t, y, args: ClosedLoop):
 
 
 def vector_field_w_control(t, y, args: ClosedLoop):
-    """:func:`vector_field_w` and the control ``u`` (a tuple of two components) it applies: the
+    """`vector_field_w` and the control ``u`` (a tuple of two components) it applies: the
     observers of control effort read ``u`` without a second evaluation of the law."""
     del t
     w, p = (y[0], y[1], y[2]), (y[3], y[4])
@@ -78,17 +78,17 @@ def vector_field_w_control(t, y, args: ClosedLoop):
 
 
 def closed_loop_hamiltonian(y, args: ClosedLoop):
-    """:math:`H_d(q, p) = \\tfrac12 p^\\top M^{-1} p + \\tfrac12 w(q)^\\top L w(q)` (eq. 15)."""
+    """\\(H_d(q, p) = \\tfrac12 p^\\top M^{-1} p + \\tfrac12 w(q)^\\top L w(q)\\) (eq. 15)."""
     return hamiltonian(y[3:], args.plant) + potential(q_to_w(y[:3]), args.gains)
 
 
 def closed_loop_hamiltonian_w(y, args: ClosedLoop):
-    """:math:`H_d` of a w-chart state ``(w, p)``."""
+    """\\(H_d\\) of a w-chart state ``(w, p)``."""
     return hamiltonian(y[3:], args.plant) + potential(y[:3], args.gains)
 
 
 def dissipation_w(y, args: ClosedLoop):
-    """:math:`-\\nabla_p H^\\top D_d \\nabla_p H` (eq. 18), the exact value of :math:`\\dot H_d`."""
+    """\\(-\\nabla_p H^\\top D_d \\nabla_p H\\) (eq. 18), the exact value of \\(\\dot H_d\\)."""
     w, p = y[:3], y[3:]
     v = velocity_components(p, args.plant)
     d = args.plant.damping.force(w_to_q(w), p, v)

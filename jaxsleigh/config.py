@@ -1,10 +1,10 @@
-"""One configuration object for every solve: :func:`solve_config` resolves and checks the options
-that :func:`~jaxsleigh.simulate`, :func:`~jaxsleigh.run_ensemble` and :func:`~jaxsleigh.run_basin`
+"""One configuration object for every solve: `solve_config` resolves and checks the options
+that `simulate`, `run_ensemble` and `run_basin`
 share (plant, gains, horizon, method, precision, tolerances, step budget, convergence ball), once,
 eagerly, with messages that say what to change.
 
-The result, :class:`SolveConfig`, is what the engine runs and what the result files record
-(:meth:`SolveConfig.settings`).
+The result, `SolveConfig`, is what the engine runs and what the result files record
+(`SolveConfig.settings`).
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ MAX_STEP_FACTOR = 100
 
 
 class SolveConfig(NamedTuple):
-    """Everything that decides a solve, resolved and checked (see :func:`solve_config`)."""
+    """Everything that decides a solve, resolved and checked (see `solve_config`)."""
 
     plant: PlantParams
     gains: Gains
@@ -93,9 +93,9 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
                  check_passivity: Any = True, flags: Optional[dict] = None) -> SolveConfig:
     """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
 
-    Args mean the same as in :func:`jaxsleigh.simulate`. ``gains`` may be a :class:`Gains`, a preset
+    Args mean the same as in `jaxsleigh.simulate`. ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
-    :class:`PlantParams` (both re-validated). ``flags`` maps keyword names to the command-line
+    `PlantParams` (both re-validated). ``flags`` maps keyword names to the command-line
     flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
     """
     f = lambda n: _flag(n, flags)  # noqa: E731

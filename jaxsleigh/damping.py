@@ -29,9 +29,9 @@ __all__ = [
 class CoulombDamping(NamedTuple):
     r"""Smoothed Coulomb friction of the paper's simulation (Sec. 5).
 
-    .. math:: D(p) = c\,\mathrm{diag}\big(1/\sqrt{\epsilon + p_1^2},\ 1/\sqrt{\epsilon + p_2^2}\big)
+    \[ D(p) = c\,\mathrm{diag}\big(1/\sqrt{\epsilon + p_1^2},\ 1/\sqrt{\epsilon + p_2^2}\big) \]
 
-    The paper uses (eq. 31) :math:`\epsilon = 0.1`, :math:`c = 1`.
+    The paper uses (eq. 31) \(\epsilon = 0.1\), \(c = 1\).
     """
 
     eps: float = 0.1
@@ -47,7 +47,7 @@ class CoulombDamping(NamedTuple):
 
 
 class ViscousDamping(NamedTuple):
-    r"""Linear viscous friction :math:`D = \mathrm{diag}(c_1, c_2)`."""
+    r"""Linear viscous friction \(D = \mathrm{diag}(c_1, c_2)\)."""
 
     c1: float = 1.0
     c2: float = 1.0
@@ -62,7 +62,7 @@ class ViscousDamping(NamedTuple):
 
 
 class NoDamping(NamedTuple):
-    """No open-loop damping, :math:`D = 0` (with ``u = 0`` the plant then conserves ``H``)."""
+    """No open-loop damping, \\(D = 0\\) (with ``u = 0`` the plant then conserves ``H``)."""
 
     def matrix(self, q, p):
         del q

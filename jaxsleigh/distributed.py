@@ -3,7 +3,7 @@
 The design needs no cross-process computation, only JAX's multi-controller runtime for what it is
 good at: discovering the processes (``jax.distributed.initialize``, with automatic detection under
 SLURM and Open MPI), its key-value store and its barriers. The work itself is divided through the
-chunk checkpoint folder that :func:`jaxsleigh.ensemble.run_ensemble` already writes (every chunk
+chunk checkpoint folder that `jaxsleigh.ensemble.run_ensemble` already writes (every chunk
 atomically, tagged with the run's fingerprint):
 
 1. every process checks its input and the output paths; the verdicts are exchanged, so that a bad
@@ -20,9 +20,9 @@ A process that dies takes its unfinished chunk with it (JAX's runtime then stops
 its heartbeat timeout, by default 100 s; what they finished is on disk). ``--resume``, by any number
 of processes, recomputes exactly the chunks that are missing.
 
-:func:`start` initialises the runtime (or returns ``None`` for a plain single-process run) and
-:func:`run_shared` runs steps 1-4; the command line wraps both in
-:func:`jaxsleigh.cli.common.run_distributed`.
+`start` initialises the runtime (or returns ``None`` for a plain single-process run) and
+`run_shared` runs steps 1-4; the command line wraps both in
+`jaxsleigh.cli.common.run_distributed`.
 """
 from __future__ import annotations
 
@@ -153,7 +153,7 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
 
     Give all three of ``coordinator`` (``HOST:PORT`` of process 0), ``num_processes`` and
     ``process_id``, or none: then the cluster is detected under SLURM / Open MPI
-    (:func:`cluster_env`), and without one the run is single-process and ``None`` is returned.
+    (`cluster_env`), and without one the run is single-process and ``None`` is returned.
     Must be called before any JAX computation in this process. ``ValueError`` for bad arguments.
     """
     given = [v is not None for v in (coordinator, num_processes, process_id)]

@@ -1,8 +1,8 @@
 """Host-side driver of the stepper: input checks, the segment loop, batch compaction.
 
-Two regimes share the stepper of :mod:`jaxsleigh.stepper`: :func:`drive_final` (ensembles: final
+Two regimes share the stepper of `jaxsleigh.stepper`: `drive_final` (ensembles: final
 state and on-line summaries, host loop over segments with batch compaction) and
-:func:`drive_saving` (decimated trajectories on a uniform save grid).
+`drive_saving` (decimated trajectories on a uniform save grid).
 """
 from __future__ import annotations
 
@@ -138,7 +138,7 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     with zero momentum, or ``(x, y, theta, p1, p2)``. Rows on the singular set ``theta = 0``
     (status ``SINGULAR_START``), with non-finite entries (``INVALID_INPUT``) or, with ``dtype``
     given, so close to it that they overflow that precision (``OUT_OF_RANGE``) are flagged, not
-    integrated, and named in one :class:`~jaxsleigh.errors.FlaggedStartsWarning`; the other rows
+    integrated, and named in one `FlaggedStartsWarning`; the other rows
     are computed. A single start that is bad, or a batch whose every row is, raises ``ValueError``
     with a message that says what to change.
     """
@@ -255,21 +255,21 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
                 compact: bool = True, monitor: bool = True, progress=None, mesh=None,
                 observers=DEFAULT_OBSERVERS) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
-    (``observers``, :mod:`jaxsleigh.observers`).
+    (``observers``, `jaxsleigh.observers`).
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
     batch (a power of two, >= 64, so few shapes compile): the cost then follows the sum over
     trajectories of the steps each needs, not the batch's maximum.
 
-    Returns the final :class:`~jaxsleigh.stepper.StepState` as batch-last NumPy arrays, with
+    Returns the final `StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
-    ``update(fraction_done)``. ``mesh`` (a 1-D :class:`jax.sharding.Mesh` with axis ``"batch"``)
+    ``update(fraction_done)``. ``mesh`` (a 1-D `jax.sharding.Mesh` with axis ``"batch"``)
     shards the batch axis across its devices; the batch size must then be a multiple of the
     device count.
 
     ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
-    :mod:`jaxsleigh.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
+    `jaxsleigh.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
     """
     from .lanes import broadcast_lanes, has_lanes, init_batch_lanes, take_lanes
 
@@ -329,7 +329,7 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
     """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
-    leaves, as in :func:`drive_final`."""
+    leaves, as in `drive_final`."""
     from .lanes import broadcast_lanes, has_lanes, init_batch_lanes
 
     dtype = y0w.dtype
@@ -363,14 +363,14 @@ def _plain_batch(y, args, dt, n_steps, block=PLAIN_BLOCK):
 
 @functools.lru_cache(maxsize=4)
 def _plain_batch_wide(vector_width: int):
-    """:func:`_plain_batch` compiled with XLA:CPU's ``xla_cpu_prefer_vector_width`` (default 256)."""
+    """`_plain_batch` compiled with XLA:CPU's ``xla_cpu_prefer_vector_width`` (default 256)."""
     return jax.jit(_plain_batch.__wrapped__, static_argnames=("n_steps", "block"), donate_argnums=(0,),
                    compiler_options={"xla_cpu_prefer_vector_width": int(vector_width)})
 
 
 @functools.lru_cache(maxsize=8)
 def _plain_sharded(mesh, n_steps: int, block):
-    """:func:`_plain_batch` with the batch axis split over ``mesh``'s devices: each device runs
+    """`_plain_batch` with the batch axis split over ``mesh``'s devices: each device runs
     its own cache blocks (no communication); jitted once per mesh and number of steps."""
     from jax.sharding import PartitionSpec as P
 
@@ -391,9 +391,9 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     theta ends with the other sign (an even number of crossings goes unseen; the stepper's
     per-step checks and summaries cost about 2x on CPU, see ``run_ensemble(summaries=True)``).
 
-    The kernel steps cache blocks of ``block`` trajectories (:func:`~jaxsleigh.stepper.run_plain`;
+    The kernel steps cache blocks of ``block`` trajectories (`run_plain`;
     ``None``: the whole batch per step, the earlier form; both give bitwise the same states for
-    batch sizes that are multiples of 8). XLA:CPU runs it on one core. ``mesh`` (a 1-D mesh with axis ``"batch"``, see :func:`batch_mesh`;
+    batch sizes that are multiples of 8). XLA:CPU runs it on one core. ``mesh`` (a 1-D mesh with axis ``"batch"``, see `batch_mesh`;
     ``"auto"``: every device of ``jax.devices()``) splits the batch over devices, e.g. the host
     devices of ``XLA_FLAGS=--xla_force_host_platform_device_count=2``; the batch is padded with
     harmless starts to a multiple of the device count. Sharded results agree with one device to

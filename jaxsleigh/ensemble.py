@@ -1,10 +1,10 @@
 """Ensembles: many initial conditions at once, chunked, checkpointed, sharded across devices.
 
-:func:`run_ensemble` integrates up to ~10^7 initial conditions on one machine. Memory is bounded
+`run_ensemble` integrates up to ~10^7 initial conditions on one machine. Memory is bounded
 by the chunk (``chunk_size`` trajectories at a time), not by the number of steps: each trajectory
 carries its final state and on-line summaries, updated inside the scan at every accepted step:
 
-* ``T_eps``: convergence time, the first time after which :math:`|q| \\le \\epsilon` holds at every
+* ``T_eps``: convergence time, the first time after which \\(|q| \\le \\epsilon\\) holds at every
   accepted step until the horizon (``inf`` if it has not settled by then, ``nan`` if the
   trajectory failed); ``|q| = \\sqrt{x^2 + y^2 + \\theta^2}``;
 * ``min_abs_theta`` (closest approach to the singular set), ``max_excursion`` (largest ``|q|``),
@@ -51,15 +51,15 @@ class EnsembleResult(NamedTuple):
       min_abs_theta, max_excursion, Hd0, Hd_final, t_reached: (N,) on-line summaries.
       n_steps, n_rejected, status: (N,) integers.
       u_peak: (N, 2) largest ``|u_1|`` [N] and ``|u_2|`` [N m] over the run; u_norm_peak: (N,)
-        largest ``||u||``; u_energy: (N,) control energy :math:`\int_0^T \|u\|^2 dt`; u_abs_int: (N,)
-        :math:`\int_0^T \|u\| dt` (RK4-order quadrature, :class:`~jaxsleigh.observers.ControlEffort`;
+        largest ``||u||``; u_energy: (N,) control energy \(\int_0^T \|u\|^2 dt\); u_abs_int: (N,)
+        \(\int_0^T \|u\| dt\) (RK4-order quadrature, `ControlEffort`;
         up to the time reached; NaN for starts not integrated and on the plain fixed-step path).
       t, q_traj, p_traj: decimated trajectories ``(T,)``, ``(N, T, 3)``, ``(N, T, 2)`` when
         ``save_every`` was given, else ``None``.
       settings: everything that produced the result.
       params: with per-trajectory parameters, the values each row used: ``{name: (N,)}`` with
         names ``m, J, l``, the damping's numbers, ``k, l1, l2, l3, d11, d12, d22``
-        (:func:`jaxsleigh.lanes.lane_table`); ``None`` for one plant and one set of gains.
+        (`jaxsleigh.lanes.lane_table`); ``None`` for one plant and one set of gains.
     """
 
     ics: np.ndarray
@@ -146,7 +146,7 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
 
 
 def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
-    """Summaries of :func:`~jaxsleigh.engine.drive_plain`: final state, H_d, status; no path data."""
+    """Summaries of `drive_plain`: final state, H_d, status; no path data."""
     ok = status == Status.OK
     yq = np.array(_to_q_batch(jnp.asarray(y)), np.float64)
     yq[~ok] = np.nan
@@ -181,15 +181,15 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
     Args:
-      ics: ``(N, 3)`` or ``(N, 5)`` initial conditions (see :func:`jaxsleigh.simulate`). Invalid
+      ics: ``(N, 3)`` or ``(N, 5)`` initial conditions (see `jaxsleigh.simulate`). Invalid
         rows (theta = 0, non-finite) are flagged in ``status`` and the rest are computed.
-      plant, gains: as in :func:`jaxsleigh.simulate`; their leaves may also vary per trajectory,
+      plant, gains: as in `jaxsleigh.simulate`; their leaves may also vary per trajectory,
         with a trailing axis of size N (or 1): ``m``, ``J``, ``l``, ``k`` and the damping's numbers
-        ``(N,)``, ``L`` ``(3, N)``, ``D_hat`` ``(2, 2, N)`` (:mod:`jaxsleigh.lanes`; build them with
+        ``(N,)``, ``L`` ``(3, N)``, ``D_hat`` ``(2, 2, N)`` (`jaxsleigh.lanes`; build them with
         ``stack_plants`` / ``stack_gains``). Changing the values does not recompile; the rows'
         values come back in ``params``.
       eps: radius of the ball ``|q| <= eps`` defining ``T_eps``.
-      method, dt, rtol, atol, max_step, max_steps, x64: as in :func:`jaxsleigh.simulate`.
+      method, dt, rtol, atol, max_step, max_steps, x64: as in `jaxsleigh.simulate`.
       save_every: also keep decimated trajectories every ``save_every`` base steps (memory
         ``N * T * 5`` numbers); default: summaries and final states only.
       chunk_size: trajectories integrated at once (bounds memory). Each chunk is also the unit
@@ -200,24 +200,24 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         ``save_every``) runs plain RK4 for the final state only: no per-step checks or summaries
         (``T_eps``, ``min_abs_theta``, ``max_excursion`` come back NaN); the status is judged at
         the end (non-finite, or theta ended with the other sign). The fastest mode.
-      observers: the on-line summaries (:mod:`jaxsleigh.observers`; default
-        :data:`~jaxsleigh.observers.DEFAULT_OBSERVERS`). The standard fields of the result that no
+      observers: the on-line summaries (`jaxsleigh.observers`; default
+        `DEFAULT_OBSERVERS`). The standard fields of the result that no
         given observer provides are NaN; other observers' results are in ``result.observed``.
       devices: devices to shard each chunk over (default: all of ``jax.devices()``).
       checkpoint_dir: write every finished chunk there (atomically: a file is either complete or
         absent); with ``resume=True`` reuse the finished chunks of an earlier run with the same
         settings and initial conditions. Every chunk carries the fingerprint of the run that wrote
         it and is checked on reuse: a chunk of another run stops the run with a
-        :class:`~jaxsleigh.errors.CheckpointError` (results are never mixed), a damaged one is named
-        in a :class:`~jaxsleigh.errors.DamagedCheckpointWarning` and recomputed.
+        `CheckpointError` (results are never mixed), a damaged one is named
+        in a `DamagedCheckpointWarning` and recomputed.
       progress: ``True``/``False``/``None`` (auto: on a terminal).
       shard: ``(index, count)``: compute only the chunks ``i`` with ``i % count == index`` (those not
         already in ``checkpoint_dir`` when resuming), write them there and return ``None``. This is
-        how several processes share one run (:mod:`jaxsleigh.distributed`); a later call without
+        how several processes share one run (`jaxsleigh.distributed`); a later call without
         ``shard`` assembles the result from the chunks.
 
     Returns:
-      :class:`EnsembleResult` (``None`` with ``shard``).
+      `EnsembleResult` (``None`` with ``shard``).
     """
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,

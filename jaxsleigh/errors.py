@@ -2,7 +2,7 @@
 
 Every problem a user can cause is a ``ValueError`` (or a subclass) whose message says what to
 change; the command line prints it as ``jaxsleigh: error: ...`` and exits with code 2. Warnings
-are subclasses of :class:`JaxsleighWarning`, so callers (and the command line) recognise them by
+are subclasses of `JaxsleighWarning`, so callers (and the command line) recognise them by
 type, not by their text::
 
     with warnings.catch_warnings():

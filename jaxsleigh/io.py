@@ -21,13 +21,13 @@ def npz_path(path) -> Path:
 
 
 def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Path:
-    """Write a :class:`~jaxsleigh.simulate.Solution` and the settings that produced it.
+    """Write a `Solution` and the settings that produced it.
 
     Keys: ``t (T,)``, ``q (N, T, 3)``, ``p (N, T, 2)``, ``u (N, T, 2)``, ``Hd (N, T)``,
     ``status (N,)``, ``n_steps (N,)``, ``n_rejected (N,)``, ``ics (N, 5)``; ``settings_json`` (the
     solution's settings plus ``ics``, ``command`` and the status legend, as JSON) and the scalars
     ``dt, t_final, save_every, method, dtype, gains_L, gains_k, gains_D_hat, params (m, J, l),
-    damping``; and the per-trajectory summaries of :attr:`Solution.effort` (``u_peak (N, 2)``,
+    damping``; and the per-trajectory summaries of `Solution.effort` (``u_peak (N, 2)``,
     ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
     Returns the path written (``.npz`` appended when missing).
     """
@@ -197,5 +197,5 @@ def atomic_write(path, write) -> Path:
 
 
 def atomic_write_text(path, text: str) -> Path:
-    """:func:`atomic_write` of a UTF-8 text."""
+    """`atomic_write` of a UTF-8 text."""
     return atomic_write(path, lambda f: f.write(text.encode("utf-8")))

@@ -8,13 +8,13 @@ arguments), changing them never recompiles; only the batch size is part of the c
 
 This module holds the host-side helpers that make such "lanes" usable by every entry point:
 
-* :func:`lane_count` (how many lanes, ``None`` for one plant) and :func:`check_lanes` (eager,
+* `lane_count` (how many lanes, ``None`` for one plant) and `check_lanes` (eager,
   vectorised validation, with messages naming the first bad lane);
-* :func:`broadcast_lanes` (every leaf to ``base_shape + (n,)``, the canonical form the engine
-  runs) and :func:`take_lanes` (gather lanes: chunking, padding, batch compaction);
-* :func:`stack_plants` / :func:`stack_gains` (lanes from lists of ordinary ``PlantParams`` /
-  ``Gains``) and :func:`lane_table` (the per-row record of the parameters a run used);
-* :func:`init_batch_lanes`: the stepper's initial carry with per-lane ``args``.
+* `broadcast_lanes` (every leaf to ``base_shape + (n,)``, the canonical form the engine
+  runs) and `take_lanes` (gather lanes: chunking, padding, batch compaction);
+* `stack_plants` / `stack_gains` (lanes from lists of ordinary ``PlantParams`` /
+  ``Gains``) and `lane_table` (the per-row record of the parameters a run used);
+* `init_batch_lanes`: the stepper's initial carry with per-lane ``args``.
 
 The damping *family* (Coulomb, viscous, none, custom) is a Python class, a static choice: lanes
 of one run share the family and differ in its numbers.
@@ -74,7 +74,7 @@ def has_lanes(plant: Any, gains: Any) -> bool:
 def lane_count(plant: Any, gains: Any) -> Optional[int]:
     """The number of lanes ``P`` of ``plant`` and ``gains`` (``None``: one plant and one set of gains).
 
-    Only :class:`PlantParams` / :class:`Gains` can carry lanes (a preset name, file or dict cannot).
+    Only `PlantParams` / `Gains` can carry lanes (a preset name, file or dict cannot).
     Leaves of size 1 broadcast; two leaves with different sizes > 1 are an error.
     """
     p = plant if isinstance(plant, PlantParams) else PlantParams()
@@ -123,8 +123,8 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     NumPy leaves (``D_hat`` as ``(2, 2)`` or ``(2, 2, P)``).
 
     ``plant`` / ``gains`` may also be ``None`` (the paper's), and ``gains`` a preset name, file or
-    dict (then it has no lanes). The conditions are those of :func:`~jaxsleigh.params.plant_params`
-    and :func:`~jaxsleigh.params.gains`, per lane: ``m > 0``, ``J >= 0``, ``l >= 0``, every
+    dict (then it has no lanes). The conditions are those of `plant_params`
+    and `gains`, per lane: ``m > 0``, ``J >= 0``, ``l >= 0``, every
     ``L_i > 0``, ``k > 0``, ``D_hat`` symmetric positive definite, Coulomb ``eps > 0``,
     ``scale >= 0``, viscous ``c1, c2 >= 0``. ``flags`` maps leaf paths (``"plant.m"``,
     ``"gains.D_hat"``, ...) to names used in messages (e.g. ``"--param m=..."``).
@@ -211,7 +211,7 @@ def take_lanes(tree, idx):
 
 
 def stack_plants(plants: Sequence[PlantParams]) -> PlantParams:
-    """One per-lane :class:`PlantParams` from a list of plants that share a damping family."""
+    """One per-lane `PlantParams` from a list of plants that share a damping family."""
     plants = list(plants)
     if not plants:
         raise ValueError("stack_plants needs at least one plant")
@@ -226,7 +226,7 @@ def stack_plants(plants: Sequence[PlantParams]) -> PlantParams:
 
 
 def stack_gains(gains: Sequence[Gains]) -> Gains:
-    """One per-lane :class:`Gains` (``L`` (3, P), ``k`` (P,), ``D_hat`` (2, 2, P)) from a list."""
+    """One per-lane `Gains` (``L`` (3, P), ``k`` (P,), ``D_hat`` (2, 2, P)) from a list."""
     gains = list(gains)
     if not gains:
         raise ValueError("stack_gains needs at least one set of gains")
@@ -267,7 +267,7 @@ def _lane_record(leaf) -> Any:
 
 @functools.partial(jax.jit, static_argnames=("observers",))
 def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl, observers=None):
-    """:func:`~jaxsleigh.stepper.init_batch` with canonical per-lane ``args`` (every leaf's last axis
+    """`init_batch` with canonical per-lane ``args`` (every leaf's last axis
     is the batch): the result is batch-last."""
     from .observers import DEFAULT_OBSERVERS
     from .stepper import init_state

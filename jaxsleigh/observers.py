@@ -1,9 +1,9 @@
 r"""Observers of the step: on-line summaries of a trajectory, as pluggable pieces.
 
-The stepper (:mod:`jaxsleigh.stepper`) carries, next to the state, one small state per observer and
+The stepper (`jaxsleigh.stepper`) carries, next to the state, one small state per observer and
 updates it after every attempted step (only accepted steps count). An observer may also ask for
-*quadrature* rows: integrands :math:`g(y, u)` that the stepper integrates with the step's own RK4
-weights, :math:`Q_{n+1} = Q_n + \tfrac{h}{6}(g_1 + 2 g_2 + 2 g_3 + g_4)` over the stage states, i.e.
+*quadrature* rows: integrands \(g(y, u)\) that the stepper integrates with the step's own RK4
+weights, \(Q_{n+1} = Q_n + \tfrac{h}{6}(g_1 + 2 g_2 + 2 g_3 + g_4)\) over the stage states, i.e.
 to the integrator's fourth order (not a post-hoc sum of saved samples).
 
 An observer is a frozen dataclass (hashable: it is a static argument of the jitted stepper) with
@@ -11,16 +11,16 @@ An observer is a frozen dataclass (hashable: it is a static argument of the jitt
 * ``fields``: the names of its results;
 * ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``;
 * ``init(t0, y, u, ctl)`` -> tuple of arrays (its state at the start);
-* ``update(state, step, ctl)`` -> state after an attempted step; ``step`` is a :class:`StepInfo`
+* ``update(state, step, ctl)`` -> state after an attempted step; ``step`` is a `StepInfo`
   (``acc``: the mask of trajectories whose step was accepted; the state, its derivative and the
   control before and after; the step's start time and size, for the step's dense output);
 * ``integrand(y, u)`` -> tuple of ``n_quad`` arrays;
 * ``results(state, quad)`` -> dict of host NumPy arrays (batch axis first).
 
 Every array broadcasts over a trailing batch axis (``y`` is (5,) or (5, N)). The built-ins:
-:class:`ConvergenceTime` (``T_eps``), :class:`ClosestApproach` (``min_abs_theta``),
-:class:`Excursion` (``max_excursion``), :class:`ControlEffort` (``u_peak``, ``u_norm_peak``,
-``u_energy``, ``u_abs_int``). :data:`DEFAULT_OBSERVERS` are on in every ensemble and simulation.
+`ConvergenceTime` (``T_eps``), `ClosestApproach` (``min_abs_theta``),
+`Excursion` (``max_excursion``), `ControlEffort` (``u_peak``, ``u_norm_peak``,
+``u_energy``, ``u_abs_int``). `DEFAULT_OBSERVERS` are on in every ensemble and simulation.
 """
 from __future__ import annotations
 
@@ -38,8 +38,8 @@ __all__ = ["StepInfo", "hermite", "ConvergenceTime", "ClosestApproach", "Excursi
 
 
 def q_norm2_w(w):
-    """:math:`|q|^2` from ``w`` without trigonometry: :math:`f_z` only rotates (x, y), so
-    :math:`|q| = |z| = |f_w^{-1}(w)|`."""
+    """\\(|q|^2\\) from ``w`` without trigonometry: \\(f_z\\) only rotates (x, y), so
+    \\(|q| = |z| = |f_w^{-1}(w)|\\)."""
     z = f_w_inv(w)
     return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
 
@@ -75,10 +75,10 @@ def _np(a) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ConvergenceTime:
-    r"""``T_eps``: the start of the last stay in the ball :math:`|q| \le \epsilon` (``ctl.eps``), i.e.
+    r"""``T_eps``: the start of the last stay in the ball \(|q| \le \epsilon\) (``ctl.eps``), i.e.
     the first time after which the trajectory stays inside (``inf`` while it is outside).
 
-    Located inside each step on the step's dense output (:func:`hermite`): ``samples`` points per
+    Located inside each step on the step's dense output (`hermite`): ``samples`` points per
     step tell whether the trajectory left the ball during the step, and ``bisections`` halvings
     locate the last entry, to ``h / (samples 2^bisections)``. So ``T_eps`` keeps its resolution
     however long the steps grow.
@@ -133,7 +133,7 @@ class ConvergenceTime:
 
 @dataclass(frozen=True)
 class ClosestApproach:
-    r"""``min_abs_theta``: :math:`\min_t |\theta(t)|` over the accepted steps (the singular set)."""
+    r"""``min_abs_theta``: \(\min_t |\theta(t)|\) over the accepted steps (the singular set)."""
 
     fields: ClassVar[tuple] = ("min_abs_theta",)
     n_quad: ClassVar[int] = 0
@@ -155,7 +155,7 @@ class ClosestApproach:
 
 @dataclass(frozen=True)
 class Excursion:
-    r"""``max_excursion``: :math:`\max_t |q(t)|` over the accepted steps."""
+    r"""``max_excursion``: \(\max_t |q(t)|\) over the accepted steps."""
 
     fields: ClassVar[tuple] = ("max_excursion",)
     n_quad: ClassVar[int] = 0
@@ -180,9 +180,9 @@ class ControlEffort:
     r"""Control effort over the horizon, in the paper's units (``u`` is a generalised force: the
     forward force in N and the turning moment in N m):
 
-    * ``u_peak`` (N, 2): :math:`\max_t |u_i(t)|` per component, ``u_norm_peak``:
-      :math:`\max_t \|u(t)\|`, both over the accepted steps' end points and the start;
-    * ``u_energy``: :math:`\int_0^T \|u\|^2 dt` and ``u_abs_int``: :math:`\int_0^T \|u\| dt`,
+    * ``u_peak`` (N, 2): \(\max_t |u_i(t)|\) per component, ``u_norm_peak``:
+      \(\max_t \|u(t)\|\), both over the accepted steps' end points and the start;
+    * ``u_energy``: \(\int_0^T \|u\|^2 dt\) and ``u_abs_int``: \(\int_0^T \|u\| dt\),
       quadrature rows integrated with the step's RK4 weights (fourth order).
     """
 

@@ -1,6 +1,6 @@
 """The simulation of the paper's Section 5: six starts, the paper's plant and gains, 100 s.
 
-:func:`run_paper` simulates and writes Figs. 2-5 of the paper (plus ``H_d(t)``) and the data; it
+`run_paper` simulates and writes Figs. 2-5 of the paper (plus ``H_d(t)``) and the data; it
 backs ``jaxsleigh paper`` and ``experiments/paper_figures.py``.
 
 The paper's set of starts is not published except for the blue run at ``(-3, -2, pi/8)``; the
@@ -62,9 +62,9 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
         (same keys as ``jaxsleigh simulate``).
       x64: compute in float64 (default float32).
       dt: base step [s]; outputs are kept about every 0.05 s (smooth paths in the fast first second).
-      progress: passed to :func:`~jaxsleigh.simulate.simulate`.
+      progress: passed to `simulate`.
       t_final: horizon [s] (the paper's 100 s; shorter for quick looks and tests).
-      ics: starts (default :data:`PAPER_ICS`).
+      ics: starts (default `PAPER_ICS`).
       method: ``"adaptive"`` (default) or ``"rk4"``.
       command: recorded in the npz's ``settings_json``.
 

@@ -1,7 +1,7 @@
 """Parameters of the plant and gains of the controller: small frozen pytrees.
 
 Numeric fields are leaves, so ``jax.grad`` / ``jax.vmap`` work over them. Build them with
-:func:`plant_params` and :func:`gains` (or the presets) to get eager validation with messages
+`plant_params` and `gains` (or the presets) to get eager validation with messages
 that say what to change; the raw ``NamedTuple`` constructors do no checking (they must also
 accept tracers inside transformed code).
 """
@@ -34,14 +34,13 @@ __all__ = [
 class PlantParams(NamedTuple):
     r"""Chaplygin sleigh plant (paper eq. 1-2).
 
-    .. math:: M = \mathrm{diag}(m,\ J + m l^2), \qquad
-              J(p) = \frac{m l}{J + m l^2}\begin{bmatrix}0 & p_2\\ -p_2 & 0\end{bmatrix}
+    \[ M = \mathrm{diag}(m,\ J + m l^2), \qquad J(p) = \frac{m l}{J + m l^2}\begin{bmatrix}0 & p_2\\ -p_2 & 0\end{bmatrix} \]
 
     Attributes:
       m: mass (> 0).
       J: rotational inertia about the centre of mass (>= 0; ``J + m l^2`` must be > 0).
       l: distance from the contact point to the centre of mass (>= 0; 0 is the knife edge).
-      damping: a model from :mod:`jaxsleigh.damping` (the paper's Coulomb approximation by default).
+      damping: a model from `jaxsleigh.damping` (the paper's Coulomb approximation by default).
     """
 
     m: Any = 2.0
@@ -53,12 +52,12 @@ class PlantParams(NamedTuple):
 class Gains(NamedTuple):
     r"""Gains of the discontinuous energy-shaping law (paper eq. 13).
 
-    .. math:: u = -Q_w^\top L w - \hat D \nabla_p H - \mathrm{diag}(0, k / w_1^2)\, \nabla_p H
+    \[ u = -Q_w^\top L w - \hat D \nabla_p H - \mathrm{diag}(0, k / w_1^2)\, \nabla_p H \]
 
     Attributes:
-      L: (3,) diagonal of :math:`L` (each > 0).
+      L: (3,) diagonal of \(L\) (each > 0).
       k: singular damping gain (> 0).
-      D_hat: (2, 2) positive definite damping injection :math:`\hat D`.
+      D_hat: (2, 2) positive definite damping injection \(\hat D\).
     """
 
     L: Any
@@ -96,10 +95,10 @@ def _real_array(name, value, *, hint) -> np.ndarray:
 
 
 def plant_params(m=2.0, J=1.0, l=1.0, damping="coulomb") -> PlantParams:
-    """Validated :class:`PlantParams` (defaults: the paper's m = 2, J = 1, l = 1, Coulomb damping).
+    """Validated `PlantParams` (defaults: the paper's m = 2, J = 1, l = 1, Coulomb damping).
 
-    ``damping`` is a model from :mod:`jaxsleigh.damping`, one of ``'coulomb' | 'viscous' | 'none'``,
-    or a callable ``D(q, p) -> (2, 2)`` (wrapped in :class:`~jaxsleigh.damping.CustomDamping`).
+    ``damping`` is a model from `jaxsleigh.damping`, one of ``'coulomb' | 'viscous' | 'none'``,
+    or a callable ``D(q, p) -> (2, 2)`` (wrapped in `CustomDamping`).
     """
     hint = "Plant parameters are (m, J, l): m > 0, J >= 0, l >= 0, e.g. --params 2,1,1."
     m = _finite_scalar("m", m, hint=hint)
@@ -134,7 +133,7 @@ def plant_params(m=2.0, J=1.0, l=1.0, damping="coulomb") -> PlantParams:
 
 
 def gains(L=(2.0, 0.5, 0.8), k=0.1, D_hat=(4.0, 8.0)) -> Gains:
-    """Validated :class:`Gains` (defaults: the paper's ``L = diag(2, 0.5, 0.8)``, ``k = 0.1``,
+    """Validated `Gains` (defaults: the paper's ``L = diag(2, 0.5, 0.8)``, ``k = 0.1``,
     ``D_hat = diag(4, 8)``). ``D_hat`` may be a length-2 diagonal or a 2x2 matrix."""
     hint = ('Gains are {"L": [l1, l2, l3], "k": k, "D_hat": [d1, d2] or [[a, b], [c, d]]} '
             "with every l_i > 0, k > 0 and D_hat symmetric positive definite.")
@@ -174,7 +173,7 @@ def paper_gains() -> Gains:
 
 def gains_to_dict(g: Gains) -> dict:
     """JSON-ready ``{"L": [...], "k": k, "D_hat": [[..], [..]]}``; a leaf that varies per trajectory
-    (a trailing lane axis, see :mod:`jaxsleigh.lanes`) is recorded as ``{"per_trajectory": P, "min",
+    (a trailing lane axis, see `jaxsleigh.lanes`) is recorded as ``{"per_trajectory": P, "min",
     "max"}``."""
     from .lanes import _lane_record
 
@@ -209,7 +208,7 @@ def preset_names() -> list[str]:
 
 
 def load_gains(spec) -> Gains:
-    """Gains from a preset name (:func:`preset_names`: ``'paper'``, ``'tuned'``, ...) or a JSON file."""
+    """Gains from a preset name (`preset_names`: ``'paper'``, ``'tuned'``, ...) or a JSON file."""
     if isinstance(spec, Gains):
         return spec
     spec = str(spec)

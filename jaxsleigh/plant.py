@@ -1,12 +1,9 @@
 r"""The Chaplygin sleigh plant in port-Hamiltonian form (paper eq. 1-2).
 
-.. math::
-    \dot q = Q(q) \nabla_p H, \qquad
-    \dot p = -Q^\top(q) \nabla_q H + (J(p) - D(q, p)) \nabla_p H + u, \qquad
-    H = \tfrac12 p^\top M^{-1} p
+\[ \dot q = Q(q) \nabla_p H, \qquad \dot p = -Q^\top(q) \nabla_q H + (J(p) - D(q, p)) \nabla_p H + u, \qquad H = \tfrac12 p^\top M^{-1} p \]
 
-Since :math:`H` does not depend on :math:`q`, :math:`\nabla_q H = 0`. The state of one trajectory
-is ``y = (x, y, theta, p1, p2)``; :math:`\nabla_p H = M^{-1} p = (v, \omega)` is the forward speed
+Since \(H\) does not depend on \(q\), \(\nabla_q H = 0\). The state of one trajectory
+is ``y = (x, y, theta, p1, p2)``; \(\nabla_p H = M^{-1} p = (v, \omega)\) is the forward speed
 and the turning rate.
 """
 from __future__ import annotations
@@ -33,47 +30,47 @@ __all__ = [
 
 
 def mass_matrix(params: PlantParams):
-    """:math:`M = \\mathrm{diag}(m, J + m l^2)` (eq. 2)."""
+    """\\(M = \\mathrm{diag}(m, J + m l^2)\\) (eq. 2)."""
     return jnp.diag(inverse_mass(params) ** -1)
 
 
 def inverse_mass(params: PlantParams):
-    """Diagonal of :math:`M^{-1}`, shape (2,)."""
+    """Diagonal of \\(M^{-1}\\), shape (2,)."""
     m, J, l = params.m, params.J, params.l
     return 1.0 / jnp.stack([jnp.asarray(m), jnp.asarray(J + m * l * l)])
 
 
 def velocity_components(p, params: PlantParams):
-    """:math:`(v, \\omega) = M^{-1} p` as a tuple of components (``p`` a sequence of two)."""
+    """\\((v, \\omega) = M^{-1} p\\) as a tuple of components (``p`` a sequence of two)."""
     m, J, l = params.m, params.J, params.l
     return (p[0] / m, p[1] / (J + m * l * l))
 
 
 def velocity(p, params: PlantParams):
-    """:math:`\\nabla_p H = M^{-1} p = (v, \\omega)`."""
+    """\\(\\nabla_p H = M^{-1} p = (v, \\omega)\\)."""
     return jnp.stack(velocity_components(p, params)).astype(p.dtype)
 
 
 def hamiltonian(p, params: PlantParams):
-    """Kinetic energy :math:`H = \\tfrac12 p^\\top M^{-1} p` (eq. 1)."""
+    """Kinetic energy \\(H = \\tfrac12 p^\\top M^{-1} p\\) (eq. 1)."""
     v = velocity_components(p, params)
     return 0.5 * (p[0] * v[0] + p[1] * v[1])
 
 
 def gyroscopic_entries(p, params: PlantParams):
-    """Rows of :math:`J(p)` (eq. 2): :math:`\\frac{m l}{J + m l^2} p_2 [[0, 1], [-1, 0]]`."""
+    """Rows of \\(J(p)\\) (eq. 2): \\(\\frac{m l}{J + m l^2} p_2 [[0, 1], [-1, 0]]\\)."""
     m, J, l = params.m, params.J, params.l
     a = (m * l / (J + m * l * l)) * p[1]
     return ((0, a), (-a, 0))
 
 
 def gyroscopic(p, params: PlantParams):
-    """:math:`J(p)`, skew-symmetric (eq. 2)."""
+    """\\(J(p)\\), skew-symmetric (eq. 2)."""
     return as_array(gyroscopic_entries(p, params), p[1])
 
 
 def momentum_rhs_components(q, p, u, params: PlantParams):
-    """:func:`momentum_rhs` on sequences of components (one trajectory or batch-last arrays)."""
+    """`momentum_rhs` on sequences of components (one trajectory or batch-last arrays)."""
     v = velocity_components(p, params)
     gyro = matvec(gyroscopic_entries(p, params), v)
     damp = params.damping.force(q, p, v)
@@ -81,7 +78,7 @@ def momentum_rhs_components(q, p, u, params: PlantParams):
 
 
 def momentum_rhs(q, p, u, params: PlantParams):
-    """:math:`\\dot p = (J(p) - D(q, p)) \\nabla_p H + u` (eq. 1 with :math:`\\nabla_q H = 0`).
+    """\\(\\dot p = (J(p) - D(q, p)) \\nabla_p H + u\\) (eq. 1 with \\(\\nabla_q H = 0\\)).
 
     ``q`` is only passed on to the damping model (the built-in ones ignore it).
     """

@@ -1,18 +1,18 @@
 """Scaffolding shared by the plotting modules: figures, the provenance stamp, saving.
 
-* :func:`new_figure` / :func:`figure_and_axes`: a :class:`matplotlib.figure.Figure` with constrained
+* `new_figure` / `figure_and_axes`: a `matplotlib.figure.Figure` with constrained
   layout, built without ``pyplot`` (no backend is selected, no global GUI state is touched, so it
   works headless and inside other applications); ``figure_and_axes`` draws into given axes when a
   caller passes them.
-* :func:`provenance`: the short text of what produced the data (``'float32, adaptive RK4, dt =
+* `provenance`: the short text of what produced the data (``'float32, adaptive RK4, dt =
   0.01 s'``), used in titles.
-* :func:`stamp`: the provenance line at the top of every figure a plotting function owns (above the
+* `stamp`: the provenance line at the top of every figure a plotting function owns (above the
   title, small grey type): dtype, method, step, tolerances, ``eps``, horizon and the device the data
   was computed on (from the result's settings or run information; ``device not recorded`` when
   neither holds it, e.g. a file from an older version).
-* :func:`save_figure`: PNG/PDF/SVG by suffix, parent folders created.
+* `save_figure`: PNG/PDF/SVG by suffix, parent folders created.
 
-Used by :mod:`jaxsleigh.plotting`, :mod:`jaxsleigh.basin_plots` and the other ``*_plots`` modules.
+Used by `jaxsleigh.plotting`, `jaxsleigh.basin_plots` and the other ``*_plots`` modules.
 Numerics modules never import this (nor any plotting module).
 """
 from __future__ import annotations
@@ -31,7 +31,7 @@ STAMP_GID = "jaxsleigh-provenance"
 
 
 def new_figure(figsize):
-    """A :class:`~matplotlib.figure.Figure` of ``figsize`` inches with constrained layout (no pyplot)."""
+    """A `Figure` of ``figsize`` inches with constrained layout (no pyplot)."""
     from matplotlib.figure import Figure  # no pyplot: no backend, no global state
 
     return Figure(figsize=figsize, layout="constrained")
@@ -112,7 +112,7 @@ def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = N
 
 
 def stamp(fig, settings: Optional[Mapping], run_info: Optional[Mapping] = None):
-    """Write :func:`provenance_line` in small grey type at the top left of ``fig``; a second call
+    """Write `provenance_line` in small grey type at the top left of ``fig``; a second call
     replaces the first. Returns the text artist.
 
     The line sits in a blank first line added to the suptitle, so the constrained layout keeps room

@@ -1,21 +1,21 @@
-"""Figures of the paper's Section 5 from a :class:`~jaxsleigh.simulate.Solution`.
+"""Figures of the paper's Section 5 from a `Solution`.
 
-* :func:`plot_paths`: paths in the x-y plane with the sleigh drawn ghosted at each start and solid at
+* `plot_paths`: paths in the x-y plane with the sleigh drawn ghosted at each start and solid at
   the target (paper Fig. 2).
-* :func:`plot_configuration`, :func:`plot_momentum`, :func:`plot_control`: time histories of
+* `plot_configuration`, `plot_momentum`, `plot_control`: time histories of
   ``q``, ``p`` and ``u`` (paper Figs. 3-5).
-* :func:`plot_hamiltonian`: the closed-loop Hamiltonian ``H_d(t)`` on a log scale.
+* `plot_hamiltonian`: the closed-loop Hamiltonian ``H_d(t)`` on a log scale.
 
-Figures are built with the object-oriented API (:class:`matplotlib.figure.Figure`), never through
+Figures are built with the object-oriented API (`matplotlib.figure.Figure`), never through
 ``pyplot``: nothing here selects a backend or touches global GUI state, so the module works on
 headless machines and inside other applications. To draw into your own figure, pass ``ax`` /
-``axes`` (e.g. from ``plt.subplots``). :func:`save_figure` writes PNG/PDF/SVG files. The scaffolding
-(figures, provenance, saving) is shared with the other plotting modules in :mod:`jaxsleigh.plot_base`.
+``axes`` (e.g. from ``plt.subplots``). `save_figure` writes PNG/PDF/SVG files. The scaffolding
+(figures, provenance, saving) is shared with the other plotting modules in `jaxsleigh.plot_base`.
 
 Each function accepts a ``Solution``, a mapping with the same keys (e.g. the ``.npz`` file written
-by ``jaxsleigh simulate``, see :func:`load_solution`) or any object with those attributes. Every
+by ``jaxsleigh simulate``, see `load_solution`) or any object with those attributes. Every
 figure's title names the dtype and integration method that produced it, and a stamp along its top
-edge adds the step, tolerances and the device (:func:`jaxsleigh.plot_base.stamp`); trajectories
+edge adds the step, tolerances and the device (`jaxsleigh.plot_base.stamp`); trajectories
 whose status is not ``OK`` are drawn dashed and flagged in the legend.
 """
 from __future__ import annotations
@@ -294,13 +294,13 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     (default: the plant's ``l``, i.e. to scale; 0.5 m for the knife edge ``l = 0``).
 
     Args:
-      sol: a :class:`~jaxsleigh.simulate.Solution` (or mapping / npz with ``t, q, status``).
+      sol: a `Solution` (or mapping / npz with ``t, q, status``).
       ax: axes to draw into; a new figure is made when ``None``.
       labels: legend text per run (default: the start, e.g. ``(−3, −2, π/8)``).
       glyph_size: length scale of the sleigh glyph in metres.
 
     Returns:
-      The :class:`matplotlib.figure.Figure`.
+      The `matplotlib.figure.Figure`.
     """
     t, q, status = _arrays(sol)
     l_val = float(_settings(sol).get("plant", {}).get("l", 1.0) or 0.0)

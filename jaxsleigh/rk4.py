@@ -1,7 +1,7 @@
 """Classical fixed-step RK4 for any vector field ``f(t, y, args)``, as a ``lax.scan``.
 
 These are plain functions for one trajectory: ``vmap`` them over initial conditions and ``jit``
-at the call site. The engine in :mod:`jaxsleigh.stepper` uses :func:`rk4_step` too.
+at the call site. The engine in `jaxsleigh.stepper` uses `rk4_step` too.
 """
 from __future__ import annotations
 

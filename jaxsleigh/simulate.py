@@ -1,7 +1,7 @@
 """Simulate the closed loop from one or many initial conditions and keep decimated trajectories.
 
-:func:`simulate` is the entry point for figures and for inspecting a few trajectories; for large
-batches with summaries only, see :mod:`jaxsleigh.ensemble`.
+`simulate` is the entry point for figures and for inspecting a few trajectories; for large
+batches with summaries only, see `jaxsleigh.ensemble`.
 """
 from __future__ import annotations
 
@@ -34,11 +34,11 @@ class Solution(NamedTuple):
       p: (N, T, 2) momentum.
       u: (N, T, 2) control.
       Hd: (N, T) closed-loop Hamiltonian.
-      status: (N,) :class:`~jaxsleigh.status.Status` codes.
+      status: (N,) `Status` codes.
       n_steps: (N,) accepted steps; ``n_rejected``: (N,) rejected attempts.
       effort: per-trajectory control effort and the other on-line summaries over the horizon
-        (``u_peak`` (N, 2), ``u_norm_peak``, ``u_energy`` = :math:`\int \|u\|^2 dt`, ``u_abs_int``,
-        ``T_eps``, ``min_abs_theta``, ``max_excursion``; see :mod:`jaxsleigh.observers`),
+        (``u_peak`` (N, 2), ``u_norm_peak``, ``u_energy`` = \(\int \|u\|^2 dt\), ``u_abs_int``,
+        ``T_eps``, ``min_abs_theta``, ``max_excursion``; see `jaxsleigh.observers`),
         integrated to RK4 order along every step, not from the saved samples.
       settings: what produced it (plant, gains, horizon, method, dtype, tolerances).
     """
@@ -68,7 +68,7 @@ def _outputs(yw, args: ClosedLoop):
 
 @jax.jit
 def _outputs_lanes(yw, args: ClosedLoop):
-    """:func:`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
+    """`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
     axes = jax.tree_util.tree_map(lambda _: -1, args)
     return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a), in_axes=(0, axes))(yw, args)
 
@@ -86,7 +86,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         k = 0.1, D_hat = diag(4, 8)). ``gains`` may also be a preset name (``"tuned"``) or a
         gains-file path. Both are validated eagerly (``ValueError`` saying what to change).
         Leaves may vary per trajectory (a trailing axis of size N or 1, see
-        :func:`jaxsleigh.run_ensemble` and :mod:`jaxsleigh.lanes`); ``settings["params"]`` then
+        `jaxsleigh.run_ensemble` and `jaxsleigh.lanes`); ``settings["params"]`` then
         holds the values each trajectory used.
       t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``).
       save_every: keep every ``save_every``-th base step (the saved grid is uniform in time).
@@ -100,12 +100,12 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       progress: ``True`` for a progress bar, ``False``/``None`` for none (auto on a terminal).
 
     Returns:
-      :class:`Solution`, as NumPy arrays.
+      `Solution`, as NumPy arrays.
 
     Raises:
       ValueError: any bad option, or a single start (or every start of a batch) that cannot be
         integrated. A bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in
-        a :class:`~jaxsleigh.errors.FlaggedStartsWarning`; the other rows are computed.
+        a `FlaggedStartsWarning`; the other rows are computed.
     """
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64)

@@ -3,8 +3,8 @@
 XLA on CPU runs ``(3, 2) @ (2,)`` products of stacked arrays many times slower than the same
 arithmetic written out, and cannot drop multiplications by structural zeros (``0 * nan`` is
 ``nan``). Each matrix of the paper is therefore defined once as a tuple of rows whose entries are
-arrays or the Python literals ``0``/``1``; :func:`as_array` builds the matrix (for tests and
-display), :func:`matvec` and :func:`rmatvec` apply it, skipping the literals.
+arrays or the Python literals ``0``/``1``; `as_array` builds the matrix (for tests and
+display), `matvec` and `rmatvec` apply it, skipping the literals.
 """
 from __future__ import annotations
 

@@ -1,32 +1,32 @@
 r"""The engine's stepper: RK4 in the w chart, fixed-step or adapted per trajectory.
 
 **Why the w chart.** In ``y = (w, p)`` the closed loop is port-Hamiltonian with
-:math:`H_d = \tfrac12 p^\top M^{-1} p + \tfrac12 w^\top L w` non-increasing (eq. 15-18), so the state
+\(H_d = \tfrac12 p^\top M^{-1} p + \tfrac12 w^\top L w\) non-increasing (eq. 15-18), so the state
 stays in a bounded set, and the right-hand side is rational in ``w`` without trigonometry. In the
-physical chart every evaluation recomputes ``w`` from ``q`` through :math:`z_3 / \theta^2`, and
-float32 rounding of ``q`` is amplified by :math:`1/\theta^2` near the singular set.
+physical chart every evaluation recomputes ``w`` from ``q`` through \(z_3 / \theta^2\), and
+float32 rounding of ``q`` is amplified by \(1/\theta^2\) near the singular set.
 
-**Passivity monitor.** The exact closed loop never increases :math:`H_d` (eq. 18). A step that
+**Passivity monitor.** The exact closed loop never increases \(H_d\) (eq. 18). A step that
 does (beyond rounding and a relative slack of 1e-6) is rejected by the adaptive method and ends
 a fixed-step run with status ``UNRELIABLE``. It catches gross RK4 instability (e.g. dt = 0.05
 from the paper's start), not small inaccuracies: at dt = 0.01 wrong stiff starts still lose H_d.
 
-**Why adaptive.** Near :math:`\theta = 0` the closed loop is stiff: the injected damping
-:math:`k / w_1^2` and the potential forces :math:`\sim |w|^2 / w_1` give Jacobian eigenvalues far
+**Why adaptive.** Near \(\theta = 0\) the closed loop is stiff: the injected damping
+\(k / w_1^2\) and the potential forces \(\sim |w|^2 / w_1\) give Jacobian eigenvalues far
 outside RK4's stability region at ``dt = 0.01``. Each trajectory therefore takes classical RK4
 steps whose size is chosen from an embedded third-order error estimate that costs no extra
-evaluation: with :math:`k_5 = f(t + h, y_{n+1})` (which is also the next step's :math:`k_1`),
-:math:`\hat y_{n+1} = y_n + h(k_1 + 2k_2 + 2k_3 + k_5)/6` is third order, so
-:math:`y_{n+1} - \hat y_{n+1} = h (k_4 - k_5) / 6`. A step is rejected (and retried smaller) when
+evaluation: with \(k_5 = f(t + h, y_{n+1})\) (which is also the next step's \(k_1\)),
+\(\hat y_{n+1} = y_n + h(k_1 + 2k_2 + 2k_3 + k_5)/6\) is third order, so
+\(y_{n+1} - \hat y_{n+1} = h (k_4 - k_5) / 6\). A step is rejected (and retried smaller) when
 this error exceeds the tolerance, when it produces a non-finite value, or when it would carry
-:math:`w_1 = \theta` across zero, which the exact flow never does (Lemma 2). Steps never exceed
+\(w_1 = \theta\) across zero, which the exact flow never does (Lemma 2). Steps never exceed
 the base step ``dt`` and are clipped to land exactly on the save times.
 
 **Fixed shape.** One loop iteration is one attempted step of every trajectory of a batch; a
 trajectory that has reached its target time, failed, or used its budget idles. Every step of a
 batch heads for the same target time, so nothing is gathered or scattered per step:
-:func:`run_segment` runs a fixed number of attempts (ensembles loop over segments on the host and
-compact the batch), :func:`run_saving` walks a grid of save times (decimated trajectories).
+`run_segment` runs a fixed number of attempts (ensembles loop over segments on the host and
+compact the batch), `run_saving` walks a grid of save times (decimated trajectories).
 
 Time is accumulated with compensated (two-sum) addition, so float32 runs keep time exact to
 rounding over ``1e4`` or more steps.
@@ -102,7 +102,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
     """Carry for one trajectory starting at the w-chart state ``y0w`` with status ``status0``.
 
     A trajectory whose ``status0`` is not OK is never stepped; pass any finite ``y0w`` for it.
-    ``observers`` (:mod:`jaxsleigh.observers`) are the on-line summaries carried along.
+    ``observers`` (`jaxsleigh.observers`) are the on-line summaries carried along.
     """
     dtype = y0w.dtype
     ok = status0 == Status.OK
@@ -123,7 +123,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
 
 
 def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
-    """Classical RK4 from ``k1`` (as :func:`~jaxsleigh.rk4.rk4_stages`) that also integrates the
+    """Classical RK4 from ``k1`` (as `rk4_stages`) that also integrates the
     observers' integrands over the same stages: returns ``(dy, k4, dq)``."""
     f = vector_field_w_control
     y2 = y + (0.5 * h) * k1
@@ -161,7 +161,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     """One attempted step towards the time ``target`` (a no-op once there, failed or out of
     budget). A step that reaches ``target`` lands on it exactly. ``monitor`` (static) turns the
     passivity monitor on; off, fixed RK4 runs ~2x faster on CPU but a step that increases
-    H_d goes unnoticed. ``observers`` (static, :mod:`jaxsleigh.observers`) are updated after
+    H_d goes unnoticed. ``observers`` (static, `jaxsleigh.observers`) are updated after
     every accepted step; their quadrature rows are integrated with the step's RK4 weights.
 
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
@@ -254,7 +254,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
 
 
 def init_batch(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=DEFAULT_OBSERVERS) -> StepState:
-    """:func:`init_state` for a batch ``y0w`` of shape (N, 5); the result is batch-last."""
+    """`init_state` for a batch ``y0w`` of shape (N, 5); the result is batch-last."""
     init = functools.partial(init_state, observers=observers)
     return jax.vmap(init, in_axes=(0, 0, None, None, None), out_axes=-1)(y0w, status0, args, ctl, t0)
 
@@ -271,7 +271,7 @@ def run_segment(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_atte
     """``n_attempts`` attempted steps towards ``target`` of a batch of trajectories.
 
     ``s`` is batch-*last* (every field has the batch as its trailing axis): the scan carries
-    structure-of-arrays state and :func:`attempt` broadcasts over that axis. On CPU this layout
+    structure-of-arrays state and `attempt` broadcasts over that axis. On CPU this layout
     ran ~3x faster than ``vmap`` of a whole scan (whose carry is batch-first). ``jit`` at the
     call site.
     """

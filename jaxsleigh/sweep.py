@@ -1,17 +1,17 @@
 r"""Parameter sweeps: convergence over gains and plants, as one vectorised, checkpointed ensemble.
 
 A sweep runs the product of a set of starts (a grid, Monte-Carlo samples or an array, as
-:func:`~jaxsleigh.basin.run_basin` takes them) and a set of parameter values. Because gains and
-plant parameters are pytree leaves that may carry a per-trajectory axis (:mod:`jaxsleigh.lanes`),
+`run_basin` takes them) and a set of parameter values. Because gains and
+plant parameters are pytree leaves that may carry a per-trajectory axis (`jaxsleigh.lanes`),
 the ``P`` values x ``N`` starts are just ``P * N`` rows of **one** call of
-:func:`~jaxsleigh.ensemble.run_ensemble`: chunked (memory bounded by the chunk), checkpointed,
+`run_ensemble`: chunked (memory bounded by the chunk), checkpointed,
 resumable, sharded over devices, compiled once (changing the values never recompiles).
 
 Rows are ordered value-major: row ``p * N + i`` is start ``i`` under value set ``p``, so the
 per-start results reshape to ``(P, N)``. Per value the sweep summarises the fraction of valid
 starts that converged (+- its binomial standard error), the ``T_eps`` percentiles of the converged
 starts, the statuses (failures by kind) and the control effort of the converged starts (median
-control energy :math:`\int_0^T \|u\|^2 dt` and median peak :math:`\|u\|`).
+control energy \(\int_0^T \|u\|^2 dt\) and median peak \(\|u\|\)).
 
 Parameters (``NAME`` of ``--param NAME=LO:HI:P[:log]``):
 
@@ -21,7 +21,7 @@ Parameters (``NAME`` of ``--param NAME=LO:HI:P[:log]``):
 * damping: ``coulomb_eps``, ``coulomb_scale`` (with Coulomb damping), ``c1``, ``c2`` (viscous).
 
 One parameter gives a line of ``P`` values, two give a ``P1 x P2`` grid (the first one slowest).
-:func:`sweep` also takes explicit value sets (``{"m": [...], "J": [...]}``, zipped, not
+`sweep` also takes explicit value sets (``{"m": [...], "J": [...]}``, zipped, not
 crossed): sampled plants, as in ``experiments/robustness.py``.
 """
 from __future__ import annotations
@@ -100,7 +100,7 @@ def _check_values(name: str, values: np.ndarray, label: str) -> None:
 
 
 def parse_param(spec, flag: str = "--param") -> ParamAxis:
-    """A :class:`ParamAxis` from ``"NAME=LO:HI:P[:log]"`` (or ``"NAME=VALUE"``), or a ParamAxis.
+    """A `ParamAxis` from ``"NAME=LO:HI:P[:log]"`` (or ``"NAME=VALUE"``), or a ParamAxis.
 
     Values may use ``pi``. The values are checked eagerly: a range that includes an inadmissible
     value (``m <= 0``, ``k <= 0``, ``J < 0``, ...) raises ``ValueError`` naming the ``--param``.
@@ -220,11 +220,11 @@ class SweepResult(NamedTuple):
     Attributes:
       names: the swept parameters; values: ``(P, n_params)`` their values per value set.
       grid_shape: ``(P,)``, ``(P1, P2)`` for a two-parameter grid (first parameter slowest), or
-        ``(P,)`` for explicit value sets; axes: the :class:`ParamAxis` of a grid (``()`` otherwise).
-      starts: the :class:`~jaxsleigh.basin.BasinStarts`; ics: ``(N, 5)``.
+        ``(P,)`` for explicit value sets; axes: the `ParamAxis` of a grid (``()`` otherwise).
+      starts: the `BasinStarts`; ics: ``(N, 5)``.
       T_eps, status, n_steps, min_abs_theta, Hd0: ``(P, N)`` per-row results.
       effort: ``{name: (P, N)}`` control-effort summaries when the engine records them (else empty);
-        :meth:`effort_medians` summarises them per value set.
+        `effort_medians` summarises them per value set.
       settings: base plant and gains, the sweep, the starts, the solver settings.
       run_info: wall time, devices, chunks reused (not saved: they vary between runs).
     """
@@ -272,7 +272,7 @@ class SweepResult(NamedTuple):
     def effort_medians(self) -> dict:
         """Per value set, the medians over the **converged** starts of the control effort:
         ``{"u_energy_median": (P,), "u_norm_peak_median": (P,)}`` (control energy
-        :math:`\\int_0^T \\|u\\|^2 dt` up to the horizon, largest :math:`\\|u\\|`); NaN where none
+        \\(\\int_0^T \\|u\\|^2 dt\\) up to the horizon, largest \\(\\|u\\|\\)); NaN where none
         converged or the effort was not recorded; ``{}`` when the run recorded no effort."""
         out = {}
         for k in EFFORT_MEDIANS:
@@ -332,25 +332,25 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
 
     Args:
-      starts: a :class:`~jaxsleigh.basin.BasinStarts` (:func:`~jaxsleigh.basin.grid_starts`,
-        :func:`~jaxsleigh.basin.sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.
+      starts: a `BasinStarts` (`grid_starts`,
+        `sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.
       params: a sequence of one or two ranges (``"NAME=LO:HI:P[:log]"`` strings or
-        :class:`ParamAxis`; two make a grid), or a mapping ``{name: values}`` of explicit value sets
-        (equal lengths ``P``; zipped, not crossed). Names: :data:`PARAM_NAMES`.
+        `ParamAxis`; two make a grid), or a mapping ``{name: values}`` of explicit value sets
+        (equal lengths ``P``; zipped, not crossed). Names: `PARAM_NAMES`.
       plant, gains: the base values of everything not swept (default: the paper's). ``gains`` may
-        be a preset name or file, as in :func:`jaxsleigh.simulate`.
+        be a preset name or file, as in `jaxsleigh.simulate`.
       eps, t_final, dt, method, x64, rtol, atol, max_steps, check_passivity: as in
-        :func:`~jaxsleigh.basin.run_basin`.
+        `run_basin`.
       chunk_size: rows (start x value set) integrated and checkpointed at once (default as
-        :func:`~jaxsleigh.basin.run_basin`): memory is bounded by the chunk, not by ``P * N``.
-      checkpoint_dir, resume, progress, devices: as in :func:`~jaxsleigh.ensemble.run_ensemble`.
+        `run_basin`): memory is bounded by the chunk, not by ``P * N``.
+      checkpoint_dir, resume, progress, devices: as in `run_ensemble`.
       labels: parameter name -> text naming it in error messages (the CLI passes its ``--param``).
       shard: ``(index, count)``: compute only this process's share of the chunks into
-        ``checkpoint_dir`` and return ``None`` (a multi-process run, :mod:`jaxsleigh.distributed`);
+        ``checkpoint_dir`` and return ``None`` (a multi-process run, `jaxsleigh.distributed`);
         a later call without ``shard`` and with ``resume=True`` assembles the result from them.
 
     Returns:
-      :class:`SweepResult` (``None`` with ``shard``).
+      `SweepResult` (``None`` with ``shard``).
     """
     import jax
 
@@ -410,8 +410,8 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
 # ---------------------------------------------------------------------------------------------
 
 def save_sweep(path, result: SweepResult) -> Path:
-    """Write a :class:`SweepResult` to ``.npz`` deterministically (the writer of
-    :func:`~jaxsleigh.basin.save_basin`: equal inputs, equal bytes; nothing that varies between runs).
+    """Write a `SweepResult` to ``.npz`` deterministically (the writer of
+    `save_basin`: equal inputs, equal bytes; nothing that varies between runs).
 
     Keys: ``names`` (n_params,), ``values`` (P, n_params), ``grid_shape``, ``ics`` (N, 5);
     per value set and start ``T_eps``, ``status``, ``n_steps``, ``min_abs_theta``, ``Hd0`` (P, N)
@@ -463,7 +463,7 @@ def save_sweep(path, result: SweepResult) -> Path:
 
 
 def load_sweep(path) -> SweepResult:
-    """Read an ``.npz`` written by :func:`save_sweep` (or ``jaxsleigh sweep``)."""
+    """Read an ``.npz`` written by `save_sweep` (or ``jaxsleigh sweep``)."""
     import zipfile
 
     from .basin import _starts_from_spec

@@ -1,4 +1,4 @@
-"""Figures of parameter sweeps (:mod:`jaxsleigh.sweep`): the fraction converged and the ``T_eps``
+"""Figures of parameter sweeps (`jaxsleigh.sweep`): the fraction converged and the ``T_eps``
 percentiles against one parameter, or heat maps over a grid of two."""
 from __future__ import annotations
 
@@ -121,8 +121,8 @@ def plot_sweep_grid(res: SweepResult, axes=None):
 
 
 def plot_sweep(res: SweepResult, axes: Optional[object] = None):
-    """The figure ``jaxsleigh sweep --plot`` draws: :func:`plot_sweep_grid` for two parameters, else
-    :func:`plot_sweep_line` against the first."""
+    """The figure ``jaxsleigh sweep --plot`` draws: `plot_sweep_grid` for two parameters, else
+    `plot_sweep_line` against the first."""
     if len(res.grid_shape) == 2:
         return plot_sweep_grid(res, axes)
     return plot_sweep_line(res, axes)

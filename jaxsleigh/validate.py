@@ -70,7 +70,7 @@ def whole(name: str, value, *, minimum: int = 1, maximum: int = INT32_MAX, examp
 
 
 def as_gains(g, name: str = "gains"):
-    """Validated :class:`~jaxsleigh.params.Gains` from ``None`` (the paper's), a preset name
+    """Validated `Gains` from ``None`` (the paper's), a preset name
     (``"paper"``, ``"tuned"``, ...), a gains-file path, a dict in the file format, or a ``Gains``
     (re-checked: every ``L_i > 0``, ``k > 0``, ``D_hat`` symmetric positive definite)."""
     from .params import Gains, gains, gains_from_dict, load_gains, paper_gains
@@ -92,7 +92,7 @@ def as_gains(g, name: str = "gains"):
 
 
 def as_plant(p, name: str = "plant"):
-    """Validated :class:`~jaxsleigh.params.PlantParams` from ``None`` (the paper's) or a
+    """Validated `PlantParams` from ``None`` (the paper's) or a
     ``PlantParams`` (re-checked: ``m > 0``, ``J >= 0``, ``l >= 0``, a known damping model)."""
     from .params import PlantParams, paper_plant, plant_params
 

@@ -1,6 +1,6 @@
 """The ``jaxsleigh`` command line.
 
-Subcommands (one module each; shared helpers in :mod:`jaxsleigh.cli.common`)::
+Subcommands (one module each; shared helpers in `jaxsleigh.cli.common`)::
 
     jaxsleigh simulate --ic=-3,-2,pi/8 --ic 3,2,-pi/2 --t-final 100 --out run.npz
     jaxsleigh paper --out out/paper
@@ -10,10 +10,10 @@ Subcommands (one module each; shared helpers in :mod:`jaxsleigh.cli.common`)::
 
 Adding a subcommand ``name``: a module with ``add_<name>(subparsers)`` that creates its parser
 (``subparsers.add_parser("name", ...)``), adds its options (the shared groups of
-:mod:`~jaxsleigh.cli.common` are there to reuse) and ends with ``parser.set_defaults(func=handler)``,
-where ``handler(args) -> int`` is the exit code; then list it in :data:`SUBCOMMANDS`. Handlers report
-bad input by raising ``ValueError`` with a message that says what to change: :func:`main` prints it
-as ``jaxsleigh: error: ...`` and returns 2. Exit codes: :data:`~jaxsleigh.cli.common.EXIT_CODES`.
+`common` are there to reuse) and ends with ``parser.set_defaults(func=handler)``,
+where ``handler(args) -> int`` is the exit code; then list it in `SUBCOMMANDS`. Handlers report
+bad input by raising ``ValueError`` with a message that says what to change: `main` prints it
+as ``jaxsleigh: error: ...`` and returns 2. Exit codes: `EXIT_CODES`.
 """
 from __future__ import annotations
 

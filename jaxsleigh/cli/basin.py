@@ -1,6 +1,6 @@
 """``jaxsleigh basin``: convergence over a grid, Monte-Carlo samples or a file of starts.
 
-Registered by :func:`add_basin` (``jaxsleigh.cli`` lists it among its subcommands)::
+Registered by `add_basin` (``jaxsleigh.cli`` lists it among its subcommands)::
 
     jaxsleigh basin --x -3:3:128 --y -3:3:128 --theta pi/8 --out xy.npz --plot xy.png
     jaxsleigh basin --x -3:3:128 --y 1 --theta -pi:pi:128 --out xtheta.npz
@@ -176,11 +176,11 @@ def _load() -> list:
 
 
 def run_basin_command(args) -> int:
-    """Handler of ``jaxsleigh basin`` (``args`` from the parser of :func:`add_basin`); returns the exit code.
+    """Handler of ``jaxsleigh basin`` (``args`` from the parser of `add_basin`); returns the exit code.
 
     With ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process
     computes its share of the chunks and process 0 writes the output (see
-    :func:`~jaxsleigh.cli.common.run_distributed`).
+    `run_distributed`).
     """
     return run_distributed(args, check=lambda: _check(args), compute=_compute, assemble=_assemble,
                            prepare=_prepare, shared_dirs=lambda st: [st["chunks"]])

@@ -2,7 +2,7 @@
 groups, output-path checks, how warnings and statuses are reported, exit codes and the
 compilation cache.
 
-Exit codes (:data:`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
+Exit codes (`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
 was computed); 3 the run finished but no trajectory ended OK; 130 interrupted (Ctrl-C; what was
 finished is kept, see ``--resume``).
 """
@@ -152,7 +152,7 @@ def add_model_options(parser) -> None:
 
 
 def model_from_args(args):
-    """(plant, gains) from the options of :func:`add_model_options`."""
+    """(plant, gains) from the options of `add_model_options`."""
     from ..params import load_gains, plant_params
 
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
@@ -224,7 +224,7 @@ def status_line(status) -> str:
 
 
 def exit_code(status) -> int:
-    """:data:`EXIT_OK` if any trajectory ended OK, else :data:`EXIT_NONE_OK` (with a message)."""
+    """`EXIT_OK` if any trajectory ended OK, else `EXIT_NONE_OK` (with a message)."""
     from ..status import Status
 
     if np.any(np.asarray(status) == Status.OK):
@@ -287,7 +287,7 @@ def enable_compilation_cache() -> Optional[Path]:
 
 def add_distributed_options(parser) -> None:
     """--coordinator HOST:PORT, --num-processes N, --process-id I (all three or none; see
-    :func:`run_distributed`)."""
+    `run_distributed`)."""
     g = parser.add_argument_group(
         "processes", "several processes or hosts share the run through jax.distributed; start the same command "
                      "in every process (only --process-id differs). Give all three options, or none under "
@@ -307,7 +307,7 @@ _PER_PROCESS = {"coordinator", "num_processes", "process_id", "progress", "no_co
 
 def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:
     """Run a chunked subcommand in one process or, with the options of
-    :func:`add_distributed_options` (or under SLURM / Open MPI), in several; returns the exit code.
+    `add_distributed_options` (or under SLURM / Open MPI), in several; returns the exit code.
 
     Call it first thing in the handler, before any JAX computation (it starts
     ``jax.distributed``). The subcommand provides:

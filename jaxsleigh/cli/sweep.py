@@ -1,17 +1,17 @@
 """``jaxsleigh sweep``: convergence over a range (or a grid) of gains or plant parameters.
 
-Registered by :func:`add_sweep`::
+Registered by `add_sweep`::
 
     jaxsleigh sweep --param k=0.01:1:9:log --samples 512 --out k.npz --plot k.png
     jaxsleigh sweep --param m=0.5:8:5:log --param l=0:2:5 --samples 256 --out ml.npz --plot ml.png
     jaxsleigh sweep --param coulomb_scale=0:4:5 --ics starts.npy --x64 --out friction.npz
 
 Every start runs under every value (set) as one chunked, checkpointed ensemble
-(:func:`jaxsleigh.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
+(`jaxsleigh.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
 interrupted run, ending with the same ``.npz``, byte for byte. Wall time, devices and the command
 go to ``FILE.run.json``. With ``--coordinator/--num-processes/--process-id`` (or under SLURM /
 Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
-(:func:`~jaxsleigh.cli.common.run_distributed`), and process 0 writes the same ``.npz``.
+(`run_distributed`), and process 0 writes the same ``.npz``.
 """
 from __future__ import annotations
 
@@ -119,7 +119,7 @@ def run_sweep_command(args) -> int:
 
     With ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process
     computes its share of the chunks and process 0 writes the output, the same bytes as one process
-    (see :func:`~jaxsleigh.cli.common.run_distributed`).
+    (see `run_distributed`).
     """
     return run_distributed(args, check=lambda: _check(args), compute=_compute, assemble=_assemble,
                            prepare=_prepare, shared_dirs=lambda st: [st["chunks"]])
