@@ -22,7 +22,7 @@
 7. Writes ``out/pareto/front.json`` (and ``docs/figures/pareto_front.json`` for the notebook),
    ``docs/figures/pareto_front.png``, ``docs/figures/tuning_effort_history.png`` (the balanced
    point's run: energy against budget, the probe far below its budget) and
-   ``docs/figures/pareto_results.md``.
+   ``out/pareto/results.md`` (the how-to quotes its tables).
 """
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ def main(argv=None) -> int:
         lines += ["", f"balanced: median T_0.05 {b.median:.2f} s vs the paper's {paper.median:.2f} s "
                       f"({paper.median / b.median:.2f}x shorter) at median energy {b.median_energy:.4g} "
                       f"(paper {paper.median_energy:.4g})"]
-    (figs / "pareto_results.md").write_text("\n".join(lines) + "\n")
+    (out / "results.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines), flush=True)
 
     if balanced is not None:
