@@ -22,13 +22,12 @@ import re
 import shutil
 import sys
 import time
-import warnings
 from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
 from ..io import load_ics
-from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
-                     check_outputs, exit_code, model_from_args, report_warnings, run_distributed, status_epilog)
+from .common import (FLAGS, PROG, compute_share, run_chunked, add_distributed_options, add_horizon_options, add_model_options,
+                     check_outputs, exit_code, model_from_args, run_distributed, status_epilog)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 
@@ -222,27 +221,11 @@ def _run_kw(st: dict) -> dict:
                 progress=a.progress)
 
 
-def _interrupted(st: dict) -> None:
-    print(f"{PROG} basin: interrupted; the finished chunks are in {st['chunks']}/ - run the same command with "
-          f"--resume to continue", file=sys.stderr)
-
-
 def _compute(st: dict, shard: tuple) -> None:
     """One process's share of the chunks of a multi-process run."""
     from ..basin import run_basin
 
-    t0 = time.perf_counter()
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            run_basin(st["starts"], resume=True, shard=shard, **_run_kw(st))
-    except KeyboardInterrupt:
-        _interrupted(st)
-        raise
-    report_warnings(caught, skip=(FlaggedStartsWarning,))
-    if shard[0] != 0:
-        print(f"{PROG} basin: process {shard[0]} of {shard[1]}: share of the chunks done in "
-              f"{time.perf_counter() - t0:.1f} s; process 0 writes {st['out']}", file=sys.stderr)
+    compute_share("basin", st["chunks"], st["out"], shard, lambda shard: run_basin(st["starts"], resume=True, shard=shard, **_run_kw(st)))
 
 
 def _assemble(st: dict, multi: bool) -> int:
@@ -253,15 +236,9 @@ def _assemble(st: dict, multi: bool) -> int:
     args, out, chunks, side = st["args"], st["out"], st["chunks"], st["side"]
     argv = list(getattr(args, "_argv", None) or [])
     t0 = st["t0"]
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            res = run_basin(st["starts"], resume=True if multi else args.resume, **_run_kw(st))
-    except KeyboardInterrupt:
-        _interrupted(st)
-        raise
+    res, caught = run_chunked("basin", st["chunks"],
+                              lambda: run_basin(st["starts"], resume=True if multi else args.resume, **_run_kw(st)))
     wall = time.perf_counter() - t0
-    report_warnings(caught, skip=(FlaggedStartsWarning,))
     n_flag = int((~res.valid).sum())
     if n_flag:
         first = next((w.message for w in caught if isinstance(w.message, FlaggedStartsWarning)), None)

@@ -245,6 +245,40 @@ def status_epilog() -> str:
 
 
 # ---------------------------------------------------------------------------------------------
+# chunked, checkpointed subcommands (basin, sweep)
+# ---------------------------------------------------------------------------------------------
+
+def run_chunked(command: str, chunks, fn):
+    """Call ``fn()`` of a chunked, checkpointed subcommand, recording its warnings: a Ctrl-C says where
+    the finished chunks are and how to continue; the warnings (but flagged rows, which the command
+    reports its own way) are printed. Returns ``(fn(), caught warnings)``."""
+    from ..errors import FlaggedStartsWarning
+
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = fn()
+    except KeyboardInterrupt:
+        print(f"{PROG} {command}: interrupted; the finished chunks are in {chunks}/ - run the same command with "
+              f"--resume to continue", file=sys.stderr)
+        raise
+    report_warnings(caught, skip=(FlaggedStartsWarning,))
+    return result, caught
+
+
+def compute_share(command: str, chunks, out, shard: tuple, fn) -> None:
+    """One process's share ``shard = (index, count)`` of a multi-process run: ``fn(shard)`` writes its
+    chunks (see :func:`run_chunked`); processes other than 0 say so when they are done."""
+    import time
+
+    t0 = time.perf_counter()
+    run_chunked(command, chunks, lambda: fn(shard))
+    if shard[0] != 0:
+        print(f"{PROG} {command}: process {shard[0]} of {shard[1]}: share of the chunks done in "
+              f"{time.perf_counter() - t0:.1f} s; process 0 writes {out}", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------------------
 # compilation cache
 # ---------------------------------------------------------------------------------------------
 

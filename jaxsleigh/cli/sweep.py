@@ -22,12 +22,10 @@ import re
 import shutil
 import sys
 import time
-import warnings
 
-from ..errors import FlaggedStartsWarning
 from .basin import _chunk_dir, _load, _sidecar, _starts_from_args, _whole
-from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options, check_outputs,
-                     exit_code, model_from_args, report_warnings, run_distributed, status_epilog)
+from .common import (FLAGS, PROG, compute_share, run_chunked, add_distributed_options, add_horizon_options, add_model_options, check_outputs,
+                     exit_code, model_from_args, run_distributed, status_epilog)
 from .common import number as _positive_float
 
 __all__ = ["add_sweep", "run_sweep_command"]
@@ -169,27 +167,11 @@ def _run_kw(st: dict) -> dict:
                 progress=a.progress, labels=st["labels"])
 
 
-def _interrupted(st: dict) -> None:
-    print(f"{PROG} sweep: interrupted; the finished chunks are in {st['chunks']}/ - run the same command with "
-          f"--resume to continue", file=sys.stderr)
-
-
 def _compute(st: dict, shard: tuple) -> None:
     """One process's share of the chunks of a multi-process run."""
     from ..sweep import sweep
 
-    t0 = time.perf_counter()
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            sweep(st["starts"], st["axes"], resume=True, shard=shard, **_run_kw(st))
-    except KeyboardInterrupt:
-        _interrupted(st)
-        raise
-    report_warnings(caught, skip=(FlaggedStartsWarning,))
-    if shard[0] != 0:
-        print(f"{PROG} sweep: process {shard[0]} of {shard[1]}: share of the chunks done in "
-              f"{time.perf_counter() - t0:.1f} s; process 0 writes {st['out']}", file=sys.stderr)
+    compute_share("sweep", st["chunks"], st["out"], shard, lambda shard: sweep(st["starts"], st["axes"], resume=True, shard=shard, **_run_kw(st)))
 
 
 def _assemble(st: dict, multi: bool) -> int:
@@ -199,15 +181,9 @@ def _assemble(st: dict, multi: bool) -> int:
 
     args, out, chunks, side = st["args"], st["out"], st["chunks"], st["side"]
     argv = list(getattr(args, "_argv", None) or [])
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            res = sweep(st["starts"], st["axes"], resume=True if multi else args.resume, **_run_kw(st))
-    except KeyboardInterrupt:
-        _interrupted(st)
-        raise
+    res, caught = run_chunked("sweep", st["chunks"],
+                              lambda: sweep(st["starts"], st["axes"], resume=True if multi else args.resume, **_run_kw(st)))
     wall = time.perf_counter() - st["t0"]
-    report_warnings(caught, skip=(FlaggedStartsWarning,))
     n_flag = int((~res.valid[0]).sum())
     if n_flag:
         print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 or "
