@@ -31,17 +31,15 @@ with the slope's standard error) and `path_length` (of decimated paths).
 """
 from __future__ import annotations
 
-import io
 import json
 import math
-import zipfile
 from pathlib import Path
 from typing import Any, NamedTuple, Optional, Sequence
 
 import numpy as np
 
 from .ensemble import run_ensemble
-from .io import atomic_write, npz_path
+from .io import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from .io import parse_number as _number
 from .params import Gains, PlantParams
 from .status import NOT_INTEGRATED, Status, describe
@@ -509,22 +507,6 @@ _PER_START = ("T_eps", "status", "Hd0", "Hd_final", "min_abs_theta", "max_excurs
 _EFFORT = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int")
 
 
-def _write_npz_deterministic(path: Path, arrays: dict) -> None:
-    """Like ``np.savez_compressed`` but with fixed zip timestamps (equal inputs, equal bytes),
-    written atomically."""
-    def write(f):
-        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-            for key, val in arrays.items():
-                buf = io.BytesIO()
-                np.lib.format.write_array(buf, np.asanyarray(val), allow_pickle=False)
-                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                zf.writestr(info, buf.getvalue())
-
-    atomic_write(path, write)
-
-
 def save_basin(path, result: BasinResult) -> Path:
     """Write a `BasinResult` to ``.npz`` (appended when missing); returns the path.
 
@@ -541,8 +523,6 @@ def save_basin(path, result: BasinResult) -> Path:
     Nothing that varies between runs (wall time, devices) is written, and the zip members carry
     a fixed timestamp: the same inputs give the same bytes.
     """
-    from .io import damping_name
-
     path = npz_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     r = result
@@ -568,30 +548,14 @@ def save_basin(path, result: BasinResult) -> Path:
     elif st.kind == "samples":
         arrays["box"] = np.asarray([st.spec[c] for c in COORDS], np.float64)
         arrays["seed"] = np.int64(st.spec["seed"])
-    plant, g = s["plant"], s["gains"]
-    arrays.update(
-        settings_json=np.array(json.dumps(settings, sort_keys=True)),
-        eps=np.float64(s["eps"]), t_final=np.float64(s["t_final"]), dt=np.float64(s["dt"]),
-        method=np.array(s["method"]), dtype=np.array(s["dtype"]), max_steps=np.int64(s["max_steps"]),
-        gains_L=np.asarray(g["L"], np.float64), gains_k=np.float64(g["k"]),
-        gains_D_hat=np.asarray(g["D_hat"], np.float64),
-        params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
-        damping=np.array(damping_name(plant["damping"])),
-    )
-    _write_npz_deterministic(path, arrays)
+    arrays.update(settings_json=np.array(json.dumps(settings, sort_keys=True)), **settings_arrays(s))
+    write_npz_deterministic(path, arrays)
     return path
 
 
 def load_basin(path) -> BasinResult:
     """Read an ``.npz`` written by `save_basin` (or ``jaxsleigh basin``)."""
-    try:
-        with np.load(npz_path(path), allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise ValueError(f"cannot read basin file {str(path)!r} ({type(e).__name__}: {e}); give a file written "
-                         f"by jaxsleigh basin / save_basin") from None
-    if "settings_json" not in data or "T_eps" not in data:
-        raise ValueError(f"{str(path)!r} is not a basin file (written by jaxsleigh basin / save_basin)")
+    data = read_npz(path, "basin file (written by jaxsleigh basin / save_basin)", ("settings_json", "T_eps"))
     settings = json.loads(str(data["settings_json"]))
     settings.pop("status_codes", None)
     ics = data["ics"]

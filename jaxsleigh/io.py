@@ -12,7 +12,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text"]
+__all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
+           "settings_arrays", "write_npz_deterministic", "read_npz"]
 
 
 def npz_path(path) -> Path:
@@ -59,6 +60,55 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
         **{k: np.asarray(v) for k, v in (getattr(sol, "effort", None) or {}).items()},
     ))
     return path
+
+
+def settings_arrays(s: dict) -> dict:
+    """The settings every result file repeats as scalars next to ``settings_json``: ``eps``,
+    ``t_final``, ``dt``, ``method``, ``dtype``, ``max_steps``, ``gains_L``, ``gains_k``,
+    ``gains_D_hat``, ``params (m, J, l)``, ``damping``."""
+    plant, g = s["plant"], s["gains"]
+    return dict(
+        eps=np.float64(s["eps"]), t_final=np.float64(s["t_final"]), dt=np.float64(s["dt"]),
+        method=np.array(s["method"]), dtype=np.array(s["dtype"]), max_steps=np.int64(s["max_steps"]),
+        gains_L=np.asarray(g["L"], np.float64), gains_k=np.float64(g["k"]),
+        gains_D_hat=np.asarray(g["D_hat"], np.float64),
+        params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
+        damping=np.array(damping_name(plant["damping"])),
+    )
+
+
+def write_npz_deterministic(path, arrays: dict) -> Path:
+    """Like ``np.savez_compressed`` but with fixed zip timestamps (equal inputs, equal bytes),
+    written atomically (:func:`atomic_write`)."""
+    import io as _io
+    import zipfile
+
+    def write(f):
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for key, val in arrays.items():
+                buf = _io.BytesIO()
+                np.lib.format.write_array(buf, np.asanyarray(val), allow_pickle=False)
+                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                zf.writestr(info, buf.getvalue())
+
+    return atomic_write(path, write)
+
+
+def read_npz(path, what: str, required=()) -> dict:
+    """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
+    or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``)."""
+    import zipfile
+
+    try:
+        with np.load(npz_path(path), allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"cannot read {str(path)!r} ({type(e).__name__}: {e}); give a {what}") from None
+    if any(k not in data for k in required):
+        raise ValueError(f"{str(path)!r} is not a {what}")
+    return data
 
 
 def damping_name(class_name: str) -> str:

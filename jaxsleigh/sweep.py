@@ -423,8 +423,7 @@ def save_sweep(path, result: SweepResult) -> Path:
     legend) and as scalars ``eps, t_final, dt, method, dtype, max_steps``, the base ``gains_L,
     gains_k, gains_D_hat, params (m, J, l), damping``.
     """
-    from .basin import _write_npz_deterministic
-    from .io import damping_name, npz_path
+    from .io import npz_path, settings_arrays, write_npz_deterministic
 
     path = npz_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -448,34 +447,18 @@ def save_sweep(path, result: SweepResult) -> Path:
         arrays[f"axis_{a.name}"] = a.values()
     if r.axes:
         arrays["axis_log"] = np.array([a.log for a in r.axes])
-    plant, g = s["plant"], s["gains"]
-    arrays.update(
-        settings_json=np.array(json.dumps({**s, "status_codes": describe()}, sort_keys=True, default=str)),
-        eps=np.float64(s["eps"]), t_final=np.float64(s["t_final"]), dt=np.float64(s["dt"]),
-        method=np.array(s["method"]), dtype=np.array(s["dtype"]), max_steps=np.int64(s["max_steps"]),
-        gains_L=np.asarray(g["L"], np.float64), gains_k=np.float64(g["k"]),
-        gains_D_hat=np.asarray(g["D_hat"], np.float64),
-        params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
-        damping=np.array(damping_name(plant["damping"])),
-    )
-    _write_npz_deterministic(path, arrays)
+    arrays.update(settings_json=np.array(json.dumps({**s, "status_codes": describe()}, sort_keys=True, default=str)),
+                  **settings_arrays(s))
+    write_npz_deterministic(path, arrays)
     return path
 
 
 def load_sweep(path) -> SweepResult:
     """Read an ``.npz`` written by `save_sweep` (or ``jaxsleigh sweep``)."""
-    import zipfile
-
     from .basin import _starts_from_spec
-    from .io import npz_path
+    from .io import read_npz
 
-    try:
-        with np.load(npz_path(path), allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise ValueError(f"cannot read sweep file {str(path)!r} ({type(e).__name__}: {e})") from None
-    if "settings_json" not in d or "values" not in d:
-        raise ValueError(f"{str(path)!r} is not a sweep file (written by jaxsleigh sweep / save_sweep)")
+    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)", ("settings_json", "values"))
     settings = json.loads(str(d["settings_json"]))
     settings.pop("status_codes", None)
     axes = tuple(parse_param(a) for a in settings["sweep"]["axes"])
