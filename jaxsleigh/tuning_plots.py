@@ -1,17 +1,17 @@
 """Figures of gain tuning: the optimisation history, before/after paths and convergence times.
 
-* :func:`plot_history`: loss (valid and rejected candidates, running best), gradient norm and the
+* `plot_history`: loss (valid and rejected candidates, running best), gradient norm and the
   gains per iteration.
-* :func:`plot_paths_before_after`: paths of the contact point under two sets of gains, side by side.
-* :func:`plot_convergence_times`: empirical distribution (CDF) and histogram of ``T_eps`` per set
+* `plot_paths_before_after`: paths of the contact point under two sets of gains, side by side.
+* `plot_convergence_times`: empirical distribution (CDF) and histogram of ``T_eps`` per set
   of gains, medians marked.
-* :func:`plot_per_plant`: median ``T_eps`` and the fraction converged per plant, per set of gains.
-* :func:`plot_effort_history`: the effort-budgeted run: training energy against its budget, the
+* `plot_per_plant`: median ``T_eps`` and the fraction converged per plant, per set of gains.
+* `plot_effort_history`: the effort-budgeted run: training energy against its budget, the
   multiplier, and the integration-cost probe against its budget with the returned iteration marked.
-* :func:`plot_front`: the time-effort Pareto front (median T_0.05 against median control energy on
+* `plot_front`: the time-effort Pareto front (median T_0.05 against median control energy on
   held-out starts) with reference gains and a random-search baseline.
 
-Like :mod:`jaxsleigh.plotting`, everything builds :class:`matplotlib.figure.Figure` objects (no
+Like `jaxsleigh.plotting`, everything builds `matplotlib.figure.Figure` objects (no
 ``pyplot``, no global state) and accepts ``ax``/``axes`` to draw into existing figures.
 """
 from __future__ import annotations
@@ -35,13 +35,13 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     """Loss, gradient norm, integration cost (the probe's attempted steps) and gains per iteration.
 
     Args:
-      history: a :class:`~jaxsleigh.tuning.TuneHistory` (or the ``.npz`` written by
-        :func:`~jaxsleigh.tuning.save_history`, or any mapping with its fields).
+      history: a `TuneHistory` (or the ``.npz`` written by
+        `save_history`, or any mapping with its fields).
       axes: four axes to draw into (default: a new figure).
       probe_budget: drawn as a horizontal line on the cost panel when given.
 
     Returns:
-      The :class:`matplotlib.figure.Figure`.
+      The `matplotlib.figure.Figure`.
     """
     loss = np.asarray(_field(history, "loss"), float)
     valid = np.asarray(_field(history, "valid"), bool)
@@ -107,7 +107,7 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
 
 def plot_paths_before_after(before, after, *, names: Sequence[str] = ("paper gains", "tuned gains"),
                             axes=None, share: bool = True):
-    """Paths of the contact point under two sets of gains (two :class:`~jaxsleigh.simulate.Solution`
+    """Paths of the contact point under two sets of gains (two `Solution`
     objects from the same starts), side by side; with ``share`` both panels get the same limits."""
     if axes is None:
         fig = new_figure((12.0, 6.6))
@@ -181,7 +181,7 @@ def plot_convergence_times(times: Mapping[str, np.ndarray], *, horizon: float = 
 def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, horizon: float = 100.0):
     """Median ``T_eps`` (with its standard error) and fraction converged per plant.
 
-    ``table`` maps a plant label to ``{gains label: Validation}`` (:class:`~jaxsleigh.tuning.Validation`).
+    ``table`` maps a plant label to ``{gains label: Validation}`` (`Validation`).
     """
     plants = list(table)
     labels = list(next(iter(table.values())))
@@ -280,9 +280,9 @@ def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references
     """Median T_0.05 (± s.e.) against median control energy on held-out starts, log-log.
 
     Args:
-      front: a front document (:func:`jaxsleigh.tuning.front_dict` / ``front.json``) whose points
+      front: a front document (`jaxsleigh.tuning.front_dict` / ``front.json``) whose points
         were evaluated.
-      baseline: another front document (e.g. :func:`jaxsleigh.tuning.random_search`), drawn dashed.
+      baseline: another front document (e.g. `jaxsleigh.tuning.random_search`), drawn dashed.
       references: ``{name: figures}`` (the documents' ``references`` entries, e.g. paper and tuned;
         default: ``front["references"]``), drawn as labelled markers.
       highlight: ``{name: figures}`` to mark specially (e.g. the ``balanced`` preset).

@@ -7,7 +7,7 @@
                    [--warm-steps N] [--baseline] [--plot front.png] [--validate N] ...
 
 The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the subcommand with
-:func:`add_tune` (it is a thin layer over :func:`jaxsleigh.tuning.tune`).
+`add_tune` (it is a thin layer over `jaxsleigh.tuning.tune`).
 """
 from __future__ import annotations
 

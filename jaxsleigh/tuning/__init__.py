@@ -1,39 +1,37 @@
 r"""Differentiable tuning of the controller's gains: objective, parametrisation, gradients, optimiser.
 
-**Objective.** The hard convergence time :math:`T_\epsilon` (first time after which
-:math:`|q| \le \epsilon` holds) is piecewise constant in the gains. Its smooth surrogate is the time
+**Objective.** The hard convergence time \(T_\epsilon\) (first time after which
+\(|q| \le \epsilon\) holds) is piecewise constant in the gains. Its smooth surrogate is the time
 a trajectory spends outside the ball, weighted by a soft indicator that is exactly zero inside it:
 
-.. math::
-    S = \int_0^{T} \phi\big(\log(|q(t)| / \epsilon) / \tau\big)\,dt, \qquad
-    \phi(u) = 1 - e^{-u^2}\ (u > 0), \quad \phi(u) = 0\ (u \le 0),
+\[ S = \int_0^{T} \phi\big(\log(|q(t)| / \epsilon) / \tau\big)\,dt, \qquad \phi(u) = 1 - e^{-u^2}\ (u > 0), \quad \phi(u) = 0\ (u \le 0), \]
 
 averaged over a batch of starts (``tau`` is the temperature: the band
-:math:`\epsilon < |q| \lesssim \epsilon e^{2\tau}` where the indicator rises). A lane stops once
-:math:`|q| \le` ``stop_fraction`` :math:`\cdot\,\epsilon`: after that the closed loop only gets stiffer
-(the injected damping :math:`k / w_1^2` grows without bound as :math:`\theta \to 0`), and since
-:math:`\phi = 0` there the stopped integral has the same value and exact gradient as the full one as
+\(\epsilon < |q| \lesssim \epsilon e^{2\tau}\) where the indicator rises). A lane stops once
+\(|q| \le\) ``stop_fraction`` \(\cdot\,\epsilon\): after that the closed loop only gets stiffer
+(the injected damping \(k / w_1^2\) grows without bound as \(\theta \to 0\)), and since
+\(\phi = 0\) there the stopped integral has the same value and exact gradient as the full one as
 long as the trajectory stays in the ball (validation with the accurate engine checks that it does).
 
-**Effort.** The same scan accumulates the control energy :math:`E = \int |u|^2 dt` (trapezoid on the
+**Effort.** The same scan accumulates the control energy \(E = \int |u|^2 dt\) (trapezoid on the
 accepted steps, differentiable), and the loss may carry a budget on the batch's geometric-mean energy,
-enforced by an augmented Lagrangian (:func:`~jaxsleigh.tuning.objective` argues the choice):
-minimise the soft time subject to "effort <= budget". :mod:`~jaxsleigh.tuning.pareto` sweeps the
+enforced by an augmented Lagrangian (`objective` argues the choice):
+minimise the soft time subject to "effort <= budget". `pareto` sweeps the
 budget (the time-effort front); the ``balanced`` preset is its fastest point within the paper's
 gains' energy.
 
 **Numerical safety.** Lanes are integrated in the w chart by the engine's adaptive RK4
-(:func:`jaxsleigh.stepper.attempt`: steps that cross :math:`\theta = 0`, go non-finite or increase
-:math:`H_d` are rejected and retried smaller) with a fixed budget of attempts per lane, as one
+(`jaxsleigh.stepper.attempt`: steps that cross \(\theta = 0\), go non-finite or increase
+\(H_d\) are rejected and retried smaller) with a fixed budget of attempts per lane, as one
 differentiable ``lax.scan``. A lane that does not reach its horizon within the budget (too stiff)
 or fails is charged the rest of the horizon and makes the candidate *invalid*. A differentiable
 term keeps unconverged trajectories away from the singular set, where the loop is stiff:
 
-.. math:: B = \int_0^{T} \phi(\cdot)\, \max\big(0, \log(\theta_b / |\theta|)\big)^2\,dt .
+\[ B = \int_0^{T} \phi(\cdot)\, \max\big(0, \log(\theta_b / |\theta|)\big)^2\,dt . \]
 
-**Integration cost.** Faster convergence has a price after convergence: as :math:`\theta \to 0` the
-closed loop's eigenvalues grow like :math:`k / \theta^2` and :math:`\sqrt{L} / \theta`, and with stronger
-gains :math:`\theta` gets small sooner, so the steps needed for a fixed horizon grow quickly (left
+**Integration cost.** Faster convergence has a price after convergence: as \(\theta \to 0\) the
+closed loop's eigenvalues grow like \(k / \theta^2\) and \(\sqrt{L} / \theta\), and with stronger
+gains \(\theta\) gets small sooner, so the steps needed for a fixed horizon grow quickly (left
 alone, the optimiser drives the gains up until 100 s need ~10^5 adaptive steps and the engine's
 default budget runs out). Each candidate is therefore also *probed*: the training starts that need
 the most steps (an active set, re-found every ``probe_refresh`` accepted candidates by running the
@@ -45,14 +43,14 @@ convergence time subject to "every training start needs at most ``probe_budget``
 history records whether it was active (``probe_active``; ``settings["probe_at_result"]`` for the
 returned gains).
 
-The optimiser loop (:func:`tune`) rejects every invalid candidate (non-OK lane, non-finite loss or
-gradient, on the training batch and on a *guard* set of starts with :math:`|\theta_0|` down to
+The optimiser loop (`tune`) rejects every invalid candidate (non-OK lane, non-finite loss or
+gradient, on the training batch and on a *guard* set of starts with \(|\theta_0|\) down to
 0.05, failed probe), backtracks to the last valid point with a halved step, and returns the best
 valid gains that also pass a final check with the accurate engine over the validation horizon.
 
-**Parametrisation** (always admissible, see :class:`GainParams`):
-:math:`L = e^{\ell}`, :math:`k = e^{\kappa}`, :math:`\hat D = C C^\top + \delta I` with
-:math:`C = \begin{bmatrix} e^{c_0} & 0 \\ c_1 & e^{c_2} \end{bmatrix}`.
+**Parametrisation** (always admissible, see `GainParams`):
+\(L = e^{\ell}\), \(k = e^{\kappa}\), \(\hat D = C C^\top + \delta I\) with
+\(C = \begin{bmatrix} e^{c_0} & 0 \\ c_1 & e^{c_2} \end{bmatrix}\).
 
 **Gradients** go through the integrator (the adaptive step sizes are ``stop_gradient``'ed in the
 stepper, so this is the exact derivative of the discrete map with its step sequence frozen):
@@ -65,12 +63,12 @@ starts (float32, 2 CPU cores), forward mode took 2.0 s and 0.4 MB of XLA tempora
 forward mode is the default. Reverse mode's cost does not grow with the number of parameters;
 it wins from roughly a dozen of them.
 
-**Modules** (one concept each): :mod:`~jaxsleigh.tuning.params` (parametrisation),
-:mod:`~jaxsleigh.tuning.starts` (samplers of starts and plants), :mod:`~jaxsleigh.tuning.objective`
-(the objective and its scan), :mod:`~jaxsleigh.tuning.gradients`, :mod:`~jaxsleigh.tuning.optimizer`
-(the loop, backtracking as an optax wrapper), :mod:`~jaxsleigh.tuning.probes` (safety guards),
-:mod:`~jaxsleigh.tuning.checkpoint`, :mod:`~jaxsleigh.tuning.history`,
-:mod:`~jaxsleigh.tuning.validation`, :mod:`~jaxsleigh.tuning.pareto` (the time-effort front).
+**Modules** (one concept each): `params` (parametrisation),
+`starts` (samplers of starts and plants), `objective`
+(the objective and its scan), `gradients`, `optimizer`
+(the loop, backtracking as an optax wrapper), `probes` (safety guards),
+`checkpoint`, `history`,
+`validation`, `pareto` (the time-effort front).
 Everything public is re-exported here.
 """
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Checkpoint and resume of the tuner: the optimiser's whole state in one fingerprinted ``.npz``, written
-atomically after every iteration, and :class:`TuningInterrupted` (Ctrl-C keeps the best gains so far)."""
+atomically after every iteration, and `TuningInterrupted` (Ctrl-C keeps the best gains so far)."""
 from __future__ import annotations
 
 import hashlib
@@ -17,7 +17,7 @@ __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint"]
 
 
 class TuningInterrupted(KeyboardInterrupt):
-    """Ctrl-C during :func:`~jaxsleigh.tuning.tune`. ``partial``: a :class:`~jaxsleigh.tuning.TuneResult`
+    """Ctrl-C during `tune`. ``partial``: a `TuneResult`
     with the best valid gains so far (``None`` if no candidate was valid yet); ``checkpoint``: the file
     to resume from (or ``None``)."""
 

@@ -20,7 +20,7 @@ GRADIENT_MODES = ("reverse", "forward")
 @functools.lru_cache(maxsize=32)
 def make_value_and_grad(*, mode: str = "forward", n_attempts: int, segment: int = 100, adaptive: bool = True,
                         d_floor: float = D_FLOOR):
-    """A jitted ``f(trainable, frozen, data, cfg) -> ((loss, aux), grad)`` of :func:`objective`.
+    """A jitted ``f(trainable, frozen, data, cfg) -> ((loss, aux), grad)`` of `objective`.
 
     ``mode="reverse"``: ``jax.value_and_grad`` through the checkpointed scan;
     ``mode="forward"``: ``jax.jacfwd`` over the flattened trainable parameters (one tangent each).

@@ -1,4 +1,4 @@
-"""The optimisation history on disk (``.npz``, one key per :class:`TuneHistory` field)."""
+"""The optimisation history on disk (``.npz``, one key per `TuneHistory` field)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -23,6 +23,6 @@ def save_history(history: TuneHistory, path, **extra) -> Path:
 
 
 def load_history(path) -> TuneHistory:
-    """Read a history written by :func:`save_history`."""
+    """Read a history written by `save_history`."""
     with np.load(path, allow_pickle=False) as z:
         return TuneHistory(**{f: z[f] for f in TuneHistory._fields})

@@ -1,5 +1,5 @@
 r"""The tuner's objective: the soft convergence time integrated differentiably by its own scan over
-:func:`jaxsleigh.stepper.attempt` (see the package docstring for the formulas).
+`jaxsleigh.stepper.attempt` (see the package docstring for the formulas).
 """
 from __future__ import annotations
 
@@ -42,12 +42,12 @@ class LossConfig(NamedTuple):
       stop_fraction: a lane stops once ``|q| <= stop_fraction * eps``.
       theta_barrier, barrier_weight: the singular-set term ``B`` (module docstring) and its weight.
       guard_weight: weight of the guard starts' soft time in the loss.
-      energy_budget: :math:`E_{max}`, the budget on the batch's geometric-mean control energy
-        :math:`\exp(\overline{\log E_i})`, :math:`E_i = \int |u|^2 dt` over the lane's integration
+      energy_budget: \(E_{max}\), the budget on the batch's geometric-mean control energy
+        \(\exp(\overline{\log E_i})\), \(E_i = \int |u|^2 dt\) over the lane's integration
         [N^2 s, (N m)^2 s]; ``inf`` (default): no budget, the plain soft convergence time.
-      penalty: :math:`\rho` of the augmented Lagrangian; multiplier: its :math:`\lambda \ge 0`
-        (updated by the optimiser loop, see :func:`objective`); dual_step: the loop's step
-        :math:`\eta` of the multiplier, :math:`\lambda \leftarrow \max(0, \lambda + \eta g)`.
+      penalty: \(\rho\) of the augmented Lagrangian; multiplier: its \(\lambda \ge 0\)
+        (updated by the optimiser loop, see `objective`); dual_step: the loop's step
+        \(\eta\) of the multiplier, \(\lambda \leftarrow \max(0, \lambda + \eta g)\).
     """
 
     t_final: float = 30.0
@@ -70,17 +70,17 @@ class LossConfig(NamedTuple):
 
 
 class LaneSummary(NamedTuple):
-    r"""Per-lane results of :func:`soft_convergence` (arrays over the batch).
+    r"""Per-lane results of `soft_convergence` (arrays over the batch).
 
     Attributes:
-      soft_time: :math:`S` plus the rest of the horizon for lanes that failed [s].
-      barrier: the singular-set term :math:`B` [s].
+      soft_time: \(S\) plus the rest of the horizon for lanes that failed [s].
+      barrier: the singular-set term \(B\) [s].
       ok: reached the horizon or stopped in the ball, with status OK.
       stopped: stopped in the ball (``|q| <= stop_fraction * eps``).
       t: time reached; for stopped lanes the first passage into the stopping ball.
       status, n_attempts, min_abs_theta, max_q: as the stepper reports them.
-      energy: control energy :math:`\int |u|^2 dt` over the lane's integration (trapezoid on the
-        accepted steps, differentiable) [N^2 s]; u_peak: largest :math:`|u|` at a step's end [N].
+      energy: control energy \(\int |u|^2 dt\) over the lane's integration (trapezoid on the
+        accepted steps, differentiable) [N^2 s]; u_peak: largest \(|u|\) at a step's end [N].
     """
 
     soft_time: jax.Array
@@ -97,7 +97,7 @@ class LaneSummary(NamedTuple):
 
 
 def _soft_indicator(y, eps, tau):
-    """:math:`\\phi(\\log(|q|/\\epsilon)/\\tau)`, zero inside the ball, from a w-chart state."""
+    """\\(\\phi(\\log(|q|/\\epsilon)/\\tau)\\), zero inside the ball, from a w-chart state."""
     q2 = q_norm2_w(y[:3])
     u = jnp.maximum(0.5 * (jnp.log(q2 + 1e-30) - 2.0 * jnp.log(eps)) / tau, 0.0)
     return -jnp.expm1(-u * u)
@@ -109,7 +109,7 @@ def _near_singular(y, theta_b):
 
 
 def _effort_rate(y, args: ClosedLoop):
-    """:math:`|u|^2` of the control law (eq. 13) at the w-chart state ``y`` (batch-last)."""
+    """\\(|u|^2\\) of the control law (eq. 13) at the w-chart state ``y`` (batch-last)."""
     u = control_w_components((y[0], y[1], y[2]), velocity_components((y[3], y[4]), args.plant), args.gains)
     return u[0] * u[0] + u[1] * u[1]
 
@@ -125,7 +125,7 @@ def _cast_plant(plant: PlantParams, dtype):
 def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final=None,
                      n_attempts: int, segment: int = 100, adaptive: bool = True) -> LaneSummary:
     r"""Integrate a batch from the w-chart starts ``y0w`` (N, 5) and accumulate the soft convergence
-    time :math:`S` and the singular-set term :math:`B` along it, differentiably.
+    time \(S\) and the singular-set term \(B\) along it, differentiably.
 
     ``n_attempts`` attempted steps per lane (static) run as ``ceil(n_attempts / segment)``
     checkpointed segments; a segment in which no lane is active is skipped. ``plant`` leaves may be
@@ -133,7 +133,7 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
     overrides ``cfg.t_final``.
 
     ``adaptive=False`` takes fixed RK4 steps of ``cfg.dt`` (for checks). Adaptive lanes start with
-    a step of at most :math:`0.01\,\|y_0\|/\|f(y_0)\|` (scaled by the
+    a step of at most \(0.01\,\|y_0\|/\|f(y_0)\|\) (scaled by the
     tolerances, as in Hairer's starting-step rule): from ``|theta0| = 0.05`` a first trial step of
     ``dt`` overflows float32, and although the stepper rejects it, in reverse mode the discarded
     infinities turn the gradient into NaN. The adaptive controller grows the step back within a
@@ -222,7 +222,7 @@ def make_training_set(ics, *, plant: Optional[PlantParams] = None, robust: Optio
     """Validate the starts and map them to the w chart (float64 then ``dtype``, default: working dtype).
 
     With ``robust`` the lanes are spread over plants sampled from it (``seed``), else all use
-    ``plant`` (default: the paper's). ``guard`` defaults to :func:`guard_starts`; pass an empty
+    ``plant`` (default: the paper's). ``guard`` defaults to `guard_starts`; pass an empty
     array for none.
     """
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
@@ -246,27 +246,25 @@ def objective(trainable: dict, frozen: GainParams, data: TrainingSet, cfg: LossC
               segment: int = 100, adaptive: bool = True, d_floor: float = D_FLOOR):
     r"""The scalar loss and its diagnostics: the soft convergence time subject to an effort budget.
 
-    .. math:: f = \frac{1}{N T}\sum_i (S_i + w_B B_i) + \frac{w_g}{N_g T_g}\sum_{j \in \text{guard}} S_j,
-              \qquad g = \frac1N \sum_i \log E_i - \log E_{max} \le 0,
+    \[ f = \frac{1}{N T}\sum_i (S_i + w_B B_i) + \frac{w_g}{N_g T_g}\sum_{j \in \text{guard}} S_j, \qquad g = \frac1N \sum_i \log E_i - \log E_{max} \le 0, \]
 
-    .. math:: \mathcal{L} = f + \lambda \bar g + \tfrac{\rho}{2} \bar g^2, \qquad
-              \bar g = \max(g, -\lambda / \rho)
+    \[ \mathcal{L} = f + \lambda \bar g + \tfrac{\rho}{2} \bar g^2, \qquad \bar g = \max(g, -\lambda / \rho) \]
 
     (the augmented Lagrangian of the inequality in Rockafellar's form: it equals
-    :math:`f - \lambda^2 / 2\rho` where the budget is slack, and its gradient is continuous).
-    :math:`E_i = \int |u|^2 dt` is accumulated in the same scan as :math:`S_i` (trapezoid on accepted
+    \(f - \lambda^2 / 2\rho\) where the budget is slack, and its gradient is continuous).
+    \(E_i = \int |u|^2 dt\) is accumulated in the same scan as \(S_i\) (trapezoid on accepted
     steps, differentiable). With ``cfg.energy_budget = inf`` and ``multiplier = 0``,
-    :math:`\mathcal{L} = f` exactly (the unconstrained objective).
+    \(\mathcal{L} = f\) exactly (the unconstrained objective).
 
     **Why a budget, not a weighted sum.** Time alone is ill-posed (larger gains are faster until the
     integrator breaks), and the question users ask is "how fast for this much effort": a budget in
     the units they budget in (control energy, the paper's gains' as the reference) answers it
     directly and reaches the non-convex parts of the front that a weighted sum
-    :math:`f + w \log E` cannot. The budget is on the geometric mean (log-energies span two decades
+    \(f + w \log E\) cannot. The budget is on the geometric mean (log-energies span two decades
     between the paper's gains and ``tuned``; the mean of logs is smooth, scale-free and close to the
     log of the median that validation reports). The multiplier is the optimiser loop's dual state
-    (:func:`~jaxsleigh.tuning.tune`: :math:`\lambda \leftarrow \max(0, \lambda + \eta g)` after each
-    valid candidate, :math:`\eta` = ``dual_step``) and a leaf of ``cfg``: it changes without
+    (`tune`: \(\lambda \leftarrow \max(0, \lambda + \eta g)\) after each
+    valid candidate, \(\eta\) = ``dual_step``) and a leaf of ``cfg``: it changes without
     recompiling, and it vmaps over budgets.
 
     Returns ``(loss, aux)`` with ``aux = {"lanes": LaneSummary over the main batch, "guard":

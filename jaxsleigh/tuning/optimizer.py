@@ -2,11 +2,11 @@ r"""The optimiser loop: optax Adam (clipped, warm-up + cosine) with backtracking
 safety probes, checkpoint/resume and the final check with the accurate engine (see the package
 docstring for what makes a candidate valid).
 
-Backtracking is an optax-style wrapper (:func:`backtracking`): its ``update`` takes ``valid=`` as an
+Backtracking is an optax-style wrapper (`backtracking`): its ``update`` takes ``valid=`` as an
 extra argument; a valid candidate becomes the new anchor (and the step grows back by ``grow`` up to 1),
 an invalid one is replaced by the anchor's step shrunk by ``shrink``. The wrapper's state is a pytree
 of arrays, so the whole optimiser can be ``vmap``'ed (one lane per effort budget, see
-:mod:`jaxsleigh.tuning.pareto`).
+`jaxsleigh.tuning.pareto`).
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ __all__ = ["TuneConfig", "TuneHistory", "TuneResult", "BacktrackState", "backtra
 
 
 class TuneConfig(NamedTuple):
-    """Settings of :func:`tune` that are not the objective's (see :class:`LossConfig` for those).
+    """Settings of `tune` that are not the objective's (see `LossConfig` for those).
 
     Attributes:
       steps: optimiser iterations (each evaluates one candidate).
@@ -54,7 +54,7 @@ class TuneConfig(NamedTuple):
       probe_refresh: every this many accepted candidates (and at the first) the whole training
         batch is probed and the probe set re-chosen.
       verify: after the loop, check up to this many of the best valid candidates (best first) with
-        the accurate engine (:func:`~jaxsleigh.ensemble.run_ensemble`, default budget) on all
+        the accurate engine (`run_ensemble`, default budget) on all
         training and guard starts over ``probe_t_final``, and return the first whose trajectories
         all end with status OK (0: skip).
     """
@@ -119,15 +119,15 @@ class TuneHistory(NamedTuple):
 
 
 class TuneResult(NamedTuple):
-    """What :func:`tune` returns.
+    """What `tune` returns.
 
     Attributes:
       gains: the best valid gains found that passed the final check (validated
-        :class:`~jaxsleigh.params.Gains`; frozen gains are the initial ones, bit for bit).
+        `Gains`; frozen gains are the initial ones, bit for bit).
       initial: the starting gains.
       best_loss, initial_loss: objective at ``gains`` and at ``initial``.
       best_iteration: iteration at which ``gains`` was evaluated (``settings["verified_iteration"]``).
-      history: :class:`TuneHistory`.
+      history: `TuneHistory`.
       settings: everything that produced the result (JSON-ready).
     """
 
@@ -147,7 +147,7 @@ _INFEASIBLE = 1e6
 
 
 class BacktrackState(NamedTuple):
-    """State of :func:`backtracking`: the inner state that produced the current parameters, the anchor
+    """State of `backtracking`: the inner state that produced the current parameters, the anchor
     (last valid parameters, the inner state there and their gradient) and the step scale."""
 
     inner: Any
@@ -195,7 +195,7 @@ def backtracking(inner: optax.GradientTransformation, *, grow: float = 1.25, shr
 
 
 def make_optimizer(lr: float, steps: int, *, clip: float = 1.0, warmup: int = 5, final_lr: float = 0.1):
-    """Adam with global-norm clipping and a warm-up + cosine-decay schedule, wrapped in :func:`backtracking`."""
+    """Adam with global-norm clipping and a warm-up + cosine-decay schedule, wrapped in `backtracking`."""
     schedule = optax.warmup_cosine_decay_schedule(init_value=0.1 * lr, peak_value=lr,
                                                   warmup_steps=max(1, min(warmup, steps - 1)),
                                                   decay_steps=max(2, steps), end_value=final_lr * lr)
@@ -208,7 +208,7 @@ def _step(opt, trainable, opt_state, grad, valid):
 
 
 class _Bar:
-    """The tuner's progress: the library's :class:`~jaxsleigh.progress.Progress` counting iterations,
+    """The tuner's progress: the library's `Progress` counting iterations,
     with the loss in its postfix (``enabled=None``: on a terminal)."""
 
     def __init__(self, enabled, total):
@@ -254,13 +254,13 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
     Args:
       gains0: starting gains (``Gains``, a preset name or a JSON path).
       starts: the distribution of training starts: a sampler ``(rng, n) -> (n, 3|5)`` (default
-        :class:`UniformStarts`: ``|x|, |y| <= 3``, ``|theta0|`` in ``(0.3, pi)``) or a fixed array.
-      config: :class:`TuneConfig` (iterations, batch, seed, learning rate, budgets, gradient mode).
-      loss: :class:`LossConfig` (horizon, tolerances, eps, temperature, penalty weights).
+        `UniformStarts`: ``|x|, |y| <= 3``, ``|theta0|`` in ``(0.3, pi)``) or a fixed array.
+      config: `TuneConfig` (iterations, batch, seed, learning rate, budgets, gradient mode).
+      loss: `LossConfig` (horizon, tolerances, eps, temperature, penalty weights).
       tune: the gains to tune, a subset of ``"L", "k", "D_hat"`` (``"L,k"``); the rest stay frozen.
-      plant: the plant (default: the paper's); robust: a :class:`PlantDistribution` to average the
+      plant: the plant (default: the paper's); robust: a `PlantDistribution` to average the
         objective over sampled plants instead.
-      guard: guard starts (default :func:`guard_starts`, ``|theta0|`` in {0.05, 0.1} at the corners).
+      guard: guard starts (default `guard_starts`, ``|theta0|`` in {0.05, 0.1} at the corners).
       x64: compute in float64 (default float32).
       progress: progress bar (``None``: on a terminal); callback: ``callback(i, row_dict)`` per iteration.
       checkpoint: a file (``.npz``) where the optimiser's whole state is written, atomically, after
@@ -268,7 +268,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         they are fingerprinted) and ends with the result an uninterrupted run would have given.
 
     Returns:
-      :class:`TuneResult` whose ``gains`` are the best *valid* candidate (every training and guard
+      `TuneResult` whose ``gains`` are the best *valid* candidate (every training and guard
       lane reached its horizon or the ball with status OK, loss and gradient finite, the probed
       starts within ``probe_budget`` steps for 100 s) that also passed the final check with the
       accurate engine on all training and guard starts over ``loss.probe_t_final``.
@@ -277,7 +277,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
       ValueError: bad settings, or starting gains that are not a valid candidate (the message
         says which check failed and what to change).
       RuntimeError: no candidate passed the final check.
-      TuningInterrupted: Ctrl-C during the loop; its ``partial`` is a :class:`TuneResult` with the
+      TuningInterrupted: Ctrl-C during the loop; its ``partial`` is a `TuneResult` with the
         best valid gains so far (not re-checked with the accurate engine) and the history.
     """
     names = parse_tune(tune)

@@ -1,8 +1,8 @@
 r"""Parametrisation of the gains in unconstrained coordinates (every parameter vector is admissible).
 
-:math:`L = e^{\ell}`, :math:`k = e^{\kappa}`, :math:`\hat D = C C^\top + \delta I` with
-:math:`C = \begin{bmatrix} e^{c_0} & 0 \\ c_1 & e^{c_2} \end{bmatrix}`; a subset of the gains may be
-tuned while the others stay frozen (:func:`split_params` / :func:`merge_params`).
+\(L = e^{\ell}\), \(k = e^{\kappa}\), \(\hat D = C C^\top + \delta I\) with
+\(C = \begin{bmatrix} e^{c_0} & 0 \\ c_1 & e^{c_2} \end{bmatrix}\); a subset of the gains may be
+tuned while the others stay frozen (`split_params` / `merge_params`).
 """
 from __future__ import annotations
 
@@ -23,15 +23,14 @@ D_FLOOR = 1e-3
 
 
 class GainParams(NamedTuple):
-    r"""Unconstrained coordinates of :class:`~jaxsleigh.params.Gains`; every value is admissible.
+    r"""Unconstrained coordinates of `Gains`; every value is admissible.
 
-    .. math:: L = \mathrm{diag}(e^{\ell_1}, e^{\ell_2}, e^{\ell_3}),\quad k = e^{\kappa},\quad
-              \hat D = C C^\top + \delta I,\ C = \begin{bmatrix} e^{c_0} & 0\\ c_1 & e^{c_2}\end{bmatrix}
+    \[ L = \mathrm{diag}(e^{\ell_1}, e^{\ell_2}, e^{\ell_3}),\quad k = e^{\kappa},\quad \hat D = C C^\top + \delta I,\ C = \begin{bmatrix} e^{c_0} & 0\\ c_1 & e^{c_2}\end{bmatrix} \]
 
     Attributes:
-      log_L: (3,) :math:`\ell`.
-      log_k: () :math:`\kappa`.
-      d_chol: (3,) :math:`(c_0, c_1, c_2)`; the floor :math:`\delta` is not a parameter.
+      log_L: (3,) \(\ell\).
+      log_k: () \(\kappa\).
+      d_chol: (3,) \((c_0, c_1, c_2)\); the floor \(\delta\) is not a parameter.
     """
 
     log_L: Any
@@ -51,7 +50,7 @@ def gains_from_params(theta: GainParams, *, d_floor: float = D_FLOOR) -> Gains:
 
 
 def params_from_gains(g, *, d_floor: float = D_FLOOR) -> GainParams:
-    """Inverse of :func:`gains_from_params` (eager, float64 NumPy); ``g`` may be gains or a preset
+    """Inverse of `gains_from_params` (eager, float64 NumPy); ``g`` may be gains or a preset
     name / JSON path. Raises if ``D_hat - d_floor I`` is not positive definite."""
     g = load_gains(g)
     D = np.asarray(g.D_hat, dtype=np.float64) - d_floor * np.eye(2)
@@ -65,7 +64,7 @@ def params_from_gains(g, *, d_floor: float = D_FLOOR) -> GainParams:
 
 
 def parse_tune(spec) -> tuple[str, ...]:
-    """``'L,k'`` / ``('L', 'D_hat')`` / ``None`` (all) -> a tuple of names from :data:`TUNABLE`."""
+    """``'L,k'`` / ``('L', 'D_hat')`` / ``None`` (all) -> a tuple of names from `TUNABLE`."""
     if spec is None:
         return tuple(TUNABLE)
     names = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec)]

@@ -1,8 +1,8 @@
 r"""The time-effort Pareto front: the fastest gains for each control-energy budget.
 
 Each point minimises the soft convergence time subject to "geometric-mean control energy of the
-training batch <= budget" (:func:`~jaxsleigh.tuning.objective`, augmented Lagrangian) and is then
-re-evaluated on held-out starts with the accurate engine (:func:`~jaxsleigh.tuning.validate`). Two
+training batch <= budget" (`objective`, augmented Lagrangian) and is then
+re-evaluated on held-out starts with the accurate engine (`validate`). Two
 ways to compute the front (``method``):
 
 * ``"warm"``: the first point is the budget nearest the starting gains' own training energy
@@ -12,7 +12,7 @@ ways to compute the front (``method``):
   (parameters, optax state with the backtracking wrapper, multiplier) ``jax.vmap``'ed over the budgets:
   one XLA call evaluates every budget's candidate per iteration.
 
-:func:`random_search` is the derivative-free baseline with the same number of objective evaluations.
+`random_search` is the derivative-free baseline with the same number of objective evaluations.
 ``experiments/pareto_front.py`` measures which method is faster (see the how-to for the numbers).
 """
 from __future__ import annotations
@@ -50,12 +50,12 @@ class FrontPoint(NamedTuple):
     """One point of the front.
 
     Attributes:
-      budget: the training budget :math:`E_{max}` on the geometric-mean control energy [N^2 s].
+      budget: the training budget \\(E_{max}\\) on the geometric-mean control energy [N^2 s].
       gains: the point's gains (validated).
       train: figures of the optimisation (soft loss, training energy, iteration, probe at the result).
-      evaluation: :class:`~jaxsleigh.tuning.Validation` on held-out starts (``None`` until
-        :func:`evaluate_front`).
-      history: the point's :class:`~jaxsleigh.tuning.TuneHistory` (``None`` for random search).
+      evaluation: `Validation` on held-out starts (``None`` until
+        `evaluate_front`).
+      history: the point's `TuneHistory` (``None`` for random search).
     """
 
     budget: float
@@ -100,7 +100,7 @@ def _value(n_attempts, segment, d_floor):
 
 def default_budgets(n: int, *, below: float = 4.0, above: float = 2.0, **kw) -> np.ndarray:
     """``n`` budgets from the paper's gains' training energy / ``below`` to ``tuned``'s x ``above``
-    (``kw``: as :func:`training_energy`)."""
+    (``kw``: as `training_energy`)."""
     lo = training_energy("paper", **kw)["energy"] / below
     hi = training_energy("tuned", **kw)["energy"] * above
     return budgets_between(lo, hi, n)
@@ -119,8 +119,8 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
                  d_floor: float = D_FLOOR, progress: Any = None) -> Front:
     """Tune one set of gains per energy budget (``budgets``, sorted increasing) with ``method``
     (``"warm"`` or ``"vmap"``, module docstring). The same training starts (``starts``,
-    ``config.seed``) serve every point. Returns a :class:`Front` whose points are not yet evaluated
-    on held-out starts (:func:`evaluate_front`)."""
+    ``config.seed``) serve every point. Returns a `Front` whose points are not yet evaluated
+    on held-out starts (`evaluate_front`)."""
     if method not in FRONT_METHODS:
         raise ValueError(f"method must be one of {FRONT_METHODS}, got {method!r}")
     budgets = np.sort(np.asarray(budgets, np.float64).ravel())
@@ -168,7 +168,7 @@ def _point(budget, gains, history, it, settings) -> FrontPoint:
 
 
 def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress):
-    """The whole optimiser vmapped over budgets (same safety contract as :func:`tune`, no checkpoint)."""
+    """The whole optimiser vmapped over budgets (same safety contract as `tune`, no checkpoint)."""
     names = parse_tune(tune_names)
     g0 = load_gains(gains0)
     ics = draw_starts(starts, config.batch, config.seed)
@@ -343,8 +343,8 @@ def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> di
 
 
 def save_front(front: Front, path, *, references: Optional[dict] = None, **meta) -> Path:
-    """Write :func:`front_dict` as JSON (atomically); each point loads with ``jaxsleigh.load_gains``
-    after :func:`point_gains`."""
+    """Write `front_dict` as JSON (atomically); each point loads with ``jaxsleigh.load_gains``
+    after `point_gains`."""
     from ..io import atomic_write
 
     path = Path(path)

@@ -1,9 +1,9 @@
 """Where the tuner's starts and plants come from: samplers of initial conditions, the guard starts near
 the singular set, and plant distributions for robust tuning.
 
-Box sampling is the library's one :func:`~jaxsleigh.basin.sample_starts` (re-exported here);
-:class:`UniformStarts` draws the sign-symmetric band ``|theta0|`` in ``(theta_min, theta_max)`` that
-the tuner trains on, and :func:`draw_starts` turns any of these (or a fixed array) into validated rows.
+Box sampling is the library's one `sample_starts` (re-exported here);
+`UniformStarts` draws the sign-symmetric band ``|theta0|`` in ``(theta_min, theta_max)`` that
+the tuner trains on, and `draw_starts` turns any of these (or a fixed array) into validated rows.
 """
 from __future__ import annotations
 
@@ -38,9 +38,9 @@ class UniformStarts(NamedTuple):
 
 def draw_starts(starts, n: int, seed: int) -> np.ndarray:
     """``n`` validated starts ``(n, 3|5)`` from ``starts``: a sampler ``(rng, n) -> array`` (e.g.
-    :class:`UniformStarts`, drawn with ``numpy.random.default_rng(seed)``), a
-    :class:`~jaxsleigh.basin.BasinStarts` (e.g. from :func:`sample_starts`, the library's box sampler,
-    shared with :mod:`jaxsleigh.basin`) or a fixed array; of the last two the first ``n`` rows are used."""
+    `UniformStarts`, drawn with ``numpy.random.default_rng(seed)``), a
+    `BasinStarts` (e.g. from `sample_starts`, the library's box sampler,
+    shared with `jaxsleigh.basin`) or a fixed array; of the last two the first ``n`` rows are used."""
     if callable(starts):
         arr = np.asarray(starts(np.random.default_rng(seed), int(n)), dtype=np.float64)
     else:

@@ -1,4 +1,4 @@
-"""Validation of gains with the accurate engine (:func:`~jaxsleigh.ensemble.run_ensemble`), never
+"""Validation of gains with the accurate engine (`run_ensemble`), never
 with the training discretisation: convergence times and their tables."""
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ __all__ = ["Validation", "validate", "markdown_table", "validation_dict"]
 
 
 class Validation(NamedTuple):
-    r"""Hard convergence times measured by :func:`jaxsleigh.ensemble.run_ensemble`.
+    r"""Hard convergence times measured by `jaxsleigh.ensemble.run_ensemble`.
 
     Attributes:
       T_eps: (N,) convergence times (inf: not settled by the horizon; nan: failed).
@@ -26,8 +26,8 @@ class Validation(NamedTuple):
       max_attempts: most attempted steps of one trajectory (the engine's default budget for 100 s
         is 200180; a trajectory that needs more ends with status BUDGET_EXHAUSTED).
       settings: of the ensemble run.
-      energy: (N,) control energy :math:`\int_0^T |u|^2 dt` [N^2 s]; u_peak: (N,) largest
-        :math:`|u|` [N]; median_energy, median_peak_u: their medians over the starts that did not
+      energy: (N,) control energy \(\int_0^T |u|^2 dt\) [N^2 s]; u_peak: (N,) largest
+        \(|u|\) [N]; median_energy, median_peak_u: their medians over the starts that did not
         fail; n_crossed: starts that failed or whose theta changed sign (crossed the singular set).
     """
 
@@ -52,9 +52,9 @@ class Validation(NamedTuple):
 def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0, eps: float = 0.05,
              x64: bool = False, n_boot: int = 1000, seed: int = 0, progress: Any = None, **ensemble_kw) -> Validation:
     """Measure ``T_eps`` and the control effort with the accurate engine
-    (:func:`~jaxsleigh.ensemble.run_ensemble`, adaptive RK4, default tolerances), never with the
+    (`run_ensemble`, adaptive RK4, default tolerances), never with the
     training discretisation. The effort comes from the engine's on-line
-    :class:`~jaxsleigh.observers.ControlEffort` quadrature (RK4 order) when it reports one; otherwise
+    `ControlEffort` quadrature (RK4 order) when it reports one; otherwise
     from a second run saving every base step (trapezoid on the saved samples)."""
     from ..ensemble import run_ensemble
 
@@ -119,7 +119,7 @@ def markdown_table(rows: dict) -> str:
 
 
 def validation_dict(v: Validation, **extra) -> dict:
-    """The figures of a :class:`Validation` as a JSON-ready dict (``extra`` merged in)."""
+    """The figures of a `Validation` as a JSON-ready dict (``extra`` merged in)."""
     def num(x):
         x = float(x)
         return x if math.isfinite(x) else str(x)
