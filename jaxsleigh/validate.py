@@ -142,7 +142,10 @@ def writable_dir(path, what: str = "output folder") -> Path:
         raise ValueError(f"the {what} {str(d)!r} exists and is not a folder; choose another path")
     try:
         d.mkdir(parents=True, exist_ok=True)
-        probe = d / f".jaxsleigh-write-test-{os.getpid()}"
+        import platform
+
+        host = "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64]
+        probe = d / f".jaxsleigh-write-test-{host}-{os.getpid()}"   # unique across hosts sharing d
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as e:
