@@ -1,4 +1,4 @@
-r"""jaxsleigh against its peers on the measured workload (MEASURED.md), in one run.
+r"""jaxsleigh against its peers on the benchmark workload, in one run.
 
     python experiments/bench_peers.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--x64] [--seed 0]
                                       [--skip numpy,scipy,...] [--scipy-n 8] [--repeats 1]

@@ -32,7 +32,7 @@ CORRECT_TOL = 1e-3
 
 
 def workload(n: int, seed: int = 0) -> np.ndarray:
-    """The measured workload (MEASURED.md): x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi) with random
+    """The benchmark workload: x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi) with random
     sign, zero momentum. Shape (n, 3)."""
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-3.0, 3.0, (n, 2))

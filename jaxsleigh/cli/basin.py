@@ -15,19 +15,17 @@ the command line go to a sidecar ``FILE.run.json``, never into the ``.npz``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 import re
-import shutil
 import sys
 import time
 from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
 from ..io import load_ics
-from .common import (FLAGS, PROG, compute_share, run_chunked, add_distributed_options, add_horizon_options, add_model_options,
-                     check_outputs, exit_code, model_from_args, run_distributed, status_epilog)
+from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
+                     check_outputs, compute_share, exit_code, finish_chunked, load_average, model_from_args,
+                     run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 
@@ -167,11 +165,7 @@ def _check_box(text: str, flag: str) -> None:
                          f"{min(vals):g}:{max(vals):g}")
 
 
-def _load() -> list:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:  # pragma: no cover - not on every platform
-        return []
+
 
 
 def run_basin_command(args) -> int:
@@ -203,7 +197,7 @@ def _check(args) -> dict:
         raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
                          f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
     return {"args": args, "plant": plant, "gains": gains, "starts": starts, "out": out, "chunks": chunks,
-            "side": side, "had": len(have), "load_start": _load(), "t0": time.perf_counter()}
+            "side": side, "had": len(have), "load_start": load_average(), "t0": time.perf_counter()}
 
 
 def _prepare(st: dict) -> None:
@@ -231,10 +225,8 @@ def _compute(st: dict, shard: tuple) -> None:
 def _assemble(st: dict, multi: bool) -> int:
     """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
     from ..basin import run_basin, save_basin
-    from ..io import atomic_write_text
 
-    args, out, chunks, side = st["args"], st["out"], st["chunks"], st["side"]
-    argv = list(getattr(args, "_argv", None) or [])
+    args, out = st["args"], st["out"]
     t0 = st["t0"]
     res, caught = run_chunked("basin", st["chunks"],
                               lambda: run_basin(st["starts"], resume=True if multi else args.resume, **_run_kw(st)))
@@ -246,27 +238,10 @@ def _assemble(st: dict, multi: bool) -> int:
               f"of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
               file=sys.stderr)
     path = save_basin(out, res)
-    # several processes: every chunk is read back here; "resumed" counts those of an earlier run
-    n_reused = st["had"] if multi else int((res.run_info or {}).get("chunks_reused") or 0)
-    info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
-            "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
-            "loadavg_start": st["load_start"], "loadavg_end": _load(), "cpu_count": os.cpu_count(),
-            "summary": res.summary()}
-    if multi:
-        import jax
+    from ..basin_plots import plot_basin
 
-        info["processes"] = jax.process_count()
-    atomic_write_text(side, json.dumps(info, indent=1, default=str) + "\n")
-    if not args.keep_chunks:
-        shutil.rmtree(chunks, ignore_errors=True)
-    written = [str(path), str(side)]
-    if args.plot:
-        from ..basin_plots import plot_basin
-        from ..plotting import save_figure
-
-        written.append(str(save_figure(plot_basin(res), args.plot)))
+    written, how = finish_chunked("basin", st, res, multi=multi, wall=wall, path=path,
+                                  extra={"summary": res.summary()}, plot=plot_basin)
     print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
-    procs = f", {info['processes']} processes" if multi else ""
-    print(f"{PROG} basin: {wall:.1f} s wall ({res.settings['dtype']}, {res.settings['method']}{procs}"
-          f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
+    print(f"{PROG} basin: {wall:.1f} s wall ({how}); wrote {', '.join(written)}")
     return exit_code(res.status)

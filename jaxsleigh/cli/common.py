@@ -278,6 +278,50 @@ def compute_share(command: str, chunks, out, shard: tuple, fn) -> None:
               f"{time.perf_counter() - t0:.1f} s; process 0 writes {out}", file=sys.stderr)
 
 
+def load_average() -> list:
+    """The machine's load averages (1, 5, 15 min), recorded next to timings; [] where unknown."""
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:  # pragma: no cover - not on every platform
+        return []
+
+
+def finish_chunked(command: str, st: dict, res, *, multi: bool, wall: float, path, extra: dict,
+                   plot=None) -> tuple[list, str]:
+    """The end of a chunked subcommand: the sidecar ``FILE.run.json`` (what varies between runs:
+    command, wall time, devices, chunks resumed, load, processes; plus ``extra``), the chunk folder
+    removed unless ``--keep-chunks``, the plot (``plot(res)`` -> Figure) if ``--plot``. Returns the
+    paths written and the run's description for the summary line (dtype, method, processes, resumed)."""
+    import json
+    import shutil
+
+    from ..io import atomic_write_text
+
+    args = st["args"]
+    argv = list(getattr(args, "_argv", None) or [])
+    # several processes: every chunk is read back here; "resumed" counts those of an earlier run
+    n_reused = st["had"] if multi else int((res.run_info or {}).get("chunks_reused") or 0)
+    info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
+            "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
+            "loadavg_start": st["load_start"], "loadavg_end": load_average(), "cpu_count": os.cpu_count(), **extra}
+    if multi:
+        import jax
+
+        info["processes"] = jax.process_count()
+    atomic_write_text(st["side"], json.dumps(info, indent=1, default=str) + "\n")
+    if not args.keep_chunks:
+        shutil.rmtree(st["chunks"], ignore_errors=True)
+    written = [str(path), str(st["side"])]
+    if args.plot and plot is not None:
+        from ..plot_base import save_figure
+
+        written.append(str(save_figure(plot(res), args.plot)))
+    how = (f"{res.settings['dtype']}, {res.settings['method']}"
+           + (f", {info['processes']} processes" if multi else "")
+           + (f", {n_reused} chunk(s) resumed" if n_reused else ""))
+    return written, how
+
+
 # ---------------------------------------------------------------------------------------------
 # compilation cache
 # ---------------------------------------------------------------------------------------------

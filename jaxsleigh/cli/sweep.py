@@ -16,16 +16,14 @@ Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import re
-import shutil
 import sys
 import time
 
-from .basin import _chunk_dir, _load, _sidecar, _starts_from_args, _whole
-from .common import (FLAGS, PROG, compute_share, run_chunked, add_distributed_options, add_horizon_options, add_model_options, check_outputs,
-                     exit_code, model_from_args, run_distributed, status_epilog)
+from .basin import _chunk_dir, _sidecar, _starts_from_args, _whole
+from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
+                     check_outputs, compute_share, exit_code, finish_chunked, load_average, model_from_args,
+                     run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
 
 __all__ = ["add_sweep", "run_sweep_command"]
@@ -149,7 +147,7 @@ def _check(args) -> dict:
         raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
                          f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
     return {"args": args, "axes": axes, "labels": labels, "plant": plant, "gains": gains, "starts": starts,
-            "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": _load(),
+            "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": load_average(),
             "t0": time.perf_counter()}
 
 
@@ -176,11 +174,9 @@ def _compute(st: dict, shard: tuple) -> None:
 
 def _assemble(st: dict, multi: bool) -> int:
     """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
-    from ..io import atomic_write_text
     from ..sweep import save_sweep, sweep
 
-    args, out, chunks, side = st["args"], st["out"], st["chunks"], st["side"]
-    argv = list(getattr(args, "_argv", None) or [])
+    args, out = st["args"], st["out"]
     res, caught = run_chunked("sweep", st["chunks"],
                               lambda: sweep(st["starts"], st["axes"], resume=True if multi else args.resume, **_run_kw(st)))
     wall = time.perf_counter() - st["t0"]
@@ -189,29 +185,12 @@ def _assemble(st: dict, multi: bool) -> int:
         print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 or "
               f"not finite); they are left out of the fractions", file=sys.stderr)
     path = save_sweep(out, res)
-    # several processes: every chunk is read back here; "resumed" counts those of an earlier run
-    n_reused = st["had"] if multi else int((res.run_info or {}).get("chunks_reused") or 0)
+    from ..sweep_plots import plot_sweep
+
     S, se = res.fractions()
-    info = {"command": [PROG, *argv] if argv else None, "wall_s": wall,
-            "devices": (res.run_info or {}).get("devices"), "chunks_reused": n_reused,
-            "loadavg_start": st["load_start"], "loadavg_end": _load(), "cpu_count": os.cpu_count(),
-            "fraction": S.tolist(), "fraction_se": se.tolist()}
-    if multi:
-        import jax
-
-        info["processes"] = jax.process_count()
-    atomic_write_text(side, json.dumps(info, indent=1, default=str) + "\n")
-    if not args.keep_chunks:
-        shutil.rmtree(chunks, ignore_errors=True)
-    written = [str(path), str(side)]
-    if args.plot:
-        from ..plotting import save_figure
-        from ..sweep_plots import plot_sweep
-
-        written.append(str(save_figure(plot_sweep(res), args.plot)))
+    written, how = finish_chunked("sweep", st, res, multi=multi, wall=wall, path=path,
+                                  extra={"fraction": S.tolist(), "fraction_se": se.tolist()}, plot=plot_sweep)
     print(res.table())
-    procs = f", {info['processes']} processes" if multi else ""
-    print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts in {wall:.1f} s wall "
-          f"({res.settings['dtype']}, {res.settings['method']}{procs}"
-          f"{f', {n_reused} chunk(s) resumed' if n_reused else ''}); wrote {', '.join(written)}")
+    print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts in {wall:.1f} s wall ({how}); "
+          f"wrote {', '.join(written)}")
     return exit_code(res.status)
