@@ -368,6 +368,29 @@ def _plain_batch_wide(vector_width: int):
                    compiler_options={"xla_cpu_prefer_vector_width": int(vector_width)})
 
 
+def _args_key(args: ClosedLoop):
+    """A hashable copy of concrete ``args`` (tree structure + every leaf's shape and values)."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return tree, tuple((np.shape(x), tuple(np.asarray(x, np.float64).ravel().tolist())) for x in leaves)
+
+
+@functools.lru_cache(maxsize=16)
+def _plain_specialised(key, n_steps: int, block, dtype):
+    """`_plain_batch` compiled for one plant and one set of gains: their values are constants of the
+    program, so XLA folds the per-run arithmetic (masses, their reciprocals, gain products) out of
+    the step, as a C program compiled for them would; and XLA's thread pool is off (the cache
+    blocks run on one core anyway). Final states agree with `_plain_batch` to float32 rounding.
+    Compiled once per (plant, gains, steps), kept for the 16 most recent."""
+    tree, leaves = key
+    args = jax.tree_util.tree_unflatten(tree, [np.asarray(v, dtype).reshape(shape) for shape, v in leaves])
+
+    def run(y, dt):
+        return run_plain(y, args, dt, n_steps=n_steps, block=block)
+
+    return jax.jit(run, donate_argnums=(0,), compiler_options={"xla_cpu_multi_thread_eigen": False,
+                                                               "xla_cpu_prefer_vector_width": 512})
+
+
 @functools.lru_cache(maxsize=8)
 def _plain_sharded(mesh, n_steps: int, block):
     """`_plain_batch` with the batch axis split over ``mesh``'s devices: each device runs
@@ -384,7 +407,7 @@ def _plain_sharded(mesh, n_steps: int, block):
 
 
 def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: int = 1000, progress=None,
-                mesh=None, block=PLAIN_BLOCK, vector_width=None):
+                mesh=None, block=PLAIN_BLOCK, vector_width=None, specialise: bool = True):
     """Plain fixed-step RK4 to the horizon, final state only; returns ``(y (N, 5), status (N,))``.
 
     Status is judged at the end: ``NONFINITE`` if the state is not finite, ``CROSSED_SINGULAR`` if
@@ -404,7 +427,12 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     ``vector_width`` (CPU only, one device; e.g. 512 on AVX-512 machines) compiles the kernel with
     that preferred SIMD width: ~15% less CPU time on the test machine, final states within ~1e-5
     (relative, after 10^4 steps) of the default build instead of bitwise equal; ``None`` keeps
-    XLA's default (256)."""
+    XLA's default (256).
+
+    ``specialise`` (default, CPU, one device) compiles the kernel for this run's plant and gains
+    (`_plain_specialised`): their values become constants of the program, ~1.4x less CPU time on
+    the test machine (experiments/bench_c_limit.py), final states within float32 rounding of the
+    generic kernel; a new plant or new gains compile again (a second or two)."""
     dtype = y0w.dtype
     n = y0w.shape[0]
     if isinstance(mesh, str) and mesh == "auto":
@@ -416,6 +444,10 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     if mesh is not None:
         y = shard_batch(y, mesh)
     dt = jnp.asarray(horizon.dt, dtype)
+    try:
+        key = _args_key(args) if specialise else None
+    except (TypeError, jax.errors.ConcretizationTypeError):        # traced args: the generic kernel
+        specialise = False
     done = 0
     while done < horizon.n_steps:
         k = min(segment, horizon.n_steps - done)
@@ -423,6 +455,8 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
             y = _plain_sharded(mesh, k, block)(y, args, dt)
         elif vector_width is not None and jax.default_backend() == "cpu":
             y = _plain_batch_wide(vector_width)(y, args, dt, k, block)
+        elif specialise and jax.default_backend() == "cpu":
+            y = _plain_specialised(key, k, block, np.dtype(dtype).name)(y, dt)
         else:
             y = _plain_batch(y, args, dt, k, block)
         done += k
