@@ -17,8 +17,9 @@ long as the trajectory stays in the ball (validation with the accurate engine ch
 accepted steps, differentiable), and the loss may carry a budget on the batch's geometric-mean energy,
 enforced by an augmented Lagrangian (`objective` argues the choice):
 minimise the soft time subject to "effort <= budget". `pareto` sweeps the
-budget (the time-effort front); the ``balanced`` preset is its fastest point within the paper's
-gains' energy.
+budget (the time-effort front). The ``balanced`` preset answers a question the surrogate does not
+weigh directly (the fastest *median* \(T_{0.05}\) at no more *median* energy than the paper's gains'):
+`search` optimises those medians themselves, derivative-free, on the accurate engine.
 
 **Numerical safety.** Lanes are integrated in the w chart by the engine's adaptive RK4
 (`jaxsleigh.stepper.attempt`: steps that cross \(\theta = 0\), go non-finite or increase
@@ -68,7 +69,9 @@ it wins from roughly a dozen of them.
 (the objective and its scan), `gradients`, `optimizer`
 (the loop, backtracking as an optax wrapper), `probes` (safety guards),
 `checkpoint`, `history`,
-`validation`, `pareto` (the time-effort front).
+`validation`, `pareto` (the time-effort front), `cmaes` (CMA-ES, ask / tell) and
+`cma_search` (derivative-free search of the gains on the accurate engine's median figures under an energy budget:
+where the ``balanced`` preset comes from).
 Everything public is re-exported here.
 """
 from __future__ import annotations
@@ -81,6 +84,7 @@ from .optimizer import BacktrackState, TuneConfig, TuneHistory, TuneResult, back
 from .optimizer import _Bar  # noqa: F401  (the tuner's progress bar; tests patch its update)
 from .pareto import (FRONT_METHODS, Front, FrontPoint, budgets_between, default_budgets, evaluate_front, front_dict,
                      load_front, pareto_front, point_gains, random_search, save_front, training_energy)
+from .cma_search import PopulationFigures, SearchConfig, SearchResult, evaluate_population, search
 from .params import (D_FLOOR, TUNABLE, GainParams, gains_from_params, merge_params, params_from_gains, parse_tune,
                      split_params)
 from .starts import (PlantDistribution, UniformStarts, draw_starts, guard_starts, sample_plants, sample_starts,
@@ -99,4 +103,5 @@ __all__ = [
     "Validation", "validate", "markdown_table", "validation_dict",
     "FRONT_METHODS", "Front", "FrontPoint", "training_energy", "default_budgets", "budgets_between", "pareto_front",
     "random_search", "evaluate_front", "front_dict", "save_front", "load_front", "point_gains",
+    "SearchConfig", "SearchResult", "PopulationFigures", "evaluate_population", "search",
 ]

@@ -1,0 +1,320 @@
+r"""Derivative-free search of the gains on the accurate engine's own figures, under an effort budget.
+
+The gradient tuner (`tune`) descends a smooth *surrogate* (the soft time outside the ball, with a
+budget on the geometric-mean energy of its training batch, integrated by its own differentiable scan).
+What a user reads, and what the ``balanced`` preset promises, are other numbers: the **median hard
+convergence time** \(T_{0.05}\) over starts, the **median control energy** \(\int_0^{100}|u|^2 dt\),
+the converged fraction, no start failing or crossing \(\theta = 0\), all measured by the accurate
+engine (`jaxsleigh.ensemble.run_ensemble`). `search` optimises exactly those:
+
+\[ \min_{\text{gains}}\ \operatorname{median}_i T_{0.05,i} \quad \text{s.t.}\quad \operatorname{median}_i E_i \le E_{max},\ \ \text{converged} \ge F_{min},\ \ \text{no start fails or crosses } \theta = 0, \]
+
+on a training batch of starts, by CMA-ES (`jaxsleigh.tuning.cmaes`) in the unconstrained
+parametrisation of `GainParams`, with the constraints as an exact penalty
+
+\[ s = \min(\operatorname{median} T, 2 T_f) + \rho\,\big[\max(0, \log(\operatorname{median} E / E_{max})) + \max(0, F_{min} - F) + n_{bad}\big] \]
+
+(\(\rho\) = ``penalty``, large: a feasible candidate always beats an infeasible one that is not
+much faster). \(E_{max}\) is ``energy_margin`` times the reference gains' median energy on the same
+starts (or ``energy_budget``) and \(F_{min}\) their converged fraction plus ``converged_margin``: the
+margins leave room for the sampling noise when the result is re-measured on other starts.
+
+**Vectorised over the population.** Every candidate of a generation runs in the same
+`run_ensemble` call, its gains as per-lane parameters (`jaxsleigh.lanes`): a generation of
+\(\lambda\) candidates on \(N\) starts is one compiled ensemble of \(\lambda N\) trajectories, and
+changing the gains never recompiles.
+
+**Why not the gradient.** The median of hard times is piecewise constant in the gains and the
+converged fraction a step function; the surrogate that makes them differentiable is what the
+gradient tuner optimises, and its optimum under an energy budget is a different point (it weighs
+every start's time and the geometric-mean energy, not the medians; ``docs/how-to/tuning.md``
+gives both results side by side).
+
+**Safety.** The returned gains are the best feasible candidate that also passes the guard starts
+(`guard_starts`, \(|\theta_0|\) down to 0.05) over the horizon with the accurate engine; the
+``verify`` best feasible candidates are tried in turn. A run is checkpointed after every generation
+(``checkpoint=``; the strategy's state, the generator's state, the history, the best candidates) and
+resumes to the same result; Ctrl-C raises `TuningInterrupted` with the best so far.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+import zipfile
+from pathlib import Path
+from typing import Any, NamedTuple, Optional
+
+import numpy as np
+
+from ..params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
+from ..progress import Progress
+from ..status import Status
+from .checkpoint import TuningInterrupted
+from .cmaes import CMAState, cma_ask, cma_init, cma_tell
+from .params import D_FLOOR, params_from_gains, parse_tune
+from .starts import UniformStarts, draw_starts, guard_starts
+
+__all__ = ["SearchConfig", "SearchResult", "PopulationFigures", "evaluate_population", "search"]
+
+#: Position of each tunable gain in the flat parameter vector ``(log_L (3), log_k, d_chol (3))``.
+_SLICES = {"L": slice(0, 3), "k": slice(3, 4), "D_hat": slice(4, 7)}
+_HISTORY = ("generation", "score", "median_T", "median_energy", "frac_converged", "n_bad", "feasible", "sigma",
+            "best_score", "wall_s")
+
+
+class SearchConfig(NamedTuple):
+    """Settings of `search`.
+
+    Attributes:
+      generations: CMA-ES generations. population: candidates per generation (\\(\\lambda\\)).
+      batch: training starts drawn from ``starts`` with ``seed``. seed: of the starts and of the search.
+      sigma0: initial step size in the unconstrained parameters (0.5: gains change by ~e^0.5).
+      energy_margin: \\(E_{max}\\) = this x the reference gains' median energy on the training starts.
+      converged_margin: the converged fraction must be at least the reference's plus this (the hard starts
+        are a tail of a few %: a faster median tends to lengthen it, and the margin keeps the result from
+        converging fewer starts than the reference on other starts).
+      penalty: \\(\\rho\\) of the exact penalty (module docstring).
+      t_final: horizon [s] (the validation's 100 s). eps: radius of the ball of \\(T_\\epsilon\\).
+      verify: feasible candidates tried against the guard starts, best first.
+    """
+
+    generations: int = 100
+    population: int = 16
+    batch: int = 128
+    seed: int = 0
+    sigma0: float = 0.5
+    energy_margin: float = 0.95
+    converged_margin: float = 0.02
+    penalty: float = 200.0
+    t_final: float = 100.0
+    eps: float = 0.05
+    verify: int = 5
+
+
+class PopulationFigures(NamedTuple):
+    """Figures of each candidate on the training starts (arrays over the candidates): median T_eps
+    (failures and unconverged count as inf), median control energy (of the OK starts), converged
+    fraction, starts that failed or crossed theta = 0, mean accepted steps."""
+
+    median_T: np.ndarray
+    median_energy: np.ndarray
+    frac_converged: np.ndarray
+    n_bad: np.ndarray
+    mean_steps: np.ndarray
+
+
+class SearchResult(NamedTuple):
+    """Result of `search`.
+
+    Attributes:
+      gains: the best feasible candidate that passed the guard starts (validated `Gains`).
+      initial: the starting gains. figures: dict of the result's training figures (median T, energy,
+        converged, n_bad, mean steps). reference: the reference gains' figures on the same starts
+        and the budget \\(E_{max}\\) (``energy_budget``) and floor \\(F_{min}\\) (``converged_floor``) derived from them.
+      history: dict of arrays, one entry per generation (the generation's best candidate; ``_HISTORY``).
+      best_generation: where the returned gains were found (-1: the starting gains, when no feasible
+        candidate beat them). settings: everything that made the run.
+    """
+
+    gains: Gains
+    initial: Gains
+    figures: dict
+    reference: dict
+    history: dict
+    best_generation: int
+    settings: dict
+
+
+def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0,
+                        eps: float = 0.05, x64: bool = False) -> PopulationFigures:
+    """Run every candidate of ``gains_list`` from every start of ``ics`` in one ensemble (gains as
+    per-lane parameters) and reduce per candidate (`PopulationFigures`)."""
+    from ..ensemble import run_ensemble
+    from ..lanes import stack_gains
+
+    glist = [load_gains(g) for g in gains_list]
+    ics = np.asarray(ics, np.float64)
+    P, N = len(glist), ics.shape[0]
+    r = run_ensemble(np.tile(ics, (P, 1)), plant=plant, gains=stack_gains([g for g in glist for _ in range(N)]),
+                     t_final=t_final, eps=eps, x64=x64, progress=False)
+    ok = (r.status == Status.OK).reshape(P, N)
+    T = np.where(ok, np.asarray(r.T_eps).reshape(P, N), np.inf)
+    T = np.where(np.isnan(T), np.inf, T)
+    E = np.asarray(r.u_energy, np.float64).reshape(P, N)
+    th0 = np.tile(ics[:, 2], P).reshape(P, N)
+    crossed = np.sign(np.asarray(r.q)[:, 2].reshape(P, N)) != np.sign(th0)
+    med_E = np.array([np.median(E[i][ok[i]]) if ok[i].any() else np.inf for i in range(P)])
+    return PopulationFigures(np.median(T, axis=1), med_E, np.isfinite(T).mean(axis=1),
+                             np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1))
+
+
+def _score(fig: PopulationFigures, i: int, e_max: float, f_min: float, cfg: SearchConfig) -> tuple[float, bool]:
+    viol = (max(0.0, math.log(max(fig.median_energy[i], 1e-300) / e_max)) if math.isfinite(fig.median_energy[i])
+            else 1e3) + max(0.0, f_min - fig.frac_converged[i]) + float(fig.n_bad[i])
+    t = min(float(fig.median_T[i]), 2.0 * cfg.t_final)
+    return t + cfg.penalty * viol, viol == 0.0
+
+
+def _to_gains(x_full, d_floor, g0: Gains, names) -> Gains:
+    """`gains_from_params` in float64 NumPy; the gains not in ``names`` are ``g0``'s, bit for bit."""
+    x = np.asarray(x_full, np.float64)
+    a, b, d = math.exp(x[4]), x[5], math.exp(x[6])
+    D = np.array([[a * a + d_floor, a * b], [a * b, b * b + d * d + d_floor]])
+    return make_gains(np.exp(x[:3]) if "L" in names else g0.L, math.exp(x[3]) if "k" in names else g0.k,
+                      D if "D_hat" in names else g0.D_hat)
+
+
+def _fingerprint(settings: dict, ics) -> str:
+    h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+    h.update(np.ascontiguousarray(ics, np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list) -> None:
+    from ..io import atomic_write
+
+    arrays = {"key": np.array(key), "rng": np.array(json.dumps(rng.bit_generator.state))}
+    arrays.update({f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()})
+    for f in _HISTORY:
+        arrays[f"hist/{f}"] = np.asarray([h[f] for h in hist], np.float64)
+    arrays["top/score"] = np.asarray([t[0] for t in top], np.float64)
+    arrays["top/generation"] = np.asarray([t[1] for t in top], np.int64)
+    arrays["top/x"] = np.asarray([t[2] for t in top], np.float64).reshape(len(top), state.mean.size)
+    arrays["top/figures"] = np.asarray([t[3] for t in top], np.float64).reshape(len(top), len(PopulationFigures._fields))
+    atomic_write(path, lambda fh: np.savez(fh, **arrays))
+
+
+def _load(path: Path, key: str, rng):
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        raise ValueError(f"search checkpoint {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it and start "
+                         "afresh (without --resume)") from None
+    if str(a.get("key")) != key:
+        raise ValueError(f"search checkpoint {str(path)!r} was written by a run with other settings; rerun that "
+                         "command with --resume, or delete the checkpoint to start afresh")
+    rng.bit_generator.state = json.loads(str(a["rng"]))
+    state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
+    n = len(a["hist/generation"])
+    hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY} for i in range(n)]
+    top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
+           zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]
+    return state, hist, top
+
+
+def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = SearchConfig(), reference="paper",
+           energy_budget: Optional[float] = None, tune=None, plant: Optional[PlantParams] = None, x64: bool = False,
+           d_floor: float = D_FLOOR, progress: Any = None, checkpoint=None, resume: bool = False) -> SearchResult:
+    """The fastest gains (median T_eps on ``config.batch`` training starts) whose median control energy
+    is at most ``energy_budget`` (default: ``config.energy_margin`` x the ``reference`` gains' on the
+    same starts), with no fewer converged than ``reference`` and no start failing or crossing
+    theta = 0, by CMA-ES from ``gains0`` over the gains named in ``tune`` (default all; module
+    docstring). ``checkpoint``: a ``.npz`` written after every generation; ``resume=True`` continues
+    from it (also with more ``generations`` than the run that wrote it: the first ones are identical). Raises `TuningInterrupted` on Ctrl-C (``partial``: the best so far, or ``None``) and
+    ``RuntimeError`` if no feasible candidate passes the guard starts."""
+    for name in ("generations", "population", "batch", "verify"):
+        v = getattr(config, name)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (2 if name == "population" else 1):
+            raise ValueError(f"search: {name} must be a whole number >= {2 if name == 'population' else 1}, got {v!r}")
+    if not (isinstance(config.converged_margin, (int, float, np.floating)) and 0 <= config.converged_margin < 1):
+        raise ValueError(f"search: converged_margin must be in [0, 1), got {config.converged_margin!r}")
+    for name in ("sigma0", "energy_margin", "penalty", "t_final", "eps"):
+        v = getattr(config, name)
+        if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"search: {name} must be a finite number > 0, got {v!r}")
+    if energy_budget is not None and not (math.isfinite(energy_budget) and energy_budget > 0):
+        raise ValueError(f"search: energy_budget must be a finite number > 0, got {energy_budget!r}")
+    names = parse_tune(tune)
+    g0 = load_gains(gains0)
+    full0 = np.concatenate([np.ravel(p) for p in params_from_gains(g0, d_floor=d_floor)])
+    free = np.concatenate([np.arange(7)[_SLICES[n]] for n in names])
+    ics = draw_starts(starts, config.batch, config.seed)
+    guard = guard_starts()
+    settings = {"config": config._asdict(), "gains0": gains_to_dict(g0), "reference": gains_to_dict(load_gains(reference)),
+                "energy_budget": energy_budget, "tuned": list(names), "x64": bool(x64), "d_floor": float(d_floor),
+                "starts": repr(starts) if callable(starts) else "array",
+                "plant": None if plant is None else repr(plant), "method": "CMA-ES on the accurate engine"}
+    # the generation count is left out: a finished or interrupted run can be resumed for more generations
+    # (a generation does not depend on how many follow it)
+    key = _fingerprint({**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"}}, ics)
+    ckpt = None if checkpoint is None else Path(checkpoint)
+
+    def full(x):
+        v = full0.copy()
+        v[free] = x
+        return v
+
+    # the reference and the start in one ensemble; the start is candidate "generation -1"
+    ref = evaluate_population([reference, g0], ics, plant=plant, t_final=config.t_final, eps=config.eps, x64=x64)
+    e_max = float(energy_budget) if energy_budget is not None else config.energy_margin * float(ref.median_energy[0])
+    f_min = min(1.0, float(ref.frac_converged[0]) + config.converged_margin)
+    reference_figs = {"median_T": float(ref.median_T[0]), "median_energy": float(ref.median_energy[0]),
+                      "frac_converged": float(ref.frac_converged[0]), "n_bad": int(ref.n_bad[0]), "mean_steps": float(ref.mean_steps[0]),
+                      "energy_budget": e_max, "converged_floor": f_min}
+    rng = np.random.default_rng(config.seed)
+    state, hist, top = cma_init(full0[free], config.sigma0), [], []
+    s0, feasible0 = _score(ref, 1, e_max, f_min, config)
+    if feasible0:
+        top.append((float(s0), -1, full0[free].copy(), tuple(float(f[1]) for f in ref)))
+    if resume and ckpt is not None and ckpt.exists():
+        state, hist, top = _load(ckpt, key, rng)
+    t0 = time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0)
+
+    def partial():
+        if not top:
+            return None
+        s, gen, x, f = top[0]
+        return _result(_to_gains(full(x), d_floor, g0, names), g0, f, reference_figs, hist, gen, settings)
+
+    try:
+        with Progress(progress, desc="search (CMA-ES)") as bar:
+            while int(state.generation) < config.generations:
+                gen = int(state.generation)
+                xs, ys = cma_ask(state, rng, config.population)
+                figs = evaluate_population([_to_gains(full(x), d_floor, g0, names) for x in xs], ics, plant=plant,
+                                           t_final=config.t_final, eps=config.eps, x64=x64)
+                scored = [_score(figs, i, e_max, f_min, config) for i in range(len(xs))]
+                scores = np.array([s for s, _ in scored])
+                state = cma_tell(state, ys, scores)
+                for i, (s, feas) in enumerate(scored):
+                    if feas:
+                        top.append((float(s), gen, np.asarray(xs[i]), tuple(float(f[i]) for f in figs)))
+                top = sorted(top, key=lambda t: (t[0], t[1]))[:max(1, int(config.verify))]
+                b = int(np.argmin(scores))
+                hist.append({"generation": gen, "score": float(scores[b]), "median_T": float(figs.median_T[b]),
+                             "median_energy": float(figs.median_energy[b]), "frac_converged": float(figs.frac_converged[b]),
+                             "n_bad": int(figs.n_bad[b]), "feasible": bool(scored[b][1]), "sigma": float(state.sigma),
+                             "best_score": top[0][0] if top else math.inf, "wall_s": time.perf_counter() - t0})
+                if ckpt is not None:
+                    _save(ckpt, key, state, rng, hist, top)
+                bar.update((gen + 1) / config.generations)
+                bar.postfix(median_T=f"{top[0][3][0]:.2f}" if top else "-", sigma=f"{float(state.sigma):.3f}")
+    except KeyboardInterrupt:
+        raise TuningInterrupted(partial(), ckpt) from None
+    why = []
+    for s, gen, x, f in top:
+        g = _to_gains(full(x), d_floor, g0, names)
+        bad = _guard_failure(g, guard, plant, config.t_final, x64)
+        if not bad:
+            return _result(g, g0, f, reference_figs, hist, gen, settings)
+        why.append(f"generation {gen}: guard starts {bad}")
+    raise RuntimeError("search: no feasible candidate" + (" passed the guard starts (" + "; ".join(why) + ")" if why
+                       else f" (median energy <= {e_max:.4g} with converged >= {f_min:.3f}); raise the budget "
+                            "(energy_margin / energy_budget) or the generations"))
+
+
+def _guard_failure(g: Gains, guard, plant, t_final, x64) -> str:
+    from ..ensemble import run_ensemble
+
+    r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, progress=False)
+    bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q)[:, 2]) != np.sign(guard[:, 2]))
+    return f"{int(bad.sum())} of {bad.size} failed or crossed theta = 0" if bad.any() else ""
+
+
+def _result(g, g0, f, reference, hist, gen, settings) -> SearchResult:
+    figures = dict(zip(PopulationFigures._fields, (float(v) for v in f)))
+    history = {k: np.asarray([h[k] for h in hist]) for k in _HISTORY}
+    return SearchResult(g, g0, figures, reference, history, int(gen), {**settings, "generations_run": len(hist)})

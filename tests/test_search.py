@@ -1,0 +1,200 @@
+"""The derivative-free search of the gains (`jaxsleigh.tuning.search`) and its CMA-ES: the strategy
+converges on known problems, a population evaluated as lanes equals the candidates run one by one, the
+search honours its constraints, checkpoint / interrupt / resume reproduce the uninterrupted run, and the
+command line."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+from jaxsleigh import tuning as tu
+from jaxsleigh.cli import main as cli_main
+from jaxsleigh.tuning import cma_search as search_mod
+from jaxsleigh.tuning.cmaes import cma_ask, cma_init, cma_tell, default_population
+
+TINY = tu.SearchConfig(generations=3, population=4, batch=8, verify=2)
+
+
+# ---------------------------------------------------------------------------------------------
+# CMA-ES
+# ---------------------------------------------------------------------------------------------
+
+def _minimise(f, x0, sigma0, gens, lam, seed=0):
+    st, rng = cma_init(x0, sigma0), np.random.default_rng(seed)
+    for _ in range(gens):
+        x, y = cma_ask(st, rng, lam)
+        st = cma_tell(st, y, [f(v) for v in x])
+    return st
+
+
+def test_cmaes_converges_on_an_ill_conditioned_quadratic_and_rosenbrock():
+    scales = 10.0 ** np.arange(5)         # condition number 1e8: needs the covariance, not just sigma
+    st = _minimise(lambda v: float(np.sum((scales * (v - 1.0)) ** 2)), np.zeros(5), 1.0, 400, default_population(5))
+    np.testing.assert_allclose(st.mean, np.ones(5), atol=1e-5)
+    rosen = lambda v: float(100 * (v[1] - v[0] ** 2) ** 2 + (1 - v[0]) ** 2)  # noqa: E731
+    st = _minimise(rosen, np.array([-1.0, 1.0]), 0.5, 300, 8)
+    np.testing.assert_allclose(st.mean, [1.0, 1.0], atol=1e-4)
+
+
+def test_cmaes_is_deterministic_and_refuses_bad_starts():
+    f = lambda v: float(np.sum(v ** 2))  # noqa: E731
+    a, b = _minimise(f, np.ones(3), 0.3, 5, 6, seed=3), _minimise(f, np.ones(3), 0.3, 5, 6, seed=3)
+    for u, v in zip(a, b):
+        np.testing.assert_array_equal(u, v)
+    with pytest.raises(ValueError, match="sigma0 > 0"):
+        cma_init(np.ones(2), 0.0)
+    with pytest.raises(ValueError, match="finite start"):
+        cma_init([np.nan, 1.0], 0.1)
+
+
+# ---------------------------------------------------------------------------------------------
+# the population as lanes of one ensemble
+# ---------------------------------------------------------------------------------------------
+
+def test_population_as_lanes_equals_the_candidates_run_one_by_one():
+    ics = tu.UniformStarts()(np.random.default_rng(5), 6)
+    cands = ["paper", "balanced"]
+    figs = tu.evaluate_population(cands, ics, t_final=60.0)
+    for i, g in enumerate(cands):
+        v = tu.validate(g, ics, t_final=60.0)
+        np.testing.assert_allclose(figs.median_T[i], v.median, rtol=1e-4)
+        np.testing.assert_allclose(figs.median_energy[i], v.median_energy, rtol=1e-4)
+        assert figs.frac_converged[i] == v.frac_converged
+        assert figs.n_bad[i] == v.n_crossed
+    assert figs.median_T[0] != figs.median_T[1]      # the lanes really carry different gains
+
+
+# ---------------------------------------------------------------------------------------------
+# the search
+# ---------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tiny_search():
+    return tu.search(config=TINY)
+
+
+def test_search_returns_a_feasible_candidate_and_records_its_figures(tiny_search):
+    res = tiny_search
+    f, r = res.figures, res.reference
+    assert f["median_energy"] <= r["energy_budget"] and f["frac_converged"] >= r["converged_floor"]
+    assert f["n_bad"] == 0
+    np.testing.assert_allclose(r["energy_budget"], TINY.energy_margin * r["median_energy"])
+    # the returned figures are the training figures of the returned gains, re-measured
+    ics = tu.draw_starts(tu.UniformStarts(), TINY.batch, TINY.seed)
+    again = tu.evaluate_population([res.gains], ics)
+    np.testing.assert_allclose(again.median_T[0], f["median_T"], rtol=1e-4)
+    assert len(res.history["generation"]) == TINY.generations
+    h = res.history
+    assert (res.best_generation == -1 or h["feasible"][res.best_generation]) and np.all(np.diff(h["best_score"][np.isfinite(h["best_score"])]) <= 0)
+
+
+def test_candidates_map_to_gains_like_the_tuner_parametrisation():
+    import jax
+
+    x = np.random.default_rng(0).normal(size=7)
+    g = search_mod._to_gains(x, tu.D_FLOOR, js.load_gains("paper"), ("L", "k", "D_hat"))
+    with jax.enable_x64(True):
+        ref = tu.gains_from_params(tu.GainParams(x[:3], x[3], x[4:]))
+    for a, b in zip(g, ref):
+        np.testing.assert_allclose(a, np.asarray(b), rtol=1e-13)
+
+
+def test_search_only_moves_the_tuned_gains(monkeypatch):
+    seen = []
+    real = search_mod.evaluate_population
+
+    def record(glist, *a, **k):
+        seen.extend(js.load_gains(g) for g in glist)
+        return real(glist, *a, **k)
+
+    monkeypatch.setattr(search_mod, "evaluate_population", record)
+    res = tu.search(config=TINY._replace(generations=2, converged_margin=0.0), tune="k", energy_budget=1e3)
+    p = js.load_gains("paper")
+    assert len(seen) == 2 + 2 * TINY.population and len({float(g.k) for g in seen}) > 2
+    for g in seen + [res.gains]:
+        np.testing.assert_allclose(g.L, p.L, rtol=1e-12)
+        np.testing.assert_allclose(g.D_hat, p.D_hat, rtol=1e-12)
+
+
+def test_search_resumes_and_an_interrupt_keeps_the_best(tmp_path, monkeypatch, tiny_search):
+    ckpt = tmp_path / "s.ckpt.npz"
+    real = search_mod.evaluate_population
+    calls = {"n": 0}
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4:       # reference and start, generations 0 and 1 done; Ctrl-C during generation 2
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(search_mod, "evaluate_population", flaky)
+    with pytest.raises(tu.TuningInterrupted) as stop:
+        tu.search(config=TINY, checkpoint=ckpt)
+    assert stop.value.checkpoint == ckpt and ckpt.exists()
+    part = stop.value.partial
+    assert part is None or part.settings["generations_run"] == 2
+    monkeypatch.setattr(search_mod, "evaluate_population", real)
+    res = tu.search(config=TINY, checkpoint=ckpt, resume=True)
+    for a, b in zip(res.gains, tiny_search.gains):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(res.history["median_T"], tiny_search.history["median_T"])
+    with pytest.raises(ValueError, match="other settings"):
+        tu.search(config=TINY._replace(seed=1), checkpoint=ckpt, resume=True)
+
+
+def test_a_finished_search_extends_to_more_generations(tmp_path, tiny_search):
+    ckpt = tmp_path / "s.ckpt.npz"
+    tu.search(config=TINY._replace(generations=2), checkpoint=ckpt)
+    res = tu.search(config=TINY, checkpoint=ckpt, resume=True)
+    np.testing.assert_array_equal(res.history["score"], tiny_search.history["score"])
+    for a, b in zip(res.gains, tiny_search.gains):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_search_refuses_bad_settings():
+    with pytest.raises(ValueError, match="population"):
+        tu.search(config=TINY._replace(population=1))
+    with pytest.raises(ValueError, match="energy_margin"):
+        tu.search(config=TINY._replace(energy_margin=float("nan")))
+    with pytest.raises(ValueError, match="energy_budget"):
+        tu.search(config=TINY, energy_budget=-1.0)
+
+
+def test_an_impossible_budget_says_what_to_change():
+    with pytest.raises(RuntimeError, match="raise the budget"):
+        tu.search(config=TINY._replace(generations=1), energy_budget=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# command line
+# ---------------------------------------------------------------------------------------------
+
+def test_cli_search_writes_gains_with_their_figures(tmp_path, capsys):
+    out, hist = tmp_path / "g.json", tmp_path / "h.npz"
+    rc = cli_main(["tune", "--search", "--out", str(out), "--steps", "2", "--batch", "8", "--population", "4",
+                   "--history", str(hist), "--validate", "4", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads(out.read_text())
+    js.load_gains(str(out))
+    meta = doc["meta"]
+    assert meta["command"][:3] == ["jaxsleigh", "tune", "--search"] and meta["generations_run"] == 2
+    assert meta["training_figures"]["median_energy"] <= meta["reference_figures"]["energy_budget"]
+    assert set(meta["validation"]) == {"initial", "searched"}
+    with np.load(hist) as z:
+        assert len(z["generation"]) == 2
+    assert not (tmp_path / "g.json.ckpt.npz").exists()
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--search", "--lr", "0.1"], "drop --lr"),
+    (["--search", "--pareto", "3"], "drop --pareto"),
+    (["--population", "4"], "belong to --search"),
+    (["--search", "--population", "1"], "--population"),
+])
+def test_cli_search_refuses_options_it_would_ignore(tmp_path, capsys, argv, msg):
+    rc = cli_main(["tune", "--out", str(tmp_path / "g.json"), "--no-progress", *argv])
+    assert rc == 2
+    assert msg in capsys.readouterr().err
