@@ -5,6 +5,8 @@
                    [--energy-budget E]
     jaxsleigh tune --pareto N --out front.json [--front-method warm|vmap] [--budgets LO:HI]
                    [--warm-steps N] [--baseline] [--plot front.png] [--validate N] ...
+    jaxsleigh tune --search --out gains.json [--steps G] [--batch B] [--population P]
+                   [--energy-margin F | --energy-budget E] [--history FILE.npz] [--validate N]
 
 The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the subcommand with
 `add_tune` (it is a thin layer over `jaxsleigh.tuning.tune`).
@@ -46,8 +48,16 @@ to twice the 'tuned' preset's (or --budgets LO:HI), re-evaluates each on --valid
 mean adaptive steps; with the paper's and 'tuned' gains as references and, with --baseline, a
 random search spending the same number of objective evaluations.
 
+--search replaces the gradient descent by a derivative-free search (CMA-ES, jaxsleigh.tuning.search)
+on the figures the accurate engine reports over 100 s: the shortest median T_0.05 on --batch training
+starts subject to median control energy <= --energy-margin x the --gains' on the same starts (or
+--energy-budget E, an absolute median energy), no fewer converged and no start failing or crossing
+theta = 0. Each generation's --population candidates run as one ensemble (gains per trajectory).
+The 'balanced' preset is its result (experiments/pareto_front.py --search).
+
 examples:
   jaxsleigh tune --out gains.json
+  jaxsleigh tune --search --out balanced.json --steps 120 --history search.npz
   jaxsleigh tune --out eco.json --energy-budget 19 --t-final 100 --stop-fraction 0.001 --n-attempts 6000
   jaxsleigh tune --pareto 5 --out front.json --plot front.png --baseline --t-final 100 --stop-fraction 0.001
   jaxsleigh tune --out gains.json --tune k,D_hat --steps 60 --history history.npz
@@ -69,10 +79,10 @@ def add_tune(subparsers) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options)")
     g = p.add_argument_group("optimiser")
-    g.add_argument("--steps", type=whole("--steps", "150"), default=150, metavar="N",
-                   help="optimiser iterations (default 150)")
-    g.add_argument("--batch", type=whole("--batch", "256"), default=256, metavar="B",
-                   help="training starts (default 256)")
+    g.add_argument("--steps", type=whole("--steps", "150"), default=None, metavar="N",
+                   help="optimiser iterations (default 150; with --search: generations, default 100)")
+    g.add_argument("--batch", type=whole("--batch", "256"), default=None, metavar="B",
+                   help="training starts (default 256; with --search 128)")
     g.add_argument("--seed", type=whole("--seed", "0", minimum=0, maximum=2**62), default=0, metavar="S",
                    help="seed of the training starts (default 0)")
     g.add_argument("--lr", type=number("--lr", "0.05"), default=0.05, metavar="LR",
@@ -103,6 +113,17 @@ def add_tune(subparsers) -> None:
     h.add_argument("--energy-budget", type=number("--energy-budget", "29"), default=None, metavar="E",
                    help="budget on the training batch's geometric-mean control energy int |u|^2 dt "
                         "(default: none, the fastest gains the step budget allows)")
+    d = p.add_argument_group("derivative-free search (the balanced preset's method)")
+    d.add_argument("--search", action="store_true",
+                   help="instead of gradient descent on the surrogate, search (CMA-ES) for the gains with the "
+                        "shortest median T_0.05 on the training starts whose median control energy is at most "
+                        "--energy-margin x the --gains' (or --energy-budget), with no fewer converged and no start "
+                        "failing or crossing theta = 0, all measured by the accurate engine over 100 s")
+    d.add_argument("--population", type=whole("--population", "16", minimum=2), default=16, metavar="P",
+                   help="candidates per generation, run together in one ensemble (default 16)")
+    d.add_argument("--energy-margin", type=number("--energy-margin", "0.95"), default=0.95, metavar="F",
+                   help="energy budget as a fraction of the starting gains' median energy on the training "
+                        "starts (default 0.95: room for the median's sampling noise on other starts)")
     f = p.add_argument_group("Pareto front")
     f.add_argument("--pareto", type=whole("--pareto", "6"), default=None, metavar="N",
                    help="compute N points of the time-effort front instead of one set of gains")
@@ -134,6 +155,15 @@ def _cmd_tune(args) -> int:
     from .. import tuning
     from ..params import gains_to_dict, save_gains
 
+    search = args.search
+    if args.steps is None:
+        args.steps = 100 if search else 150
+    if args.batch is None:
+        args.batch = 128 if search else 256
+    if search:
+        return _cmd_search(args)
+    if args.population != 16 or args.energy_margin != 0.95:
+        raise ValueError("--population and --energy-margin belong to --search; add --search or drop them")
     if args.pareto is not None:
         return _cmd_pareto(args)
     names = tuning.parse_tune(args.tune)
@@ -209,6 +239,89 @@ def _cmd_tune(args) -> int:
     return 0
 
 
+#: Options of the gradient tuner that a search does not use, with their defaults.
+_GRADIENT_ONLY = {"pareto": None, "robust": False, "lr": 0.05, "mode": "forward", "t_final": 30.0, "dt": 0.01,
+                  "n_attempts": 4000, "probe_budget": 100000, "stop_fraction": 0.5, "front_method": "warm",
+                  "budgets": None, "warm_steps": None, "baseline": False, "plot": None}
+
+
+def _cmd_search(args) -> int:
+    from .. import tuning
+    from ..io import atomic_write
+    from ..params import gains_to_dict, save_gains
+
+    used = [k for k, v in _GRADIENT_ONLY.items() if getattr(args, k) != v]
+    if used:
+        raise ValueError("--search measures 100 s with the accurate engine and has no gradient optimiser: drop "
+                         + ", ".join("--" + k.replace("_", "-") for k in used))
+    if not 0 < args.energy_margin <= 10:
+        raise ValueError(f"--energy-margin must be in (0, 10], got {args.energy_margin}")
+    plant, gains0 = model_from_args(args)
+    ckpt = _checkpoint_path(args.out)
+    check_outputs(args.out, args.history, ckpt)
+    if ckpt.exists() and not args.resume:
+        raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted search for {args.out!r}; add "
+                         f"--resume (with the same options) to continue it, or delete it to start afresh")
+    if args.resume and not ckpt.exists():
+        raise ValueError(f"--resume: no checkpoint {str(ckpt)!r} to continue from; run without --resume")
+    names = tuning.parse_tune(args.tune)
+    config = tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
+                                 seed=args.seed, energy_margin=args.energy_margin)
+    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
+    t0 = time.perf_counter()
+
+    def write(res, **extra):
+        meta = {"how": "jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under a median "
+                       "control-energy budget", "command": command, "tuned": list(names),
+                "initial_gains": gains_to_dict(res.initial), "training_figures": res.figures,
+                "reference_figures": res.reference, "best_generation": res.best_generation,
+                "generations_run": res.settings["generations_run"], "seed": args.seed, "batch": args.batch,
+                "population": args.population, "plant": {"m": float(plant.m), "J": float(plant.J),
+                                                         "l": float(plant.l), "damping": args.damping},
+                "x64": bool(args.x64), **extra}
+        save_gains(res.gains, args.out, **meta)
+        if args.history:
+            hist = args.history if str(args.history).endswith(".npz") else str(args.history) + ".npz"
+            atomic_write(hist, lambda fh: np.savez(fh, **res.history))
+        return meta
+
+    try:
+        res = tuning.search(gains0, config=config, reference=gains0,
+                            energy_budget=args.energy_budget, tune=names, plant=plant, x64=args.x64,
+                            progress=args.progress, checkpoint=ckpt, resume=args.resume)
+    except RuntimeError as e:
+        raise ValueError(str(e)) from None
+    except tuning.TuningInterrupted as stop:
+        if stop.partial is None:
+            print(f"{PROG} tune: interrupted before any feasible candidate; nothing written. Continue with the "
+                  f"same command and --resume", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        write(stop.partial, interrupted=True)
+        print(f"{PROG} tune: interrupted after {stop.partial.settings['generations_run']} generations; wrote the "
+              f"best feasible gains so far (not checked on the guard starts) to {args.out}; continue with the same "
+              f"command and --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    wall = time.perf_counter() - t0
+    f, r = res.figures, res.reference
+    print(f"{PROG} tune --search: median T_0.05 {r['median_T']:.2f} s -> {f['median_T']:.2f} s on the {args.batch} "
+          f"training starts, median energy {r['median_energy']:.4g} -> {f['median_energy']:.4g} (budget "
+          f"{r['energy_budget']:.4g}), converged {r['frac_converged']:.3f} -> {f['frac_converged']:.3f}; "
+          f"generation {res.best_generation} of {res.settings['generations_run']}, {wall:.1f} s wall")
+    write(res, wall_s=wall)
+    ckpt.unlink(missing_ok=True)
+    if args.validate:
+        ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
+        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64),
+                "searched": tuning.validate(res.gains, ics, plant=plant, x64=args.x64)}
+        print(tuning.markdown_table(rows))
+        write(res, wall_s=wall, validation={k: tuning.validation_dict(v, seed=args.seed + 1000)
+                                            for k, v in rows.items()})
+    g = res.gains
+    print(f"{PROG} tune: wrote {args.out}: L = {np.round(g.L, 4).tolist()}, k = {float(g.k):.4g}, "
+          f"D_hat = {np.round(g.D_hat, 4).tolist()}")
+    return 0
+
+
 def _cmd_pareto(args) -> int:
     from .. import tuning
     from ..params import gains_to_dict, load_gains
@@ -265,6 +378,12 @@ def _cmd_pareto(args) -> int:
 
 def _canonical_argv(args) -> list:
     """The options that determine the result, as a command line (when the caller's argv is unknown)."""
+    if getattr(args, "search", False):
+        return ["tune", "--search", "--out", str(args.out), "--steps", str(args.steps), "--batch", str(args.batch),
+                "--seed", str(args.seed), "--population", str(args.population), "--energy-margin",
+                repr(args.energy_margin), "--tune", args.tune, "--gains", str(args.gains), "--params", args.params,
+                "--damping", args.damping] + (["--energy-budget", repr(args.energy_budget)]
+                                              if args.energy_budget is not None else []) + (["--x64"] if args.x64 else [])
     argv = ["tune", "--out", str(args.out), "--steps", str(args.steps), "--batch", str(args.batch),
             "--seed", str(args.seed), "--lr", repr(args.lr), "--tune", args.tune, "--mode", args.mode,
             "--t-final", repr(args.t_final), "--dt", repr(args.dt), "--n-attempts", str(args.n_attempts),
