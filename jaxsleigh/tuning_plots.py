@@ -8,6 +8,8 @@
 * `plot_per_plant`: median ``T_eps`` and the fraction converged per plant, per set of gains.
 * `plot_effort_history`: the effort-budgeted run: training energy against its budget, the
   multiplier, and the integration-cost probe against its budget with the returned iteration marked.
+* `plot_search_history`: the derivative-free search (`jaxsleigh.tuning.search`): each generation's
+  best median T_0.05 and median energy against the budget, and the step size.
 * `plot_front`: the time-effort Pareto front (median T_0.05 against median control energy on
   held-out starts) with reference gains and a random-search baseline.
 
@@ -24,7 +26,7 @@ from .plot_base import new_figure, save_figure
 from .plotting import plot_paths
 
 __all__ = ["plot_history", "plot_paths_before_after", "plot_convergence_times", "plot_per_plant",
-           "plot_effort_history", "plot_front", "save_figure"]
+           "plot_effort_history", "plot_search_history", "plot_front", "save_figure"]
 
 
 def _field(obj, name):
@@ -265,6 +267,46 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
         a.legend(fontsize=8, loc="best")
     if own:
         fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def plot_search_history(history, *, reference: Mapping, returned: Optional[int] = None, axes=None,
+                        title: str = "Derivative-free search (CMA-ES) of the gains"):
+    """Per generation: the best candidate's median T_0.05 (feasible ones filled) with the reference
+    gains' as a line; its median energy against the budget; the step size sigma.
+
+    Args:
+      history: `jaxsleigh.tuning.SearchResult.history` (or its ``.npz``).
+      reference: `jaxsleigh.tuning.SearchResult.reference` (``median_T``, ``median_energy``,
+        ``energy_budget``).
+      returned: the generation of the returned gains, marked.
+    """
+    if axes is None:
+        fig = new_figure((11.0, 3.6))
+        axes = fig.subplots(1, 3)
+    fig = axes[0].figure
+    gen = np.asarray(_field(history, "generation"))
+    feas = np.asarray(_field(history, "feasible"), bool)
+    T, E = np.asarray(_field(history, "median_T"), float), np.asarray(_field(history, "median_energy"), float)
+    for ax, y, ref, lab in ((axes[0], T, reference["median_T"], "median T_0.05 [s]"),
+                            (axes[1], E, reference["median_energy"], "median energy ∫|u|² dt")):
+        ax.plot(gen, y, "-", color="C0", lw=0.8)
+        ax.plot(gen[feas], y[feas], "o", color="C0", ms=3, label="generation's best (feasible)")
+        ax.plot(gen[~feas], y[~feas], "o", color="C3", ms=3, mfc="none", label="generation's best (infeasible)")
+        ax.axhline(ref, color="C7", ls=":", label="reference gains")
+        if returned is not None:
+            ax.axvline(returned, color="C1", lw=1, label="returned")
+        ax.set_xlabel("generation")
+        ax.set_ylabel(lab)
+        ax.grid(True, alpha=0.3)
+    axes[1].axhline(reference["energy_budget"], color="C3", ls="--", label="budget")
+    axes[0].legend(fontsize=7)
+    axes[1].legend(fontsize=7)
+    axes[2].semilogy(gen, np.asarray(_field(history, "sigma"), float), color="C2")
+    axes[2].set_xlabel("generation")
+    axes[2].set_ylabel("step size σ")
+    axes[2].grid(True, alpha=0.3, which="both")
+    fig.suptitle(title)
     return fig
 
 
