@@ -198,3 +198,16 @@ def test_cli_search_refuses_options_it_would_ignore(tmp_path, capsys, argv, msg)
     rc = cli_main(["tune", "--out", str(tmp_path / "g.json"), "--no-progress", *argv])
     assert rc == 2
     assert msg in capsys.readouterr().err
+
+
+def test_search_history_figure_shows_every_generation_and_the_budget(tiny_search):
+    from jaxsleigh import tuning_plots as tp
+
+    fig = tp.plot_search_history(tiny_search.history, reference=tiny_search.reference,
+                                 returned=tiny_search.best_generation)
+    ax_t, ax_e, ax_s = fig.axes
+    n = TINY.generations
+    assert len(ax_t.lines[0].get_xdata()) == n                      # the generation's-best line
+    budget = [ln for ln in ax_e.lines if ln.get_label() == "budget"]
+    assert budget and budget[0].get_ydata()[0] == pytest.approx(tiny_search.reference["energy_budget"])
+    np.testing.assert_allclose(ax_s.lines[0].get_ydata(), tiny_search.history["sigma"])
