@@ -169,30 +169,27 @@ def test_cli_pareto_writes_the_front_and_its_figure(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def balanced_vs_paper():
-    ics = tu.UniformStarts()(np.random.default_rng(20240613), 192)
+    # 2048 starts: a median of control energies (they span three decades) moves by ~5% between samples of
+    # 256 starts; on 2048 by ~2%
+    ics = tu.UniformStarts()(np.random.default_rng(20240613), 2048)
     return tu.validate("paper", ics), tu.validate("balanced", ics)
 
 
-def test_balanced_preset_is_faster_at_no_more_energy(balanced_vs_paper):
-    """`balanced` on starts the tuner never saw (experiments/pareto_front.py checks 256 others):
-    median control energy no higher than the paper's gains' (within the median's sampling noise), no fewer
-    converged, no start failing or
-    crossing theta = 0, and a shorter median T_0.05. The converged fractions are compared within one
-    binomial standard error (192 starts cannot resolve the ~1% difference the experiment measured)."""
+def test_balanced_preset_meets_its_criteria_on_starts_it_never_saw(balanced_vs_paper):
+    """`balanced` on 2048 starts that neither its search nor its acceptance check saw
+    (experiments/balanced_search.py checked 2048 others): median control energy no higher than the paper's
+    gains', no fewer converged, no start failing or crossing theta = 0 (measured here: 0.99x the energy,
+    96.1% converged against 95.4%)."""
     preset = __import__("pathlib").Path(js.__file__).parent / "presets" / "balanced.json"
     meta = json.loads(preset.read_text())["meta"]
     assert "how" in meta and {"paper", "balanced", "tuned"} <= set(meta["validation"])
     paper, bal = balanced_vs_paper
     assert bal.n_failed == 0 and bal.n_crossed == 0
-    # per-start energies span three decades, so the median of 192 moves by a few %: balanced's median
-    # energy was 0.91x the paper's on the experiment's 256 starts, 1.02x on these
-    assert bal.median_energy <= 1.05 * paper.median_energy
-    assert bal.frac_converged >= paper.frac_converged - paper.frac_se
-    assert bal.median < paper.median
+    assert bal.median_energy <= paper.median_energy
+    assert bal.frac_converged >= paper.frac_converged
 
 
-@pytest.mark.xfail(strict=True, reason="issue 9's target (median T_0.05 >= 2x shorter than the paper's at equal "
-                                       "energy) is not reached: gradient descent on this objective finds ~1.2x")
 def test_balanced_preset_meets_the_2x_target(balanced_vs_paper):
+    """Issue 9's target: median T_0.05 at least 2x shorter than the paper's gains' at equal energy."""
     paper, bal = balanced_vs_paper
     assert 2 * bal.median <= paper.median
