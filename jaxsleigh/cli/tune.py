@@ -53,11 +53,11 @@ on the figures the accurate engine reports over 100 s: the shortest median T_0.0
 starts subject to median control energy <= --energy-margin x the --gains' on the same starts (or
 --energy-budget E, an absolute median energy), no fewer converged and no start failing or crossing
 theta = 0. Each generation's --population candidates run as one ensemble (gains per trajectory).
-The 'balanced' preset is its result (experiments/pareto_front.py --search).
+The 'balanced' preset is its result (experiments/balanced_search.py: two such searches in a row).
 
 examples:
   jaxsleigh tune --out gains.json
-  jaxsleigh tune --search --out balanced.json --steps 120 --history search.npz
+  jaxsleigh tune --search --out mine.json --steps 200 --history search.npz
   jaxsleigh tune --out eco.json --energy-budget 19 --t-final 100 --stop-fraction 0.001 --n-attempts 6000
   jaxsleigh tune --pareto 5 --out front.json --plot front.png --baseline --t-final 100 --stop-fraction 0.001
   jaxsleigh tune --out gains.json --tune k,D_hat --steps 60 --history history.npz
