@@ -193,6 +193,7 @@ def test_cli_search_writes_gains_with_their_figures(tmp_path, capsys):
     (["--search", "--pareto", "3"], "drop --pareto"),
     (["--population", "4"], "belong to --search"),
     (["--search", "--population", "1"], "--population"),
+    (["--search", "--energy-budget", "8", "--energy-margin", "0.9"], "not both"),
 ])
 def test_cli_search_refuses_options_it_would_ignore(tmp_path, capsys, argv, msg):
     rc = cli_main(["tune", "--out", str(tmp_path / "g.json"), "--no-progress", *argv])

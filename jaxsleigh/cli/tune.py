@@ -254,6 +254,8 @@ def _cmd_search(args) -> int:
     if used:
         raise ValueError("--search measures 100 s with the accurate engine and has no gradient optimiser: drop "
                          + ", ".join("--" + k.replace("_", "-") for k in used))
+    if args.energy_budget is not None and args.energy_margin != 0.95:
+        raise ValueError("give the budget once: --energy-budget E (absolute) or --energy-margin F (relative), not both")
     if not 0 < args.energy_margin <= 10:
         raise ValueError(f"--energy-margin must be in (0, 10], got {args.energy_margin}")
     plant, gains0 = model_from_args(args)
