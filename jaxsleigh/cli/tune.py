@@ -151,6 +151,19 @@ def _checkpoint_path(out) -> Path:
     return out.with_name(out.name + ".ckpt.npz")
 
 
+def _checked_checkpoint(args, what: str) -> Path:
+    """The run's checkpoint ``FILE.json.ckpt.npz``, after checking the outputs and that ``--resume`` matches
+    whether an interrupted ``what`` left one."""
+    ckpt = _checkpoint_path(args.out)
+    check_outputs(args.out, args.history, ckpt)
+    if ckpt.exists() and not args.resume:
+        raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted {what} for {args.out!r}; add "
+                         f"--resume (with the same options) to continue it, or delete it to start afresh")
+    if args.resume and not ckpt.exists():
+        raise ValueError(f"--resume: no checkpoint {str(ckpt)!r} to continue from; run without --resume")
+    return ckpt
+
+
 def _cmd_tune(args) -> int:
     from .. import tuning
     from ..params import gains_to_dict, save_gains
@@ -170,13 +183,7 @@ def _cmd_tune(args) -> int:
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
     plant, gains0 = model_from_args(args)
-    ckpt = _checkpoint_path(args.out)
-    check_outputs(args.out, args.history, ckpt)
-    if ckpt.exists() and not args.resume:
-        raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted tuning run for {args.out!r}; add "
-                         f"--resume (with the same options) to continue it, or delete it to start afresh")
-    if args.resume and not ckpt.exists():
-        raise ValueError(f"--resume: no checkpoint {str(ckpt)!r} to continue from; run without --resume")
+    ckpt = _checked_checkpoint(args, "tuning run")
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)
     loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
@@ -259,13 +266,7 @@ def _cmd_search(args) -> int:
     if not 0 < args.energy_margin <= 10:
         raise ValueError(f"--energy-margin must be in (0, 10], got {args.energy_margin}")
     plant, gains0 = model_from_args(args)
-    ckpt = _checkpoint_path(args.out)
-    check_outputs(args.out, args.history, ckpt)
-    if ckpt.exists() and not args.resume:
-        raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted search for {args.out!r}; add "
-                         f"--resume (with the same options) to continue it, or delete it to start afresh")
-    if args.resume and not ckpt.exists():
-        raise ValueError(f"--resume: no checkpoint {str(ckpt)!r} to continue from; run without --resume")
+    ckpt = _checked_checkpoint(args, "search")
     names = tuning.parse_tune(args.tune)
     config = tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
                                  seed=args.seed, energy_margin=args.energy_margin)
