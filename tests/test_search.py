@@ -212,3 +212,15 @@ def test_search_history_figure_shows_every_generation_and_the_budget(tiny_search
     budget = [ln for ln in ax_e.lines if ln.get_label() == "budget"]
     assert budget and budget[0].get_ydata()[0] == pytest.approx(tiny_search.reference["energy_budget"])
     np.testing.assert_allclose(ax_s.lines[0].get_ydata(), tiny_search.history["sigma"])
+
+
+def test_cli_search_checkpoint_and_resume_must_agree(tmp_path, capsys):
+    out = tmp_path / "g.json"
+    rc = cli_main(["tune", "--search", "--out", str(out), "--resume", "--no-progress"])
+    assert rc == 2 and "no checkpoint" in capsys.readouterr().err
+    (tmp_path / "g.json.ckpt.npz").write_bytes(b"left by an interrupted run")
+    rc = cli_main(["tune", "--search", "--out", str(out), "--no-progress"])
+    assert rc == 2 and "interrupted search" in capsys.readouterr().err
+    rc = cli_main(["tune", "--search", "--out", str(out), "--resume", "--no-progress", "--steps", "1", "--batch", "4",
+                   "--population", "2"])
+    assert rc == 2 and "damaged" in capsys.readouterr().err
