@@ -38,8 +38,9 @@ from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, t
 from .damping import CoulombDamping, ViscousDamping, damping_from_name
 from .params import Gains, PlantParams
 from .status import NOT_INTEGRATED, Status, describe
+from .validate import check_memory
 
-__all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "apply_params", "SweepResult", "sweep",
+__all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
            "save_sweep", "load_sweep"]
 
 #: Sweepable parameters: name -> (where it lives, condition, what it must be).
@@ -60,6 +61,11 @@ PARAM_NAMES = {
     "c2": ("plant.damping.c2", lambda v: v >= 0, ">= 0"),
 }
 _EXAMPLE = "--param k=0.01:1:9:log"
+#: Host memory one parameter value needs before any start runs: the value and its per-lane plant and gains.
+BYTES_PER_VALUE = 256
+#: Host memory one row (a start under a value set) needs: the run's per-start share and the row's lanes.
+BYTES_PER_ROW = 560
+_FEWER = "use fewer values (a smaller P in NAME=LO:HI:P) or split the sweep into several runs"
 
 
 class ParamAxis(NamedTuple):
@@ -128,7 +134,7 @@ def parse_param(spec, flag: str = "--param") -> ParamAxis:
         if len(vals) == 1:
             ax = ParamAxis(name, vals[0], vals[0], 1, log)
         elif len(vals) == 3:
-            if float(vals[2]) != int(vals[2]) or vals[2] < 2:
+            if not math.isfinite(vals[2]) or float(vals[2]) != int(vals[2]) or vals[2] < 2:
                 raise ValueError(f"{label}: P = {vals[2]:g} must be a whole number of values >= 2; {hint}")
             ax = ParamAxis(name, vals[0], vals[1], int(vals[2]), log)
         else:
@@ -141,6 +147,8 @@ def parse_param(spec, flag: str = "--param") -> ParamAxis:
                          f"{max(ax.lo, ax.hi):g}:{ax.n})")
     if ax.log and not ax.lo > 0:
         raise ValueError(f"{label}: a log range needs LO > 0, got {ax.lo:g}; use a linear range to include 0")
+    # the count comes from the user: refuse it before a single value is materialised
+    check_memory(ax.n, label, bytes_per_start=BYTES_PER_VALUE, unit="values", fix=_FEWER)
     _check_values(ax.name, ax.values(), label)
     return ax
 
@@ -153,8 +161,20 @@ def param_grid(axes: Sequence) -> tuple[tuple, np.ndarray, tuple]:
     names = tuple(a.name for a in axes)
     if len(set(names)) != len(names):
         raise ValueError(f"each parameter may be swept once, got {', '.join(names)}")
+    # the product of the counts, before itertools.product builds it
+    check_memory(math.prod(a.n for a in axes), " x ".join(f"--param {a.spec()}" for a in axes),
+                 bytes_per_start=BYTES_PER_VALUE, unit="value sets", fix=_FEWER)
     values = np.array(list(itertools.product(*(a.values() for a in axes))), np.float64).reshape(-1, len(axes))
     return names, values, tuple(a.n for a in axes)
+
+
+def check_rows(n_values: int, n_starts: int, what: str = "sweep") -> None:
+    """Refuse, before anything is built, a sweep whose ``n_values x n_starts`` rows would not fit in
+    host memory (`check_memory`); the message names both counts and the memory."""
+    check_memory(int(n_values) * int(n_starts), what, bytes_per_start=BYTES_PER_ROW,
+                 unit=f"rows ({int(n_values):,} values x {int(n_starts):,} starts)",
+                 fix="use fewer values (a smaller P in --param NAME=LO:HI:P) or fewer starts (fewer --samples, "
+                     "a coarser grid, a smaller --ics file), or split the sweep into several runs")
 
 
 def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = None, gains: Any = None, *,
@@ -366,6 +386,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
         cols = [np.atleast_1d(np.asarray(params[n], np.float64)) for n in names]
         if not names or len({c.shape for c in cols}) != 1 or cols[0].ndim != 1:
             raise ValueError("explicit value sets must be a non-empty mapping of equal-length 1-D arrays")
+        check_rows(cols[0].size, st.ics.shape[0])
         values, shape, axes = np.stack(cols, axis=1), (cols[0].size,), ()
     else:
         if isinstance(params, (str, ParamAxis)):
@@ -373,6 +394,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
         axes = tuple(parse_param(a) for a in params)
         if len(axes) > 2:
             raise ValueError("a sweep grid takes one or two parameters; pass explicit value sets for more")
+        check_rows(math.prod(a.n for a in axes), st.ics.shape[0])
         names, values, shape = param_grid(axes)
         labels = {a.name: f"--param {a.spec()}" for a in axes} | dict(labels or {})
     base_plant, base_gains = as_plant(plant), as_gains(gains)

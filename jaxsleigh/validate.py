@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["INT32_MAX", "real", "whole", "as_gains", "as_plant", "check_memory", "writable_path",
+__all__ = ["INT32_MAX", "real", "whole", "as_gains", "as_plant", "check_memory", "check_count", "writable_path",
            "writable_dir"]
 
 #: The largest step budget the engine's int32 counters hold.
@@ -125,14 +125,32 @@ def _available_bytes() -> Optional[int]:
 BYTES_PER_START = 400
 
 
-def check_memory(n: int, what: str, *, bytes_per_start: int = BYTES_PER_START, fraction: float = 0.8) -> None:
-    """Refuse, before any work, a run whose per-start inputs and results would not fit in memory."""
+def check_memory(n: int, what: str, *, bytes_per_start: int = BYTES_PER_START, fraction: float = 0.8,
+                 unit: str = "starts", fix: Optional[str] = None) -> None:
+    """Refuse, before any work, a run whose per-item inputs and results would not fit in memory.
+
+    Args:
+      n: how many items (starts, rows, values) the run would hold; any size, also one that no array could.
+      what: names the input in the message (the Python keyword or the command-line flag).
+      bytes_per_start: host memory one item needs.
+      unit, fix: what an item is, and what to do instead (the defaults speak of starts).
+    """
     need = int(n) * bytes_per_start
     have = _available_bytes()
     if have is not None and need > fraction * have:
-        raise ValueError(f"{what}: {n:,} starts need about {need / 2**30:.1f} GiB of host memory for the starts "
-                         f"and their results, more than the {have / 2**30:.1f} GiB available; use fewer starts "
-                         f"(a coarser grid, fewer --samples) or split the study into several runs")
+        if fix is None:
+            fix = "use fewer starts (a coarser grid, fewer --samples) or split the study into several runs"
+        for_what = " for the starts and their results" if unit == "starts" else ""
+        raise ValueError(f"{what}: {int(n):,} {unit} need about {need / 2**30:.1f} GiB of host memory{for_what}, "
+                         f"more than the {have / 2**30:.1f} GiB available; {fix}")
+
+
+def check_count(what: str, n: int, *, maximum: int, reason: str, fix: str) -> int:
+    """Refuse a count that costs time rather than memory (points of a front, generations) above a sane
+    ``maximum``; the message names ``what`` (keyword or flag), the count, the bound and ``reason``."""
+    if int(n) > maximum:
+        raise ValueError(f"{what} {int(n):,} is more than the {maximum:,} allowed: {reason}; {fix}")
+    return int(n)
 
 
 def writable_dir(path, what: str = "output folder") -> Path:

@@ -16,6 +16,7 @@ Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
 import time
@@ -125,20 +126,22 @@ def _check(args) -> dict:
     """Validate everything before any work (a bad range names its --param); nothing is written."""
     from ..config import solve_config
     from ..io import npz_path
-    from ..sweep import apply_params, param_grid, parse_param
+    from ..sweep import apply_params, check_rows, param_grid, parse_param
 
     if len(args.param) > 2:
         raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
     axes = [parse_param(s) for s in args.param]          # eager: a bad range names its --param
     labels = {a.name: f"--param {s}" for a, s in zip(axes, args.param)}
+    if args.ics is None and args.samples is None and args.x is None and args.y is None and args.theta is None:
+        args.samples = DEFAULT_SAMPLES
+    starts = _starts_from_args(args)
+    # values x starts, from the counts alone: refused before any value set or row is built
+    check_rows(math.prod(a.n for a in axes), starts.ics.shape[0], "jaxsleigh sweep")
     names, values, _ = param_grid(axes)
     plant, gains = model_from_args(args)
     apply_params(names, values, plant, gains, labels=labels)
     solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
                  max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
-    if args.ics is None and args.samples is None and args.x is None and args.y is None and args.theta is None:
-        args.samples = DEFAULT_SAMPLES
-    starts = _starts_from_args(args)
     out = npz_path(args.out)
     chunks, side = _chunk_dir(out), _sidecar(out)
     check_outputs(out, side, args.plot, folders=[chunks])

@@ -1,0 +1,74 @@
+"""Slice H2: every size a user gives is checked up front (the memory it needs, or a sane maximum for
+what costs time), and the tuner's long runs keep their work when interrupted.
+
+The memory checks are made deterministic by fixing the host memory the checks see
+(``jaxsleigh.validate._available_bytes``)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import jaxsleigh.cli as cli
+import jaxsleigh.validate as validate
+from jaxsleigh.sweep import param_grid, parse_param, sweep
+
+GiB = 2**30
+
+
+@pytest.fixture
+def four_gib(monkeypatch):
+    """The checks see 4 GiB of available host memory, whatever the machine has."""
+    monkeypatch.setattr(validate, "_available_bytes", lambda: 4 * GiB)
+
+
+# ---------------------------------------------------------------------------------------------
+# sweep: values, value sets and rows are counted before anything is built
+# ---------------------------------------------------------------------------------------------
+
+def test_sweep_refuses_too_many_values_before_materialising_them(four_gib, monkeypatch):
+    def no_materialising(*a, **k):
+        raise AssertionError("values were materialised before the size check")
+
+    monkeypatch.setattr(np, "linspace", no_materialising)
+    with pytest.raises(ValueError, match=r"--param k=0:1:1e9: 1,000,000,000 values need about 238\.4 GiB .*"
+                                         r"4\.0 GiB available; use fewer values"):
+        parse_param("k=0:1:1e9")
+    with pytest.raises(ValueError, match="P = inf must be a whole number"):
+        parse_param("k=0.1:1:inf")
+
+
+def test_sweep_refuses_a_grid_before_itertools_product(four_gib, monkeypatch):
+    import itertools
+
+    def no_product(*a, **k):
+        raise AssertionError("itertools.product ran before the size check")
+
+    a, b = parse_param("k=0.1:1:100000"), parse_param("m=1:2:100000")     # each fits on its own
+    monkeypatch.setattr(itertools, "product", no_product)
+    with pytest.raises(ValueError, match=r"--param k=0\.1:1:100000 x --param m=1:2:100000: 10,000,000,000 value "
+                                         r"sets need about .* GiB"):
+        param_grid([a, b])
+
+
+def test_sweep_refuses_values_times_starts_naming_both(four_gib):
+    starts = np.tile([[1.0, 1.0, 0.5]], (1000, 1))
+    with pytest.raises(ValueError, match=r"sweep: 10,000,000 rows \(10,000 values x 1,000 starts\) need about "
+                                         r"5\.2 GiB .* fewer starts"):
+        sweep(starts, ["k=0.1:1:10000"], t_final=1.0)
+    with pytest.raises(ValueError, match=r"rows \(10,000 values x 1,000 starts\)"):
+        sweep(starts, {"k": np.linspace(0.1, 1, 10000)}, t_final=1.0)
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["--param", "k=0.01:1:1e7", "--samples", "256"], "jaxsleigh sweep: 2,560,000,000 rows"),
+    (["--param", "k=0:1:1e9"], "--param k=0:1:1e9: 1,000,000,000 values"),
+    (["--param", "k=0.1:1:1e5", "--param", "m=1:2:1e5"], "10,000,000,000 values x 256 starts"),
+])
+def test_cli_sweep_refuses_huge_sizes_with_exit_2(four_gib, tmp_path, capsys, argv, flag):
+    out = tmp_path / "s.npz"
+    rc = cli.main(["sweep", *argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and flag in err and "GiB of host memory" in err and "Traceback" not in err
+    assert not out.exists() and not (tmp_path / "s.npz.chunks").exists()
