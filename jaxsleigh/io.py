@@ -171,6 +171,7 @@ def load_ics(path, *, hint: str = "") -> np.ndarray:
                 kind = "an empty file" if not magic else (
                     "text (a CSV or text table? name it .csv or .txt)" if _looks_like_text(p) else "not a .npy file")
                 raise ValueError(f"{str(path)!r} is {kind}, not a NumPy .npy file; {fix}")
+            _check_npy_header(p, str(path), fix)
             arr = np.load(p, allow_pickle=False)
     except ValueError as e:
         if str(e).startswith(repr(str(path))):
@@ -188,6 +189,36 @@ def load_ics(path, *, hint: str = "") -> np.ndarray:
         raise ValueError(f"{str(path)!r} holds an array of shape {arr.shape}; initial conditions must have "
                          f"shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2] with N >= 1")
     return arr.astype(np.float64)
+
+
+def _check_npy_header(p: Path, name: str, fix: str) -> None:
+    """Read only the ``.npy`` header and refuse, before any allocation, an array the file cannot hold
+    (a header claiming more bytes than follow it: forged, truncated) or that would not fit in memory."""
+    import math
+
+    from .validate import check_memory
+
+    fmt = np.lib.format
+    with open(p, "rb") as f:
+        version = fmt.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, _, dtype = fmt.read_array_header_2_0(f)
+        else:                       # (3, 0): a utf-8 header, read by NumPy's own reader
+            shape, _, dtype = fmt._read_array_header(f, version)
+        offset = f.tell()
+    size = p.stat().st_size - offset
+    if dtype.hasobject:
+        raise ValueError(f"{name!r} holds Python objects (dtype {dtype}), not numbers; {fix}")
+    need = math.prod(int(n) for n in shape) * dtype.itemsize
+    if need > size:
+        raise ValueError(f"{name!r}: its header claims an array of shape {tuple(shape)} ({dtype}, {need:,} bytes) "
+                         f"but only {size:,} bytes follow it; the file is truncated or damaged: write it again "
+                         f"({fix})")
+    rows = int(shape[0]) if len(shape) else 1
+    check_memory(rows, repr(name),
+                 fix="split the starts into several files and runs")
 
 
 def _looks_like_text(p: Path) -> bool:

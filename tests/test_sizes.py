@@ -72,3 +72,43 @@ def test_cli_sweep_refuses_huge_sizes_with_exit_2(four_gib, tmp_path, capsys, ar
     err = capsys.readouterr().err
     assert rc == 2 and flag in err and "GiB of host memory" in err and "Traceback" not in err
     assert not out.exists() and not (tmp_path / "s.npz.chunks").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# .npy starts: the header is checked against the file before anything is allocated
+# ---------------------------------------------------------------------------------------------
+
+def _forge(path, shape, descr, version, payload: bytes):
+    header = {"descr": descr, "fortran_order": False, "shape": tuple(shape)}
+    with open(path, "wb") as f:
+        (np.lib.format.write_array_header_1_0 if version == 1 else np.lib.format.write_array_header_2_0)(f, header)
+        f.write(payload)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(rows=st.integers(0, 10**12), cols=st.sampled_from([3, 5, 7]), descr=st.sampled_from(["<f8", "<f4", "<i8", "|u1"]),
+       version=st.sampled_from([1, 2]), payload=st.binary(max_size=64))
+def test_load_ics_checks_a_forged_header_against_the_file(tmp_path, rows, cols, descr, version, payload):
+    from jaxsleigh.io import load_ics
+
+    path = tmp_path / "forged.npy"
+    _forge(path, (rows, cols), descr, version, payload)
+    need = rows * cols * np.dtype(descr).itemsize
+    if need > len(payload):
+        with pytest.raises(ValueError, match=r"forged\.npy'.*header claims an array of shape .* only "
+                                             rf"{len(payload):,} bytes follow it"):
+            load_ics(path)
+    elif rows >= 1 and cols in (3, 5):
+        assert load_ics(path).shape == (rows, cols)
+    else:
+        with pytest.raises(ValueError, match=r"forged\.npy"):
+            load_ics(path)
+
+
+@pytest.mark.parametrize("cmd", [["basin"], ["sweep", "--param", "k=0.1:1:2"]])
+def test_cli_refuses_a_forged_ics_header_with_exit_2(tmp_path, capsys, cmd):
+    path = tmp_path / "huge.npy"
+    _forge(path, (10**10, 3), "<f8", 1, b"\x00" * 24)
+    rc = cli.main([*cmd, "--ics", str(path), "--out", str(tmp_path / "o.npz"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "huge.npy" in err and "only 24 bytes follow it" in err and "Traceback" not in err
