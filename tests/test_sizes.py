@@ -112,3 +112,41 @@ def test_cli_refuses_a_forged_ics_header_with_exit_2(tmp_path, capsys, cmd):
     rc = cli.main([*cmd, "--ics", str(path), "--out", str(tmp_path / "o.npz"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and "huge.npy" in err and "only 24 bytes follow it" in err and "Traceback" not in err
+
+
+# ---------------------------------------------------------------------------------------------
+# tune --search: bounded sizes; no feasible candidate keeps the history and exits 3
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--steps", "1000000"], "--steps (generations of --search) 1,000,000 is more than the 10,000 allowed"),
+    (["--population", "100000"], "--population 100,000 is more than the 4,096 allowed"),
+    (["--population", "4000", "--batch", "1000000"], "--population x --batch: 4,000,000,000 trajectories"),
+])
+def test_cli_search_bounds_population_and_generations(four_gib, tmp_path, capsys, argv, msg):
+    rc = cli.main(["tune", "--search", "--out", str(tmp_path / "g.json"), "--no-progress", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err
+    assert not (tmp_path / "g.json").exists()
+
+
+def test_search_bounds_its_sizes_in_python():
+    from jaxsleigh import tuning as tu
+
+    with pytest.raises(ValueError, match=r"search: generations 20,000 is more than the 10,000 allowed"):
+        tu.search(config=tu.SearchConfig(generations=20_000))
+    with pytest.raises(ValueError, match=r"search: population 5,000 is more than the 4,096 allowed"):
+        tu.search(config=tu.SearchConfig(population=5_000))
+
+
+def test_cli_search_without_a_feasible_candidate_writes_its_history_and_exits_3(tmp_path, capsys):
+    out, hist = tmp_path / "g.json", tmp_path / "h.npz"
+    rc = cli.main(["tune", "--search", "--out", str(out), "--steps", "1", "--batch", "4", "--population", "2",
+                   "--energy-margin", "0.001", "--history", str(hist), "--validate", "0", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 3, err
+    assert "--energy-margin" in err and "--steps" in err and "energy_margin" not in err and "Traceback" not in err
+    assert not out.exists()
+    with np.load(hist) as z:
+        assert len(z["generation"]) == 1 and not z["feasible"].any()
+    assert (tmp_path / "g.json.ckpt.npz").exists()          # more generations resume the finished run

@@ -37,7 +37,8 @@ EXIT_NONE_OK = 3
 EXIT_INTERRUPTED = 130
 EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
               EXIT_USAGE: "bad input; nothing was computed (the message says what to change)",
-              EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts)",
+              EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts), or tune --search "
+                            "found no feasible gains (its history is written)",
               EXIT_INTERRUPTED: "interrupted (Ctrl-C); finished work is kept (--resume continues)"}
 
 #: Keyword -> flag, so that messages of the shared validation name the flag the user typed.

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (EXIT_INTERRUPTED, PROG, add_model_options, add_progress_option, check_outputs, model_from_args,
-                     number, whole)
+from .common import (EXIT_INTERRUPTED, EXIT_NONE_OK, PROG, add_model_options, add_progress_option, check_outputs,
+                     model_from_args, number, whole)
 
 __all__ = ["add_tune"]
 
@@ -265,6 +265,17 @@ def _cmd_search(args) -> int:
         raise ValueError("give the budget once: --energy-budget E (absolute) or --energy-margin F (relative), not both")
     if not 0 < args.energy_margin <= 10:
         raise ValueError(f"--energy-margin must be in (0, 10], got {args.energy_margin}")
+    from ..tuning.cma_search import MAX_GENERATIONS, MAX_POPULATION, NoFeasibleCandidate
+    from ..validate import check_count, check_memory
+
+    check_count("--steps (generations of --search)", args.steps, maximum=MAX_GENERATIONS,
+                reason="each generation runs the whole population on the training starts over 100 s (100 take "
+                       "about an hour)", fix="search in stages: a later run with a larger --steps and --resume continues")
+    check_count("--population", args.population, maximum=MAX_POPULATION,
+                reason="a generation is one ensemble of --population x --batch trajectories",
+                fix="use a smaller --population (16 is the default)")
+    check_memory(args.population * args.batch, "--population x --batch", unit="trajectories per generation",
+                 fix="use a smaller --population or --batch")
     plant, gains0 = model_from_args(args)
     ckpt = _checked_checkpoint(args, "search")
     names = tuning.parse_tune(args.tune)
@@ -283,15 +294,36 @@ def _cmd_search(args) -> int:
                                                          "l": float(plant.l), "damping": args.damping},
                 "x64": bool(args.x64), **extra}
         save_gains(res.gains, args.out, **meta)
+        write_history(res.history)
+        return meta
+
+    def write_history(history):
         if args.history:
             hist = args.history if str(args.history).endswith(".npz") else str(args.history) + ".npz"
-            atomic_write(hist, lambda fh: np.savez(fh, **res.history))
-        return meta
+            atomic_write(hist, lambda fh: np.savez(fh, **history))
+            return hist
 
     try:
         res = tuning.search(gains0, config=config, reference=gains0,
                             energy_budget=args.energy_budget, tune=names, plant=plant, x64=args.x64,
                             progress=args.progress, checkpoint=ckpt, resume=args.resume)
+    except NoFeasibleCandidate as e:
+        # the run finished: keep its history and checkpoint (more generations resume it), name the flags
+        hist = write_history(e.history)
+        r = e.reference
+        if e.reason == "infeasible":
+            budget = (f"--energy-budget {args.energy_budget:g}" if args.energy_budget is not None
+                      else f"--energy-margin {args.energy_margin:g}")
+            fix = (f"no candidate had median energy <= {r['energy_budget']:.4g} ({budget}) with converged >= "
+                   f"{r['converged_floor']:.3f}; raise {budget.split()[0]}, or run more generations (the same "
+                   f"command with a larger --steps and --resume)")
+        else:
+            fix = (f"{str(e).split('search: ', 1)[-1]}; run more generations (the same command with a larger --steps "
+                   f"and --resume) or a larger --population")
+        print(f"{PROG}: error: tune --search found no feasible gains in {e.settings['generations_run']} generations: "
+              f"{fix}. Nothing written to {args.out}" + (f"; wrote the history {hist}" if hist else ""),
+              file=sys.stderr)
+        return EXIT_NONE_OK
     except RuntimeError as e:
         raise ValueError(str(e)) from None
     except tuning.TuningInterrupted as stop:

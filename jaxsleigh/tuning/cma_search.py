@@ -56,7 +56,28 @@ from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
 
-__all__ = ["SearchConfig", "SearchResult", "PopulationFigures", "evaluate_population", "search"]
+__all__ = ["SearchConfig", "SearchResult", "PopulationFigures", "NoFeasibleCandidate", "evaluate_population", "search",
+           "MAX_GENERATIONS", "MAX_POPULATION"]
+
+#: Most generations a search accepts: 100 take about an hour with the default population and batch.
+MAX_GENERATIONS = 10_000
+#: Most candidates per generation: one generation is one ensemble of population x batch trajectories.
+MAX_POPULATION = 4096
+
+
+class NoFeasibleCandidate(RuntimeError):
+    """`search` finished its generations but no feasible candidate passed (the budget is too tight,
+    or every feasible one failed the guard starts).
+
+    Attributes:
+      history: the per-generation history (as `SearchResult.history`); reference: the reference's
+        figures with the budget and the floor; settings: the run's settings; reason: ``"infeasible"``
+        (no candidate met the budget) or ``"guard"`` (feasible ones failed the guard starts).
+    """
+
+    def __init__(self, message: str, *, history: dict, reference: dict, settings: dict, reason: str):
+        super().__init__(message)
+        self.history, self.reference, self.settings, self.reason = history, reference, settings, reason
 
 #: Position of each tunable gain in the flat parameter vector ``(log_L (3), log_k, d_chol (3))``.
 _SLICES = {"L": slice(0, 3), "k": slice(3, 4), "D_hat": slice(4, 7)}
@@ -215,10 +236,20 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     docstring). ``checkpoint``: a ``.npz`` written after every generation; ``resume=True`` continues
     from it (also with more ``generations`` than the run that wrote it: the first ones are identical). Raises `TuningInterrupted` on Ctrl-C (``partial``: the best so far, or ``None``) and
     ``RuntimeError`` if no feasible candidate passes the guard starts."""
+    from ..validate import check_count, check_memory
+
     for name in ("generations", "population", "batch", "verify"):
         v = getattr(config, name)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (2 if name == "population" else 1):
             raise ValueError(f"search: {name} must be a whole number >= {2 if name == 'population' else 1}, got {v!r}")
+    check_count("search: generations", config.generations, maximum=MAX_GENERATIONS,
+                reason="each generation runs the whole population on the training starts over 100 s (100 take "
+                       "about an hour)", fix="search in stages (resume the same run with more generations)")
+    check_count("search: population", config.population, maximum=MAX_POPULATION,
+                reason="a generation is one ensemble of population x batch trajectories",
+                fix="use a smaller population (CMA-ES needs about 4 + 3 ln(7) ~ 10)")
+    check_memory(int(config.population) * int(config.batch), "search: population x batch",
+                 unit="trajectories per generation", fix="use a smaller population or batch")
     if not (isinstance(config.converged_margin, (int, float, np.floating)) and 0 <= config.converged_margin < 1):
         raise ValueError(f"search: converged_margin must be in [0, 1), got {config.converged_margin!r}")
     for name in ("sigma0", "energy_margin", "penalty", "t_final", "eps"):
@@ -301,9 +332,14 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
         if not bad:
             return _result(g, g0, f, reference_figs, hist, gen, settings)
         why.append(f"generation {gen}: guard starts {bad}")
-    raise RuntimeError("search: no feasible candidate" + (" passed the guard starts (" + "; ".join(why) + ")" if why
-                       else f" (median energy <= {e_max:.4g} with converged >= {f_min:.3f}); raise the budget "
-                            "(energy_margin / energy_budget) or the generations"))
+    # the history is kept on the error: a caller (the command line) writes it, so the run is not lost
+    history = {k: np.asarray([h[k] for h in hist]) for k in _HISTORY}
+    raise NoFeasibleCandidate(
+        "search: no feasible candidate" + (" passed the guard starts (" + "; ".join(why) + ")" if why
+                                           else f" (median energy <= {e_max:.4g} with converged >= {f_min:.3f}); raise "
+                                                "the budget (energy_margin / energy_budget) or the generations"),
+        history=history, reference=reference_figs, settings={**settings, "generations_run": len(hist)},
+        reason="guard" if why else "infeasible")
 
 
 def _guard_failure(g: Gains, guard, plant, t_final, x64) -> str:
