@@ -10,6 +10,7 @@ of arrays, so the whole optimiser can be ``vmap``'ed (one lane per effort budget
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import Any, Callable, NamedTuple, Optional
@@ -207,6 +208,15 @@ def _step(opt, trainable, opt_state, grad, valid):
     return optax.apply_updates(trainable, updates), opt_state
 
 
+@functools.lru_cache(maxsize=16)
+def _optimizer_and_step(lr: float, steps: int, clip: float, warmup: int, final_lr: float):
+    """One optimiser and its jitted step per setting. The optimiser is the step's static argument: a new
+    one per call of `tune` (each point of a Pareto front) compiled and kept a new executable each time,
+    so memory grew with every point."""
+    return (make_optimizer(lr, steps, clip=clip, warmup=warmup, final_lr=final_lr),
+            jax.jit(_step, static_argnums=0))
+
+
 class _Bar:
     """The tuner's progress: the library's `Progress` counting iterations,
     with the loss in its postfix (``enabled=None``: on a terminal)."""
@@ -300,9 +310,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         trainable, frozen = split_params(theta, names)
         vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
                                  d_floor=d_floor)
-        opt = make_optimizer(config.lr, steps, clip=config.clip, warmup=config.warmup, final_lr=config.final_lr)
+        opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
+                                        float(config.final_lr))
         opt_state = opt.init(trainable)
-        step = jax.jit(_step, static_argnums=0)
         groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
         probes, n_accepted = None, 0
         rows, best, valid_points = [], None, []
