@@ -150,3 +150,59 @@ def test_cli_search_without_a_feasible_candidate_writes_its_history_and_exits_3(
     with np.load(hist) as z:
         assert len(z["generation"]) == 1 and not z["feasible"].any()
     assert (tmp_path / "g.json.ckpt.npz").exists()          # more generations resume the finished run
+
+
+# ---------------------------------------------------------------------------------------------
+# tune --pareto: bounded count; Ctrl-C keeps the finished points, --resume continues
+# ---------------------------------------------------------------------------------------------
+
+def test_cli_pareto_bounds_the_number_of_points(tmp_path, capsys):
+    rc = cli.main(["tune", "--pareto", "1000", "--out", str(tmp_path / "f.json"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--pareto 1,000 is more than the 100 allowed" in err and "50 minutes" in err
+    assert not (tmp_path / "f.json").exists()
+    from jaxsleigh import tuning as tu
+
+    with pytest.raises(ValueError, match="the number of budgets 101 is more than the 100 allowed"):
+        tu.pareto_front(np.geomspace(1, 100, 101))
+
+
+FRONT = ["tune", "--pareto", "3", "--steps", "2", "--warm-steps", "1", "--batch", "4", "--t-final", "10",
+         "--n-attempts", "1500", "--tune", "L,k", "--validate", "0", "--budgets", "5:50", "--no-progress"]
+
+
+def test_cli_pareto_interrupted_keeps_the_finished_points_and_resumes(tmp_path, capsys, monkeypatch):
+    import json
+
+    from jaxsleigh.tuning import pareto
+
+    out = tmp_path / "front.json"
+    real, calls = pareto.tune, []
+
+    def ctrl_c_at_the_second_point(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(pareto, "tune", ctrl_c_at_the_second_point)
+    rc = cli.main([*FRONT, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 130 and "interrupted after 1 of 3 points" in err and "--resume" in err
+    doc = json.loads(out.read_text())
+    assert doc["interrupted"] is True and len(doc["points"]) == 1
+    first = doc["points"][0]
+    # without --resume the partial front is not overwritten
+    assert cli.main([*FRONT, "--out", str(out)]) == 2 and "add --resume" in capsys.readouterr().err
+    monkeypatch.setattr(pareto, "tune", real)
+    calls.clear()
+    rc = cli.main([*FRONT, "--out", str(out), "--resume"])
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads(out.read_text())
+    assert "interrupted" not in doc and len(doc["points"]) == 3
+    kept = [p for p in doc["points"] if p["budget"] == first["budget"]][0]
+    assert kept["L"] == first["L"] and kept["k"] == first["k"] and kept["train"] == first["train"]
+    # the resumed front is the front an uninterrupted run computes
+    assert cli.main([*FRONT, "--out", str(tmp_path / "whole.json")]) == 0
+    whole = json.loads((tmp_path / "whole.json").read_text())
+    assert [(p["L"], p["k"]) for p in whole["points"]] == [(p["L"], p["k"]) for p in doc["points"]]

@@ -361,11 +361,33 @@ def _cmd_pareto(args) -> int:
     from .. import tuning
     from ..params import gains_to_dict, load_gains
 
-    if args.robust or args.resume or args.history or args.energy_budget is not None:
-        raise ValueError("--pareto computes its own budgets and has no checkpoint or history file: drop --robust, "
-                         "--resume, --history and --energy-budget")
+    from ..tuning.pareto import MAX_FRONT_POINTS, finished_points
+    from ..validate import check_count
+
+    if args.robust or args.history or args.energy_budget is not None:
+        raise ValueError("--pareto computes its own budgets and has no history file: drop --robust, "
+                         "--history and --energy-budget")
+    check_count("--pareto", args.pareto, maximum=MAX_FRONT_POINTS,
+                reason="every point is a whole tuning run (seconds to minutes each; 1000 points took about 50 "
+                       "minutes), and a front is drawn well by a few dozen",
+                fix="give fewer points, or compute several fronts over narrower --budgets ranges")
+    if args.front_method != "warm" and args.resume:
+        raise ValueError("--resume continues a --front-method warm front (vmap computes every point at once); "
+                         "drop --resume")
     plant, gains0 = model_from_args(args)
     check_outputs(args.out, args.plot)
+    earlier = None
+    if Path(args.out).is_file():
+        try:
+            earlier = tuning.load_front(args.out)
+        except ValueError:
+            earlier = None
+        earlier = earlier if isinstance(earlier, dict) and earlier.get("interrupted") else None
+    if earlier is not None and not args.resume:
+        raise ValueError(f"{args.out!r} holds the finished points of an interrupted front; add --resume (with the "
+                         f"same options) to continue it, or delete it to start afresh")
+    if args.resume and earlier is None:
+        raise ValueError(f"--resume: {args.out!r} is not an interrupted front to continue; run without --resume")
     names = tuning.parse_tune(args.tune)
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)
@@ -380,8 +402,32 @@ def _cmd_pareto(args) -> int:
     else:
         budgets = tuning.default_budgets(args.pareto, **kw)
     command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
-    front = tuning.pareto_front(budgets, method=args.front_method, gains0=gains0, warm_steps=args.warm_steps,
-                                tune_names=names, progress=args.progress, **kw)
+    done = None
+    if earlier is not None:
+        from ..tuning.pareto import _front_settings
+
+        warm = max(1, config.steps // 2) if args.warm_steps is None else int(args.warm_steps)
+        done = finished_points(earlier, _front_settings("warm", np.sort(budgets), config, loss, warm, args.x64,
+                                                        gains0, names, tuning.UniformStarts()))
+    initial = {"initial_gains": gains_to_dict(load_gains(gains0))}
+
+    def keep(part):
+        # after every point: the finished points, so that Ctrl-C (or a crash) loses at most the current one
+        tuning.save_front(part, args.out, command=command, interrupted=True, **initial)
+
+    try:
+        front = tuning.pareto_front(budgets, method=args.front_method, gains0=gains0, warm_steps=args.warm_steps,
+                                    tune_names=names, progress=args.progress, on_point=keep, done=done, **kw)
+    except tuning.TuningInterrupted as stop:
+        if stop.partial is None:
+            print(f"{PROG} tune: interrupted before the first point of the front was finished; nothing written",
+                  file=sys.stderr)
+        else:
+            keep(stop.partial)
+            print(f"{PROG} tune: interrupted after {len(stop.partial.points)} of {len(budgets)} points; wrote them "
+                  f"to {args.out} (\"interrupted\": true, not evaluated on held-out starts); continue with the same "
+                  f"command and --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(f"{PROG} tune: {len(front.points)} points ({args.front_method}) in {front.wall_s:.1f} s, "
           f"{front.evaluations} objective evaluations")
     refs, baseline = {}, None

@@ -33,6 +33,7 @@ from ..params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
+from .checkpoint import TuningInterrupted
 from .optimizer import _INFEASIBLE, TuneConfig, TuneHistory, _row, _step, make_optimizer, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, split_params
 from .probes import check, hardest, probe
@@ -41,9 +42,13 @@ from .validation import Validation, validate, validation_dict
 
 __all__ = ["FrontPoint", "Front", "training_energy", "default_budgets", "budgets_between", "pareto_front",
            "random_search", "evaluate_front",
-           "front_dict", "save_front", "load_front", "point_gains", "FRONT_METHODS"]
+           "front_dict", "save_front", "load_front", "point_gains", "finished_points", "FRONT_METHODS",
+           "MAX_FRONT_POINTS"]
 
 FRONT_METHODS = ("warm", "vmap")
+#: Most points a front accepts: each is a whole tuning run (seconds to minutes), and a front is drawn
+#: well by a few dozen; 1000 points took about 50 minutes.
+MAX_FRONT_POINTS = 100
 
 
 class FrontPoint(NamedTuple):
@@ -116,16 +121,31 @@ def budgets_between(lo: float, hi: float, n: int) -> np.ndarray:
 def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=UniformStarts(),
                  config: TuneConfig = TuneConfig(), loss: LossConfig = LossConfig(), warm_steps: Optional[int] = None,
                  tune_names=None, plant: Optional[PlantParams] = None, x64: bool = False,
-                 d_floor: float = D_FLOOR, progress: Any = None) -> Front:
+                 d_floor: float = D_FLOOR, progress: Any = None, on_point=None, done: Optional[dict] = None) -> Front:
     """Tune one set of gains per energy budget (``budgets``, sorted increasing) with ``method``
     (``"warm"`` or ``"vmap"``, module docstring). The same training starts (``starts``,
     ``config.seed``) serve every point. Returns a `Front` whose points are not yet evaluated
-    on held-out starts (`evaluate_front`)."""
+    on held-out starts (`evaluate_front`).
+
+    Args:
+      on_point: ``"warm"``: called with the `Front` of the points finished so far after each point
+        (e.g. to write it, so that nothing finished is lost).
+      done: ``"warm"``: ``{budget index: FrontPoint}`` finished by an interrupted run with the same
+        settings (`finished_points`); they are kept, not recomputed.
+
+    Raises:
+      TuningInterrupted: Ctrl-C; its ``partial`` is the `Front` of the finished points (``None`` if none).
+    """
     if method not in FRONT_METHODS:
         raise ValueError(f"method must be one of {FRONT_METHODS}, got {method!r}")
     budgets = np.sort(np.asarray(budgets, np.float64).ravel())
     if budgets.size == 0 or not np.all(np.isfinite(budgets)) or np.any(budgets <= 0):
         raise ValueError(f"budgets must be finite and > 0, got {budgets.tolist()}")
+    from ..validate import check_count
+
+    check_count("pareto_front: the number of budgets", budgets.size, maximum=MAX_FRONT_POINTS,
+                reason="every point is a whole tuning run (seconds to minutes each)",
+                fix="compute fewer points, or several fronts over narrower budget ranges")
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
@@ -135,26 +155,61 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
                              d_floor=d_floor)["energy"]
         j0 = int(np.argmin(np.abs(np.log(budgets) - math.log(e0))))
         order = list(range(j0, budgets.size)) + list(range(j0 - 1, -1, -1))
-        found, evals = {}, 1
-        for j in order:
-            src = found.get(j - 1 if j > j0 else j + 1)
-            g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
-            cfg_j = config if src is None else config._replace(steps=warm_steps, warmup=1)
-            res = tune(g, starts=starts, config=cfg_j,
-                       loss=loss._replace(energy_budget=float(budgets[j]), multiplier=lam),
-                       tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
-            evals += res.settings["iterations_run"]
-            found[j] = _point(budgets[j], res.gains, res.history, res.best_iteration, res.settings)
+        found = dict(done or {})
+        evals = 1 + sum(int(p.train.get("iterations_run", 0)) for p in found.values())
+        settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+
+        def so_far():
+            return Front([found[j] for j in sorted(found)], method, time.perf_counter() - t0, evals, settings)
+
+        try:
+            for j in order:
+                if j in found:                     # finished by the interrupted run this one resumes
+                    continue
+                src = found.get(j - 1 if j > j0 else j + 1)
+                g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
+                cfg_j = config if src is None else config._replace(steps=warm_steps, warmup=1)
+                res = tune(g, starts=starts, config=cfg_j,
+                           loss=loss._replace(energy_budget=float(budgets[j]), multiplier=lam),
+                           tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
+                evals += res.settings["iterations_run"]
+                found[j] = _point(budgets[j], res.gains, res.history, res.best_iteration, res.settings)
+                if on_point is not None:
+                    on_point(so_far())
+        except KeyboardInterrupt:
+            raise TuningInterrupted(so_far() if found else None, None) from None
         points = [found[j] for j in range(budgets.size)]
     else:
         points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress)
     wall = time.perf_counter() - t0
-    settings = {"method": method, "budgets": budgets.tolist(), "config": config._asdict(),
-                "loss": {k: float(v) for k, v in loss._asdict().items() if k != "energy_budget"},
-                "warm_steps": warm_steps if method == "warm" else None, "x64": bool(x64),
-                "gains0": gains_to_dict(load_gains(gains0)), "tuned": list(parse_tune(tune_names)),
-                "starts": repr(starts) if callable(starts) else "fixed array"}
+    settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
     return Front(points, method, wall, evals, settings)
+
+
+def _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts) -> dict:
+    return {"method": method, "budgets": budgets.tolist(), "config": config._asdict(),
+            "loss": {k: float(v) for k, v in loss._asdict().items() if k != "energy_budget"},
+            "warm_steps": warm_steps if method == "warm" else None, "x64": bool(x64),
+            "gains0": gains_to_dict(load_gains(gains0)), "tuned": list(parse_tune(tune_names)),
+            "starts": repr(starts) if callable(starts) else "fixed array"}
+
+
+def finished_points(doc: dict, front_settings: dict) -> dict:
+    """``{budget index: FrontPoint}`` of an interrupted front's document (`front_dict` with
+    ``interrupted``), for ``pareto_front(done=...)``; ``ValueError`` if it was computed with other
+    settings than ``front_settings`` (those of the run that would resume it)."""
+    same = json.loads(json.dumps(front_settings, default=_json_default))
+    if doc.get("settings") != same:
+        diff = sorted(k for k in set(same) | set(doc.get("settings") or {})
+                      if (doc.get("settings") or {}).get(k) != same.get(k))
+        raise ValueError(f"the interrupted front was computed with other settings ({', '.join(diff)}); rerun its "
+                         f"command with --resume, or delete it to start afresh")
+    budgets = same["budgets"]
+    out = {}
+    for p in doc.get("points", []):
+        j = int(np.argmin(np.abs(np.log(budgets) - math.log(p["budget"]))))
+        out[j] = FrontPoint(float(budgets[j]), point_gains(p), dict(p["train"]), None, None)
+    return out
 
 
 def _point(budget, gains, history, it, settings) -> FrontPoint:
