@@ -77,7 +77,8 @@ def add_tune(subparsers) -> None:
     p.add_argument("--out", required=True, metavar="FILE.json",
                    help="output gains file (with --pareto: the front's JSON file)")
     p.add_argument("--resume", action="store_true",
-                   help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options)")
+                   help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options; with "
+                        "--pareto: from the finished points kept in FILE.json)")
     g = p.add_argument_group("optimiser")
     g.add_argument("--steps", type=whole("--steps", "150"), default=None, metavar="N",
                    help="optimiser iterations (default 150; with --search: generations, default 100)")
@@ -126,7 +127,7 @@ def add_tune(subparsers) -> None:
                         "starts (default 0.95: room for the median's sampling noise on other starts)")
     f = p.add_argument_group("Pareto front")
     f.add_argument("--pareto", type=whole("--pareto", "6"), default=None, metavar="N",
-                   help="compute N points of the time-effort front instead of one set of gains")
+                   help="compute N points (at most 100) of the time-effort front instead of one set of gains")
     f.add_argument("--front-method", choices=["warm", "vmap"], default="warm",
                    help="warm: budgets in turn, each from the last point's gains (default); vmap: every budget "
                         "at once, the optimiser vmapped over budgets")
