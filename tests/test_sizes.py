@@ -206,3 +206,23 @@ def test_cli_pareto_interrupted_keeps_the_finished_points_and_resumes(tmp_path, 
     assert cli.main([*FRONT, "--out", str(tmp_path / "whole.json")]) == 0
     whole = json.loads((tmp_path / "whole.json").read_text())
     assert [(p["L"], p["k"]) for p in whole["points"]] == [(p["L"], p["k"]) for p in doc["points"]]
+
+
+def test_a_front_compiles_the_optimiser_step_once_per_setting_not_per_point():
+    import jax
+
+    from jaxsleigh import tuning as tu
+    from jaxsleigh.tuning import optimizer
+
+    compiled = jax.jit(optimizer._step, static_argnums=0)._cache_size   # jit's cache of _step (shared)
+    optimizer._optimizer_and_step.cache_clear()
+    before = compiled()
+    cfg = tu.TuneConfig(steps=2, batch=4, lr=0.2, warmup=1, seed=1, n_attempts=1500, probe=2, verify=1)
+    front = tu.pareto_front([5.0, 12.0, 25.0, 50.0], config=cfg, loss=tu.LossConfig(t_final=10.0), warm_steps=1,
+                            tune_names="L,k", progress=False)
+    assert len(front.points) == 4
+    info = optimizer._optimizer_and_step.cache_info()
+    # the first point (2 steps) and the three warm ones (1 step): two settings, two compiled steps; a new
+    # optimiser per point added a compiled step (kept for good) per point, and memory grew with the points
+    assert info.currsize == 2 and info.hits == 2
+    assert compiled() - before == 2
