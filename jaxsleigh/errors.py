@@ -11,7 +11,7 @@ type, not by their text::
 from __future__ import annotations
 
 __all__ = ["JaxsleighWarning", "FlaggedStartsWarning", "DamagedCheckpointWarning", "CheckpointError",
-           "RunLockedError", "DiskFullError"]
+           "RunLockedError", "RunLockWarning", "DiskFullError"]
 
 
 class JaxsleighWarning(UserWarning):
@@ -57,6 +57,11 @@ class RunLockedError(CheckpointError):
         super().__init__(message)
         self.path = path
         self.holder = dict(holder or {})
+
+
+class RunLockWarning(JaxsleighWarning):
+    """An output could not be locked (the filesystem has no ``flock``): two runs writing it are not
+    kept apart."""
 
 
 class DiskFullError(OSError):

@@ -25,7 +25,7 @@ import warnings
 from pathlib import Path
 from typing import Optional
 
-from .errors import JaxsleighWarning, RunLockedError
+from .errors import RunLockedError, RunLockWarning
 
 __all__ = ["RunLock", "RunLockWarning"]
 
@@ -33,10 +33,6 @@ try:
     import fcntl
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
-
-
-class RunLockWarning(JaxsleighWarning):
-    """The output could not be locked (no ``flock`` on this filesystem); two runs are not kept apart."""
 
 
 def _host() -> str:
