@@ -123,9 +123,11 @@ class ChunkStore:
                     "chunk is checked on its own"), stacklevel=4)
                 old, old_key = None, self.key
             if old_key != self.key:
-                raise CheckpointError(f"checkpoint {str(self.folder)!r} was made by another run: "
-                                      f"{_differences(old, json.loads(json.dumps(new, default=str)))}; rerun the "
-                                      f"original command with --resume, or {_afresh(self.folder)}")
+                why = _differences(old, json.loads(json.dumps(new, default=str)))
+                raise CheckpointError(f"checkpoint {str(self.folder)!r} was made with other settings or initial "
+                                      f"conditions than this run"
+                                      + ("" if why.startswith("other settings") else f" ({why})")
+                                      + f"; rerun the original command with --resume, or {_afresh(self.folder)}")
         if resume:
             for path in have:                 # before anything is written: never adopt another run's folder
                 key = self._key_of(path)

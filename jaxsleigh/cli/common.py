@@ -343,11 +343,9 @@ def _result_options(args) -> dict:
 
 def own_output(out, chunks, args) -> tuple:
     """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to
-    ``out`` (`jaxsleigh.runlock.RunLock`; `RunLockedError` names a live run with other options),
-    then refuse a folder that holds chunks without ``--resume``, then record the options in
-    ``chunks/options.json`` (a fresh run) so that a refused ``--resume`` can name the options that
-    differ. Returns ``(lock, the chunk files found)``; `run_distributed` releases the lock."""
-    from ..io import atomic_write_text
+    ``out`` (`jaxsleigh.runlock.RunLock`; `RunLockedError` names another live run), then refuse a
+    folder that holds chunks without ``--resume``. Returns ``(lock, the chunk files found)``;
+    `run_distributed` releases the lock (and records the options, see `_record_options`)."""
     from ..runlock import RunLock
 
     lock = RunLock(out, getattr(args, "_run_id", None) or _single_run_id(), what="output",
@@ -358,13 +356,23 @@ def own_output(out, chunks, args) -> tuple:
             raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; add "
                              f"--resume (with the same options) to continue it, or delete or move that folder (or "
                              f"choose another --out) to start afresh")
-        rec = Path(chunks) / "options.json"
-        if not args.resume or not rec.exists():
-            atomic_write_text(rec, json.dumps(_result_options(args), indent=1, sort_keys=True) + "\n")
     except BaseException:
         lock.release()
         raise
     return lock, have
+
+
+def _record_options(state, args) -> None:
+    """A fresh run records its options in ``chunks/options.json``, so that a refused ``--resume``
+    can name the options that differ (after the checks: a refused run writes nothing)."""
+    from ..io import atomic_write_text
+
+    chunks = state.get("chunks") if isinstance(state, dict) else None
+    if chunks is None:
+        return
+    rec = Path(chunks) / "options.json"
+    if not args.resume or not rec.exists():
+        atomic_write_text(rec, json.dumps(_result_options(args), indent=1, sort_keys=True) + "\n")
 
 
 def _single_run_id() -> str:
@@ -493,22 +501,30 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     options = json.loads(json.dumps(options, default=str))
     if cluster is not None:
         # the processes of one run share its output and chunk folder: one fingerprint for all of them
+        # (their coordinator; options that differ between them are refused with a message of their own)
         import hashlib
 
         where = getattr(args, "coordinator", None) or os.environ.get("SLURM_JOB_ID") or os.environ.get(
             "OMPI_MCA_orte_hnp_uri", "")
-        args._run_id = hashlib.sha256(json.dumps([options, where, cluster.count], default=str).encode()).hexdigest()
+        args._run_id = hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
     held = {}
 
     def checked():
         held["state"] = state = check()
         return state
 
+    def prepared(state):
+        if prepare is not None:
+            prepare(state)
+        _record_options(state, args)
+
     try:
         if cluster is None:
-            return int(assemble(checked(), False))
+            state = checked()
+            _record_options(state, args)
+            return int(assemble(state, False))
         return run_shared(cluster, check=checked, compute=compute, assemble=lambda state: assemble(state, True),
-                          prepare=prepare, shared_dirs=shared_dirs or (lambda state: []), options=options)
+                          prepare=prepared, shared_dirs=shared_dirs or (lambda state: []), options=options)
     except DiskFullError as e:
         chunks = (held.get("state") or {}).get("chunks") if isinstance(held.get("state"), dict) else None
         if chunks is None or "--resume" in str(e):
