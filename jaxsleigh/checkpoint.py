@@ -225,7 +225,7 @@ def _differences(old, new: dict, limit: int = 6) -> str:
             diffs.append(f"{k} {o_set.get(k, '(unset)')!r} in the checkpoint vs {n_set.get(k, '(unset)')!r} now")
     if old.get("n") != new.get("n"):
         diffs.append(f"{old.get('n')} starts in the checkpoint vs {new.get('n')} now")
-    elif old.get("starts") != new.get("starts"):
+    elif "starts" in old and old.get("starts") != new.get("starts"):
         diffs.append("other initial conditions (e.g. another --seed, grid or --ics file)")
     if old.get("chunk") != new.get("chunk") and not any(d.startswith("chunk_size") for d in diffs):
         diffs.append(f"chunks of {old.get('chunk')} rows in the checkpoint vs {new.get('chunk')} now")

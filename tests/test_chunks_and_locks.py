@@ -336,3 +336,17 @@ def test_cli_refusals_name_the_option_and_never_suggest_what_is_refused(tmp_path
     assert rc == 2 and "--resume" in err and "delete or move" in err and "another --out" in err, err
     assert "drop --resume" not in err
     assert not out.exists()
+
+
+def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
+    from jaxsleigh import tuning as tu
+    from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint
+
+    g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
+    key = lambda steps: tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=steps), tu.LossConfig(), None, None,  # noqa
+                                         None, False, 0.0, None, ics)
+    path = tmp_path / "t.ckpt.npz"
+    TunerCheckpoint(path, key(4), ("loss",)).save(0, {"a": np.zeros(1)}, (), None, [], [], {}, None)
+    with pytest.raises(ValueError, match=r"config\.steps 4 in the checkpoint vs 8 now") as info:
+        TunerCheckpoint(path, key(8), ("loss",)).load({"a": np.zeros(1)}, (), [])
+    assert "{" not in str(info.value) and "delete or move" in str(info.value)
