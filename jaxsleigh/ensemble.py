@@ -16,6 +16,7 @@ from the finished chunks, ending with the same result as an uninterrupted run.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import time
@@ -26,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w
-from .checkpoint import ChunkStore
+from .checkpoint import ChunkStore, starts_digest
 from .config import solve_config
 from .observers import DEFAULT_OBSERVERS, collect
 from .engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
@@ -271,21 +272,23 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         store = None
         if checkpoint_dir is not None:
             store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
-            store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "settings": settings})
+            store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "starts": starts_digest(ics5),
+                                                      "settings": settings})
         args = ClosedLoop(plant, gains)
         parts, reused = [], 0
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
-        with Progress(progress, desc=f"ensemble ({n} ics)") as bar:
+        # the store's lock on the folder is held until the last chunk is written or read
+        with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()):
             starts = list(range(0, n, chunk))
             for ci, lo in enumerate(starts):
                 hi = min(lo + chunk, n)
                 if shard is not None and ci % shard[1] != shard[0]:
                     continue
                 if store is not None and resume:
-                    part = store.load(ci, hi - lo, fields=fields)
+                    part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
                     if part is not None:
                         parts.append(part)
                         reused += 1
@@ -322,7 +325,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                     part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
                 part = {k: v[:hi - lo] for k, v in part.items()}
                 if store is not None:
-                    store.save(ci, part)
+                    store.save(ci, part, lo=lo, starts=ics5[lo:hi])
                 if shard is None:
                     parts.append(part)
         if shard is not None:

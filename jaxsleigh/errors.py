@@ -10,7 +10,8 @@ type, not by their text::
 """
 from __future__ import annotations
 
-__all__ = ["JaxsleighWarning", "FlaggedStartsWarning", "DamagedCheckpointWarning", "CheckpointError"]
+__all__ = ["JaxsleighWarning", "FlaggedStartsWarning", "DamagedCheckpointWarning", "CheckpointError",
+           "RunLockedError", "RunLockWarning", "DiskFullError"]
 
 
 class JaxsleighWarning(UserWarning):
@@ -38,3 +39,44 @@ class DamagedCheckpointWarning(JaxsleighWarning):
 class CheckpointError(ValueError):
     """A checkpoint directory cannot be used for this run (it belongs to another run, or its
     manifest is damaged); the message names the file and what to do."""
+
+
+class RunLockedError(CheckpointError):
+    """Another run (another process, with other settings) is writing the same output file or
+    checkpoint folder; the message names it (host, pid, start time). The command line exits with
+    code 5 (`jaxsleigh.cli.common.EXIT_LOCKED`).
+
+    Attributes:
+      path: the output file or folder that is in use.
+      holder: what the other run recorded in its lock file (host, pid, started, ...).
+    """
+
+    exit_code = 5
+
+    def __init__(self, message: str, path=None, holder=None):
+        super().__init__(message)
+        self.path = path
+        self.holder = dict(holder or {})
+
+
+class RunLockWarning(JaxsleighWarning):
+    """An output could not be locked (the filesystem has no ``flock``): two runs writing it are not
+    kept apart."""
+
+
+class DiskFullError(OSError):
+    """A file could not be written because its disk (or the user's quota) is full; the message names
+    the file and what to do. The command line exits with code 4 (`jaxsleigh.cli.common.EXIT_DISK_FULL`).
+
+    Attributes:
+      path: the file being written.
+    """
+
+    exit_code = 4
+
+    def __init__(self, errno_: int, message: str, path=None):
+        super().__init__(errno_, message)
+        self.path = path
+
+    def __str__(self) -> str:   # the message alone, not "[Errno 28] ..."
+        return str(self.strerror)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import ast
+import errno
 import json
 import math
 import operator
@@ -255,10 +256,18 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def atomic_write(path, write) -> Path:
+#: errno values that mean "the disk (or the quota) is full": reported as `DiskFullError`.
+_FULL = tuple(e for e in (getattr(errno, "ENOSPC", None), getattr(errno, "EDQUOT", None)) if e is not None)
+
+
+def atomic_write(path, write, *, when_full: str = "") -> Path:
     """Write ``path`` through ``write(file_object)`` into a temporary file in the same folder,
     flush it to disk (fsync) and rename it into place: readers see the old file or the complete
-    new one, also after a crash or a kill."""
+    new one, also after a crash or a kill.
+
+    A full disk or quota (ENOSPC, EDQUOT) raises `jaxsleigh.errors.DiskFullError` naming the
+    file; ``when_full`` is appended to its message (what continues the work once there is space).
+    """
     path = Path(path)
     tmp = _tmp_name(path)
     try:
@@ -267,16 +276,27 @@ def atomic_write(path, write) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             tmp.unlink()
         except OSError:
             pass
+        if isinstance(e, OSError) and e.errno in _FULL:
+            raise _disk_full(path, e, when_full) from None
         raise
     _fsync_dir(path.parent)
     return path
 
 
-def atomic_write_text(path, text: str) -> Path:
+def _disk_full(path: Path, e: OSError, when_full: str):
+    from .errors import DiskFullError
+
+    what = "no space left on the device" if e.errno == errno.ENOSPC else "the disk quota is exceeded"
+    return DiskFullError(e.errno, f"could not write {str(path)!r}: {what} ({os.strerror(e.errno)}); free some "
+                                  f"space there (or choose another location) and run the command again"
+                         + (f"; {when_full}" if when_full else ""), path=path)
+
+
+def atomic_write_text(path, text: str, *, when_full: str = "") -> Path:
     """`atomic_write` of a UTF-8 text."""
-    return atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+    return atomic_write(path, lambda f: f.write(text.encode("utf-8")), when_full=when_full)

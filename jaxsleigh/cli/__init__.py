@@ -70,7 +70,8 @@ def _join_negative_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Run the command line; returns the exit code (0 ok, 2 bad input, 3 no trajectory OK, 130 interrupted)."""
+    """Run the command line; returns the exit code (0 ok, 2 bad input, 3 no trajectory OK, 4 disk full,
+    5 output in use by another run, 130 interrupted)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()
@@ -86,7 +87,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     except (ValueError, OSError) as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        return int(getattr(e, "exit_code", EXIT_USAGE))     # typed errors carry their own (EXIT_CODES)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -3,7 +3,9 @@ groups, output-path checks, how warnings and statuses are reported, exit codes a
 compilation cache.
 
 Exit codes (`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
-was computed); 3 the run finished but no trajectory ended OK; 130 interrupted (Ctrl-C; what was
+was computed); 3 the run finished but no trajectory ended OK; 4 the disk (or quota) is full (the
+message names the file; ``--resume`` continues a chunked command once there is space); 5 another
+run is writing the same output (the message names it); 130 interrupted (Ctrl-C; what was
 finished is kept, see ``--resume``).
 """
 from __future__ import annotations
@@ -23,7 +25,8 @@ import numpy as np
 from ..io import load_ics
 from ..io import parse_number as _number
 
-__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError",
+__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_INTERRUPTED",
+           "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
@@ -34,11 +37,17 @@ PROG = "jaxsleigh"
 EXIT_OK = 0
 EXIT_USAGE = 2
 EXIT_NONE_OK = 3
+EXIT_DISK_FULL = 4
+EXIT_LOCKED = 5
 EXIT_INTERRUPTED = 130
 EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
               EXIT_USAGE: "bad input; nothing was computed (the message says what to change)",
               EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts), or tune --search "
                             "found no feasible gains (its history is written)",
+              EXIT_DISK_FULL: "the disk or quota is full (the file is named; --resume continues a chunked run "
+                              "once there is space)",
+              EXIT_LOCKED: "another run is writing the same output or checkpoint folder (it is named); nothing "
+                           "was computed",
               EXIT_INTERRUPTED: "interrupted (Ctrl-C); finished work is kept (--resume continues)"}
 
 #: Keyword -> flag, so that messages of the shared validation name the flag the user typed.
@@ -323,6 +332,81 @@ def finish_chunked(command: str, st: dict, res, *, multi: bool, wall: float, pat
     return written, how
 
 
+#: Options that do not change the chunks (left out of the checkpoint's recorded options).
+_NOT_RESULT = {"out", "plot", "resume", "keep_chunks"}
+
+
+def _result_options(args) -> dict:
+    return {k: v for k, v in json.loads(json.dumps(
+        {k: v for k, v in sorted(vars(args).items()) if not callable(v)}, default=str)).items()
+        if k not in _PER_PROCESS and k not in _NOT_RESULT and not k.startswith("_")}
+
+
+def own_output(out, chunks, args) -> tuple:
+    """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to
+    ``out`` (`jaxsleigh.runlock.RunLock`; `RunLockedError` names another live run), then refuse a
+    folder that holds chunks without ``--resume``. Returns ``(lock, the chunk files found)``;
+    `run_distributed` releases the lock (and records the options, see `_record_options`)."""
+    from ..runlock import RunLock
+
+    lock = RunLock(out, getattr(args, "_run_id", None) or _single_run_id(), what="output",
+                   hint="choose another --out").acquire()
+    try:
+        have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
+        if have and not args.resume:
+            raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; add "
+                             f"--resume (with the same options) to continue it, or delete or move that folder (or "
+                             f"choose another --out) to start afresh")
+    except BaseException:
+        lock.release()
+        raise
+    return lock, have
+
+
+def _record_options(state, args) -> None:
+    """A fresh run records its options in ``chunks/options.json``, so that a refused ``--resume``
+    can name the options that differ (after the checks: a refused run writes nothing)."""
+    from ..io import atomic_write_text
+
+    chunks = state.get("chunks") if isinstance(state, dict) else None
+    if chunks is None:
+        return
+    rec = Path(chunks) / "options.json"
+    if not args.resume or not rec.exists():
+        atomic_write_text(rec, json.dumps(_result_options(args), indent=1, sort_keys=True) + "\n")
+
+
+def _single_run_id() -> str:
+    """A single-process run is its own run: no other process shares its output."""
+    import platform
+    import time
+
+    return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
+
+
+def _options_differ(chunks, args) -> str:
+    """``'--seed 3 in the checkpoint vs --seed 4 now; ...'`` from ``chunks/options.json``; '' if unknown."""
+    try:
+        old = json.loads((Path(chunks) / "options.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    if not isinstance(old, dict):
+        return ""
+    new = _result_options(args)
+
+    def show(k, v):
+        flag = "--" + k.replace("_", "-")
+        if v is None or v is False:
+            return f"no {flag}"
+        if v is True:
+            return flag
+        return f"{flag} {' '.join(map(str, v)) if isinstance(v, list) else v}"
+
+    diffs = [f"{show(k, old.get(k))} in the checkpoint vs {show(k, new.get(k))} now"
+             for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+    return "; ".join(diffs)
+
+
 # ---------------------------------------------------------------------------------------------
 # compilation cache
 # ---------------------------------------------------------------------------------------------
@@ -381,7 +465,8 @@ def add_distributed_options(parser) -> None:
 
 
 #: Options that may differ between the processes of one run (everything else must be equal).
-_PER_PROCESS = {"coordinator", "num_processes", "process_id", "progress", "no_compile_cache", "func", "_argv"}
+_PER_PROCESS = {"coordinator", "num_processes", "process_id", "progress", "no_compile_cache", "func", "_argv",
+                "_run_id"}
 
 
 def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:
@@ -409,12 +494,52 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     options (except the three above and ``--progress``) must be equal in every process.
     """
     from ..distributed import run_shared, start
+    from ..errors import CheckpointError, DiskFullError, RunLockedError
 
     cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
                     getattr(args, "process_id", None))
-    if cluster is None:
-        return int(assemble(check(), False))
     options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
     options = json.loads(json.dumps(options, default=str))
-    return run_shared(cluster, check=check, compute=compute, assemble=lambda state: assemble(state, True),
-                      prepare=prepare, shared_dirs=shared_dirs or (lambda state: []), options=options)
+    if cluster is not None:
+        # the processes of one run share its output and chunk folder: one fingerprint for all of them
+        # (their coordinator; options that differ between them are refused with a message of their own)
+        import hashlib
+
+        where = getattr(args, "coordinator", None) or os.environ.get("SLURM_JOB_ID") or os.environ.get(
+            "OMPI_MCA_orte_hnp_uri", "")
+        args._run_id = hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
+    held = {}
+
+    def checked():
+        held["state"] = state = check()
+        return state
+
+    def prepared(state):
+        if prepare is not None:
+            prepare(state)
+        _record_options(state, args)
+
+    try:
+        if cluster is None:
+            state = checked()
+            _record_options(state, args)
+            return int(assemble(state, False))
+        return run_shared(cluster, check=checked, compute=compute, assemble=lambda state: assemble(state, True),
+                          prepare=prepared, shared_dirs=shared_dirs or (lambda state: []), options=options)
+    except DiskFullError as e:
+        chunks = (held.get("state") or {}).get("chunks") if isinstance(held.get("state"), dict) else None
+        if chunks is None or "--resume" in str(e):
+            raise
+        raise DiskFullError(e.errno, f"{e}; the finished chunks are kept in {str(chunks)!r}: once there is space, "
+                                     f"the same command with --resume continues", path=e.path) from None
+    except CheckpointError as e:
+        state = held.get("state")
+        why = _options_differ(state["chunks"], args) if isinstance(state, dict) and "chunks" in state else ""
+        if not why or isinstance(e, RunLockedError):
+            raise
+        raise CheckpointError(f"{e} (options that differ: {why})") from None
+    finally:
+        state = held.get("state")
+        lock = state.get("lock") if isinstance(state, dict) else None
+        if lock is not None:
+            lock.release()

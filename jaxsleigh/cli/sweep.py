@@ -22,7 +22,7 @@ import sys
 import time
 
 from .basin import _chunk_dir, _sidecar, _starts_from_args, _whole
-from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
+from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
                      check_outputs, compute_share, exit_code, finish_chunked, load_average, model_from_args,
                      run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
@@ -145,13 +145,10 @@ def _check(args) -> dict:
     out = npz_path(args.out)
     chunks, side = _chunk_dir(out), _sidecar(out)
     check_outputs(out, side, args.plot, folders=[chunks])
-    have = sorted(chunks.glob("chunk_*.npz")) if chunks.is_dir() else []
-    if have and not args.resume:
-        raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "
-                         f"add --resume (with the same options) to continue it, or delete that folder to start afresh")
+    lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
     return {"args": args, "axes": axes, "labels": labels, "plant": plant, "gains": gains, "starts": starts,
             "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": load_average(),
-            "t0": time.perf_counter()}
+            "t0": time.perf_counter(), "lock": lock}
 
 
 def _prepare(st: dict) -> None:

@@ -37,8 +37,41 @@ def tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor
            "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
            "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
     h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
-    h.update(np.ascontiguousarray(ics, np.float64).tobytes())
-    return h.hexdigest()
+    a = np.ascontiguousarray(ics, np.float64)
+    h.update(a.tobytes())
+    key = h.hexdigest()
+    # kept so that a checkpoint records its settings and a refusal can name those that differ
+    _SETTINGS[key] = json.loads(json.dumps({**doc, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]},
+                                           sort_keys=True, default=str))
+    return key
+
+
+#: fingerprint -> the settings it hashes (JSON), for `TunerCheckpoint`'s messages.
+_SETTINGS: dict = {}
+
+
+def _flat(d, prefix=""):
+    out = {}
+    for k, v in (d.items() if isinstance(d, dict) else []):
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _differences(old: dict, new: dict, limit: int = 6) -> str:
+    """``'config.steps 4 in the checkpoint vs 8 now; ...'``; '' when either side is unknown."""
+    if not old or not new:
+        return ""
+    a, b = _flat(old), _flat(new)
+    diffs = []
+    for k in sorted(set(a) | set(b)):
+        if a.get(k) != b.get(k):
+            diffs.append("other initial conditions" if k == "ics" else
+                         f"{k} {a.get(k, '(unset)')!r} in the checkpoint vs {b.get(k, '(unset)')!r} now")
+    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more
 
 
 class TunerCheckpoint:
@@ -57,7 +90,8 @@ class TunerCheckpoint:
     def save(self, it, trainable, opt_state, best, valid_points, rows, scalars: dict, probes) -> None:
         from ..io import atomic_write
 
-        arrays = {"key": np.array(self.key), "it": np.int64(it)}
+        arrays = {"key": np.array(self.key), "it": np.int64(it),
+                  "settings": np.array(json.dumps(_SETTINGS.get(self.key) or {}, sort_keys=True))}
         for k, v in scalars.items():
             arrays[f"scalar/{k}"] = np.float64(v)
 
@@ -93,8 +127,14 @@ class TunerCheckpoint:
             raise ValueError(f"tuner checkpoint {str(self.path)!r} is damaged ({type(e).__name__}: {e}); delete it "
                              "and start afresh (without --resume)") from None
         if str(a.get("key")) != self.key:
-            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings; rerun "
-                             "that command with --resume, or delete the checkpoint to start afresh")
+            try:
+                old = json.loads(str(a["settings"])) if "settings" in a else {}
+            except ValueError:
+                old = {}
+            why = _differences(old, _SETTINGS.get(self.key) or {})
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings"
+                             + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
+                             "or move the checkpoint (or choose another --out) to start afresh")
 
         def get(prefix, like):
             leaves, tdef = jax.tree_util.tree_flatten(like)
