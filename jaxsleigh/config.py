@@ -13,8 +13,8 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 
 from .engine import METHODS, Horizon, default_max_steps, make_horizon
-from .params import Gains, PlantParams, gains_to_dict
-from .validate import INT32_MAX, as_gains, as_plant, real, whole
+from .params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
+from .validate import INT32_MAX, real, whole
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict"]
 
@@ -74,9 +74,7 @@ class SolveConfig(NamedTuple):
 def plant_to_dict(plant: PlantParams) -> dict:
     """JSON-ready record; a leaf that varies per trajectory is recorded as ``{"per_trajectory": P,
     "min": .., "max": ..}`` (the values themselves go with the rows, see ``lane_table``)."""
-    from .lanes import _lane_record
-
-    num = (lambda v: float(v) if np.ndim(v) == 0 else _lane_record(v))  # noqa: E731
+    num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))  # noqa: E731
     d = plant.damping
     return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
             "damping": type(d).__name__, "damping_params": {k: num(v) for k, v in d._asdict().items()}

@@ -18,7 +18,8 @@ import numpy as np
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
 from .status import Status
 from .observers import DEFAULT_OBSERVERS
-from .stepper import Controls, StepState, init_batch, is_active, run_plain, run_saving, run_segment
+from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
+                      run_segment)
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
            "make_controls",
@@ -271,7 +272,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
     `jaxsleigh.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
     """
-    from .lanes import broadcast_lanes, has_lanes, init_batch_lanes, take_lanes
+    from .lanes import broadcast_lanes, has_lanes, take_lanes
 
     dtype = y0w.dtype
     n = y0w.shape[0]
@@ -330,7 +331,7 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
     leaves, as in `drive_final`."""
-    from .lanes import broadcast_lanes, has_lanes, init_batch_lanes
+    from .lanes import broadcast_lanes, has_lanes
 
     dtype = y0w.dtype
     ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)

@@ -13,8 +13,7 @@ This module holds the host-side helpers that make such "lanes" usable by every e
 * `broadcast_lanes` (every leaf to ``base_shape + (n,)``, the canonical form the engine
   runs) and `take_lanes` (gather lanes: chunking, padding, batch compaction);
 * `stack_plants` / `stack_gains` (lanes from lists of ordinary ``PlantParams`` /
-  ``Gains``) and `lane_table` (the per-row record of the parameters a run used);
-* `init_batch_lanes`: the stepper's initial carry with per-lane ``args``.
+  ``Gains``) and `lane_table` (the per-row record of the parameters a run used).
 
 The damping *family* (Coulomb, viscous, none, custom) is a Python class, a static choice: lanes
 of one run share the family and differ in its numbers.
@@ -31,10 +30,10 @@ import numpy as np
 
 from .closed_loop import ClosedLoop
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
-from .params import Gains, PlantParams
+from .params import Gains, PlantParams, as_gains, as_plant
 
 __all__ = ["lane_count", "check_lanes", "broadcast_lanes", "take_lanes", "has_lanes", "stack_plants",
-           "stack_gains", "lane_table", "lanes_digest", "init_batch_lanes", "DAMPING_FIELDS"]
+           "stack_gains", "lane_table", "lanes_digest", "DAMPING_FIELDS"]
 
 #: Number of axes of each leaf for one trajectory (a per-lane leaf has one more, last).
 _GAIN_NDIM = {"L": 1, "k": 0, "D_hat": 2}
@@ -129,8 +128,6 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     ``scale >= 0``, viscous ``c1, c2 >= 0``. ``flags`` maps leaf paths (``"plant.m"``,
     ``"gains.D_hat"``, ...) to names used in messages (e.g. ``"--param m=..."``).
     """
-    from .validate import as_gains, as_plant
-
     n = lane_count(plant, gains)
     if plant is None or (isinstance(plant, PlantParams) and lane_count(plant, None) is None):
         plant = as_plant(plant)
@@ -257,21 +254,3 @@ def lanes_digest(plant: PlantParams, gains: Gains) -> str:
         h.update(a.tobytes())
     h.update(type(plant.damping).__name__.encode())
     return h.hexdigest()
-
-
-def _lane_record(leaf) -> Any:
-    """JSON-ready record of one leaf: the number, or a summary when it varies per lane."""
-    a = np.asarray(leaf, np.float64)
-    return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
-
-
-@functools.partial(jax.jit, static_argnames=("observers",))
-def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl, observers=None):
-    """`init_batch` with canonical per-lane ``args`` (every leaf's last axis
-    is the batch): the result is batch-last."""
-    from .observers import DEFAULT_OBSERVERS
-    from .stepper import init_state
-
-    init = functools.partial(init_state, observers=DEFAULT_OBSERVERS if observers is None else observers)
-    axes = jax.tree_util.tree_map(lambda _: -1, args)
-    return jax.vmap(init, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)

@@ -44,7 +44,7 @@ from .observers import DEFAULT_OBSERVERS, StepInfo, q_norm2_w  # noqa: F401  (q_
 from .rk4 import rk4_stages, rk4_step
 from .status import Status
 
-__all__ = ["Controls", "StepState", "init_state", "init_batch", "is_active", "attempt", "run_segment", "run_to",
+__all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment", "run_to",
            "run_saving", "run_plain", "q_norm2_w"]
 
 # A step that would overshoot the next save time by less than this fraction is stretched onto it,
@@ -257,6 +257,15 @@ def init_batch(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
     """`init_state` for a batch ``y0w`` of shape (N, 5); the result is batch-last."""
     init = functools.partial(init_state, observers=observers)
     return jax.vmap(init, in_axes=(0, 0, None, None, None), out_axes=-1)(y0w, status0, args, ctl, t0)
+
+
+@functools.partial(jax.jit, static_argnames=("observers",))
+def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl: Controls, observers=None) -> StepState:
+    """`init_batch` with canonical per-lane ``args`` (every leaf's last axis is the
+    batch, `jaxsleigh.lanes.broadcast_lanes`): the result is batch-last."""
+    init = functools.partial(init_state, observers=DEFAULT_OBSERVERS if observers is None else observers)
+    axes = jax.tree_util.tree_map(lambda _: -1, args)
+    return jax.vmap(init, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)
 
 
 def _batched_attempt(adaptive: bool, monitor: bool = True, observers=DEFAULT_OBSERVERS):
