@@ -12,6 +12,7 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
+from .controller import as_controller, controller_record
 from .engine import METHODS, Horizon, default_max_steps, make_horizon
 from .params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from .validate import INT32_MAX, real, whole
@@ -45,6 +46,13 @@ class SolveConfig(NamedTuple):
     check_passivity: bool
     #: number of per-trajectory parameter lanes (``None``: one plant and one set of gains)
     lanes: Optional[int] = None
+    #: a feedback law other than the paper's (`jaxsleigh.controller`); ``None``: the paper's law with ``gains``
+    controller: Any = None
+
+    @property
+    def law(self):
+        """The controller the engine runs: ``controller``, or the paper's law with ``gains``."""
+        return self.gains if self.controller is None else self.controller
 
     @property
     def adaptive(self) -> bool:
@@ -58,11 +66,14 @@ class SolveConfig(NamedTuple):
     def settings(self) -> dict:
         """JSON-ready record of the configuration (written into every result file)."""
         out = {
-            "plant": plant_to_dict(self.plant), "gains": gains_to_dict(self.gains),
+            "plant": plant_to_dict(self.plant),
+            "gains": gains_to_dict(self.gains) if self.controller is None else None,
             "t_final": self.horizon.t_final, "dt": self.horizon.dt, "eps": self.eps, "method": self.method,
             "rtol": self.rtol, "atol": self.atol, "max_step": self.max_step, "max_steps": self.max_steps,
             "dtype": self.dtype, "check_passivity": self.check_passivity,
         }
+        if self.controller is not None:
+            out["controller"] = controller_record(self.controller)
         if self.lanes is not None:
             from .lanes import lanes_digest
 
@@ -88,12 +99,13 @@ def _flag(name: str, flags: Optional[dict]) -> str:
 def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, dt: Any = 0.01,
                  save_every: Any = None, method: str = "adaptive", rtol: Any = None, atol: Any = None,
                  max_step: Any = None, max_steps: Any = None, x64: Any = False, eps: Any = 0.05,
-                 check_passivity: Any = True, flags: Optional[dict] = None) -> SolveConfig:
+                 check_passivity: Any = True, controller: Any = None, flags: Optional[dict] = None) -> SolveConfig:
     """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
 
     Args mean the same as in `jaxsleigh.simulate`. ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
-    `PlantParams` (both re-validated). ``flags`` maps keyword names to the command-line
+    `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
+    (`jaxsleigh.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
     flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
     """
     f = lambda n: _flag(n, flags)  # noqa: E731
@@ -108,7 +120,18 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
             raise ValueError(f"{f(name)} must be True or False, got {v!r}")
     from .lanes import check_lanes, lane_count
 
+    if controller is not None:
+        if gains is not None:
+            raise ValueError(f"give either {f('gains')} (the paper's law) or {f('controller')} (any law u = law(q, v)), "
+                             "not both")
+        if isinstance(controller, Gains):
+            gains, controller = controller, None
+        else:
+            controller = as_controller(controller, f("controller"))
     lanes = lane_count(plant, gains)
+    if controller is not None and lanes is not None:
+        raise ValueError(f"per-trajectory plant parameters run under the paper's law only; with a custom "
+                         f"{f('controller')}, run one plant at a time")
     if lanes is None:
         plant = as_plant(plant)
         gains = as_gains(gains)
@@ -135,5 +158,7 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
             raise ValueError(f"{f('max_steps')} {max_steps} is below the {horizon.n_steps} base steps of the "
                              f"horizon (t_final / dt) that fixed-step RK4 takes; raise it to at least "
                              f"{horizon.n_steps}")
+    if controller is not None:
+        gains = None
     return SolveConfig(plant, gains, horizon, method, rtol, atol, max_step, max_steps, eps, x64,
-                       bool(check_passivity), lanes)
+                       bool(check_passivity), lanes, controller)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
+from .charts import chart_for
 from .status import Status
 from .observers import DEFAULT_OBSERVERS
 from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
@@ -132,7 +133,7 @@ def _w_check(ics, args):
     return jax.vmap(one)(ics)
 
 
-def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.ndarray, np.ndarray]:
+def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Validate initial conditions; returns ``(ics (N, 5) float64, status0 (N,) int32)``.
 
     ``ics`` is ``(3,)``/``(5,)`` for one start or ``(N, 3)``/``(N, 5)`` for many: ``(x, y, theta)``
@@ -140,7 +141,8 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     (status ``SINGULAR_START``), with non-finite entries (``INVALID_INPUT``) or, with ``dtype``
     given, so close to it that they overflow that precision (``OUT_OF_RANGE``) are flagged, not
     integrated, and named in one `FlaggedStartsWarning`; the other rows
-    are computed. A single start that is bad, or a batch whose every row is, raises ``ValueError``
+    are computed. ``singular=False`` (a law without the singular set, integrated in the physical
+    chart) flags non-finite rows only. A single start that is bad, or a batch whose every row is, raises ``ValueError``
     with a message that says what to change.
     """
     from .errors import FlaggedStartsWarning
@@ -163,8 +165,9 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     status = np.zeros(arr.shape[0], np.int32)
     finite = np.all(np.isfinite(arr), axis=1)
     status[~finite] = Status.INVALID_INPUT
-    status[finite & (arr[:, 2] == 0.0)] = Status.SINGULAR_START
-    if dtype is not None:
+    if singular:
+        status[finite & (arr[:, 2] == 0.0)] = Status.SINGULAR_START
+    if dtype is not None and singular:
         cand = np.flatnonzero(status == Status.OK)
         rep = _representable(arr[cand], dtype)
         status[cand[~rep]] = Status.OUT_OF_RANGE
@@ -187,10 +190,13 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     return arr, status
 
 
-def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype) -> jax.Array:
-    """Map validated physical starts to the w chart, in float64 then cast to ``dtype``. Rows whose
-    ``status0`` is not OK get a harmless placeholder (they are never stepped)."""
+def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.Array:
+    """Map validated physical starts to the w chart (or to ``chart``, `jaxsleigh.charts`), in float64
+    then cast to ``dtype``. Rows whose ``status0`` is not OK get a harmless placeholder (they are never
+    stepped)."""
     safe = np.where(status0[:, None] == 0, ics5, np.array([1.0, 0.0, 1.0, 0.0, 0.0]))
+    if chart is not None and not chart.singular:
+        return jnp.asarray(chart.to_chart(safe), dtype)
     with jax.enable_x64(True):
         yw = np.asarray(jax.vmap(state_to_w)(jnp.asarray(safe, jnp.float64)))
     if np.any(~np.isfinite(yw[status0 == 0])):
@@ -468,7 +474,8 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     ok = status == Status.OK
     finite = np.all(np.isfinite(y), axis=1)
     status[ok & ~finite] = Status.NONFINITE
-    status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
+    if chart_for(args.controller).singular:
+        status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
     return y, status
 
 

@@ -10,10 +10,11 @@ An observer is a frozen dataclass (hashable: it is a static argument of the jitt
 
 * ``fields``: the names of its results;
 * ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``;
-* ``init(t0, y, u, ctl)`` -> tuple of arrays (its state at the start);
+* ``init(t0, y, u, ctl, chart)`` -> tuple of arrays (its state at the start; ``chart``, from
+  `jaxsleigh.charts`, gives \\(|q|^2\\) and \\(|\\theta|\\) of a state in the chart it is integrated in);
 * ``update(state, step, ctl)`` -> state after an attempted step; ``step`` is a `StepInfo`
   (``acc``: the mask of trajectories whose step was accepted; the state, its derivative and the
-  control before and after; the step's start time and size, for the step's dense output);
+  control before and after; the step's start time and size, for the step's dense output; the chart);
 * ``integrand(y, u)`` -> tuple of ``n_quad`` arrays;
 * ``results(state, quad)`` -> dict of host NumPy arrays (batch axis first).
 
@@ -31,17 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .coordinates import f_w_inv
-
 __all__ = ["StepInfo", "hermite", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
-           "observer_fields", "collect", "q_norm2_w"]
-
-
-def q_norm2_w(w):
-    """\\(|q|^2\\) from ``w`` without trigonometry: \\(f_z\\) only rotates (x, y), so
-    \\(|q| = |z| = |f_w^{-1}(w)|\\)."""
-    z = f_w_inv(w)
-    return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
+           "observer_fields", "collect"]
 
 
 class StepInfo(NamedTuple):
@@ -56,6 +48,7 @@ class StepInfo(NamedTuple):
     k5: jax.Array         # (5,) f(t + h, y_new); None without FSAL
     u_new: tuple          # control (u1, u2) at y_new; None if no observer needs it
     acc: jax.Array        # bool: the step was accepted
+    chart: object = None  # the chart of the state (jaxsleigh.charts): |q|^2 and |theta| of a state
 
 
 def hermite(step: StepInfo, theta, rows=slice(0, 3)):
@@ -92,21 +85,22 @@ class ConvergenceTime:
     needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = True
 
-    def init(self, t0, y, u, ctl):
-        inside = q_norm2_w(y[:3]) <= ctl.eps * ctl.eps
+    def init(self, t0, y, u, ctl, chart):
+        inside = chart.q_norm2(y) <= ctl.eps * ctl.eps
         return (jnp.where(inside, t0, jnp.inf).astype(y.dtype),)
 
     def update(self, state, step, ctl):
         (t_enter,) = state
         dtype = t_enter.dtype
         eps2 = ctl.eps * ctl.eps
-        outside = lambda th: q_norm2_w(hermite(step, th)) > eps2  # noqa: E731
-        inside_end = q_norm2_w(step.y_new[:3]) <= eps2
+        q_norm2 = step.chart.q_norm2
+        outside = lambda th: q_norm2(hermite(step, th)) > eps2  # noqa: E731
+        inside_end = q_norm2(step.y_new) <= eps2
         # the last sample point (theta = j / samples, j < samples) outside the ball; -1 if none
         last_out = jnp.full(inside_end.shape, -1, jnp.int32)
         for j in range(self.samples):
             th = jnp.asarray(j / self.samples, dtype)
-            out_j = (q_norm2_w(step.y[:3]) > eps2) if j == 0 else outside(th)
+            out_j = (q_norm2(step.y) > eps2) if j == 0 else outside(th)
             last_out = jnp.where(out_j, j, last_out)
         # bisect between that point (outside) and the next one (inside, or the end) for the entry
         lo = last_out.astype(dtype) / self.samples
@@ -140,11 +134,11 @@ class ClosestApproach:
     needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = False
 
-    def init(self, t0, y, u, ctl):
-        return (jnp.abs(y[0]),)
+    def init(self, t0, y, u, ctl, chart):
+        return (chart.abs_theta(y),)
 
     def update(self, state, step, ctl):
-        return (jnp.where(step.acc, jnp.minimum(state[0], jnp.abs(step.y_new[0])), state[0]),)
+        return (jnp.where(step.acc, jnp.minimum(state[0], step.chart.abs_theta(step.y_new)), state[0]),)
 
     def integrand(self, y, u):
         return ()
@@ -162,11 +156,11 @@ class Excursion:
     needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = False
 
-    def init(self, t0, y, u, ctl):
-        return (q_norm2_w(y[:3]),)
+    def init(self, t0, y, u, ctl, chart):
+        return (chart.q_norm2(y),)
 
     def update(self, state, step, ctl):
-        return (jnp.where(step.acc, jnp.maximum(state[0], q_norm2_w(step.y_new[:3])), state[0]),)
+        return (jnp.where(step.acc, jnp.maximum(state[0], step.chart.q_norm2(step.y_new)), state[0]),)
 
     def integrand(self, y, u):
         return ()
@@ -191,11 +185,11 @@ class ControlEffort:
     needs_control: ClassVar[bool] = True
     needs_dense: ClassVar[bool] = False
 
-    def init(self, t0, y, u, ctl):
+    def init(self, t0, y, u, ctl, chart):
         return (jnp.abs(u[0]), jnp.abs(u[1]), jnp.sqrt(u[0] * u[0] + u[1] * u[1]))
 
     def update(self, state, step, ctl):
-        new = self.init(step.t_new, step.y_new, step.u_new, ctl)
+        new = self.init(step.t_new, step.y_new, step.u_new, ctl, step.chart)
         return tuple(jnp.where(step.acc, jnp.maximum(a, b), a) for a, b in zip(state, new))
 
     def integrand(self, y, u):

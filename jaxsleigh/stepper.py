@@ -39,8 +39,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, vector_field_w, vector_field_w_control
-from .observers import DEFAULT_OBSERVERS, StepInfo, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
+from .charts import chart_for, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
+from .closed_loop import ClosedLoop
+from .observers import DEFAULT_OBSERVERS, StepInfo
 from .rk4 import rk4_stages, rk4_step
 from .status import Status
 
@@ -105,19 +106,20 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
     ``observers`` (`jaxsleigh.observers`) are the on-line summaries carried along.
     """
     dtype = y0w.dtype
+    chart = chart_for(args.controller)
     ok = status0 == Status.OK
     # keep an invalid lane's arithmetic finite: it idles, but it is still computed with the batch
     y0w = jnp.where(ok, y0w, jnp.array([1.0, 0.0, 0.0, 0.0, 0.0], dtype))
     t0 = jnp.asarray(t0, dtype)
-    k1, u0 = vector_field_w_control(t0, y0w, args)
+    k1, u0 = chart.field_and_control(t0, y0w, args)
     g1 = _integrands(observers, y0w, u0, dtype)
     return StepState(
         t=t0, t_lo=jnp.zeros((), dtype), y=y0w,
         k1=k1, h=jnp.asarray(ctl.dt, dtype),
         status=jnp.asarray(status0, jnp.int32),
         n_accept=jnp.zeros((), jnp.int32), n_reject=jnp.zeros((), jnp.int32),
-        Hd=closed_loop_hamiltonian_w(y0w, args),
-        obs=tuple(o.init(t0, y0w, u0, ctl) for o in observers),
+        Hd=chart.energy(y0w, args),
+        obs=tuple(o.init(t0, y0w, u0, ctl, chart) for o in observers),
         quad=jnp.zeros_like(g1), g1=g1,
     )
 
@@ -125,7 +127,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
 def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
     """Classical RK4 from ``k1`` (as `rk4_stages`) that also integrates the
     observers' integrands over the same stages: returns ``(dy, k4, dq)``."""
-    f = vector_field_w_control
+    f = chart_for(args.controller).field_and_control
     y2 = y + (0.5 * h) * k1
     k2, u2 = f(t + 0.5 * h, y2, args)
     y3 = y + (0.5 * h) * k2
@@ -166,7 +168,8 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
 
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
     trailing batch axis, so it also steps a batch-last batch (``y`` (5, N), scalars (N,))."""
-    f = vector_field_w
+    chart = chart_for(args.controller)
+    f = chart.field
     dtype = s.y.dtype
     target = jnp.asarray(target, dtype)
     active = is_active(s, target, ctl)
@@ -188,17 +191,17 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         dq = s.quad
     y_new = s.y + dy
     if fsal:
-        k5, u_new = vector_field_w_control(s.t + h, y_new, args)
+        k5, u_new = chart.field_and_control(s.t + h, y_new, args)
         finite = _all_finite(y_new, k5) if adaptive else _all_finite(y_new)
     else:
         k5, u_new = s.k1, None
         finite = _all_finite(y_new)
-    crossed = jnp.sign(y_new[0]) != jnp.sign(s.y[0])
+    crossed = chart.crossed(s.y, y_new)
     # Passivity monitor: the exact flow never increases H_d (eq. 18); a step that does (beyond
     # rounding and a 1e-6 relative slack) is wrong, typically unstable RK4 near theta = 0.
-    Hd_new = closed_loop_hamiltonian_w(y_new, args)
+    Hd_new = chart.energy(y_new, args)
     rose = Hd_new > s.Hd * (1.0 + 1e-6 + 64.0 * jnp.finfo(dtype).eps)
-    if not monitor:
+    if not (monitor and chart.has_energy):
         rose = jnp.zeros_like(rose)
     status = s.status
     if adaptive:
@@ -232,7 +235,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     t_new = jnp.where(hit, target, t_hi)
     t_lo_new = jnp.where(hit, jnp.zeros_like(s.t_lo), s.t_lo + t_err)
     info = StepInfo(t=s.t, h=h, t_new=t_new + t_lo_new, y=s.y, y_new=y_new, k1=k1, k5=k5 if fsal else None,
-                    u_new=u_new, acc=acc)
+                    u_new=u_new, acc=acc, chart=chart)
     if s.quad.shape[0]:
         g_new = _integrands(observers, y_new, u_new, dtype)
         quad, g1 = jnp.where(acc, s.quad + dq, s.quad), jnp.where(acc, g_new, s.g1)
@@ -329,7 +332,7 @@ def _plain_scan(y, args: ClosedLoop, dt, n_steps: int, unroll: int = 1):
     """``n_steps`` classical RK4 steps of a batch-last state ``y`` (5, B), all lanes at once."""
 
     def body(c, _):
-        return rk4_step(vector_field_w, 0.0, c, dt, args), None
+        return rk4_step(chart_for(args.controller).field, 0.0, c, dt, args), None
 
     return jax.lax.scan(body, y, None, length=n_steps, unroll=unroll)[0]
 
