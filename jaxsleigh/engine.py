@@ -221,10 +221,15 @@ def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observer
     return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
 
 
-def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None) -> Controls:
+def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
+                  factor_min=0.1, factor_max=5.0) -> Controls:
+    """The stepper's traced numbers for a run (`jaxsleigh.stepper.Controls`; the policy's
+    ``safety``, ``factor_min``, ``factor_max`` as in `jaxsleigh.stepsize.StepSizeController`)."""
     max_step = horizon.dt if max_step is None else max_step
     return Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
-                    max_steps=jnp.asarray(max_steps, jnp.int32))
+                    max_steps=jnp.asarray(max_steps, jnp.int32),
+                    **{k: jnp.asarray(v, dtype) for k, v in (("safety", safety), ("factor_min", factor_min),
+                                                             ("factor_max", factor_max))})
 
 
 def shard_batch(tree, mesh):

@@ -44,6 +44,7 @@ from .closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, StepInfo
 from .rk4 import rk4_stages, rk4_step
 from .status import Status
+from .stepsize import error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment", "run_to",
            "run_saving", "run_plain", "q_norm2_w"]
@@ -62,6 +63,7 @@ class Controls(NamedTuple):
       rtol, atol: tolerances of the adaptive error control (unused by fixed RK4).
       eps: radius of the convergence ball ``|q| <= eps`` for the on-line ``T_eps``.
       max_steps: budget of attempted steps per trajectory.
+      safety, factor_min, factor_max: the step-size policy (`jaxsleigh.stepsize`).
     """
 
     dt: jax.Array
@@ -70,6 +72,9 @@ class Controls(NamedTuple):
     atol: jax.Array
     eps: jax.Array
     max_steps: jax.Array
+    safety: jax.Array = 0.9
+    factor_min: jax.Array = 0.1
+    factor_max: jax.Array = 5.0
 
 
 class StepState(NamedTuple):
@@ -205,17 +210,12 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         rose = jnp.zeros_like(rose)
     status = s.status
     if adaptive:
-        # Rounding floor: k4 - k5 cannot be resolved better than a few ulps of |k|, so asking
-        # for more would reject forever in float32 when |w| is huge (starts near theta = 0).
-        noise = 16.0 * jnp.finfo(dtype).eps * jnp.abs(h) * jnp.maximum(jnp.abs(k4), jnp.abs(k5))
-        scale = ctl.atol + ctl.rtol * jnp.maximum(jnp.abs(s.y), jnp.abs(y_new)) + noise
-        err = jnp.max(jnp.abs((h / 6.0) * (k4 - k5)) / scale, axis=0)
+        # the error measure and the step-size policy: jaxsleigh.stepsize
+        err = error_ratio(h, s.y, y_new, k4, k5, ctl)
         good = finite & ~crossed & ~rose
         err = jnp.where(good, err, jnp.inf)
         ok = good & (err <= 1.0)
-        # the error estimate is O(h^4); the controller's choice is not differentiated
-        fac = jax.lax.stop_gradient(jnp.clip(0.9 * jax.lax.rsqrt(jnp.sqrt(err)), 0.1, 5.0))
-        h_next = h * fac
+        h_next = next_step(h, err, ctl)
         h_next = jnp.where(ok & hit, jnp.maximum(h_next, s.h), h_next)
         h_next = jnp.minimum(h_next, ctl.max_step)
         # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
