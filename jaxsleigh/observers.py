@@ -16,6 +16,7 @@ An observer is a frozen dataclass (hashable: it is a static argument of the jitt
   (``acc``: the mask of trajectories whose step was accepted; the state, its derivative and the
   control before and after; the step's start time and size, for the step's dense output; the chart);
 * ``integrand(y, u)`` -> tuple of ``n_quad`` arrays;
+* ``values(state, quad)`` -> dict of JAX arrays (traced: what `jaxsleigh.solve` returns and differentiates);
 * ``results(state, quad)`` -> dict of host NumPy arrays (batch axis first).
 
 Every array broadcasts over a trailing batch axis (``y`` is (5,) or (5, N)). The built-ins:
@@ -33,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["StepInfo", "hermite", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
-           "observer_fields", "collect"]
+           "observer_fields", "collect", "collect_values"]
 
 
 class StepInfo(NamedTuple):
@@ -121,6 +122,9 @@ class ConvergenceTime:
     def integrand(self, y, u):
         return ()
 
+    def values(self, state, quad):
+        return {"T_eps": state[0]}
+
     def results(self, state, quad):
         return {"T_eps": _np(state[0])}
 
@@ -143,6 +147,9 @@ class ClosestApproach:
     def integrand(self, y, u):
         return ()
 
+    def values(self, state, quad):
+        return {"min_abs_theta": state[0]}
+
     def results(self, state, quad):
         return {"min_abs_theta": _np(state[0])}
 
@@ -164,6 +171,9 @@ class Excursion:
 
     def integrand(self, y, u):
         return ()
+
+    def values(self, state, quad):
+        return {"max_excursion": jnp.sqrt(state[0])}
 
     def results(self, state, quad):
         return {"max_excursion": np.sqrt(_np(state[0]))}
@@ -196,6 +206,10 @@ class ControlEffort:
         e = u[0] * u[0] + u[1] * u[1]
         return (e, jnp.sqrt(e))
 
+    def values(self, state, quad):
+        return {"u_peak": jnp.stack([state[0], state[1]], axis=-1), "u_norm_peak": state[2],
+                "u_energy": quad[0], "u_abs_int": quad[1]}
+
     def results(self, state, quad):
         return {"u_peak": np.stack([_np(state[0]), _np(state[1])], axis=-1), "u_norm_peak": _np(state[2]),
                 "u_energy": _np(quad[0]), "u_abs_int": _np(quad[1])}
@@ -208,6 +222,15 @@ DEFAULT_OBSERVERS = (ConvergenceTime(), ClosestApproach(), Excursion(), ControlE
 def observer_fields(observers) -> tuple:
     """The result names of ``observers``, in order."""
     return tuple(f for o in observers for f in o.fields)
+
+
+def collect_values(observers, obs_state, quad) -> dict:
+    """Traced results of every observer of one trajectory (`jaxsleigh.solve`)."""
+    out, row = {}, 0
+    for o, st in zip(observers, obs_state):
+        out.update(o.values(st, tuple(quad[row + i] for i in range(o.n_quad))))
+        row += o.n_quad
+    return out
 
 
 def collect(observers, obs_state, quad) -> dict:
