@@ -13,21 +13,13 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 
 from .controller import as_controller, controller_record
+from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
 from .engine import METHODS, Horizon, default_max_steps, make_horizon
 from .params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from .validate import INT32_MAX, real, whole
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict"]
 
-#: Tolerances of the adaptive method, per dtype (chosen from measured accuracy, see the docs).
-DEFAULT_RTOL = {"float32": 1e-6, "float64": 1e-8}
-DEFAULT_ATOL = {"float32": 1e-6, "float64": 1e-8}
-#: Largest adaptive step, in base steps (1 s at dt = 0.01). Since T_eps is located on the step's
-#: dense output (jaxsleigh.observers.ConvergenceTime), the cap no longer sets T_eps's resolution and
-#: the error control decides the step: on the benchmark workload (experiments/adaptive_steps.py)
-#: 1,076 steps per 100 s on average against 1,363 with the 0.1 release's cap of 10 dt, T_eps within
-#: 2.1e-4 s of a float64 reference.
-MAX_STEP_FACTOR = 100
 
 
 class SolveConfig(NamedTuple):

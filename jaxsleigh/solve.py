@@ -26,12 +26,11 @@ import jax.numpy as jnp
 
 from .charts import chart_for
 from .closed_loop import ClosedLoop
-from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
 from .observers import DEFAULT_OBSERVERS, collect_values
 from .params import paper_plant
 from .status import Status
 from .stepper import Controls, init_state, run_segment
-from .stepsize import StepSizeController
+from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, StepSizeController
 
 __all__ = ["solve", "SolveOutput"]
 
