@@ -14,7 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent / "golden"))
 from make_golden import golden_runs  # noqa: E402
 
-GOLDEN = np.load(Path(__file__).parent / "golden" / "golden.npz")
+GOLDEN = np.load(Path(__file__).parent / "data" / "golden.npz")
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """Golden outputs: a handful of runs whose numbers must not change when the code is reorganised.
 
-``python tests/golden/make_golden.py`` writes ``tests/golden/golden.npz`` (small: a few hundred
+``python tests/golden/make_golden.py`` writes ``tests/data/golden.npz`` (small: a few hundred
 numbers per run). ``tests/test_golden.py`` reruns the same calls and compares every array: integer
 fields (status, step counts) exactly, floating-point fields to within a few ulps of float64 or float32.
 Regenerate only for a documented change of arithmetic, and say so in the commit.
@@ -58,8 +58,8 @@ def golden_runs() -> dict:
 def main() -> int:
     runs = golden_runs()
     arrays = {f"{run}/{field}": np.asarray(v) for run, fields in runs.items() for field, v in fields.items()}
-    np.savez_compressed(HERE / "golden.npz", **arrays)
-    print(f"wrote {HERE / 'golden.npz'}: {len(arrays)} arrays from {len(runs)} runs")
+    np.savez_compressed(HERE.parent / "data" / "golden.npz", **arrays)
+    print(f"wrote {HERE.parent / 'data' / 'golden.npz'}: {len(arrays)} arrays from {len(runs)} runs")
     return 0
 
 
