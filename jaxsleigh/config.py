@@ -120,15 +120,15 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
             gains, controller = controller, None
         else:
             controller = as_controller(controller, f("controller"))
-    lanes = lane_count(plant, gains)
-    if controller is not None and lanes is not None:
-        raise ValueError(f"per-trajectory plant parameters run under the paper's law only; with a custom "
-                         f"{f('controller')}, run one plant at a time")
+    lanes = lane_count(plant, gains if controller is None else controller)
     if lanes is None:
         plant = as_plant(plant)
-        gains = as_gains(gains)
-    else:                                      # per-trajectory leaves: every lane checked at once
+        if controller is None:
+            gains = as_gains(gains)
+    elif controller is None:                   # per-trajectory leaves: every lane checked at once
         plant, gains = check_lanes(plant, gains, flags=flags)
+    else:
+        plant, controller = check_lanes(plant, controller, flags=flags)
     t_final = real(f("t_final"), t_final, positive=True, example=100, maximum=1e30)
     dt = real(f("dt"), dt, positive=True, example=0.01)
     if save_every is not None:

@@ -41,7 +41,7 @@ import numpy as np
 
 from .params import Gains
 
-__all__ = ["FunctionLaw", "as_controller", "apply_law", "is_paper_law", "controller_record"]
+__all__ = ["FunctionLaw", "PerTrajectory", "as_controller", "apply_law", "is_paper_law", "controller_record"]
 
 
 @jax.tree_util.register_pytree_node_class
@@ -65,6 +65,32 @@ class FunctionLaw:
         return f"FunctionLaw({getattr(self.fn, '__qualname__', repr(self.fn))})"
 
 
+@jax.tree_util.register_pytree_node_class
+class PerTrajectory:
+    """A law whose every numeric leaf carries a trailing per-trajectory axis (size N, or 1 for all).
+
+    ``PerTrajectory(PD(kp=np.array([1.0, 2.0, 4.0]), kd=np.full(3, 2.0)))`` runs three trajectories with
+    three gains, as one compiled batch (the law, written for one trajectory, is vmapped over the lanes);
+    sweeps build these. A law's call on one trajectory's slice is the wrapped law's call.
+    """
+
+    def __init__(self, law):
+        self.law = law
+
+    def __call__(self, q, v):
+        return self.law(q, v)
+
+    def tree_flatten(self):
+        return (self.law,), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(children[0])
+
+    def __repr__(self):
+        return f"PerTrajectory({self.law!r})"
+
+
 def is_paper_law(controller) -> bool:
     """True for the paper's law (`jaxsleigh.Gains`), integrated in the w chart."""
     return isinstance(controller, Gains)
@@ -76,6 +102,8 @@ def apply_law(law, q, v):
     q, v = jnp.asarray(q), jnp.asarray(v)
     if q.ndim == 1:
         u = jnp.asarray(law(q, v))
+    elif isinstance(law, PerTrajectory):        # one law per lane: vmap the law's leaves with the batch
+        u = jax.vmap(lambda c, qi, vi: jnp.asarray(c(qi, vi)), in_axes=(-1, 1, 1), out_axes=1)(law.law, q, v)
     else:
         u = jax.vmap(lambda qi, vi: jnp.asarray(law(qi, vi)), in_axes=(1, 1), out_axes=1)(q, v)
     return u[0].astype(q.dtype), u[1].astype(q.dtype)
@@ -99,6 +127,16 @@ def as_controller(law: Any, name: str = "controller"):
     ``ValueError`` saying what is wrong.
     """
     if isinstance(law, Gains):
+        return law
+    if isinstance(law, PerTrajectory):
+        leaves = jax.tree_util.tree_leaves(law.law)
+        if any(np.ndim(x) < 1 for x in leaves):
+            raise ValueError(f"every leaf of a PerTrajectory {name} needs a trailing per-trajectory axis, got shapes "
+                             f"{[np.shape(x) for x in leaves]}")
+        bad = [x for x in leaves if not np.all(np.isfinite(np.asarray(x, np.float64)))]
+        if bad:
+            raise ValueError(f"the per-trajectory parameters of the {name} must be finite, got {bad[0]!r}")
+        as_controller(jax.tree_util.tree_map(lambda x: np.asarray(x)[..., 0], law.law), name)
         return law
     if not callable(law):
         raise ValueError(f"{name} must be a feedback law u = law(q, v) (a callable pytree, e.g. a NamedTuple "
@@ -132,6 +170,23 @@ def as_controller(law: Any, name: str = "controller"):
 
 def controller_record(law) -> dict:
     """JSON-ready record of a law that is not the paper's: its type and its numeric leaves."""
-    leaves, _ = jax.tree_util.tree_flatten_with_path(law)
-    params = {jax.tree_util.keystr(path) or "value": np.asarray(x, np.float64).tolist() for path, x in leaves}
-    return {"type": type(law).__qualname__ if not isinstance(law, FunctionLaw) else repr(law), "params": params}
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    leaves, _ = jax.tree_util.tree_flatten_with_path(inner)
+
+    def rec(x):
+        a = np.asarray(x, np.float64)
+        if isinstance(law, PerTrajectory):
+            return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
+        return a.tolist()
+
+    params = {jax.tree_util.keystr(path) or "value": rec(x) for path, x in leaves}
+    kind = repr(inner) if isinstance(inner, FunctionLaw) else type(inner).__qualname__
+    return {"type": kind, "params": params}
+
+
+def law_leaf_names(law) -> dict:
+    """``{name: leaf}`` of a law's numeric leaves, named by their path without the leading dot (``kp``,
+    ``gains[0]``): the names sweeps and lane tables use."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    leaves, _ = jax.tree_util.tree_flatten_with_path(inner)
+    return {jax.tree_util.keystr(p).lstrip(".") or "value": x for p, x in leaves}

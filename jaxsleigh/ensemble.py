@@ -262,7 +262,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         if not summaries:
             raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
                              "per-trajectory parameters need summaries=True")
-        lane_args = ClosedLoop(*broadcast_lanes(plant, gains, ics5.shape[0]))
+        lane_args = ClosedLoop(*broadcast_lanes(plant, cfg.law, ics5.shape[0]))
     rtol, atol, max_step, max_steps = cfg.rtol, cfg.atol, cfg.max_step, cfg.max_steps
     mesh = batch_mesh(devices)
     n_dev = 1 if mesh is None else mesh.size

@@ -30,6 +30,7 @@ import numpy as np
 
 from .closed_loop import ClosedLoop
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
+from .controller import PerTrajectory, as_controller, is_paper_law, law_leaf_names
 from .params import Gains, PlantParams, as_gains, as_plant
 
 __all__ = ["lane_count", "check_lanes", "broadcast_lanes", "take_lanes", "has_lanes", "stack_plants",
@@ -78,13 +79,18 @@ def lane_count(plant: Any, gains: Any) -> Optional[int]:
     """
     p = plant if isinstance(plant, PlantParams) else PlantParams()
     g = gains if isinstance(gains, Gains) else Gains(np.ones(3), 1.0, np.eye(2))
+    law_sizes = {}
+    if isinstance(gains, PerTrajectory):          # a user's law with a lane axis on every leaf
+        law_sizes = {f"controller.{k}": int(np.shape(v)[-1]) for k, v in law_leaf_names(gains).items()}
     if isinstance(p.damping, str):
         p = p._replace(damping=damping_from_name(p.damping))
-    sizes = {}
+    sizes = dict(law_sizes)
     for path, leaf, base in _named_leaves(p, g):
         s = _lane_size(path, leaf, base)
         if s is not None:
             sizes[path] = s
+    if isinstance(gains, PerTrajectory) and not sizes:
+        return 1                                   # a PerTrajectory law without leaves: one lane for all
     big = {k: v for k, v in sizes.items() if v != 1}
     if len(set(big.values())) > 1:
         detail = ", ".join(f"{k} {v}" for k, v in big.items())
@@ -131,6 +137,9 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     n = lane_count(plant, gains)
     if plant is None or (isinstance(plant, PlantParams) and lane_count(plant, None) is None):
         plant = as_plant(plant)
+    law = None
+    if gains is not None and not isinstance(gains, (Gains, str, dict)) and callable(gains):
+        law, gains = as_controller(gains), None    # a user's law: checked as a controller, plant per lane
     if not isinstance(gains, Gains) or lane_count(None, gains) is None:
         gains = as_gains(gains)
     if not isinstance(plant, PlantParams):
@@ -177,7 +186,7 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     if n is not None:
         mass = np.atleast_1d(J + m * l * l)
         _bad("plant.J", mass > 0, np.atleast_1d(J) + 0 * mass, "such that J + m l^2 > 0", flags)
-    return plant, gains
+    return plant, (gains if law is None else law)
 
 
 def broadcast_lanes(plant: PlantParams, gains: Gains, n: int) -> tuple[PlantParams, Gains]:
@@ -198,6 +207,12 @@ def broadcast_lanes(plant: PlantParams, gains: Gains, n: int) -> tuple[PlantPara
     if hasattr(d, "_fields"):
         d = type(d)(*(bc(f"plant.damping.{f}", getattr(d, f), 0) for f in d._fields))
     p = PlantParams(*(bc(f"plant.{f}", getattr(plant, f), 0) for f in ("m", "J", "l")), d)
+    if not is_paper_law(gains):                   # a user's law: every leaf gets the lane axis
+        laned = isinstance(gains, PerTrajectory)
+        inner = gains.law if laned else gains
+        g = PerTrajectory(jax.tree_util.tree_map(
+            lambda a: bc("controller", a, np.ndim(a) - 1 if laned else np.ndim(a)), inner))
+        return p, g
     g = Gains(*(bc(f"gains.{f}", getattr(gains, f), _GAIN_NDIM[f]) for f in Gains._fields))
     return p, g
 
@@ -240,6 +255,9 @@ def lane_table(plant: PlantParams, gains: Gains, n: int) -> dict:
     out = {"m": p.m, "J": p.J, "l": p.l}
     for f, name in DAMPING_FIELDS.get(type(p.damping), {}).items():
         out[name] = getattr(p.damping, f)
+    if not is_paper_law(g):                       # a user's law: its scalar leaves, by name
+        out.update({k: v for k, v in law_leaf_names(g).items() if np.ndim(v) == 1})
+        return {k: np.asarray(v, np.float64) for k, v in out.items()}
     out.update(k=g.k, l1=g.L[0], l2=g.L[1], l3=g.L[2], d11=g.D_hat[0, 0], d12=g.D_hat[0, 1], d22=g.D_hat[1, 1])
     return {k: np.asarray(v, np.float64) for k, v in out.items()}
 
@@ -248,6 +266,13 @@ def lanes_digest(plant: PlantParams, gains: Gains) -> str:
     """SHA-256 of every numeric leaf (as float64 bytes, with its shape): part of the fingerprint of a
     checkpointed run, so a resume with other per-lane values is refused."""
     h = hashlib.sha256()
+    if not is_paper_law(gains):
+        for path, leaf in law_leaf_names(gains).items():
+            a = np.ascontiguousarray(np.asarray(leaf, np.float64))
+            h.update(f"controller.{path}{a.shape}".encode())
+            h.update(a.tobytes())
+        h.update(repr(jax.tree_util.tree_structure(gains)).encode())
+        gains = Gains(np.ones(3), 1.0, np.eye(2))
     for path, leaf, _ in _named_leaves(plant, gains):
         a = np.ascontiguousarray(np.asarray(leaf, np.float64))
         h.update(f"{path}{a.shape}".encode())

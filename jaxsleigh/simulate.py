@@ -71,11 +71,11 @@ def _outputs(yw, args: ClosedLoop, chart=WChart()):
     return jax.vmap(jax.vmap(one))(yw)
 
 
-@jax.jit
-def _outputs_lanes(yw, args: ClosedLoop):
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _outputs_lanes(yw, args: ClosedLoop, chart=WChart()):
     """`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
     axes = jax.tree_util.tree_map(lambda _: -1, args)
-    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a), in_axes=(0, axes))(yw, args)
+    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a, chart), in_axes=(0, axes))(yw, args)
 
 
 def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
@@ -129,7 +129,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
             if cfg.lanes not in (1, ics5.shape[0]):
                 raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
                                  f"{ics5.shape[0]} initial conditions; give one value per initial condition")
-            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.gains, ics5.shape[0]))
+            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
@@ -142,13 +142,13 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         if cfg.lanes is None:
             q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), args, chart))
         else:
-            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), args))
+            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), args, chart))
     settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start,
                 "devices": [str(jax.devices()[0])]}   # where it ran: named on every figure of it
     if cfg.lanes is not None:
         from .lanes import lane_table
 
-        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.gains, ics5.shape[0]).items()}
+        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, ics5.shape[0]).items()}
     settings.pop("check_passivity")
     settings.pop("eps")
     # restore the exact initial state (the w chart round trip rounds it in float32)

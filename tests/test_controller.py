@@ -166,3 +166,32 @@ def test_paper_gains_given_as_controller_are_the_paper_law():
     a = js.run_ensemble(ics, controller=js.paper_gains(), t_final=5.0)
     b = js.run_ensemble(ics, t_final=5.0)
     np.testing.assert_array_equal(a.q, b.q)
+
+
+def test_per_trajectory_law_equals_separate_runs_and_records_its_values():
+    from jaxsleigh.controller import PerTrajectory
+
+    ics = np.array([[1.0, 0.5, 0.3], [-1.0, 1.0, -0.6], [2.0, 0.0, 1.0]])
+    kps = np.array([0.5, 2.0, 4.0])
+    lanes = js.run_ensemble(ics, controller=PerTrajectory(PD(kp=kps, kd=np.full(3, 1.5))), t_final=4.0, x64=True)
+    for i, kp in enumerate(kps):
+        one = js.run_ensemble(ics[i:i + 1], controller=PD(kp, 1.5), t_final=4.0, x64=True)
+        np.testing.assert_allclose(lanes.q[i], one.q[0], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(lanes.u_energy[i], one.u_energy[0], rtol=1e-12)
+    np.testing.assert_array_equal(lanes.params["kp"], kps)
+
+
+def test_per_trajectory_plant_under_a_user_law():
+    ics = np.array([[1.0, 0.5, 0.3], [1.0, 0.5, 0.3]])
+    plant = js.PlantParams(np.array([1.0, 4.0]), 1.0, 1.0, js.CoulombDamping())
+    res = js.run_ensemble(ics, plant=plant, controller=PD(), t_final=4.0, x64=True)
+    for i, m in enumerate((1.0, 4.0)):
+        one = js.run_ensemble(ics[:1], plant=js.plant_params(m, 1.0, 1.0), controller=PD(), t_final=4.0, x64=True)
+        np.testing.assert_allclose(res.q[i], one.q[0], rtol=1e-12, atol=1e-14)
+    assert not np.allclose(res.q[0], res.q[1])
+
+
+def test_user_law_through_run_basin():
+    res = js.run_basin(js.grid_starts(x=(-1, 1, 3), y=(-1, 1, 2), theta=0.4), controller=PD(2.0, 1.5), t_final=5.0)
+    assert res.status.shape == (6,) and np.all(res.status == 0)
+    assert res.settings["controller"]["type"] == "PD"
