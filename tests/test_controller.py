@@ -195,3 +195,21 @@ def test_user_law_through_run_basin():
     res = js.run_basin(js.grid_starts(x=(-1, 1, 3), y=(-1, 1, 2), theta=0.4), controller=PD(2.0, 1.5), t_final=5.0)
     assert res.status.shape == (6,) and np.all(res.status == 0)
     assert res.settings["controller"]["type"] == "PD"
+
+
+def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_differences():
+    from jaxsleigh.tuning import LossConfig, tune_law
+    from jaxsleigh.tuning.law import law_loss
+
+    starts = np.array([[1.0, 0.5, 0.4], [-1.0, 1.0, -0.5], [0.5, -1.0, 1.0]])
+    cfg = LossConfig(t_final=6.0, rtol=1e-8, atol=1e-8)
+    with jax.enable_x64(True):
+        y0 = jnp.asarray(np.concatenate([starts, np.zeros((3, 2))], axis=1))
+        f = lambda kp: law_loss(PD(kp, 1.5), y0, js.paper_plant(), cfg, n_attempts=2000, adaptive=False)[0]  # noqa
+        g = jax.grad(f)(1.0)
+        fd = (f(1.0 + 1e-5) - f(1.0 - 1e-5)) / 2e-5
+    np.testing.assert_allclose(g, fd, rtol=1e-5)
+    res = tune_law(PD(1.0, 1.5), starts, tune=["kp"], loss=LossConfig(t_final=6.0), steps=6, lr=0.2, x64=True)
+    assert res.history["loss"].shape == (6,) and np.all(res.history["valid"])
+    assert res.loss < res.history["loss"][0]                      # it improved on the starting law
+    assert isinstance(res.law, PD) and res.law.kd == 1.5 and res.law.kp != 1.0
