@@ -9,8 +9,10 @@ from .ensemble import EnsembleResult, run_ensemble
 from .params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_plant, plant_params,
                      save_gains)
 from .simulate import Solution, simulate
+from .solve import SolveOutput, solve
+from .stepsize import StepSizeController
 from .status import Status
 from .sweep import SweepResult, load_sweep, save_sweep, sweep
-from . import errors, observers  # noqa: F401
+from . import charts, controller, errors, observers  # noqa: F401
 
 __version__ = "0.1.0"

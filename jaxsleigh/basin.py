@@ -452,7 +452,8 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
               x64: bool = False, rtol: Optional[float] = None, atol: Optional[float] = None,
               max_steps: Optional[int] = None, check_passivity: bool = True,
               chunk_size: Optional[int] = None, devices: Any = None, checkpoint_dir=None,
-              resume: bool = False, progress: Any = None, shard: Optional[tuple] = None) -> Optional[BasinResult]:
+              resume: bool = False, progress: Any = None, shard: Optional[tuple] = None,
+              controller: Any = None) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence.
 
     Args:
@@ -470,6 +471,7 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
       progress: progress bar with ETA (``None``: on a terminal).
       shard: ``(index, count)``: compute only this process's share of the chunks into
         ``checkpoint_dir`` and return ``None`` (see `jaxsleigh.ensemble.run_ensemble`).
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.controller`).
 
     Returns:
       `BasinResult` (``None`` with ``shard``).
@@ -484,7 +486,7 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
     res = run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
                        rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
-                       resume=resume, progress=progress, shard=shard)
+                       resume=resume, progress=progress, shard=shard, controller=controller)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
     varying = ("wall_s", "devices", "chunks_reused")

@@ -13,10 +13,11 @@ Along either, \(\dot H_d = -\nabla_p H^\top D_d \nabla_p H \le 0\) (eq. 18).
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 
+from .controller import apply_law
 from .control import control, control_w_components, damping_injection_components, potential
 from .coordinates import Q_entries, Q_w_entries, q_to_w, w_to_q
 from .smallmat import matvec
@@ -28,6 +29,7 @@ __all__ = [
     "vector_field",
     "vector_field_w",
     "vector_field_w_control",
+    "vector_field_law_control",
     "closed_loop_hamiltonian",
     "closed_loop_hamiltonian_w",
     "dissipation_w",
@@ -37,10 +39,18 @@ __all__ = [
 
 
 class ClosedLoop(NamedTuple):
-    """``args`` of the closed-loop vector fields: the plant and the controller's gains."""
+    """``args`` of the closed-loop vector fields: the plant and the controller.
+
+    ``controller`` is the paper's law (`Gains`) or any law ``u = law(q, v)``
+    (`jaxsleigh.controller`); ``gains`` is the same field under the paper's name.
+    """
 
     plant: PlantParams
-    gains: Gains
+    controller: Any
+
+    @property
+    def gains(self) -> Gains:
+        return self.controller
 
 
 def vector_field(t, y, args: ClosedLoop):
@@ -75,6 +85,19 @@ def vector_field_w_control(t, y, args: ClosedLoop):
     wdot = matvec(Q_w_entries(w), v)
     pdot = momentum_rhs_components(q, p, u, args.plant)
     return jnp.stack(wdot + pdot).astype(y.dtype), u
+
+
+def vector_field_law_control(t, y, args: ClosedLoop):
+    """Closed loop of any law ``u = law(q, v)`` in the physical state ``y = (x, y, theta, p1, p2)``, and
+    the control it applies (a tuple of two components). Written on components: ``y`` may be one
+    state (5,) or a batch-last array (5, N) (the law is then vmapped over the batch)."""
+    del t
+    q, p = y[:3], (y[3], y[4])
+    v = velocity_components(p, args.plant)
+    qdot = matvec(Q_entries(q), v)
+    u = apply_law(args.controller, q, jnp.stack(v))
+    pdot = momentum_rhs_components(q, p, u, args.plant)
+    return jnp.stack(qdot + pdot).astype(y.dtype), u
 
 
 def closed_loop_hamiltonian(y, args: ClosedLoop):

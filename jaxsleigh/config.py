@@ -12,21 +12,14 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
+from .controller import as_controller, controller_record
+from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
 from .engine import METHODS, Horizon, default_max_steps, make_horizon
-from .params import Gains, PlantParams, gains_to_dict
-from .validate import INT32_MAX, as_gains, as_plant, real, whole
+from .params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
+from .validate import INT32_MAX, real, whole
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict"]
 
-#: Tolerances of the adaptive method, per dtype (chosen from measured accuracy, see the docs).
-DEFAULT_RTOL = {"float32": 1e-6, "float64": 1e-8}
-DEFAULT_ATOL = {"float32": 1e-6, "float64": 1e-8}
-#: Largest adaptive step, in base steps (1 s at dt = 0.01). Since T_eps is located on the step's
-#: dense output (jaxsleigh.observers.ConvergenceTime), the cap no longer sets T_eps's resolution and
-#: the error control decides the step: on the benchmark workload (experiments/adaptive_steps.py)
-#: 1,076 steps per 100 s on average against 1,363 with the 0.1 release's cap of 10 dt, T_eps within
-#: 2.1e-4 s of a float64 reference.
-MAX_STEP_FACTOR = 100
 
 
 class SolveConfig(NamedTuple):
@@ -45,6 +38,13 @@ class SolveConfig(NamedTuple):
     check_passivity: bool
     #: number of per-trajectory parameter lanes (``None``: one plant and one set of gains)
     lanes: Optional[int] = None
+    #: a feedback law other than the paper's (`jaxsleigh.controller`); ``None``: the paper's law with ``gains``
+    controller: Any = None
+
+    @property
+    def law(self):
+        """The controller the engine runs: ``controller``, or the paper's law with ``gains``."""
+        return self.gains if self.controller is None else self.controller
 
     @property
     def adaptive(self) -> bool:
@@ -58,11 +58,14 @@ class SolveConfig(NamedTuple):
     def settings(self) -> dict:
         """JSON-ready record of the configuration (written into every result file)."""
         out = {
-            "plant": plant_to_dict(self.plant), "gains": gains_to_dict(self.gains),
+            "plant": plant_to_dict(self.plant),
+            "gains": gains_to_dict(self.gains) if self.controller is None else None,
             "t_final": self.horizon.t_final, "dt": self.horizon.dt, "eps": self.eps, "method": self.method,
             "rtol": self.rtol, "atol": self.atol, "max_step": self.max_step, "max_steps": self.max_steps,
             "dtype": self.dtype, "check_passivity": self.check_passivity,
         }
+        if self.controller is not None:
+            out["controller"] = controller_record(self.controller)
         if self.lanes is not None:
             from .lanes import lanes_digest
 
@@ -74,9 +77,7 @@ class SolveConfig(NamedTuple):
 def plant_to_dict(plant: PlantParams) -> dict:
     """JSON-ready record; a leaf that varies per trajectory is recorded as ``{"per_trajectory": P,
     "min": .., "max": ..}`` (the values themselves go with the rows, see ``lane_table``)."""
-    from .lanes import _lane_record
-
-    num = (lambda v: float(v) if np.ndim(v) == 0 else _lane_record(v))  # noqa: E731
+    num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))  # noqa: E731
     d = plant.damping
     return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
             "damping": type(d).__name__, "damping_params": {k: num(v) for k, v in d._asdict().items()}
@@ -90,12 +91,13 @@ def _flag(name: str, flags: Optional[dict]) -> str:
 def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, dt: Any = 0.01,
                  save_every: Any = None, method: str = "adaptive", rtol: Any = None, atol: Any = None,
                  max_step: Any = None, max_steps: Any = None, x64: Any = False, eps: Any = 0.05,
-                 check_passivity: Any = True, flags: Optional[dict] = None) -> SolveConfig:
+                 check_passivity: Any = True, controller: Any = None, flags: Optional[dict] = None) -> SolveConfig:
     """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
 
     Args mean the same as in `jaxsleigh.simulate`. ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
-    `PlantParams` (both re-validated). ``flags`` maps keyword names to the command-line
+    `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
+    (`jaxsleigh.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
     flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
     """
     f = lambda n: _flag(n, flags)  # noqa: E731
@@ -110,12 +112,23 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
             raise ValueError(f"{f(name)} must be True or False, got {v!r}")
     from .lanes import check_lanes, lane_count
 
-    lanes = lane_count(plant, gains)
+    if controller is not None:
+        if gains is not None:
+            raise ValueError(f"give either {f('gains')} (the paper's law) or {f('controller')} (any law u = law(q, v)), "
+                             "not both")
+        if isinstance(controller, Gains):
+            gains, controller = controller, None
+        else:
+            controller = as_controller(controller, f("controller"))
+    lanes = lane_count(plant, gains if controller is None else controller)
     if lanes is None:
         plant = as_plant(plant)
-        gains = as_gains(gains)
-    else:                                      # per-trajectory leaves: every lane checked at once
+        if controller is None:
+            gains = as_gains(gains)
+    elif controller is None:                   # per-trajectory leaves: every lane checked at once
         plant, gains = check_lanes(plant, gains, flags=flags)
+    else:
+        plant, controller = check_lanes(plant, controller, flags=flags)
     t_final = real(f("t_final"), t_final, positive=True, example=100, maximum=1e30)
     dt = real(f("dt"), dt, positive=True, example=0.01)
     if save_every is not None:
@@ -137,5 +150,7 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
             raise ValueError(f"{f('max_steps')} {max_steps} is below the {horizon.n_steps} base steps of the "
                              f"horizon (t_final / dt) that fixed-step RK4 takes; raise it to at least "
                              f"{horizon.n_steps}")
+    if controller is not None:
+        gains = None
     return SolveConfig(plant, gains, horizon, method, rtol, atol, max_step, max_steps, eps, x64,
-                       bool(check_passivity), lanes)
+                       bool(check_passivity), lanes, controller)

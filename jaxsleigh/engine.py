@@ -16,9 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
+from .charts import chart_for
 from .status import Status
 from .observers import DEFAULT_OBSERVERS
-from .stepper import Controls, StepState, init_batch, is_active, run_plain, run_saving, run_segment
+from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
+                      run_segment)
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
            "make_controls",
@@ -131,7 +133,7 @@ def _w_check(ics, args):
     return jax.vmap(one)(ics)
 
 
-def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.ndarray, np.ndarray]:
+def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Validate initial conditions; returns ``(ics (N, 5) float64, status0 (N,) int32)``.
 
     ``ics`` is ``(3,)``/``(5,)`` for one start or ``(N, 3)``/``(N, 5)`` for many: ``(x, y, theta)``
@@ -139,7 +141,8 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     (status ``SINGULAR_START``), with non-finite entries (``INVALID_INPUT``) or, with ``dtype``
     given, so close to it that they overflow that precision (``OUT_OF_RANGE``) are flagged, not
     integrated, and named in one `FlaggedStartsWarning`; the other rows
-    are computed. A single start that is bad, or a batch whose every row is, raises ``ValueError``
+    are computed. ``singular=False`` (a law without the singular set, integrated in the physical
+    chart) flags non-finite rows only. A single start that is bad, or a batch whose every row is, raises ``ValueError``
     with a message that says what to change.
     """
     from .errors import FlaggedStartsWarning
@@ -162,8 +165,9 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     status = np.zeros(arr.shape[0], np.int32)
     finite = np.all(np.isfinite(arr), axis=1)
     status[~finite] = Status.INVALID_INPUT
-    status[finite & (arr[:, 2] == 0.0)] = Status.SINGULAR_START
-    if dtype is not None:
+    if singular:
+        status[finite & (arr[:, 2] == 0.0)] = Status.SINGULAR_START
+    if dtype is not None and singular:
         cand = np.flatnonzero(status == Status.OK)
         rep = _representable(arr[cand], dtype)
         status[cand[~rep]] = Status.OUT_OF_RANGE
@@ -186,10 +190,13 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition") -> tuple[np.n
     return arr, status
 
 
-def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype) -> jax.Array:
-    """Map validated physical starts to the w chart, in float64 then cast to ``dtype``. Rows whose
-    ``status0`` is not OK get a harmless placeholder (they are never stepped)."""
+def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.Array:
+    """Map validated physical starts to the w chart (or to ``chart``, `jaxsleigh.charts`), in float64
+    then cast to ``dtype``. Rows whose ``status0`` is not OK get a harmless placeholder (they are never
+    stepped)."""
     safe = np.where(status0[:, None] == 0, ics5, np.array([1.0, 0.0, 1.0, 0.0, 0.0]))
+    if chart is not None and not chart.singular:
+        return jnp.asarray(chart.to_chart(safe), dtype)
     with jax.enable_x64(True):
         yw = np.asarray(jax.vmap(state_to_w)(jnp.asarray(safe, jnp.float64)))
     if np.any(~np.isfinite(yw[status0 == 0])):
@@ -214,10 +221,15 @@ def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observer
     return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
 
 
-def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None) -> Controls:
+def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
+                  factor_min=0.1, factor_max=5.0) -> Controls:
+    """The stepper's traced numbers for a run (`jaxsleigh.stepper.Controls`; the policy's
+    ``safety``, ``factor_min``, ``factor_max`` as in `jaxsleigh.stepsize.StepSizeController`)."""
     max_step = horizon.dt if max_step is None else max_step
     return Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
-                    max_steps=jnp.asarray(max_steps, jnp.int32))
+                    max_steps=jnp.asarray(max_steps, jnp.int32),
+                    **{k: jnp.asarray(v, dtype) for k, v in (("safety", safety), ("factor_min", factor_min),
+                                                             ("factor_max", factor_max))})
 
 
 def shard_batch(tree, mesh):
@@ -271,7 +283,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
     `jaxsleigh.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
     """
-    from .lanes import broadcast_lanes, has_lanes, init_batch_lanes, take_lanes
+    from .lanes import broadcast_lanes, has_lanes, take_lanes
 
     dtype = y0w.dtype
     n = y0w.shape[0]
@@ -330,7 +342,7 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
     leaves, as in `drive_final`."""
-    from .lanes import broadcast_lanes, has_lanes, init_batch_lanes
+    from .lanes import broadcast_lanes, has_lanes
 
     dtype = y0w.dtype
     ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
@@ -467,7 +479,8 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     ok = status == Status.OK
     finite = np.all(np.isfinite(y), axis=1)
     status[ok & ~finite] = Status.NONFINITE
-    status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
+    if chart_for(args.controller).singular:
+        status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
     return y, status
 
 

@@ -17,6 +17,7 @@ from the finished chunks, ending with the same result as an uninterrupted run.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import time
@@ -26,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w
+from .charts import WChart, chart_for
+from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .checkpoint import ChunkStore, starts_digest
 from .config import solve_config
 from .observers import DEFAULT_OBSERVERS, collect
@@ -109,22 +111,24 @@ def _hd_any(yw, args):
     return _hd_lanes(yw, args) if has_lanes(args.plant, args.gains) else _hd_batch(yw, args)
 
 
-@jax.jit
-def _to_q_batch(yw):
-    return jax.vmap(state_from_w)(yw)
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _to_q_batch(yw, chart=WChart()):
+    return jax.vmap(chart.from_chart)(yw)
 
 
 def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> dict:
     """Host-side summaries of one chunk from the final (batch-last) stepper state. Standard
-    summaries that no observer provides are NaN; other observers' results are added by name."""
+    summaries that no observer provides are NaN; other observers' results are added by name.
+    ``Hd0`` and ``Hd_final`` are NaN for a law without the paper's H_d."""
+    chart = chart_for(args.controller)
     status = np.asarray(final.status)
     ok = status == Status.OK
     y = np.moveaxis(np.asarray(final.y), -1, 0)
-    yq = np.asarray(_to_q_batch(jnp.asarray(y))).astype(np.float64)
+    yq = np.asarray(_to_q_batch(jnp.asarray(y), chart)).astype(np.float64)
     failed = ~ok
     yq[failed] = np.nan
     invalid = np.asarray(status0) != Status.OK
-    hd0 = np.array(_hd_any(y0w, args), np.float64)
+    hd0 = np.array(_hd_any(y0w, args), np.float64) if chart.has_energy else np.full(len(status), np.nan)
     hd0[invalid] = np.nan
     obs = collect(observers, final.obs, final.quad)
     n = status.shape[0]
@@ -135,7 +139,7 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
         "q": yq[:, :3], "p": yq[:, 3:],
         "T_eps": np.where(ok, obs.pop("T_eps"), np.nan),
         "Hd0": hd0,
-        "Hd_final": np.where(ok, np.asarray(final.Hd, np.float64), np.nan),
+        "Hd_final": np.where(ok & chart.has_energy, np.asarray(final.Hd, np.float64), np.nan),
         "t_reached": np.where(invalid, np.nan, np.asarray(final.t, np.float64)),
         "n_steps": np.asarray(final.n_accept, np.int64),
         "n_rejected": np.asarray(final.n_reject, np.int64),
@@ -148,13 +152,15 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
 
 def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
     """Summaries of `drive_plain`: final state, H_d, status; no path data."""
+    chart = chart_for(args.controller)
     ok = status == Status.OK
-    yq = np.array(_to_q_batch(jnp.asarray(y)), np.float64)
+    yq = np.array(_to_q_batch(jnp.asarray(y), chart), np.float64)
     yq[~ok] = np.nan
     invalid = np.asarray(status0) != Status.OK
-    hd0 = np.array(_hd_batch(y0w, args), np.float64)
+    nan = np.full(len(status), np.nan)
+    hd0 = np.array(_hd_batch(y0w, args), np.float64) if chart.has_energy else nan.copy()
     hd0[invalid] = np.nan
-    hd = np.array(_hd_batch(jnp.asarray(y, y0w.dtype), args), np.float64)
+    hd = np.array(_hd_batch(jnp.asarray(y, y0w.dtype), args), np.float64) if chart.has_energy else nan
     nan = np.full(len(status), np.nan)
     return {"q": yq[:, :3], "p": yq[:, 3:], "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
             "Hd0": hd0, "Hd_final": np.where(ok, hd, np.nan), "t_reached": np.where(ok, horizon.t_final, np.nan),
@@ -178,7 +184,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  summaries: bool = True,
                  devices: Any = None, checkpoint_dir=None, resume: bool = False,
                  progress: Any = None, shard: Optional[tuple] = None,
-                 observers: Optional[tuple] = None) -> Optional[EnsembleResult]:
+                 observers: Optional[tuple] = None, controller: Any = None) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
     Args:
@@ -201,6 +207,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         ``save_every``) runs plain RK4 for the final state only: no per-step checks or summaries
         (``T_eps``, ``min_abs_theta``, ``max_excursion`` come back NaN); the status is judged at
         the end (non-finite, or theta ended with the other sign). The fastest mode.
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.controller`),
+        integrated in the physical chart; ``gains`` then stays ``None``. ``Hd0``/``Hd_final`` are NaN.
       observers: the on-line summaries (`jaxsleigh.observers`; default
         `DEFAULT_OBSERVERS`). The standard fields of the result that no
         given observer provides are NaN; other observers' results are in ``result.observed``.
@@ -222,7 +230,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     """
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
-                       check_passivity=check_passivity)
+                       check_passivity=check_passivity, controller=controller)
     horizon = cfg.horizon
     if not isinstance(summaries, (bool, np.bool_)):
         raise ValueError(f"summaries must be True or False, got {summaries!r}")
@@ -242,7 +250,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
     n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
     check_memory(n_rows, "run_ensemble")
-    ics5, status0 = check_ics(ics, cfg.dtype)
+    chart = chart_for(cfg.law)
+    ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
     lane_args = None
     if cfg.lanes is not None:
@@ -254,7 +263,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         if not summaries:
             raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
                              "per-trajectory parameters need summaries=True")
-        lane_args = ClosedLoop(*broadcast_lanes(plant, gains, ics5.shape[0]))
+        lane_args = ClosedLoop(*broadcast_lanes(plant, cfg.law, ics5.shape[0]))
     rtol, atol, max_step, max_steps = cfg.rtol, cfg.atol, cfg.max_step, cfg.max_steps
     mesh = batch_mesh(devices)
     n_dev = 1 if mesh is None else mesh.size
@@ -274,7 +283,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
             store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
             store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "starts": starts_digest(ics5),
                                                       "settings": settings})
-        args = ClosedLoop(plant, gains)
+        args = ClosedLoop(plant, cfg.law)
         parts, reused = [], 0
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
@@ -297,7 +306,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                 pad = chunk - (hi - lo)
                 st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
                 ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
-                y0w = initial_w(ic, st, dtype)
+                y0w = initial_w(ic, st, dtype, chart)
                 if lane_args is not None:      # this chunk's lanes; padding rows reuse its first
                     from .lanes import take_lanes
 
@@ -320,7 +329,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                     final, ys = drive_saving(y0w, st, args, horizon, progress=_Sub(), observers=observers, **kw)
                     part = _chunk_summaries(final, y0w, st, args, observers)
                     yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
-                    yq = np.array(jax.vmap(_to_q_batch)(jnp.asarray(yw)), np.float64)
+                    yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
                     yq[st != Status.OK] = np.nan
                     part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
                 part = {k: v[:hi - lo] for k, v in part.items()}

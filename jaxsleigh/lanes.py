@@ -13,8 +13,7 @@ This module holds the host-side helpers that make such "lanes" usable by every e
 * `broadcast_lanes` (every leaf to ``base_shape + (n,)``, the canonical form the engine
   runs) and `take_lanes` (gather lanes: chunking, padding, batch compaction);
 * `stack_plants` / `stack_gains` (lanes from lists of ordinary ``PlantParams`` /
-  ``Gains``) and `lane_table` (the per-row record of the parameters a run used);
-* `init_batch_lanes`: the stepper's initial carry with per-lane ``args``.
+  ``Gains``) and `lane_table` (the per-row record of the parameters a run used).
 
 The damping *family* (Coulomb, viscous, none, custom) is a Python class, a static choice: lanes
 of one run share the family and differ in its numbers.
@@ -31,10 +30,11 @@ import numpy as np
 
 from .closed_loop import ClosedLoop
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
-from .params import Gains, PlantParams
+from .controller import PerTrajectory, as_controller, is_paper_law, law_leaf_names
+from .params import Gains, PlantParams, as_gains, as_plant
 
 __all__ = ["lane_count", "check_lanes", "broadcast_lanes", "take_lanes", "has_lanes", "stack_plants",
-           "stack_gains", "lane_table", "lanes_digest", "init_batch_lanes", "DAMPING_FIELDS"]
+           "stack_gains", "lane_table", "lanes_digest", "DAMPING_FIELDS"]
 
 #: Number of axes of each leaf for one trajectory (a per-lane leaf has one more, last).
 _GAIN_NDIM = {"L": 1, "k": 0, "D_hat": 2}
@@ -79,13 +79,18 @@ def lane_count(plant: Any, gains: Any) -> Optional[int]:
     """
     p = plant if isinstance(plant, PlantParams) else PlantParams()
     g = gains if isinstance(gains, Gains) else Gains(np.ones(3), 1.0, np.eye(2))
+    law_sizes = {}
+    if isinstance(gains, PerTrajectory):          # a user's law with a lane axis on every leaf
+        law_sizes = {f"controller.{k}": int(np.shape(v)[-1]) for k, v in law_leaf_names(gains).items()}
     if isinstance(p.damping, str):
         p = p._replace(damping=damping_from_name(p.damping))
-    sizes = {}
+    sizes = dict(law_sizes)
     for path, leaf, base in _named_leaves(p, g):
         s = _lane_size(path, leaf, base)
         if s is not None:
             sizes[path] = s
+    if isinstance(gains, PerTrajectory) and not sizes:
+        return 1                                   # a PerTrajectory law without leaves: one lane for all
     big = {k: v for k, v in sizes.items() if v != 1}
     if len(set(big.values())) > 1:
         detail = ", ".join(f"{k} {v}" for k, v in big.items())
@@ -129,11 +134,12 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     ``scale >= 0``, viscous ``c1, c2 >= 0``. ``flags`` maps leaf paths (``"plant.m"``,
     ``"gains.D_hat"``, ...) to names used in messages (e.g. ``"--param m=..."``).
     """
-    from .validate import as_gains, as_plant
-
     n = lane_count(plant, gains)
     if plant is None or (isinstance(plant, PlantParams) and lane_count(plant, None) is None):
         plant = as_plant(plant)
+    law = None
+    if gains is not None and not isinstance(gains, (Gains, str, dict)) and callable(gains):
+        law, gains = as_controller(gains), None    # a user's law: checked as a controller, plant per lane
     if not isinstance(gains, Gains) or lane_count(None, gains) is None:
         gains = as_gains(gains)
     if not isinstance(plant, PlantParams):
@@ -180,7 +186,7 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     if n is not None:
         mass = np.atleast_1d(J + m * l * l)
         _bad("plant.J", mass > 0, np.atleast_1d(J) + 0 * mass, "such that J + m l^2 > 0", flags)
-    return plant, gains
+    return plant, (gains if law is None else law)
 
 
 def broadcast_lanes(plant: PlantParams, gains: Gains, n: int) -> tuple[PlantParams, Gains]:
@@ -201,6 +207,12 @@ def broadcast_lanes(plant: PlantParams, gains: Gains, n: int) -> tuple[PlantPara
     if hasattr(d, "_fields"):
         d = type(d)(*(bc(f"plant.damping.{f}", getattr(d, f), 0) for f in d._fields))
     p = PlantParams(*(bc(f"plant.{f}", getattr(plant, f), 0) for f in ("m", "J", "l")), d)
+    if not is_paper_law(gains):                   # a user's law: every leaf gets the lane axis
+        laned = isinstance(gains, PerTrajectory)
+        inner = gains.law if laned else gains
+        g = PerTrajectory(jax.tree_util.tree_map(
+            lambda a: bc("controller", a, np.ndim(a) - 1 if laned else np.ndim(a)), inner))
+        return p, g
     g = Gains(*(bc(f"gains.{f}", getattr(gains, f), _GAIN_NDIM[f]) for f in Gains._fields))
     return p, g
 
@@ -243,6 +255,9 @@ def lane_table(plant: PlantParams, gains: Gains, n: int) -> dict:
     out = {"m": p.m, "J": p.J, "l": p.l}
     for f, name in DAMPING_FIELDS.get(type(p.damping), {}).items():
         out[name] = getattr(p.damping, f)
+    if not is_paper_law(g):                       # a user's law: its scalar leaves, by name
+        out.update({k: v for k, v in law_leaf_names(g).items() if np.ndim(v) == 1})
+        return {k: np.asarray(v, np.float64) for k, v in out.items()}
     out.update(k=g.k, l1=g.L[0], l2=g.L[1], l3=g.L[2], d11=g.D_hat[0, 0], d12=g.D_hat[0, 1], d22=g.D_hat[1, 1])
     return {k: np.asarray(v, np.float64) for k, v in out.items()}
 
@@ -251,27 +266,16 @@ def lanes_digest(plant: PlantParams, gains: Gains) -> str:
     """SHA-256 of every numeric leaf (as float64 bytes, with its shape): part of the fingerprint of a
     checkpointed run, so a resume with other per-lane values is refused."""
     h = hashlib.sha256()
+    if not is_paper_law(gains):
+        for path, leaf in law_leaf_names(gains).items():
+            a = np.ascontiguousarray(np.asarray(leaf, np.float64))
+            h.update(f"controller.{path}{a.shape}".encode())
+            h.update(a.tobytes())
+        h.update(repr(jax.tree_util.tree_structure(gains)).encode())
+        gains = Gains(np.ones(3), 1.0, np.eye(2))
     for path, leaf, _ in _named_leaves(plant, gains):
         a = np.ascontiguousarray(np.asarray(leaf, np.float64))
         h.update(f"{path}{a.shape}".encode())
         h.update(a.tobytes())
     h.update(type(plant.damping).__name__.encode())
     return h.hexdigest()
-
-
-def _lane_record(leaf) -> Any:
-    """JSON-ready record of one leaf: the number, or a summary when it varies per lane."""
-    a = np.asarray(leaf, np.float64)
-    return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
-
-
-@functools.partial(jax.jit, static_argnames=("observers",))
-def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl, observers=None):
-    """`init_batch` with canonical per-lane ``args`` (every leaf's last axis
-    is the batch): the result is batch-last."""
-    from .observers import DEFAULT_OBSERVERS
-    from .stepper import init_state
-
-    init = functools.partial(init_state, observers=DEFAULT_OBSERVERS if observers is None else observers)
-    axes = jax.tree_util.tree_map(lambda _: -1, args)
-    return jax.vmap(init, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)

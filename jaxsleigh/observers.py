@@ -10,11 +10,13 @@ An observer is a frozen dataclass (hashable: it is a static argument of the jitt
 
 * ``fields``: the names of its results;
 * ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``;
-* ``init(t0, y, u, ctl)`` -> tuple of arrays (its state at the start);
+* ``init(t0, y, u, ctl, chart)`` -> tuple of arrays (its state at the start; ``chart``, from
+  `jaxsleigh.charts`, gives \\(|q|^2\\) and \\(|\\theta|\\) of a state in the chart it is integrated in);
 * ``update(state, step, ctl)`` -> state after an attempted step; ``step`` is a `StepInfo`
   (``acc``: the mask of trajectories whose step was accepted; the state, its derivative and the
-  control before and after; the step's start time and size, for the step's dense output);
+  control before and after; the step's start time and size, for the step's dense output; the chart);
 * ``integrand(y, u)`` -> tuple of ``n_quad`` arrays;
+* ``values(state, quad)`` -> dict of JAX arrays (traced: what `jaxsleigh.solve` returns and differentiates);
 * ``results(state, quad)`` -> dict of host NumPy arrays (batch axis first).
 
 Every array broadcasts over a trailing batch axis (``y`` is (5,) or (5, N)). The built-ins:
@@ -31,17 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .coordinates import f_w_inv
-
 __all__ = ["StepInfo", "hermite", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
-           "observer_fields", "collect", "q_norm2_w"]
-
-
-def q_norm2_w(w):
-    """\\(|q|^2\\) from ``w`` without trigonometry: \\(f_z\\) only rotates (x, y), so
-    \\(|q| = |z| = |f_w^{-1}(w)|\\)."""
-    z = f_w_inv(w)
-    return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
+           "observer_fields", "collect", "collect_values"]
 
 
 class StepInfo(NamedTuple):
@@ -56,6 +49,7 @@ class StepInfo(NamedTuple):
     k5: jax.Array         # (5,) f(t + h, y_new); None without FSAL
     u_new: tuple          # control (u1, u2) at y_new; None if no observer needs it
     acc: jax.Array        # bool: the step was accepted
+    chart: object = None  # the chart of the state (jaxsleigh.charts): |q|^2 and |theta| of a state
 
 
 def hermite(step: StepInfo, theta, rows=slice(0, 3)):
@@ -92,21 +86,22 @@ class ConvergenceTime:
     needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = True
 
-    def init(self, t0, y, u, ctl):
-        inside = q_norm2_w(y[:3]) <= ctl.eps * ctl.eps
+    def init(self, t0, y, u, ctl, chart):
+        inside = chart.q_norm2(y) <= ctl.eps * ctl.eps
         return (jnp.where(inside, t0, jnp.inf).astype(y.dtype),)
 
     def update(self, state, step, ctl):
         (t_enter,) = state
         dtype = t_enter.dtype
         eps2 = ctl.eps * ctl.eps
-        outside = lambda th: q_norm2_w(hermite(step, th)) > eps2  # noqa: E731
-        inside_end = q_norm2_w(step.y_new[:3]) <= eps2
+        q_norm2 = step.chart.q_norm2
+        outside = lambda th: q_norm2(hermite(step, th)) > eps2  # noqa: E731
+        inside_end = q_norm2(step.y_new) <= eps2
         # the last sample point (theta = j / samples, j < samples) outside the ball; -1 if none
         last_out = jnp.full(inside_end.shape, -1, jnp.int32)
         for j in range(self.samples):
             th = jnp.asarray(j / self.samples, dtype)
-            out_j = (q_norm2_w(step.y[:3]) > eps2) if j == 0 else outside(th)
+            out_j = (q_norm2(step.y) > eps2) if j == 0 else outside(th)
             last_out = jnp.where(out_j, j, last_out)
         # bisect between that point (outside) and the next one (inside, or the end) for the entry
         lo = last_out.astype(dtype) / self.samples
@@ -127,6 +122,9 @@ class ConvergenceTime:
     def integrand(self, y, u):
         return ()
 
+    def values(self, state, quad):
+        return {"T_eps": state[0]}
+
     def results(self, state, quad):
         return {"T_eps": _np(state[0])}
 
@@ -140,14 +138,17 @@ class ClosestApproach:
     needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = False
 
-    def init(self, t0, y, u, ctl):
-        return (jnp.abs(y[0]),)
+    def init(self, t0, y, u, ctl, chart):
+        return (chart.abs_theta(y),)
 
     def update(self, state, step, ctl):
-        return (jnp.where(step.acc, jnp.minimum(state[0], jnp.abs(step.y_new[0])), state[0]),)
+        return (jnp.where(step.acc, jnp.minimum(state[0], step.chart.abs_theta(step.y_new)), state[0]),)
 
     def integrand(self, y, u):
         return ()
+
+    def values(self, state, quad):
+        return {"min_abs_theta": state[0]}
 
     def results(self, state, quad):
         return {"min_abs_theta": _np(state[0])}
@@ -162,14 +163,17 @@ class Excursion:
     needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = False
 
-    def init(self, t0, y, u, ctl):
-        return (q_norm2_w(y[:3]),)
+    def init(self, t0, y, u, ctl, chart):
+        return (chart.q_norm2(y),)
 
     def update(self, state, step, ctl):
-        return (jnp.where(step.acc, jnp.maximum(state[0], q_norm2_w(step.y_new[:3])), state[0]),)
+        return (jnp.where(step.acc, jnp.maximum(state[0], step.chart.q_norm2(step.y_new)), state[0]),)
 
     def integrand(self, y, u):
         return ()
+
+    def values(self, state, quad):
+        return {"max_excursion": jnp.sqrt(state[0])}
 
     def results(self, state, quad):
         return {"max_excursion": np.sqrt(_np(state[0]))}
@@ -191,16 +195,20 @@ class ControlEffort:
     needs_control: ClassVar[bool] = True
     needs_dense: ClassVar[bool] = False
 
-    def init(self, t0, y, u, ctl):
+    def init(self, t0, y, u, ctl, chart):
         return (jnp.abs(u[0]), jnp.abs(u[1]), jnp.sqrt(u[0] * u[0] + u[1] * u[1]))
 
     def update(self, state, step, ctl):
-        new = self.init(step.t_new, step.y_new, step.u_new, ctl)
+        new = self.init(step.t_new, step.y_new, step.u_new, ctl, step.chart)
         return tuple(jnp.where(step.acc, jnp.maximum(a, b), a) for a, b in zip(state, new))
 
     def integrand(self, y, u):
         e = u[0] * u[0] + u[1] * u[1]
         return (e, jnp.sqrt(e))
+
+    def values(self, state, quad):
+        return {"u_peak": jnp.stack([state[0], state[1]], axis=-1), "u_norm_peak": state[2],
+                "u_energy": quad[0], "u_abs_int": quad[1]}
 
     def results(self, state, quad):
         return {"u_peak": np.stack([_np(state[0]), _np(state[1])], axis=-1), "u_norm_peak": _np(state[2]),
@@ -214,6 +222,15 @@ DEFAULT_OBSERVERS = (ConvergenceTime(), ClosestApproach(), Excursion(), ControlE
 def observer_fields(observers) -> tuple:
     """The result names of ``observers``, in order."""
     return tuple(f for o in observers for f in o.fields)
+
+
+def collect_values(observers, obs_state, quad) -> dict:
+    """Traced results of every observer of one trajectory (`jaxsleigh.solve`)."""
+    out, row = {}, 0
+    for o, st in zip(observers, obs_state):
+        out.update(o.values(st, tuple(quad[row + i] for i in range(o.n_quad))))
+        row += o.n_quad
+    return out
 
 
 def collect(observers, obs_state, quad) -> dict:

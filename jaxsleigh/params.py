@@ -15,6 +15,7 @@ import jax
 import numpy as np
 
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
+from .validate import real
 
 __all__ = [
     "PlantParams",
@@ -28,6 +29,9 @@ __all__ = [
     "save_gains",
     "gains_to_dict",
     "gains_from_dict",
+    "as_gains",
+    "as_plant",
+    "lane_record",
 ]
 
 
@@ -70,8 +74,6 @@ def _is_concrete(x) -> bool:
 
 
 def _finite_scalar(name, value, *, hint):
-    from .validate import real
-
     try:
         return real(name, value)
     except ValueError as e:
@@ -175,12 +177,10 @@ def gains_to_dict(g: Gains) -> dict:
     """JSON-ready ``{"L": [...], "k": k, "D_hat": [[..], [..]]}``; a leaf that varies per trajectory
     (a trailing lane axis, see `jaxsleigh.lanes`) is recorded as ``{"per_trajectory": P, "min",
     "max"}``."""
-    from .lanes import _lane_record
-
     L, D = np.asarray(g.L, dtype=float), np.asarray(g.D_hat, dtype=float)
-    return {"L": [float(x) for x in L] if L.ndim == 1 else _lane_record(L),
-            "k": float(g.k) if np.ndim(g.k) == 0 else _lane_record(g.k),
-            "D_hat": D.tolist() if D.ndim <= 2 else _lane_record(D)}
+    return {"L": [float(x) for x in L] if L.ndim == 1 else lane_record(L),
+            "k": float(g.k) if np.ndim(g.k) == 0 else lane_record(g.k),
+            "D_hat": D.tolist() if D.ndim <= 2 else lane_record(D)}
 
 
 def gains_from_dict(d: dict, *, source: str = "gains") -> Gains:
@@ -241,3 +241,44 @@ def save_gains(g: Gains, path, **meta) -> None:
         d["meta"] = meta
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(d, indent=2, default=str) + "\n")
+
+
+def lane_record(leaf) -> Any:
+    """JSON-ready record of a leaf that varies per trajectory: ``{"per_trajectory": P, "min", "max"}``
+    (the values themselves go with the rows, see `jaxsleigh.lanes.lane_table`)."""
+    a = np.asarray(leaf, np.float64)
+    return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
+
+
+def as_gains(g, name: str = "gains"):
+    """Validated `Gains` from ``None`` (the paper's), a preset name
+    (``"paper"``, ``"tuned"``, ...), a gains-file path, a dict in the file format, or a ``Gains``
+    (re-checked: every ``L_i > 0``, ``k > 0``, ``D_hat`` symmetric positive definite)."""
+    if g is None:
+        return paper_gains()
+    if isinstance(g, (str, Path)):
+        return load_gains(g)
+    if isinstance(g, dict):
+        return gains_from_dict(g)
+    if isinstance(g, Gains):
+        for leaf_name, leaf in zip(Gains._fields, g):
+            arr = np.asarray(leaf)
+            if arr.dtype == bool or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+                raise ValueError(f"{name}.{leaf_name} must be real numbers, got {leaf!r}")
+        return gains(g.L, g.k, g.D_hat)
+    raise ValueError(f"{name} must be a Gains (jaxsleigh.gains(...)), a preset name ('paper', 'tuned'), "
+                     f"a gains JSON file or a dict, got {type(g).__name__}")
+
+
+def as_plant(p, name: str = "plant"):
+    """Validated `PlantParams` from ``None`` (the paper's) or a
+    ``PlantParams`` (re-checked: ``m > 0``, ``J >= 0``, ``l >= 0``, a known damping model)."""
+    if p is None:
+        return paper_plant()
+    if isinstance(p, PlantParams):
+        for leaf_name in ("m", "J", "l"):
+            leaf = getattr(p, leaf_name)
+            real(f"{name}.{leaf_name}", leaf)
+        return plant_params(p.m, p.J, p.l, damping=p.damping)
+    raise ValueError(f"{name} must be a PlantParams (jaxsleigh.plant_params(m, J, l, damping)), "
+                     f"got {type(p).__name__}")

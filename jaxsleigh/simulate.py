@@ -5,6 +5,7 @@ batches with summaries only, see `jaxsleigh.ensemble`.
 """
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, NamedTuple, Optional
 
@@ -12,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .charts import WChart, chart_for
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, solve_config  # noqa: F401
 from .control import control_w
@@ -55,29 +57,32 @@ class Solution(NamedTuple):
     effort: Optional[dict] = None
 
 
-@jax.jit
-def _outputs(yw, args: ClosedLoop):
-    """(w, p) trajectories -> q, u, Hd (vmapped over batch and time)."""
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _outputs(yw, args: ClosedLoop, chart=WChart()):
+    """Chart trajectories -> q, u, Hd (vmapped over batch and time; Hd is NaN for a law without it)."""
 
     def one(y):
-        w, p = y[:3], y[3:]
-        return w_to_q(w), control_w(w, velocity(p, args.plant), args.gains), closed_loop_hamiltonian_w(y, args)
+        if chart.name == "w":
+            w, p = y[:3], y[3:]
+            return w_to_q(w), control_w(w, velocity(p, args.plant), args.gains), closed_loop_hamiltonian_w(y, args)
+        u = jnp.stack(chart.field_and_control(0.0, y, args)[1])
+        return chart.from_chart(y)[:3], u, jnp.full((), jnp.nan, y.dtype)
 
     return jax.vmap(jax.vmap(one))(yw)
 
 
-@jax.jit
-def _outputs_lanes(yw, args: ClosedLoop):
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _outputs_lanes(yw, args: ClosedLoop, chart=WChart()):
     """`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
     axes = jax.tree_util.tree_map(lambda _: -1, args)
-    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a), in_axes=(0, axes))(yw, args)
+    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a, chart), in_axes=(0, axes))(yw, args)
 
 
 def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
              t_final: float = 100.0, dt: float = 0.01, save_every: int = 10,
              method: str = "adaptive", rtol: Optional[float] = None, atol: Optional[float] = None,
              max_step: Optional[float] = None, max_steps: Optional[int] = None, x64: bool = False,
-             progress: Any = None) -> Solution:
+             progress: Any = None, controller: Any = None) -> Solution:
     """Simulate the closed loop (plant eq. 1 + control law eq. 13).
 
     Args:
@@ -98,6 +103,9 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         adaptive); a trajectory that runs out gets status ``BUDGET_EXHAUSTED``.
       x64: compute in float64 (default float32).
       progress: ``True`` for a progress bar, ``False``/``None`` for none (auto on a terminal).
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.controller`:
+        a callable pytree whose numbers are traced); it is integrated in the physical chart, and
+        ``Hd`` is NaN (the paper's H_d belongs to the paper's law).
 
     Returns:
       `Solution`, as NumPy arrays.
@@ -108,20 +116,21 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         a `FlaggedStartsWarning`; the other rows are computed.
     """
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
-                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64)
+                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, controller=controller)
     horizon = cfg.horizon
-    ics5, status0 = check_ics(ics, cfg.dtype)
+    chart = chart_for(cfg.law)
+    ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
-        args = ClosedLoop(cfg.plant, cfg.gains)
+        args = ClosedLoop(cfg.plant, cfg.law)
         if cfg.lanes is not None:
             from .lanes import broadcast_lanes
 
             if cfg.lanes not in (1, ics5.shape[0]):
                 raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
                                  f"{ics5.shape[0]} initial conditions; give one value per initial condition")
-            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.gains, ics5.shape[0]))
-        y0w = initial_w(ics5, status0, dtype)
+            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
+        y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
             final, ys = drive_saving(y0w, status0, args, horizon, adaptive=cfg.adaptive, rtol=cfg.rtol,
@@ -130,14 +139,16 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
-        outputs = _outputs if cfg.lanes is None else (lambda y, a: tuple(o[:, 0] for o in _outputs_lanes(y, a)))
-        q, u, Hd = (np.array(a) for a in outputs(jnp.asarray(yw), args))
+        if cfg.lanes is None:
+            q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), args, chart))
+        else:
+            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), args, chart))
     settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start,
                 "devices": [str(jax.devices()[0])]}   # where it ran: named on every figure of it
     if cfg.lanes is not None:
         from .lanes import lane_table
 
-        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.gains, ics5.shape[0]).items()}
+        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, ics5.shape[0]).items()}
     settings.pop("check_passivity")
     settings.pop("eps")
     # restore the exact initial state (the w chart round trip rounds it in float32)

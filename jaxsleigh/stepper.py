@@ -39,12 +39,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, vector_field_w, vector_field_w_control
-from .observers import DEFAULT_OBSERVERS, StepInfo, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
+from .charts import chart_for, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
+from .closed_loop import ClosedLoop
+from .observers import DEFAULT_OBSERVERS, StepInfo
 from .rk4 import rk4_stages, rk4_step
 from .status import Status
+from .stepsize import error_ratio, next_step
 
-__all__ = ["Controls", "StepState", "init_state", "init_batch", "is_active", "attempt", "run_segment", "run_to",
+__all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment", "run_to",
            "run_saving", "run_plain", "q_norm2_w"]
 
 # A step that would overshoot the next save time by less than this fraction is stretched onto it,
@@ -61,6 +63,7 @@ class Controls(NamedTuple):
       rtol, atol: tolerances of the adaptive error control (unused by fixed RK4).
       eps: radius of the convergence ball ``|q| <= eps`` for the on-line ``T_eps``.
       max_steps: budget of attempted steps per trajectory.
+      safety, factor_min, factor_max: the step-size policy (`jaxsleigh.stepsize`).
     """
 
     dt: jax.Array
@@ -69,6 +72,9 @@ class Controls(NamedTuple):
     atol: jax.Array
     eps: jax.Array
     max_steps: jax.Array
+    safety: jax.Array = 0.9
+    factor_min: jax.Array = 0.1
+    factor_max: jax.Array = 5.0
 
 
 class StepState(NamedTuple):
@@ -105,19 +111,20 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
     ``observers`` (`jaxsleigh.observers`) are the on-line summaries carried along.
     """
     dtype = y0w.dtype
+    chart = chart_for(args.controller)
     ok = status0 == Status.OK
     # keep an invalid lane's arithmetic finite: it idles, but it is still computed with the batch
     y0w = jnp.where(ok, y0w, jnp.array([1.0, 0.0, 0.0, 0.0, 0.0], dtype))
     t0 = jnp.asarray(t0, dtype)
-    k1, u0 = vector_field_w_control(t0, y0w, args)
+    k1, u0 = chart.field_and_control(t0, y0w, args)
     g1 = _integrands(observers, y0w, u0, dtype)
     return StepState(
         t=t0, t_lo=jnp.zeros((), dtype), y=y0w,
         k1=k1, h=jnp.asarray(ctl.dt, dtype),
         status=jnp.asarray(status0, jnp.int32),
         n_accept=jnp.zeros((), jnp.int32), n_reject=jnp.zeros((), jnp.int32),
-        Hd=closed_loop_hamiltonian_w(y0w, args),
-        obs=tuple(o.init(t0, y0w, u0, ctl) for o in observers),
+        Hd=chart.energy(y0w, args),
+        obs=tuple(o.init(t0, y0w, u0, ctl, chart) for o in observers),
         quad=jnp.zeros_like(g1), g1=g1,
     )
 
@@ -125,7 +132,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
 def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
     """Classical RK4 from ``k1`` (as `rk4_stages`) that also integrates the
     observers' integrands over the same stages: returns ``(dy, k4, dq)``."""
-    f = vector_field_w_control
+    f = chart_for(args.controller).field_and_control
     y2 = y + (0.5 * h) * k1
     k2, u2 = f(t + 0.5 * h, y2, args)
     y3 = y + (0.5 * h) * k2
@@ -166,7 +173,8 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
 
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
     trailing batch axis, so it also steps a batch-last batch (``y`` (5, N), scalars (N,))."""
-    f = vector_field_w
+    chart = chart_for(args.controller)
+    f = chart.field
     dtype = s.y.dtype
     target = jnp.asarray(target, dtype)
     active = is_active(s, target, ctl)
@@ -188,31 +196,26 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         dq = s.quad
     y_new = s.y + dy
     if fsal:
-        k5, u_new = vector_field_w_control(s.t + h, y_new, args)
+        k5, u_new = chart.field_and_control(s.t + h, y_new, args)
         finite = _all_finite(y_new, k5) if adaptive else _all_finite(y_new)
     else:
         k5, u_new = s.k1, None
         finite = _all_finite(y_new)
-    crossed = jnp.sign(y_new[0]) != jnp.sign(s.y[0])
+    crossed = chart.crossed(s.y, y_new)
     # Passivity monitor: the exact flow never increases H_d (eq. 18); a step that does (beyond
     # rounding and a 1e-6 relative slack) is wrong, typically unstable RK4 near theta = 0.
-    Hd_new = closed_loop_hamiltonian_w(y_new, args)
+    Hd_new = chart.energy(y_new, args)
     rose = Hd_new > s.Hd * (1.0 + 1e-6 + 64.0 * jnp.finfo(dtype).eps)
-    if not monitor:
+    if not (monitor and chart.has_energy):
         rose = jnp.zeros_like(rose)
     status = s.status
     if adaptive:
-        # Rounding floor: k4 - k5 cannot be resolved better than a few ulps of |k|, so asking
-        # for more would reject forever in float32 when |w| is huge (starts near theta = 0).
-        noise = 16.0 * jnp.finfo(dtype).eps * jnp.abs(h) * jnp.maximum(jnp.abs(k4), jnp.abs(k5))
-        scale = ctl.atol + ctl.rtol * jnp.maximum(jnp.abs(s.y), jnp.abs(y_new)) + noise
-        err = jnp.max(jnp.abs((h / 6.0) * (k4 - k5)) / scale, axis=0)
+        # the error measure and the step-size policy: jaxsleigh.stepsize
+        err = error_ratio(h, s.y, y_new, k4, k5, ctl)
         good = finite & ~crossed & ~rose
         err = jnp.where(good, err, jnp.inf)
         ok = good & (err <= 1.0)
-        # the error estimate is O(h^4); the controller's choice is not differentiated
-        fac = jax.lax.stop_gradient(jnp.clip(0.9 * jax.lax.rsqrt(jnp.sqrt(err)), 0.1, 5.0))
-        h_next = h * fac
+        h_next = next_step(h, err, ctl)
         h_next = jnp.where(ok & hit, jnp.maximum(h_next, s.h), h_next)
         h_next = jnp.minimum(h_next, ctl.max_step)
         # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
@@ -232,7 +235,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     t_new = jnp.where(hit, target, t_hi)
     t_lo_new = jnp.where(hit, jnp.zeros_like(s.t_lo), s.t_lo + t_err)
     info = StepInfo(t=s.t, h=h, t_new=t_new + t_lo_new, y=s.y, y_new=y_new, k1=k1, k5=k5 if fsal else None,
-                    u_new=u_new, acc=acc)
+                    u_new=u_new, acc=acc, chart=chart)
     if s.quad.shape[0]:
         g_new = _integrands(observers, y_new, u_new, dtype)
         quad, g1 = jnp.where(acc, s.quad + dq, s.quad), jnp.where(acc, g_new, s.g1)
@@ -257,6 +260,15 @@ def init_batch(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
     """`init_state` for a batch ``y0w`` of shape (N, 5); the result is batch-last."""
     init = functools.partial(init_state, observers=observers)
     return jax.vmap(init, in_axes=(0, 0, None, None, None), out_axes=-1)(y0w, status0, args, ctl, t0)
+
+
+@functools.partial(jax.jit, static_argnames=("observers",))
+def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl: Controls, observers=None) -> StepState:
+    """`init_batch` with canonical per-lane ``args`` (every leaf's last axis is the
+    batch, `jaxsleigh.lanes.broadcast_lanes`): the result is batch-last."""
+    init = functools.partial(init_state, observers=DEFAULT_OBSERVERS if observers is None else observers)
+    axes = jax.tree_util.tree_map(lambda _: -1, args)
+    return jax.vmap(init, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)
 
 
 def _batched_attempt(adaptive: bool, monitor: bool = True, observers=DEFAULT_OBSERVERS):
@@ -320,7 +332,7 @@ def _plain_scan(y, args: ClosedLoop, dt, n_steps: int, unroll: int = 1):
     """``n_steps`` classical RK4 steps of a batch-last state ``y`` (5, B), all lanes at once."""
 
     def body(c, _):
-        return rk4_step(vector_field_w, 0.0, c, dt, args), None
+        return rk4_step(chart_for(args.controller).field, 0.0, c, dt, args), None
 
     return jax.lax.scan(body, y, None, length=n_steps, unroll=unroll)[0]
 

@@ -183,7 +183,7 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     default) with parameter ``names[j]`` set to ``values[:, j]``; validated, every lane at once
     (``labels``: name -> text naming it in messages, e.g. its ``--param``)."""
     from .lanes import check_lanes
-    from .validate import as_gains, as_plant
+    from .params import as_gains, as_plant
 
     values = np.asarray(values, np.float64)
     if values.ndim == 1:
@@ -378,7 +378,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     from .ensemble import run_ensemble
     from .lanes import take_lanes
     from .params import gains_to_dict
-    from .validate import as_gains, as_plant
+    from .params import as_gains, as_plant
 
     st = _as_starts(starts)
     if isinstance(params, Mapping):

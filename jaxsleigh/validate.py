@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["INT32_MAX", "real", "whole", "as_gains", "as_plant", "check_memory", "check_count", "writable_path",
+__all__ = ["INT32_MAX", "real", "whole", "check_memory", "check_count", "writable_path",
            "writable_dir"]
 
 #: The largest step budget the engine's int32 counters hold.
@@ -67,44 +67,6 @@ def whole(name: str, value, *, minimum: int = 1, maximum: int = INT32_MAX, examp
     if v > maximum:
         raise ValueError(f"{name} must be <= {maximum}, got {v}{ex}")
     return v
-
-
-def as_gains(g, name: str = "gains"):
-    """Validated `Gains` from ``None`` (the paper's), a preset name
-    (``"paper"``, ``"tuned"``, ...), a gains-file path, a dict in the file format, or a ``Gains``
-    (re-checked: every ``L_i > 0``, ``k > 0``, ``D_hat`` symmetric positive definite)."""
-    from .params import Gains, gains, gains_from_dict, load_gains, paper_gains
-
-    if g is None:
-        return paper_gains()
-    if isinstance(g, (str, Path)):
-        return load_gains(g)
-    if isinstance(g, dict):
-        return gains_from_dict(g)
-    if isinstance(g, Gains):
-        for leaf_name, leaf in zip(Gains._fields, g):
-            arr = np.asarray(leaf)
-            if arr.dtype == bool or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
-                raise ValueError(f"{name}.{leaf_name} must be real numbers, got {leaf!r}")
-        return gains(g.L, g.k, g.D_hat)
-    raise ValueError(f"{name} must be a Gains (jaxsleigh.gains(...)), a preset name ('paper', 'tuned'), "
-                     f"a gains JSON file or a dict, got {type(g).__name__}")
-
-
-def as_plant(p, name: str = "plant"):
-    """Validated `PlantParams` from ``None`` (the paper's) or a
-    ``PlantParams`` (re-checked: ``m > 0``, ``J >= 0``, ``l >= 0``, a known damping model)."""
-    from .params import PlantParams, paper_plant, plant_params
-
-    if p is None:
-        return paper_plant()
-    if isinstance(p, PlantParams):
-        for leaf_name in ("m", "J", "l"):
-            leaf = getattr(p, leaf_name)
-            real(f"{name}.{leaf_name}", leaf)
-        return plant_params(p.m, p.J, p.l, damping=p.damping)
-    raise ValueError(f"{name} must be a PlantParams (jaxsleigh.plant_params(m, J, l, damping)), "
-                     f"got {type(p).__name__}")
 
 
 def _available_bytes() -> Optional[int]:

@@ -121,11 +121,12 @@ def test_effort_is_nan_where_a_start_was_not_integrated():
 # ---------------------------------------------------------------------------------------------
 
 def _step(y, y_new, k1, k5, t=10.0, h=1.0):
+    from jaxsleigh.charts import WChart
     from jaxsleigh.observers import StepInfo
 
     a = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
     return StepInfo(t=a(t), h=a(h), t_new=a(t + h), y=a(y), y_new=a(y_new), k1=a(k1), k5=a(k5), u_new=None,
-                    acc=jnp.asarray(True))
+                    acc=jnp.asarray(True), chart=WChart())
 
 
 @pytest.mark.usefixtures("x64")

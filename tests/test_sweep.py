@@ -76,15 +76,15 @@ def test_effort_medians_equal_those_of_separate_runs(ml_sweep, ml_separate, tmp_
 
 
 def test_gain_sweep_equals_separate_runs_and_does_not_recompile():
-    from jaxsleigh import engine, lanes
+    from jaxsleigh import engine, stepper
 
     base = load_gains("tuned")
     kw = dict(FAST, gains=base, progress=False, x64=True, chunk_size=5)
     r1 = sweep(STARTS, ["k=0.05:0.4:3:log"], **kw)
-    sizes = (engine._segment_batch._cache_size(), lanes.init_batch_lanes._cache_size())
+    sizes = (engine._segment_batch._cache_size(), stepper.init_batch_lanes._cache_size())
     r2 = sweep(STARTS, ["k=0.07:0.5:3"], **kw)                       # other values, same shapes
     r3 = sweep(STARTS, {"d22": [2.0, 5.0, 9.0]}, **kw)               # another parameter, same shapes
-    assert (engine._segment_batch._cache_size(), lanes.init_batch_lanes._cache_size()) == sizes
+    assert (engine._segment_batch._cache_size(), stepper.init_batch_lanes._cache_size()) == sizes
     assert not np.array_equal(r1.T_eps, r2.T_eps)
     for p, k in enumerate(r2.values[:, 0]):
         one = jaxsleigh.run_ensemble(STARTS.ics, **dict(kw, gains=gains(base.L, k, base.D_hat)))

@@ -17,12 +17,14 @@ from ..params import Gains, PlantParams
 from ..plant import velocity_components
 from ..status import Status
 from ..observers import ClosestApproach, Excursion
-from ..stepper import Controls, StepState, attempt, init_state, is_active, q_norm2_w
+from ..charts import WChart, chart_for
+from ..stepper import Controls, StepState, attempt, init_state, is_active
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups
 
-__all__ = ["LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "soft_convergence", "objective"]
+__all__ = ["LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "soft_convergence", "objective",
+           "loss_from_lanes"]
 
 #: The stepper's observers inside the differentiated objective: only what LaneSummary reports.
 _OBSERVERS = (ClosestApproach(), Excursion())
@@ -96,21 +98,27 @@ class LaneSummary(NamedTuple):
     u_peak: Any = None
 
 
-def _soft_indicator(y, eps, tau):
-    """\\(\\phi(\\log(|q|/\\epsilon)/\\tau)\\), zero inside the ball, from a w-chart state."""
-    q2 = q_norm2_w(y[:3])
+def _soft_indicator(y, eps, tau, chart=WChart()):
+    """\\(\\phi(\\log(|q|/\\epsilon)/\\tau)\\), zero inside the ball, from a state in ``chart``."""
+    q2 = chart.q_norm2(y)
     u = jnp.maximum(0.5 * (jnp.log(q2 + 1e-30) - 2.0 * jnp.log(eps)) / tau, 0.0)
     return -jnp.expm1(-u * u)
 
 
-def _near_singular(y, theta_b):
-    # |w1| = |theta|; the loop is stiff (eigenvalues ~ k / theta^2) and fragile close to it
-    return jnp.square(jnp.maximum(jnp.log(theta_b) - jnp.log(jnp.abs(y[0]) + 1e-30), 0.0))
+def _near_singular(y, theta_b, chart=WChart()):
+    # |w1| = |theta|; the paper's loop is stiff (eigenvalues ~ k / theta^2) and fragile close to it.
+    # A law without the singular set pays no barrier.
+    if not chart.singular:
+        return jnp.zeros(y.shape[1:], y.dtype)
+    return jnp.square(jnp.maximum(jnp.log(theta_b) - jnp.log(chart.abs_theta(y) + 1e-30), 0.0))
 
 
-def _effort_rate(y, args: ClosedLoop):
-    """\\(|u|^2\\) of the control law (eq. 13) at the w-chart state ``y`` (batch-last)."""
-    u = control_w_components((y[0], y[1], y[2]), velocity_components((y[3], y[4]), args.plant), args.gains)
+def _effort_rate(y, args: ClosedLoop, chart=WChart()):
+    """\\(|u|^2\\) of the controller at the state ``y`` (batch-last) of ``chart``."""
+    if chart.name == "w":
+        u = control_w_components((y[0], y[1], y[2]), velocity_components((y[3], y[4]), args.plant), args.gains)
+    else:
+        u = chart.field_and_control(0.0, y, args)[1]
     return u[0] * u[0] + u[1] * u[1]
 
 
@@ -122,7 +130,7 @@ def _cast_plant(plant: PlantParams, dtype):
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), plant)
 
 
-def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final=None,
+def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final=None,
                      n_attempts: int, segment: int = 100, adaptive: bool = True) -> LaneSummary:
     r"""Integrate a batch from the w-chart starts ``y0w`` (N, 5) and accumulate the soft convergence
     time \(S\) and the singular-set term \(B\) along it, differentiably.
@@ -142,7 +150,8 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
     dtype = y0w.dtype
     n = y0w.shape[0]
     plant = _cast_plant(plant, dtype)
-    gains = Gains(*(jnp.asarray(x, dtype) for x in gains))
+    chart = chart_for(gains)
+    gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
     args = ClosedLoop(plant, gains)
     ctl = Controls(*(jnp.asarray(v, dtype) for v in (cfg.dt, cfg.max_step, cfg.rtol, cfg.atol, cfg.eps)),
                    max_steps=jnp.asarray(n_attempts, jnp.int32))
@@ -162,18 +171,19 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
 
     def target_of(s: StepState):
         # a lane in the stopping ball idles: its target is where it is
-        stop = jax.lax.stop_gradient(q_norm2_w(s.y[:3]) <= r_stop2)
+        stop = jax.lax.stop_gradient(chart.q_norm2(s.y) <= r_stop2)
         return jnp.where(stop, s.t, T)
 
     def body(carry, _):
         s, soft, bar, (energy, e0, peak2) = carry
         s_new = attempt(s, target_of(s), args, ctl, adaptive=adaptive, observers=_OBSERVERS)
         h = (s_new.t - s.t) + (s_new.t_lo - s.t_lo)       # 0 unless accepted; no gradient (times are fixed)
-        phi0, phi1 = _soft_indicator(s.y, eps, tau), _soft_indicator(s_new.y, eps, tau)
+        phi0, phi1 = _soft_indicator(s.y, eps, tau, chart), _soft_indicator(s_new.y, eps, tau, chart)
         soft = soft + h * 0.5 * (phi0 + phi1)
-        bar = bar + h * 0.5 * (phi0 * _near_singular(s.y, theta_b) + phi1 * _near_singular(s_new.y, theta_b))
+        bar = bar + h * 0.5 * (phi0 * _near_singular(s.y, theta_b, chart) + phi1 * _near_singular(s_new.y, theta_b,
+                                                                                                    chart))
         # control energy, trapezoid on the accepted step like S (u is carried: one evaluation per attempt)
-        e1 = _effort_rate(s_new.y, args)
+        e1 = _effort_rate(s_new.y, args, chart)
         energy = energy + h * 0.5 * (e0 + e1)
         accepted = jax.lax.stop_gradient(h > 0)
         e0 = jnp.where(accepted, e1, e0)
@@ -190,10 +200,10 @@ def soft_convergence(gains: Gains, y0w, plant: PlantParams, cfg: LossConfig, *, 
         return jax.lax.cond(busy, run_segment, lambda c: c, carry), None
 
     zeros = jnp.zeros(n, dtype)
-    e_start = _effort_rate(s0.y, args)
+    e_start = _effort_rate(s0.y, args, chart)
     (s, soft, bar, (energy, _, peak2)), _ = jax.lax.scan(outer, (s0, zeros, zeros, (zeros, e_start, e_start)), None,
                                                          length=-(-int(n_attempts) // segment))
-    stopped = q_norm2_w(s.y[:3]) <= r_stop2
+    stopped = chart.q_norm2(s.y) <= r_stop2
     ok = (s.status == Status.OK) & (stopped | (s.t >= T))
     # a failed lane counts as never converging for the rest of the horizon (value only)
     soft = soft + jax.lax.stop_gradient(jnp.where(ok, 0.0, jnp.maximum(T - s.t, 0.0)))
@@ -293,6 +303,11 @@ def objective(trainable: dict, frozen: GainParams, data: TrainingSet, cfg: LossC
         guard = jax.tree_util.tree_map(lambda x: x[n0:], parts[0])
         parts[0] = jax.tree_util.tree_map(lambda x: x[:n0], parts[0])
     lanes = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
+    return loss_from_lanes(lanes, guard, cfg)
+
+
+def loss_from_lanes(lanes: LaneSummary, guard: Optional[LaneSummary], cfg: LossConfig):
+    """The loss of `objective` from the lanes' summaries (the formulas there): ``(loss, aux)``."""
     T = jnp.asarray(cfg.t_final, lanes.soft_time.dtype)
     loss = jnp.mean(lanes.soft_time + cfg.barrier_weight * lanes.barrier) / T
     valid = jnp.all(lanes.ok)

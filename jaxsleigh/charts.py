@@ -1,0 +1,112 @@
+r"""Charts the engine integrates in: where a controller's state lives and what the stepper checks there.
+
+A chart is a small static object (hashable: part of the compiled program) that tells the stepper
+
+* ``field_and_control(t, y, args)``: the closed-loop vector field in the chart and the control it applies;
+* ``energy(y, args)``: a function that never increases along the exact flow (the passivity monitor), or
+  ``has_energy = False``;
+* ``singular``: whether the law has a singular set the flow never crosses (then a step that crosses it is
+  rejected, and starts on it are flagged);
+* ``q_norm2(y)``, ``abs_theta(y)``: \(|q|^2\) and \(|\theta|\) of a chart state (for the observers);
+* ``to_chart`` / ``from_chart``: the physical state ``(x, y, theta, p1, p2)`` to and from the chart.
+
+`WChart` is the paper's law in its w chart (eq. 15: port-Hamiltonian, \(H_d\) non-increasing, no
+trigonometry, the singular set \(w_1 = \theta = 0\)); `PhysicalChart` is any other law ``u = law(q, v)``
+in the physical state. `chart_for` picks the chart of a controller.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from .closed_loop import (closed_loop_hamiltonian_w, state_from_w, state_to_w, vector_field_law_control,
+                          vector_field_w_control)
+from .controller import is_paper_law
+from .coordinates import f_w_inv
+
+__all__ = ["WChart", "PhysicalChart", "chart_for", "q_norm2_w"]
+
+
+def q_norm2_w(w):
+    """\\(|q|^2\\) from ``w`` without trigonometry: \\(f_z\\) only rotates (x, y), so
+    \\(|q| = |z| = |f_w^{-1}(w)|\\)."""
+    z = f_w_inv(w)
+    return z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
+
+
+@dataclass(frozen=True)
+class WChart:
+    """The paper's law (eq. 13) in the chart ``y = (w1, w2, w3, p1, p2)`` (eq. 15)."""
+
+    name: ClassVar[str] = "w"
+    singular: ClassVar[bool] = True
+    has_energy: ClassVar[bool] = True
+
+    def field_and_control(self, t, y, args):
+        return vector_field_w_control(t, y, args)
+
+    def field(self, t, y, args):
+        return vector_field_w_control(t, y, args)[0]
+
+    def energy(self, y, args):
+        return closed_loop_hamiltonian_w(y, args)
+
+    def q_norm2(self, y):
+        return q_norm2_w(y[:3])
+
+    def abs_theta(self, y):
+        return jnp.abs(y[0])
+
+    def crossed(self, y, y_new):
+        return jnp.sign(y_new[0]) != jnp.sign(y[0])
+
+    def to_chart(self, y):
+        return state_to_w(y)
+
+    def from_chart(self, y):
+        return state_from_w(y)
+
+
+@dataclass(frozen=True)
+class PhysicalChart:
+    """Any law ``u = law(q, v)`` in the physical state ``y = (x, y, theta, p1, p2)``: no singular set, no
+    known non-increasing energy (the passivity monitor is off)."""
+
+    name: ClassVar[str] = "q"
+    singular: ClassVar[bool] = False
+    has_energy: ClassVar[bool] = False
+
+    def field_and_control(self, t, y, args):
+        return vector_field_law_control(t, y, args)
+
+    def field(self, t, y, args):
+        return vector_field_law_control(t, y, args)[0]
+
+    def energy(self, y, args):
+        return jnp.zeros(y.shape[1:], y.dtype)
+
+    def q_norm2(self, y):
+        return y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+
+    def abs_theta(self, y):
+        return jnp.abs(y[2])
+
+    def crossed(self, y, y_new):
+        return jnp.zeros(y.shape[1:], bool)
+
+    def to_chart(self, y):
+        return y
+
+    def from_chart(self, y):
+        return y
+
+
+def chart_for(controller):
+    """The chart a controller is integrated in: its own ``chart`` attribute if it declares one, the w chart
+    for the paper's law (`jaxsleigh.Gains`), else the physical chart."""
+    declared = getattr(type(controller), "chart", None)
+    if declared is not None:
+        return declared
+    return WChart() if is_paper_law(controller) else PhysicalChart()

@@ -1,0 +1,124 @@
+r"""Tuning any feedback law by gradient: the tuner's objective (`jaxsleigh.tuning.objective`) over the
+numeric leaves of a user's law ``u = law(q, v)`` (`jaxsleigh.controller`), with optax.
+
+The loss is the tuner's: the batch's mean soft convergence time \(S\) (plus the singular-set term for
+a law that has one), subject to a budget on the geometric-mean control energy by an augmented
+Lagrangian (`jaxsleigh.tuning.objective.loss_from_lanes`). The law's leaves are optimised as they are
+(unconstrained): a law whose parameter must stay positive should hold its logarithm. The paper's law
+has its own tuner with an admissible parametrisation, checkpoints and checks (`jaxsleigh.tuning.tune`).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ..charts import chart_for
+from ..controller import as_controller, is_paper_law, law_leaf_names
+from ..engine import check_ics
+from ..params import PlantParams, as_plant
+from ..status import Status
+from .objective import LossConfig, loss_from_lanes, soft_convergence
+
+__all__ = ["LawTuneResult", "tune_law", "law_loss"]
+
+
+class LawTuneResult(NamedTuple):
+    """The best valid law found (every lane OK, finite loss) and the history.
+
+    Attributes:
+      law: the tuned law (same type as the starting one).
+      loss, energy: its loss and geometric-mean energy on the training starts.
+      history: ``{"loss": (steps,), "energy": (steps,), "valid": (steps,)}`` per iteration.
+    """
+
+    law: Any
+    loss: float
+    energy: float
+    history: dict
+
+
+def _split(law, tune):
+    leaves, tree = jax.tree_util.tree_flatten(law)
+    names = list(law_leaf_names(law))
+    chosen = names if tune is None else list(tune)
+    bad = [n for n in chosen if n not in names]
+    if bad or not chosen:
+        raise ValueError(f"tune must name parameters of the law ({', '.join(names)}), got {list(tune or [])}")
+    return leaves, tree, names, [names.index(n) for n in chosen]
+
+
+def law_loss(law, y0, plant: PlantParams, cfg: LossConfig, *, n_attempts: int, adaptive: bool = True):
+    """``(loss, aux)`` of ``law`` on the chart starts ``y0`` (N, 5): the tuner's objective without guard starts."""
+    lanes = soft_convergence(law, y0, plant, cfg, n_attempts=n_attempts, adaptive=adaptive)
+    return loss_from_lanes(lanes, None, cfg)
+
+
+def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Optional[PlantParams] = None,
+             loss: LossConfig = LossConfig(), steps: int = 50, lr: float = 0.05, x64: bool = False,
+             n_attempts: Optional[int] = None) -> LawTuneResult:
+    """Tune the numeric leaves of ``law`` (all, or those named in ``tune``) by Adam on the tuner's objective.
+
+    Args:
+      law: any feedback law ``u = law(q, v)`` (`jaxsleigh.controller`).
+      starts: training starts ``(N, 3)`` or ``(N, 5)``.
+      tune: names of the leaves to tune (`jaxsleigh.controller.law_leaf_names`); default all.
+      plant: the plant (default: the paper's); loss: `LossConfig` (horizon, tolerances, energy budget).
+      steps, lr: Adam iterations and learning rate; x64: float64.
+      n_attempts: attempted steps per start (default 4x the base steps of ``loss.t_final``).
+    """
+    if is_paper_law(law):
+        raise ValueError("the paper's law has its own tuner with admissible gains: jaxsleigh.tuning.tune")
+    law = as_controller(law)
+    for name, v, ok in (("steps", steps, isinstance(steps, int) and steps >= 1),
+                        ("lr", lr, isinstance(lr, (int, float)) and np.isfinite(lr) and lr > 0)):
+        if not ok:
+            raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
+    chart = chart_for(law)
+    ics5, status0 = check_ics(starts, singular=chart.singular, name="training start")
+    if np.any(status0 != Status.OK):
+        raise ValueError("training starts must all be valid (finite; theta0 != 0 for a law with that singular set)")
+    plant = as_plant(plant)
+    n_attempts = int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)
+    with jax.enable_x64(bool(x64)):
+        dtype = jnp.zeros(()).dtype
+        y0 = jnp.asarray(np.asarray(jax.vmap(chart.to_chart)(jnp.asarray(ics5, jnp.float64))), dtype)
+        leaves, tree, names, idx = _split(law, tune)
+        params = [jnp.asarray(leaves[i], dtype) for i in idx]
+
+        def rebuild(ps):
+            full = [jnp.asarray(x, dtype) for x in leaves]
+            for i, p in zip(idx, ps):
+                full[i] = p
+            return jax.tree_util.tree_unflatten(tree, full)
+
+        def f(ps):
+            return law_loss(rebuild(ps), y0, plant, loss, n_attempts=n_attempts)
+
+        step_fn = jax.jit(jax.value_and_grad(f, has_aux=True))
+        opt = optax.adam(lr)
+        state = opt.init(params)
+        best, hist = None, {"loss": [], "energy": [], "valid": []}
+        for _ in range(steps):
+            (value, aux), grads = step_fn(params)
+            valid = bool(aux["valid"]) and all(bool(jnp.all(jnp.isfinite(g))) for g in grads)
+            hist["loss"].append(float(value))
+            hist["energy"].append(float(aux["energy"]))
+            hist["valid"].append(valid)
+            if valid and (best is None or float(value) < best[1]):
+                best = (params, float(value), float(aux["energy"]))
+            if not valid:
+                break
+            updates, state = opt.update(grads, state, params)
+            params = optax.apply_updates(params, updates)
+        if best is None:
+            raise ValueError("the starting law is not a valid candidate (a training start failed or the loss is not "
+                             "finite); check it with jaxsleigh.run_ensemble(starts, controller=law)")
+        final = list(leaves)
+        for i, p in zip(idx, best[0]):
+            final[i] = np.asarray(p, np.float64)
+        tuned = jax.tree_util.tree_unflatten(tree, final)
+    return LawTuneResult(tuned, best[1], best[2], {k: np.asarray(v) for k, v in hist.items()})

@@ -1,0 +1,67 @@
+"""Golden outputs: a handful of runs whose numbers must not change when the code is reorganised.
+
+``python tests/golden/make_golden.py`` writes ``tests/data/golden.npz`` (small: a few hundred
+numbers per run). ``tests/test_golden.py`` reruns the same calls and compares every array: integer
+fields (status, step counts) exactly, floating-point fields to within a few ulps of float64 or float32.
+Regenerate only for a documented change of arithmetic, and say so in the commit.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).parent
+
+
+def _flat(prefix: str, obj) -> dict:
+    out = {}
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            out.update(_flat(f"{prefix}.{k}", v))
+    elif obj is not None and not isinstance(obj, (str, list)):
+        a = np.asarray(obj)
+        if a.dtype != object:
+            out[prefix] = a
+    return out
+
+
+def golden_runs() -> dict:
+    """name -> {field: array} of every golden run (each one cheap: CI runs them all)."""
+    import jaxsleigh as js
+
+    runs = {}
+    ics = np.array([[-3.0, -2.0, np.pi / 8, 0.0, 0.0], [1.0, 1.0, 0.5, 0.0, 0.0], [2.0, -1.0, -1.0, 0.3, -0.2]])
+    for x64 in (False, True):
+        sol = js.simulate(ics, t_final=20.0, dt=0.01, save_every=100, x64=x64)
+        tag = "f64" if x64 else "f32"
+        runs[f"simulate_{tag}"] = {"t": sol.t, "q": sol.q, "p": sol.p, "u": sol.u, "Hd": sol.Hd,
+                                   "status": sol.status, "n_steps": sol.n_steps, "n_rejected": sol.n_rejected,
+                                   **_flat("effort", sol.effort)}
+    starts = np.random.default_rng(7).uniform([-3, -3, 0.3], [3, 3, 3], (48, 3))
+    res = js.run_ensemble(starts, t_final=30.0, gains="balanced")
+    runs["ensemble"] = {k: getattr(res, k) for k in ("q", "p", "T_eps", "min_abs_theta", "max_excursion", "Hd0",
+                                                      "Hd_final", "t_reached", "n_steps", "n_rejected", "status",
+                                                      "u_peak", "u_norm_peak", "u_energy", "u_abs_int")}
+    fast = js.run_ensemble(starts, t_final=30.0, method="rk4", summaries=False, check_passivity=False)
+    runs["ensemble_plain"] = {"q": fast.q, "p": fast.p, "status": fast.status, "Hd_final": fast.Hd_final}
+    basin = js.run_basin(js.grid_starts(x=(-2, 2, 4), y=(-2, 2, 3), theta=0.5), t_final=20.0)
+    runs["basin"] = {k: v for k, v in basin._asdict().items()
+                     if isinstance(v, np.ndarray) and v.dtype != object}
+    sw = js.sweep(starts[:8], ["k=0.05:0.2:2"], t_final=20.0)
+    runs["sweep"] = {k: v for k, v in sw._asdict().items() if isinstance(v, np.ndarray) and v.dtype != object}
+    runs["sweep"].update(_flat("effort", sw.effort))
+    return runs
+
+
+def main() -> int:
+    runs = golden_runs()
+    arrays = {f"{run}/{field}": np.asarray(v) for run, fields in runs.items() for field, v in fields.items()}
+    np.savez_compressed(HERE.parent / "data" / "golden.npz", **arrays)
+    print(f"wrote {HERE.parent / 'data' / 'golden.npz'}: {len(arrays)} arrays from {len(runs)} runs")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,215 @@
+"""The controller as a piece: a user-written law ``u = law(q, v)`` runs through the engine in the
+physical chart, checked against scipy's Radau integrating the same closed loop written independently."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxsleigh as js
+from jaxsleigh.charts import PhysicalChart, WChart, chart_for
+
+
+class PD(NamedTuple):
+    """Proportional-derivative law on the forward distance and the heading (the concepts page's example)."""
+
+    kp: float = 1.0
+    kd: float = 2.0
+
+    def __call__(self, q, v):
+        along = q[0] * jnp.cos(q[2]) + q[1] * jnp.sin(q[2])
+        return jnp.stack([-self.kp * along - self.kd * v[0], -self.kp * q[2] - self.kd * v[1]])
+
+
+def _scipy_closed_loop(law_np, m=2.0, J=1.0, l=1.0, eps=0.1, scale=1.0):
+    """The sleigh (eq. 1-2) with the paper's smoothed Coulomb damping D = c diag(1/sqrt(eps + p_i^2)),
+    written with NumPy only."""
+    Jt = J + m * l * l
+
+    def f(t, s):
+        x, y, th, p1, p2 = s
+        v, w = p1 / m, p2 / Jt
+        u = law_np(np.array([x, y, th]), np.array([v, w]))
+        a = m * l / Jt * p2
+        d1, d2 = scale * v / np.sqrt(eps + p1 * p1), scale * w / np.sqrt(eps + p2 * p2)
+        return [np.cos(th) * v, np.sin(th) * v, w, a * w - d1 + u[0], -a * v - d2 + u[1]]
+
+    return f
+
+
+def _pd_np(kp, kd):
+    def law(q, v):
+        along = q[0] * np.cos(q[2]) + q[1] * np.sin(q[2])
+        return np.array([-kp * along - kd * v[0], -kp * q[2] - kd * v[1]])
+    return law
+
+
+def test_damping_model_is_the_one_scipy_integrates():
+    d = js.paper_plant().damping
+    p, v = (0.3, -0.6), (0.15, -0.2)
+    f = np.asarray(d.force(jnp.zeros(3), tuple(map(jnp.asarray, p)), tuple(map(jnp.asarray, v))))
+    np.testing.assert_allclose(f, [v[0] / np.sqrt(0.1 + p[0] ** 2), v[1] / np.sqrt(0.1 + p[1] ** 2)], rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["simulate", "run_ensemble"])
+def test_user_law_matches_scipy_radau(method):
+    ics = np.array([[-3.0, -2.0, np.pi / 8, 0.0, 0.0], [1.0, 1.0, 0.0, 0.5, -0.3], [2.0, -1.0, -1.0, 0.0, 0.0]])
+    law = PD(kp=2.0, kd=1.5)
+    if method == "simulate":
+        out = js.simulate(ics, controller=law, t_final=10.0, x64=True, save_every=1000)
+        final = np.concatenate([out.q[:, -1], out.p[:, -1]], axis=1)
+        status = out.status
+    else:
+        out = js.run_ensemble(ics, controller=law, t_final=10.0, x64=True)
+        final = np.concatenate([out.q, out.p], axis=1)
+        status = out.status
+    assert np.all(status == 0)
+    f = _scipy_closed_loop(_pd_np(2.0, 1.5))
+    for i, y0 in enumerate(ics):
+        ref = solve_ivp(f, (0, 10.0), y0, method="Radau", rtol=1e-10, atol=1e-12).y[:, -1]
+        np.testing.assert_allclose(final[i], ref, rtol=0, atol=2e-5)
+
+
+def test_user_law_effort_matches_quadrature_of_scipy_solution():
+    ics = np.array([[1.0, -1.0, 0.4, 0.0, 0.0]])
+    law = PD(kp=1.0, kd=2.0)
+    res = js.run_ensemble(ics, controller=law, t_final=5.0, x64=True)
+    f = _scipy_closed_loop(_pd_np(1.0, 2.0))
+    lawn = _pd_np(1.0, 2.0)
+
+    def aug(t, s):
+        u = lawn(s[:3], np.array([s[3] / 2.0, s[4] / 3.0]))
+        return list(f(t, s[:5])) + [u @ u]
+
+    ref = solve_ivp(aug, (0, 5.0), list(ics[0]) + [0.0], method="Radau", rtol=1e-11, atol=1e-12).y[-1, -1]
+    np.testing.assert_allclose(res.u_energy[0], ref, rtol=1e-6)
+    assert np.isnan(res.Hd0[0]) and np.isnan(res.Hd_final[0])     # H_d belongs to the paper's law
+
+
+def test_theta_zero_is_not_singular_for_a_user_law():
+    sol = js.simulate(np.array([1.0, 0.5, 0.0]), controller=PD(), t_final=2.0, x64=True)
+    assert sol.status[0] == 0 and np.all(np.isfinite(sol.q))
+    with pytest.raises(ValueError, match="singular set"):
+        js.simulate(np.array([1.0, 0.5, 0.0]), t_final=2.0)      # the paper's law: theta0 = 0 refused
+
+
+def test_a_plain_function_is_a_controller():
+    def law(q, v):
+        return -1.0 * jnp.stack([v[0] + q[0], v[1] + q[2]])
+
+    sol = js.simulate(np.array([1.0, 0.5, 0.3]), controller=law, t_final=2.0, x64=True)
+    assert sol.status[0] == 0
+    assert "FunctionLaw" in sol.settings["controller"]["type"]
+
+
+def test_law_parameters_are_traced_and_do_not_recompile():
+    from jaxsleigh import engine
+
+    ics = np.array([[1.0, 0.5, 0.3]])
+    js.run_ensemble(ics, controller=PD(1.0, 2.0), t_final=1.0)
+    size = engine._segment_batch._cache_size()
+    r = js.run_ensemble(ics, controller=PD(3.0, 2.5), t_final=1.0)
+    assert engine._segment_batch._cache_size() == size
+    assert r.status[0] == 0
+
+
+def test_gradient_of_a_law_through_the_stepper_matches_finite_differences():
+    """The stepper is a pure JAX function of the law's parameters: d(final x)/d(kp) by jax.grad equals
+    central finite differences (float64, fixed-step RK4)."""
+    from jaxsleigh.closed_loop import ClosedLoop
+    from jaxsleigh.engine import make_controls, make_horizon
+    from jaxsleigh.stepper import init_state, run_to
+
+    with jax.enable_x64(True):
+        horizon = make_horizon(2.0, 0.01)
+        ctl = make_controls(horizon, jnp.float64, rtol=1e-8, atol=1e-8, eps=0.05, max_steps=10**4)
+        y0 = jnp.array([1.0, -0.5, 0.4, 0.0, 0.0])
+
+        def final_x(kp):
+            args = ClosedLoop(js.paper_plant(), PD(kp, 1.5))
+            s = init_state(y0, jnp.int32(0), args, ctl)
+            return run_to(s, 2.0, args, ctl, adaptive=False).y[0]
+
+        g = jax.jacfwd(final_x)(2.0)
+        h = 1e-5
+        fd = (final_x(2.0 + h) - final_x(2.0 - h)) / (2 * h)
+        np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_charts_are_chosen_by_the_controller():
+    assert isinstance(chart_for(js.paper_gains()), WChart)
+    assert isinstance(chart_for(PD()), PhysicalChart)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (42, "feedback law"),
+    (lambda q, v: jnp.zeros(3), "shape \\(2,\\)"),
+    (lambda q, v: jnp.array([jnp.nan, 0.0]), "non-finite"),
+    (lambda q, v: q["x"], "failed when called"),
+])
+def test_bad_controllers_are_refused_with_a_message(bad, match):
+    with pytest.raises(ValueError, match=match):
+        js.simulate(np.array([1.0, 0.5, 0.3]), controller=bad, t_final=1.0)
+
+
+def test_gains_and_controller_together_are_refused():
+    with pytest.raises(ValueError, match="not both"):
+        js.run_ensemble(np.array([[1.0, 0.5, 0.3]]), gains="paper", controller=PD(), t_final=1.0)
+
+
+def test_paper_gains_given_as_controller_are_the_paper_law():
+    ics = np.array([[1.0, 0.5, 0.3]])
+    a = js.run_ensemble(ics, controller=js.paper_gains(), t_final=5.0)
+    b = js.run_ensemble(ics, t_final=5.0)
+    np.testing.assert_array_equal(a.q, b.q)
+
+
+def test_per_trajectory_law_equals_separate_runs_and_records_its_values():
+    from jaxsleigh.controller import PerTrajectory
+
+    ics = np.array([[1.0, 0.5, 0.3], [-1.0, 1.0, -0.6], [2.0, 0.0, 1.0]])
+    kps = np.array([0.5, 2.0, 4.0])
+    lanes = js.run_ensemble(ics, controller=PerTrajectory(PD(kp=kps, kd=np.full(3, 1.5))), t_final=4.0, x64=True)
+    for i, kp in enumerate(kps):
+        one = js.run_ensemble(ics[i:i + 1], controller=PD(kp, 1.5), t_final=4.0, x64=True)
+        np.testing.assert_allclose(lanes.q[i], one.q[0], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(lanes.u_energy[i], one.u_energy[0], rtol=1e-12)
+    np.testing.assert_array_equal(lanes.params["kp"], kps)
+
+
+def test_per_trajectory_plant_under_a_user_law():
+    ics = np.array([[1.0, 0.5, 0.3], [1.0, 0.5, 0.3]])
+    plant = js.PlantParams(np.array([1.0, 4.0]), 1.0, 1.0, js.CoulombDamping())
+    res = js.run_ensemble(ics, plant=plant, controller=PD(), t_final=4.0, x64=True)
+    for i, m in enumerate((1.0, 4.0)):
+        one = js.run_ensemble(ics[:1], plant=js.plant_params(m, 1.0, 1.0), controller=PD(), t_final=4.0, x64=True)
+        np.testing.assert_allclose(res.q[i], one.q[0], rtol=1e-12, atol=1e-14)
+    assert not np.allclose(res.q[0], res.q[1])
+
+
+def test_user_law_through_run_basin():
+    res = js.run_basin(js.grid_starts(x=(-1, 1, 3), y=(-1, 1, 2), theta=0.4), controller=PD(2.0, 1.5), t_final=5.0)
+    assert res.status.shape == (6,) and np.all(res.status == 0)
+    assert res.settings["controller"]["type"] == "PD"
+
+
+def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_differences():
+    from jaxsleigh.tuning import LossConfig, tune_law
+    from jaxsleigh.tuning.law import law_loss
+
+    starts = np.array([[1.0, 0.5, 0.4], [-1.0, 1.0, -0.5], [0.5, -1.0, 1.0]])
+    cfg = LossConfig(t_final=6.0, rtol=1e-8, atol=1e-8)
+    with jax.enable_x64(True):
+        y0 = jnp.asarray(np.concatenate([starts, np.zeros((3, 2))], axis=1))
+        f = lambda kp: law_loss(PD(kp, 1.5), y0, js.paper_plant(), cfg, n_attempts=2000, adaptive=False)[0]  # noqa
+        g = jax.grad(f)(1.0)
+        fd = (f(1.0 + 1e-5) - f(1.0 - 1e-5)) / 2e-5
+    np.testing.assert_allclose(g, fd, rtol=1e-5)
+    res = tune_law(PD(1.0, 1.5), starts, tune=["kp"], loss=LossConfig(t_final=6.0), steps=6, lr=0.2, x64=True)
+    assert res.history["loss"].shape == (6,) and np.all(res.history["valid"])
+    assert res.loss < res.history["loss"][0]                      # it improved on the starting law
+    assert isinstance(res.law, PD) and res.law.kd == 1.5 and res.law.kp != 1.0
