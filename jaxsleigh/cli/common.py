@@ -3,8 +3,9 @@ groups, output-path checks, how warnings and statuses are reported, exit codes a
 compilation cache.
 
 Exit codes (`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
-was computed); 3 the run finished but no trajectory ended OK; 130 interrupted (Ctrl-C; what was
-finished is kept, see ``--resume``).
+was computed); 3 the run finished but no trajectory ended OK; 4 the processes of a multi-process run
+failed together (a peer died or never came; finished chunks are kept); 130 interrupted (Ctrl-C; what
+was finished is kept, see ``--resume``).
 """
 from __future__ import annotations
 
@@ -20,10 +21,11 @@ from typing import Optional
 
 import numpy as np
 
+from ..distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from ..io import load_ics
 from ..io import parse_number as _number
 
-__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError",
+__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_CLUSTER", "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
@@ -38,6 +40,8 @@ EXIT_INTERRUPTED = 130
 EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
               EXIT_USAGE: "bad input; nothing was computed (the message says what to change)",
               EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts)",
+              EXIT_CLUSTER: "the cluster failed: a process of a multi-process run died, never came or could not "
+                            "start the coordinator (the message names it); finished chunks are kept (--resume)",
               EXIT_INTERRUPTED: "interrupted (Ctrl-C); finished work is kept (--resume continues)"}
 
 #: Keyword -> flag, so that messages of the shared validation name the flag the user typed.
@@ -377,10 +381,14 @@ def add_distributed_options(parser) -> None:
                    help="number of processes in the run")
     g.add_argument("--process-id", type=whole("--process-id", "0", minimum=0), metavar="I",
                    help="this process's id, 0..N-1 (0 runs the coordinator and writes the output)")
+    g.add_argument("--cluster-timeout", type=number("--cluster-timeout", "60"), default=CLUSTER_TIMEOUT_S,
+                   metavar="S", help=f"seconds to wait for a process that shows no sign of life: the coordinator "
+                                     f"and the others at the start, a silent process during the run (then declared "
+                                     f"dead; exit code {EXIT_CLUSTER}) (default {CLUSTER_TIMEOUT_S})")
 
 
 #: Options that may differ between the processes of one run (everything else must be equal).
-_PER_PROCESS = {"coordinator", "num_processes", "process_id", "progress", "no_compile_cache", "func", "_argv"}
+_PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout", "progress", "no_compile_cache", "func", "_argv"}
 
 
 def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:
@@ -407,13 +415,31 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     share, process 0 assembles and writes, and every process returns process 0's exit code. The
     options (except the three above and ``--progress``) must be equal in every process.
     """
-    from ..distributed import run_shared, start
+    from ..distributed import ClusterError, run_shared, start
 
-    cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
-                    getattr(args, "process_id", None))
+    try:
+        cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
+                        getattr(args, "process_id", None),
+                        timeout_s=getattr(args, "cluster_timeout", None) or CLUSTER_TIMEOUT_S)
+    except ClusterError as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+        return EXIT_CLUSTER
     if cluster is None:
         return int(assemble(check(), False))
     options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
     options = json.loads(json.dumps(options, default=str))
-    return run_shared(cluster, check=check, compute=compute, assemble=lambda state: assemble(state, True),
-                      prepare=prepare, shared_dirs=shared_dirs or (lambda state: []), options=options)
+    try:
+        code = run_shared(cluster, check=check, compute=compute, assemble=lambda state: assemble(state, True),
+                          prepare=prepare, shared_dirs=shared_dirs or (lambda state: []), options=options)
+    except ClusterError as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+        code = EXIT_CLUSTER
+    if code == EXIT_CLUSTER or cluster.lost:
+        # JAX's shutdown would wait for the dead process at its shutdown barrier, then abort: leave now
+        # (every file is written, atomically, already)
+        cluster.stop()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    cluster.stop()
+    return code
