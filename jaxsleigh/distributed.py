@@ -132,6 +132,7 @@ class Cluster:
         self.silent_s = float(silent_s)
         self.phase = "starting"          # what this process does now, for the abort handler's message
         self.lost: list = []             # peers declared dead (process 0 finished their share)
+        self.synced = False              # every survivor has the result: leave without JAX's shutdown
         self._n = 0
         self._seen: dict = {}            # process -> (last sign of life, local time it changed)
         self._stop = threading.Event()
@@ -187,7 +188,12 @@ class Cluster:
         left out (and recorded in ``lost``)."""
         among = [i for i in among if i not in self.lost]
         while True:
-            got = {int(k.rsplit("/", 1)[1]): v for k, v in self.client.key_value_dir_get(name + "/")}
+            try:
+                got = {int(k.rsplit("/", 1)[1]): v for k, v in self.client.key_value_dir_get(name + "/")}
+            except Exception as e:  # JaxRuntimeError: the coordinator (process 0) is gone
+                raise ClusterError(f"process {self.index} of {self.count}: lost the coordinator (process 0) while "
+                                   f"{self.phase} ({str(e).splitlines()[0]}); the finished chunks are kept: run the "
+                                   f"same command with --resume") from None
             missing = [i for i in among if i not in got]
             if not missing:
                 return got
@@ -444,6 +450,17 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
     return cluster
 
 
+def _publish(cluster: Cluster, result: dict) -> None:
+    """Process 0: share the run's ``result`` (and the dead peers) and wait until the others have
+    read it: then every process leaves without JAX's shutdown barrier (``synced``), which would
+    wait for a process that died after its share, then abort."""
+    cluster.share("result", {**result, "lost": cluster.lost})
+    cluster.phase = "waiting for the others to read the result"
+    cluster.report("read", True)
+    cluster.synced = True
+    time.sleep(0.5)                   # the others leave right after saying so
+
+
 def _marker(folder: Path, index: int) -> Path:
     return Path(folder) / f".jaxsleigh-process-{index}"
 
@@ -521,16 +538,20 @@ def run_shared(cluster: Cluster, *, check: Callable[[], Any], compute: Callable[
                     _marker(d, i).unlink(missing_ok=True)
             code = int(assemble(state))
         except (ValueError, OSError) as e:
-            cluster.share("result", {"code": None, "error": str(e), "lost": cluster.lost})
+            _publish(cluster, {"code": None, "error": str(e)})
             raise
         except BaseException:
-            cluster.share("result", {"code": 1, "error": "process 0 failed while writing the output",
-                                     "lost": cluster.lost})
+            _publish(cluster, {"code": 1, "error": "process 0 failed while writing the output"})
             raise
-        cluster.share("result", {"code": code, "error": None, "lost": cluster.lost})
+        _publish(cluster, {"code": code, "error": None})
         return code
     got = cluster.share("result")
     cluster.lost = list(got.get("lost") or [])
+    cluster.report("read", True)
+    cluster.synced = True
+    if cluster.lost:
+        _say(cluster.index, cluster.count, f"process {', '.join(map(str, cluster.lost))} stopped answering; "
+                                           f"process 0 computed its missing chunks")
     if got["error"]:
         raise ValueError(f"process 0 of {cluster.count}: {got['error']}")
     return int(got["code"])

@@ -434,9 +434,14 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     except ClusterError as e:
         print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
         code = EXIT_CLUSTER
-    if code == EXIT_CLUSTER or cluster.lost:
-        # JAX's shutdown would wait for the dead process at its shutdown barrier, then abort: leave now
-        # (every file is written, atomically, already)
+    except ValueError as e:
+        if not cluster.synced:
+            raise                                   # a refusal before any work: JAX shuts down as usual
+        print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+        code = EXIT_USAGE
+    if code == EXIT_CLUSTER or cluster.synced:
+        # JAX's shutdown would wait at its shutdown barrier for a process that died, then abort: leave
+        # now (every file is written, atomically, already; every survivor has process 0's result)
         cluster.stop()
         sys.stdout.flush()
         sys.stderr.flush()
