@@ -222,7 +222,7 @@ def test_processes_with_different_options_are_refused_before_any_write(tmp_path)
     out = tmp_path / "d.npz"
     res = _wait(_launch(2, out, per_process=lambda i: ["--eps", "0.1"] if i == 1 else []))
     assert [rc for rc, _, _ in res] == [2, 2]
-    assert all("different options: process 0 has no --eps, process 1 --eps 0.1;" in e for _, _, e in res)
+    assert all("different options: process 0 has --eps 0.05, process 1 --eps 0.1;" in e for _, _, e in res)
     assert not list((tmp_path / "d.npz.chunks").glob("*")) and not out.exists()
 
 
@@ -360,6 +360,6 @@ def test_different_options_are_named_with_both_values():
     msg = str(e.value)
     assert "different options: process 0 has --seed 0, process 1 --seed 7;" in msg and "{" not in msg
     got[1]["options"] = {**opts, "seed": 7, "resume": True}
-    with pytest.raises(ValueError, match=r"--seed 0, process 1 --seed 7 \(and 1 more: no --resume vs --resume\)"):
+    with pytest.raises(ValueError, match=r"has no --resume, process 1 --resume \(and 1 more: --seed 0 vs --seed 7\)"):
         _refuse(got, 1, 2, {"options": None})
     _refuse([{"error": None, "options": opts}] * 3, 2, 3, {"options": None})      # equal: no refusal
