@@ -257,13 +257,16 @@ def _refuse(got: list, index: int, count: int, facts) -> None:
         i, msg = bad[0]
         more = f" (and {len(bad) - 1} more process(es))" if len(bad) > 1 else ""
         raise ValueError(msg if i == index else f"process {i} of {count}{more}: {msg}")
+    def same(x, y):  # as JSON: True and 1 differ
+        return json.dumps(x, sort_keys=True) == json.dumps(y, sort_keys=True)
+
     for key in facts:
-        if len({json.dumps(g[key], sort_keys=True) for g in got}) == 1:
+        j = next((i for i, g in enumerate(got) if not same(g[key], got[0][key])), None)
+        if j is None:
             continue
-        j = next(i for i, g in enumerate(got) if g[key] != got[0][key])
         a, b = got[0][key], got[j][key]
         if isinstance(a, dict) and isinstance(b, dict):   # the options: name each one that differs
-            diff = [k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+            diff = [k for k in sorted(set(a) | set(b)) if not same(a.get(k), b.get(k))]
             pairs = [f"{_flag_value(k, a.get(k))} vs {_flag_value(k, b.get(k))}" for k in diff]
             more = f" (and {len(pairs) - 1} more: {', '.join(pairs[1:])})" if len(pairs) > 1 else ""
             raise ValueError(f"the {count} processes were given different options: process 0 has "

@@ -19,6 +19,8 @@ import time
 from pathlib import Path
 
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from jaxsleigh.cli import main
 from jaxsleigh.distributed import cluster_env, parse_coordinator
@@ -363,3 +365,27 @@ def test_different_options_are_named_with_both_values():
     with pytest.raises(ValueError, match=r"has no --resume, process 1 --resume \(and 1 more: --seed 0 vs --seed 7\)"):
         _refuse(got, 1, 2, {"options": None})
     _refuse([{"error": None, "options": opts}] * 3, 2, 3, {"options": None})      # equal: no refusal
+    got[1]["options"] = {**opts, "seed": True}                                   # equal in Python, not as JSON
+    with pytest.raises(ValueError, match="has --seed 1, process 1 --seed;"):
+        _refuse([{"error": None, "options": {**opts, "seed": 1}}, got[1]], 0, 2, {"options": None})
+
+
+_VALUES = st.one_of(st.none(), st.booleans(), st.integers(-5, 5), st.sampled_from(["a.npz", "rk4", "x y"]))
+
+
+@settings(max_examples=30, deadline=None)
+@given(opts=st.dictionaries(st.sampled_from(["seed", "eps", "t_final", "resume", "method", "out"]), _VALUES,
+                            min_size=1),
+       other=_VALUES, j=st.integers(1, 3))
+def test_the_first_differing_option_is_named_with_both_values(opts, other, j):
+    from jaxsleigh.distributed import _flag_value, _refuse
+
+    key = sorted(opts)[0]
+    assume(json.dumps(other) != json.dumps(opts[key]))
+    theirs = {**opts, key: other}
+    got = [{"error": None, "options": opts}] * j + [{"error": None, "options": theirs}]
+    with pytest.raises(ValueError) as e:
+        _refuse(got, 0, j + 1, {"options": None})
+    flag = "--" + key.replace("_", "-")
+    assert f"process 0 has {_flag_value(key, opts[key])}, process {j} {_flag_value(key, other)}" in str(e.value)
+    assert flag in _flag_value(key, other) and "{" not in str(e.value)
