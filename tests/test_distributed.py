@@ -2,7 +2,9 @@
 same ``.npz``, byte for byte, as one process; a killed process loses only its unfinished chunks and
 ``--resume`` by another number of processes recomputes exactly those; bad or inconsistent
 options and stale checkpoint folders are refused by every process before anything is written; a
-2-process ``jaxsleigh sweep`` writes the single-process bytes too.
+2-process ``jaxsleigh sweep`` writes the single-process bytes too. Issue 17: nothing waits silently
+(a missing coordinator, a port in use, a dead peer or a dead process 0 are named within
+``--cluster-timeout``, exit code 4, and process 0 finishes a dead peer's share).
 
 The processes are real ones (``python -m jaxsleigh.cli basin ...`` on 127.0.0.1, a free port,
 ``JAX_PLATFORMS=cpu``) with a small workload (200 Monte-Carlo starts, 2 s horizon, chunks of 16).
@@ -97,6 +99,9 @@ def reference(tmp_path_factory) -> bytes:
     (["--coordinator", "127.0.0.1:99999", "--num-processes", "2", "--process-id", "0"], "1..65535"),
     (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "2"], "--process-id must be 0..1"),
     (["--coordinator", "127.0.0.1:1234", "--num-processes", "0", "--process-id", "0"], "--num-processes must be >= 1"),
+    (["--cluster-timeout", "0"], "--cluster-timeout must be a finite number > 0"),
+    (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0", "--cluster-timeout", "1e9"],
+     "--cluster-timeout must be a number of seconds in (0, 60000]"),
 ])
 def test_bad_distributed_options_exit_2(tmp_path, capsys, extra, needle):
     rc = main(["basin", *WORK, "--out", str(tmp_path / "x.npz"), *extra])
