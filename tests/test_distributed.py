@@ -2,7 +2,9 @@
 same ``.npz``, byte for byte, as one process; a killed process loses only its unfinished chunks and
 ``--resume`` by another number of processes recomputes exactly those; bad or inconsistent
 options and stale checkpoint folders are refused by every process before anything is written; a
-2-process ``jaxsleigh sweep`` writes the single-process bytes too.
+2-process ``jaxsleigh sweep`` writes the single-process bytes too. Issue 17: nothing waits silently
+(a missing coordinator, a port in use, a dead peer or a dead process 0 are named within
+``--cluster-timeout``, exit code 6, and process 0 finishes a dead peer's share).
 
 The processes are real ones (``python -m jaxsleigh.cli basin ...`` on 127.0.0.1, a free port,
 ``JAX_PLATFORMS=cpu``) with a small workload (200 Monte-Carlo starts, 2 s horizon, chunks of 16).
@@ -19,6 +21,8 @@ import time
 from pathlib import Path
 
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from jaxsleigh.cli import main
 from jaxsleigh.distributed import cluster_env, parse_coordinator
@@ -95,6 +99,9 @@ def reference(tmp_path_factory) -> bytes:
     (["--coordinator", "127.0.0.1:99999", "--num-processes", "2", "--process-id", "0"], "1..65535"),
     (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "2"], "--process-id must be 0..1"),
     (["--coordinator", "127.0.0.1:1234", "--num-processes", "0", "--process-id", "0"], "--num-processes must be >= 1"),
+    (["--cluster-timeout", "0"], "--cluster-timeout must be a finite number > 0"),
+    (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0", "--cluster-timeout", "1e9"],
+     "--cluster-timeout must be a number of seconds in (0, 60000]"),
 ])
 def test_bad_distributed_options_exit_2(tmp_path, capsys, extra, needle):
     rc = main(["basin", *WORK, "--out", str(tmp_path / "x.npz"), *extra])
@@ -222,5 +229,168 @@ def test_processes_with_different_options_are_refused_before_any_write(tmp_path)
     out = tmp_path / "d.npz"
     res = _wait(_launch(2, out, per_process=lambda i: ["--eps", "0.1"] if i == 1 else []))
     assert [rc for rc, _, _ in res] == [2, 2]
-    assert all("different options" in e for _, _, e in res)
+    assert all("different options: process 0 has --eps 0.05, process 1 --eps 0.1;" in e for _, _, e in res)
     assert not list((tmp_path / "d.npz.chunks").glob("*")) and not out.exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# clusters that never hang silently (issue 17): short --cluster-timeout, real processes
+# ---------------------------------------------------------------------------------------------
+
+def _alone(i, port, out, timeout=3):
+    """Process ``i`` of 2, started alone (its peer never comes)."""
+    return subprocess.run(_cmd(out, ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id",
+                                     str(i), "--cluster-timeout", str(timeout)]),
+                          env=_env(), capture_output=True, text=True, timeout=60)
+
+
+def test_missing_coordinator_is_said_at_once_and_exits_6(tmp_path):
+    port = _port()
+    r = _alone(1, port, tmp_path / "x.npz", timeout=2)
+    assert r.returncode == 6, r.stderr
+    lines = r.stderr.splitlines()
+    assert lines[0] == f"jaxsleigh: process 1 of 2: waiting for the coordinator at 127.0.0.1:{port} (up to 2 s)"
+    assert f"no coordinator at 127.0.0.1:{port} after 2 s" in r.stderr and "--cluster-timeout" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "x.npz").exists()
+
+
+def test_coordinator_port_in_use_is_named_and_exits_6(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = _alone(0, port, tmp_path / "x.npz")
+    assert r.returncode == 6, r.stderr
+    assert f"--coordinator 127.0.0.1:{port}: port {port} is in use on 127.0.0.1" in r.stderr
+    assert "Traceback" not in r.stderr and "RPC" not in r.stderr
+
+
+def _listening(port: int) -> dict:
+    """The local addresses (hex, as in /proc/net/tcp*) listening on ``port``, by table."""
+    found = {}
+    for table in ("tcp", "tcp6"):
+        try:
+            rows = Path(f"/proc/net/{table}").read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            local, state = row.split()[1], row.split()[3]
+            if state == "0A" and int(local.rsplit(":", 1)[1], 16) == port:      # 0A: LISTEN
+                found.setdefault(table, []).append(local.rsplit(":", 1)[0])
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="reads Linux's /proc/net/tcp")
+def test_lonely_process_0_binds_the_given_address_says_what_it_waits_for_and_exits_6(tmp_path):
+    port = _port()
+    p = subprocess.Popen(_cmd(tmp_path / "x.npz", ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
+                                                   "--process-id", "0", "--cluster-timeout", "4"]),
+                         env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline, seen = time.monotonic() + 30, {}
+        while not seen and p.poll() is None and time.monotonic() < deadline:
+            seen = _listening(port)
+            time.sleep(0.05)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    # 127.0.0.1 only (gRPC may use an IPv4-mapped IPv6 socket), not JAX's default [::] (all zeros)
+    addresses = [a for v in seen.values() for a in v]
+    assert addresses and all(a in ("0100007F", "0000000000000000FFFF00000100007F") for a in addresses), seen
+    assert p.returncode == 6, err
+    assert err.splitlines()[0] == (f"jaxsleigh: process 0 of 2: starting the coordinator at 127.0.0.1:{port}; "
+                                   f"waiting for the other 1 process(es) to join (up to 4 s)")
+    assert "the cluster failed while waiting for the other 1 process(es) to join" in err
+    assert "Traceback" not in err and not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.slow
+def test_dead_peer_is_named_and_process_0_finishes_its_share(tmp_path, reference):
+    out = tmp_path / "k.npz"
+    chunks = tmp_path / "k.npz.chunks"
+    procs = _launch(3, out, ["--keep-chunks", "--cluster-timeout", "3"])
+    try:
+        deadline = time.monotonic() + 90
+        while not any(_chunk_index(p) % 3 == 1 for p in chunks.glob("chunk_*.npz")):   # process 1's first chunk
+            assert time.monotonic() < deadline and procs[1].poll() is None, "process 1 wrote no chunk"
+            time.sleep(0.005)
+        procs[1].send_signal(signal.SIGKILL)
+        killed = time.monotonic()
+        res = _wait(procs, timeout=90)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert res[1][0] == -signal.SIGKILL
+    assert time.monotonic() - killed < 60               # promptly, not after JAX's 100 s heartbeat
+    for i in (0, 2):
+        assert res[i][0] == 0, res[i][2][-3000:]
+        assert "Traceback" not in res[i][2]
+    assert "process 1 of 3 stopped answering" in res[0][2] and "process 0 computes its missing chunks" in res[0][2]
+    assert "process 1 stopped answering" in res[2][2]
+    assert out.read_bytes() == reference                # the dead process's share finished, same bytes
+    assert len(list(chunks.glob("chunk_*.npz"))) == N_CHUNKS
+
+
+@pytest.mark.slow
+def test_dead_process_0_stops_the_others_with_exit_6_and_resume_finishes(tmp_path, reference):
+    out = tmp_path / "k.npz"
+    chunks = tmp_path / "k.npz.chunks"
+    procs = _launch(2, out, ["--keep-chunks", "--cluster-timeout", "3"])
+    try:
+        deadline = time.monotonic() + 90
+        while not any(_chunk_index(p) % 2 == 0 for p in chunks.glob("chunk_*.npz")):
+            assert time.monotonic() < deadline and procs[0].poll() is None, "process 0 wrote no chunk"
+            time.sleep(0.005)
+        procs[0].send_signal(signal.SIGKILL)
+        res = _wait(procs, timeout=60)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    rc, _, err = res[1]
+    assert rc == 6, err[-3000:]
+    assert "jaxsleigh: error: process 1 of 2: the cluster failed while" in err and "--resume" in err
+    assert "Traceback" not in err and not out.exists()
+    _run(2, out, ["--resume"])
+    assert out.read_bytes() == reference
+
+
+def test_different_options_are_named_with_both_values():
+    from jaxsleigh.distributed import _refuse
+
+    opts = {"seed": 0, "eps": 0.1, "resume": False, "out": "a.npz"}
+    got = [{"error": None, "options": opts}, {"error": None, "options": {**opts, "seed": 7}}]
+    with pytest.raises(ValueError) as e:
+        _refuse(got, 0, 2, {"options": None})
+    msg = str(e.value)
+    assert "different options: process 0 has --seed 0, process 1 --seed 7;" in msg and "{" not in msg
+    got[1]["options"] = {**opts, "seed": 7, "resume": True}
+    with pytest.raises(ValueError, match=r"has no --resume, process 1 --resume \(and 1 more: --seed 0 vs --seed 7\)"):
+        _refuse(got, 1, 2, {"options": None})
+    _refuse([{"error": None, "options": opts}] * 3, 2, 3, {"options": None})      # equal: no refusal
+    got[1]["options"] = {**opts, "seed": True}                                   # equal in Python, not as JSON
+    with pytest.raises(ValueError, match="has --seed 1, process 1 --seed;"):
+        _refuse([{"error": None, "options": {**opts, "seed": 1}}, got[1]], 0, 2, {"options": None})
+
+
+_VALUES = st.one_of(st.none(), st.booleans(), st.integers(-5, 5), st.sampled_from(["a.npz", "rk4", "x y"]))
+
+
+@settings(max_examples=30, deadline=None)
+@given(opts=st.dictionaries(st.sampled_from(["seed", "eps", "t_final", "resume", "method", "out"]), _VALUES,
+                            min_size=1),
+       other=_VALUES, j=st.integers(1, 3))
+def test_the_first_differing_option_is_named_with_both_values(opts, other, j):
+    from jaxsleigh.distributed import _flag_value, _refuse
+
+    key = sorted(opts)[0]
+    assume(json.dumps(other) != json.dumps(opts[key]))
+    theirs = {**opts, key: other}
+    got = [{"error": None, "options": opts}] * j + [{"error": None, "options": theirs}]
+    with pytest.raises(ValueError) as e:
+        _refuse(got, 0, j + 1, {"options": None})
+    flag = "--" + key.replace("_", "-")
+    assert f"process 0 has {_flag_value(key, opts[key])}, process {j} {_flag_value(key, other)}" in str(e.value)
+    assert flag in _flag_value(key, other) and "{" not in str(e.value)

@@ -5,7 +5,8 @@ compilation cache.
 Exit codes (`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
 was computed); 3 the run finished but no trajectory ended OK; 4 the disk (or quota) is full (the
 message names the file; ``--resume`` continues a chunked command once there is space); 5 another
-run is writing the same output (the message names it); 130 interrupted (Ctrl-C; what was
+run is writing the same output (the message names it); 6 the processes of a multi-process
+run failed together (a peer died or never came; finished chunks are kept); 130 interrupted (Ctrl-C; what was
 finished is kept, see ``--resume``).
 """
 from __future__ import annotations
@@ -22,11 +23,12 @@ from typing import Optional
 
 import numpy as np
 
+from ..distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from ..io import load_ics
 from ..io import parse_number as _number
 
-__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_INTERRUPTED",
-           "EXIT_CODES", "UsageError", "own_output",
+__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
+           "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
@@ -48,6 +50,8 @@ EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
                               "once there is space)",
               EXIT_LOCKED: "another run is writing the same output or checkpoint folder (it is named); nothing "
                            "was computed",
+              EXIT_CLUSTER: "the cluster failed: a process of a multi-process run died, never came or could not "
+                            "start the coordinator (the message names it); finished chunks are kept (--resume)",
               EXIT_INTERRUPTED: "interrupted (Ctrl-C); finished work is kept (--resume continues)"}
 
 #: Keyword -> flag, so that messages of the shared validation name the flag the user typed.
@@ -462,11 +466,15 @@ def add_distributed_options(parser) -> None:
                    help="number of processes in the run")
     g.add_argument("--process-id", type=whole("--process-id", "0", minimum=0), metavar="I",
                    help="this process's id, 0..N-1 (0 runs the coordinator and writes the output)")
+    g.add_argument("--cluster-timeout", type=number("--cluster-timeout", "60"), default=CLUSTER_TIMEOUT_S,
+                   metavar="S", help=f"seconds to wait for a process that shows no sign of life: the coordinator "
+                                     f"and the others at the start, a silent process during the run (then declared "
+                                     f"dead; exit code {EXIT_CLUSTER}) (default {CLUSTER_TIMEOUT_S})")
 
 
 #: Options that may differ between the processes of one run (everything else must be equal).
-_PER_PROCESS = {"coordinator", "num_processes", "process_id", "progress", "no_compile_cache", "func", "_argv",
-                "_run_id"}
+_PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout", "progress", "no_compile_cache",
+                "func", "_argv", "_run_id"}
 
 
 def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:
@@ -493,11 +501,16 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     share, process 0 assembles and writes, and every process returns process 0's exit code. The
     options (except the three above and ``--progress``) must be equal in every process.
     """
-    from ..distributed import run_shared, start
+    from ..distributed import ClusterError, run_shared, start
     from ..errors import CheckpointError, DiskFullError, RunLockedError
 
-    cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
-                    getattr(args, "process_id", None))
+    try:
+        cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
+                        getattr(args, "process_id", None),
+                        timeout_s=getattr(args, "cluster_timeout", None) or CLUSTER_TIMEOUT_S)
+    except ClusterError as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+        return EXIT_CLUSTER
     options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
     options = json.loads(json.dumps(options, default=str))
     if cluster is not None:
@@ -524,8 +537,18 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
             state = checked()
             _record_options(state, args)
             return int(assemble(state, False))
-        return run_shared(cluster, check=checked, compute=compute, assemble=lambda state: assemble(state, True),
-                          prepare=prepared, shared_dirs=shared_dirs or (lambda state: []), options=options)
+        try:
+            code = run_shared(cluster, check=checked, compute=compute,
+                              assemble=lambda state: assemble(state, True), prepare=prepared,
+                              shared_dirs=shared_dirs or (lambda state: []), options=options)
+        except ClusterError as e:
+            print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+            code = EXIT_CLUSTER
+        except ValueError as e:
+            if not cluster.synced:
+                raise                               # a refusal before any work: JAX shuts down as usual
+            print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+            code = EXIT_USAGE
     except DiskFullError as e:
         chunks = (held.get("state") or {}).get("chunks") if isinstance(held.get("state"), dict) else None
         if chunks is None or "--resume" in str(e):
@@ -543,3 +566,12 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
         lock = state.get("lock") if isinstance(state, dict) else None
         if lock is not None:
             lock.release()
+    if code == EXIT_CLUSTER or cluster.synced:
+        # JAX's shutdown would wait at its shutdown barrier for a process that died, then abort: leave
+        # now (every file is written, atomically, already; every survivor has process 0's result)
+        cluster.stop()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    cluster.stop()
+    return code
