@@ -71,7 +71,7 @@ def _join_negative_values(argv: list[str]) -> list[str]:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the command line; returns the exit code (0 ok, 2 bad input, 3 no trajectory OK, 4 disk full,
-    5 output in use by another run, 130 interrupted)."""
+    5 output in use by another run, 6 the processes of a multi-process run failed, 130 interrupted)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()
