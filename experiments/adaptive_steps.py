@@ -19,8 +19,8 @@ import time
 import numpy as np
 
 import jaxsleigh as js
-from jaxsleigh.bench import workload
-from jaxsleigh.observers import DEFAULT_OBSERVERS, ClosestApproach, ControlEffort, ConvergenceTime, Excursion
+from jaxsleigh.studies.bench import workload
+from jaxsleigh.integrate.observers import DEFAULT_OBSERVERS, ClosestApproach, ControlEffort, ConvergenceTime, Excursion
 
 OLD = (ConvergenceTime(samples=1, bisections=0), ClosestApproach(), Excursion(), ControlEffort())
 REF = (ConvergenceTime(samples=8, bisections=30), ClosestApproach(), Excursion(), ControlEffort())

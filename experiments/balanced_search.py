@@ -38,8 +38,8 @@ import numpy as np
 
 import jaxsleigh as js
 from jaxsleigh import tuning as tu
-from jaxsleigh import tuning_plots as tp
-from jaxsleigh.plot_base import new_figure
+from jaxsleigh.plots import tuning as tp
+from jaxsleigh.plots.base import new_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 

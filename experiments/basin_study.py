@@ -8,7 +8,7 @@
 2. x-y slice at the paper's heading theta0 = pi/8, n_xy x n_xy starts;
 3. Monte-Carlo: uniform in |x|, |y| <= 3, theta in (-pi, pi).
 
-Each run goes through :func:`jaxsleigh.basin.run_basin` with chunk checkpoints next to its ``.npz``
+Each run goes through :func:`jaxsleigh.studies.basin.run_basin` with chunk checkpoints next to its ``.npz``
 (rerunning the script after an interruption resumes them; the chunks are deleted once the
 ``.npz`` is written). Wall time, CPU time of this process, machine load (load averages before and
 after) and the summaries go to ``basin_study.json``; figures ``basin_xtheta.png``, ``basin_xy.png``,
@@ -27,9 +27,9 @@ from pathlib import Path
 
 import jax
 
-from jaxsleigh.basin import grid_starts, run_basin, sample_starts, save_basin
-from jaxsleigh.basin_plots import plot_basin
-from jaxsleigh.plotting import save_figure
+from jaxsleigh.studies.basin import grid_starts, run_basin, sample_starts, save_basin
+from jaxsleigh.plots.basin import plot_basin
+from jaxsleigh.plots.paper_figures import save_figure
 
 
 def _load():

@@ -5,10 +5,10 @@ r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the sam
                                         [--c-variants strict,shared_recip,rsqrt_nr]
                                         [--out out/bench_c_limit.json]
 
-Builds ``experiments/c_reference/rk4_w.c`` with ``gcc -O3 -march=native -fno-math-errno`` (no
+Builds ``jaxsleigh/studies/c_reference/rk4_w.c`` with ``gcc -O3 -march=native -fno-math-errno`` (no
 -ffast-math) if a compiler is present, else prints why and exits 0 with ``available: false``. Then,
 in ONE interleaved timing run (C and JAX repetitions alternate, their order flips every repetition,
-compile and warm-up excluded) on the workload of :func:`jaxsleigh.bench.workload` (x, y ~ U(-3, 3),
+compile and warm-up excluded) on the workload of :func:`jaxsleigh.studies.bench.workload` (x, y ~ U(-3, 3),
 |theta0| ~ U(0.3, pi) with random sign, zero momentum; float32, final state only) it reports
 trajectory-steps/s of both per CPU second (``time.process_time``: every thread of the process) and
 per wall second, the ratio JAX / C, and the agreement of the final states (w chart).
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
 
     import jax
 
-    from jaxsleigh.bench import build_c_reference, c_limit, machine, workload
+    from jaxsleigh.studies.bench import build_c_reference, c_limit, machine, workload
 
     log = lambda *m: print(*m, file=sys.stderr, flush=True)  # noqa: E731
     lib, reason = build_c_reference(a.build_dir)

@@ -4,16 +4,16 @@ r"""jaxsleigh against its peers on the benchmark workload, in one run.
                                       [--skip numpy,scipy,...] [--scipy-n 8] [--repeats 1]
                                       [--cache out/bench_cache] [--out out/bench_peers.json]
 
-Workload: :func:`jaxsleigh.bench.workload` (``--n-ics`` starts, x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi),
+Workload: :func:`jaxsleigh.studies.bench.workload` (``--n-ics`` starts, x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi),
 zero momentum), classical RK4 at ``--dt`` up to ``--t-final`` (``steps = t_final / dt``), final state
 only, float32 unless ``--x64``. Every JAX figure is warm: a first call on the same shapes compiles and
 is not timed. Correctness: final-state max-norm error against the float64 reference
-(:func:`jaxsleigh.bench.reference_final`, cached in ``--cache``) ``<= 1e-3`` and finite.
+(:func:`jaxsleigh.studies.bench.reference_final`, cached in ``--cache``) ``<= 1e-3`` and finite.
 
 Peers (names for ``--skip``):
 
 ``vmap``       plain ``jit(vmap(lax.scan(rk4)))`` in the physical chart with
-               :func:`jaxsleigh.closed_loop.vector_field`, state (5,) per trajectory (the baseline);
+               :func:`jaxsleigh.model.closed_loop.vector_field`, state (5,) per trajectory (the baseline);
 ``numpy``      NumPy vectorised RK4, an independent closed loop written here from the formulas
                (five (N,) arrays); checked against ``vector_field`` on random states first;
 ``diffrax_rk4`` vmapped ``diffrax.diffeqsolve`` with a classical RK4 Butcher tableau
@@ -21,7 +21,7 @@ Peers (names for ``--skip``):
 ``tsit5``      vmapped diffrax ``Tsit5`` + ``PIDController(rtol=1e-6, atol=1e-8)``, ``max_steps=100000``;
 ``scipy``      ``scipy.integrate.solve_ivp`` RK45 (float64, same tolerances) in a Python loop over
                ``--scipy-n`` starts, extrapolated to N;
-``jaxsleigh``  :func:`jaxsleigh.bench.bench`: fixed-step RK4 (``check_passivity=False``), the
+``jaxsleigh``  :func:`jaxsleigh.studies.bench.bench`: fixed-step RK4 (``check_passivity=False``), the
                passivity-checked RK4 and the adaptive accurate mode (w chart).
 
 For adaptive methods "trajectory-steps / s" is the equivalent ``N * steps / wall``. The table gives
@@ -45,10 +45,10 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
-from jaxsleigh.bench import CORRECT_TOL, bench, final_state_error, machine, peak_rss_mb, reference_final, workload
-from jaxsleigh.closed_loop import ClosedLoop, vector_field
-from jaxsleigh.params import paper_gains, paper_plant
-from jaxsleigh.rk4 import rk4_step
+from jaxsleigh.studies.bench import CORRECT_TOL, bench, final_state_error, machine, peak_rss_mb, reference_final, workload
+from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.model.params import paper_gains, paper_plant
+from jaxsleigh.integrate.rk4 import rk4_step
 
 PEERS = ("vmap", "numpy", "diffrax_rk4", "tsit5", "scipy", "jaxsleigh")
 TSIT5_RTOL, TSIT5_ATOL, TSIT5_MAX_STEPS = 1e-6, 1e-8, 100_000
@@ -205,7 +205,7 @@ def run_numpy(y0, args, dt, steps, repeats, dtype):
         f"float32 {chk['numpy_float32_vs_vector_field_f64']:.2e} "
         f"(vector_field float32 itself: {chk['vector_field_f32_vs_f64']:.2e}) -> "
         f"{'PASS' if chk['passed'] else 'FAIL'}")
-    print(f"NumPy closed-loop check vs jaxsleigh.closed_loop.vector_field on {chk['n_states']} random states "
+    print(f"NumPy closed-loop check vs jaxsleigh.model.closed_loop.vector_field on {chk['n_states']} random states "
           f"(max relative difference): numpy float64 {chk['numpy_float64_vs_vector_field_f64']:.2e}, "
           f"numpy float32 {chk['numpy_float32_vs_vector_field_f64']:.2e} "
           f"(vector_field float32: {chk['vector_field_f32_vs_f64']:.2e}); tolerance {chk['tol']:.0e}: "
@@ -475,7 +475,7 @@ def main(argv=None) -> int:
 
     attempt("scipy", f"scipy solve_ivp RK45 float64, Python loop ({min(a.scipy_n, n)} starts, extrapolated)",
             p_scipy)
-    attempt("jaxsleigh", "jaxsleigh.bench.bench", p_jaxsleigh)
+    attempt("jaxsleigh", "jaxsleigh.studies.bench.bench", p_jaxsleigh)
 
     raw = [r for r in rows if r["peer"] == "_jaxsleigh_bench_raw"]
     rows = [r for r in rows if r["peer"] != "_jaxsleigh_bench_raw"]

@@ -5,7 +5,7 @@ r"""jaxsleigh's throughput and peak memory against the number of starts N and th
                                         [--chunk-size 65536] [--x64] [--rk4-check] [--warmup chunk|full|none]
                                         [--timeout S] [--out out/bench_scaling.json]
 
-Two modes on the measured workload (:func:`jaxsleigh.bench.workload`), both through
+Two modes on the measured workload (:func:`jaxsleigh.studies.bench.workload`), both through
 :func:`jaxsleigh.run_ensemble` with its default ``chunk_size`` (65536) and ``segment``:
 
 ``rk4``       fixed-step RK4 at ``--dt``, final state only (``check_passivity=False`` unless
@@ -72,8 +72,8 @@ def worker(spec: dict) -> dict:
             compile_s["total"] += dur
 
     jax.monitoring.register_event_duration_secs_listener(listener)
-    from jaxsleigh.bench import machine, peak_rss_mb, workload
-    from jaxsleigh.ensemble import run_ensemble
+    from jaxsleigh.studies.bench import machine, peak_rss_mb, workload
+    from jaxsleigh.studies.ensemble import run_ensemble
     from jaxsleigh.status import Status
 
     rss_import = current_rss_mb()
@@ -198,7 +198,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
 
     import inspect
-    from jaxsleigh.ensemble import run_ensemble
+    from jaxsleigh.studies.ensemble import run_ensemble
     chunk = a.chunk_size or inspect.signature(run_ensemble).parameters["chunk_size"].default
 
     def floats(s):
@@ -218,12 +218,12 @@ def main(argv=None) -> int:
     log(f"{len(plan)} runs, each in a fresh subprocess")
     rows = [run_worker(s, a.timeout) for s in plan]
 
-    from jaxsleigh.bench import machine
+    from jaxsleigh.studies.bench import machine
     mach = next((r["machine"] for r in rows if "machine" in r), machine())
     mach["os_cpu_count"] = os.cpu_count()
     dtype = "float64" if a.x64 else "float32"
     print("## jaxsleigh scaling\n")
-    print(f"Workload: jaxsleigh.bench.workload (seed {a.seed}), dt = {a.dt:g}, dtype {dtype}, chunk_size {chunk}, "
+    print(f"Workload: jaxsleigh.studies.bench.workload (seed {a.seed}), dt = {a.dt:g}, dtype {dtype}, chunk_size {chunk}, "
           f"rk4 = fixed-step final state only (passivity check {'on' if a.rk4_check else 'off'}), "
           f"adaptive = run_ensemble default with summaries. Compile excluded (warm-up: {a.warmup}). "
           f"One fresh subprocess per row; peak RSS = its ru_maxrss.\n"

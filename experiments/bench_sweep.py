@@ -22,8 +22,8 @@ import time
 import numpy as np
 
 import jaxsleigh as js
-from jaxsleigh.basin import sample_starts
-from jaxsleigh.lanes import stack_plants
+from jaxsleigh.studies.basin import sample_starts
+from jaxsleigh.model.lanes import stack_plants
 
 
 def main():

@@ -21,8 +21,8 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-from jaxsleigh.closed_loop import ClosedLoop, vector_field
-from jaxsleigh.ensemble import run_ensemble
+from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.studies.ensemble import run_ensemble
 
 
 def radau(y0, t_final):
@@ -66,7 +66,7 @@ def main():
                 print(f"| {sgn * th:+.0e} | ({x:.2f}, {y:.2f}) | {T:g} | {row['dtype']} | {row['status']} | "
                       f"{row['steps']} | {rel:.1e} | {row['max_excursion']:.3g} | {nfev} |", flush=True)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    from jaxsleigh.bench import machine
+    from jaxsleigh.studies.bench import machine
     Path(a.out).write_text(json.dumps({"rows": rows, "machine": machine()}, indent=1))
 
 

@@ -2,14 +2,14 @@
 
     python experiments/paper_figures.py [--out out/paper] [--x64] [--dt 0.01]
 
-Thin wrapper around :func:`jaxsleigh.paper.run_paper` (the same as ``jaxsleigh paper``).
+Thin wrapper around :func:`jaxsleigh.plots.paper_run.run_paper` (the same as ``jaxsleigh paper``).
 """
 from __future__ import annotations
 
 import argparse
 import sys
 
-from jaxsleigh.paper import run_paper, summary_table
+from jaxsleigh.plots.paper_run import run_paper, summary_table
 
 
 def main(argv=None) -> int:

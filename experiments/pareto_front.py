@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxsleigh import tuning as tu
-from jaxsleigh import tuning_plots as tp
+from jaxsleigh.plots import tuning as tp
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 import jaxsleigh as js
-from jaxsleigh.basin import fraction_converged, sample_starts, t_eps_percentiles
-from jaxsleigh.damping import CoulombDamping, NoDamping, ViscousDamping
-from jaxsleigh.params import PlantParams
+from jaxsleigh.studies.basin import fraction_converged, sample_starts, t_eps_percentiles
+from jaxsleigh.model.damping import CoulombDamping, NoDamping, ViscousDamping
+from jaxsleigh.model.params import PlantParams
 
 
 def log_uniform(rng, lo, hi, n):

@@ -8,10 +8,10 @@ Near theta = w1 = 0 the p2 equation carries the linear damping term
 ``-(D22 + k / w1^2) p2 / (J + m l^2)`` whose rate ``lam = -(D22 + k / w1^2) / (J + m l^2)`` grows
 without bound as theta -> 0; classical RK4 is stable only for ``|lam h| <~ 2.8``, so the adaptive
 default's steps are set by stability there, not by accuracy. Three steppers are prototyped here
-(the library's ``jaxsleigh/stepper.py`` is not changed), all with the library's controller
+(the library's ``jaxsleigh/integrate/stepper.py`` is not changed), all with the library's controller
 (``h / 6 (k4 - k5)`` error estimate with FSAL, factor ``clip(0.9 err^-1/4, 0.1, 5)``, rejection on
 non-finite values, on a w1 sign change and on a rise of H_d), its T_eps observer (dense output
-and bisection, :class:`jaxsleigh.observers.ConvergenceTime`) and its tolerances:
+and bisection, :class:`jaxsleigh.integrate.observers.ConvergenceTime`) and its tolerances:
 
 * ``rk4``: classical RK4 (a copy of the library's adaptive step; checks the prototype);
 * ``lawson``: integrating-factor RK4 (Lawson), ``z = exp(-lam (t - t_n)) p2``, lam frozen at the
@@ -70,9 +70,9 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     import jaxsleigh as js
-    from jaxsleigh.bench import workload
-    from jaxsleigh.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w, state_to_w
-    from jaxsleigh.observers import ConvergenceTime, StepInfo
+    from jaxsleigh.studies.bench import workload
+    from jaxsleigh.model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w, state_to_w
+    from jaxsleigh.integrate.observers import ConvergenceTime, StepInfo
 
     log = lambda *m: print(*m, file=sys.stderr, flush=True)  # noqa: E731
     ics = workload(a.n_starts, a.seed)
@@ -284,8 +284,8 @@ def eigenvalues(a) -> int:
     import jax.numpy as jnp
 
     import jaxsleigh as js
-    from jaxsleigh.bench import workload
-    from jaxsleigh.closed_loop import ClosedLoop, state_to_w
+    from jaxsleigh.studies.bench import workload
+    from jaxsleigh.model.closed_loop import ClosedLoop, state_to_w
 
     ics = workload(1, a.seed)
     plant = js.paper_plant()

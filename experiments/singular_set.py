@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 import jaxsleigh as js
-from jaxsleigh.basin import PowerLawFit, array_starts, path_length, power_law_fit, run_basin
-from jaxsleigh.basin_plots import plot_power_laws
-from jaxsleigh.plotting import plot_paths, save_figure
+from jaxsleigh.studies.basin import PowerLawFit, array_starts, path_length, power_law_fit, run_basin
+from jaxsleigh.plots.basin import plot_power_laws
+from jaxsleigh.plots.paper_figures import plot_paths, save_figure
 from jaxsleigh.status import Status
 
 POSITIONS = {"(1, 1)": (1.0, 1.0), "(-3, -2)": (-3.0, -2.0), "(1, 0)": (1.0, 0.0)}

@@ -27,9 +27,9 @@ import numpy as np
 
 import jaxsleigh as js
 from jaxsleigh import tuning as tu
-from jaxsleigh import tuning_plots as tp
-from jaxsleigh.paper import PAPER_ICS
-from jaxsleigh.params import gains_to_dict
+from jaxsleigh.plots import tuning as tp
+from jaxsleigh.plots.paper_run import PAPER_ICS
+from jaxsleigh.model.params import gains_to_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,18 +1,20 @@
 """jaxsleigh: differentiable simulation of the Chaplygin sleigh under the discontinuous
 energy-shaping controller of Ferguson, Donaire and Middleton."""
-from .basin import BasinResult, BasinStarts, grid_starts, load_basin, run_basin, sample_starts, save_basin
-from .closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w, dissipation_w,
+from .studies.basin import BasinResult, BasinStarts, grid_starts, load_basin, run_basin, sample_starts, save_basin
+from .model.closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w, dissipation_w,
                           state_from_w, state_to_w, vector_field, vector_field_w)
-from .control import control, control_w, measured_velocity, potential
-from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping
-from .ensemble import EnsembleResult, run_ensemble
-from .params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_plant, plant_params,
+from .model.paper_law import control, control_w, measured_velocity, potential
+from .model.damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping
+from .studies.ensemble import EnsembleResult, run_ensemble
+from .model.params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_plant, plant_params,
                      save_gains)
-from .simulate import Solution, simulate
-from .solve import SolveOutput, solve
-from .stepsize import StepSizeController
+from .studies.simulate import Solution, simulate
+from .integrate.solve import SolveOutput, solve
+from .integrate.stepsize import StepSizeController
 from .status import Status
-from .sweep import SweepResult, load_sweep, save_sweep, sweep
-from . import charts, controller, errors, observers  # noqa: F401
+from .studies.sweep import SweepResult, load_sweep, save_sweep, sweep
+from .model import charts, controller  # noqa: F401
+from . import errors  # noqa: F401
+from .integrate import observers  # noqa: F401
 
 __version__ = "0.1.0"

@@ -1,4 +1,4 @@
-"""Basin studies (:mod:`jaxsleigh.basin`), their figures and ``jaxsleigh basin``.
+"""Basin studies (:mod:`jaxsleigh.studies.basin`), their figures and ``jaxsleigh basin``.
 
 Ground truth: ``T_eps`` from the on-line summaries equals ``T_eps`` read off full trajectories of
 :func:`jaxsleigh.simulate` (fixed-step RK4 saved at every step, float32 and float64); the converged
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 import jaxsleigh
-import jaxsleigh.ensemble
+import jaxsleigh.studies.ensemble
 from jaxsleigh import cli
 from jaxsleigh.cli.basin import add_basin
 from jaxsleigh.errors import FlaggedStartsWarning
-from jaxsleigh.basin import (Axis, BasinResult, BasinStarts, array_starts, fraction_by, fraction_converged,
+from jaxsleigh.studies.basin import (Axis, BasinResult, BasinStarts, array_starts, fraction_by, fraction_converged,
                              grid_starts, load_basin, parse_axis, path_length, power_law_fit, run_basin,
                              sample_starts, save_basin)
 from jaxsleigh.status import Status
@@ -72,7 +72,7 @@ def test_t_eps_equals_t_eps_of_full_trajectories(x64):
     assert np.all(res.T_eps[fin] <= ref[fin] + tol) and np.all(res.T_eps[fin] >= ref[fin] - FAST["dt"] - tol)
     assert np.any(res.T_eps[fin] < ref[fin] - 1e-3)          # and really inside it, not at its end
     # the 0.1 release's rule (the end of the entering step) reproduces the saved-trajectory answer
-    from jaxsleigh.observers import ClosestApproach, ControlEffort, ConvergenceTime, Excursion
+    from jaxsleigh.integrate.observers import ClosestApproach, ControlEffort, ConvergenceTime, Excursion
     old = jaxsleigh.run_ensemble(starts.ics, x64=x64, observers=(ConvergenceTime(1, 0), ClosestApproach(),
                                                                  Excursion(), ControlEffort()),
                                  **{k: v for k, v in FAST.items() if k != "chunk_size"})
@@ -250,14 +250,14 @@ def test_save_load_round_trip_and_deterministic_bytes(tmp_path, monkeypatch, xt_
 
 
 def _stamp_text(fig):
-    from jaxsleigh.plot_base import STAMP_GID
+    from jaxsleigh.plots.base import STAMP_GID
 
     (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
     return text
 
 
 def test_basin_map_shows_the_t_eps_map(xt_result):
-    from jaxsleigh import basin_plots as bp
+    from jaxsleigh.plots import basin as bp
 
     fig = bp.plot_basin_map(xt_result)
     ax, cbar_ax = fig.axes
@@ -290,7 +290,7 @@ def test_basin_map_shows_the_t_eps_map(xt_result):
 
 
 def test_basin_map_of_another_field(xt_result):
-    from jaxsleigh import basin_plots as bp
+    from jaxsleigh.plots import basin as bp
 
     fig = bp.plot_basin_map(xt_result, field="Hd0")
     heat = fig.axes[0].collections[0]
@@ -303,7 +303,7 @@ def test_basin_map_of_another_field(xt_result):
 
 
 def test_fraction_distribution_scatter_and_power_law_figures(xt_result):
-    from jaxsleigh import basin_plots as bp
+    from jaxsleigh.plots import basin as bp
 
     res = xt_result
     # fraction against theta0: one point per grid row, the binomial fraction and its error bars
@@ -345,7 +345,7 @@ def test_fraction_distribution_scatter_and_power_law_figures(xt_result):
 
 
 def test_basin_overview_says_settled_within_the_horizon(xt_result):
-    from jaxsleigh import basin_plots as bp
+    from jaxsleigh.plots import basin as bp
 
     fig = bp.plot_basin(xt_result)
     title = fig.get_suptitle()
@@ -390,7 +390,7 @@ def test_resume_after_interruption_writes_identical_bytes(tmp_path, monkeypatch,
     full = (tmp_path / "full.npz").read_bytes()
     assert not (tmp_path / "full.npz.chunks").exists()            # removed after a complete run
 
-    real = jaxsleigh.ensemble.drive_final
+    real = jaxsleigh.studies.ensemble.drive_final
     calls = []
 
     def interrupted(*a, **k):                                     # Ctrl-C during the third chunk
@@ -399,19 +399,19 @@ def test_resume_after_interruption_writes_identical_bytes(tmp_path, monkeypatch,
             raise KeyboardInterrupt
         return real(*a, **k)
 
-    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", interrupted)
+    monkeypatch.setattr(jaxsleigh.studies.ensemble, "drive_final", interrupted)
     out_b = tmp_path / "resumed.npz"
     rc, _, err = basin_main(["basin", *CLI_FAST, "--out", str(out_b)])
     assert rc == 130 and "--resume" in err and not out_b.exists()
     chunks = tmp_path / "resumed.npz.chunks"
     assert sorted(p.name for p in chunks.glob("chunk_*.npz")) == ["chunk_000000.npz", "chunk_000001.npz"]
     # a fresh start over the chunks of an unfinished run is refused with the fix in the message
-    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", real)
+    monkeypatch.setattr(jaxsleigh.studies.ensemble, "drive_final", real)
     rc, _, err = basin_main(["basin", *CLI_FAST, "--out", str(out_b)])
     assert rc == 2 and "--resume" in err and "delete" in err
     # --resume computes only the missing chunks and ends with the same file
     calls.clear()
-    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    monkeypatch.setattr(jaxsleigh.studies.ensemble, "drive_final", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
     rc, out, err = basin_main(["basin", *CLI_FAST, "--resume", "--keep-chunks", "--out", str(out_b)])
     assert rc == 0, err
     assert len(calls) == 2 and "2 chunk(s) resumed" in out

@@ -26,10 +26,10 @@ from hypothesis import strategies as hst
 
 import jaxsleigh as js
 from jaxsleigh import cli
-from jaxsleigh.checkpoint import ChunkStore
+from jaxsleigh.files.chunks import ChunkStore
 from jaxsleigh.cli.common import EXIT_CODES, EXIT_DISK_FULL, EXIT_LOCKED
 from jaxsleigh.errors import CheckpointError, DamagedCheckpointWarning, DiskFullError, RunLockedError
-from jaxsleigh.runlock import RunLock
+from jaxsleigh.files.runlock import RunLock
 
 REPO = Path(__file__).resolve().parents[1]
 BASIN = ["--samples", "32", "--t-final", "0.3", "--dt", "0.05", "--chunk-size", "8", "--no-progress"]
@@ -174,7 +174,7 @@ def test_store_checks_rows_and_starts(tmp_path):
 
 HOLDER = textwrap.dedent("""
     import sys, time
-    from jaxsleigh.runlock import RunLock
+    from jaxsleigh.files.runlock import RunLock
     RunLock(sys.argv[1], sys.argv[2], folder=sys.argv[3] == "folder").acquire()
     print("ready", flush=True)
     time.sleep(120)
@@ -252,7 +252,7 @@ def _full_when(monkeypatch, part: str):
     """Make the atomic writer's writes to files whose name contains ``part`` fail with ENOSPC."""
     import builtins
 
-    import jaxsleigh.io as jio
+    import jaxsleigh.files.npz as jio
 
     real = builtins.open
 
@@ -273,7 +273,7 @@ def _full_when(monkeypatch, part: str):
 
 
 def test_atomic_write_on_a_full_disk_names_the_file(tmp_path, monkeypatch):
-    from jaxsleigh.io import atomic_write
+    from jaxsleigh.files.npz import atomic_write
 
     def write(f):
         raise OSError(errno.ENOSPC, "No space left on device")

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import jaxsleigh
-from jaxsleigh import plotting
+from jaxsleigh.plots import paper_figures as plotting
 from jaxsleigh.cli import main
-from jaxsleigh.paper import PAPER_ICS
-from jaxsleigh.simulate import Solution
+from jaxsleigh.plots.paper_run import PAPER_ICS
+from jaxsleigh.studies.simulate import Solution
 from jaxsleigh.status import Status
 
 SIM_KEYS = {"t", "q", "p", "u", "Hd", "status", "n_steps", "settings_json", "dt", "t_final", "save_every",
@@ -239,7 +239,7 @@ def test_paths_plot_the_contact_point_and_the_sleigh():
 
 
 def test_provenance_stamp_names_dtype_method_and_device():
-    from jaxsleigh.plot_base import STAMP_GID
+    from jaxsleigh.plots.base import STAMP_GID
 
     sol = _tiny_solution()
     for fn in (plotting.plot_paths, plotting.plot_configuration):

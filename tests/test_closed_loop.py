@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
-from jaxsleigh import coordinates as C
-from jaxsleigh import plant as P
-from jaxsleigh.closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w,
+from jaxsleigh.model import coordinates as C
+from jaxsleigh.model import plant as P
+from jaxsleigh.model.closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w,
                                    dissipation_w, state_to_w, vector_field, vector_field_w)
-from jaxsleigh.rk4 import solve_fixed
+from jaxsleigh.integrate.rk4 import solve_fixed
 from jaxsleigh.status import Status
 
 N = 96
@@ -137,7 +137,7 @@ def _printed_vector_field(y, args):
 @pytest.mark.usefixtures("x64")
 def test_printed_Qw_breaks_passivity(sample_states, paper_args):
     """(d) With the printed Q_w the closed-loop 'Hamiltonian' H_d increases at some states; with the
-    derived Q_w it never does, at the same states (cited in the docs of jaxsleigh.coordinates)."""
+    derived Q_w it never does, at the same states (cited in the docs of jaxsleigh.model.coordinates)."""
     ys = jnp.asarray(sample_states(400, p_scale=0.3))
 
     def rates(y):

@@ -11,7 +11,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-from jaxsleigh.charts import PhysicalChart, WChart, chart_for
+from jaxsleigh.model.charts import PhysicalChart, WChart, chart_for
 
 
 class PD(NamedTuple):
@@ -107,7 +107,7 @@ def test_a_plain_function_is_a_controller():
 
 
 def test_law_parameters_are_traced_and_do_not_recompile():
-    from jaxsleigh import engine
+    from jaxsleigh.integrate import engine
 
     ics = np.array([[1.0, 0.5, 0.3]])
     js.run_ensemble(ics, controller=PD(1.0, 2.0), t_final=1.0)
@@ -120,9 +120,9 @@ def test_law_parameters_are_traced_and_do_not_recompile():
 def test_gradient_of_a_law_through_the_stepper_matches_finite_differences():
     """The stepper is a pure JAX function of the law's parameters: d(final x)/d(kp) by jax.grad equals
     central finite differences (float64, fixed-step RK4)."""
-    from jaxsleigh.closed_loop import ClosedLoop
-    from jaxsleigh.engine import make_controls, make_horizon
-    from jaxsleigh.stepper import init_state, run_to
+    from jaxsleigh.model.closed_loop import ClosedLoop
+    from jaxsleigh.integrate.engine import make_controls, make_horizon
+    from jaxsleigh.integrate.stepper import init_state, run_to
 
     with jax.enable_x64(True):
         horizon = make_horizon(2.0, 0.01)
@@ -169,7 +169,7 @@ def test_paper_gains_given_as_controller_are_the_paper_law():
 
 
 def test_per_trajectory_law_equals_separate_runs_and_records_its_values():
-    from jaxsleigh.controller import PerTrajectory
+    from jaxsleigh.model.controller import PerTrajectory
 
     ics = np.array([[1.0, 0.5, 0.3], [-1.0, 1.0, -0.6], [2.0, 0.0, 1.0]])
     kps = np.array([0.5, 2.0, 4.0])

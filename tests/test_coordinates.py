@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxsleigh import coordinates as C
+from jaxsleigh.model import coordinates as C
 
 N = 64
 pytestmark = pytest.mark.usefixtures("x64")

@@ -25,7 +25,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from jaxsleigh.cli import main
-from jaxsleigh.distributed import cluster_env, parse_coordinator
+from jaxsleigh.files.distributed import cluster_env, parse_coordinator
 
 WORK = ["--samples", "200", "--seed", "3", "--t-final", "2", "--chunk-size", "16"]
 N_CHUNKS = 13                      # ceil(200 / 16)
@@ -358,7 +358,7 @@ def test_dead_process_0_stops_the_others_with_exit_6_and_resume_finishes(tmp_pat
 
 
 def test_different_options_are_named_with_both_values():
-    from jaxsleigh.distributed import _refuse
+    from jaxsleigh.files.distributed import _refuse
 
     opts = {"seed": 0, "eps": 0.1, "resume": False, "out": "a.npz"}
     got = [{"error": None, "options": opts}, {"error": None, "options": {**opts, "seed": 7}}]
@@ -383,7 +383,7 @@ _VALUES = st.one_of(st.none(), st.booleans(), st.integers(-5, 5), st.sampled_fro
                             min_size=1),
        other=_VALUES, j=st.integers(1, 3))
 def test_the_first_differing_option_is_named_with_both_values(opts, other, j):
-    from jaxsleigh.distributed import _flag_value, _refuse
+    from jaxsleigh.files.distributed import _flag_value, _refuse
 
     key = sorted(opts)[0]
     assume(json.dumps(other) != json.dumps(opts[key]))

@@ -14,11 +14,11 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-from jaxsleigh.closed_loop import ClosedLoop, vector_field
-from jaxsleigh.control import control, measured_velocity  # noqa: F401
-from jaxsleigh.coordinates import Q_entries
-from jaxsleigh.plant import velocity
-from jaxsleigh.smallmat import matvec
+from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.model.paper_law import control, measured_velocity  # noqa: F401
+from jaxsleigh.model.coordinates import Q_entries
+from jaxsleigh.model.plant import velocity
+from jaxsleigh.model.smallmat import matvec
 
 T = 10.0
 STARTS = np.array([[1.0, 1.0, 0.5, 0.0, 0.0], [-3.0, -2.0, np.pi / 8, 0.0, 0.0], [2.0, -1.0, -1.0, 0.4, -0.3],
@@ -91,8 +91,8 @@ def test_default_float32_effort_is_accurate(reference):
 
 def test_observers_do_not_change_the_trajectory():
     """Observers only watch: the stepper with none of them steps exactly as with all of them."""
-    from jaxsleigh.engine import initial_w, make_controls, make_horizon
-    from jaxsleigh.stepper import init_batch, run_segment
+    from jaxsleigh.integrate.engine import initial_w, make_controls, make_horizon
+    from jaxsleigh.integrate.stepper import init_batch, run_segment
 
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
@@ -121,8 +121,8 @@ def test_effort_is_nan_where_a_start_was_not_integrated():
 # ---------------------------------------------------------------------------------------------
 
 def _step(y, y_new, k1, k5, t=10.0, h=1.0):
-    from jaxsleigh.charts import WChart
-    from jaxsleigh.observers import StepInfo
+    from jaxsleigh.model.charts import WChart
+    from jaxsleigh.integrate.observers import StepInfo
 
     a = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
     return StepInfo(t=a(t), h=a(h), t_new=a(t + h), y=a(y), y_new=a(y_new), k1=a(k1), k5=a(k5), u_new=None,
@@ -131,8 +131,8 @@ def _step(y, y_new, k1, k5, t=10.0, h=1.0):
 
 @pytest.mark.usefixtures("x64")
 def test_convergence_time_locates_the_entry_inside_a_step():
-    from jaxsleigh.observers import ConvergenceTime
-    from jaxsleigh.stepper import Controls
+    from jaxsleigh.integrate.observers import ConvergenceTime
+    from jaxsleigh.integrate.stepper import Controls
 
     ctl = Controls(*(jnp.asarray(v, jnp.float64) for v in (0.01, 0.1, 1e-8, 1e-8, 0.05)), max_steps=jnp.asarray(10))
     ct = ConvergenceTime()
@@ -160,7 +160,7 @@ def test_convergence_time_locates_the_entry_inside_a_step():
 
 def test_dense_t_eps_with_long_steps_matches_a_float64_reference():
     """With steps up to 1 s (100 dt), T_eps stays within 1e-3 s of a float64 run at 1e-11."""
-    from jaxsleigh.bench import workload
+    from jaxsleigh.studies.bench import workload
 
     ics = workload(24, seed=3)
     ref = js.run_ensemble(ics, x64=True, rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000, progress=False)

@@ -14,9 +14,9 @@ import pytest
 
 import jaxsleigh as js
 from jaxsleigh.errors import FlaggedStartsWarning
-from jaxsleigh.closed_loop import ClosedLoop, vector_field
-from jaxsleigh.engine import check_ics, drive_final, initial_w, make_horizon
-from jaxsleigh.ensemble import SUMMARY_FIELDS, run_ensemble
+from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.integrate.engine import check_ics, drive_final, initial_w, make_horizon
+from jaxsleigh.studies.ensemble import SUMMARY_FIELDS, run_ensemble
 from jaxsleigh.status import Status
 
 
@@ -108,7 +108,7 @@ def test_summaries_equal_those_from_full_trajectories(method):
 
 _SHARD_SCRIPT = textwrap.dedent("""
     import json, sys, numpy as np, jax
-    from jaxsleigh.ensemble import run_ensemble, SUMMARY_FIELDS
+    from jaxsleigh.studies.ensemble import run_ensemble, SUMMARY_FIELDS
     assert jax.device_count() == 4, jax.devices()
     ics = np.array(json.loads(sys.argv[1]))
     out = {}

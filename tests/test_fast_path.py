@@ -17,12 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxsleigh.closed_loop import ClosedLoop
-from jaxsleigh.engine import check_ics, drive_plain, initial_w, make_horizon
-from jaxsleigh.ensemble import run_ensemble
-from jaxsleigh.params import paper_gains, paper_plant
+from jaxsleigh.model.closed_loop import ClosedLoop
+from jaxsleigh.integrate.engine import check_ics, drive_plain, initial_w, make_horizon
+from jaxsleigh.studies.ensemble import run_ensemble
+from jaxsleigh.model.params import paper_gains, paper_plant
 from jaxsleigh.status import Status
-from jaxsleigh.stepper import PLAIN_BLOCK, run_plain
+from jaxsleigh.integrate.stepper import PLAIN_BLOCK, run_plain
 
 ARGS = ClosedLoop(paper_plant(), paper_gains())
 
@@ -125,9 +125,9 @@ def test_fast_path_matches_the_per_step_path():
 
 _SHARD_SCRIPT = textwrap.dedent("""
     import json, sys, numpy as np, jax, jax.numpy as jnp
-    from jaxsleigh.closed_loop import ClosedLoop
-    from jaxsleigh.engine import check_ics, drive_plain, initial_w, make_horizon
-    from jaxsleigh.params import paper_gains, paper_plant
+    from jaxsleigh.model.closed_loop import ClosedLoop
+    from jaxsleigh.integrate.engine import check_ics, drive_plain, initial_w, make_horizon
+    from jaxsleigh.model.params import paper_gains, paper_plant
     assert jax.device_count() == 2, jax.devices()
     a, st = check_ics(np.array(json.loads(sys.argv[1])))
     y0 = initial_w(a, st, jnp.float32)
@@ -153,9 +153,9 @@ def test_two_host_devices_agree_to_rounding():
 @pytest.mark.parametrize("variant", [None, "strict", "shared_recip", "rsqrt_nr"])
 def test_c_reference_agrees_to_rounding(tmp_path, variant):
     """The C reference of experiments/ (built when a compiler exists) against the fast path; the
-    default build (fewer divisions) and the measured variants (jaxsleigh.bench.C_VARIANTS) alike
+    default build (fewer divisions) and the measured variants (jaxsleigh.studies.bench.C_VARIANTS) alike
     (rsqrt_nr needs AVX-512: without it the build fails and the case is skipped)."""
-    from jaxsleigh.bench import C_VARIANTS, build_c_reference, c_reference_run
+    from jaxsleigh.studies.bench import C_VARIANTS, build_c_reference, c_reference_run
 
     lib, reason = build_c_reference(tmp_path, defines=C_VARIANTS[variant] if variant else ())
     if lib is None:

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 import jaxsleigh as js
 from jaxsleigh import cli
-from jaxsleigh.config import solve_config
+from jaxsleigh.studies.config import solve_config
 from jaxsleigh.errors import JaxsleighWarning
 from jaxsleigh.status import NOT_INTEGRATED, Status
 

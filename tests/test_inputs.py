@@ -166,7 +166,7 @@ def test_gains_accept_diagonal_or_matrix():
 
 
 def test_gains_from_dict_validates():
-    from jaxsleigh.params import gains_from_dict
+    from jaxsleigh.model.params import gains_from_dict
     with pytest.raises(ValueError, match="unknown keys"):
         gains_from_dict({"L": [1, 1, 1], "kk": 1})
     with pytest.raises(ValueError, match="k must be > 0"):

@@ -1,4 +1,4 @@
-"""The integrators: classical RK4 (jaxsleigh.rk4), batching, compilation caching, adaptive method."""
+"""The integrators: classical RK4 (jaxsleigh.integrate.rk4), batching, compilation caching, adaptive method."""
 from __future__ import annotations
 
 import importlib
@@ -10,9 +10,9 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-import jaxsleigh.engine as engine
-from jaxsleigh.closed_loop import ClosedLoop, vector_field
-from jaxsleigh.rk4 import rk4_step, solve_fixed
+import jaxsleigh.integrate.engine as engine
+from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.integrate.rk4 import rk4_step, solve_fixed
 from jaxsleigh.status import Status
 
 # `jaxsleigh.simulate` the attribute is the function; the module holds the jitted `_outputs`

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
-from jaxsleigh import coordinates as C
-from jaxsleigh import plant as P
-from jaxsleigh.closed_loop import vector_field
-from jaxsleigh.control import control, control_w, measured_velocity, potential
+from jaxsleigh.model import coordinates as C
+from jaxsleigh.model import plant as P
+from jaxsleigh.model.closed_loop import vector_field
+from jaxsleigh.model.paper_law import control, control_w, measured_velocity, potential
 
 pytestmark = pytest.mark.usefixtures("x64")
 

@@ -27,7 +27,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-from jaxsleigh.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
 from jaxsleigh.status import Status
 
 pytestmark = pytest.mark.slow

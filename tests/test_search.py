@@ -202,7 +202,7 @@ def test_cli_search_refuses_options_it_would_ignore(tmp_path, capsys, argv, msg)
 
 
 def test_search_history_figure_shows_every_generation_and_the_budget(tiny_search):
-    from jaxsleigh import tuning_plots as tp
+    from jaxsleigh.plots import tuning as tp
 
     fig = tp.plot_search_history(tiny_search.history, reference=tiny_search.reference,
                                  returned=tiny_search.best_generation)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 import jaxsleigh.cli as cli
 import jaxsleigh.validate as validate
-from jaxsleigh.sweep import param_grid, parse_param, sweep
+from jaxsleigh.studies.sweep import param_grid, parse_param, sweep
 
 GiB = 2**30
 
@@ -89,7 +89,7 @@ def _forge(path, shape, descr, version, payload: bytes):
 @given(rows=st.integers(0, 10**12), cols=st.sampled_from([3, 5, 7]), descr=st.sampled_from(["<f8", "<f4", "<i8", "|u1"]),
        version=st.sampled_from([1, 2]), payload=st.binary(max_size=64))
 def test_load_ics_checks_a_forged_header_against_the_file(tmp_path, rows, cols, descr, version, payload):
-    from jaxsleigh.io import load_ics
+    from jaxsleigh.files.npz import load_ics
 
     path = tmp_path / "forged.npy"
     _forge(path, (rows, cols), descr, version, payload)

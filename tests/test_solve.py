@@ -1,4 +1,4 @@
-"""The differentiable solve path: `jaxsleigh.solve` equals the ensemble engine, and jax.grad / jacfwd of its
+"""The differentiable solve path: `jaxsleigh.integrate.solve` equals the ensemble engine, and jax.grad / jacfwd of its
 outputs with respect to the controller's parameters, the plant's and the start match central finite
 differences in float64, under jit and vmap."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
-from jaxsleigh.solve import solve
+from jaxsleigh.integrate.solve import solve
 
 
 class PD(NamedTuple):

@@ -20,10 +20,10 @@ import pytest
 
 import jaxsleigh
 import jaxsleigh.cli as cli
-from jaxsleigh.basin import sample_starts
-from jaxsleigh.lanes import check_lanes, lane_count, stack_gains, stack_plants
-from jaxsleigh.params import Gains, PlantParams, gains, load_gains, plant_params
-from jaxsleigh.sweep import apply_params, load_sweep, parse_param, save_sweep, sweep
+from jaxsleigh.studies.basin import sample_starts
+from jaxsleigh.model.lanes import check_lanes, lane_count, stack_gains, stack_plants
+from jaxsleigh.model.params import Gains, PlantParams, gains, load_gains, plant_params
+from jaxsleigh.studies.sweep import apply_params, load_sweep, parse_param, save_sweep, sweep
 
 # starts that settle within a short horizon under the tuned gains (and some that do not)
 STARTS = sample_starts(6, seed=3, x="-1:1", y="-1:1", theta="0.3:1.5")
@@ -76,7 +76,8 @@ def test_effort_medians_equal_those_of_separate_runs(ml_sweep, ml_separate, tmp_
 
 
 def test_gain_sweep_equals_separate_runs_and_does_not_recompile():
-    from jaxsleigh import engine, stepper
+    from jaxsleigh.integrate import engine
+    from jaxsleigh.integrate import stepper
 
     base = load_gains("tuned")
     kw = dict(FAST, gains=base, progress=False, x64=True, chunk_size=5)
@@ -123,7 +124,7 @@ def _reference_final(y0, plant, g, t_final):
 
 
 def test_knife_edge_and_sampled_plant_agree_with_scipy():
-    from jaxsleigh.damping import CoulombDamping
+    from jaxsleigh.model.damping import CoulombDamping
 
     knife = plant_params(2.0, 1.0, 0.0, "coulomb")                       # l = 0: the knife edge
     sampled = plant_params(0.7, 3.1, 0.4, CoulombDamping(0.3, 2.5))      # a sampled plant and friction level
@@ -182,7 +183,7 @@ def test_cli_writes_documented_keys_and_resumes_byte_identically(tmp_path, monke
     r = load_sweep(tmp_path / "full.npz")
     assert r.names == ("k",) and r.axes[0].log
 
-    real = jaxsleigh.ensemble.drive_final
+    real = jaxsleigh.studies.ensemble.drive_final
     calls = []
 
     def interrupted(*a, **k):                                       # Ctrl-C during the second chunk
@@ -191,11 +192,11 @@ def test_cli_writes_documented_keys_and_resumes_byte_identically(tmp_path, monke
             raise KeyboardInterrupt
         return real(*a, **k)
 
-    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", interrupted)
+    monkeypatch.setattr(jaxsleigh.studies.ensemble, "drive_final", interrupted)
     out_b = tmp_path / "resumed.npz"
     assert cli.main([*CLI, "--out", str(out_b)]) == 130 and not out_b.exists()
     assert "--resume" in capsys.readouterr().err
-    monkeypatch.setattr(jaxsleigh.ensemble, "drive_final", real)
+    monkeypatch.setattr(jaxsleigh.studies.ensemble, "drive_final", real)
     rc = cli.main([*CLI, "--resume", "--out", str(out_b)])
     out, err = capsys.readouterr()
     assert rc == 0, err

@@ -15,7 +15,7 @@ import jaxsleigh as js
 from jaxsleigh import tuning as tu
 from jaxsleigh.cli import main as cli_main
 from jaxsleigh.cli.tune import add_tune
-from jaxsleigh.ensemble import run_ensemble
+from jaxsleigh.studies.ensemble import run_ensemble
 from jaxsleigh.status import Status
 
 # Small budget shared by the API and CLI runs (same shapes and static settings: one compilation).

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
-from ..io import load_ics
+from ..files.npz import load_ics
 from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
                      check_outputs, compute_share, exit_code, finish_chunked, load_average, model_from_args,
                      run_chunked, run_distributed, status_epilog)
@@ -122,7 +122,7 @@ def _sidecar(out: Path) -> Path:
 
 
 def _starts_from_args(args):
-    from ..basin import array_starts, grid_starts, parse_axis, sample_starts
+    from ..studies.basin import array_starts, grid_starts, parse_axis, sample_starts
 
     coords = {"x": args.x, "y": args.y, "theta": args.theta}
     if args.seed is not None and args.samples is None:
@@ -148,7 +148,7 @@ def _starts_from_args(args):
 
 def _check_box(text: str, flag: str) -> None:
     """An interval LO:HI (or LO:HI:N, N ignored) or one value, for the --samples box."""
-    from ..io import parse_number as _number
+    from ..files.npz import parse_number as _number
 
     parts = text.split(":")
     hint = f"write LO:HI (e.g. {flag} {'-pi:pi' if flag == '--theta' else '-3:3'}) or one value to hold it fixed"
@@ -181,8 +181,8 @@ def run_basin_command(args) -> int:
 
 def _check(args) -> dict:
     """Validate everything before any work; nothing is written (folders are created)."""
-    from ..config import solve_config
-    from ..io import npz_path
+    from ..studies.config import solve_config
+    from ..files.npz import npz_path
 
     plant, gains = model_from_args(args)
     solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
@@ -214,14 +214,14 @@ def _run_kw(st: dict) -> dict:
 
 def _compute(st: dict, shard: tuple) -> None:
     """One process's share of the chunks of a multi-process run."""
-    from ..basin import run_basin
+    from ..studies.basin import run_basin
 
     compute_share("basin", st["chunks"], st["out"], shard, lambda shard: run_basin(st["starts"], resume=True, shard=shard, **_run_kw(st)))
 
 
 def _assemble(st: dict, multi: bool) -> int:
     """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
-    from ..basin import run_basin, save_basin
+    from ..studies.basin import run_basin, save_basin
 
     args, out = st["args"], st["out"]
     t0 = st["t0"]
@@ -235,7 +235,7 @@ def _assemble(st: dict, multi: bool) -> int:
               f"of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
               file=sys.stderr)
     path = save_basin(out, res)
-    from ..basin_plots import plot_basin
+    from ..plots.basin import plot_basin
 
     written, how = finish_chunked("basin", st, res, multi=multi, wall=wall, path=path,
                                   extra={"summary": res.summary()}, plot=plot_basin)

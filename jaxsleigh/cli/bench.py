@@ -30,8 +30,8 @@ def add_bench(subparsers) -> None:
 
 
 def _cmd_bench(args) -> int:
-    from ..bench import bench
-    from ..config import solve_config
+    from ..studies.bench import bench
+    from ..studies.config import solve_config
     from .common import FLAGS
 
     solve_config(t_final=args.t_final, dt=args.dt, x64=args.x64, flags=FLAGS)

@@ -23,9 +23,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
-from ..io import load_ics
-from ..io import parse_number as _number
+from ..files.distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
+from ..files.npz import load_ics
+from ..files.npz import parse_number as _number
 
 __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
@@ -148,7 +148,7 @@ def ics_from_args(args) -> np.ndarray:
 
 def add_model_options(parser) -> None:
     """--gains, --params, --damping, --x64."""
-    from ..params import preset_names
+    from ..model.params import preset_names
 
     names = preset_names()
     g = parser.add_argument_group("model")
@@ -167,7 +167,7 @@ def add_model_options(parser) -> None:
 
 def model_from_args(args):
     """(plant, gains) from the options of `add_model_options`."""
-    from ..params import load_gains, plant_params
+    from ..model.params import load_gains, plant_params
 
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
     plant = plant_params(m, J, l, damping=args.damping)
@@ -309,7 +309,7 @@ def finish_chunked(command: str, st: dict, res, *, multi: bool, wall: float, pat
     import json
     import shutil
 
-    from ..io import atomic_write_text
+    from ..files.npz import atomic_write_text
 
     args = st["args"]
     argv = list(getattr(args, "_argv", None) or [])
@@ -327,7 +327,7 @@ def finish_chunked(command: str, st: dict, res, *, multi: bool, wall: float, pat
         shutil.rmtree(st["chunks"], ignore_errors=True)
     written = [str(path), str(st["side"])]
     if args.plot and plot is not None:
-        from ..plot_base import save_figure
+        from ..plots.base import save_figure
 
         written.append(str(save_figure(plot(res), args.plot)))
     how = (f"{res.settings['dtype']}, {res.settings['method']}"
@@ -348,10 +348,10 @@ def _result_options(args) -> dict:
 
 def own_output(out, chunks, args) -> tuple:
     """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to
-    ``out`` (`jaxsleigh.runlock.RunLock`; `RunLockedError` names another live run), then refuse a
+    ``out`` (`jaxsleigh.files.runlock.RunLock`; `RunLockedError` names another live run), then refuse a
     folder that holds chunks without ``--resume``. Returns ``(lock, the chunk files found)``;
     `run_distributed` releases the lock (and records the options, see `_record_options`)."""
-    from ..runlock import RunLock
+    from ..files.runlock import RunLock
 
     lock = RunLock(out, getattr(args, "_run_id", None) or _single_run_id(), what="output",
                    hint="choose another --out").acquire()
@@ -370,7 +370,7 @@ def own_output(out, chunks, args) -> tuple:
 def _record_options(state, args) -> None:
     """A fresh run records its options in ``chunks/options.json``, so that a refused ``--resume``
     can name the options that differ (after the checks: a refused run writes nothing)."""
-    from ..io import atomic_write_text
+    from ..files.npz import atomic_write_text
 
     chunks = state.get("chunks") if isinstance(state, dict) else None
     if chunks is None:
@@ -501,7 +501,7 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     share, process 0 assembles and writes, and every process returns process 0's exit code. The
     options (except the three above and ``--progress``) must be equal in every process.
     """
-    from ..distributed import ClusterError, run_shared, start
+    from ..files.distributed import ClusterError, run_shared, start
     from ..errors import CheckpointError, DiskFullError, RunLockedError
 
     try:

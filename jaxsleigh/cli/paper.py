@@ -27,7 +27,7 @@ def add_paper(subparsers) -> None:
 
 
 def _cmd_paper(args) -> int:
-    from ..paper import run_paper, summary_table
+    from ..plots.paper_run import run_paper, summary_table
 
     check_outputs(folders=[args.out])
     t0 = time.perf_counter()

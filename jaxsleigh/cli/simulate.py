@@ -48,9 +48,9 @@ def add_simulate(subparsers) -> None:
 
 
 def _cmd_simulate(args) -> int:
-    from ..config import solve_config
-    from ..io import npz_path, write_npz
-    from ..simulate import simulate
+    from ..studies.config import solve_config
+    from ..files.npz import npz_path, write_npz
+    from ..studies.simulate import simulate
 
     plant, gains = model_from_args(args)
     solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, save_every=args.save_every,

@@ -7,7 +7,7 @@ Registered by `add_sweep`::
     jaxsleigh sweep --param coulomb_scale=0:4:5 --ics starts.npy --x64 --out friction.npz
 
 Every start runs under every value (set) as one chunked, checkpointed ensemble
-(`jaxsleigh.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
+(`jaxsleigh.studies.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
 interrupted run, ending with the same ``.npz``, byte for byte. Wall time, devices and the command
 go to ``FILE.run.json``. With ``--coordinator/--num-processes/--process-id`` (or under SLURM /
 Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
@@ -34,7 +34,7 @@ DEFAULT_SAMPLES = 256
 
 
 def _epilog() -> str:
-    from ..sweep import PARAM_NAMES
+    from ..studies.sweep import PARAM_NAMES
 
     return (
         "parameters (--param NAME=LO:HI:P[:log], once or twice; two make a P1 x P2 grid):\n"
@@ -124,9 +124,9 @@ def run_sweep_command(args) -> int:
 
 def _check(args) -> dict:
     """Validate everything before any work (a bad range names its --param); nothing is written."""
-    from ..config import solve_config
-    from ..io import npz_path
-    from ..sweep import apply_params, check_rows, param_grid, parse_param
+    from ..studies.config import solve_config
+    from ..files.npz import npz_path
+    from ..studies.sweep import apply_params, check_rows, param_grid, parse_param
 
     if len(args.param) > 2:
         raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
@@ -167,14 +167,14 @@ def _run_kw(st: dict) -> dict:
 
 def _compute(st: dict, shard: tuple) -> None:
     """One process's share of the chunks of a multi-process run."""
-    from ..sweep import sweep
+    from ..studies.sweep import sweep
 
     compute_share("sweep", st["chunks"], st["out"], shard, lambda shard: sweep(st["starts"], st["axes"], resume=True, shard=shard, **_run_kw(st)))
 
 
 def _assemble(st: dict, multi: bool) -> int:
     """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
-    from ..sweep import save_sweep, sweep
+    from ..studies.sweep import save_sweep, sweep
 
     args, out = st["args"], st["out"]
     res, caught = run_chunked("sweep", st["chunks"],
@@ -185,7 +185,7 @@ def _assemble(st: dict, multi: bool) -> int:
         print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 or "
               f"not finite); they are left out of the fractions", file=sys.stderr)
     path = save_sweep(out, res)
-    from ..sweep_plots import plot_sweep
+    from ..plots.sweep import plot_sweep
 
     S, se = res.fractions()
     written, how = finish_chunked("sweep", st, res, multi=multi, wall=wall, path=path,

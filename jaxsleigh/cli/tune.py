@@ -167,7 +167,7 @@ def _checked_checkpoint(args, what: str) -> Path:
 
 def _cmd_tune(args) -> int:
     from .. import tuning
-    from ..params import gains_to_dict, save_gains
+    from ..model.params import gains_to_dict, save_gains
 
     search = args.search
     if args.steps is None:
@@ -255,8 +255,8 @@ _GRADIENT_ONLY = {"pareto": None, "robust": False, "lr": 0.05, "mode": "forward"
 
 def _cmd_search(args) -> int:
     from .. import tuning
-    from ..io import atomic_write
-    from ..params import gains_to_dict, save_gains
+    from ..files.npz import atomic_write
+    from ..model.params import gains_to_dict, save_gains
 
     used = [k for k, v in _GRADIENT_ONLY.items() if getattr(args, k) != v]
     if used:
@@ -360,7 +360,7 @@ def _cmd_search(args) -> int:
 
 def _cmd_pareto(args) -> int:
     from .. import tuning
-    from ..params import gains_to_dict, load_gains
+    from ..model.params import gains_to_dict, load_gains
 
     from ..tuning.pareto import MAX_FRONT_POINTS, finished_points
     from ..validate import check_count
@@ -450,7 +450,7 @@ def _cmd_pareto(args) -> int:
         meta["baseline"] = tuning.front_dict(baseline)
     tuning.save_front(front, args.out, references=refs, **meta)
     if args.plot and args.validate:
-        from .. import tuning_plots as tp
+        from ..plots import tuning as tp
 
         doc = tuning.load_front(args.out)
         tp.save_figure(tp.plot_front(doc, baseline=doc.get("baseline")), args.plot)

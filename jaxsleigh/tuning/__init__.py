@@ -22,7 +22,7 @@ weigh directly (the fastest *median* \(T_{0.05}\) at no more *median* energy tha
 `search` optimises those medians themselves, derivative-free, on the accurate engine.
 
 **Numerical safety.** Lanes are integrated in the w chart by the engine's adaptive RK4
-(`jaxsleigh.stepper.attempt`: steps that cross \(\theta = 0\), go non-finite or increase
+(`jaxsleigh.integrate.stepper.attempt`: steps that cross \(\theta = 0\), go non-finite or increase
 \(H_d\) are rejected and retried smaller) with a fixed budget of attempts per lane, as one
 differentiable ``lax.scan``. A lane that does not reach its horizon within the budget (too stiff)
 or fails is charged the rest of the horizon and makes the candidate *invalid*. A differentiable

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..params import gains_to_dict
+from ..model.params import gains_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint"]
 
@@ -29,7 +29,7 @@ class TuningInterrupted(KeyboardInterrupt):
 
 def tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics) -> str:
     """A hash of everything that determines a tuning run (a checkpoint only resumes the same run)."""
-    from ..config import plant_to_dict
+    from ..studies.config import plant_to_dict
 
     doc = {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
            "loss": {k: float(v) for k, v in loss._asdict().items()},
@@ -88,7 +88,7 @@ class TunerCheckpoint:
         self._row_fields = tuple(row_fields)
 
     def save(self, it, trainable, opt_state, best, valid_points, rows, scalars: dict, probes) -> None:
-        from ..io import atomic_write
+        from ..files.npz import atomic_write
 
         arrays = {"key": np.array(self.key), "it": np.int64(it),
                   "settings": np.array(json.dumps(_SETTINGS.get(self.key) or {}, sort_keys=True))}

@@ -5,7 +5,7 @@ budget on the geometric-mean energy of its training batch, integrated by its own
 What a user reads, and what the ``balanced`` preset promises, are other numbers: the **median hard
 convergence time** \(T_{0.05}\) over starts, the **median control energy** \(\int_0^{100}|u|^2 dt\),
 the converged fraction, no start failing or crossing \(\theta = 0\), all measured by the accurate
-engine (`jaxsleigh.ensemble.run_ensemble`). `search` optimises exactly those:
+engine (`jaxsleigh.studies.ensemble.run_ensemble`). `search` optimises exactly those:
 
 \[ \min_{\text{gains}}\ \operatorname{median}_i T_{0.05,i} \quad \text{s.t.}\quad \operatorname{median}_i E_i \le E_{max},\ \ \text{converged} \ge F_{min},\ \ \text{no start fails or crosses } \theta = 0, \]
 
@@ -20,7 +20,7 @@ starts (or ``energy_budget``) and \(F_{min}\) their converged fraction plus ``co
 margins leave room for the sampling noise when the result is re-measured on other starts.
 
 **Vectorised over the population.** Every candidate of a generation runs in the same
-`run_ensemble` call, its gains as per-lane parameters (`jaxsleigh.lanes`): a generation of
+`run_ensemble` call, its gains as per-lane parameters (`jaxsleigh.model.lanes`): a generation of
 \(\lambda\) candidates on \(N\) starts is one compiled ensemble of \(\lambda N\) trajectories, and
 changing the gains never recompiles.
 
@@ -48,7 +48,7 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
-from ..params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
+from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
 from ..status import Status
 from .checkpoint import TuningInterrupted
@@ -152,8 +152,8 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
                         eps: float = 0.05, x64: bool = False) -> PopulationFigures:
     """Run every candidate of ``gains_list`` from every start of ``ics`` in one ensemble (gains as
     per-lane parameters) and reduce per candidate (`PopulationFigures`)."""
-    from ..ensemble import run_ensemble
-    from ..lanes import stack_gains
+    from ..studies.ensemble import run_ensemble
+    from ..model.lanes import stack_gains
 
     glist = [load_gains(g) for g in gains_list]
     ics = np.asarray(ics, np.float64)
@@ -194,7 +194,7 @@ def _fingerprint(settings: dict, ics) -> str:
 
 
 def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list) -> None:
-    from ..io import atomic_write
+    from ..files.npz import atomic_write
 
     arrays = {"key": np.array(key), "rng": np.array(json.dumps(rng.bit_generator.state))}
     arrays.update({f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()})
@@ -343,7 +343,7 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
 
 
 def _guard_failure(g: Gains, guard, plant, t_final, x64) -> str:
-    from ..ensemble import run_ensemble
+    from ..studies.ensemble import run_ensemble
 
     r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, progress=False)
     bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q)[:, 2]) != np.sign(guard[:, 2]))

@@ -12,7 +12,7 @@ __all__ = ["save_history", "load_history"]
 
 def save_history(history: TuneHistory, path, **extra) -> Path:
     """Write the history as ``.npz`` (one key per field, plus ``extra`` arrays)."""
-    from ..io import atomic_write
+    from ..files.npz import atomic_write
 
     path = Path(path)
     if path.suffix != ".npz":

@@ -1,5 +1,5 @@
 r"""Tuning any feedback law by gradient: the tuner's objective (`jaxsleigh.tuning.objective`) over the
-numeric leaves of a user's law ``u = law(q, v)`` (`jaxsleigh.controller`), with optax.
+numeric leaves of a user's law ``u = law(q, v)`` (`jaxsleigh.model.controller`), with optax.
 
 The loss is the tuner's: the batch's mean soft convergence time \(S\) (plus the singular-set term for
 a law that has one), subject to a budget on the geometric-mean control energy by an augmented
@@ -16,10 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..charts import chart_for
-from ..controller import as_controller, is_paper_law, law_leaf_names
-from ..engine import check_ics
-from ..params import PlantParams, as_plant
+from ..model.charts import chart_for
+from ..model.controller import as_controller, is_paper_law, law_leaf_names
+from ..integrate.engine import check_ics
+from ..model.params import PlantParams, as_plant
 from ..status import Status
 from .objective import LossConfig, loss_from_lanes, soft_convergence
 
@@ -63,9 +63,9 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     """Tune the numeric leaves of ``law`` (all, or those named in ``tune``) by Adam on the tuner's objective.
 
     Args:
-      law: any feedback law ``u = law(q, v)`` (`jaxsleigh.controller`).
+      law: any feedback law ``u = law(q, v)`` (`jaxsleigh.model.controller`).
       starts: training starts ``(N, 3)`` or ``(N, 5)``.
-      tune: names of the leaves to tune (`jaxsleigh.controller.law_leaf_names`); default all.
+      tune: names of the leaves to tune (`jaxsleigh.model.controller.law_leaf_names`); default all.
       plant: the plant (default: the paper's); loss: `LossConfig` (horizon, tolerances, energy budget).
       steps, lr: Adam iterations and learning rate; x64: float64.
       n_attempts: attempted steps per start (default 4x the base steps of ``loss.t_final``).

@@ -1,5 +1,5 @@
 r"""The tuner's objective: the soft convergence time integrated differentiably by its own scan over
-`jaxsleigh.stepper.attempt` (see the package docstring for the formulas).
+`jaxsleigh.integrate.stepper.attempt` (see the package docstring for the formulas).
 """
 from __future__ import annotations
 
@@ -10,15 +10,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..closed_loop import ClosedLoop
-from ..control import control_w_components
-from ..engine import check_ics, initial_w
-from ..params import Gains, PlantParams
-from ..plant import velocity_components
+from ..model.closed_loop import ClosedLoop
+from ..model.paper_law import control_w_components
+from ..integrate.engine import check_ics, initial_w
+from ..model.params import Gains, PlantParams
+from ..model.plant import velocity_components
 from ..status import Status
-from ..observers import ClosestApproach, Excursion
-from ..charts import WChart, chart_for
-from ..stepper import Controls, StepState, attempt, init_state, is_active
+from ..integrate.observers import ClosestApproach, Excursion
+from ..model.charts import WChart, chart_for
+from ..integrate.stepper import Controls, StepState, attempt, init_state, is_active
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..params import Gains, PlantParams, gains_to_dict, load_gains
+from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
 from .checkpoint import TunerCheckpoint, TuningInterrupted, tune_fingerprint
 from .gradients import GRADIENT_MODES, make_value_and_grad

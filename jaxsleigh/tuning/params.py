@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..params import Gains, gains as make_gains, load_gains
+from ..model.params import Gains, gains as make_gains, load_gains
 
 __all__ = ["GainParams", "TUNABLE", "D_FLOOR", "params_from_gains", "gains_from_params", "parse_tune",
            "split_params", "merge_params", "gains_numpy"]

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..params import Gains, PlantParams, gains_to_dict, load_gains
+from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
@@ -362,7 +362,7 @@ def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: Tune
             continue
         soft, energy, v = min(ok, key=lambda c: c[0])
         g = gains_from_params(GainParams(v[:3], v[3], v[4:]), d_floor=d_floor)
-        from ..params import gains as make_gains
+        from ..model.params import gains as make_gains
 
         g = make_gains(np.asarray(g.L, np.float64), float(g.k), np.asarray(g.D_hat, np.float64))
         points.append(FrontPoint(float(bgt), g, {"soft_loss": soft, "training_energy": energy, "feasible": True}))
@@ -400,7 +400,7 @@ def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> di
 def save_front(front: Front, path, *, references: Optional[dict] = None, **meta) -> Path:
     """Write `front_dict` as JSON (atomically); each point loads with ``jaxsleigh.load_gains``
     after `point_gains`."""
-    from ..io import atomic_write
+    from ..files.npz import atomic_write
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -411,7 +411,7 @@ def save_front(front: Front, path, *, references: Optional[dict] = None, **meta)
 
 def point_gains(point: dict) -> Gains:
     """The gains of one point of a front document."""
-    from ..params import gains as make_gains
+    from ..model.params import gains as make_gains
 
     return make_gains(point["L"], point["k"], point["D_hat"])
 

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..params import Gains
+from ..model.params import Gains
 from ..status import Status
 
 __all__ = ["probe", "hardest", "check"]
@@ -21,7 +21,7 @@ __all__ = ["probe", "hardest", "check"]
 def probe(g: Gains, sets, horizon: float, budget: int, x64) -> tuple:
     """Integrate every ``(starts, plant)`` of ``sets`` over ``horizon`` with the accurate engine and
     ``budget`` attempts per start. Returns ``(all OK, [attempts per start of each set])``."""
-    from ..ensemble import run_ensemble
+    from ..studies.ensemble import run_ensemble
 
     ok, attempts = True, []
     for starts, plant in sets:
@@ -46,7 +46,7 @@ def check(g: Gains, checks, horizon: float, x64, attempts: list | None = None) -
     seconds of the accurate engine (default budget), else what went wrong. ``attempts``, a list, gets
     the attempted steps of every start of each set appended (to tell whether the probe's budget binds
     at the checked gains)."""
-    from ..ensemble import run_ensemble
+    from ..studies.ensemble import run_ensemble
 
     for starts, plant in checks:
         r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64, progress=False)

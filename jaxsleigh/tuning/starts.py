@@ -13,10 +13,10 @@ from typing import NamedTuple, Sequence
 import jax
 import numpy as np
 
-from ..basin import BasinStarts, sample_starts
-from ..damping import CoulombDamping, NoDamping, ViscousDamping
-from ..engine import check_ics
-from ..params import PlantParams, paper_plant
+from ..studies.basin import BasinStarts, sample_starts
+from ..model.damping import CoulombDamping, NoDamping, ViscousDamping
+from ..integrate.engine import check_ics
+from ..model.params import PlantParams, paper_plant
 
 __all__ = ["UniformStarts", "draw_starts", "sample_starts", "guard_starts", "PlantDistribution", "sample_plants",
            "validation_plants", "plant_groups", "first_lane"]
@@ -40,7 +40,7 @@ def draw_starts(starts, n: int, seed: int) -> np.ndarray:
     """``n`` validated starts ``(n, 3|5)`` from ``starts``: a sampler ``(rng, n) -> array`` (e.g.
     `UniformStarts`, drawn with ``numpy.random.default_rng(seed)``), a
     `BasinStarts` (e.g. from `sample_starts`, the library's box sampler,
-    shared with `jaxsleigh.basin`) or a fixed array; of the last two the first ``n`` rows are used."""
+    shared with `jaxsleigh.studies.basin`) or a fixed array; of the last two the first ``n`` rows are used."""
     if callable(starts):
         arr = np.asarray(starts(np.random.default_rng(seed), int(n)), dtype=np.float64)
     else:
@@ -109,7 +109,7 @@ def sample_plants(dist: PlantDistribution, n: int, seed: int) -> list[tuple[np.n
 
 def validation_plants() -> dict[str, PlantParams]:
     """Named plants for the per-plant validation table (paper's plant first)."""
-    from ..params import plant_params
+    from ..model.params import plant_params
 
     return {
         "paper (m 2, J 1, l 1, Coulomb)": plant_params(2.0, 1.0, 1.0, "coulomb"),

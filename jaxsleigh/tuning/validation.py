@@ -7,14 +7,14 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
-from ..params import PlantParams, load_gains
+from ..model.params import PlantParams, load_gains
 from ..status import Status
 
 __all__ = ["Validation", "validate", "markdown_table", "validation_dict"]
 
 
 class Validation(NamedTuple):
-    r"""Hard convergence times measured by `jaxsleigh.ensemble.run_ensemble`.
+    r"""Hard convergence times measured by `jaxsleigh.studies.ensemble.run_ensemble`.
 
     Attributes:
       T_eps: (N,) convergence times (inf: not settled by the horizon; nan: failed).
@@ -56,7 +56,7 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     training discretisation. The effort comes from the engine's on-line
     `ControlEffort` quadrature (RK4 order) when it reports one; otherwise
     from a second run saving every base step (trapezoid on the saved samples)."""
-    from ..ensemble import run_ensemble
+    from ..studies.ensemble import run_ensemble
 
     g = load_gains(gains)
     r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64,
@@ -89,11 +89,11 @@ def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarra
         return np.asarray(r.u_energy, np.float64), np.asarray(r.u_norm_peak, np.float64)
     import jax.numpy as jnp
 
-    from ..control import control_w_components
-    from ..coordinates import q_to_w
-    from ..ensemble import run_ensemble
-    from ..params import paper_plant
-    from ..plant import velocity_components
+    from ..model.paper_law import control_w_components
+    from ..model.coordinates import q_to_w
+    from ..studies.ensemble import run_ensemble
+    from ..model.params import paper_plant
+    from ..model.plant import velocity_components
 
     p = paper_plant() if plant is None else plant
     s = run_ensemble(ics, plant=p, gains=g, t_final=t_final, eps=eps, x64=x64, save_every=1, progress=False,

@@ -1,0 +1,235 @@
+"""Chunk checkpoints of long runs: nothing lost when a run is interrupted, nothing mixed on resume.
+
+A `ChunkStore` is a folder of ``chunk_NNNNNN.npz`` files plus a ``manifest.json``. Every
+chunk carries the fingerprint of the run that wrote it (a hash of the settings and of *all* the
+starts) and its own identity (its index, its rows ``[lo, hi)`` and a digest of the starts of those
+rows), and is checked on reuse whether or not the manifest exists:
+
+* a chunk of another run (other settings, seed, starts or chunk size) stops the run with a
+  `CheckpointError` naming the file and the fix: results are never mixed;
+* a chunk under another chunk's name (renamed, copied over another, written with other chunk
+  bounds) or a chunk of the earlier format that does not record its index is named in a
+  `DamagedCheckpointWarning` and recomputed, as is a damaged one (empty, truncated, corrupt,
+  wrong length);
+* a manifest of another run is refused with the settings that differ, by name, with both values;
+* while a run works, it holds a lock in the folder (`jaxsleigh.files.runlock.RunLock`): a second run
+  with other settings is refused at once, naming the first;
+* files are written atomically (temporary file, fsync, rename): a kill leaves either the complete
+  chunk or none, and leftover temporary files are hidden names that are never read as chunks.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import warnings
+import zipfile
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import CheckpointError, DamagedCheckpointWarning
+from .npz import atomic_write, atomic_write_text
+
+__all__ = ["ChunkStore", "starts_digest"]
+
+_KEY = "__run_key__"
+_ID = "__chunk__"          # [index, lo, hi]: which chunk this is and which rows it holds
+_STARTS = "__starts__"     # digest of the starts of those rows
+
+#: Settings that vary between equal runs (never a reason to refuse a checkpoint).
+_VOLATILE = {"devices", "wall_s", "chunks_reused"}
+
+
+def starts_digest(starts) -> str:
+    """A short hash of an array of starts (its dtype, shape and bytes)."""
+    a = np.ascontiguousarray(starts)
+    h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
+    h.update(a.tobytes())
+    return h.hexdigest()[:32]
+
+
+def _afresh(folder: Path) -> str:
+    return (f"delete or move {str(folder)!r} (or choose another --out / checkpoint folder) to start afresh")
+
+
+class ChunkStore:
+    """Chunks of one run in ``folder``, identified by the run's fingerprint ``key``."""
+
+    def __init__(self, folder, key: str):
+        self.folder = Path(folder)
+        self.key = str(key)
+        self._lock = None
+
+    @property
+    def manifest(self) -> Path:
+        return self.folder / "manifest.json"
+
+    def path(self, index: int) -> Path:
+        return self.folder / f"chunk_{index:06d}.npz"
+
+    def chunks(self) -> list[Path]:
+        """The finished chunk files (temporary files are never listed)."""
+        return sorted(self.folder.glob("chunk_*.npz"))
+
+    def open(self, *, resume: bool, manifest: dict) -> None:
+        """Create the folder, lock it and write the manifest; refuse a folder that holds another
+        run's work or that another run is writing.
+
+        Without ``resume`` a folder that already holds chunks is refused (they would be
+        overwritten); with it, a manifest of another run is refused (naming the settings that
+        differ), a damaged manifest is replaced (the chunks identify themselves). The folder stays
+        locked (`jaxsleigh.files.runlock.RunLock`) until `close`.
+        """
+        from .runlock import RunLock
+        from ..validate import writable_dir
+
+        writable_dir(self.folder, what="checkpoint folder")
+        self._lock = RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
+                             hint="choose another --out / checkpoint folder").acquire()
+        try:
+            self._check(resume, manifest)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Release the folder's lock (the chunks stay). Safe to call twice."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+    def __enter__(self) -> "ChunkStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _check(self, resume: bool, manifest: dict) -> None:
+        have = self.chunks()
+        if have and not resume:
+            raise CheckpointError(f"checkpoint {str(self.folder)!r} already holds {len(have)} chunk(s) of an "
+                                  f"earlier run; pass resume=True (--resume) with the same settings to continue "
+                                  f"it, or {_afresh(self.folder)}")
+        new = {"key": self.key, **manifest}
+        if resume and self.manifest.exists():
+            try:
+                old = json.loads(self.manifest.read_text())
+                old_key = old.get("key") if isinstance(old, dict) else None
+            except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
+                warnings.warn(DamagedCheckpointWarning(
+                    f"checkpoint manifest {str(self.manifest)!r} is damaged ({e}); it is rewritten and every "
+                    "chunk is checked on its own"), stacklevel=4)
+                old, old_key = None, self.key
+            if old_key != self.key:
+                why = _differences(old, json.loads(json.dumps(new, default=str)))
+                raise CheckpointError(f"checkpoint {str(self.folder)!r} was made with other settings or initial "
+                                      f"conditions than this run"
+                                      + ("" if why.startswith("other settings") else f" ({why})")
+                                      + f"; rerun the original command with --resume, or {_afresh(self.folder)}")
+        if resume:
+            for path in have:                 # before anything is written: never adopt another run's folder
+                key = self._key_of(path)
+                if key is not None and key != self.key:
+                    raise self._foreign(path)
+        atomic_write_text(self.manifest, json.dumps(new, indent=1, default=str) + "\n", when_full=self._when_full())
+
+    def _when_full(self) -> str:
+        return (f"the finished chunks are kept in {str(self.folder)!r}: once there is space, the same command "
+                f"with --resume (resume=True) continues")
+
+    @staticmethod
+    def _key_of(path: Path) -> Optional[str]:
+        """The fingerprint stored in a chunk ('' for a chunk without one), ``None`` if unreadable."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return str(z[_KEY]) if _KEY in z.files else ""
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError):
+            return None
+
+    def _foreign(self, path: Path) -> CheckpointError:
+        return CheckpointError(
+            f"checkpoint chunk {str(path)!r} was written by a different run (other settings, seed, starts or "
+            f"chunk size, or jaxsleigh 0.1, whose chunks carry no fingerprint); results of two runs are never "
+            f"mixed: rerun the command that made it with --resume, or {_afresh(self.folder)}")
+
+    def save(self, index: int, arrays: dict, *, lo: int, starts) -> Path:
+        """Write chunk ``index`` atomically, tagged with the run's fingerprint and its identity: its
+        index, its rows ``[lo, lo + len(starts))`` and the digest of their ``starts``."""
+        ident = np.array([index, lo, lo + len(starts)], np.int64)
+
+        def write(f):
+            np.savez(f, **arrays, **{_KEY: np.array(self.key), _ID: ident, _STARTS: np.array(starts_digest(starts))})
+
+        return atomic_write(self.path(index), write, when_full=self._when_full())
+
+    def load(self, index: int, rows: int, fields=None, *, lo: int, starts) -> Optional[dict]:
+        """Chunk ``index`` if it exists, belongs to this run and is this very chunk (index, rows
+        ``[lo, lo + rows)``, digest of ``starts``) with ``rows`` rows; ``None`` if it is missing,
+        damaged or another chunk under this one's name (then it is recomputed, with a
+        `DamagedCheckpointWarning`); `CheckpointError` if another run wrote it. ``fields``: the
+        names the chunk must hold (all of them, no others)."""
+        path = self.path(index)
+        if not path.exists():
+            return None
+        try:
+            raw = path.read_bytes()
+            with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
+            self._damaged(path, f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
+            return None
+        key = data.pop(_KEY, None)
+        if key is None or str(key) != self.key:
+            raise self._foreign(path)
+        ident, digest = data.pop(_ID, None), data.pop(_STARTS, None)
+        want = [index, lo, lo + rows]
+        if ident is None or digest is None:
+            self._damaged(path, "it was written by an earlier jaxsleigh that does not record which chunk it is, "
+                                "so it cannot be trusted under this name")
+            return None
+        got = np.asarray(ident).ravel().tolist()
+        if got != want:
+            what = (f"chunk {got[0]} (rows {got[1]}-{got[2] - 1})" if len(got) == 3 else f"identity {got}")
+            self._damaged(path, f"it holds {what}, not chunk {index} (rows {lo}-{lo + rows - 1}): it was renamed, "
+                                f"copied over another chunk or written with other chunk bounds")
+            return None
+        if str(digest) != starts_digest(starts):
+            self._damaged(path, f"its rows {lo}-{lo + rows - 1} were computed from other starts")
+            return None
+        if fields is not None and set(data) != set(fields):
+            self._damaged(path, f"holds fields {sorted(data)}, expected {sorted(fields)}")
+            return None
+        if not data or any(np.ndim(v) < 1 or np.shape(v)[0] != rows for v in data.values()):
+            self._damaged(path, f"expected {rows} rows per field")
+            return None
+        return data
+
+    @staticmethod
+    def _damaged(path: Path, why: str) -> None:
+        warnings.warn(DamagedCheckpointWarning(
+            f"checkpoint chunk {str(path)!r} is damaged ({why}); recomputing it"), stacklevel=4)
+
+
+def _differences(old, new: dict, limit: int = 6) -> str:
+    """The settings in which two manifests differ, by name with both values (checkpoint vs this run)."""
+    if not isinstance(old, dict):
+        return "its manifest is not a run's manifest"
+    diffs = []
+    o_set, n_set = old.get("settings"), new.get("settings")
+    if isinstance(o_set, dict) and isinstance(n_set, dict):
+        for k in sorted(set(o_set) | set(n_set)):
+            if k in _VOLATILE or o_set.get(k) == n_set.get(k):
+                continue
+            diffs.append(f"{k} {o_set.get(k, '(unset)')!r} in the checkpoint vs {n_set.get(k, '(unset)')!r} now")
+    if old.get("n") != new.get("n"):
+        diffs.append(f"{old.get('n')} starts in the checkpoint vs {new.get('n')} now")
+    elif "starts" in old and old.get("starts") != new.get("starts"):
+        diffs.append("other initial conditions (e.g. another --seed, grid or --ics file)")
+    if old.get("chunk") != new.get("chunk") and not any(d.startswith("chunk_size") for d in diffs):
+        diffs.append(f"chunks of {old.get('chunk')} rows in the checkpoint vs {new.get('chunk')} now")
+    if not diffs:
+        return "other settings or initial conditions"
+    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more

@@ -1,0 +1,302 @@
+"""Files: the ``.npz`` written by ``jaxsleigh simulate`` and ``jaxsleigh paper`` (a stable contract)."""
+from __future__ import annotations
+
+import ast
+import errno
+import json
+import math
+import operator
+import os
+import platform
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
+           "settings_arrays", "write_npz_deterministic", "read_npz"]
+
+
+def npz_path(path) -> Path:
+    p = Path(path)
+    return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+
+
+def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Path:
+    """Write a `Solution` and the settings that produced it.
+
+    Keys: ``t (T,)``, ``q (N, T, 3)``, ``p (N, T, 2)``, ``u (N, T, 2)``, ``Hd (N, T)``,
+    ``status (N,)``, ``n_steps (N,)``, ``n_rejected (N,)``, ``ics (N, 5)``; ``settings_json`` (the
+    solution's settings plus ``ics``, ``command`` and the status legend, as JSON) and the scalars
+    ``dt, t_final, save_every, method, dtype, gains_L, gains_k, gains_D_hat, params (m, J, l),
+    damping``; and the per-trajectory summaries of `Solution.effort` (``u_peak (N, 2)``,
+    ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
+    Returns the path written (``.npz`` appended when missing).
+    """
+    from ..status import describe
+
+    path = npz_path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ics = np.asarray(ics, dtype=np.float64)
+    if ics.ndim == 1:
+        ics = ics[None]
+    if ics.shape[1] == 3:
+        ics = np.concatenate([ics, np.zeros((ics.shape[0], 2))], axis=1)
+    s = dict(sol.settings)
+    settings = {**s, "ics": ics.tolist(), "command": list(command) if command is not None else None,
+                "status_codes": describe()}
+    plant, g = s["plant"], s["gains"]
+    atomic_write(path, lambda f: np.savez_compressed(
+        f,
+        t=np.asarray(sol.t), q=np.asarray(sol.q), p=np.asarray(sol.p), u=np.asarray(sol.u),
+        Hd=np.asarray(sol.Hd), status=np.asarray(sol.status, dtype=np.int32),
+        n_steps=np.asarray(sol.n_steps), n_rejected=np.asarray(sol.n_rejected), ics=ics,
+        settings_json=np.array(json.dumps(settings)),
+        dt=np.float64(s["dt"]), t_final=np.float64(s["t_final"]), save_every=np.int64(s["save_every"]),
+        method=np.array(s["method"]), dtype=np.array(s["dtype"]),
+        gains_L=np.asarray(g["L"], dtype=np.float64), gains_k=np.float64(g["k"]),
+        gains_D_hat=np.asarray(g["D_hat"], dtype=np.float64),
+        params=np.array([plant["m"], plant["J"], plant["l"]], dtype=np.float64),
+        damping=np.array(damping_name(plant["damping"])),
+        **{k: np.asarray(v) for k, v in (getattr(sol, "effort", None) or {}).items()},
+    ))
+    return path
+
+
+def settings_arrays(s: dict) -> dict:
+    """The settings every result file repeats as scalars next to ``settings_json``: ``eps``,
+    ``t_final``, ``dt``, ``method``, ``dtype``, ``max_steps``, ``gains_L``, ``gains_k``,
+    ``gains_D_hat``, ``params (m, J, l)``, ``damping``."""
+    plant, g = s["plant"], s["gains"]
+    return dict(
+        eps=np.float64(s["eps"]), t_final=np.float64(s["t_final"]), dt=np.float64(s["dt"]),
+        method=np.array(s["method"]), dtype=np.array(s["dtype"]), max_steps=np.int64(s["max_steps"]),
+        gains_L=np.asarray(g["L"], np.float64), gains_k=np.float64(g["k"]),
+        gains_D_hat=np.asarray(g["D_hat"], np.float64),
+        params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
+        damping=np.array(damping_name(plant["damping"])),
+    )
+
+
+def write_npz_deterministic(path, arrays: dict) -> Path:
+    """Like ``np.savez_compressed`` but with fixed zip timestamps (equal inputs, equal bytes),
+    written atomically (:func:`atomic_write`)."""
+    import io as _io
+    import zipfile
+
+    def write(f):
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for key, val in arrays.items():
+                buf = _io.BytesIO()
+                np.lib.format.write_array(buf, np.asanyarray(val), allow_pickle=False)
+                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                zf.writestr(info, buf.getvalue())
+
+    return atomic_write(path, write)
+
+
+def read_npz(path, what: str, required=()) -> dict:
+    """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
+    or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``)."""
+    import zipfile
+
+    try:
+        with np.load(npz_path(path), allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"cannot read {str(path)!r} ({type(e).__name__}: {e}); give a {what}") from None
+    if any(k not in data for k in required):
+        raise ValueError(f"{str(path)!r} is not a {what}")
+    return data
+
+
+def damping_name(class_name: str) -> str:
+    return {"CoulombDamping": "coulomb", "ViscousDamping": "viscous", "NoDamping": "none"}.get(
+        class_name, class_name)
+
+
+_BINOPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv}
+_NAMES = {"pi": math.pi, "nan": math.nan, "inf": math.inf}
+
+
+def parse_number(text: str) -> float:
+    """A float from ``'0.39'``, ``'-pi/8'``, ``'3*pi/4'``, ``'1e-3'`` (numbers, pi, + - * /)."""
+
+    def ev(node):
+        if isinstance(node, ast.Expression):
+            return ev(node.body)
+        if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) \
+                and not isinstance(node.value, bool):
+            return float(node.value)
+        if isinstance(node, ast.Name) and node.id.lower() in _NAMES:
+            return _NAMES[node.id.lower()]
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+            v = ev(node.operand)
+            return -v if isinstance(node.op, ast.USub) else v
+        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            return _BINOPS[type(node.op)](ev(node.left), ev(node.right))
+        raise ValueError
+
+    text = text.strip()
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        return ev(ast.parse(text, mode="eval"))
+    except (SyntaxError, ValueError, ZeroDivisionError, RecursionError, OverflowError):
+        raise ValueError(f"{text!r} is not a number") from None
+
+
+def load_ics(path, *, hint: str = "") -> np.ndarray:
+    """Initial conditions from a ``.npy`` (or ``.txt``/``.csv``) file: float64 (N, 3) or (N, 5).
+
+    Raises ``ValueError`` with a message naming the fix; ``hint`` names the command's alternative.
+    """
+    p = Path(path)
+    fix = "save them with numpy.save as a real float array of shape (N, 3) or (N, 5)"
+    if not p.is_file():
+        what = "is a folder" if p.is_dir() else "not found"
+        raise ValueError(f"initial-conditions file {str(path)!r} {what}; give an existing .npy file of "
+                         f"shape (N, 3) or (N, 5)" + (f", or {hint}" if hint else ""))
+    text = p.suffix.lower() in (".txt", ".csv")
+    try:
+        if text:
+            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
+        else:
+            with open(p, "rb") as f:
+                magic = f.read(6)
+            if magic != b"\x93NUMPY":
+                kind = "an empty file" if not magic else (
+                    "text (a CSV or text table? name it .csv or .txt)" if _looks_like_text(p) else "not a .npy file")
+                raise ValueError(f"{str(path)!r} is {kind}, not a NumPy .npy file; {fix}")
+            _check_npy_header(p, str(path), fix)
+            arr = np.load(p, allow_pickle=False)
+    except ValueError as e:
+        if str(e).startswith(repr(str(path))):
+            raise
+        raise ValueError(f"could not read initial conditions from {str(path)!r} ({e}); {fix}") from None
+    except (OSError, EOFError) as e:
+        raise ValueError(f"could not read initial conditions from {str(path)!r} ({type(e).__name__}: {e}); "
+                         f"{fix}") from None
+    if not isinstance(arr, np.ndarray) or arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{str(path)!r} must hold a numeric array of shape (N, 3) or (N, 5)")
+    if np.iscomplexobj(arr):
+        raise ValueError(f"{str(path)!r} holds complex numbers (dtype {arr.dtype}); initial conditions are real: "
+                         f"{fix}")
+    if arr.ndim != 2 or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
+        raise ValueError(f"{str(path)!r} holds an array of shape {arr.shape}; initial conditions must have "
+                         f"shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2] with N >= 1")
+    return arr.astype(np.float64)
+
+
+def _check_npy_header(p: Path, name: str, fix: str) -> None:
+    """Read only the ``.npy`` header and refuse, before any allocation, an array the file cannot hold
+    (a header claiming more bytes than follow it: forged, truncated) or that would not fit in memory."""
+    import math
+
+    from ..validate import check_memory
+
+    fmt = np.lib.format
+    with open(p, "rb") as f:
+        version = fmt.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, _, dtype = fmt.read_array_header_2_0(f)
+        else:                       # (3, 0): a utf-8 header, read by NumPy's own reader
+            shape, _, dtype = fmt._read_array_header(f, version)
+        offset = f.tell()
+    size = p.stat().st_size - offset
+    if dtype.hasobject:
+        raise ValueError(f"{name!r} holds Python objects (dtype {dtype}), not numbers; {fix}")
+    need = math.prod(int(n) for n in shape) * dtype.itemsize
+    if need > size:
+        raise ValueError(f"{name!r}: its header claims an array of shape {tuple(shape)} ({dtype}, {need:,} bytes) "
+                         f"but only {size:,} bytes follow it; the file is truncated or damaged: write it again "
+                         f"({fix})")
+    rows = int(shape[0]) if len(shape) else 1
+    check_memory(rows, repr(name),
+                 fix="split the starts into several files and runs")
+
+
+def _looks_like_text(p: Path) -> bool:
+    with open(p, "rb") as f:
+        head = f.read(512)
+    try:
+        head.decode("ascii")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+# ---------------------------------------------------------------------------------------------
+# atomic writes: a file is either complete or absent, never half-written
+# ---------------------------------------------------------------------------------------------
+
+def _tmp_name(path: Path) -> Path:
+    # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches; the host name
+    # keeps two processes of a multi-host run (same pid, shared folder) apart
+    host = "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64]
+    return path.with_name(f".{path.name}.{host}.{os.getpid()}.tmp")
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # pragma: no cover - not every platform opens folders
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
+
+
+#: errno values that mean "the disk (or the quota) is full": reported as `DiskFullError`.
+_FULL = tuple(e for e in (getattr(errno, "ENOSPC", None), getattr(errno, "EDQUOT", None)) if e is not None)
+
+
+def atomic_write(path, write, *, when_full: str = "") -> Path:
+    """Write ``path`` through ``write(file_object)`` into a temporary file in the same folder,
+    flush it to disk (fsync) and rename it into place: readers see the old file or the complete
+    new one, also after a crash or a kill.
+
+    A full disk or quota (ENOSPC, EDQUOT) raises `jaxsleigh.errors.DiskFullError` naming the
+    file; ``when_full`` is appended to its message (what continues the work once there is space).
+    """
+    path = Path(path)
+    tmp = _tmp_name(path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        if isinstance(e, OSError) and e.errno in _FULL:
+            raise _disk_full(path, e, when_full) from None
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def _disk_full(path: Path, e: OSError, when_full: str):
+    from ..errors import DiskFullError
+
+    what = "no space left on the device" if e.errno == errno.ENOSPC else "the disk quota is exceeded"
+    return DiskFullError(e.errno, f"could not write {str(path)!r}: {what} ({os.strerror(e.errno)}); free some "
+                                  f"space there (or choose another location) and run the command again"
+                         + (f"; {when_full}" if when_full else ""), path=path)
+
+
+def atomic_write_text(path, text: str, *, when_full: str = "") -> Path:
+    """`atomic_write` of a UTF-8 text."""
+    return atomic_write(path, lambda f: f.write(text.encode("utf-8")), when_full=when_full)

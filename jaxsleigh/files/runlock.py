@@ -1,0 +1,201 @@
+"""Runs own their output: one lock per process, which a killed process never leaves stale.
+
+Each process that writes an output file or a checkpoint folder holds an exclusive ``fcntl.flock``
+on its own lock file there (``.lock.<host>.<pid>`` in a folder, ``.<name>.lock.<host>.<pid>`` next
+to a file), which records the run's fingerprint, host, pid and start time. The operating system
+drops a ``flock`` when its process ends, however it ends (``kill -9`` included), so a newcomer
+tells live runs from dead ones by trying a non-blocking ``flock`` on every lock file it finds:
+
+* it gets the lock: the run that wrote the file is gone; the file is removed (never stale);
+* the lock is held with the newcomer's fingerprint: the same run (the processes of one
+  multi-process run share a checkpoint folder): allowed;
+* held with another fingerprint: refused at once with `RunLockedError` naming the other run.
+
+A newcomer publishes its own lock *before* it looks at the others, so of two runs started at the
+same moment at least one is refused: never both accepted. Where the filesystem has no ``flock``
+(some network filesystems), a `RunLockWarning` says so and the run goes on unguarded.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+import warnings
+from pathlib import Path
+from typing import Optional
+
+from ..errors import RunLockedError, RunLockWarning
+
+__all__ = ["RunLock", "RunLockWarning"]
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
+
+
+def _host() -> str:
+    # the same sanitising as the atomic writer's temporary names: a safe file-name component
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64] or "host"
+
+
+#: Locks this process holds, by lock-file path: a second claim from the same process (the command
+#: line's lock on FILE.npz and the library's on FILE.npz.chunks/ are different files, but a library
+#: call inside another one is not) shares the lock instead of fighting over it.
+_HELD: dict = {}
+
+
+class RunLock:
+    """An exclusive claim of ``target`` (an output file or a folder) by this process.
+
+    Args:
+      target: the output file, or the folder (``folder=True``) the run writes.
+      fingerprint: identifies the run; processes with equal fingerprints may share ``target``.
+      what: how messages call it ("output", "checkpoint folder").
+      hint: what the refused run should do instead (appended to the refusal).
+    """
+
+    def __init__(self, target, fingerprint: str, *, folder: bool = False, what: str = "output", hint: str = ""):
+        self.target = Path(target)
+        self.fingerprint = str(fingerprint)
+        self.what = what
+        self.hint = hint
+        if folder:
+            self.dir, self.prefix = self.target, ".lock."
+        else:
+            self.dir, self.prefix = self.target.parent, f".{self.target.name}.lock."
+        self.path = self.dir / f"{self.prefix}{_host()}.{os.getpid()}"
+        self._fd: Optional[int] = None
+        self._shared: Optional[RunLock] = None
+
+    # -- acquire / release ---------------------------------------------------------------------
+
+    def acquire(self) -> "RunLock":
+        """Claim ``target``; `RunLockedError` if another live run with another fingerprint holds it."""
+        if self._fd is not None or self._shared is not None:
+            return self
+        if fcntl is None:  # pragma: no cover
+            return self
+        key = str(self.path.resolve())
+        mine = _HELD.get(key)
+        if mine is not None:
+            if mine[0].fingerprint != self.fingerprint:
+                raise RunLockedError(f"{self.what} {str(self.target)!r} is in use by another run in this process "
+                                     f"(pid {os.getpid()}){self._tail()}", path=self.target,
+                                     holder=mine[0]._record())
+            mine[1] += 1
+            self._shared = mine[0]
+            return self
+        self.dir.mkdir(parents=True, exist_ok=True)
+        if not self._publish():
+            return self
+        try:
+            self._check_others()
+        except BaseException:
+            self._drop()
+            raise
+        _HELD[key] = [self, 1]
+        return self
+
+    def release(self) -> None:
+        """Give ``target`` back (removes the lock file). Safe to call twice."""
+        if self._shared is not None:
+            entry = _HELD.get(str(self._shared.path.resolve()))
+            self._shared = None
+            if entry is not None:
+                entry[1] -= 1
+                if entry[1] <= 0:
+                    entry[0].release()
+            return
+        if self._fd is None:
+            return
+        _HELD.pop(str(self.path.resolve()), None)
+        self._drop()
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    # -- internals -----------------------------------------------------------------------------
+
+    def _record(self) -> dict:
+        return {"fingerprint": self.fingerprint, "host": platform.node(), "pid": os.getpid(),
+                "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "target": str(self.target)}
+
+    def _publish(self) -> bool:
+        """Create this process's lock file, locked and complete before its name appears (written
+        under a temporary name, then renamed: a reader never sees a half-written record)."""
+        tmp = self.dir / f".tmplock.{_host()}.{os.getpid()}"
+        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            tmp.unlink(missing_ok=True)
+            warnings.warn(RunLockWarning(f"could not lock {str(self.target)!r} ({e}); this filesystem has no "
+                                         f"flock, so another run writing the same {self.what} is not detected"),
+                          stacklevel=4)
+            return False
+        try:
+            os.write(fd, (json.dumps(self._record()) + "\n").encode())
+            os.fsync(fd)
+            os.replace(tmp, self.path)
+        except BaseException:
+            os.close(fd)
+            tmp.unlink(missing_ok=True)
+            raise
+        self._fd = fd
+        return True
+
+    def _drop(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        # remove the name first, then let go of the lock: a newcomer never finds our file unlocked
+        try:
+            self.path.unlink(missing_ok=True)
+        finally:
+            os.close(fd)
+
+    def _check_others(self) -> None:
+        for other in sorted(self.dir.glob(self.prefix + "*")):
+            if other == self.path:
+                continue
+            try:
+                fd = os.open(other, os.O_RDONLY)
+            except FileNotFoundError:   # released meanwhile
+                continue
+            try:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    rec = _read(fd)
+                    if rec.get("fingerprint") != self.fingerprint:
+                        raise self._refusal(other, rec) from None
+                    continue
+                # acquirable: its process is gone (killed, crashed); the file is stale
+                other.unlink(missing_ok=True)
+            finally:
+                os.close(fd)
+
+    def _refusal(self, other: Path, rec: dict) -> RunLockedError:
+        who = (f"host {rec.get('host', '?')}, pid {rec.get('pid', '?')}, started {rec.get('started', '?')}"
+               if rec else f"lock file {other.name}")
+        return RunLockedError(f"{self.what} {str(self.target)!r} is being written by another run ({who}) with "
+                              f"other settings; two runs never write the same {self.what}: wait for that run to "
+                              f"finish (or stop it){self._tail()}", path=self.target, holder=rec)
+
+    def _tail(self) -> str:
+        return f", or {self.hint}" if self.hint else ""
+
+
+def _read(fd: int) -> dict:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        rec = json.loads(os.read(fd, 65536).decode() or "{}")
+        return rec if isinstance(rec, dict) else {}
+    except (OSError, ValueError, UnicodeDecodeError):
+        return {}

@@ -1,0 +1,497 @@
+"""Host-side driver of the stepper: input checks, the segment loop, batch compaction.
+
+Two regimes share the stepper of `jaxsleigh.integrate.stepper`: `drive_final` (ensembles: final
+state and on-line summaries, host loop over segments with batch compaction) and
+`drive_saving` (decimated trajectories on a uniform save grid).
+"""
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
+from ..model.charts import chart_for
+from ..status import Status
+from .observers import DEFAULT_OBSERVERS
+from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
+                      run_segment)
+
+__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
+           "make_controls",
+           "shard_batch", "batch_mesh",
+           "working_dtype", "default_max_steps", "METHODS"]
+
+METHODS = ("adaptive", "rk4")
+
+
+def working_dtype():
+    """float64 where x64 is enabled (``jax.enable_x64``), else float32."""
+    return jnp.zeros(()).dtype
+
+
+class Horizon(NamedTuple):
+    """Time grid of a run: ``n_steps`` base steps of ``dt``, saved every ``save_every``."""
+
+    t_final: float
+    dt: float
+    n_steps: int
+    save_every: int
+
+    @property
+    def n_out(self) -> int:
+        return self.n_steps // self.save_every
+
+    def save_times(self) -> np.ndarray:
+        """Save times after t = 0, float64, shape (n_out,)."""
+        return self.dt * self.save_every * np.arange(1, self.n_out + 1, dtype=np.float64)
+
+    def t(self) -> np.ndarray:
+        """Saved times including t = 0, shape (n_out + 1,)."""
+        return np.concatenate([[0.0], self.save_times()])
+
+
+#: Most base steps (t_final / dt) of one run: the step budget (20x that, adaptive) must fit the
+#: engine's int32 counters.
+MAX_BASE_STEPS = 50_000_000
+
+
+def make_horizon(t_final, dt, save_every=None, *, flags=None) -> Horizon:
+    """Validated horizon; ``save_every=None`` saves the final state only. ``flags`` maps the
+    keywords ``t_final``, ``dt``, ``save_every`` to the names used in messages (command-line flags)."""
+    f = (lambda n: (flags or {}).get(n, n))
+    try:
+        t_final, dt = float(t_final), float(dt)
+    except (TypeError, ValueError):
+        raise ValueError(f"{f('t_final')} and {f('dt')} must be numbers, got {t_final!r}, {dt!r}") from None
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"{f('dt')} must be a finite number > 0, got {dt}")
+    if not (math.isfinite(t_final) and t_final > 0):
+        raise ValueError(f"{f('t_final')} must be a finite number > 0, got {t_final}")
+    ratio = t_final / dt
+    if not ratio <= MAX_BASE_STEPS + 0.5:
+        raise ValueError(f"{f('t_final')} / {f('dt')} = {ratio:.3g} base steps is more than one run can take "
+                         f"({MAX_BASE_STEPS:.0e}); use a larger {f('dt')} (the adaptive method grows its step "
+                         f"by itself) or a shorter {f('t_final')}")
+    n_steps = int(round(ratio))
+    if n_steps < 1 or abs(n_steps * dt - t_final) > 1e-9 * max(1.0, t_final):
+        raise ValueError(f"{f('t_final')} {t_final:g} must be a whole multiple of {f('dt')} {dt:g} "
+                         f"(e.g. {f('t_final')} {max(1, n_steps) * dt:g} or {f('dt')} {t_final / max(1, n_steps):g})")
+    if save_every is None:
+        save_every = n_steps
+    if isinstance(save_every, bool) or int(save_every) != save_every or save_every < 1:
+        raise ValueError(f"{f('save_every')} must be a whole number >= 1, got {save_every}")
+    save_every = int(save_every)
+    if n_steps % save_every:
+        raise ValueError(f"the {n_steps} base steps ({f('t_final')} / {f('dt')}) are not a multiple of "
+                         f"{f('save_every')} {save_every}; use a {f('save_every')} that divides {n_steps} (e.g. 1)")
+    return Horizon(t_final, dt, n_steps, save_every)
+
+
+_WHY = {
+    Status.SINGULAR_START: "theta0 = 0 is on the singular set, where the control law is undefined; "
+                           "start with theta0 != 0 (e.g. 1e-3)",
+    Status.INVALID_INPUT: "it has a non-finite entry",
+    Status.OUT_OF_RANGE: "|theta0| is so small that the start overflows the working precision (w ~ 1/theta0^2); "
+                         "use float64 (x64=True, --x64) or a larger |theta0|",
+}
+
+
+def _rows(idx: np.ndarray, limit: int = 5) -> str:
+    shown = ", ".join(str(int(i)) for i in idx[:limit])
+    return f"row{'s' if idx.size > 1 else ''} {shown}" + (f" and {idx.size - limit} more" if idx.size > limit else "")
+
+
+def _representable(ics5: np.ndarray, dtype, block: int = 1 << 16) -> np.ndarray:
+    """Rows whose w-chart state, vector field and H_d are finite (with room) in ``dtype``: computed
+    in float64 in blocks (memory bounded by the block), compared with the dtype's range."""
+    from ..model.params import paper_gains, paper_plant
+
+    big = float(np.finfo(np.dtype(dtype)).max) * 1e-4
+    args = ClosedLoop(paper_plant(), paper_gains())
+    ok = np.zeros(ics5.shape[0], bool)
+    with jax.enable_x64(True):
+        for lo in range(0, ics5.shape[0], block):
+            yw, hd, fw = _w_check(jnp.asarray(ics5[lo:lo + block], jnp.float64), args)
+            yw, hd, fw = np.asarray(yw), np.asarray(hd), np.asarray(fw)
+            ok[lo:lo + block] = (np.all(np.abs(yw) < big, axis=1) & (np.abs(hd) < big)
+                                 & np.all(np.abs(fw) < big, axis=1))
+    return ok
+
+
+@jax.jit
+def _w_check(ics, args):
+    def one(y):
+        yw = state_to_w(y)
+        return yw, closed_loop_hamiltonian_w(yw, args), vector_field_w(0.0, yw, args)
+
+    return jax.vmap(one)(ics)
+
+
+def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Validate initial conditions; returns ``(ics (N, 5) float64, status0 (N,) int32)``.
+
+    ``ics`` is ``(3,)``/``(5,)`` for one start or ``(N, 3)``/``(N, 5)`` for many: ``(x, y, theta)``
+    with zero momentum, or ``(x, y, theta, p1, p2)``. Rows on the singular set ``theta = 0``
+    (status ``SINGULAR_START``), with non-finite entries (``INVALID_INPUT``) or, with ``dtype``
+    given, so close to it that they overflow that precision (``OUT_OF_RANGE``) are flagged, not
+    integrated, and named in one `FlaggedStartsWarning`; the other rows
+    are computed. ``singular=False`` (a law without the singular set, integrated in the physical
+    chart) flags non-finite rows only. A single start that is bad, or a batch whose every row is, raises ``ValueError``
+    with a message that says what to change.
+    """
+    from ..errors import FlaggedStartsWarning
+
+    try:
+        raw = np.asarray(ics)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}s must be an array of numbers, got {type(ics).__name__}") from None
+    if raw.dtype == bool or np.iscomplexobj(raw) or not np.issubdtype(raw.dtype, np.number):
+        raise ValueError(f"{name}s must be real numbers (x, y, theta[, p1, p2]), got an array of "
+                         f"dtype {raw.dtype}")
+    arr = raw.astype(np.float64)
+    if arr.ndim == 1:
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] not in (3, 5) or arr.shape[0] == 0:
+        raise ValueError(f"{name}s must have shape (3,), (5,), (N, 3) or (N, 5) "
+                         f"[(x, y, theta) or (x, y, theta, p1, p2)], got {np.shape(ics)}")
+    if arr.shape[1] == 3:
+        arr = np.concatenate([arr, np.zeros((arr.shape[0], 2))], axis=1)
+    status = np.zeros(arr.shape[0], np.int32)
+    finite = np.all(np.isfinite(arr), axis=1)
+    status[~finite] = Status.INVALID_INPUT
+    if singular:
+        status[finite & (arr[:, 2] == 0.0)] = Status.SINGULAR_START
+    if dtype is not None and singular:
+        cand = np.flatnonzero(status == Status.OK)
+        rep = _representable(arr[cand], dtype)
+        status[cand[~rep]] = Status.OUT_OF_RANGE
+    bad = np.flatnonzero(status)
+    if bad.size:
+        first = int(bad[0])
+        msg = f"{name} {first} {arr[first].tolist()} is invalid: {_WHY[Status(int(status[first]))]}"
+        if bad.size == arr.shape[0]:
+            if arr.shape[0] == 1:
+                raise ValueError(msg)
+            raise ValueError(f"all {arr.shape[0]} {name}s are invalid; first: {msg}")
+        parts = []
+        for code in np.unique(status[bad]):
+            idx = np.flatnonzero(status == code)
+            parts.append(f"{_rows(idx)} (status {int(code)} {Status(int(code)).name.lower()}: "
+                         f"{_WHY[Status(int(code))]})")
+        warnings.warn(FlaggedStartsWarning(
+            f"{bad.size} of {arr.shape[0]} {name}s flagged and not integrated (outputs NaN, the rest are "
+            f"computed): " + "; ".join(parts), rows=bad, status=status[bad]), stacklevel=3)
+    return arr, status
+
+
+def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.Array:
+    """Map validated physical starts to the w chart (or to ``chart``, `jaxsleigh.model.charts`), in float64
+    then cast to ``dtype``. Rows whose ``status0`` is not OK get a harmless placeholder (they are never
+    stepped)."""
+    safe = np.where(status0[:, None] == 0, ics5, np.array([1.0, 0.0, 1.0, 0.0, 0.0]))
+    if chart is not None and not chart.singular:
+        return jnp.asarray(chart.to_chart(safe), dtype)
+    with jax.enable_x64(True):
+        yw = np.asarray(jax.vmap(state_to_w)(jnp.asarray(safe, jnp.float64)))
+    if np.any(~np.isfinite(yw[status0 == 0])):
+        raise ValueError("an initial condition overflows the w chart (|theta0| too small for this "
+                         "precision); check the starts with check_ics(ics, dtype) first, or use |theta0| >= 1e-150")
+    return jnp.asarray(yw, dtype)
+
+
+@functools.partial(jax.jit, static_argnames=("observers",))
+def _init_batch(y0w, status0, args, ctl, observers=DEFAULT_OBSERVERS):
+    return init_batch(y0w, status0, args, ctl, observers=observers)
+
+
+@functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
+def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
+    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive, monitor=monitor,
+                       observers=observers)
+
+
+@functools.partial(jax.jit, static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
+def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
+    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
+
+
+def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
+                  factor_min=0.1, factor_max=5.0) -> Controls:
+    """The stepper's traced numbers for a run (`jaxsleigh.integrate.stepper.Controls`; the policy's
+    ``safety``, ``factor_min``, ``factor_max`` as in `jaxsleigh.integrate.stepsize.StepSizeController`)."""
+    max_step = horizon.dt if max_step is None else max_step
+    return Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
+                    max_steps=jnp.asarray(max_steps, jnp.int32),
+                    **{k: jnp.asarray(v, dtype) for k, v in (("safety", safety), ("factor_min", factor_min),
+                                                             ("factor_max", factor_max))})
+
+
+def shard_batch(tree, mesh):
+    """Place every leaf of a batch-last pytree with its last axis split over ``mesh``'s devices."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    def put(a):
+        return jax.device_put(a, NamedSharding(mesh, PartitionSpec(*([None] * (np.ndim(a) - 1)), "batch")))
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def batch_mesh(devices=None):
+    """A 1-D mesh named ``"batch"`` over ``devices`` (default: all of this process's devices, so a
+    process of a multi-process run shards over its own), or ``None`` for one device."""
+    from jax.sharding import Mesh
+
+    devices = jax.local_devices() if devices is None else list(devices)
+    return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
+
+
+def _bucket(n: int) -> int:
+    return 1 << max(0, (n - 1).bit_length())
+
+
+def _finish(full: StepState, t_final: float) -> StepState:
+    """Mark trajectories that stopped short of the horizon while still OK (out of budget)."""
+    status = np.array(full.status)
+    status[(status == Status.OK) & (np.asarray(full.t) < t_final)] = Status.BUDGET_EXHAUSTED
+    return full._replace(status=status)
+
+
+def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
+                atol: float, eps: float, max_steps: int, max_step=None, segment: int = 1000,
+                compact: bool = True, monitor: bool = True, progress=None, mesh=None,
+                observers=DEFAULT_OBSERVERS) -> StepState:
+    """Run a batch to the horizon keeping only the final state and the on-line summaries
+    (``observers``, `jaxsleigh.integrate.observers`).
+
+    The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
+    trajectories are still active and, when at most a quarter are, gathers them into a smaller
+    batch (a power of two, >= 64, so few shapes compile): the cost then follows the sum over
+    trajectories of the steps each needs, not the batch's maximum.
+
+    Returns the final `StepState` as batch-last NumPy arrays, with
+    trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
+    ``update(fraction_done)``. ``mesh`` (a 1-D `jax.sharding.Mesh` with axis ``"batch"``)
+    shards the batch axis across its devices; the batch size must then be a multiple of the
+    device count.
+
+    ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
+    `jaxsleigh.model.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
+    """
+    from ..model.lanes import broadcast_lanes, has_lanes, take_lanes
+
+    dtype = y0w.dtype
+    n = y0w.shape[0]
+    # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
+    segment = max(1, min(segment, horizon.n_steps + 8))
+    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
+    target = jnp.asarray(horizon.t_final, dtype)
+    lanes = has_lanes(args.plant, args.gains)
+    if lanes:                                # per-lane parameters: one lane per trajectory of the batch
+        lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
+        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
+        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+    else:
+        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+    if mesh is not None:
+        state = shard_batch(state, mesh)
+        if lanes:
+            args = shard_batch(args, mesh)
+    idx = np.arange(n)                       # rows of the full batch held by the current batch
+    full = None                              # the full batch, as lanes are compacted away
+    for _ in range(-(-max_steps // segment) + 1):
+        act = np.asarray(is_active(state, target, ctl))
+        if progress is not None:
+            frac = np.where(act, np.asarray(state.t, np.float64) / horizon.t_final, 1.0)
+            progress.update((n - idx.size + frac.sum()) / n)
+        if not act.any():
+            break
+        if compact and idx.size > 64 and act.sum() <= idx.size // 4:
+            keep = np.flatnonzero(act)
+            size = _bucket(max(keep.size, 64))
+            if mesh is not None:
+                size = -(-size // mesh.size) * mesh.size
+            host = jax.tree_util.tree_map(np.asarray, state)
+            full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
+            # pad with copies of one active lane; only real lanes are written back
+            pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
+            state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
+            if lanes:                        # the parameters follow their trajectories
+                lane_host = take_lanes(lane_host, pad)
+                args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
+            if mesh is not None:
+                state = shard_batch(state, mesh)
+                if lanes:
+                    args = shard_batch(args, mesh)
+            idx = np.concatenate([idx[keep], np.full(size - keep.size, -1)])
+        state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor, observers)
+    host = jax.tree_util.tree_map(np.asarray, state)
+    full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
+    return _finish(full, horizon.t_final)
+
+
+def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
+                 atol: float, eps: float, max_steps: int, max_step=None, block: int = 100,
+                 monitor: bool = True, progress=None, observers=DEFAULT_OBSERVERS):
+    """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
+    shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
+    blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
+    leaves, as in `drive_final`."""
+    from ..model.lanes import broadcast_lanes, has_lanes
+
+    dtype = y0w.dtype
+    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
+    if has_lanes(args.plant, args.gains):
+        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
+                                      ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))
+        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+    else:
+        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+    save_times = horizon.save_times()
+    out = []
+    for i in range(0, save_times.size, block):
+        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive, monitor,
+                                  observers)
+        out.append(np.asarray(ys))
+        if progress is not None:
+            progress.update(min(i + block, save_times.size) / save_times.size)
+    ys = np.moveaxis(np.concatenate(out, axis=0), -1, 0)     # (K, 5, N) blocks -> (N, K, 5)
+    return _finish(jax.tree_util.tree_map(np.asarray, state), horizon.t_final), ys
+
+
+# the plain fixed-step path: cache blocks of PLAIN_BLOCK trajectories, optionally over several devices
+from .stepper import PLAIN_BLOCK  # noqa: E402  (kept next to its users)
+
+
+@functools.partial(jax.jit, static_argnames=("n_steps", "block"), donate_argnums=(0,))
+def _plain_batch(y, args, dt, n_steps, block=PLAIN_BLOCK):
+    return run_plain(y, args, dt, n_steps=n_steps, block=block)
+
+
+@functools.lru_cache(maxsize=4)
+def _plain_batch_wide(vector_width: int):
+    """`_plain_batch` compiled with XLA:CPU's ``xla_cpu_prefer_vector_width`` (default 256)."""
+    return jax.jit(_plain_batch.__wrapped__, static_argnames=("n_steps", "block"), donate_argnums=(0,),
+                   compiler_options={"xla_cpu_prefer_vector_width": int(vector_width)})
+
+
+def _args_key(args: ClosedLoop):
+    """A hashable copy of concrete ``args`` (tree structure + every leaf's shape and values)."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return tree, tuple((np.shape(x), tuple(np.asarray(x, np.float64).ravel().tolist())) for x in leaves)
+
+
+@functools.lru_cache(maxsize=16)
+def _plain_specialised(key, n_steps: int, block, dtype):
+    """`_plain_batch` compiled for one plant and one set of gains: their values are constants of the
+    program, so XLA folds the per-run arithmetic (masses, their reciprocals, gain products) out of
+    the step, as a C program compiled for them would; and XLA's thread pool is off (the cache
+    blocks run on one core anyway). Final states agree with `_plain_batch` to float32 rounding.
+    Compiled once per (plant, gains, steps), kept for the 16 most recent."""
+    tree, leaves = key
+    args = jax.tree_util.tree_unflatten(tree, [np.asarray(v, dtype).reshape(shape) for shape, v in leaves])
+
+    def run(y, dt):
+        return run_plain(y, args, dt, n_steps=n_steps, block=block)
+
+    return jax.jit(run, donate_argnums=(0,), compiler_options={"xla_cpu_multi_thread_eigen": False,
+                                                               "xla_cpu_prefer_vector_width": 512})
+
+
+@functools.lru_cache(maxsize=8)
+def _plain_sharded(mesh, n_steps: int, block):
+    """`_plain_batch` with the batch axis split over ``mesh``'s devices: each device runs
+    its own cache blocks (no communication); jitted once per mesh and number of steps."""
+    from jax.sharding import PartitionSpec as P
+
+    spec = P(None, "batch")
+
+    def local(y, args, dt):
+        return run_plain(y, args, dt, n_steps=n_steps, block=block)
+
+    return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(spec, P(), P()), out_specs=spec),
+                   donate_argnums=(0,))
+
+
+def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: int = 1000, progress=None,
+                mesh=None, block=PLAIN_BLOCK, vector_width=None, specialise: bool = True):
+    """Plain fixed-step RK4 to the horizon, final state only; returns ``(y (N, 5), status (N,))``.
+
+    Status is judged at the end: ``NONFINITE`` if the state is not finite, ``CROSSED_SINGULAR`` if
+    theta ends with the other sign (an even number of crossings goes unseen; the stepper's
+    per-step checks and summaries cost about 2x on CPU, see ``run_ensemble(summaries=True)``).
+
+    The kernel steps cache blocks of ``block`` trajectories (`run_plain`;
+    ``None``: the whole batch per step, the earlier form; both give bitwise the same states for
+    batch sizes that are multiples of 8). XLA:CPU runs it on one core. ``mesh`` (a 1-D mesh with axis ``"batch"``, see `batch_mesh`;
+    ``"auto"``: every device of ``jax.devices()``) splits the batch over devices, e.g. the host
+    devices of ``XLA_FLAGS=--xla_force_host_platform_device_count=2``; the batch is padded with
+    harmless starts to a multiple of the device count. Sharded results agree with one device to
+    float32 rounding (not bitwise: XLA compiles the sharded program's arithmetic slightly
+    differently), and on the 2-core test machine two host devices were not faster (docs/
+    performance_fastpath.md), so the default is one device (``None``).
+
+    ``vector_width`` (CPU only, one device; e.g. 512 on AVX-512 machines) compiles the kernel with
+    that preferred SIMD width: ~15% less CPU time on the test machine, final states within ~1e-5
+    (relative, after 10^4 steps) of the default build instead of bitwise equal; ``None`` keeps
+    XLA's default (256).
+
+    ``specialise`` (default, CPU, one device) compiles the kernel for this run's plant and gains
+    (`_plain_specialised`): their values become constants of the program, ~1.4x less CPU time on
+    the test machine (experiments/bench_c_limit.py), final states within float32 rounding of the
+    generic kernel; a new plant or new gains compile again (a second or two)."""
+    dtype = y0w.dtype
+    n = y0w.shape[0]
+    if isinstance(mesh, str) and mesh == "auto":
+        mesh = batch_mesh()
+    y = np.where(np.asarray(status0)[:, None] == Status.OK, np.asarray(y0w), [1.0, 0, 0, 0, 0])
+    if mesh is not None:
+        y = np.concatenate([y, np.tile([[1.0, 0, 0, 0, 0]], (-n % mesh.size, 1))])
+    y = jnp.asarray(y, dtype).T
+    if mesh is not None:
+        y = shard_batch(y, mesh)
+    dt = jnp.asarray(horizon.dt, dtype)
+    try:
+        key = _args_key(args) if specialise else None
+    except (TypeError, jax.errors.ConcretizationTypeError):        # traced args: the generic kernel
+        specialise = False
+    done = 0
+    while done < horizon.n_steps:
+        k = min(segment, horizon.n_steps - done)
+        if mesh is not None:
+            y = _plain_sharded(mesh, k, block)(y, args, dt)
+        elif vector_width is not None and jax.default_backend() == "cpu":
+            y = _plain_batch_wide(vector_width)(y, args, dt, k, block)
+        elif specialise and jax.default_backend() == "cpu":
+            y = _plain_specialised(key, k, block, np.dtype(dtype).name)(y, dt)
+        else:
+            y = _plain_batch(y, args, dt, k, block)
+        done += k
+        if progress is not None:
+            progress.update(done / horizon.n_steps)
+    y = np.asarray(y).T[:n]
+    status = np.array(status0, np.int32)
+    ok = status == Status.OK
+    finite = np.all(np.isfinite(y), axis=1)
+    status[ok & ~finite] = Status.NONFINITE
+    if chart_for(args.controller).singular:
+        status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
+    return y, status
+
+
+def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
+    out = np.array(full)
+    real = idx >= 0
+    out[..., idx[real]] = part[..., real]
+    return out
+
+
+def default_max_steps(horizon: Horizon, adaptive: bool) -> int:
+    """Per-trajectory budget of attempted steps: the base steps, plus 20x room when adaptive."""
+    base = horizon.n_steps + horizon.n_out + 8
+    return min(20 * base if adaptive else base, 2**31 - 2)

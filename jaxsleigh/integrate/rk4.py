@@ -1,0 +1,55 @@
+"""Classical fixed-step RK4 for any vector field ``f(t, y, args)``, as a ``lax.scan``.
+
+These are plain functions for one trajectory: ``vmap`` them over initial conditions and ``jit``
+at the call site. The engine in `jaxsleigh.integrate.stepper` uses `rk4_step` too.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["rk4_step", "rk4_stages", "solve_fixed"]
+
+
+def rk4_stages(f, t, y, h, args, k1):
+    """Classical RK4 from a known ``k1 = f(t, y)``; returns ``(increment, k4)``, where
+    ``y + increment`` is the step's result.
+
+    Returning the increment lets callers mask a step as ``y + where(ok, increment, 0)``; on
+    XLA:CPU that ran ~2x faster than ``where(ok, y_next, y)``, which defeated fusion.
+    """
+    k2 = f(t + 0.5 * h, y + (0.5 * h) * k1, args)
+    k3 = f(t + 0.5 * h, y + (0.5 * h) * k2, args)
+    k4 = f(t + h, y + h * k3, args)
+    return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4
+
+
+def rk4_step(f, t, y, h, args):
+    """One classical RK4 step of size ``h``."""
+    return y + rk4_stages(f, t, y, h, args, f(t, y, args))[0]
+
+
+def solve_fixed(f, y0, args, *, t0=0.0, dt, n_steps: int, save_every: int = 1, unroll: int = 1):
+    """Integrate ``n_steps`` RK4 steps of size ``dt``, saving every ``save_every`` steps.
+
+    Returns ``(ts, ys)`` with ``ts`` of shape ``(n_steps // save_every + 1,)`` (``t0`` included)
+    and ``ys`` stacked along the first axis. ``n_steps`` must be a multiple of ``save_every``.
+    Time is ``t0 + i * dt`` (no accumulated rounding).
+    """
+    if n_steps % save_every:
+        raise ValueError(f"n_steps={n_steps} must be a multiple of save_every={save_every}")
+    dt = jnp.asarray(dt, y0.dtype)
+    t0 = jnp.asarray(t0, y0.dtype)
+
+    def inner(carry, _):
+        i, y = carry
+        return (i + 1, rk4_step(f, t0 + i * dt, y, dt, args)), None
+
+    def outer(carry, _):
+        carry, _ = jax.lax.scan(inner, carry, None, length=save_every, unroll=unroll)
+        return carry, carry[1]
+
+    _, ys = jax.lax.scan(outer, (jnp.asarray(0, jnp.int32), y0), None, length=n_steps // save_every)
+    ys = jnp.concatenate([y0[None], ys])
+    ts = t0 + dt * jnp.arange(ys.shape[0], dtype=y0.dtype) * save_every
+    return ts, ys

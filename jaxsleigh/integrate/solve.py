@@ -1,0 +1,112 @@
+r"""The differentiable solve: one trajectory of the closed loop as a pure JAX function.
+
+`solve` integrates one start under any controller (the paper's law, `jaxsleigh.Gains`, in its w
+chart; any other law ``u = law(q, v)`` in the physical chart, `jaxsleigh.model.charts`) with the engine's
+own stepper (`jaxsleigh.integrate.stepper.attempt`, the step-size policy of `jaxsleigh.integrate.stepsize`) and
+observers (`jaxsleigh.integrate.observers`), and returns the final state and the observers' summaries as JAX
+arrays. It runs a fixed number of attempted steps in a ``lax.scan``, so it composes with ``jit``,
+``vmap`` (batches of starts, gains or plants), ``jax.grad`` and ``jax.jacfwd``: derivatives of the
+final state, of \(\int \|u\|^2 dt\) and of the other summaries with respect to the controller's
+parameters, the plant's and the start.
+
+What is differentiated is the discrete scheme along the step sizes it chose (the choice itself is
+not differentiated, `jaxsleigh.integrate.stepsize.next_step`); with tight tolerances it converges to the
+derivative of the exact flow. ``T_eps`` and the peaks are piecewise smooth in the parameters.
+
+The NumPy fronts (`jaxsleigh.simulate`, `jaxsleigh.run_ensemble`, basins, sweeps) add what a study
+needs on top of the same stepper (chunks, checkpoints, devices, batch compaction, files); they are
+not traced.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+
+from ..model.charts import chart_for
+from ..model.closed_loop import ClosedLoop
+from .observers import DEFAULT_OBSERVERS, collect_values
+from ..model.params import paper_plant
+from ..status import Status
+from .stepper import Controls, init_state, run_segment
+from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, StepSizeController
+
+__all__ = ["solve", "SolveOutput"]
+
+
+class SolveOutput(NamedTuple):
+    """What `solve` returns for one start (JAX arrays; vmap adds a leading batch axis).
+
+    Attributes:
+      q, p: final configuration (3,) and momentum (2,).
+      status: `jaxsleigh.Status` code (``BUDGET_EXHAUSTED`` when the attempts ran out first).
+      t_reached: time reached.
+      n_steps, n_rejected: accepted and rejected attempts.
+      summaries: the observers' values (``T_eps``, ``u_energy``, ``u_peak``, ...).
+    """
+
+    q: jax.Array
+    p: jax.Array
+    status: jax.Array
+    t_reached: jax.Array
+    n_steps: jax.Array
+    n_rejected: jax.Array
+    summaries: dict
+
+
+def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive",
+          stepsize: Optional[StepSizeController] = None, eps: float = 0.05, max_attempts: Optional[int] = None,
+          observers: Any = DEFAULT_OBSERVERS) -> SolveOutput:
+    """Integrate one start ``y0`` ((3,) or (5,), physical state) to ``t_final`` under ``controller``.
+
+    Args:
+      controller: `jaxsleigh.Gains` (the paper's law) or any law ``u = law(q, v)`` (`jaxsleigh.model.controller`).
+      y0: ``(x, y, theta)`` (zero momentum) or ``(x, y, theta, p1, p2)``; its dtype sets the precision.
+      plant: `jaxsleigh.PlantParams` (default: the paper's).
+      t_final, dt: horizon and base step (the fixed step of ``"rk4"``, the first step of ``"adaptive"``).
+      method: ``"adaptive"`` or ``"rk4"`` (static).
+      stepsize: the adaptive policy (`jaxsleigh.integrate.stepsize.StepSizeController`; defaults per dtype).
+      eps: radius of the ball of ``T_eps``.
+      max_attempts: attempted steps (static; default: the base steps + 8 for ``"rk4"``, 4x that for
+        ``"adaptive"``); a start that needs more ends ``BUDGET_EXHAUSTED`` (its summaries are then up to
+        ``t_reached``).
+      observers: the summaries to carry (static).
+
+    Returns:
+      `SolveOutput`. No check of the inputs happens here (it is traced code): validate with
+      `jaxsleigh.gains` / `jaxsleigh.plant_params` first.
+    """
+    if method not in ("adaptive", "rk4"):
+        raise ValueError(f"method must be 'adaptive' or 'rk4', got {method!r}")
+    y0 = jnp.asarray(y0)
+    if not jnp.issubdtype(y0.dtype, jnp.floating):
+        y0 = y0.astype(jnp.zeros(()).dtype)
+    if y0.shape == (3,):
+        y0 = jnp.concatenate([y0, jnp.zeros(2, y0.dtype)])
+    if y0.shape != (5,):
+        raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
+    dtype = y0.dtype
+    adaptive = method == "adaptive"
+    ss = StepSizeController() if stepsize is None else stepsize
+    name = jnp.dtype(dtype).name
+    rtol = DEFAULT_RTOL.get(name, 1e-6) if ss.rtol is None else ss.rtol
+    atol = DEFAULT_ATOL.get(name, 1e-6) if ss.atol is None else ss.atol
+    max_step = MAX_STEP_FACTOR * dt if ss.max_step is None else ss.max_step
+    if max_attempts is None:
+        base = int(round(float(t_final) / float(dt))) + 8
+        max_attempts = 4 * base if adaptive else base
+    args = ClosedLoop(paper_plant() if plant is None else plant, controller)
+    chart = chart_for(controller)
+    ctl = Controls(*(jnp.asarray(v, dtype) for v in (dt, max_step, rtol, atol, eps)),
+                   max_steps=jnp.asarray(max_attempts, jnp.int32),
+                   safety=jnp.asarray(ss.safety, dtype), factor_min=jnp.asarray(ss.factor_min, dtype),
+                   factor_max=jnp.asarray(ss.factor_max, dtype))
+    s = init_state(chart.to_chart(y0), jnp.int32(Status.OK), args, ctl, observers=tuple(observers))
+    s = run_segment(s, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), adaptive=adaptive,
+                    observers=tuple(observers))
+    status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
+                       s.status)
+    y = chart.from_chart(s.y)
+    return SolveOutput(q=y[:3], p=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
+                       n_rejected=s.n_reject, summaries=collect_values(tuple(observers), s.obs, s.quad))

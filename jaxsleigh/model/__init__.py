@@ -1,0 +1,1 @@
+"""The sleigh: parameters and their validation, damping, plant, coordinates, control laws (the paper's and any user's), the closed loop and the charts it is integrated in. Imports nothing above it."""

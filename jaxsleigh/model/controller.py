@@ -1,0 +1,192 @@
+r"""The controller as a piece: any feedback law ``u = law(q, v)`` on the sleigh.
+
+A *controller* is a pytree ``law`` (a ``NamedTuple`` of numbers and arrays, a registered dataclass, or a
+plain function) whose call
+
+\[ u = \mathrm{law}(q, v), \qquad q = (x, y, \theta), \quad v = \nabla_p H = (\text{forward speed},\ \text{turning rate}) \]
+
+returns the generalised force ``u`` (shape (2,): forward force in N, turning moment in N m). It sees
+what a controller on the real sleigh measures (configuration and velocity; \(v = Q(q)^\top \dot q\),
+paper Remark 1), never the momentum or the plant's parameters. Its numeric leaves are traced: new
+values never recompile, and ``jax.grad`` differentiates through them.
+
+The paper's law (eq. 13) is the controller `jaxsleigh.Gains`: ``gains=`` keeps meaning it, and it
+declares the w chart (its singular set \(\theta = 0\) belongs to it, not to the plant), so the
+engine integrates it there (`jaxsleigh.model.charts.WChart`). Any other law is integrated in the
+physical chart (`jaxsleigh.model.charts.PhysicalChart`). A law may declare its own chart with a class
+attribute ``chart``.
+
+Example: a PD law on the distance and heading to the origin (not a stabiliser of the sleigh, which
+no smooth static law is, by Brockett's condition; it shows the contract):
+
+```python
+class PD(NamedTuple):
+    kp: float = 1.0
+    kd: float = 2.0
+
+    def __call__(self, q, v):
+        return jnp.stack([-self.kp * (q[0] * jnp.cos(q[2]) + q[1] * jnp.sin(q[2])) - self.kd * v[0],
+                          -self.kp * q[2] - self.kd * v[1]])
+
+sol = js.simulate(ics, controller=PD(kp=2.0))
+```
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .params import Gains
+
+__all__ = ["FunctionLaw", "PerTrajectory", "as_controller", "apply_law", "is_paper_law", "controller_record"]
+
+
+@jax.tree_util.register_pytree_node_class
+class FunctionLaw:
+    """A plain function ``fn(q, v) -> u`` as a controller without parameters (the function is static)."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __call__(self, q, v):
+        return self.fn(q, v)
+
+    def tree_flatten(self):
+        return (), self.fn
+
+    @classmethod
+    def tree_unflatten(cls, fn, children):
+        return cls(fn)
+
+    def __repr__(self):
+        return f"FunctionLaw({getattr(self.fn, '__qualname__', repr(self.fn))})"
+
+
+@jax.tree_util.register_pytree_node_class
+class PerTrajectory:
+    """A law whose every numeric leaf carries a trailing per-trajectory axis (size N, or 1 for all).
+
+    ``PerTrajectory(PD(kp=np.array([1.0, 2.0, 4.0]), kd=np.full(3, 2.0)))`` runs three trajectories with
+    three gains, as one compiled batch (the law, written for one trajectory, is vmapped over the lanes);
+    sweeps build these. A law's call on one trajectory's slice is the wrapped law's call.
+    """
+
+    def __init__(self, law):
+        self.law = law
+
+    def __call__(self, q, v):
+        return self.law(q, v)
+
+    def tree_flatten(self):
+        return (self.law,), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(children[0])
+
+    def __repr__(self):
+        return f"PerTrajectory({self.law!r})"
+
+
+def is_paper_law(controller) -> bool:
+    """True for the paper's law (`jaxsleigh.Gains`), integrated in the w chart."""
+    return isinstance(controller, Gains)
+
+
+def apply_law(law, q, v):
+    """``law(q, v)`` as a tuple ``(u1, u2)``, for one trajectory (``q`` (3,), ``v`` (2,)) or a batch-last
+    batch (``q`` (3, N), ``v`` (2, N): the law, written for one trajectory, is vmapped over the batch)."""
+    q, v = jnp.asarray(q), jnp.asarray(v)
+    if q.ndim == 1:
+        u = jnp.asarray(law(q, v))
+    elif isinstance(law, PerTrajectory):        # one law per lane: vmap the law's leaves with the batch
+        u = jax.vmap(lambda c, qi, vi: jnp.asarray(c(qi, vi)), in_axes=(-1, 1, 1), out_axes=1)(law.law, q, v)
+    else:
+        u = jax.vmap(lambda qi, vi: jnp.asarray(law(qi, vi)), in_axes=(1, 1), out_axes=1)(q, v)
+    return u[0].astype(q.dtype), u[1].astype(q.dtype)
+
+
+def _is_number_leaf(x) -> bool:
+    if isinstance(x, (bool, np.bool_, str)):
+        return False
+    try:
+        a = np.asarray(x)
+    except Exception:                  # noqa: BLE001  (anything that is not an array)
+        return isinstance(x, jax.Array)
+    return a.dtype != object and (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer))
+
+
+def as_controller(law: Any, name: str = "controller"):
+    """Check a user's law eagerly; returns it (a plain function wrapped in `FunctionLaw`).
+
+    The law must be callable as ``law(q, v)``, its leaves real numbers or arrays, and at a test point
+    (``q = (1, 0.5, 0.3)``, ``v = (0.1, -0.2)``, float64) it must return two finite numbers. Raises
+    ``ValueError`` saying what is wrong.
+    """
+    if isinstance(law, Gains):
+        return law
+    if isinstance(law, PerTrajectory):
+        leaves = jax.tree_util.tree_leaves(law.law)
+        if any(np.ndim(x) < 1 for x in leaves):
+            raise ValueError(f"every leaf of a PerTrajectory {name} needs a trailing per-trajectory axis, got shapes "
+                             f"{[np.shape(x) for x in leaves]}")
+        bad = [x for x in leaves if not np.all(np.isfinite(np.asarray(x, np.float64)))]
+        if bad:
+            raise ValueError(f"the per-trajectory parameters of the {name} must be finite, got {bad[0]!r}")
+        as_controller(jax.tree_util.tree_map(lambda x: np.asarray(x)[..., 0], law.law), name)
+        return law
+    if not callable(law):
+        raise ValueError(f"{name} must be a feedback law u = law(q, v) (a callable pytree, e.g. a NamedTuple "
+                         f"with __call__, or a function), or jaxsleigh.gains(...) for the paper's law; got "
+                         f"{type(law).__name__}")
+    leaves = jax.tree_util.tree_leaves(law)
+    if leaves and not hasattr(law, "tree_flatten") and not all(_is_number_leaf(x) for x in leaves):
+        if not isinstance(law, tuple):           # a plain function (or object) is its own, static, leaf
+            law = FunctionLaw(law)
+        else:
+            bad = next(x for x in leaves if not _is_number_leaf(x))
+            raise ValueError(f"every parameter of the {name} must be a real number or array (they are traced), "
+                             f"got {bad!r}")
+    q = jnp.array([1.0, 0.5, 0.3])
+    v = jnp.array([0.1, -0.2])
+    try:
+        with jax.enable_x64(True):
+            u = np.asarray(jax.jit(lambda c, q, v: jnp.asarray(c(q, v)))(law, q.astype(jnp.float64),
+                                                                          v.astype(jnp.float64)))
+    except Exception as e:              # noqa: BLE001  (a user's code: report what it raised)
+        raise ValueError(f"the {name} {law!r} failed when called as law(q, v) with q = (1, 0.5, 0.3), "
+                         f"v = (0.1, -0.2) under jax.jit: {type(e).__name__}: {e}") from None
+    if u.shape != (2,):
+        raise ValueError(f"the {name} must return u of shape (2,) (forward force, turning moment), got shape "
+                         f"{u.shape}")
+    if not np.all(np.isfinite(u)):
+        raise ValueError(f"the {name} returned a non-finite u = {u.tolist()} at q = (1, 0.5, 0.3), "
+                         f"v = (0.1, -0.2)")
+    return law
+
+
+def controller_record(law) -> dict:
+    """JSON-ready record of a law that is not the paper's: its type and its numeric leaves."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    leaves, _ = jax.tree_util.tree_flatten_with_path(inner)
+
+    def rec(x):
+        a = np.asarray(x, np.float64)
+        if isinstance(law, PerTrajectory):
+            return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
+        return a.tolist()
+
+    params = {jax.tree_util.keystr(path) or "value": rec(x) for path, x in leaves}
+    kind = repr(inner) if isinstance(inner, FunctionLaw) else type(inner).__qualname__
+    return {"type": kind, "params": params}
+
+
+def law_leaf_names(law) -> dict:
+    """``{name: leaf}`` of a law's numeric leaves, named by their path without the leading dot (``kp``,
+    ``gains[0]``): the names sweeps and lane tables use."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    leaves, _ = jax.tree_util.tree_flatten_with_path(inner)
+    return {jax.tree_util.keystr(p).lstrip(".") or "value": x for p, x in leaves}

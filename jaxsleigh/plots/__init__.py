@@ -1,0 +1,1 @@
+"""Figures (matplotlib's object API, no pyplot): the paper's (and `paper_run`, which simulates the paper's setting and draws them), basins, sweeps, tuning. Imports the layers below; nothing below imports it."""

@@ -1,0 +1,128 @@
+"""Scaffolding shared by the plotting modules: figures, the provenance stamp, saving.
+
+* `new_figure` / `figure_and_axes`: a `matplotlib.figure.Figure` with constrained
+  layout, built without ``pyplot`` (no backend is selected, no global GUI state is touched, so it
+  works headless and inside other applications); ``figure_and_axes`` draws into given axes when a
+  caller passes them.
+* `provenance`: the short text of what produced the data (``'float32, adaptive RK4, dt =
+  0.01 s'``), used in titles.
+* `stamp`: the provenance line at the top of every figure a plotting function owns (above the
+  title, small grey type): dtype, method, step, tolerances, ``eps``, horizon and the device the data
+  was computed on (from the result's settings or run information; ``device not recorded`` when
+  neither holds it, e.g. a file from an older version).
+* `save_figure`: PNG/PDF/SVG by suffix, parent folders created.
+
+Used by `jaxsleigh.plots.paper_figures`, `jaxsleigh.plots.basin` and the other ``*_plots`` modules.
+Numerics modules never import this (nor any plotting module).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Optional, Sequence
+
+__all__ = ["METHOD_NAMES", "STAMP_GID", "new_figure", "figure_and_axes", "save_figure", "provenance",
+           "device_text", "provenance_line", "stamp"]
+
+#: Display names of the integration methods.
+METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4"}
+
+#: ``gid`` of the stamp's text artist (find it with ``[t for t in fig.texts if t.get_gid() == STAMP_GID]``).
+STAMP_GID = "jaxsleigh-provenance"
+
+
+def new_figure(figsize):
+    """A `Figure` of ``figsize`` inches with constrained layout (no pyplot)."""
+    from matplotlib.figure import Figure  # no pyplot: no backend, no global state
+
+    return Figure(figsize=figsize, layout="constrained")
+
+
+def figure_and_axes(ax, figsize):
+    """``(fig, ax, own)``: a new figure with one axes (``own=True``) when ``ax`` is ``None``, else
+    ``ax`` and its figure."""
+    if ax is None:
+        fig = new_figure(figsize)
+        return fig, fig.add_subplot(1, 1, 1), True
+    return ax.figure, ax, False
+
+
+def save_figure(fig, path, *, dpi: int = 150) -> Path:
+    """Save ``fig`` (format from the suffix), creating parent folders; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    return path
+
+
+def _method(settings: Mapping) -> str:
+    method = settings.get("method")
+    if method is None:
+        return "method unknown"
+    return METHOD_NAMES.get(method, str(method))
+
+
+def provenance(settings: Mapping, *, fields: Sequence[str] = ("dt",)) -> str:
+    """``'float32, adaptive RK4, dt = 0.01 s'`` from a result's settings (what produced a figure).
+
+    ``fields`` picks the settings appended after dtype and method, in this order: ``"dt"``,
+    ``"eps"``, ``"t_final"`` (each only when present).
+    """
+    s = settings or {}
+    parts = [str(s.get("dtype", "dtype unknown")), _method(s)]
+    if "dt" in fields and "dt" in s:
+        parts.append(f"dt = {float(s['dt']):g} s")
+    if "eps" in fields and "eps" in s:
+        parts.append(f"ε = {float(s['eps']):g}")
+    if "t_final" in fields and "t_final" in s:
+        parts.append(f"T = {float(s['t_final']):g} s")
+    return ", ".join(parts)
+
+
+def device_text(settings: Optional[Mapping], run_info: Optional[Mapping] = None) -> str:
+    """The device(s) the data was computed on, from ``settings`` or ``run_info`` (``'cpu:0'``,
+    ``'2 devices: cuda:0, cuda:1'``); ``'device not recorded'`` when neither names one."""
+    for src in (settings or {}, run_info or {}):
+        dev = src.get("devices", src.get("device"))
+        if dev:
+            if isinstance(dev, str):
+                return dev
+            dev = [str(d) for d in dev]
+            return dev[0] if len(dev) == 1 else f"{len(dev)} devices: {', '.join(dev)}"
+    return "device not recorded"
+
+
+def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = None) -> str:
+    """One line naming the dtype, method, step, tolerances (adaptive), ``eps``, horizon and device."""
+    s = settings or {}
+    parts = [str(s.get("dtype", "dtype unknown")), _method(s)]
+    if "dt" in s:
+        parts.append(f"dt = {float(s['dt']):g} s")
+    if s.get("method") == "adaptive" and "rtol" in s and "atol" in s:
+        parts.append(f"rtol = {float(s['rtol']):g}, atol = {float(s['atol']):g}")
+    if "eps" in s:
+        parts.append(f"ε = {float(s['eps']):g}")
+    if "t_final" in s:
+        parts.append(f"T = {float(s['t_final']):g} s")
+    device = device_text(s, run_info)
+    parts.append(device if device == "device not recorded" else f"device {device}")
+    from .. import __version__
+
+    parts.append(f"jaxsleigh {__version__}")
+    return "  ·  ".join(parts)
+
+
+def stamp(fig, settings: Optional[Mapping], run_info: Optional[Mapping] = None):
+    """Write `provenance_line` in small grey type at the top left of ``fig``; a second call
+    replaces the first. Returns the text artist.
+
+    The line sits in a blank first line added to the suptitle, so the constrained layout keeps room
+    for it (call this after ``suptitle``; a figure without one gets a blank one).
+    """
+    for t in list(fig.texts):
+        if t.get_gid() == STAMP_GID:
+            t.remove()
+    title = fig.get_suptitle()
+    size = fig._suptitle.get_fontsize() if fig._suptitle is not None else 10   # suptitle() would reset it
+    fig.suptitle("\n" + title.lstrip("\n"), fontsize=size)
+    return fig.text(0.005, 0.995, provenance_line(settings, run_info), ha="left", va="top", fontsize=6.5,
+                    color="0.4", gid=STAMP_GID)

@@ -1,0 +1,373 @@
+"""Benchmarks of jaxsleigh's own ensemble runs (``jaxsleigh bench``); peers: ``experiments/``.
+
+Every figure is measured warm (a first run on the same shapes compiles), on whatever JAX sees
+as its devices; the JSON says which, and the dtype. Correctness is judged against a float64
+reference: the adaptive method at rtol = atol = 1e-11, which ``tests/test_reference.py`` and
+``tests/test_engine.py`` check against scipy's Radau/DOP853 (agreement ~1e-8).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Optional
+
+import jax
+import numpy as np
+
+from .ensemble import run_ensemble
+from ..status import Status
+
+__all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine",
+           "C_REFERENCE_SOURCE", "C_VARIANTS", "build_c_reference", "c_reference_run", "c_limit"]
+
+CORRECT_TOL = 1e-3
+
+
+def workload(n: int, seed: int = 0) -> np.ndarray:
+    """The benchmark workload: x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi) with random
+    sign, zero momentum. Shape (n, 3)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-3.0, 3.0, (n, 2))
+    th = rng.uniform(0.3, np.pi, n) * rng.choice([-1.0, 1.0], n)
+    return np.column_stack([xy, th])
+
+
+def reference_final(ics, *, t_final: float = 100.0, cache_dir=None) -> np.ndarray:
+    """Float64 high-accuracy final states ``(N, 5)`` (adaptive, rtol = atol = 1e-11), cached."""
+    ics = np.asarray(ics, np.float64)
+    path = None
+    if cache_dir is not None:
+        import hashlib
+        key = hashlib.sha256(ics.tobytes() + repr(t_final).encode()).hexdigest()[:16]
+        path = Path(cache_dir) / f"reference_{key}.npy"
+        if path.exists():
+            return np.load(path)
+    r = run_ensemble(ics, t_final=t_final, x64=True, rtol=1e-11, atol=1e-11, max_steps=2_000_000,
+                     progress=False)
+    if np.any(r.status != Status.OK):
+        raise RuntimeError(f"reference failed on {(r.status != 0).sum()} starts")
+    out = np.concatenate([r.q, r.p], axis=1)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, out)
+    return out
+
+
+def final_state_error(q, p, ref) -> np.ndarray:
+    """Max-norm final-state error per trajectory; ``inf`` where the state is not finite."""
+    err = np.max(np.abs(np.concatenate([q, p], axis=1) - ref), axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MiB)."""
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kb / 1024.0 if sys.platform != "darwin" else kb / 1024.0 ** 2
+
+
+def machine() -> dict:
+    import os
+    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "jax": jax.__version__,
+            "devices": [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in jax.devices()]}
+
+
+def _timed(fn, repeats: int = 1):
+    fn()                                   # compile and warm up on the same shapes
+    best = np.inf
+    out = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+
+# ---------------------------------------------------------------------------------------------------
+# The C limit (issue 12): a hand-vectorised C RK4 of the same w-chart closed loop, timed against the
+# plain fixed-step path in one interleaved run.
+
+#: the C reference (a repository checkout has it; an installed package may not)
+C_REFERENCE_SOURCE = Path(__file__).resolve().parent / "c_reference" / "rk4_w.c"
+#: compiler flags: -O3 -march=native, no -ffast-math; -fno-math-errno only lets gcc vectorise sqrtf
+#: (its argument eps + p^2 is never negative, so no result changes)
+C_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-shared", "-fPIC")
+#: variants of the C reference (preprocessor macros of rk4_w.c), timed only on request: the literal
+#: 6-division form, one shared division, and XLA's rsqrt (estimate + Newton step); the default build
+#: (3 IEEE divisions + 2 IEEE square roots per evaluation) is the reference of ``c_limit_ratio``
+C_VARIANTS = {"strict": ("RK4W_STRICT",), "shared_recip": ("RK4W_SHARED_RECIP",), "rsqrt_nr": ("RK4W_RSQRT_NR",)}
+
+
+class _CParams(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_float) for name in
+                ("m", "J", "l", "d_eps", "d_scale", "L1", "L2", "L3", "k", "D11", "D12", "D21", "D22")]
+
+
+def build_c_reference(out_dir=None, source=None, defines=()):
+    """Compile the C reference into a shared library; returns ``(path, None)`` or ``(None, reason)``.
+    ``defines``: preprocessor macros selecting a variant (see `C_VARIANTS`)."""
+    source = Path(source) if source is not None else C_REFERENCE_SOURCE
+    if not source.exists():
+        return None, f"C reference source not found ({source}); run from a repository checkout"
+    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+    if cc is None:
+        return None, "no C compiler (gcc or cc) on PATH"
+    out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="jaxsleigh_c_"))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lib = out_dir / ("librk4_w" + "".join(f"_{d.lower()}" for d in defines) + ".so")
+    cmd = [cc, *C_FLAGS, *(f"-D{d}" for d in defines), str(source), "-o", str(lib), "-lm"]
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.SubprocessError) as e:
+        return None, f"C build failed to run: {e}"
+    if r.returncode != 0:
+        return None, f"C build failed ({' '.join(cmd)}): {r.stderr.strip()[:400]}"
+    return lib, None
+
+
+def _c_params(args) -> _CParams:
+    plant, g = args.plant, args.gains
+    d = plant.damping
+    if type(d).__name__ != "CoulombDamping":
+        raise NotImplementedError("the C reference implements the paper's Coulomb damping only")
+    L = np.asarray(g.L, np.float64)
+    D = np.asarray(g.D_hat, np.float64).ravel()
+    return _CParams(float(plant.m), float(plant.J), float(plant.l), float(d.eps), float(d.scale),
+                    *(float(v) for v in L), float(g.k), *(float(v) for v in D))
+
+
+def c_reference_run(lib, y0w, args, dt, n_steps, n_threads: int = 1):
+    """Run the C reference on w-chart starts ``y0w`` (N, 5) float32; returns the final (N, 5).
+    ``lib``: a path from `build_c_reference` or a loaded ``ctypes.CDLL``."""
+    if not isinstance(lib, ctypes.CDLL):
+        lib = ctypes.CDLL(str(lib))
+    fn = lib.rk4w_run
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_long, ctypes.c_long, ctypes.c_float, ctypes.POINTER(_CParams),
+                   ctypes.c_int]
+    y = np.ascontiguousarray(np.asarray(y0w, np.float32).T)          # (5, N) structure of arrays
+    params = _c_params(args)
+    fn(y.ctypes.data, y.shape[1], int(n_steps), float(dt), ctypes.byref(params), int(n_threads))
+    return y.T.copy()
+
+
+def _divider_ops(lib):
+    """Divisions + square roots per field evaluation of a C build (None for an older source)."""
+    try:
+        fn = lib.rk4w_divider_ops
+    except AttributeError:
+        return None
+    fn.restype = ctypes.c_int
+    return int(fn())
+
+
+def _summary(xs):
+    xs = np.asarray(xs, np.float64)
+    return {"median": float(np.median(xs)), "min": float(xs.min()), "max": float(xs.max()),
+            "values": [float(x) for x in xs]}
+
+
+def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, lib=None, build_dir=None,
+            log=None, whole_batch: bool = False, variants: Optional[dict] = None,
+            c_variants: Optional[list] = None) -> dict:
+    """The plain fixed-step path against the C reference in ONE interleaved timing run.
+
+    Each repetition times the C program (one thread, via ctypes) and
+    ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, ...)`` back to back,
+    alternating which goes first; compile and warm-up runs are not timed. Throughput is
+    trajectory-steps per second of wall time and per second of CPU time (``time.process_time``:
+    all threads of this process, so a JAX run on two cores is charged for both). ``ratio_cpu`` is
+    JAX / C per CPU second, per repetition (median and range reported). Agreement: final states
+    (w chart) of C and of the JAX path from the same float32 starts, relative to each state's
+    largest component, on the tame starts (those whose float32 and float64 fixed-step results
+    agree to 1e-3, i.e. where rounding is not amplified). ``whole_batch`` also times, in the same
+    rotation, the same call with the earlier kernel (one scan over the whole batch,
+    ``drive_plain(block=None)``) as ``jax_whole_batch``: a before/after in one run. ``variants``
+    (``{name: drive_plain keyword arguments}``, e.g. ``{"jax_vw512": {"vector_width": 512}}``) times
+    more such variants of the call the same way. ``c_variants`` (names from `C_VARIANTS`)
+    times those builds of the C program in the same rotation (``c_<name>_...`` throughputs and
+    ``ratio_cpu_vs_c_<name>``: JAX / that build). Returns a dict;
+    ``available`` False with ``reason`` when the C program cannot be built (float64 runs are not
+    compared either)."""
+    import jax.numpy as jnp
+
+    from ..model.closed_loop import ClosedLoop
+    from ..integrate.engine import check_ics, drive_plain, initial_w, make_horizon
+    from ..model.params import paper_gains, paper_plant
+
+    log = log or (lambda *a: None)
+    if jnp.zeros(()).dtype != jnp.float32:
+        return {"available": False, "reason": "the C reference is float32; run without x64"}
+    if lib is None:
+        lib, reason = build_c_reference(build_dir)
+        if lib is None:
+            return {"available": False, "reason": reason}
+    lib_path = Path(str(lib))
+    lib = ctypes.CDLL(str(lib))
+    c_libs = {}
+    for cv in c_variants or []:
+        vlib, vreason = build_c_reference(lib_path.parent, defines=C_VARIANTS[cv])
+        if vlib is None:
+            raise RuntimeError(f"C variant {cv}: {vreason}")
+        c_libs[cv] = ctypes.CDLL(str(vlib))
+    ics = np.asarray(ics, np.float64)
+    n = ics.shape[0]
+    horizon = make_horizon(t_final, dt)
+    steps = horizon.n_steps
+    args = ClosedLoop(paper_plant(), paper_gains())
+    ics5, status0 = check_ics(ics)
+    y0w = initial_w(ics5, status0, jnp.float32)
+    kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
+
+    def run_c():
+        return c_reference_run(lib, y0w, args, dt, steps)
+
+    def run_jax():
+        return run_ensemble(ics, **kw)
+
+    contestants = [("c", run_c), ("jax", run_jax)]
+    for cv, vl in c_libs.items():
+        contestants.append((f"c_{cv}", lambda vl=vl: c_reference_run(vl, y0w, args, dt, steps)))
+    variants = dict(variants or {})
+    if whole_batch:
+        variants["jax_whole_batch"] = {"block": None}
+    for vname, vkw in variants.items():
+        import functools
+
+        from . import ensemble as _ensemble
+
+        def run_variant(vkw=vkw):
+            orig = _ensemble.drive_plain
+            _ensemble.drive_plain = functools.partial(orig, **vkw)
+            try:
+                return run_ensemble(ics, **kw)
+            finally:
+                _ensemble.drive_plain = orig
+
+        contestants.append((vname, run_variant))
+    for _, fn in contestants:
+        fn()                                             # compile and warm up; not timed
+    rec = {name: {"wall": [], "cpu": []} for name, _ in contestants}
+    for r in range(max(1, repeats)):
+        order = contestants if r % 2 == 0 else contestants[::-1]
+        for name, fn in order:
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            rec[name]["wall"].append(time.perf_counter() - w0)
+            rec[name]["cpu"].append(time.process_time() - c0)
+        log(f"  repetition {r + 1}: " + ", ".join(f"{name} {v['cpu'][-1]:.3f} s cpu / {v['wall'][-1]:.3f} s wall"
+                                                   for name, v in rec.items()))
+    work = n * steps
+    out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
+           "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": 1,
+           "c_divider_ops_per_evaluation": _divider_ops(lib),
+           "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
+                         f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
+    for name in rec:
+        out[f"{name}_traj_steps_per_cpu_s"] = _summary([work / c for c in rec[name]["cpu"]])
+        out[f"{name}_traj_steps_per_wall_s"] = _summary([work / w for w in rec[name]["wall"]])
+    out["ratio_cpu"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec["jax"]["cpu"])])
+    out["ratio_wall"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec["jax"]["wall"])])
+    for cv, vl in c_libs.items():
+        out[f"c_{cv}_divider_ops_per_evaluation"] = _divider_ops(vl)
+        out[f"ratio_cpu_vs_c_{cv}"] = _summary([c / j for c, j in zip(rec[f"c_{cv}"]["cpu"], rec["jax"]["cpu"])])
+        out[f"ratio_wall_vs_c_{cv}"] = _summary([c / j for c, j in zip(rec[f"c_{cv}"]["wall"], rec["jax"]["wall"])])
+    for vname in variants:
+        suffix = vname[len("jax_"):] if vname.startswith("jax_") else vname
+        out[f"ratio_cpu_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec[vname]["cpu"])])
+        out[f"ratio_wall_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec[vname]["wall"])])
+
+    # agreement of the final states, w chart, same float32 starts
+    yc = run_c()
+    yc_var = {cv: c_reference_run(vl, y0w, args, dt, steps) for cv, vl in c_libs.items()}
+    yj, st = drive_plain(y0w, status0, args, horizon)
+    import jax
+    with jax.enable_x64(True):
+        y64, _ = drive_plain(jnp.asarray(np.asarray(y0w), jnp.float64), status0, args, horizon)
+    scale = np.maximum(np.max(np.abs(y64), axis=1), 1e-30)
+    tame = (status0 == 0) & np.all(np.isfinite(yj), axis=1) & (np.max(np.abs(yj - y64), axis=1) / scale <= 1e-3)
+    rel_cj = np.max(np.abs(yc - yj), axis=1) / scale
+    rel_32 = np.max(np.abs(yj - y64), axis=1) / scale
+    fin = np.all(np.isfinite(yc), axis=1) == np.all(np.isfinite(yj), axis=1)
+    out["agreement"] = {
+        "n_tame": int(tame.sum()),
+        "c_vs_jax_rel_max_tame": float(rel_cj[tame].max()) if tame.any() else None,
+        "c_vs_jax_rel_median_tame": float(np.median(rel_cj[tame])) if tame.any() else None,
+        "c_vs_jax_rel_p99_tame": float(np.quantile(rel_cj[tame], 0.99)) if tame.any() else None,
+        "float32_vs_float64_rel_median_tame": float(np.median(rel_32[tame])) if tame.any() else None,
+        "float32_vs_float64_rel_max_tame": float(rel_32[tame].max()) if tame.any() else None,
+        "bitwise_equal_rows": int(np.all(yc == yj, axis=1).sum()),
+        "finiteness_mismatch": int((~fin).sum()),
+        "c_vs_jax_rel_max_all_finite": float(np.nanmax(np.where(np.isfinite(rel_cj), rel_cj, np.nan))),
+    }
+    for cv, yv in yc_var.items():
+        rel_v = np.max(np.abs(yv - yc), axis=1) / scale
+        out["agreement"][f"c_{cv}_vs_c_rel_median_tame"] = float(np.median(rel_v[tame])) if tame.any() else None
+        out["agreement"][f"c_{cv}_vs_c_rel_max_tame"] = float(rel_v[tame].max()) if tame.any() else None
+    return out
+
+
+def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool = False, seed: int = 0,
+          repeats: int = 1, cache_dir: Optional[str] = None) -> dict:
+    """jaxsleigh's own figures on the workload: see the module docstring and the README."""
+    ics = workload(n_ics, seed)
+    steps = int(round(t_final / dt))
+    ref = reference_final(ics, t_final=t_final, cache_dir=cache_dir)
+    chunk = max(n_ics, 1)
+    common = dict(t_final=t_final, dt=dt, x64=x64, chunk_size=chunk, progress=False)
+
+    def fixed(check, summaries=True):
+        return lambda: run_ensemble(ics, method="rk4", check_passivity=check, summaries=summaries, **common)
+
+    wall_rk4, r_rk4 = _timed(fixed(False, summaries=False), repeats)      # plain RK4, final state only
+    wall_rk4s, r_rk4s = _timed(fixed(False), repeats)                     # + per-step summaries
+    wall_rk4m, r_rk4m = _timed(fixed(True), repeats)                      # + passivity monitor
+    wall_acc, r_acc = _timed(lambda: run_ensemble(ics, **common), repeats)
+    err_acc = final_state_error(r_acc.q, r_acc.p, ref)
+    correct = (r_acc.status == Status.OK) & (err_acc <= CORRECT_TOL)
+    err_rk4 = final_state_error(r_rk4.q, r_rk4.p, ref)
+    # the plain fixed-step path against the C reference, one interleaved run (float32 only)
+    if x64:
+        lim = {"available": False, "reason": "the C reference is float32; run without --x64"}
+    else:
+        try:
+            lim = c_limit(ics, t_final=t_final, dt=dt, repeats=max(3, repeats))
+        except Exception as e:                      # a broken toolchain must not lose the other figures
+            lim = {"available": False, "reason": f"{type(e).__name__}: {e}"}
+    ok_lim = lim.get("available", False)
+    return {
+        "n_ics": n_ics, "steps": steps, "t_final": t_final, "dt": dt,
+        "dtype": r_acc.settings["dtype"], "device": machine()["devices"][0], "n_devices": jax.device_count(),
+        "traj_steps_per_s": n_ics * steps / wall_rk4,
+        "traj_steps_per_s_with_summaries": n_ics * steps / wall_rk4s,
+        "traj_steps_per_s_with_passivity_check": n_ics * steps / wall_rk4m,
+        "rk4_wrong_or_nonfinite": int(np.sum(err_rk4 > CORRECT_TOL)),
+        "rk4_checked_wrong_or_nonfinite": int(np.sum(final_state_error(r_rk4m.q, r_rk4m.p, ref) > CORRECT_TOL)),
+        "rk4_checked_flagged": int(np.sum(r_rk4m.status != Status.OK)),
+        "rk4_checked_wall_s": wall_rk4m,
+        "correct_traj_per_s": float(correct.sum() / wall_acc),
+        "wrong_or_nonfinite": int(np.sum(~correct)),
+        "accurate_max_error": float(err_acc.max()),
+        "accurate_mean_steps": float(r_acc.n_steps.mean()),
+        "accurate_max_steps": int(r_acc.n_steps.max()),
+        "accurate_wall_s": wall_acc, "rk4_wall_s": wall_rk4,
+        "peak_rss_mb": peak_rss_mb(),
+        # JAX / C trajectory-steps per CPU second (median over interleaved repetitions), or None
+        "c_limit_ratio": lim["ratio_cpu"]["median"] if ok_lim else None,
+        "c_limit_ratio_range": [lim["ratio_cpu"]["min"], lim["ratio_cpu"]["max"]] if ok_lim else None,
+        "c_limit_ratio_wall": lim["ratio_wall"]["median"] if ok_lim else None,
+        "c_limit_traj_steps_per_cpu_s": lim["c_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
+        "traj_steps_per_cpu_s": lim["jax_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
+        "c_limit_reason": None if ok_lim else lim.get("reason"),
+        "c_limit": lim,
+        "machine": machine(),
+    }

@@ -1,0 +1,156 @@
+"""One configuration object for every solve: `solve_config` resolves and checks the options
+that `simulate`, `run_ensemble` and `run_basin`
+share (plant, gains, horizon, method, precision, tolerances, step budget, convergence ball), once,
+eagerly, with messages that say what to change.
+
+The result, `SolveConfig`, is what the engine runs and what the result files record
+(`SolveConfig.settings`).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import numpy as np
+
+from ..model.controller import as_controller, controller_record
+from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
+from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
+from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
+from ..validate import INT32_MAX, real, whole
+
+__all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict"]
+
+
+
+class SolveConfig(NamedTuple):
+    """Everything that decides a solve, resolved and checked (see `solve_config`)."""
+
+    plant: PlantParams
+    gains: Gains
+    horizon: Horizon
+    method: str
+    rtol: float
+    atol: float
+    max_step: float
+    max_steps: int
+    eps: float
+    x64: bool
+    check_passivity: bool
+    #: number of per-trajectory parameter lanes (``None``: one plant and one set of gains)
+    lanes: Optional[int] = None
+    #: a feedback law other than the paper's (`jaxsleigh.model.controller`); ``None``: the paper's law with ``gains``
+    controller: Any = None
+
+    @property
+    def law(self):
+        """The controller the engine runs: ``controller``, or the paper's law with ``gains``."""
+        return self.gains if self.controller is None else self.controller
+
+    @property
+    def adaptive(self) -> bool:
+        return self.method == "adaptive"
+
+    @property
+    def dtype(self) -> str:
+        """``"float64"`` or ``"float32"``."""
+        return "float64" if self.x64 else "float32"
+
+    def settings(self) -> dict:
+        """JSON-ready record of the configuration (written into every result file)."""
+        out = {
+            "plant": plant_to_dict(self.plant),
+            "gains": gains_to_dict(self.gains) if self.controller is None else None,
+            "t_final": self.horizon.t_final, "dt": self.horizon.dt, "eps": self.eps, "method": self.method,
+            "rtol": self.rtol, "atol": self.atol, "max_step": self.max_step, "max_steps": self.max_steps,
+            "dtype": self.dtype, "check_passivity": self.check_passivity,
+        }
+        if self.controller is not None:
+            out["controller"] = controller_record(self.controller)
+        if self.lanes is not None:
+            from ..model.lanes import lanes_digest
+
+            out["lanes"] = self.lanes
+            out["lanes_sha256"] = lanes_digest(self.plant, self.gains)
+        return out
+
+
+def plant_to_dict(plant: PlantParams) -> dict:
+    """JSON-ready record; a leaf that varies per trajectory is recorded as ``{"per_trajectory": P,
+    "min": .., "max": ..}`` (the values themselves go with the rows, see ``lane_table``)."""
+    num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))  # noqa: E731
+    d = plant.damping
+    return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
+            "damping": type(d).__name__, "damping_params": {k: num(v) for k, v in d._asdict().items()}
+            if hasattr(d, "_asdict") else repr(d)}
+
+
+def _flag(name: str, flags: Optional[dict]) -> str:
+    return (flags or {}).get(name, name)
+
+
+def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, dt: Any = 0.01,
+                 save_every: Any = None, method: str = "adaptive", rtol: Any = None, atol: Any = None,
+                 max_step: Any = None, max_steps: Any = None, x64: Any = False, eps: Any = 0.05,
+                 check_passivity: Any = True, controller: Any = None, flags: Optional[dict] = None) -> SolveConfig:
+    """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
+
+    Args mean the same as in `jaxsleigh.simulate`. ``gains`` may be a `Gains`, a preset
+    name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
+    `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
+    (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
+    flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
+    """
+    f = lambda n: _flag(n, flags)  # noqa: E731
+    if method not in METHODS:
+        raise ValueError(f"{f('method')} must be one of {', '.join(METHODS)}, got {method!r}")
+    if not isinstance(x64, (bool, np.bool_)) and x64 not in (0, 1):
+        raise ValueError(f"{f('x64')} must be True or False, got {x64!r}")
+    x64 = bool(x64)
+    dtype = "float64" if x64 else "float32"
+    for name, v in (("check_passivity", check_passivity),):
+        if not isinstance(v, (bool, np.bool_)) and v not in (0, 1):
+            raise ValueError(f"{f(name)} must be True or False, got {v!r}")
+    from ..model.lanes import check_lanes, lane_count
+
+    if controller is not None:
+        if gains is not None:
+            raise ValueError(f"give either {f('gains')} (the paper's law) or {f('controller')} (any law u = law(q, v)), "
+                             "not both")
+        if isinstance(controller, Gains):
+            gains, controller = controller, None
+        else:
+            controller = as_controller(controller, f("controller"))
+    lanes = lane_count(plant, gains if controller is None else controller)
+    if lanes is None:
+        plant = as_plant(plant)
+        if controller is None:
+            gains = as_gains(gains)
+    elif controller is None:                   # per-trajectory leaves: every lane checked at once
+        plant, gains = check_lanes(plant, gains, flags=flags)
+    else:
+        plant, controller = check_lanes(plant, controller, flags=flags)
+    t_final = real(f("t_final"), t_final, positive=True, example=100, maximum=1e30)
+    dt = real(f("dt"), dt, positive=True, example=0.01)
+    if save_every is not None:
+        save_every = whole(f("save_every"), save_every, example=10)
+    horizon = make_horizon(t_final, dt, save_every, flags=flags)
+    eps = real(f("eps"), eps, positive=True, example=0.05)
+    adaptive = method == "adaptive"
+    rtol = DEFAULT_RTOL[dtype] if rtol is None else real(f("rtol"), rtol, positive=True, example=1e-6)
+    atol = DEFAULT_ATOL[dtype] if atol is None else real(f("atol"), atol, positive=True, example=1e-6)
+    if max_step is None:
+        max_step = MAX_STEP_FACTOR * horizon.dt
+    else:
+        max_step = real(f("max_step"), max_step, positive=True, example=0.1)
+    if max_steps is None:
+        max_steps = default_max_steps(horizon, adaptive)
+    else:
+        max_steps = whole(f("max_steps"), max_steps, minimum=1, maximum=INT32_MAX - 1, example=2000000)
+        if not adaptive and max_steps < horizon.n_steps:
+            raise ValueError(f"{f('max_steps')} {max_steps} is below the {horizon.n_steps} base steps of the "
+                             f"horizon (t_final / dt) that fixed-step RK4 takes; raise it to at least "
+                             f"{horizon.n_steps}")
+    if controller is not None:
+        gains = None
+    return SolveConfig(plant, gains, horizon, method, rtol, atol, max_step, max_steps, eps, x64,
+                       bool(check_passivity), lanes, controller)

@@ -1,0 +1,354 @@
+"""Ensembles: many initial conditions at once, chunked, checkpointed, sharded across devices.
+
+`run_ensemble` integrates up to ~10^7 initial conditions on one machine. Memory is bounded
+by the chunk (``chunk_size`` trajectories at a time), not by the number of steps: each trajectory
+carries its final state and on-line summaries, updated inside the scan at every accepted step:
+
+* ``T_eps``: convergence time, the first time after which \\(|q| \\le \\epsilon\\) holds at every
+  accepted step until the horizon (``inf`` if it has not settled by then, ``nan`` if the
+  trajectory failed); ``|q| = \\sqrt{x^2 + y^2 + \\theta^2}``;
+* ``min_abs_theta`` (closest approach to the singular set), ``max_excursion`` (largest ``|q|``),
+  ``Hd0`` and ``Hd_final``, ``n_steps`` / ``n_rejected``, ``status``.
+
+Decimated trajectories are stored only when asked for (``save_every``). With ``checkpoint_dir``
+every finished chunk is written to disk at once, and ``resume=True`` picks an interrupted run up
+from the finished chunks, ending with the same result as an uninterrupted run.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import time
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.charts import WChart, chart_for
+from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
+from ..files.chunks import ChunkStore, starts_digest
+from .config import solve_config
+from ..integrate.observers import DEFAULT_OBSERVERS, collect
+from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
+from ..model.params import PlantParams
+from ..progress import Progress
+from ..status import Status
+from ..validate import check_memory, whole
+
+__all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
+
+SUMMARY_FIELDS = ("q", "p", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
+                  "n_steps", "n_rejected", "status", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
+
+
+class EnsembleResult(NamedTuple):
+    r"""Per-initial-condition results (NumPy arrays, first axis N) and the settings.
+
+    Attributes:
+      ics: (N, 5) initial conditions ``(x, y, theta, p1, p2)``.
+      q, p: (N, 3), (N, 2) final state (NaN if the trajectory failed).
+      T_eps: (N,) convergence time (``inf``: not settled by the horizon; ``nan``: failed).
+      min_abs_theta, max_excursion, Hd0, Hd_final, t_reached: (N,) on-line summaries.
+      n_steps, n_rejected, status: (N,) integers.
+      u_peak: (N, 2) largest ``|u_1|`` [N] and ``|u_2|`` [N m] over the run; u_norm_peak: (N,)
+        largest ``||u||``; u_energy: (N,) control energy \(\int_0^T \|u\|^2 dt\); u_abs_int: (N,)
+        \(\int_0^T \|u\| dt\) (RK4-order quadrature, `ControlEffort`;
+        up to the time reached; NaN for starts not integrated and on the plain fixed-step path).
+      t, q_traj, p_traj: decimated trajectories ``(T,)``, ``(N, T, 3)``, ``(N, T, 2)`` when
+        ``save_every`` was given, else ``None``.
+      settings: everything that produced the result.
+      params: with per-trajectory parameters, the values each row used: ``{name: (N,)}`` with
+        names ``m, J, l``, the damping's numbers, ``k, l1, l2, l3, d11, d12, d22``
+        (`jaxsleigh.model.lanes.lane_table`); ``None`` for one plant and one set of gains.
+    """
+
+    ics: np.ndarray
+    q: np.ndarray
+    p: np.ndarray
+    T_eps: np.ndarray
+    min_abs_theta: np.ndarray
+    max_excursion: np.ndarray
+    Hd0: np.ndarray
+    Hd_final: np.ndarray
+    t_reached: np.ndarray
+    n_steps: np.ndarray
+    n_rejected: np.ndarray
+    status: np.ndarray
+    u_peak: np.ndarray
+    u_norm_peak: np.ndarray
+    u_energy: np.ndarray
+    u_abs_int: np.ndarray
+    settings: dict
+    t: Optional[np.ndarray] = None
+    q_traj: Optional[np.ndarray] = None
+    p_traj: Optional[np.ndarray] = None
+    params: Optional[dict] = None
+    observed: Optional[dict] = None
+
+    def converged(self) -> np.ndarray:
+        """Boolean (N,): OK and settled within the horizon."""
+        return (self.status == Status.OK) & np.isfinite(self.T_eps)
+
+
+@jax.jit
+def _hd_batch(yw, args):
+    return jax.vmap(closed_loop_hamiltonian_w, in_axes=(0, None))(yw, args)
+
+
+@jax.jit
+def _hd_lanes(yw, args):
+    # closed_loop_hamiltonian_w broadcasts over a trailing batch axis, per-lane args included
+    return closed_loop_hamiltonian_w(yw.T, args)
+
+
+def _hd_any(yw, args):
+    """H_d of a batch ``yw`` (N, 5) under one plant or per-lane (canonical) ``args``."""
+    from ..model.lanes import has_lanes
+
+    return _hd_lanes(yw, args) if has_lanes(args.plant, args.gains) else _hd_batch(yw, args)
+
+
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _to_q_batch(yw, chart=WChart()):
+    return jax.vmap(chart.from_chart)(yw)
+
+
+def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> dict:
+    """Host-side summaries of one chunk from the final (batch-last) stepper state. Standard
+    summaries that no observer provides are NaN; other observers' results are added by name.
+    ``Hd0`` and ``Hd_final`` are NaN for a law without the paper's H_d."""
+    chart = chart_for(args.controller)
+    status = np.asarray(final.status)
+    ok = status == Status.OK
+    y = np.moveaxis(np.asarray(final.y), -1, 0)
+    yq = np.asarray(_to_q_batch(jnp.asarray(y), chart)).astype(np.float64)
+    failed = ~ok
+    yq[failed] = np.nan
+    invalid = np.asarray(status0) != Status.OK
+    hd0 = np.array(_hd_any(y0w, args), np.float64) if chart.has_energy else np.full(len(status), np.nan)
+    hd0[invalid] = np.nan
+    obs = collect(observers, final.obs, final.quad)
+    n = status.shape[0]
+    for k, shape in (("T_eps", ()), ("min_abs_theta", ()), ("max_excursion", ()), ("u_peak", (2,)),
+                     ("u_norm_peak", ()), ("u_energy", ()), ("u_abs_int", ())):
+        obs.setdefault(k, np.full((n,) + shape, np.nan))
+    out = {
+        "q": yq[:, :3], "p": yq[:, 3:],
+        "T_eps": np.where(ok, obs.pop("T_eps"), np.nan),
+        "Hd0": hd0,
+        "Hd_final": np.where(ok & chart.has_energy, np.asarray(final.Hd, np.float64), np.nan),
+        "t_reached": np.where(invalid, np.nan, np.asarray(final.t, np.float64)),
+        "n_steps": np.asarray(final.n_accept, np.int64),
+        "n_rejected": np.asarray(final.n_reject, np.int64),
+        "status": status.astype(np.int32),
+    }
+    for k, v in obs.items():
+        out[k] = np.where(invalid.reshape((-1,) + (1,) * (v.ndim - 1)), np.nan, v)
+    return out
+
+
+def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
+    """Summaries of `drive_plain`: final state, H_d, status; no path data."""
+    chart = chart_for(args.controller)
+    ok = status == Status.OK
+    yq = np.array(_to_q_batch(jnp.asarray(y), chart), np.float64)
+    yq[~ok] = np.nan
+    invalid = np.asarray(status0) != Status.OK
+    nan = np.full(len(status), np.nan)
+    hd0 = np.array(_hd_batch(y0w, args), np.float64) if chart.has_energy else nan.copy()
+    hd0[invalid] = np.nan
+    hd = np.array(_hd_batch(jnp.asarray(y, y0w.dtype), args), np.float64) if chart.has_energy else nan
+    nan = np.full(len(status), np.nan)
+    return {"q": yq[:, :3], "p": yq[:, 3:], "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
+            "Hd0": hd0, "Hd_final": np.where(ok, hd, np.nan), "t_reached": np.where(ok, horizon.t_final, np.nan),
+            "n_steps": np.where(invalid, 0, horizon.n_steps).astype(np.int64),
+            "n_rejected": np.zeros(len(status), np.int64), "status": status.astype(np.int32),
+            "u_peak": np.full((len(status), 2), np.nan), "u_norm_peak": nan, "u_energy": nan, "u_abs_int": nan}
+
+
+def _settings_key(settings: dict, ics: np.ndarray) -> str:
+    h = hashlib.sha256(json.dumps({k: v for k, v in settings.items() if k not in ("wall_s", "devices")},
+                                  sort_keys=True, default=str).encode())
+    h.update(np.ascontiguousarray(ics).tobytes())
+    return h.hexdigest()
+
+
+def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
+                 t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, method: str = "adaptive",
+                 rtol: Optional[float] = None, atol: Optional[float] = None, max_step: Optional[float] = None,
+                 max_steps: Optional[int] = None, x64: bool = False, save_every: Optional[int] = None,
+                 chunk_size: int = 65536, segment: int = 1000, check_passivity: bool = True,
+                 summaries: bool = True,
+                 devices: Any = None, checkpoint_dir=None, resume: bool = False,
+                 progress: Any = None, shard: Optional[tuple] = None,
+                 observers: Optional[tuple] = None, controller: Any = None) -> Optional[EnsembleResult]:
+    """Integrate the closed loop from many initial conditions; keep final states and summaries.
+
+    Args:
+      ics: ``(N, 3)`` or ``(N, 5)`` initial conditions (see `jaxsleigh.simulate`). Invalid
+        rows (theta = 0, non-finite) are flagged in ``status`` and the rest are computed.
+      plant, gains: as in `jaxsleigh.simulate`; their leaves may also vary per trajectory,
+        with a trailing axis of size N (or 1): ``m``, ``J``, ``l``, ``k`` and the damping's numbers
+        ``(N,)``, ``L`` ``(3, N)``, ``D_hat`` ``(2, 2, N)`` (`jaxsleigh.model.lanes`; build them with
+        ``stack_plants`` / ``stack_gains``). Changing the values does not recompile; the rows'
+        values come back in ``params``.
+      eps: radius of the ball ``|q| <= eps`` defining ``T_eps``.
+      method, dt, rtol, atol, max_step, max_steps, x64: as in `jaxsleigh.simulate`.
+      save_every: also keep decimated trajectories every ``save_every`` base steps (memory
+        ``N * T * 5`` numbers); default: summaries and final states only.
+      chunk_size: trajectories integrated at once (bounds memory). Each chunk is also the unit
+        of checkpointing and of the progress bar.
+      check_passivity: reject (adaptive) or flag (``rk4``: status ``UNRELIABLE``) steps that
+        increase H_d. Off, fixed-step RK4 runs faster on CPU.
+      summaries: ``False`` (only with ``method="rk4"``, ``check_passivity=False``, no
+        ``save_every``) runs plain RK4 for the final state only: no per-step checks or summaries
+        (``T_eps``, ``min_abs_theta``, ``max_excursion`` come back NaN); the status is judged at
+        the end (non-finite, or theta ended with the other sign). The fastest mode.
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`),
+        integrated in the physical chart; ``gains`` then stays ``None``. ``Hd0``/``Hd_final`` are NaN.
+      observers: the on-line summaries (`jaxsleigh.integrate.observers`; default
+        `DEFAULT_OBSERVERS`). The standard fields of the result that no
+        given observer provides are NaN; other observers' results are in ``result.observed``.
+      devices: devices to shard each chunk over (default: all of ``jax.devices()``).
+      checkpoint_dir: write every finished chunk there (atomically: a file is either complete or
+        absent); with ``resume=True`` reuse the finished chunks of an earlier run with the same
+        settings and initial conditions. Every chunk carries the fingerprint of the run that wrote
+        it and is checked on reuse: a chunk of another run stops the run with a
+        `CheckpointError` (results are never mixed), a damaged one is named
+        in a `DamagedCheckpointWarning` and recomputed.
+      progress: ``True``/``False``/``None`` (auto: on a terminal).
+      shard: ``(index, count)``: compute only the chunks ``i`` with ``i % count == index`` (those not
+        already in ``checkpoint_dir`` when resuming), write them there and return ``None``. This is
+        how several processes share one run (`jaxsleigh.files.distributed`); a later call without
+        ``shard`` assembles the result from the chunks.
+
+    Returns:
+      `EnsembleResult` (``None`` with ``shard``).
+    """
+    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
+                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
+                       check_passivity=check_passivity, controller=controller)
+    horizon = cfg.horizon
+    if not isinstance(summaries, (bool, np.bool_)):
+        raise ValueError(f"summaries must be True or False, got {summaries!r}")
+    if not summaries and (method != "rk4" or check_passivity or save_every is not None):
+        raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
+                         "check_passivity=False and no save_every")
+    chunk_size = whole("chunk_size", chunk_size, example=65536)
+    if shard is not None:
+        if checkpoint_dir is None:
+            raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")
+        count = whole("shard count", shard[1])
+        shard = (whole("shard index", shard[0], minimum=0, maximum=count - 1), count)
+    segment = whole("segment", segment, example=1000)
+    if not isinstance(resume, (bool, np.bool_)):
+        raise ValueError(f"resume must be True or False, got {resume!r}")
+    if resume and checkpoint_dir is None:
+        raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
+    n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
+    check_memory(n_rows, "run_ensemble")
+    chart = chart_for(cfg.law)
+    ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
+    plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
+    lane_args = None
+    if cfg.lanes is not None:
+        from ..model.lanes import broadcast_lanes
+
+        if cfg.lanes not in (1, ics5.shape[0]):
+            raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are {ics5.shape[0]} "
+                             f"initial conditions; give one value per initial condition (or one for all)")
+        if not summaries:
+            raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
+                             "per-trajectory parameters need summaries=True")
+        lane_args = ClosedLoop(*broadcast_lanes(plant, cfg.law, ics5.shape[0]))
+    rtol, atol, max_step, max_steps = cfg.rtol, cfg.atol, cfg.max_step, cfg.max_steps
+    mesh = batch_mesh(devices)
+    n_dev = 1 if mesh is None else mesh.size
+    with jax.enable_x64(cfg.x64):
+        dtype = jnp.zeros(()).dtype
+        settings = {
+            **cfg.settings(), "save_every": save_every, "chunk_size": chunk_size, "summaries": bool(summaries),
+            "devices": [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])],
+        }
+        if observers is not None:
+            settings["observers"] = [repr(o) for o in observers]
+        n = ics5.shape[0]
+        chunk = int(min(chunk_size, n))
+        chunk = -(-chunk // n_dev) * n_dev
+        store = None
+        if checkpoint_dir is not None:
+            store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
+            store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "starts": starts_digest(ics5),
+                                                      "settings": settings})
+        args = ClosedLoop(plant, cfg.law)
+        parts, reused = [], 0
+        observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
+        extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
+        fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
+        t_start = time.perf_counter()
+        # the store's lock on the folder is held until the last chunk is written or read
+        with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()):
+            starts = list(range(0, n, chunk))
+            for ci, lo in enumerate(starts):
+                hi = min(lo + chunk, n)
+                if shard is not None and ci % shard[1] != shard[0]:
+                    continue
+                if store is not None and resume:
+                    part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
+                    if part is not None:
+                        parts.append(part)
+                        reused += 1
+                        bar.update(hi / n)
+                        continue
+                pad = chunk - (hi - lo)
+                st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
+                ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
+                y0w = initial_w(ic, st, dtype, chart)
+                if lane_args is not None:      # this chunk's lanes; padding rows reuse its first
+                    from ..model.lanes import take_lanes
+
+                    args = take_lanes(lane_args, np.concatenate([np.arange(lo, hi), np.full(pad, lo)]))
+
+                class _Sub:  # maps this chunk's progress onto the whole run
+                    def update(self, frac, lo=lo, hi=hi):
+                        bar.update((lo + frac * (hi - lo)) / n)
+
+                kw = dict(adaptive=adaptive, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps,
+                          max_step=max_step, monitor=check_passivity)
+                if not summaries:
+                    part = _plain_summaries(*drive_plain(y0w, st, args, horizon, segment=segment,
+                                                         progress=_Sub()), y0w, st, args, horizon)
+                elif save_every is None:
+                    final = drive_final(y0w, st, args, horizon, segment=segment, progress=_Sub(),
+                                        mesh=mesh, observers=observers, **kw)
+                    part = _chunk_summaries(final, y0w, st, args, observers)
+                else:
+                    final, ys = drive_saving(y0w, st, args, horizon, progress=_Sub(), observers=observers, **kw)
+                    part = _chunk_summaries(final, y0w, st, args, observers)
+                    yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
+                    yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
+                    yq[st != Status.OK] = np.nan
+                    part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
+                part = {k: v[:hi - lo] for k, v in part.items()}
+                if store is not None:
+                    store.save(ci, part, lo=lo, starts=ics5[lo:hi])
+                if shard is None:
+                    parts.append(part)
+        if shard is not None:
+            return None
+        out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
+    settings["wall_s"] = time.perf_counter() - t_start
+    settings["chunks_reused"] = reused
+    traj = {}
+    if save_every is not None:
+        traj = {"t": horizon.t(), "q_traj": out.pop("q_traj"), "p_traj": out.pop("p_traj")}
+    if lane_args is not None:
+        from ..model.lanes import lane_table
+
+        traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
+    observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
+    return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,
+                          observed=observed or None)

@@ -1,0 +1,162 @@
+"""Simulate the closed loop from one or many initial conditions and keep decimated trajectories.
+
+`simulate` is the entry point for figures and for inspecting a few trajectories; for large
+batches with summaries only, see `jaxsleigh.studies.ensemble`.
+"""
+from __future__ import annotations
+
+import functools
+import time
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.charts import WChart, chart_for
+from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
+from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, solve_config  # noqa: F401
+from ..model.paper_law import control_w
+from ..model.coordinates import w_to_q
+from ..integrate.engine import check_ics, drive_saving, initial_w
+from ..integrate.observers import DEFAULT_OBSERVERS, collect
+from ..model.params import PlantParams
+from ..model.plant import velocity
+from ..progress import Progress
+
+__all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
+
+
+class Solution(NamedTuple):
+    r"""Decimated closed-loop trajectories.
+
+    Attributes:
+      t: (T,) saved times (0 included).
+      q: (N, T, 3) configuration ``(x, y, theta)``.
+      p: (N, T, 2) momentum.
+      u: (N, T, 2) control.
+      Hd: (N, T) closed-loop Hamiltonian.
+      status: (N,) `Status` codes.
+      n_steps: (N,) accepted steps; ``n_rejected``: (N,) rejected attempts.
+      effort: per-trajectory control effort and the other on-line summaries over the horizon
+        (``u_peak`` (N, 2), ``u_norm_peak``, ``u_energy`` = \(\int \|u\|^2 dt\), ``u_abs_int``,
+        ``T_eps``, ``min_abs_theta``, ``max_excursion``; see `jaxsleigh.integrate.observers`),
+        integrated to RK4 order along every step, not from the saved samples.
+      settings: what produced it (plant, gains, horizon, method, dtype, tolerances).
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    p: np.ndarray
+    u: np.ndarray
+    Hd: np.ndarray
+    status: np.ndarray
+    n_steps: np.ndarray
+    n_rejected: np.ndarray
+    settings: dict
+    effort: Optional[dict] = None
+
+
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _outputs(yw, args: ClosedLoop, chart=WChart()):
+    """Chart trajectories -> q, u, Hd (vmapped over batch and time; Hd is NaN for a law without it)."""
+
+    def one(y):
+        if chart.name == "w":
+            w, p = y[:3], y[3:]
+            return w_to_q(w), control_w(w, velocity(p, args.plant), args.gains), closed_loop_hamiltonian_w(y, args)
+        u = jnp.stack(chart.field_and_control(0.0, y, args)[1])
+        return chart.from_chart(y)[:3], u, jnp.full((), jnp.nan, y.dtype)
+
+    return jax.vmap(jax.vmap(one))(yw)
+
+
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _outputs_lanes(yw, args: ClosedLoop, chart=WChart()):
+    """`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
+    axes = jax.tree_util.tree_map(lambda _: -1, args)
+    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a, chart), in_axes=(0, axes))(yw, args)
+
+
+def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
+             t_final: float = 100.0, dt: float = 0.01, save_every: int = 10,
+             method: str = "adaptive", rtol: Optional[float] = None, atol: Optional[float] = None,
+             max_step: Optional[float] = None, max_steps: Optional[int] = None, x64: bool = False,
+             progress: Any = None, controller: Any = None) -> Solution:
+    """Simulate the closed loop (plant eq. 1 + control law eq. 13).
+
+    Args:
+      ics: ``(3,)``, ``(5,)``, ``(N, 3)`` or ``(N, 5)``: ``(x, y, theta[, p1, p2])``.
+      plant, gains: defaults are the paper's (m = 2, J = 1, l = 1, Coulomb; L = diag(2, .5, .8),
+        k = 0.1, D_hat = diag(4, 8)). ``gains`` may also be a preset name (``"tuned"``) or a
+        gains-file path. Both are validated eagerly (``ValueError`` saying what to change).
+        Leaves may vary per trajectory (a trailing axis of size N or 1, see
+        `jaxsleigh.run_ensemble` and `jaxsleigh.model.lanes`); ``settings["params"]`` then
+        holds the values each trajectory used.
+      t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``).
+      save_every: keep every ``save_every``-th base step (the saved grid is uniform in time).
+      method: ``"adaptive"`` (default: RK4 with per-trajectory error control, starting at ``dt``;
+        accurate near theta = 0) or ``"rk4"`` (classical fixed-step RK4 at ``dt``).
+      rtol, atol: tolerances of ``"adaptive"`` (defaults per dtype, see ``DEFAULT_RTOL``).
+      max_step: largest adaptive step (default ``100 * dt``; steps also never pass a save time).
+      max_steps: budget of attempted steps per trajectory (default: 20x the base steps when
+        adaptive); a trajectory that runs out gets status ``BUDGET_EXHAUSTED``.
+      x64: compute in float64 (default float32).
+      progress: ``True`` for a progress bar, ``False``/``None`` for none (auto on a terminal).
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`:
+        a callable pytree whose numbers are traced); it is integrated in the physical chart, and
+        ``Hd`` is NaN (the paper's H_d belongs to the paper's law).
+
+    Returns:
+      `Solution`, as NumPy arrays.
+
+    Raises:
+      ValueError: any bad option, or a single start (or every start of a batch) that cannot be
+        integrated. A bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in
+        a `FlaggedStartsWarning`; the other rows are computed.
+    """
+    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
+                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, controller=controller)
+    horizon = cfg.horizon
+    chart = chart_for(cfg.law)
+    ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
+    with jax.enable_x64(cfg.x64):
+        dtype = jnp.zeros(()).dtype
+        args = ClosedLoop(cfg.plant, cfg.law)
+        if cfg.lanes is not None:
+            from ..model.lanes import broadcast_lanes
+
+            if cfg.lanes not in (1, ics5.shape[0]):
+                raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
+                                 f"{ics5.shape[0]} initial conditions; give one value per initial condition")
+            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
+        y0w = initial_w(ics5, status0, dtype, chart)
+        t_start = time.perf_counter()
+        with Progress(progress, desc="simulate") as bar:
+            final, ys = drive_saving(y0w, status0, args, horizon, adaptive=cfg.adaptive, rtol=cfg.rtol,
+                                     atol=cfg.atol, eps=cfg.eps, max_steps=cfg.max_steps, max_step=cfg.max_step,
+                                     progress=bar)
+        yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
+        bad = status0 != 0
+        yw[bad] = np.nan
+        if cfg.lanes is None:
+            q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), args, chart))
+        else:
+            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), args, chart))
+    settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start,
+                "devices": [str(jax.devices()[0])]}   # where it ran: named on every figure of it
+    if cfg.lanes is not None:
+        from ..model.lanes import lane_table
+
+        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, ics5.shape[0]).items()}
+    settings.pop("check_passivity")
+    settings.pop("eps")
+    # restore the exact initial state (the w chart round trip rounds it in float32)
+    q[:, 0] = np.where(bad[:, None], np.nan, ics5[:, :3])
+    effort = collect(DEFAULT_OBSERVERS, final.obs, final.quad)
+    for k, v in effort.items():
+        v[bad] = np.nan
+    effort["T_eps"] = np.where(np.asarray(final.status) == 0, effort["T_eps"], np.nan)
+    return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
+                    n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),
+                    settings=settings, effort=effort)

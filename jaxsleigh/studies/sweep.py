@@ -1,0 +1,492 @@
+r"""Parameter sweeps: convergence over gains and plants, as one vectorised, checkpointed ensemble.
+
+A sweep runs the product of a set of starts (a grid, Monte-Carlo samples or an array, as
+`run_basin` takes them) and a set of parameter values. Because gains and
+plant parameters are pytree leaves that may carry a per-trajectory axis (`jaxsleigh.model.lanes`),
+the ``P`` values x ``N`` starts are just ``P * N`` rows of **one** call of
+`run_ensemble`: chunked (memory bounded by the chunk), checkpointed,
+resumable, sharded over devices, compiled once (changing the values never recompiles).
+
+Rows are ordered value-major: row ``p * N + i`` is start ``i`` under value set ``p``, so the
+per-start results reshape to ``(P, N)``. Per value the sweep summarises the fraction of valid
+starts that converged (+- its binomial standard error), the ``T_eps`` percentiles of the converged
+starts, the statuses (failures by kind) and the control effort of the converged starts (median
+control energy \(\int_0^T \|u\|^2 dt\) and median peak \(\|u\|\)).
+
+Parameters (``NAME`` of ``--param NAME=LO:HI:P[:log]``):
+
+* gains: ``k``, ``l1``, ``l2``, ``l3`` (the diagonal of ``L``), ``d11``, ``d22``, ``d12`` (entries
+  of the symmetric ``D_hat``);
+* plant: ``m``, ``J``, ``l`` (``l = 0`` is the knife edge);
+* damping: ``coulomb_eps``, ``coulomb_scale`` (with Coulomb damping), ``c1``, ``c2`` (viscous).
+
+One parameter gives a line of ``P`` values, two give a ``P1 x P2`` grid (the first one slowest).
+`sweep` also takes explicit value sets (``{"m": [...], "J": [...]}``, zipped, not
+crossed): sampled plants, as in ``experiments/robustness.py``.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+from typing import Any, Mapping, NamedTuple, Optional, Sequence
+
+import numpy as np
+
+from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, t_eps_percentiles
+from ..model.damping import CoulombDamping, ViscousDamping, damping_from_name
+from ..model.params import Gains, PlantParams
+from ..status import NOT_INTEGRATED, Status, describe
+from ..validate import check_memory
+
+__all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
+           "save_sweep", "load_sweep"]
+
+#: Sweepable parameters: name -> (where it lives, condition, what it must be).
+PARAM_NAMES = {
+    "k": ("gains.k", lambda v: v > 0, "> 0"),
+    "l1": ("gains.L", lambda v: v > 0, "> 0"),
+    "l2": ("gains.L", lambda v: v > 0, "> 0"),
+    "l3": ("gains.L", lambda v: v > 0, "> 0"),
+    "d11": ("gains.D_hat", lambda v: v > 0, "> 0"),
+    "d22": ("gains.D_hat", lambda v: v > 0, "> 0"),
+    "d12": ("gains.D_hat", lambda v: np.isfinite(v), "finite (and D_hat positive definite)"),
+    "m": ("plant.m", lambda v: v > 0, "> 0"),
+    "J": ("plant.J", lambda v: v >= 0, ">= 0"),
+    "l": ("plant.l", lambda v: v >= 0, ">= 0 (0 is the knife edge)"),
+    "coulomb_eps": ("plant.damping.eps", lambda v: v > 0, "> 0"),
+    "coulomb_scale": ("plant.damping.scale", lambda v: v >= 0, ">= 0"),
+    "c1": ("plant.damping.c1", lambda v: v >= 0, ">= 0"),
+    "c2": ("plant.damping.c2", lambda v: v >= 0, ">= 0"),
+}
+_EXAMPLE = "--param k=0.01:1:9:log"
+#: Host memory one parameter value needs before any start runs: the value and its per-lane plant and gains.
+BYTES_PER_VALUE = 256
+#: Host memory one row (a start under a value set) needs: the run's per-start share and the row's lanes.
+BYTES_PER_ROW = 560
+_FEWER = "use fewer values (a smaller P in NAME=LO:HI:P) or split the sweep into several runs"
+
+
+class ParamAxis(NamedTuple):
+    """``n`` values of parameter ``name`` from ``lo`` to ``hi`` (both included), evenly spaced, or
+    log-spaced when ``log``."""
+
+    name: str
+    lo: float
+    hi: float
+    n: int
+    log: bool = False
+
+    def values(self) -> np.ndarray:
+        if self.n == 1:
+            return np.array([self.lo])
+        return np.geomspace(self.lo, self.hi, self.n) if self.log else np.linspace(self.lo, self.hi, self.n)
+
+    def spec(self) -> str:
+        return f"{self.name}={self.lo:g}:{self.hi:g}:{self.n}" + (":log" if self.log else "")
+
+
+def _check_name(name: str, flag: str) -> None:
+    if name not in PARAM_NAMES:
+        raise ValueError(f"{flag}: unknown parameter {name!r}; choose one of {', '.join(PARAM_NAMES)} "
+                         f"(e.g. {_EXAMPLE})")
+
+
+def _check_values(name: str, values: np.ndarray, label: str) -> None:
+    """Every value of ``name`` admissible, else a ValueError naming ``label`` (the --param)."""
+    _, cond, need = PARAM_NAMES[name]
+    v = np.asarray(values, np.float64)
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{label}: every value of {name} must be finite, got {v[~np.isfinite(v)][0]}")
+    bad = ~cond(v)
+    if np.any(bad):
+        raise ValueError(f"{label}: {name} must be {need}, but the range includes {name} = {v[bad][0]:g} "
+                         f"({int(bad.sum())} of {v.size} values); change the range")
+
+
+def parse_param(spec, flag: str = "--param") -> ParamAxis:
+    """A `ParamAxis` from ``"NAME=LO:HI:P[:log]"`` (or ``"NAME=VALUE"``), or a ParamAxis.
+
+    Values may use ``pi``. The values are checked eagerly: a range that includes an inadmissible
+    value (``m <= 0``, ``k <= 0``, ``J < 0``, ...) raises ``ValueError`` naming the ``--param``.
+    """
+    from ..files.npz import parse_number
+
+    if isinstance(spec, ParamAxis):
+        ax, label = spec, f"{flag} {spec.spec()}"
+    else:
+        text = str(spec)
+        label = f"{flag} {text}"
+        hint = f"write NAME=LO:HI:P or NAME=LO:HI:P:log (e.g. {_EXAMPLE})"
+        if "=" not in text:
+            raise ValueError(f"could not parse {label}: no '='; {hint}")
+        name, rng = (s.strip() for s in text.split("=", 1))
+        _check_name(name, label)
+        parts = rng.split(":")
+        log = False
+        if parts and parts[-1].strip().lower() in ("log", "lin", "linear"):
+            log = parts.pop().strip().lower() == "log"
+        try:
+            vals = [parse_number(s) for s in parts]
+        except ValueError as e:
+            raise ValueError(f"could not parse {label}: {e}; {hint}") from None
+        if len(vals) == 1:
+            ax = ParamAxis(name, vals[0], vals[0], 1, log)
+        elif len(vals) == 3:
+            if not math.isfinite(vals[2]) or float(vals[2]) != int(vals[2]) or vals[2] < 2:
+                raise ValueError(f"{label}: P = {vals[2]:g} must be a whole number of values >= 2; {hint}")
+            ax = ParamAxis(name, vals[0], vals[1], int(vals[2]), log)
+        else:
+            raise ValueError(f"could not parse {label}: got {len(vals)} number(s); {hint}")
+    _check_name(ax.name, label)
+    if not (math.isfinite(ax.lo) and math.isfinite(ax.hi)):
+        raise ValueError(f"{label}: the bounds must be finite")
+    if ax.n > 1 and not ax.lo < ax.hi:
+        raise ValueError(f"{label}: LO must be below HI (e.g. {flag} {ax.name}={min(ax.lo, ax.hi):g}:"
+                         f"{max(ax.lo, ax.hi):g}:{ax.n})")
+    if ax.log and not ax.lo > 0:
+        raise ValueError(f"{label}: a log range needs LO > 0, got {ax.lo:g}; use a linear range to include 0")
+    # the count comes from the user: refuse it before a single value is materialised
+    check_memory(ax.n, label, bytes_per_start=BYTES_PER_VALUE, unit="values", fix=_FEWER)
+    _check_values(ax.name, ax.values(), label)
+    return ax
+
+
+def param_grid(axes: Sequence) -> tuple[tuple, np.ndarray, tuple]:
+    """``(names, values (P, n_params), grid_shape)`` of the product of the axes (first slowest)."""
+    axes = [parse_param(a) for a in axes]
+    if not axes:
+        raise ValueError(f"a sweep needs at least one parameter (e.g. {_EXAMPLE})")
+    names = tuple(a.name for a in axes)
+    if len(set(names)) != len(names):
+        raise ValueError(f"each parameter may be swept once, got {', '.join(names)}")
+    # the product of the counts, before itertools.product builds it
+    check_memory(math.prod(a.n for a in axes), " x ".join(f"--param {a.spec()}" for a in axes),
+                 bytes_per_start=BYTES_PER_VALUE, unit="value sets", fix=_FEWER)
+    values = np.array(list(itertools.product(*(a.values() for a in axes))), np.float64).reshape(-1, len(axes))
+    return names, values, tuple(a.n for a in axes)
+
+
+def check_rows(n_values: int, n_starts: int, what: str = "sweep") -> None:
+    """Refuse, before anything is built, a sweep whose ``n_values x n_starts`` rows would not fit in
+    host memory (`check_memory`); the message names both counts and the memory."""
+    check_memory(int(n_values) * int(n_starts), what, bytes_per_start=BYTES_PER_ROW,
+                 unit=f"rows ({int(n_values):,} values x {int(n_starts):,} starts)",
+                 fix="use fewer values (a smaller P in --param NAME=LO:HI:P) or fewer starts (fewer --samples, "
+                     "a coarser grid, a smaller --ics file), or split the sweep into several runs")
+
+
+def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = None, gains: Any = None, *,
+                 labels: Optional[Mapping[str, str]] = None) -> tuple[PlantParams, Gains]:
+    """Per-lane ``(plant, gains)`` with ``P`` lanes: the base ``plant`` / ``gains`` (the paper's by
+    default) with parameter ``names[j]`` set to ``values[:, j]``; validated, every lane at once
+    (``labels``: name -> text naming it in messages, e.g. its ``--param``)."""
+    from ..model.lanes import check_lanes
+    from ..model.params import as_gains, as_plant
+
+    values = np.asarray(values, np.float64)
+    if values.ndim == 1:
+        values = values[:, None]
+    names = tuple(names)
+    if values.ndim != 2 or values.shape[1] != len(names) or values.shape[0] == 0:
+        raise ValueError(f"values must have shape (P, {len(names)}) for the parameters {names}, got {values.shape}")
+    labels = dict(labels or {})
+    lab = lambda n: labels.get(n, f"parameter {n}")  # noqa: E731
+    for j, n in enumerate(names):
+        _check_name(n, lab(n))
+        _check_values(n, values[:, j], lab(n))
+    plant, gains = as_plant(plant), as_gains(gains)
+    P = values.shape[0]
+    col = {n: values[:, j] for j, n in enumerate(names)}
+    rep = lambda x: np.repeat(np.asarray(x, np.float64)[..., None], P, axis=-1)  # noqa: E731
+    m, J, l = (col.get(f, rep(getattr(plant, f))) for f in ("m", "J", "l"))
+    d = plant.damping
+    if isinstance(d, str):
+        d = damping_from_name(d)
+    for n, kind, field in (("coulomb_eps", CoulombDamping, "eps"), ("coulomb_scale", CoulombDamping, "scale"),
+                           ("c1", ViscousDamping, "c1"), ("c2", ViscousDamping, "c2")):
+        if n in col and not isinstance(d, kind):
+            fam = "coulomb" if kind is CoulombDamping else "viscous"
+            raise ValueError(f"{lab(n)}: {n} is a parameter of {fam} damping, but the plant's damping is "
+                             f"{type(d).__name__}; add --damping {fam}")
+    if hasattr(d, "_fields"):
+        names_d = {"eps": "coulomb_eps", "scale": "coulomb_scale", "c1": "c1", "c2": "c2"}
+        d = type(d)(*(col.get(names_d[f], rep(getattr(d, f))) for f in d._fields))
+    L = rep(gains.L)
+    for i, n in enumerate(("l1", "l2", "l3")):
+        if n in col:
+            L[i] = col[n]
+    D = rep(np.asarray(gains.D_hat, np.float64))
+    if "d11" in col:
+        D[0, 0] = col["d11"]
+    if "d22" in col:
+        D[1, 1] = col["d22"]
+    if "d12" in col:
+        D[0, 1] = D[1, 0] = col["d12"]
+    k = col.get("k", rep(gains.k))
+    flags = {"plant.m": lab("m"), "plant.J": lab("J") if "J" in col else lab("l") if "l" in col else "plant.J",
+             "gains.D_hat": " / ".join(lab(n) for n in ("d11", "d22", "d12") if n in col) or "gains.D_hat"}
+    return check_lanes(PlantParams(m, J, l, d), Gains(L, k, D), flags=flags)
+
+
+# ---------------------------------------------------------------------------------------------
+# result
+# ---------------------------------------------------------------------------------------------
+
+class SweepResult(NamedTuple):
+    """Per value set and start (arrays ``(P, N)``), per value set (``(P,)``), the starts, the settings.
+
+    Attributes:
+      names: the swept parameters; values: ``(P, n_params)`` their values per value set.
+      grid_shape: ``(P,)``, ``(P1, P2)`` for a two-parameter grid (first parameter slowest), or
+        ``(P,)`` for explicit value sets; axes: the `ParamAxis` of a grid (``()`` otherwise).
+      starts: the `BasinStarts`; ics: ``(N, 5)``.
+      T_eps, status, n_steps, min_abs_theta, Hd0: ``(P, N)`` per-row results.
+      effort: ``{name: (P, N)}`` control-effort summaries when the engine records them (else empty);
+        `effort_medians` summarises them per value set.
+      settings: base plant and gains, the sweep, the starts, the solver settings.
+      run_info: wall time, devices, chunks reused (not saved: they vary between runs).
+    """
+
+    names: tuple
+    values: np.ndarray
+    grid_shape: tuple
+    axes: tuple
+    starts: BasinStarts
+    ics: np.ndarray
+    T_eps: np.ndarray
+    status: np.ndarray
+    n_steps: np.ndarray
+    min_abs_theta: np.ndarray
+    Hd0: np.ndarray
+    effort: dict
+    settings: dict
+    run_info: Optional[dict] = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        return ~np.isin(self.status, [int(s) for s in NOT_INTEGRATED])
+
+    @property
+    def converged(self) -> np.ndarray:
+        return (self.status == Status.OK) & np.isfinite(self.T_eps)
+
+    def fractions(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(fraction (P,), fraction_se (P,))`` of the valid starts that converged, per value set."""
+        out = np.array([fraction_converged(c, v) for c, v in zip(self.converged, self.valid)], np.float64)
+        return out[:, 0], out[:, 1]
+
+    @property
+    def fraction(self) -> np.ndarray:
+        return self.fractions()[0]
+
+    @property
+    def fraction_se(self) -> np.ndarray:
+        return self.fractions()[1]
+
+    def percentiles(self, q: Sequence[float] = PERCENTILES) -> np.ndarray:
+        """``(P, len(q))`` percentiles of ``T_eps`` of the converged starts (NaN where none converged)."""
+        return np.array([t_eps_percentiles(t[c], q) for t, c in zip(self.T_eps, self.converged)])
+
+    def effort_medians(self) -> dict:
+        """Per value set, the medians over the **converged** starts of the control effort:
+        ``{"u_energy_median": (P,), "u_norm_peak_median": (P,)}`` (control energy
+        \\(\\int_0^T \\|u\\|^2 dt\\) up to the horizon, largest \\(\\|u\\|\\)); NaN where none
+        converged or the effort was not recorded; ``{}`` when the run recorded no effort."""
+        out = {}
+        for k in EFFORT_MEDIANS:
+            if k in self.effort:
+                out[f"{k}_median"] = _medians(self.effort[k], self.converged)
+        return out
+
+    def status_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(codes (K,), counts (P, K))``: how many starts of each value set ended with each status."""
+        codes = np.array(sorted(int(s) for s in Status), np.int32)
+        return codes, (self.status[..., None] == codes).sum(axis=1).astype(np.int64)
+
+    def table(self) -> str:
+        """One line per value set: the values, fraction +- s.e., median T_eps, failures and (when
+        recorded) the median control energy of the converged starts."""
+        S, se = self.fractions()
+        med = self.percentiles((50.0,))[:, 0]
+        eff = self.effort_medians()
+        energy = eff.get("u_energy_median")
+        head = "   fraction +- s.e.   median T_eps   failed" + ("   median int|u|^2" if energy is not None else "")
+        lines = [" ".join(f"{n:>10}" for n in self.names) + head]
+        failed = (self.valid & (self.status != Status.OK)).sum(axis=1)
+        for p in range(self.values.shape[0]):
+            vals = " ".join(f"{v:10.4g}" for v in self.values[p])
+            line = f"{vals}   {S[p]:.3f} +- {se[p]:.3f}      {med[p]:9.3g}      {failed[p]:6d}"
+            if energy is not None:
+                line += f"   {energy[p]:16.4g}"
+            lines.append(line)
+        return "\n".join(lines)
+
+
+#: effort summaries whose per-value medians (over the converged starts) a sweep reports
+EFFORT_MEDIANS = ("u_energy", "u_norm_peak")
+
+
+def _medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Row-wise median of the finite ``values`` where ``mask`` (NaN for a row with none)."""
+    v = np.asarray(values, np.float64)
+    out = np.full(v.shape[0], np.nan)
+    for p in range(v.shape[0]):
+        x = v[p][mask[p] & np.isfinite(v[p])]
+        if x.size:
+            out[p] = np.median(x)
+    return out
+
+
+def _as_starts(starts) -> BasinStarts:
+    return starts if isinstance(starts, BasinStarts) else array_starts(starts)
+
+
+def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, eps: float = 0.05,
+          t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive", x64: bool = False,
+          rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
+          check_passivity: bool = True, chunk_size: Optional[int] = None, devices: Any = None,
+          checkpoint_dir=None, resume: bool = False, progress: Any = None,
+          labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None) -> Optional[SweepResult]:
+    r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
+
+    Args:
+      starts: a `BasinStarts` (`grid_starts`,
+        `sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.
+      params: a sequence of one or two ranges (``"NAME=LO:HI:P[:log]"`` strings or
+        `ParamAxis`; two make a grid), or a mapping ``{name: values}`` of explicit value sets
+        (equal lengths ``P``; zipped, not crossed). Names: `PARAM_NAMES`.
+      plant, gains: the base values of everything not swept (default: the paper's). ``gains`` may
+        be a preset name or file, as in `jaxsleigh.simulate`.
+      eps, t_final, dt, method, x64, rtol, atol, max_steps, check_passivity: as in
+        `run_basin`.
+      chunk_size: rows (start x value set) integrated and checkpointed at once (default as
+        `run_basin`): memory is bounded by the chunk, not by ``P * N``.
+      checkpoint_dir, resume, progress, devices: as in `run_ensemble`.
+      labels: parameter name -> text naming it in error messages (the CLI passes its ``--param``).
+      shard: ``(index, count)``: compute only this process's share of the chunks into
+        ``checkpoint_dir`` and return ``None`` (a multi-process run, `jaxsleigh.files.distributed`);
+        a later call without ``shard`` and with ``resume=True`` assembles the result from them.
+
+    Returns:
+      `SweepResult` (``None`` with ``shard``).
+    """
+    import jax
+
+    from .config import plant_to_dict
+    from .ensemble import run_ensemble
+    from ..model.lanes import take_lanes
+    from ..model.params import gains_to_dict
+    from ..model.params import as_gains, as_plant
+
+    st = _as_starts(starts)
+    if isinstance(params, Mapping):
+        names = tuple(params)
+        cols = [np.atleast_1d(np.asarray(params[n], np.float64)) for n in names]
+        if not names or len({c.shape for c in cols}) != 1 or cols[0].ndim != 1:
+            raise ValueError("explicit value sets must be a non-empty mapping of equal-length 1-D arrays")
+        check_rows(cols[0].size, st.ics.shape[0])
+        values, shape, axes = np.stack(cols, axis=1), (cols[0].size,), ()
+    else:
+        if isinstance(params, (str, ParamAxis)):
+            params = [params]
+        axes = tuple(parse_param(a) for a in params)
+        if len(axes) > 2:
+            raise ValueError("a sweep grid takes one or two parameters; pass explicit value sets for more")
+        check_rows(math.prod(a.n for a in axes), st.ics.shape[0])
+        names, values, shape = param_grid(axes)
+        labels = {a.name: f"--param {a.spec()}" for a in axes} | dict(labels or {})
+    base_plant, base_gains = as_plant(plant), as_gains(gains)
+    lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels)
+    P, N = values.shape[0], st.ics.shape[0]
+    rows = np.repeat(np.arange(P), N)                     # row p * N + i: start i, value set p
+    from ..model.lanes import broadcast_lanes
+
+    lp, lg = take_lanes(broadcast_lanes(lane_plant, lane_gains, P), rows)
+    if chunk_size is None:
+        n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
+        chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
+    res = run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, gains=lg, t_final=t_final, dt=dt, eps=eps,
+                       method=method, rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
+                       check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
+                       resume=resume, progress=progress, shard=shard)
+    if res is None:                                # a shard of a multi-process run: chunks written
+        return None
+    varying = ("wall_s", "devices", "chunks_reused")
+    settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every", "plant", "gains")}
+    settings.update(plant=plant_to_dict(base_plant), gains=gains_to_dict(base_gains), starts=st.spec,
+                    sweep={"names": list(names), "axes": [a.spec() for a in axes], "n_values": P, "n_starts": N})
+    run_info = {k: res.settings.get(k) for k in varying}
+    per = lambda a: np.asarray(a).reshape((P, N) + np.shape(a)[1:])  # noqa: E731
+    effort = {k: per(getattr(res, k)) for k in ("u_energy", "u_abs_int", "u_norm_peak")
+              if getattr(res, k, None) is not None}
+    return SweepResult(names=names, values=values, grid_shape=tuple(shape), axes=axes, starts=st,
+                       ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
+                       min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), effort=effort, settings=settings,
+                       run_info=run_info)
+
+
+# ---------------------------------------------------------------------------------------------
+# files
+# ---------------------------------------------------------------------------------------------
+
+def save_sweep(path, result: SweepResult) -> Path:
+    """Write a `SweepResult` to ``.npz`` deterministically (the writer of
+    `save_basin`: equal inputs, equal bytes; nothing that varies between runs).
+
+    Keys: ``names`` (n_params,), ``values`` (P, n_params), ``grid_shape``, ``ics`` (N, 5);
+    per value set and start ``T_eps``, ``status``, ``n_steps``, ``min_abs_theta``, ``Hd0`` (P, N)
+    (and the control-effort summaries when recorded); per value set ``fraction``, ``fraction_se``,
+    ``n_valid``, ``n_converged`` (P,), ``T_eps_percentiles`` (P, 5) at ``T_eps_percentile_levels``,
+    ``status_counts`` (P, K) for the codes ``status_codes`` (K,), and with the effort recorded
+    ``u_energy_median``, ``u_norm_peak_median`` (P,) over the converged starts; for grids ``axis_<name>`` (the
+    values of each axis) and ``axis_log``; the settings as JSON (``settings_json``, with the status
+    legend) and as scalars ``eps, t_final, dt, method, dtype, max_steps``, the base ``gains_L,
+    gains_k, gains_D_hat, params (m, J, l), damping``.
+    """
+    from ..files.npz import npz_path, settings_arrays, write_npz_deterministic
+
+    path = npz_path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    r, s = result, result.settings
+    S, se = r.fractions()
+    codes, counts = r.status_counts()
+    arrays = {
+        "names": np.asarray(r.names, dtype="<U16"), "values": np.asarray(r.values, np.float64),
+        "grid_shape": np.asarray(r.grid_shape, np.int64), "ics": np.asarray(r.ics, np.float64),
+        "T_eps": np.asarray(r.T_eps, np.float64), "status": np.asarray(r.status, np.int32),
+        "n_steps": np.asarray(r.n_steps, np.int64), "min_abs_theta": np.asarray(r.min_abs_theta, np.float64),
+        "Hd0": np.asarray(r.Hd0, np.float64),
+        "fraction": S, "fraction_se": se, "n_valid": r.valid.sum(axis=1).astype(np.int64),
+        "n_converged": r.converged.sum(axis=1).astype(np.int64),
+        "T_eps_percentiles": r.percentiles(), "T_eps_percentile_levels": np.asarray(PERCENTILES),
+        "status_codes": codes, "status_counts": counts,
+    }
+    arrays.update({k: np.asarray(v, np.float64) for k, v in sorted(r.effort.items())})
+    arrays.update(r.effort_medians())
+    for a in r.axes:
+        arrays[f"axis_{a.name}"] = a.values()
+    if r.axes:
+        arrays["axis_log"] = np.array([a.log for a in r.axes])
+    arrays.update(settings_json=np.array(json.dumps({**s, "status_codes": describe()}, sort_keys=True, default=str)),
+                  **settings_arrays(s))
+    write_npz_deterministic(path, arrays)
+    return path
+
+
+def load_sweep(path) -> SweepResult:
+    """Read an ``.npz`` written by `save_sweep` (or ``jaxsleigh sweep``)."""
+    from .basin import _starts_from_spec
+    from ..files.npz import read_npz
+
+    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)", ("settings_json", "values"))
+    settings = json.loads(str(d["settings_json"]))
+    settings.pop("status_codes", None)
+    axes = tuple(parse_param(a) for a in settings["sweep"]["axes"])
+    effort = {k: d[k] for k in ("u_energy", "u_abs_int", "u_norm_peak") if k in d}
+    return SweepResult(names=tuple(str(n) for n in d["names"]), values=d["values"],
+                       grid_shape=tuple(int(x) for x in d["grid_shape"]), axes=axes,
+                       starts=_starts_from_spec(d["ics"], settings["starts"]), ics=d["ics"], T_eps=d["T_eps"],
+                       status=d["status"], n_steps=d["n_steps"], min_abs_theta=d["min_abs_theta"], Hd0=d["Hd0"],
+                       effort=effort, settings=settings, run_info=None)

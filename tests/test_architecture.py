@@ -1,0 +1,67 @@
+"""The house's rules, checked on the package's own imports (experiments/architecture_figure.py draws them):
+every module belongs to a floor, no import runs up a floor, no two modules import each other in a circle."""
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "experiments"))
+from architecture_figure import FLOORS, ROOT as PKG, floor_of, imports  # noqa: E402
+
+
+def _modules():
+    return {".".join(p.relative_to(PKG.parent).with_suffix("").parts).removesuffix(".__init__")
+            for p in PKG.rglob("*.py")}
+
+
+def test_every_module_has_a_floor():
+    stray = sorted(m for m in _modules() if m != "jaxsleigh" and floor_of(m) < 0)
+    assert not stray, f"modules outside every floor of {[name for name, _ in FLOORS]}: {stray}"
+
+
+def test_no_import_runs_up_a_floor():
+    up = [(a, b) for a, b in imports() if floor_of(a) >= 0 and floor_of(b) > floor_of(a)]
+    assert not up, up
+
+
+def test_no_import_circle_between_modules():
+    mods = _modules()
+
+    def resolve(name):
+        while name and name not in mods:
+            name = name.rsplit(".", 1)[0] if "." in name else ""
+        return name
+
+    graph = {}
+    for a, b in imports():
+        a, b = a.removesuffix(".__init__"), resolve(b)
+        if b and a != b and not a.startswith(b + "."):     # a package's face imported by its own modules
+            graph.setdefault(a, set()).add(b)
+    # Tarjan's strongly connected components
+    index, low, stack, on, sccs, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                sccs.append(sorted(comp))
+
+    for v in list(graph):
+        if v not in index:
+            visit(v)
+    assert not sccs, f"import circles: {sccs}"
