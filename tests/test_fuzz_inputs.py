@@ -93,7 +93,7 @@ def test_the_command_line_never_shows_a_traceback(tmp_path, capsys, monkeypatch,
         raise _Reached
 
     monkeypatch.setattr(importlib.import_module("jaxsleigh.cli.simulate"), "simulate", stub, raising=False)
-    monkeypatch.setattr(importlib.import_module("jaxsleigh.simulate"), "drive_saving", stub)
+    monkeypatch.setattr(importlib.import_module("jaxsleigh.studies.simulate"), "drive_saving", stub)
     argv = ["simulate", "--out", str(tmp_path / "x.npz")]
     for flag, value in opts:
         argv += [flag, value]

@@ -16,7 +16,7 @@ from jaxsleigh.integrate.rk4 import rk4_step, solve_fixed
 from jaxsleigh.status import Status
 
 # `jaxsleigh.simulate` the attribute is the function; the module holds the jitted `_outputs`
-simulate_mod = importlib.import_module("jaxsleigh.simulate")
+simulate_mod = importlib.import_module("jaxsleigh.studies.simulate")
 
 
 def _linear(t, y, lam):

@@ -110,7 +110,7 @@ def test_unwritable_outputs_are_refused_before_any_work(tmp_path, capsys, monkey
     def no_work(*a, **k):
         raise AssertionError("work started before the outputs were checked")
 
-    for mod, name in [("jaxsleigh.simulate", "drive_saving"), ("jaxsleigh.studies.ensemble", "drive_final"),
+    for mod, name in [("jaxsleigh.studies.simulate", "drive_saving"), ("jaxsleigh.studies.ensemble", "drive_final"),
                       ("jaxsleigh.tuning.optimizer", "make_training_set"), ("jaxsleigh.plots.paper_run", "simulate"),
                       ("jaxsleigh.studies.bench", "run_ensemble")]:
         monkeypatch.setattr(importlib.import_module(mod), name, no_work)
