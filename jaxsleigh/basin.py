@@ -38,6 +38,7 @@ from typing import Any, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from .config import reject_traced
 from .ensemble import run_ensemble
 from .io import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from .io import parse_number as _number
@@ -474,6 +475,7 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
     Returns:
       `BasinResult` (``None`` with ``shard``).
     """
+    reject_traced("run_basin", **locals())    # first: a NumPy front, neither jittable nor differentiable
     import jax
 
     if not isinstance(starts, BasinStarts):
@@ -555,7 +557,8 @@ def save_basin(path, result: BasinResult) -> Path:
 
 def load_basin(path) -> BasinResult:
     """Read an ``.npz`` written by `save_basin` (or ``jaxsleigh basin``)."""
-    data = read_npz(path, "basin file (written by jaxsleigh basin / save_basin)", ("settings_json", "T_eps"))
+    data = read_npz(path, "basin file (written by jaxsleigh basin / save_basin)",
+                    ("settings_json", "ics") + _PER_START, kind="basin")
     settings = json.loads(str(data["settings_json"]))
     settings.pop("status_codes", None)
     ics = data["ics"]

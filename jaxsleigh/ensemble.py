@@ -27,7 +27,7 @@ import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_from_w
 from .checkpoint import ChunkStore
-from .config import solve_config
+from .config import reject_traced, solve_config
 from .observers import DEFAULT_OBSERVERS, collect
 from .engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from .params import PlantParams
@@ -219,6 +219,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     Returns:
       `EnsembleResult` (``None`` with ``shard``).
     """
+    reject_traced("run_ensemble", **locals())    # first: a NumPy front, neither jittable nor differentiable
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
                        check_passivity=check_passivity)

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .closed_loop import ClosedLoop, closed_loop_hamiltonian_w
-from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, solve_config  # noqa: F401
+from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
 from .control import control_w
 from .coordinates import w_to_q
 from .engine import check_ics, drive_saving, initial_w
@@ -107,6 +107,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         integrated. A bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in
         a `FlaggedStartsWarning`; the other rows are computed.
     """
+    reject_traced("simulate", **locals())    # first: a NumPy front, neither jittable nor differentiable
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64)
     horizon = cfg.horizon

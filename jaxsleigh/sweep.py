@@ -35,6 +35,7 @@ from typing import Any, Mapping, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, t_eps_percentiles
+from .config import reject_traced
 from .damping import CoulombDamping, ViscousDamping, damping_from_name
 from .params import Gains, PlantParams
 from .status import NOT_INTEGRATED, Status, describe
@@ -352,6 +353,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     Returns:
       `SweepResult` (``None`` with ``shard``).
     """
+    reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
     import jax
 
     from .config import plant_to_dict
@@ -458,7 +460,9 @@ def load_sweep(path) -> SweepResult:
     from .basin import _starts_from_spec
     from .io import read_npz
 
-    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)", ("settings_json", "values"))
+    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)",
+                 ("settings_json", "values", "names", "grid_shape", "ics", "T_eps", "status", "n_steps",
+                  "min_abs_theta", "Hd0"), kind="sweep")
     settings = json.loads(str(d["settings_json"]))
     settings.pop("status_codes", None)
     axes = tuple(parse_param(a) for a in settings["sweep"]["axes"])
