@@ -437,6 +437,17 @@ class BasinResult(NamedTuple):
             "T_eps_mean": float(conv_t.mean()) if conv_t.size else math.nan,
         }
 
+    def __repr__(self) -> str:
+        # a summary, not every array (see `describe` for two lines, `summary` for a dict)
+        from .ensemble import summary_repr
+
+        st = self.starts
+        how = (f"grid {' x '.join(str(n) for n in st.shape)} over {', '.join(st.axes) or 'one point'}"
+               if st.kind == "grid" else f"{st.kind}")
+        return summary_repr("BasinResult", self, status=self.status, T_eps=self.T_eps, Hd0=self.Hd0,
+                            u_energy=self.u_energy, head=f" starts, {how}",
+                            extra=(f"fraction {self.fraction:.4f} +- {self.fraction_se:.4f} (binomial s.e.)",))
+
     def describe(self) -> str:
         """Two lines for humans: counts, fraction and T_eps percentiles."""
         d = self.summary()

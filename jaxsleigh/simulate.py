@@ -54,6 +54,17 @@ class Solution(NamedTuple):
     settings: dict
     effort: Optional[dict] = None
 
+    def __repr__(self) -> str:
+        # a summary, not every trajectory
+        from .ensemble import summary_repr
+
+        eff = self.effort or {}
+        nan = np.full(np.shape(self.status), np.nan)
+        Hd = np.asarray(self.Hd, np.float64)
+        return summary_repr("Solution", self, status=self.status, T_eps=eff.get("T_eps", nan),
+                            Hd0=Hd[:, 0] if Hd.ndim == 2 and Hd.shape[1] else None, u_energy=eff.get("u_energy"),
+                            head=f" trajectories, {np.size(self.t)} saved times")
+
 
 @jax.jit
 def _outputs(yw, args: ClosedLoop):

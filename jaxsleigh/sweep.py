@@ -286,6 +286,20 @@ class SweepResult(NamedTuple):
         codes = np.array(sorted(int(s) for s in Status), np.int32)
         return codes, (self.status[..., None] == codes).sum(axis=1).astype(np.int64)
 
+    def __repr__(self) -> str:
+        # a summary, not every (P, N) array (see `table` for one line per value set)
+        from .ensemble import summary_repr
+
+        P, N = np.shape(self.status)[:2] if np.ndim(self.status) == 2 else (len(self.values), 0)
+        S = self.fraction
+        ranges = ", ".join(f"{n} {np.nanmin(self.values[:, i]):.4g}..{np.nanmax(self.values[:, i]):.4g}"
+                           for i, n in enumerate(self.names)) if np.size(self.values) else "none"
+        fr = (f"fraction converged per value set: min {np.nanmin(S):.4f}, max {np.nanmax(S):.4f}"
+              if np.isfinite(S).any() else "fraction converged per value set: no valid starts")
+        return summary_repr("SweepResult", self, status=self.status, T_eps=self.T_eps, Hd0=self.Hd0,
+                            u_energy=self.effort.get("u_energy"),
+                            head=f" rows = {P} value sets x {N} starts; swept {ranges}", extra=(fr,))
+
     def table(self) -> str:
         """One line per value set: the values, fraction +- s.e., median T_eps, failures and (when
         recorded) the median control energy of the converged starts."""
