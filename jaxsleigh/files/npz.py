@@ -14,12 +14,46 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
-           "settings_arrays", "write_npz_deterministic", "read_npz"]
+           "settings_arrays", "write_npz_deterministic", "read_npz", "npz_kind", "NPZ_KINDS"]
 
 
 def npz_path(path) -> Path:
+    """Where a writer puts ``path``: as given when it ends in ``.npz``, else with ``.npz`` appended.
+    (Readers do not append to a name with another extension, see `read_npz`.)"""
     p = Path(path)
     return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+
+
+#: The result files jaxsleigh writes: kind -> (keys that only that kind has, what it is, its reader).
+NPZ_KINDS = {
+    "basin": (("T_eps", "Hd_final", "valid", "converged"), "a basin result",
+              "jaxsleigh.load_basin"),
+    "sweep": (("values", "names", "status_counts"), "a sweep result", "jaxsleigh.load_sweep"),
+    "simulation": (("t", "q", "u", "Hd"), "a simulation (jaxsleigh simulate / paper)",
+                   "jaxsleigh.plotting.load_solution"),
+}
+
+
+def npz_kind(keys) -> Optional[str]:
+    """Which of `NPZ_KINDS` a result file with these keys is (``None``: none of them)."""
+    keys = set(keys)
+    for kind, (marks, _, _) in NPZ_KINDS.items():
+        if "settings_json" in keys and all(k in keys for k in marks):
+            return kind
+    return None
+
+
+def _npz_to_read(path, what: str) -> Path:
+    """The file a reader opens: ``path`` itself when it ends in ``.npz`` or exists; ``path + '.npz'``
+    when that exists or ``path`` has no extension (the writers append it); else a ``ValueError``.
+    A name with another extension (``run.json``) never becomes ``run.json.npz`` in a message."""
+    p = Path(path)
+    if p.suffix == ".npz" or p.exists():
+        return p
+    alt = p.with_name(p.name + ".npz")
+    if alt.is_file() or not p.suffix:
+        return alt
+    raise ValueError(f"{str(path)!r} not found; the path must be a .npz written by jaxsleigh: give the {what}")
 
 
 def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Path:
@@ -97,18 +131,37 @@ def write_npz_deterministic(path, arrays: dict) -> Path:
     return atomic_write(path, write)
 
 
-def read_npz(path, what: str, required=()) -> dict:
+def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dict:
     """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
-    or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``)."""
+    or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``).
+
+    ``kind`` (a key of `NPZ_KINDS`): the file must be that kind of result; a result of another
+    kind is refused with its name and the function that reads it ("x.npz is a sweep result; read it
+    with jaxsleigh.load_sweep").
+    """
     import zipfile
 
+    p = _npz_to_read(path, what)
+    if p.is_dir():
+        raise ValueError(f"{str(p)!r} is a folder; the path must be a .npz written by jaxsleigh: give the {what}")
     try:
-        with np.load(npz_path(path), allow_pickle=False) as z:
+        with np.load(p, allow_pickle=False) as z:
+            if not hasattr(z, "files"):        # a .npy array, not an archive of named arrays
+                raise ValueError("a single .npy array, not a .npz archive")
             data = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise ValueError(f"{str(p)!r} not found; give the {what}") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise ValueError(f"cannot read {str(path)!r} ({type(e).__name__}: {e}); give a {what}") from None
-    if any(k not in data for k in required):
-        raise ValueError(f"{str(path)!r} is not a {what}")
+        raise ValueError(f"cannot read {str(p)!r} ({type(e).__name__}: {e}); the path must be a .npz written by "
+                         f"jaxsleigh: give the {what}") from None
+    found = npz_kind(data)
+    if kind is not None and found is not None and found != kind:
+        _, name, reader = NPZ_KINDS[found]
+        raise ValueError(f"{str(p)!r} is {name}, not a {what}; read it with {reader}")
+    missing = [k for k in required if k not in data]
+    if missing:
+        keys = ", ".join(sorted(data)[:12]) + (", ..." if len(data) > 12 else "")
+        raise ValueError(f"{str(p)!r} is not a {what}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
     return data
 
 

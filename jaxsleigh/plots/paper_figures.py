@@ -57,8 +57,10 @@ def load_solution(path) -> SimpleNamespace:
     Returns a namespace with ``t, q, p, u, Hd, status, n_steps, settings`` (``settings`` decoded
     from ``settings_json``; it also holds ``ics`` and ``command``).
     """
-    with np.load(Path(path), allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
+    from ..files.npz import read_npz
+
+    data = read_npz(path, "simulation file (written by jaxsleigh simulate / paper)",
+                    ("t", "q", "p", "u", "Hd", "status"), kind="simulation")
     settings = json.loads(str(data["settings_json"])) if "settings_json" in data else {}
     return SimpleNamespace(t=data["t"], q=data["q"], p=data["p"], u=data["u"], Hd=data["Hd"],
                            status=data["status"], n_steps=data.get("n_steps"), settings=settings)

@@ -38,6 +38,7 @@ from typing import Any, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from .config import reject_traced
 from .ensemble import run_ensemble
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from ..files.npz import parse_number as _number
@@ -436,6 +437,17 @@ class BasinResult(NamedTuple):
             "T_eps_mean": float(conv_t.mean()) if conv_t.size else math.nan,
         }
 
+    def __repr__(self) -> str:
+        # a summary, not every array (see `describe` for two lines, `summary` for a dict)
+        from .ensemble import summary_repr
+
+        st = self.starts
+        how = (f"grid {' x '.join(str(n) for n in st.shape)} over {', '.join(st.axes) or 'one point'}"
+               if st.kind == "grid" else f"{st.kind}")
+        return summary_repr("BasinResult", self, status=self.status, T_eps=self.T_eps, Hd0=self.Hd0,
+                            u_energy=self.u_energy, head=f" starts, {how}",
+                            extra=(f"fraction {self.fraction:.4f} +- {self.fraction_se:.4f} (binomial s.e.)",))
+
     def describe(self) -> str:
         """Two lines for humans: counts, fraction and T_eps percentiles."""
         d = self.summary()
@@ -476,6 +488,7 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
     Returns:
       `BasinResult` (``None`` with ``shard``).
     """
+    reject_traced("run_basin", **locals())    # first: a NumPy front, neither jittable nor differentiable
     import jax
 
     if not isinstance(starts, BasinStarts):
@@ -557,7 +570,8 @@ def save_basin(path, result: BasinResult) -> Path:
 
 def load_basin(path) -> BasinResult:
     """Read an ``.npz`` written by `save_basin` (or ``jaxsleigh basin``)."""
-    data = read_npz(path, "basin file (written by jaxsleigh basin / save_basin)", ("settings_json", "T_eps"))
+    data = read_npz(path, "basin file (written by jaxsleigh basin / save_basin)",
+                    ("settings_json", "ics") + _PER_START, kind="basin")
     settings = json.loads(str(data["settings_json"]))
     settings.pop("status_codes", None)
     ics = data["ics"]

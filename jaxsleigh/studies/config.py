@@ -18,7 +18,8 @@ from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from ..validate import INT32_MAX, real, whole
 
-__all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict"]
+__all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict",
+           "reject_traced"]
 
 
 
@@ -84,6 +85,38 @@ def plant_to_dict(plant: PlantParams) -> dict:
             if hasattr(d, "_asdict") else repr(d)}
 
 
+#: Where to differentiate or jit instead of the NumPy-returning fronts (named in `reject_traced`'s message).
+DIFFERENTIABLE_PATHS = ("jaxsleigh.tuning.make_value_and_grad (the jitted loss and gradient through the library's "
+                        "adaptive RK4) or jaxsleigh.tuning.soft_convergence (its smooth surrogate of the convergence "
+                        "time, a JAX function of the gains), or integrate jaxsleigh.vector_field in diffrax "
+                        "(docs/how-to/interop.md, 'Differentiate your own loss')")
+
+
+def reject_traced(front: str, **inputs) -> None:
+    """Refuse JAX tracers among a front's inputs: ``TypeError`` naming the input and the differentiable path.
+
+    `jaxsleigh.simulate`, `run_ensemble`, `run_basin` and `sweep` drive the integrator from
+    Python and return NumPy arrays: under ``jax.jit``, ``jax.grad`` or ``jax.vmap`` they would fail
+    deep inside with ``TracerArrayConversionError`` or a misleading "must be a real number". Every
+    front calls this first, on everything it was given (``front``: its name in the message).
+    """
+    import jax
+
+    for name, value in inputs.items():
+        try:
+            leaves = jax.tree_util.tree_flatten_with_path(value)[0]
+        except Exception:                      # noqa: BLE001 - not a pytree: nothing traced inside
+            continue
+        for path, leaf in leaves:
+            if isinstance(leaf, jax.core.Tracer):
+                where = name + jax.tree_util.keystr(path)      # e.g. "gains.k", "ics[0]"
+                raise TypeError(
+                    f"{front}() got a JAX tracer in {where} ({type(leaf).__name__}): it was called inside jax.jit, "
+                    f"jax.grad or jax.vmap, but it integrates from Python and returns NumPy arrays, so it is neither "
+                    f"jittable nor differentiable. Call it outside the transformation with concrete numbers; to "
+                    f"differentiate, use {DIFFERENTIABLE_PATHS}")
+
+
 def _flag(name: str, flags: Optional[dict]) -> str:
     return (flags or {}).get(name, name)
 
@@ -100,6 +133,8 @@ def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, 
     (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
     flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
     """
+    reject_traced("solve_config", plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every,
+                  rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, eps=eps)
     f = lambda n: _flag(n, flags)  # noqa: E731
     if method not in METHODS:
         raise ValueError(f"{f('method')} must be one of {', '.join(METHODS)}, got {method!r}")

@@ -30,7 +30,7 @@ import numpy as np
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from ..files.chunks import ChunkStore, starts_digest
-from .config import solve_config
+from .config import reject_traced, solve_config
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from ..model.params import PlantParams
@@ -91,6 +91,68 @@ class EnsembleResult(NamedTuple):
     def converged(self) -> np.ndarray:
         """Boolean (N,): OK and settled within the horizon."""
         return (self.status == Status.OK) & np.isfinite(self.T_eps)
+
+    def __repr__(self) -> str:
+        # a summary, not every array (print(result) of 10^6 starts would dump them all)
+        return summary_repr("EnsembleResult", self, status=self.status, T_eps=self.T_eps, Hd0=self.Hd0,
+                            u_energy=self.u_energy)
+
+
+def _num(v) -> str:
+    """A setting for a summary: ``'0.1'``, or ``'per trajectory'`` for a per-lane record."""
+    return f"{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else "per trajectory"
+
+
+def _quantiles(values, mask=None, unit: str = "") -> str:
+    """``'p10 1.2, median 3.4, p90 5.6 s'`` of the finite ``values`` (where ``mask``); ``'none'``."""
+    v = np.asarray(values, np.float64).ravel()
+    keep = np.isfinite(v) if mask is None else np.isfinite(v) & np.asarray(mask, bool).ravel()
+    if not keep.any():
+        return "none"
+    p10, p50, p90 = np.percentile(v[keep], (10.0, 50.0, 90.0))
+    return f"p10 {p10:.4g}, median {p50:.4g}, p90 {p90:.4g}{unit}"
+
+
+def summary_repr(name: str, result, *, status, T_eps, Hd0=None, u_energy=None, head: str = "",
+                 extra: tuple = ()) -> str:
+    """The summary that ``repr`` / ``print`` of a result shows instead of every array: N, status counts,
+    converged fraction, T_eps median, energy quantiles, the settings' essentials and the arrays' shapes.
+
+    Args:
+      name: the class name; result: the result (a NamedTuple); status, T_eps: its per-start arrays
+        (any shape); Hd0, u_energy: optional per-start energies; head: text after ``N = ...``;
+        extra: further lines (without indent) after the convergence line.
+    """
+    from ..status import NOT_INTEGRATED, counts_in_words
+
+    st = np.asarray(status).ravel()
+    t = np.asarray(T_eps, np.float64).ravel()
+    valid = ~np.isin(st, [int(c) for c in NOT_INTEGRATED])
+    conv = (st == Status.OK) & np.isfinite(t)
+    n_valid = int(valid.sum())
+    frac = f"{conv.sum() / n_valid:.4f}" if n_valid else "nan"
+    med = f"{np.median(t[conv]):.4g} s" if conv.any() else "none converged"
+    s = result.settings or {}
+    g, pl = s.get("gains") or {}, s.get("plant") or {}
+    lines = [f"{name}(N = {st.size}{head}: {counts_in_words(st) if st.size else 'empty'}",
+             f"  converged (|q| <= eps within t_final): {int(conv.sum())}/{n_valid} valid = {frac}; "
+             f"T_eps median {med}", *("  " + e for e in extra)]
+    if Hd0 is not None:
+        lines.append(f"  H_d(0) [J]: {_quantiles(Hd0, valid)}")
+    if u_energy is not None:
+        lines.append(f"  control energy int |u|^2 dt of the converged: {_quantiles(u_energy, conv)}")
+    L = g.get("L")
+    gains = (f"L = {[round(float(x), 4) for x in L]}, k = {_num(g.get('k'))}"
+             if isinstance(L, (list, tuple)) else "per trajectory") if g else "not recorded"
+    plant = (f"m = {_num(pl.get('m'))}, J = {_num(pl.get('J'))}, l = {_num(pl.get('l'))}, "
+             f"{str(pl.get('damping', '?')).replace('Damping', '').lower()} damping") if pl else "not recorded"
+    lines.append(f"  settings: {s.get('dtype', '?')}, {s.get('method', '?')}, t_final = {_num(s.get('t_final'))} s, "
+                 f"dt = {_num(s.get('dt'))} s" + (f", eps = {_num(s['eps'])}" if "eps" in s else "")
+                 + f"; gains {gains}; plant {plant}")
+    arrays = [f"{f} {tuple(np.shape(v))}" for f, v in zip(result._fields, result)
+              if isinstance(v, np.ndarray)]
+    lines.append("  arrays: " + ", ".join(arrays) + ")")
+    return "\n".join(lines)
 
 
 @jax.jit
@@ -228,6 +290,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     Returns:
       `EnsembleResult` (``None`` with ``shard``).
     """
+    reject_traced("run_ensemble", **locals())    # first: a NumPy front, neither jittable nor differentiable
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
                        check_passivity=check_passivity, controller=controller)

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
-from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, solve_config  # noqa: F401
+from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
 from ..model.paper_law import control_w
 from ..model.coordinates import w_to_q
 from ..integrate.engine import check_ics, drive_saving, initial_w
@@ -55,6 +55,17 @@ class Solution(NamedTuple):
     n_rejected: np.ndarray
     settings: dict
     effort: Optional[dict] = None
+
+    def __repr__(self) -> str:
+        # a summary, not every trajectory
+        from .ensemble import summary_repr
+
+        eff = self.effort or {}
+        nan = np.full(np.shape(self.status), np.nan)
+        Hd = np.asarray(self.Hd, np.float64)
+        return summary_repr("Solution", self, status=self.status, T_eps=eff.get("T_eps", nan),
+                            Hd0=Hd[:, 0] if Hd.ndim == 2 and Hd.shape[1] else None, u_energy=eff.get("u_energy"),
+                            head=f" trajectories, {np.size(self.t)} saved times")
 
 
 @functools.partial(jax.jit, static_argnames=("chart",))
@@ -115,6 +126,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         integrated. A bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in
         a `FlaggedStartsWarning`; the other rows are computed.
     """
+    reject_traced("simulate", **locals())    # first: a NumPy front, neither jittable nor differentiable
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, controller=controller)
     horizon = cfg.horizon

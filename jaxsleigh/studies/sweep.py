@@ -39,6 +39,7 @@ from ..model.damping import CoulombDamping, ViscousDamping, damping_from_name
 from ..model.params import Gains, PlantParams
 from ..status import NOT_INTEGRATED, Status, describe
 from ..validate import check_memory
+from .config import reject_traced
 
 __all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
            "save_sweep", "load_sweep"]
@@ -305,6 +306,20 @@ class SweepResult(NamedTuple):
         codes = np.array(sorted(int(s) for s in Status), np.int32)
         return codes, (self.status[..., None] == codes).sum(axis=1).astype(np.int64)
 
+    def __repr__(self) -> str:
+        # a summary, not every (P, N) array (see `table` for one line per value set)
+        from .ensemble import summary_repr
+
+        P, N = np.shape(self.status)[:2] if np.ndim(self.status) == 2 else (len(self.values), 0)
+        S = self.fraction
+        ranges = ", ".join(f"{n} {np.nanmin(self.values[:, i]):.4g}..{np.nanmax(self.values[:, i]):.4g}"
+                           for i, n in enumerate(self.names)) if np.size(self.values) else "none"
+        fr = (f"fraction converged per value set: min {np.nanmin(S):.4f}, max {np.nanmax(S):.4f}"
+              if np.isfinite(S).any() else "fraction converged per value set: no valid starts")
+        return summary_repr("SweepResult", self, status=self.status, T_eps=self.T_eps, Hd0=self.Hd0,
+                            u_energy=self.effort.get("u_energy"),
+                            head=f" rows = {P} value sets x {N} starts; swept {ranges}", extra=(fr,))
+
     def table(self) -> str:
         """One line per value set: the values, fraction +- s.e., median T_eps, failures and (when
         recorded) the median control energy of the converged starts."""
@@ -372,6 +387,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     Returns:
       `SweepResult` (``None`` with ``shard``).
     """
+    reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
     import jax
 
     from .config import plant_to_dict
@@ -480,7 +496,9 @@ def load_sweep(path) -> SweepResult:
     from .basin import _starts_from_spec
     from ..files.npz import read_npz
 
-    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)", ("settings_json", "values"))
+    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)",
+                 ("settings_json", "values", "names", "grid_shape", "ics", "T_eps", "status", "n_steps",
+                  "min_abs_theta", "Hd0"), kind="sweep")
     settings = json.loads(str(d["settings_json"]))
     settings.pop("status_codes", None)
     axes = tuple(parse_param(a) for a in settings["sweep"]["axes"])
