@@ -86,10 +86,9 @@ def plant_to_dict(plant: PlantParams) -> dict:
 
 
 #: Where to differentiate or jit instead of the NumPy-returning fronts (named in `reject_traced`'s message).
-DIFFERENTIABLE_PATHS = ("jaxsleigh.tuning.make_value_and_grad (the jitted loss and gradient through the library's "
-                        "adaptive RK4) or jaxsleigh.tuning.soft_convergence (its smooth surrogate of the convergence "
-                        "time, a JAX function of the gains), or integrate jaxsleigh.vector_field in diffrax "
-                        "(docs/how-to/interop.md, 'Differentiate your own loss')")
+DIFFERENTIABLE_PATHS = ("jaxsleigh.solve (one start as a pure JAX function of the controller, the plant and the "
+                        "start: jit, vmap, grad and jacfwd work through it), or jaxsleigh.tuning.soft_convergence "
+                        "(the tuner's smooth surrogate of the convergence time)")
 
 
 def reject_traced(front: str, **inputs) -> None:
