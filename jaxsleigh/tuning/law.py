@@ -18,7 +18,7 @@ import optax
 
 from ..model.charts import chart_for
 from ..model.controller import as_controller, is_paper_law, law_leaf_names
-from ..integrate.engine import check_ics
+from ..integrate.engine import check_ics, initial_w
 from ..model.params import PlantParams, as_plant
 from ..status import Status
 from .objective import LossConfig, loss_from_lanes, soft_convergence
@@ -85,7 +85,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     n_attempts = int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
-        y0 = jnp.asarray(np.asarray(jax.vmap(chart.to_chart)(jnp.asarray(ics5, jnp.float64))), dtype)
+        y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64
         leaves, tree, names, idx = _split(law, tune)
         params = [jnp.asarray(leaves[i], dtype) for i in idx]
 
