@@ -191,7 +191,7 @@ def _check(args) -> dict:
     out = npz_path(args.out)
     chunks = _chunk_dir(out)
     side = _sidecar(out)
-    check_outputs(out, side, args.plot, folders=[chunks])
+    check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
     have = sorted(chunks.glob("chunk_*.npz")) if chunks.is_dir() else []
     if have and not args.resume:
         raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; "

@@ -179,6 +179,8 @@ def _cmd_tune(args) -> int:
         raise ValueError("--population and --energy-margin belong to --search; add --search or drop them")
     if args.pareto is not None:
         return _cmd_pareto(args)
+    if args.plot is not None:         # refused now, not silently ignored after the run
+        raise ValueError("--plot draws the Pareto front; add --pareto N, or drop --plot")
     names = tuning.parse_tune(args.tune)
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
@@ -333,7 +335,9 @@ def _cmd_pareto(args) -> int:
         raise ValueError("--pareto computes its own budgets and has no checkpoint or history file: drop --robust, "
                          "--resume, --history and --energy-budget")
     plant, gains0 = model_from_args(args)
-    check_outputs(args.out, args.plot)
+    if args.plot and not args.validate:
+        raise ValueError("--plot draws the front validated on the held-out starts; drop --validate 0 or drop --plot")
+    check_outputs(args.out, figures={"--plot": args.plot})
     names = tuning.parse_tune(args.tune)
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)
