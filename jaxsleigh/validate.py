@@ -32,6 +32,12 @@ def real(name: str, value, *, positive: bool = False, nonnegative: bool = False,
          maximum: Optional[float] = None) -> float:
     """A finite real number (a Python or NumPy int/float; not a bool, complex or string)."""
     ex = _example(name, example)
+    if not isinstance(value, (np.ndarray, numbers.Real, str)) and getattr(value, "shape", None) == () \
+            and hasattr(value, "__array__"):
+        try:                                   # a concrete 0-d jax.Array is a number too
+            value = np.asarray(value)
+        except Exception:                      # noqa: BLE001 - a tracer: refused below, by its type
+            pass
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or isinstance(value, str):
         if isinstance(value, np.ndarray) and value.ndim == 0 and np.issubdtype(value.dtype, np.number) \
                 and not np.issubdtype(value.dtype, np.complexfloating) and value.dtype != bool:

@@ -191,7 +191,7 @@ def _check(args) -> dict:
     out = npz_path(args.out)
     chunks = _chunk_dir(out)
     side = _sidecar(out)
-    check_outputs(out, side, args.plot, folders=[chunks])
+    check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
     lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
     return {"args": args, "plant": plant, "gains": gains, "starts": starts, "out": out, "chunks": chunks,
             "side": side, "had": len(have), "load_start": load_average(), "t0": time.perf_counter(), "lock": lock}

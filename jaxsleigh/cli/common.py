@@ -31,6 +31,7 @@ __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "E
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
+           "check_figure", "figure_formats",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
            "add_distributed_options", "run_distributed"]
 
@@ -207,17 +208,50 @@ def add_progress_option(parser) -> None:
 # outputs, warnings, statuses
 # ---------------------------------------------------------------------------------------------
 
-def check_outputs(*paths, folders=()) -> None:
+def check_outputs(*paths, folders=(), named=None, figures=None) -> None:
     """Before any work: every output file can be written (its folder is created if needed) and
-    every output folder is writable. Raises ``ValueError`` naming the path."""
+    every output folder is writable. Raises ``ValueError`` naming the path.
+
+    ``named`` (``{flag: path}``): output files named by their flag in the messages (``--out``);
+    ``figures`` (``{flag: path}``): figure files (``--plot``), whose extension must also be a format
+    matplotlib writes (`check_figure`). ``None`` paths are skipped.
+    """
     from ..validate import writable_dir, writable_path
 
+    for flag, p in (figures or {}).items():
+        if p is not None:
+            check_figure(p, flag)
+    for flag, p in (named or {}).items():
+        if p is not None:
+            writable_path(p, what=f"{flag} file")
     for p in paths:
         if p is not None:
             writable_path(p)
     for d in folders:
         if d is not None:
             writable_dir(d)
+
+
+def figure_formats() -> list:
+    """The file extensions matplotlib saves figures as (``png``, ``pdf``, ``svg``, ...)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return sorted(FigureCanvasBase.get_supported_filetypes())
+
+
+def check_figure(path, flag: str = "--plot") -> Path:
+    """Before any work: the figure file ``path`` (given with ``flag``) has an extension matplotlib
+    writes (it picks the format from it) and can be written. Raises ``ValueError`` naming ``flag``."""
+    from ..validate import writable_path
+
+    p = Path(path)
+    ext = p.suffix.lower().lstrip(".")
+    formats = figure_formats()
+    if ext not in formats:
+        got = f"the extension .{ext}" if ext else "no extension"
+        raise ValueError(f"{flag} {str(path)!r} has {got}, which is not a figure format; name the file with one of "
+                         f".{', .'.join(formats)} (e.g. {flag} {str(p.with_suffix('.png'))!r})")
+    return writable_path(p, what=f"{flag} file")
 
 
 def report_warnings(caught, *, skip=()) -> None:

@@ -56,7 +56,7 @@ def _cmd_simulate(args) -> int:
     solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, save_every=args.save_every,
                  method=args.method, max_steps=args.max_steps, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
-    check_outputs(npz_path(args.out))
+    check_outputs(named={"--out": npz_path(args.out)})
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -144,7 +144,7 @@ def _check(args) -> dict:
                  max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
     out = npz_path(args.out)
     chunks, side = _chunk_dir(out), _sidecar(out)
-    check_outputs(out, side, args.plot, folders=[chunks])
+    check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
     lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
     return {"args": args, "axes": axes, "labels": labels, "plant": plant, "gains": gains, "starts": starts,
             "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": load_average(),

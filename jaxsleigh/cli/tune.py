@@ -180,6 +180,8 @@ def _cmd_tune(args) -> int:
         raise ValueError("--population and --energy-margin belong to --search; add --search or drop them")
     if args.pareto is not None:
         return _cmd_pareto(args)
+    if args.plot is not None:         # refused now, not silently ignored after the run
+        raise ValueError("--plot draws the Pareto front; add --pareto N, or drop --plot")
     names = tuning.parse_tune(args.tune)
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
@@ -376,7 +378,9 @@ def _cmd_pareto(args) -> int:
         raise ValueError("--resume continues a --front-method warm front (vmap computes every point at once); "
                          "drop --resume")
     plant, gains0 = model_from_args(args)
-    check_outputs(args.out, args.plot)
+    if args.plot and not args.validate:
+        raise ValueError("--plot draws the front validated on the held-out starts; drop --validate 0 or drop --plot")
+    check_outputs(args.out, figures={"--plot": args.plot})
     earlier = None
     if Path(args.out).is_file():
         try:

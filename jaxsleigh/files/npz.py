@@ -30,7 +30,7 @@ NPZ_KINDS = {
               "jaxsleigh.load_basin"),
     "sweep": (("values", "names", "status_counts"), "a sweep result", "jaxsleigh.load_sweep"),
     "simulation": (("t", "q", "u", "Hd"), "a simulation (jaxsleigh simulate / paper)",
-                   "jaxsleigh.plotting.load_solution"),
+                   "jaxsleigh.plots.paper_figures.load_solution"),
 }
 
 
@@ -145,9 +145,10 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
     if p.is_dir():
         raise ValueError(f"{str(p)!r} is a folder; the path must be a .npz written by jaxsleigh: give the {what}")
     try:
-        with np.load(p, allow_pickle=False) as z:
-            if not hasattr(z, "files"):        # a .npy array, not an archive of named arrays
-                raise ValueError("a single .npy array, not a .npz archive")
+        z = np.load(p, allow_pickle=False)
+        if not hasattr(z, "files"):            # a .npy array, not an archive of named arrays
+            raise ValueError("a single .npy array, not a .npz archive")
+        with z:
             data = {k: z[k] for k in z.files}
     except FileNotFoundError:
         raise ValueError(f"{str(p)!r} not found; give the {what}") from None
