@@ -1,6 +1,6 @@
 """Golden outputs: the numbers of a handful of runs (simulate in float32 and float64, an ensemble with
-the default observers, the plain fixed-step path, a basin, a sweep) are those recorded before the
-upper floors were rebuilt (``tests/golden/make_golden.py``, recorded at commit 2fa58a2).
+the default observers, the plain fixed-step path, a basin, a sweep, three iterations of the gradient
+tuner) are those recorded before the upper floors were rebuilt (``tests/golden/make_golden.py``, recorded at commit 2fa58a2).
 
 Integers (status, step counts) must be equal; floating-point results equal to a few ulps (on the machine
 that recorded them they are bitwise equal; another CPU may round transcendental functions differently).

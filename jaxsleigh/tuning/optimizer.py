@@ -30,7 +30,8 @@ from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_p
 from .probes import check, hardest, probe
 from .starts import PlantDistribution, UniformStarts, draw_starts, guard_starts, plant_groups
 
-__all__ = ["TuneConfig", "TuneHistory", "TuneResult", "BacktrackState", "backtracking", "make_optimizer", "tune"]
+__all__ = ["CandidateTrack", "TuneConfig", "TuneHistory", "TuneResult", "BacktrackState", "backtracking",
+           "make_optimizer", "tune"]
 
 
 class TuneConfig(NamedTuple):
@@ -254,6 +255,92 @@ def _validate_number(name, v, *, integer=False, positive=True):
     return x
 
 
+class _Context(NamedTuple):
+    """What the candidate bookkeeping of one tuning run needs to know (fixed for the run)."""
+
+    config: Any
+    loss: Any
+    ics: Any
+    groups: Any
+    frozen: Any
+    d_floor: float
+    g0: Any
+    names: tuple
+    x64: bool
+
+
+class CandidateTrack:
+    """The tuner's bookkeeping of one optimisation run, shared by `tune` and the vmapped Pareto front.
+
+    After every gradient evaluation `assess` decides whether the candidate is valid (every lane OK and
+    finite, then the integration-cost probe), records its row of the history, keeps the best candidate
+    (feasible ones by their soft loss, infeasible ones after them by their violation) and takes the dual
+    step of the augmented Lagrangian, \\(\\lambda \\leftarrow \\max(0, \\lambda + \\eta g)\\).
+    """
+
+    def __init__(self, lam: float, budgeted: bool):
+        self.lam, self.budgeted = float(lam), bool(budgeted)
+        self.probes, self.n_accepted, self.rejections = None, 0, 0
+        self.best, self.valid_points, self.rows = None, [], []
+
+    def assess(self, it: int, value: float, gnorm: float, valid: bool, trainable, aux, scale: float, ctx: _Context,
+               wall: float, invalid_start: Callable) -> bool:
+        """Record candidate ``it``; returns whether it is valid. ``invalid_start(aux, value, gnorm, probe_attempts)``
+        gives the message raised when the very first candidate is not valid."""
+        config = ctx.config
+        probe_attempts, probed = float("nan"), valid
+        if valid and config.probe:
+            g = gains_numpy(trainable, ctx.frozen, ctx.d_floor, ctx.g0, ctx.names)
+            refresh = self.probes is None or self.n_accepted % max(1, int(config.probe_refresh)) == 0
+            sets = [(ctx.ics[idx], p0) for idx, _, p0 in ctx.groups] if refresh else self.probes
+            valid, attempts = probe(g, sets, float(ctx.loss.probe_t_final), int(config.probe_budget), ctx.x64)
+            probe_attempts = float(max(a.max() for a in attempts))
+            if refresh and valid:
+                self.probes = hardest(sets, attempts, int(config.probe))
+        row = _row(value, gnorm, valid, trainable, ctx.frozen, aux, scale, ctx.d_floor, wall)
+        row.update(probe_attempts=probe_attempts, probe_active=bool(probed and config.probe and not valid),
+                   multiplier=self.lam, feasible=bool(valid and row["constraint"] <= 0))
+        if valid:
+            self.rejections = 0
+            # feasible candidates rank by f; infeasible ones after them, by their violation
+            score = row["soft_loss"] if row["feasible"] else _INFEASIBLE + row["constraint"]
+            if self.best is None or score < self.best[0]:
+                self.best = (score, it, trainable)
+            self.valid_points.append((score, it, trainable))
+            self.n_accepted += 1
+            if self.budgeted:         # dual step of the augmented Lagrangian
+                self.lam = max(0.0, self.lam + float(ctx.loss.dual_step) * row["constraint"])
+        else:
+            if self.n_accepted == 0:
+                raise ValueError(invalid_start(aux, value, gnorm, probe_attempts))
+            self.rejections += 1      # backtrack: the optimiser redoes the last valid step, half as long
+        row["best"] = self.best[0]
+        self.rows.append(row)
+        return valid
+
+    def history(self) -> "TuneHistory":
+        return TuneHistory(**{f: np.asarray([r[f] for r in self.rows]) for f in TuneHistory._fields})
+
+    def verify(self, ctx: _Context, checks, n: int):
+        """The best of the ``n`` best valid candidates that passes the accurate engine's check on ``checks``
+        (``n = 0``: the best, unchecked). Returns ``(candidate, gains, probe_at_result, why)``; ``candidate``
+        is ``None`` when none passed (``why`` says why the last one failed)."""
+        why = ""
+        for cand in sorted(self.valid_points, key=lambda p: p[0])[:max(1, int(n))]:
+            with jax.enable_x64(bool(ctx.x64)):
+                g = gains_numpy(cand[2], ctx.frozen, ctx.d_floor, ctx.g0, ctx.names)
+            if not n:
+                return cand, g, None, ""
+            attempts = []
+            why = check(g, checks, float(ctx.loss.probe_t_final), ctx.x64, attempts)
+            if not why:
+                most = int(max(a.max() for a in attempts[:len(ctx.groups)]))
+                pa = {"max_attempts_training_starts": most, "probe_budget": int(ctx.config.probe_budget),
+                      "active": bool(ctx.config.probe) and most > int(ctx.config.probe_budget)}
+                return cand, g, pa, ""
+        return None, None, None, why
+
+
 def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneConfig(),
          loss: LossConfig = LossConfig(), tune=None, plant: Optional[PlantParams] = None,
          robust: Optional[PlantDistribution] = None, guard=None, x64: bool = False,
@@ -314,10 +401,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
                                         float(config.final_lr))
         opt_state = opt.init(trainable)
         groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
-        probes, n_accepted = None, 0
-        rows, best, valid_points = [], None, []
-        rejections, it0 = 0, 0
-        lam, budgeted = float(loss.multiplier), math.isfinite(float(loss.energy_budget))
+        ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
+        track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
+        it0 = 0
         store = None
         if checkpoint is not None:
             store = TunerCheckpoint(checkpoint, tune_fingerprint(g0, names, config, loss, plant, robust, guard,
@@ -325,9 +411,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
             if resume:
                 st = store.load(trainable, opt_state, groups)
                 if st is not None:
-                    it0, trainable, opt_state, best, valid_points, rows, scalars, probes = st
-                    rejections, n_accepted = int(scalars["rejections"]), int(scalars["n_accepted"])
-                    lam = float(scalars["multiplier"])
+                    it0, trainable, opt_state, track.best, track.valid_points, track.rows, scalars, track.probes = st
+                    track.rejections, track.n_accepted = int(scalars["rejections"]), int(scalars["n_accepted"])
+                    track.lam = float(scalars["multiplier"])
             elif store.path.exists():
                 raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
                                  "resume=True (--resume) to continue it, or delete it to start afresh")
@@ -337,48 +423,21 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
             with _Bar(progress, steps) as bar:
                 bar.skip(it0)
                 for it in range(it0, steps):
-                    cfg = cfg._replace(multiplier=jnp.asarray(lam, dtype))
+                    cfg = cfg._replace(multiplier=jnp.asarray(track.lam, dtype))
                     (value, aux), grad = vg(trainable, frozen, data, cfg)
                     value = float(value)
                     gnorm = float(optax.tree.norm(grad))
-                    valid = bool(aux["valid"]) and math.isfinite(gnorm)
-                    probe_attempts, probed = float("nan"), valid
-                    if valid and config.probe:
-                        g = gains_numpy(trainable, frozen, d_floor, g0, names)
-                        refresh = probes is None or n_accepted % max(1, int(config.probe_refresh)) == 0
-                        sets = [(ics[idx], p0) for idx, _, p0 in groups] if refresh else probes
-                        valid, attempts = probe(g, sets, float(loss.probe_t_final), int(config.probe_budget), x64)
-                        probe_attempts = float(max(a.max() for a in attempts))
-                        if refresh and valid:
-                            probes = hardest(sets, attempts, int(config.probe))
-                    scale = float(opt_state.scale)
-                    row = _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor,
-                               time.perf_counter() - t_start)
-                    row["probe_attempts"] = probe_attempts
-                    row["probe_active"] = bool(probed and config.probe and not valid)
-                    row["multiplier"] = lam
-                    row["feasible"] = bool(valid and row["constraint"] <= 0)
-                    if valid:
-                        rejections = 0
-                        # feasible candidates rank by f; infeasible ones after them, by their violation
-                        score = row["soft_loss"] if row["feasible"] else _INFEASIBLE + row["constraint"]
-                        if best is None or score < best[0]:
-                            best = (score, it, trainable)
-                        valid_points.append((score, it, trainable))
-                        n_accepted += 1
-                        if budgeted:         # dual step of the augmented Lagrangian
-                            lam = max(0.0, lam + float(loss.dual_step) * row["constraint"])
-                    else:
-                        if n_accepted == 0:
-                            raise ValueError(_invalid_start_message(aux, value, gnorm, probe_attempts, config))
-                        rejections += 1     # backtrack: the wrapper redoes the last valid step, half as long
+                    valid = track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
+                                         float(opt_state.scale), ctx, time.perf_counter() - t_start,
+                                         lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
+                    row = track.rows[-1]
                     trainable, opt_state = step(opt, trainable, opt_state, grad, jnp.asarray(valid))
-                    row["best"] = best[0]
-                    rows.append(row)
-                    stop = rejections >= config.max_rejections or float(opt_state.scale) < config.min_scale
+                    stop = (track.rejections >= config.max_rejections
+                            or float(opt_state.scale) < config.min_scale)
                     if store is not None:
-                        store.save(it + 1 if not stop else steps, trainable, opt_state, best, valid_points, rows,
-                                   {"rejections": rejections, "n_accepted": n_accepted, "multiplier": lam}, probes)
+                        store.save(it + 1 if not stop else steps, trainable, opt_state, track.best, track.valid_points,
+                                   track.rows, {"rejections": track.rejections, "n_accepted": track.n_accepted,
+                                                "multiplier": track.lam}, track.probes)
                     bar.update(it, row)
                     if callback is not None:
                         callback(it, row)
@@ -386,16 +445,16 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
                         break
         except KeyboardInterrupt:
             partial = None
-            if best is not None:
-                history = TuneHistory(**{f: np.asarray([r[f] for r in rows]) for f in TuneHistory._fields})
-                partial = TuneResult(gains_numpy(best[2], frozen, d_floor, g0, names), g0, float(best[0]),
-                                     float(rows[0]["loss"]), int(best[1]), history,
-                                     {"interrupted": True, "verified_iteration": None, "iterations_run": len(rows),
+            if track.best is not None:
+                partial = TuneResult(gains_numpy(track.best[2], frozen, d_floor, g0, names), g0, float(track.best[0]),
+                                     float(track.rows[0]["loss"]), int(track.best[1]), track.history(),
+                                     {"interrupted": True, "verified_iteration": None, "iterations_run": len(track.rows),
                                       "dtype": "float64" if x64 else "float32", "tuned": list(names),
                                       "loss": {k: float(v) for k, v in loss._asdict().items()},
                                       "method": "interrupted; best valid candidate so far, not re-checked"})
             raise TuningInterrupted(partial, None if store is None else store.path) from None
-        history = TuneHistory(**{f: np.asarray([r[f] for r in rows]) for f in TuneHistory._fields})
+        history = track.history()
+        best = track.best
         best_gains = gains_numpy(best[2], frozen, d_floor, g0, names)
     verified, probe_at_result = None, None
     if config.verify:
@@ -403,25 +462,14 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         checks = [(ics[idx], p0) for idx, _, p0 in groups]
         if guard_ics.size:
             checks.append((guard_ics, groups[0][2]))
-        why = ""
-        for value, it, tr in sorted(valid_points, key=lambda p: p[0])[:int(config.verify)]:
-            with jax.enable_x64(bool(x64)):
-                g = gains_numpy(tr, frozen, d_floor, g0, names)
-            attempts = []
-            why = check(g, checks, float(loss.probe_t_final), x64, attempts)
-            if not why:
-                n_train = len(groups)
-                most = int(max(a.max() for a in attempts[:n_train]))
-                probe_at_result = {"max_attempts_training_starts": most, "probe_budget": int(config.probe_budget),
-                                   "active": bool(config.probe) and most > int(config.probe_budget)}
-            if not why:
-                best, best_gains, verified = (value, it, tr), g, it
-                break
-        if verified is None:
-            raise RuntimeError(f"none of the {min(len(valid_points), int(config.verify))} best valid candidates "
+        cand, g, probe_at_result, why = track.verify(ctx, checks, int(config.verify))
+        if cand is None:
+            raise RuntimeError(f"none of the {min(len(track.valid_points), int(config.verify))} best valid candidates "
                                f"passed the check with the accurate engine over {float(loss.probe_t_final):g} s on "
                                f"the training and guard starts (last: {why}); tune with a smaller learning rate, "
                                f"fewer steps or a smaller probe_budget")
+        best, best_gains, verified = cand, g, cand[1]
+    rows, lam, budgeted = track.rows, track.lam, track.budgeted
     settings = {
         "method": "gradient descent (optax Adam, clipped, warm-up + cosine, backtracking) on the soft convergence "
                   "time" + (f" subject to a geometric-mean control energy <= {float(loss.energy_budget):.4g} "

@@ -34,9 +34,8 @@ from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
 from .checkpoint import TuningInterrupted
-from .optimizer import _INFEASIBLE, TuneConfig, TuneHistory, _row, _step, make_optimizer, tune
-from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, split_params
-from .probes import check, hardest, probe
+from .optimizer import CandidateTrack, TuneConfig, TuneHistory, _Context, _step, make_optimizer, tune
+from .params import D_FLOOR, GainParams, gains_from_params, params_from_gains, parse_tune, split_params
 from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
 from .validation import Validation, validate, validation_dict
 
@@ -244,85 +243,45 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         opt_state = jax.vmap(opt.init)(trainable)
         stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: _step(opt, tr, st, gr, v)))
         groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
-        lam = np.full(nb, float(loss.multiplier))
-        best = [None] * nb
-        valid_points = [[] for _ in range(nb)]
-        rows = [[] for _ in range(nb)]
-        probes = [None] * nb
-        n_acc = np.zeros(nb, int)
-        rej = np.zeros(nb, int)
+        ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
+        tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
         alive = np.ones(nb, bool)
         t_start = time.perf_counter()
         evals = 0
         with Progress(progress, desc=f"front (vmap x{nb})") as bar:
             for it in range(config.steps):
+                lam = np.array([t.lam for t in tracks])
                 c = cfg._replace(energy_budget=jnp.asarray(budgets, dtype), multiplier=jnp.asarray(lam, dtype))
                 (values, aux), grads = vgb(trainable, frozen, data, c)
                 evals += int(alive.sum())
                 gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
                 ok = np.asarray(aux["valid"]) & np.isfinite(gn)
                 scales = np.asarray(opt_state.scale)
-                for b in range(nb):
+                for b, track in enumerate(tracks):
                     if not alive[b]:
                         ok[b] = False
                         continue
                     tr_b = jax.tree_util.tree_map(lambda x: x[b], trainable)
                     aux_b = jax.tree_util.tree_map(lambda x: x[b], aux)
-                    valid, probed, pa = bool(ok[b]), bool(ok[b]), float("nan")
-                    if valid and config.probe:
-                        g = gains_numpy(tr_b, frozen, d_floor, g0, names)
-                        refresh = probes[b] is None or n_acc[b] % max(1, int(config.probe_refresh)) == 0
-                        sets = [(ics[idx], p0) for idx, _, p0 in groups] if refresh else probes[b]
-                        valid, attempts = probe(g, sets, float(loss.probe_t_final), int(config.probe_budget), x64)
-                        pa = float(max(a.max() for a in attempts))
-                        if refresh and valid:
-                            probes[b] = hardest(sets, attempts, int(config.probe))
-                    row = _row(float(values[b]), float(gn[b]), valid, tr_b, frozen, aux_b, float(scales[b]), d_floor,
-                               time.perf_counter() - t_start)
-                    row.update(probe_attempts=pa, probe_active=bool(probed and config.probe and not valid),
-                               multiplier=float(lam[b]), feasible=bool(valid and row["constraint"] <= 0))
-                    if valid:
-                        score = row["soft_loss"] if row["feasible"] else _INFEASIBLE + row["constraint"]
-                        if best[b] is None or score < best[b][0]:
-                            best[b] = (score, it, tr_b)
-                        valid_points[b].append((score, it, tr_b))
-                        n_acc[b] += 1
-                        rej[b] = 0
-                        lam[b] = max(0.0, lam[b] + float(loss.dual_step) * row["constraint"])
-                    else:
-                        if n_acc[b] == 0:
-                            raise ValueError(f"the starting gains are not a valid candidate for budget "
-                                             f"{budgets[b]:.4g}")
-                        rej[b] += 1
-                    ok[b] = valid
-                    row["best"] = best[b][0]
-                    rows[b].append(row)
+                    ok[b] = track.assess(it, float(values[b]), float(gn[b]), bool(ok[b]), tr_b, aux_b, float(scales[b]),
+                                         ctx, time.perf_counter() - t_start,
+                                         lambda *_, b=b: f"the starting gains are not a valid candidate for budget "
+                                                         f"{budgets[b]:.4g}")
                 trainable, opt_state = stepb(trainable, opt_state, grads, jnp.asarray(ok))
+                rej = np.array([t.rejections for t in tracks])
                 alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
                 bar.update((it + 1) / config.steps)
-                bar.postfix(feasible=int(sum(r[-1]["feasible"] for r in rows if r)))
+                bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in tracks if t.rows)))
                 if not alive.any():
                     break
     points = []
     guard_ics = guard_starts()
-    for b in range(nb):
-        history = TuneHistory(**{f: np.asarray([r[f] for r in rows[b]]) for f in TuneHistory._fields})
-        chosen, pa = None, None
-        checks = [(ics[idx], p0) for idx, _, p0 in groups] + [(guard_ics, groups[0][2])]
-        for score, it, tr in sorted(valid_points[b], key=lambda p: p[0])[:max(1, int(config.verify))]:
-            with jax.enable_x64(bool(x64)):
-                g = gains_numpy(tr, frozen, d_floor, g0, names)
-            attempts = []
-            if not config.verify or not check(g, checks, float(loss.probe_t_final), x64, attempts):
-                chosen = (it, g)
-                if attempts:
-                    most = int(max(a.max() for a in attempts[:len(groups)]))
-                    pa = {"max_attempts_training_starts": most, "probe_budget": int(config.probe_budget),
-                          "active": bool(config.probe) and most > int(config.probe_budget)}
-                break
-        if chosen is None:
+    checks = [(ics[idx], p0) for idx, _, p0 in groups] + [(guard_ics, groups[0][2])]
+    for b, track in enumerate(tracks):
+        cand, g, pa, _ = track.verify(ctx, checks, int(config.verify))
+        if cand is None:
             raise RuntimeError(f"no candidate for budget {budgets[b]:.4g} passed the final check")
-        points.append(_point(budgets[b], chosen[1], history, chosen[0], {"probe_at_result": pa}))
+        points.append(_point(budgets[b], g, track.history(), cand[1], {"probe_at_result": pa}))
     return points, evals
 
 

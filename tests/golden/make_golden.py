@@ -52,10 +52,31 @@ def golden_runs() -> dict:
     sw = js.sweep(starts[:8], ["k=0.05:0.2:2"], t_final=20.0)
     runs["sweep"] = {k: v for k, v in sw._asdict().items() if isinstance(v, np.ndarray) and v.dtype != object}
     runs["sweep"].update(_flat("effort", sw.effort))
+    runs.update(golden_tune())
     return runs
 
 
+def golden_tune() -> dict:
+    """A short gradient tuning run (3 iterations on 8 starts, 10 s horizon, eps = 0.5): its gains and history."""
+    from jaxsleigh.tuning import LossConfig, TuneConfig, tune
+
+    res = tune("paper", config=TuneConfig(steps=3, batch=8, seed=3, probe=0, verify=0, lr=0.1),
+               loss=LossConfig(t_final=10.0, guard_t_final=2.0, eps=0.5), guard=np.zeros((0, 3)), progress=False)
+    h = res.history
+    return {"tune": {"L": np.asarray(res.gains.L), "k": np.asarray(res.gains.k), "D_hat": np.asarray(res.gains.D_hat),
+                     "loss": np.asarray(h.loss), "grad_norm": np.asarray(h.grad_norm),
+                     "energy": np.asarray(h.energy)}}
+
+
 def main() -> int:
+    if "--tune-only" in sys.argv:              # add the tuning run to an existing golden file
+        old = dict(np.load(HERE.parent / "data" / "golden.npz"))
+        runs = golden_tune()
+        arrays = {**old, **{f"{run}/{field}": np.asarray(v) for run, fields in runs.items()
+                            for field, v in fields.items()}}
+        np.savez_compressed(HERE.parent / "data" / "golden.npz", **arrays)
+        print(f"added {sorted(runs)} to the golden file")
+        return 0
     runs = golden_runs()
     arrays = {f"{run}/{field}": np.asarray(v) for run, fields in runs.items() for field, v in fields.items()}
     np.savez_compressed(HERE.parent / "data" / "golden.npz", **arrays)
