@@ -152,3 +152,14 @@ def test_citation_and_license():
     assert 'license = {text = "MIT"}' in (ROOT / "pyproject.toml").read_text()
     bib = (DOCS / "citing.md").read_text()
     assert "@inproceedings{" in bib and "Discontinuous energy shaping control of the {Chaplygin} sleigh" in bib
+
+
+def test_getting_started_counts_the_notebooks_and_offers_the_cache(site):
+    """The page says as many notebooks as there are, and shows the Python call for the compilation
+    cache, which the API reference documents."""
+    n = len(list((ROOT / "notebooks").glob("*.ipynb")))
+    words = {4: "Four", 5: "Five", 6: "Six", 7: "Seven"}
+    text = (DOCS / "getting-started.md").read_text()
+    assert f"{words[n]} notebooks in `notebooks/`" in text
+    assert "js.enable_compilation_cache()" in text and "js.enable_compilation_cache()" in (ROOT / "README.md").read_text()
+    assert 'id="jaxsleigh.enable_compilation_cache"' in (site / "api" / "index.html").read_text()
