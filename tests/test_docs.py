@@ -163,3 +163,22 @@ def test_getting_started_counts_the_notebooks_and_offers_the_cache(site):
     assert f"{words[n]} notebooks in `notebooks/`" in text
     assert "js.enable_compilation_cache()" in text and "js.enable_compilation_cache()" in (ROOT / "README.md").read_text()
     assert 'id="jaxsleigh.enable_compilation_cache"' in (site / "api" / "index.html").read_text()
+
+
+def test_readme_preset_numbers_are_the_committed_measurements():
+    """The README's sentence on the presets quotes `experiments/preset_effort.py`'s JSON: the median
+    and the upper percentiles of balanced's energy relative to the paper's, and names the command."""
+    import json
+
+    d = json.loads((DOCS / "figures" / "preset_effort.json").read_text())
+    assert d["dtype"] == "float32" and d["command"].startswith("python experiments/preset_effort.py")
+    readme_starts = d["distributions"]["readme"]
+    assert readme_starts["n"] == 2048
+    bal = readme_starts["presets"]["balanced"]
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "python experiments/preset_effort.py" in readme
+    for q, fmt in (("p50", "{:.2f}x"), ("p75", "{:.1f}x"), ("p90", "{:.1f}x")):
+        assert fmt.format(bal["energy_ratio_to_paper"][q]) in readme, (q, bal["energy_ratio_to_paper"][q])
+    assert f"{bal['T_median']:.1f} s" in readme and f"{bal['energy']['p50']:.2f}" in readme
+    tuning = (DOCS / "how-to" / "tuning.md").read_text()
+    assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning
