@@ -405,3 +405,27 @@ def test_convergence_time_is_one_symbol_everywhere(small_basin):
     joined = "\n".join(texts)
     assert "T_ε" not in joined and "T_eps" not in joined
     assert joined.count(r"$T_\varepsilon$") >= 5
+
+
+def test_reported_wall_time_includes_start_up_and_imports(tmp_path):
+    """Besides the command's own time, the command line reports the process's whole wall time: at least
+    the command's own (imports and start-up come on top), at most what the caller waited."""
+    import re
+    import time
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "simulate", "--ic", "1,1,0.5", "--t-final", "0.1",
+                        "--out", str(tmp_path / "r.npz")], capture_output=True, text=True, env=env, timeout=300)
+    outer = time.monotonic() - t0
+    assert r.returncode == 0, r.stderr
+    own = float(re.search(r"([0-9.]+) s wall \(", r.stdout).group(1))
+    m = re.search(r"jaxsleigh simulate: ([0-9.]+) s wall in all since the process started \(Python start-up, "
+                  r"imports, compilation, computing and writing\)", r.stderr)
+    assert m, r.stderr
+    total = float(m.group(1))
+    assert own < total <= outer + 0.05, (own, total, outer)
+    from jaxsleigh.cli.clock import process_elapsed
+
+    secs, origin = process_elapsed()
+    assert origin == "since the process started" and secs > 0

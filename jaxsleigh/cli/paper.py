@@ -38,5 +38,6 @@ def _cmd_paper(args) -> int:
                       command=[PROG, *args._argv], stamp=args.stamp)
     wall = time.perf_counter() - t0
     print(summary_table(paths["npz"]))
-    print(f"{PROG} paper: {wall:.1f} s wall; wrote " + ", ".join(str(p) for p in paths.values()))
+    print(f"{PROG} paper: {wall:.1f} s wall simulating and drawing (start-up and imports: see the total on "
+          f"stderr); wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
