@@ -265,7 +265,7 @@ def test_basin_map_shows_the_t_eps_map(xt_result):
     assert "settled within the horizon" in title and "basin of attraction" not in title.lower()
     assert "float32" in title and "ε = 0.3" in title and "T = 30 s" in title
     assert (ax.get_xlabel(), ax.get_ylabel()) == ("x₀ [m]", "θ₀ [rad]")
-    assert "T_ε" in cbar_ax.get_ylabel() and "log scale" in cbar_ax.get_ylabel()
+    assert r"$T_\varepsilon$" in cbar_ax.get_ylabel() and "log scale" in cbar_ax.get_ylabel()
     # the heat map holds T_eps of the converged starts (floored at dt for the log scale), nothing else
     heat, flat = ax.collections
     T = xt_result.starts.reshape(xt_result.T_eps)
@@ -282,7 +282,7 @@ def test_basin_map_shows_the_t_eps_map(xt_result):
     (line,) = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
     np.testing.assert_array_equal(line.get_ydata(), [0, 0])
     legend = [t.get_text() for t in fig.legends[0].get_texts()]
-    assert "not settled by T (T_ε = ∞)" in legend and "θ₀ = 0: not integrated" in legend
+    assert r"not settled by T ($T_\varepsilon$ = ∞)" in legend and "θ₀ = 0: not integrated" in legend
     assert "singular set θ = 0" in legend
     # provenance: dtype, method and the device the run was on
     text = _stamp_text(fig)
@@ -326,7 +326,7 @@ def test_fraction_distribution_scatter_and_power_law_figures(xt_result):
     ax, right = fig.axes
     assert sum(p.get_height() for p in ax.patches) == res.converged.sum()
     assert right.get_lines()[0].get_ydata()[-1] == pytest.approx(res.converged.sum() / res.valid.sum())
-    assert ax.get_xlabel() == "T_ε [s]" and ax.get_xlim() == (0.0, 30.0)
+    assert ax.get_xlabel() == r"$T_\varepsilon$ [s]" and ax.get_xlim() == (0.0, 30.0)
     # scatter: converged starts at (|theta0|, T_eps), the others at the horizon
     fig = bp.plot_t_eps_scatter(res)
     conv, nc, _ = fig.axes[0].collections
@@ -354,13 +354,13 @@ def test_basin_overview_says_settled_within_the_horizon(xt_result):
     # map + colour bar, fraction against theta0, distribution + its right axis
     assert len(fig.axes) == 5
     assert fig.axes[0].get_ylabel() == "θ₀ [rad]" and fig.axes[2].get_xlabel() == "θ₀ [rad]"
-    assert fig.axes[3].get_xlabel() == "T_ε [s]"
+    assert fig.axes[3].get_xlabel() == r"$T_\varepsilon$ [s]"
     # starts that are not a grid: the scatter instead of the map
     samples = BasinResult(**{**xt_result._asdict(), "starts": array_starts(xt_result.ics)})
     with pytest.raises(ValueError, match="two varying coordinates"):
         bp.plot_basin_map(samples)
     fig = bp.plot_basin(samples)
-    assert fig.axes[0].get_ylabel() == "T_ε [s]" and fig.axes[0].get_xscale() == "log"
+    assert fig.axes[0].get_ylabel() == r"$T_\varepsilon$ [s]" and fig.axes[0].get_xscale() == "log"
     assert fig.axes[1].get_xscale() == "log"                    # fraction against |theta0| for samples
 
 

@@ -181,7 +181,7 @@ def _data_lines(ax):
 # plotting function -> (y-labels of its axes, the arrays each axis must show, one row per run)
 _FIGURES = {
     "plot_configuration": (["x [m]", "y [m]", "θ [rad]"], lambda s: [s.q[..., 0], s.q[..., 1], s.q[..., 2]]),
-    "plot_momentum": (["p₁ [kg m/s]", "p₂ [kg m²/s]"], lambda s: [s.p[..., 0], s.p[..., 1]]),
+    "plot_momentum": (["p₁ [kg m/s] (symlog)", "p₂ [kg m²/s] (symlog)"], lambda s: [s.p[..., 0], s.p[..., 1]]),
     "plot_control": (["u₁ [N] (symlog)", "u₂ [N m] (symlog)"], lambda s: [s.u[..., 0], s.u[..., 1]]),
     "plot_hamiltonian": (["H_d [J]"], lambda s: [s.Hd]),
 }
@@ -203,7 +203,7 @@ def test_time_histories_plot_the_solution(name):
         assert [line.get_linestyle() for line in lines] == ["-", "-", "--"]   # status != 0 is dashed
     if name == "plot_hamiltonian":
         assert fig.axes[0].get_yscale() == "log"
-    if name == "plot_control":
+    if name in ("plot_control", "plot_momentum"):
         assert {ax.get_yscale() for ax in fig.axes} == {"symlog"}
     title = fig.get_suptitle()
     assert "float64" in title and "fixed-step RK4" in title and "dt = 0.01 s" in title
@@ -289,3 +289,143 @@ def test_console_script_reports_errors_without_traceback(tmp_path):
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 2
     assert r.stderr.startswith("jaxsleigh: error: ") and "theta0" in r.stderr and "Traceback" not in r.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# figures for a publication: no stamp on request, a readable momentum axis, no overlapping footer
+# ---------------------------------------------------------------------------------------------
+
+_PAPER_PLOTS = ("plot_paths", "plot_configuration", "plot_momentum", "plot_control", "plot_hamiltonian")
+
+
+def _stamp_texts(fig):
+    from jaxsleigh.plots.base import STAMP_GID
+
+    return [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID or "jaxsleigh " in t.get_text()]
+
+
+@pytest.mark.parametrize("name", _PAPER_PLOTS)
+def test_stamp_false_leaves_the_provenance_line_off(name):
+    sol = _tiny_solution()
+    fn = getattr(plotting, name)
+    (line,) = _stamp_texts(fn(sol))
+    assert "device not recorded" in line
+    fig = fn(sol, stamp=False)
+    assert _stamp_texts(fig) == []
+    assert not any("device" in t.get_text() for t in fig.texts)
+    assert "float64" in fig.get_suptitle()              # the title still says what produced the data
+    with pytest.raises(ValueError, match="^stamp must be True .* or False"):
+        fn(sol, stamp="no")
+
+
+def test_paper_no_stamp_draws_the_figures_without_it(tmp_path, capsys, monkeypatch):
+    saved = {}
+    real_save = plotting.save_figure
+
+    def spy(fig, path, **kw):
+        saved[os.path.basename(str(path))] = _stamp_texts(fig)
+        return real_save(fig, path, **kw)
+
+    monkeypatch.setattr(plotting, "save_figure", spy)
+    rc, _, err = _run(["paper", "--out", str(tmp_path / "p"), "--dt", "0.05", "--t-final", "0.5", "--no-stamp"],
+                      capsys)
+    assert rc == 0, err
+    assert sorted(saved) == sorted(f"{n}.png" for n in ("fig2_paths", "fig3_configuration", "fig4_momentum",
+                                                          "fig5_control", "fig_hamiltonian"))
+    assert all(v == [] for v in saved.values()), saved
+
+
+def test_momentum_spike_does_not_flatten_the_rest():
+    """A p2 spike of 23 at t ~ 0 against values below 1 later: the axes are symlog with the linear
+    band below the spike, so the later values keep most of the axis; ``scale="linear"`` is there."""
+    sol = _tiny_solution(bad=False)
+    t = sol.t
+    p = np.stack([np.stack([0.8 * np.exp(-t / 3), 23.0 * np.exp(-20 * t) + 0.3 * np.sin(t)], -1)] * 3)
+    sol = sol._replace(p=p)
+    fig = plotting.plot_momentum(sol)
+    ax_p2 = fig.axes[1]
+    assert ax_p2.get_yscale() == "symlog"
+    thresh = ax_p2.yaxis.get_transform().linthresh
+    late = np.abs(p[:, t > 0.5, 1]).max()
+    assert late <= thresh < 23.0
+    lin = plotting.plot_momentum(sol, scale="linear")
+    assert {ax.get_yscale() for ax in lin.axes} == {"linear"}
+    with pytest.raises(ValueError, match="scale must be 'symlog' or 'linear'"):
+        plotting.plot_momentum(sol, scale="log")
+
+
+@pytest.fixture(scope="module")
+def small_basin():
+    with pytest.warns(Warning):
+        return jaxsleigh.run_basin(jaxsleigh.grid_starts(x="-2:2:4", y=0.5, theta="-2:2:3"), eps=0.3,
+                                   t_final=10.0, dt=0.05, progress=False)
+
+
+def test_basin_overview_footer_clears_the_histogram_label_and_no_stamp(small_basin):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from jaxsleigh.plots import basin as bp
+
+    fig = bp.plot_basin(small_basin)
+    FigureCanvasAgg(fig)
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    (footer,) = [t for ax in fig.axes for t in ax.texts if t.get_gid() == bp.FOOTER_GID]
+    hist_ax = footer.axes
+    label = hist_ax.xaxis.label
+    assert label.get_text() == r"$T_\varepsilon$ [s]"
+    fb, lb = footer.get_window_extent(r), label.get_window_extent(r)
+    assert not fb.overlaps(lb), (fb, lb)
+    assert fb.y1 <= lb.y0 + 0.5                         # under the label
+    assert fb.y0 >= 0 and fb.x1 <= fig.bbox.x1 + 0.5      # inside the figure
+    assert "not settled by T" in footer.get_text()
+    assert len(_stamp_texts(fig)) == 1 and _stamp_texts(bp.plot_basin(small_basin, stamp=False)) == []
+    for fn in (bp.plot_t_eps_distribution, bp.plot_t_eps_scatter, bp.plot_fraction_vs_theta, bp.plot_basin_map):
+        assert _stamp_texts(fn(small_basin, stamp=False)) == [], fn.__name__
+
+
+def _all_texts(fig):
+    out = [fig.get_suptitle()] + [t.get_text() for t in fig.texts]
+    for ax in fig.axes:
+        out += [ax.get_xlabel(), ax.get_ylabel(), ax.get_title()] + [t.get_text() for t in ax.texts]
+        leg = ax.get_legend()
+        out += [t.get_text() for t in leg.get_texts()] if leg else []
+    for leg in fig.legends:
+        out += [t.get_text() for t in leg.get_texts()]
+    return out
+
+
+def test_convergence_time_is_one_symbol_everywhere(small_basin):
+    """Every basin figure writes the convergence time as mathtext $T_\\varepsilon$, never T_ε or T_eps."""
+    from jaxsleigh.plots import basin as bp
+
+    texts = []
+    for fn in (bp.plot_basin, bp.plot_basin_map, bp.plot_t_eps_distribution, bp.plot_t_eps_scatter):
+        texts += _all_texts(fn(small_basin))
+    joined = "\n".join(texts)
+    assert "T_ε" not in joined and "T_eps" not in joined
+    assert joined.count(r"$T_\varepsilon$") >= 5
+
+
+def test_reported_wall_time_includes_start_up_and_imports(tmp_path):
+    """Besides the command's own time, the command line reports the process's whole wall time: at least
+    the command's own (imports and start-up come on top), at most what the caller waited."""
+    import re
+    import time
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "simulate", "--ic", "1,1,0.5", "--t-final", "0.1",
+                        "--out", str(tmp_path / "r.npz")], capture_output=True, text=True, env=env, timeout=300)
+    outer = time.monotonic() - t0
+    assert r.returncode == 0, r.stderr
+    own = float(re.search(r"([0-9.]+) s wall \(", r.stdout).group(1))
+    m = re.search(r"jaxsleigh simulate: ([0-9.]+) s wall in all since the process started \(Python start-up, "
+                  r"imports, compilation, computing and writing\)", r.stderr)
+    assert m, r.stderr
+    total = float(m.group(1))
+    assert own < total <= outer + 0.05, (own, total, outer)
+    from jaxsleigh.cli.clock import process_elapsed
+
+    secs, origin = process_elapsed()
+    assert origin == "since the process started" and secs > 0

@@ -39,7 +39,7 @@ def site(tmp_path_factory):
 
 def test_site_builds_with_api_reference(site):
     api = (site / "api" / "index.html").read_text()
-    for name in ("simulate", "run_ensemble", "run_basin", "Gains", "PlantParams", "Status", "vector_field",
+    for name in ("studies.simulate.simulate", "run_ensemble", "run_basin", "Gains", "PlantParams", "Status", "vector_field",
                  "ClosedLoop", "EnsembleResult", "BasinResult", "Solution"):
         assert f'id="jaxsleigh.{name}"' in api, f"API reference lacks jaxsleigh.{name}"
     # the docstrings themselves are rendered, not only the headings
@@ -47,6 +47,48 @@ def test_site_builds_with_api_reference(site):
     tuning = (site / "api" / "tuning" / "index.html").read_text()
     for name in ("tune", "TuneConfig", "LossConfig", "make_value_and_grad", "validate"):
         assert f'id="jaxsleigh.tuning.{name}"' in tuning, f"tuning API reference lacks {name}"
+
+
+def _text(html: str) -> str:
+    """The visible text of an HTML fragment (tags dropped, entities of quotes decoded)."""
+    return re.sub(r"<[^>]+>", "", html).replace("&#39;", "'").replace("&quot;", '"').replace("&gt;", ">")
+
+
+def test_api_reference_shows_the_function_once_with_its_signature(site):
+    """``simulate`` is the function (not the module of the same name), ``Solution`` is listed once,
+    the signature is formatted on its own lines with types and defaults, and no parameter that has a
+    default is called "required"."""
+    api = (site / "api" / "index.html").read_text()
+    assert 'id="jaxsleigh.simulate"' not in api  # the module would list its members again
+    assert api.count('id="jaxsleigh.Solution"') == 1 and 'id="jaxsleigh.studies.simulate.Solution"' not in api
+    start = api.index('id="jaxsleigh.studies.simulate.simulate"')
+    sig = _text(api[start:api.index("Simulate the closed loop", start)])
+    # Ruff (a docs extra) formats long signatures one parameter a line
+    assert "\n    t_final: float = 100.0,\n" in sig, sig
+    assert 'method: str = "adaptive"' in sig and "-> Solution" in sig
+    for page in (site / "api").rglob("*.html"):
+        body = _text(page.read_text().split('<div class="md-content"', 1)[-1])
+        assert "required" not in body.lower(), f"{page.relative_to(site)} marks a parameter required"
+
+
+def test_site_renders_maths_offline(site):
+    """MathJax ships with the site (with its license) and no page loads a script or stylesheet from
+    another host: offline, formulas still render."""
+    vendored = site / "javascripts" / "mathjax" / "tex-svg.js"
+    assert vendored.stat().st_size > 1_000_000 and b"MathJax" in vendored.read_bytes()
+    assert "Apache License" in (DOCS / "javascripts" / "mathjax" / "LICENSE").read_text()
+    pages = sorted(site.rglob("*.html"))
+    assert len(pages) > 20
+    for page in pages:
+        html = page.read_text()
+        external = re.findall(r'<script[^>]*\ssrc="((?:https?:)?//[^"]*)"', html)
+        external += re.findall(r'<link[^>]*\shref="((?:https?:)?//[^"]*)"[^>]*rel="stylesheet"', html)
+        external += re.findall(r'<link[^>]*rel="stylesheet"[^>]*\shref="((?:https?:)?//[^"]*)"', html)
+        assert not external, f"{page.relative_to(site)} loads {external}"
+        if page.name == "index.html" and "arithmatex" in html:
+            assert "javascripts/mathjax/tex-svg.js" in html, f"{page.relative_to(site)} has maths but no MathJax"
+    nb = (site / "notebooks" / "01_paper_reproduction" / "index.html").read_text()
+    assert "javascripts/mathjax/tex-svg.js" in nb and "javascripts/mathjax-config.js" in nb
 
 
 def test_notebook_pages_show_executed_outputs(site):
@@ -110,3 +152,33 @@ def test_citation_and_license():
     assert 'license = {text = "MIT"}' in (ROOT / "pyproject.toml").read_text()
     bib = (DOCS / "citing.md").read_text()
     assert "@inproceedings{" in bib and "Discontinuous energy shaping control of the {Chaplygin} sleigh" in bib
+
+
+def test_getting_started_counts_the_notebooks_and_offers_the_cache(site):
+    """The page says as many notebooks as there are, and shows the Python call for the compilation
+    cache, which the API reference documents."""
+    n = len(list((ROOT / "notebooks").glob("*.ipynb")))
+    words = {4: "Four", 5: "Five", 6: "Six", 7: "Seven"}
+    text = (DOCS / "getting-started.md").read_text()
+    assert f"{words[n]} notebooks in `notebooks/`" in text
+    assert "js.enable_compilation_cache()" in text and "js.enable_compilation_cache()" in (ROOT / "README.md").read_text()
+    assert 'id="jaxsleigh.enable_compilation_cache"' in (site / "api" / "index.html").read_text()
+
+
+def test_readme_preset_numbers_are_the_committed_measurements():
+    """The README's sentence on the presets quotes `experiments/preset_effort.py`'s JSON: the median
+    and the upper percentiles of balanced's energy relative to the paper's, and names the command."""
+    import json
+
+    d = json.loads((DOCS / "figures" / "preset_effort.json").read_text())
+    assert d["dtype"] == "float32" and d["command"].startswith("python experiments/preset_effort.py")
+    readme_starts = d["distributions"]["readme"]
+    assert readme_starts["n"] == 2048
+    bal = readme_starts["presets"]["balanced"]
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "python experiments/preset_effort.py" in readme
+    for q, fmt in (("p50", "{:.2f}x"), ("p75", "{:.1f}x"), ("p90", "{:.1f}x")):
+        assert fmt.format(bal["energy_ratio_to_paper"][q]) in readme, (q, bal["energy_ratio_to_paper"][q])
+    assert f"{bal['T_median']:.1f} s" in readme and f"{bal['energy']['p50']:.2f}" in readme
+    tuning = (DOCS / "how-to" / "tuning.md").read_text()
+    assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning

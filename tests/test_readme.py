@@ -43,9 +43,12 @@ def _run(line: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProc
     return proc
 
 
-def test_readme_python_example_runs():
+def test_readme_python_example_runs(monkeypatch):
     blocks = _blocks("python")
     assert len(blocks) == 1, "README should have exactly one Python example"
+    # its enable_compilation_cache() would turn JAX's persistent cache on for the rest of this test
+    # session (tests/test_compilation_cache.py checks it in a process of its own)
+    monkeypatch.setenv("JAXSLEIGH_NO_COMPILE_CACHE", "1")
     exec(compile(blocks[0], "README.md", "exec"), {})
 
 

@@ -70,6 +70,7 @@ def test_effort_medians_equal_those_of_separate_runs(ml_sweep, ml_separate, tmp_
             assert z[k].shape == (4,)
             np.testing.assert_array_equal(z[k], v)
     assert "median int|u|^2" in ml_sweep.table()
+    assert "including those whose adaptive step budget ran out (BUDGET_EXHAUSTED" in ml_sweep.table()
     # a value set with no converged start has NaN medians, without warnings
     none = ml_sweep._replace(T_eps=np.full_like(ml_sweep.T_eps, np.inf))
     assert all(np.isnan(v).all() for v in none.effort_medians().values())

@@ -20,6 +20,7 @@ from __future__ import annotations
 import sys
 from typing import Optional, Sequence
 
+from . import clock  # first: its fallback origin is the earliest moment of the command line
 from .basin import add_basin
 from .bench import add_bench
 from .common import EXIT_INTERRUPTED, EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic
@@ -82,7 +83,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if not args.no_compile_cache:
             enable_compilation_cache()
         args._argv = argv
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
+        # the commands' own "... s wall" leave out start-up and imports; the whole wait goes to stderr
+        # (stdout may be machine-read, e.g. bench --json)
+        print(clock.whole_wall_line(PROG, args.command), file=sys.stderr)
+        return rc
     except SystemExit as e:              # --help, --version
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     except (ValueError, OSError) as e:

@@ -449,37 +449,9 @@ def _options_differ(chunks, args) -> str:
 # compilation cache
 # ---------------------------------------------------------------------------------------------
 
-def compilation_cache_dir() -> Optional[Path]:
-    """Where compiled programs are kept between processes: ``$JAXSLEIGH_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/jaxsleigh/jax`` (``~/.cache/jaxsleigh/jax``); ``None`` when turned off with
-    ``JAXSLEIGH_NO_COMPILE_CACHE=1`` (or ``--no-compile-cache``)."""
-    if os.environ.get("JAXSLEIGH_NO_COMPILE_CACHE", "").strip() not in ("", "0"):
-        return None
-    if os.environ.get("JAXSLEIGH_CACHE_DIR"):
-        return Path(os.environ["JAXSLEIGH_CACHE_DIR"])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "jaxsleigh" / "jax"
-
-
-def enable_compilation_cache() -> Optional[Path]:
-    """Turn on JAX's persistent compilation cache for this process (the command line does this
-    at start): a second process compiles nothing it compiled before. Returns the folder, or
-    ``None`` if it is turned off or cannot be created (then JAX compiles as usual)."""
-    d = compilation_cache_dir()
-    if d is None:
-        return None
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None
-    import jax
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        jax.config.update("jax_compilation_cache_dir", str(d))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return d
+# compilation_cache_dir and enable_compilation_cache live in jaxsleigh.cache (also public as
+# jaxsleigh.enable_compilation_cache); re-exported here for the subcommands and older imports
+from ..cache import compilation_cache_dir, enable_compilation_cache  # noqa: E402,F401
 
 
 # ---------------------------------------------------------------------------------------------

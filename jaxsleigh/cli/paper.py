@@ -22,6 +22,9 @@ def add_paper(subparsers) -> None:
                    help="base step in seconds (default 0.01)")
     # shorter horizon for tests and quick looks; the paper's figures use 100 s
     p.add_argument("--t-final", type=number("--t-final", "100"), default=100.0, help=argparse.SUPPRESS)
+    p.add_argument("--no-stamp", dest="stamp", action="store_false",
+                   help="leave the provenance line (dtype, method, step, device, version) off the figures, "
+                        "for a publication; the data file still records it")
     add_progress_option(p)
     p.set_defaults(func=_cmd_paper)
 
@@ -32,8 +35,9 @@ def _cmd_paper(args) -> int:
     check_outputs(folders=[args.out])
     t0 = time.perf_counter()
     paths = run_paper(args.out, x64=args.x64, dt=args.dt, t_final=args.t_final, progress=args.progress,
-                      command=[PROG, *args._argv])
+                      command=[PROG, *args._argv], stamp=args.stamp)
     wall = time.perf_counter() - t0
     print(summary_table(paths["npz"]))
-    print(f"{PROG} paper: {wall:.1f} s wall; wrote " + ", ".join(str(p) for p in paths.values()))
+    print(f"{PROG} paper: {wall:.1f} s wall simulating and drawing (start-up and imports: see the total on "
+          f"stderr); wrote " + ", ".join(str(p) for p in paths.values()))
     return 0

@@ -20,11 +20,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
-__all__ = ["METHOD_NAMES", "STAMP_GID", "new_figure", "figure_and_axes", "save_figure", "provenance",
+__all__ = ["METHOD_NAMES", "STAMP_GID", "T_EPS", "check_stamp", "new_figure", "figure_and_axes", "save_figure", "provenance",
            "device_text", "provenance_line", "stamp"]
 
 #: Display names of the integration methods.
 METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4"}
+
+#: The convergence time's symbol in every figure (mathtext, one spelling across the plotting modules).
+T_EPS = r"$T_\varepsilon$"
 
 #: ``gid`` of the stamp's text artist (find it with ``[t for t in fig.texts if t.get_gid() == STAMP_GID]``).
 STAMP_GID = "jaxsleigh-provenance"
@@ -111,9 +114,18 @@ def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = N
     return "  ·  ".join(parts)
 
 
+def check_stamp(stamp) -> bool:
+    """``stamp`` (the plotting functions' option) as a bool; anything but True/False is a ValueError."""
+    if not isinstance(stamp, bool):
+        raise ValueError(f"stamp must be True (draw the provenance line) or False (leave it out, e.g. for a "
+                         f"publication), got {stamp!r}")
+    return stamp
+
+
 def stamp(fig, settings: Optional[Mapping], run_info: Optional[Mapping] = None):
     """Write `provenance_line` in small grey type at the top left of ``fig``; a second call
-    replaces the first. Returns the text artist.
+    replaces the first. Returns the text artist. (The plotting functions' ``stamp=False`` skips it,
+    for a publication.)
 
     The line sits in a blank first line added to the suptitle, so the constrained layout keeps room
     for it (call this after ``suptitle``; a figure without one gets a blank one).

@@ -24,7 +24,7 @@ from typing import Mapping, Optional
 import numpy as np
 
 from ..studies.basin import BasinResult, fraction_by, fraction_converged, t_eps_percentiles
-from .base import figure_and_axes, new_figure, provenance, stamp
+from .base import T_EPS, check_stamp, figure_and_axes, new_figure, provenance, stamp
 
 __all__ = [
     "plot_basin_map",
@@ -47,7 +47,7 @@ CATEGORY_COLOURS = {
 _SINGULAR_LINE = "#ff7f0e"       # the singular set theta = 0, drawn over the map
 _LABELS = {"x": "x₀ [m]", "y": "y₀ [m]", "theta": "θ₀ [rad]"}
 _FIELDS = {
-    "T_eps": "convergence time T_ε [s]",
+    "T_eps": f"convergence time {T_EPS} [s]",
     "Hd0": "H_d(0) [J]",
     "max_excursion": "max |q(t)|",
     "min_abs_theta": "min |θ(t)| [rad]",
@@ -60,8 +60,13 @@ def _provenance(res: BasinResult) -> str:
     return provenance(res.settings, fields=("dt", "eps", "t_final"))
 
 
-def _stamp(fig, res: BasinResult) -> None:
-    stamp(fig, res.settings, res.run_info)
+#: ``gid`` of the counts line under the convergence-time histogram (`plot_t_eps_distribution`).
+FOOTER_GID = "jaxsleigh-t-eps-counts"
+
+
+def _stamp(fig, res: BasinResult, on: bool = True) -> None:
+    if check_stamp(on):
+        stamp(fig, res.settings, res.run_info)
 
 
 def _fraction_text(res: BasinResult) -> str:
@@ -92,7 +97,7 @@ def _legend_handles(present, singular_line: bool):
     from matplotlib.patches import Patch
 
     names = ["not converged", "failed", "singular start"]
-    texts = {"not converged": "not settled by T (T_ε = ∞)", "failed": "failed (status ≥ 3)",
+    texts = {"not converged": f"not settled by T ({T_EPS} = ∞)", "failed": "failed (status ≥ 3)",
              "singular start": "θ₀ = 0: not integrated"}
     handles = [Patch(facecolor=CATEGORY_COLOURS[n], edgecolor="0.5", linewidth=0.5, label=texts[n])
                for i, n in enumerate(names, start=1) if i in present]
@@ -102,14 +107,16 @@ def _legend_handles(present, singular_line: bool):
 
 
 def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str = "viridis",
-                   legend: bool = True, colorbar: bool = True):
+                   legend: bool = True, colorbar: bool = True, stamp: bool = True):
     """Heat map of ``field`` (default ``T_eps``) over a grid with two varying coordinates.
 
     The colour scale is logarithmic. For ``T_eps`` the starts without a convergence time are drawn
     flat: light grey (reached the horizon outside the ball), red (failed before the horizon) and
     black (``theta0 = 0``, not integrated); for other fields only failed and flagged starts are.
     The singular set ``theta = 0`` is drawn as a dashed line when ``theta`` is an axis of the map
-    (an x-y map at fixed ``theta0`` does not meet it; the title says so).
+    (an x-y map at fixed ``theta0`` does not meet it; the title says so). ``stamp=False`` leaves
+    out the provenance line along the top edge (as for every figure of this module), for a
+    publication.
 
     Returns:
       The `matplotlib.figure.Figure`.
@@ -168,12 +175,12 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
         at += " (the singular set θ = 0 is not in this slice)"
     # T_eps maps show which starts settled within the horizon (grey: not by T), not a basin of
     # attraction in the control sense
-    name = "Convergence time T_ε of the starts settled within the horizon" if field == "T_eps" \
+    name = f"Convergence time {T_EPS} of the starts settled within the horizon" if field == "T_eps" \
         else _FIELDS.get(field, field)
     title = f"{name} at {at}" if at else name
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res)
+        _stamp(fig, res, stamp)
     else:
         ax.set_title(f"{title}\n({_fraction_text(res)})", fontsize=9)
     if colorbar and mesh is not None:
@@ -189,7 +196,7 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
     return fig
 
 
-def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: bool = False):
+def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: bool = False, stamp: bool = True):
     """Fraction of starts converged within the horizon against ``theta0``, with ``± se`` bars.
 
     Grid rows of equal ``theta0`` form the groups (``bins=None``) when there are at most 256
@@ -222,13 +229,13 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
     sub = f"{_provenance(res)}; {_fraction_text(res)}"
     if own:
         fig.suptitle(f"{title}\n({sub})", fontsize=10)
-        _stamp(fig, res)
+        _stamp(fig, res, stamp)
     else:
         ax.set_title(title, fontsize=9)
     return fig
 
 
-def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16):
+def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16, stamp: bool = True):
     """Fraction converged against the initial distance \\(\\sqrt{x_0^2 + y_0^2}\\) (equal-width
     bins, ``± se`` bars): the view of an x-y slice at fixed heading."""
     fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
@@ -244,13 +251,13 @@ def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16):
     title = "Fraction converged against the initial distance"
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res)
+        _stamp(fig, res, stamp)
     else:
         ax.set_title(title, fontsize=9)
     return fig
 
 
-def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40):
+def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40, stamp: bool = True):
     """Histogram of ``T_eps`` of the converged starts and, on the right axis, the fraction of valid
     starts converged by time t (which ends at the fraction converged at the horizon)."""
     fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
@@ -259,7 +266,7 @@ def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40):
     n_valid = int(res.valid.sum())
     ax.hist(T, bins=np.linspace(0.0, t_final, bins + 1), color="C0", alpha=0.75)
     ax.set_xlim(0.0, t_final)
-    ax.set_xlabel("T_ε [s]")
+    ax.set_xlabel(f"{T_EPS} [s]")
     ax.set_ylabel("starts per bin")
     ax.grid(True, alpha=0.3)
     right = ax.twinx()
@@ -276,17 +283,21 @@ def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40):
         ax.text(pct, ax.get_ylim()[1] * 0.97, f" median {pct:.3g} s", fontsize=7, va="top")
     note = (f"not settled by T: {int(res.not_converged.sum())}, failed: {int(res.failed.sum())}, "
             f"not integrated: {int((~res.valid).sum())}")
-    ax.text(0.01, -0.2, note, transform=ax.transAxes, fontsize=7, color="0.3", va="top")
+    # under the x label, wherever the layout puts it (a fixed offset in axes units overlapped the
+    # label in the small panel of plot_basin); as an annotation of the axes the constrained layout
+    # keeps room for it
+    ax.annotate(note, xy=(0.0, 0.0), xycoords=("axes fraction", ax.xaxis.label), xytext=(0, -2),
+                textcoords="offset points", ha="left", va="top", fontsize=7, color="0.3", gid=FOOTER_GID)
     title = "Distribution of the convergence time"
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res)
+        _stamp(fig, res, stamp)
     else:
         ax.set_title(title, fontsize=9)
     return fig
 
 
-def plot_t_eps_scatter(res: BasinResult, ax=None):
+def plot_t_eps_scatter(res: BasinResult, ax=None, *, stamp: bool = True):
     """``T_eps`` against ``|theta0|`` (log x); starts not settled by the horizon are drawn at the
     horizon (grey triangles), failed ones there too (red crosses)."""
     fig, ax, own = figure_and_axes(ax, (6.4, 4.6))
@@ -305,19 +316,19 @@ def plot_t_eps_scatter(res: BasinResult, ax=None):
     ax.set_xscale("log")
     ax.set_ylim(0.0, 1.05 * t_final)
     ax.set_xlabel("|θ₀| [rad]")
-    ax.set_ylabel("T_ε [s]")
+    ax.set_ylabel(f"{T_EPS} [s]")
     ax.grid(True, which="both", alpha=0.25)
     ax.legend(fontsize=7, loc="best")
     title = "Convergence time against the distance to the singular set"
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res)
+        _stamp(fig, res, stamp)
     else:
         ax.set_title(title, fontsize=9)
     return fig
 
 
-def plot_basin(res: BasinResult):
+def plot_basin(res: BasinResult, *, stamp: bool = True):
     """Overview: the ``T_eps`` map (2-D grids) or the ``T_eps``-against-``|theta0|`` scatter, the
     fraction against ``theta0`` (against the initial distance when ``theta0`` is the same for all
     starts) and the ``T_eps`` distribution. The title says what the map is: which starts settled
@@ -334,8 +345,9 @@ def plot_basin(res: BasinResult):
     else:
         plot_fraction_vs_distance(res, fig.add_subplot(gs[0, 1]))
     plot_t_eps_distribution(res, fig.add_subplot(gs[1, 1]))
-    fig.suptitle(f"Starts settled within the horizon: |q| ≤ ε from T_ε to T ({_provenance(res)})", fontsize=11)
-    _stamp(fig, res)
+    fig.suptitle(f"Starts settled within the horizon: |q| ≤ ε from {T_EPS} to T ({_provenance(res)})",
+                 fontsize=11)
+    _stamp(fig, res, stamp)
     return fig
 
 

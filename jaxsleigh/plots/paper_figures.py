@@ -29,7 +29,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .base import new_figure, provenance, save_figure, stamp
+from . import base as _pb
+from .base import new_figure, provenance, save_figure, stamp  # noqa: F401 (stamp: public before)
 from ..status import Status
 
 __all__ = [
@@ -197,7 +198,7 @@ def _ncol(labels, width_chars: int = 110) -> int:
 # ---------------------------------------------------------------------------------------------
 
 def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsize=None,
-                 labels=None, legend=True):
+                 labels=None, legend=True, stamp=True):
     """Stacked time histories: ``series`` is a list of (N, T) arrays, one axis each."""
     t, q, status = _arrays(sol)
     n_ax = len(series)
@@ -224,7 +225,8 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
     axes[0].set_xlim(t[0], t[-1])
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)})", fontsize=11)
-        stamp(fig, _settings(sol))
+        if _pb.check_stamp(stamp):
+            _pb.stamp(fig, _settings(sol))
     else:
         axes[0].set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:
@@ -287,7 +289,7 @@ def _draw_sleigh(ax, x, y, theta, *, size, color, alpha, zorder):
 
 
 def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_size: Optional[float] = None,
-               legend: bool = True):
+               legend: bool = True, stamp: bool = True):
     """Paths of the contact point ``(x, y)`` (paper Fig. 2).
 
     Each run is a colour; the sleigh is drawn ghosted (alpha 0.3) at each start and solid (black)
@@ -300,6 +302,9 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
       ax: axes to draw into; a new figure is made when ``None``.
       labels: legend text per run (default: the start, e.g. ``(−3, −2, π/8)``).
       glyph_size: length scale of the sleigh glyph in metres.
+      legend: draw the legend.
+      stamp: write the provenance line (dtype, method, step, device) along the top edge; ``False``
+        for a publication (the title still names the dtype and method).
 
     Returns:
       The `matplotlib.figure.Figure`.
@@ -340,7 +345,8 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     title = "Paths of the contact point (x, y)"
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)}, t ∈ [0, {t[-1]:g}] s)", fontsize=11)
-        stamp(fig, _settings(sol))
+        if _pb.check_stamp(stamp):
+            _pb.stamp(fig, _settings(sol))
     else:
         ax.set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:
@@ -370,20 +376,34 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
 # Figs. 3-5 and H_d
 # ---------------------------------------------------------------------------------------------
 
-def plot_configuration(sol, axes=None, *, labels: Optional[Sequence[str]] = None):
-    """``x, y, theta`` against time, three stacked axes, one line per run (paper Fig. 3)."""
+def plot_configuration(sol, axes=None, *, labels: Optional[Sequence[str]] = None, stamp: bool = True):
+    """``x, y, theta`` against time, three stacked axes, one line per run (paper Fig. 3).
+    ``stamp=False`` leaves out the provenance line (as for every figure of this module)."""
     _, q, _ = _arrays(sol)
     return _time_figure(sol, [q[..., 0], q[..., 1], q[..., 2]],
                         ["x [m]", "y [m]", "θ [rad]"], "Configuration q = (x, y, θ)",
-                        axes=axes, labels=labels)
+                        axes=axes, labels=labels, stamp=stamp)
 
 
-def plot_momentum(sol, axes=None, *, labels: Optional[Sequence[str]] = None):
-    """Momenta ``p1`` (linear, kg m/s) and ``p2`` (angular, kg m²/s) against time (paper Fig. 4)."""
+def plot_momentum(sol, axes=None, *, labels: Optional[Sequence[str]] = None, scale: str = "symlog",
+                  linthresh: Optional[float] = None, stamp: bool = True):
+    """Momenta ``p1`` (linear, kg m/s) and ``p2`` (angular, kg m²/s) against time (paper Fig. 4).
+
+    The first instants carry a spike (``p2`` about 23 from the paper's starts, against values below
+    1 afterwards), so the y-axes are ``scale="symlog"`` by default, as in `plot_control`
+    (linear below ``linthresh``, default: the 90th percentile of ``|p|`` rounded up to a power of
+    ten); ``scale="linear"`` shows the spike at full height. ``stamp=False``: no provenance line.
+    """
     p = _batched(_get(sol, "p"))
+    if scale == "symlog":
+        tf, suffix = _symlog(linthresh), " (symlog)"
+    elif scale == "linear":
+        tf, suffix = None, ""
+    else:
+        raise ValueError(f"scale must be 'symlog' or 'linear', got {scale!r}")
     return _time_figure(sol, [p[..., 0], p[..., 1]],
-                        ["p₁ [kg m/s]", "p₂ [kg m²/s]"], "Momentum p = (p₁, p₂)",
-                        axes=axes, labels=labels)
+                        [f"p₁ [kg m/s]{suffix}", f"p₂ [kg m²/s]{suffix}"], "Momentum p = (p₁, p₂)",
+                        axes=axes, labels=labels, yscales=[tf, tf], stamp=stamp)
 
 
 def _symlog(linthresh):
@@ -419,7 +439,7 @@ def _clip(after):
 
 
 def plot_control(sol, axes=None, *, labels: Optional[Sequence[str]] = None, scale: str = "symlog",
-                 linthresh: Optional[float] = None, clip_after: Optional[float] = None):
+                 linthresh: Optional[float] = None, clip_after: Optional[float] = None, stamp: bool = True):
     """Control force ``u1`` [N] and torque ``u2`` [N m] against time (paper Fig. 5).
 
     Runs that start near ``theta = 0`` have a control orders of magnitude larger in the first
@@ -427,7 +447,7 @@ def plot_control(sol, axes=None, *, labels: Optional[Sequence[str]] = None, scal
     ``linthresh``, default: the 90th percentile of ``|u|`` rounded up to a power of ten, log above);
     ``scale="clip"`` keeps a linear axis clipped to the largest ``|u|`` after ``clip_after``
     seconds (default 2 % of the horizon) and says so on the axis; ``scale="linear"`` shows
-    everything.
+    everything. ``stamp=False``: no provenance line.
     """
     u = _batched(_get(sol, "u"))
     t = np.asarray(_get(sol, "t"), dtype=float)
@@ -446,18 +466,19 @@ def plot_control(sol, axes=None, *, labels: Optional[Sequence[str]] = None, scal
         raise ValueError(f"scale must be 'symlog', 'clip' or 'linear', got {scale!r}")
     return _time_figure(sol, [u[..., 0], u[..., 1]],
                         [f"u₁ [N]{suffix}", f"u₂ [N m]{suffix}"], "Control u = (u₁, u₂)",
-                        axes=axes, labels=labels, yscales=[tf, tf])
+                        axes=axes, labels=labels, yscales=[tf, tf], stamp=stamp)
 
 
 def _log_y(ax, data):
     ax.set_yscale("log")
 
 
-def plot_hamiltonian(sol, ax=None, *, labels: Optional[Sequence[str]] = None):
-    """Closed-loop Hamiltonian ``H_d(t)`` on a log y-scale (non-increasing along the exact flow)."""
+def plot_hamiltonian(sol, ax=None, *, labels: Optional[Sequence[str]] = None, stamp: bool = True):
+    """Closed-loop Hamiltonian ``H_d(t)`` on a log y-scale (non-increasing along the exact flow);
+    ``stamp=False``: no provenance line."""
     Hd = np.asarray(_get(sol, "Hd"), dtype=float)
     if Hd.ndim == 1:
         Hd = Hd[None]
     return _time_figure(sol, [Hd], ["H_d [J]"], "Closed-loop Hamiltonian H_d",
                         axes=None if ax is None else [ax], labels=labels, yscales=[_log_y],
-                        figsize=(7.0, 4.6))
+                        figsize=(7.0, 4.6), stamp=stamp)

@@ -53,7 +53,7 @@ def _save_every(t_final: float, dt: float, spacing: float = 0.05) -> int:
 
 def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = None,
               t_final: float = PAPER_T_FINAL, ics: Optional[np.ndarray] = None,
-              method: str = "adaptive", command: Optional[Sequence[str]] = None) -> dict:
+              method: str = "adaptive", command: Optional[Sequence[str]] = None, stamp: bool = True) -> dict:
     """Simulate the paper's setting and write its figures and data into ``out_dir``.
 
     Args:
@@ -67,6 +67,7 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
       ics: starts (default `PAPER_ICS`).
       method: ``"adaptive"`` (default) or ``"rk4"``.
       command: recorded in the npz's ``settings_json``.
+      stamp: draw the provenance line on the figures (``False``: for a publication).
 
     Returns:
       ``{stem: Path}`` for the five figures and ``"npz"``.
@@ -82,7 +83,7 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
     paths = {"npz": write_npz(out / "paper.npz", sol, ics=ics,
                               command=list(command) if command is not None else ["run_paper", str(out)])}
     for stem, fn_name in FIGURES.items():
-        fig = getattr(plotting, fn_name)(sol)
+        fig = getattr(plotting, fn_name)(sol, stamp=stamp)
         paths[stem] = plotting.save_figure(fig, out / f"{stem}.png")
     return paths
 

@@ -6,6 +6,7 @@ from typing import Optional
 
 import numpy as np
 
+from .base import T_EPS
 from .paper_figures import _new_figure
 from ..studies.sweep import SweepResult
 
@@ -20,7 +21,7 @@ _LABELS = {"k": "k", "l1": "$L_1$", "l2": "$L_2$", "l3": "$L_3$", "d11": r"$\hat
 def _subtitle(res: SweepResult) -> str:
     s = res.settings
     return (f"{res.ics.shape[0]} starts x {res.values.shape[0]} values; converged: |q| <= {s.get('eps', 0):g} "
-            f"from T_eps to {s.get('t_final', 0):g} s; {s.get('dtype', '')}")
+            f"from {T_EPS} to {s.get('t_final', 0):g} s; {s.get('dtype', '')}")
 
 
 def _has_effort(res: SweepResult) -> bool:
@@ -65,7 +66,7 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
     ax_t.fill_between(x, pct[:, 1], pct[:, 3], color="C1", alpha=0.25, lw=0, label="p25-p75")
     for j, (q, ls) in enumerate(((10, ":"), (50, "-"), (90, "--"))):
         ax_t.plot(x, pct[:, [0, 2, 4][j]], ls, color="C1", marker="o" if q == 50 else None, ms=4, label=f"p{q}")
-    ax_t.set_ylabel("T_eps of the converged [s]")
+    ax_t.set_ylabel(f"{T_EPS} of the converged [s]")
     ax_t.legend(fontsize=8)
     axes = list(axes)
     log = any(a.log for a in res.axes if a.name == res.names[column]) or (
@@ -97,7 +98,7 @@ def plot_sweep_grid(res: SweepResult, axes=None):
     S = res.fraction.reshape(n1, n2)
     med = res.percentiles((50.0,))[:, 0].reshape(n1, n2)
     panels = [(axes[0], S, "fraction converged", "viridis", (0, 1)),
-              (axes[1], med, "median T_eps of the converged [s]", "magma_r", (None, None))]
+              (axes[1], med, f"median {T_EPS} of the converged [s]", "magma_r", (None, None))]
     if len(axes) > 2:
         energy = res.effort_medians().get("u_energy_median", np.full(n1 * n2, np.nan)).reshape(n1, n2)
         panels.append((axes[2], energy, r"median $\int_0^T \|u\|^2 dt$ of the converged", "cividis",

@@ -321,8 +321,9 @@ class SweepResult(NamedTuple):
                             head=f" rows = {P} value sets x {N} starts; swept {ranges}", extra=(fr,))
 
     def table(self) -> str:
-        """One line per value set: the values, fraction +- s.e., median T_eps, failures and (when
-        recorded) the median control energy of the converged starts."""
+        """One line per value set: the values, fraction +- s.e., median T_eps, failures (valid starts
+        that did not reach the horizon, budget-exhausted ones included) and (when recorded) the median
+        control energy of the converged starts; a last line says what "failed" counts."""
         S, se = self.fractions()
         med = self.percentiles((50.0,))[:, 0]
         eff = self.effort_medians()
@@ -336,6 +337,8 @@ class SweepResult(NamedTuple):
             if energy is not None:
                 line += f"   {energy[p]:16.4g}"
             lines.append(line)
+        lines.append("failed: starts that did not reach the horizon, including those whose adaptive step budget "
+                     "ran out (BUDGET_EXHAUSTED: raise max_steps / --max-steps); see the status counts")
         return "\n".join(lines)
 
 
