@@ -213,3 +213,18 @@ def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_di
     assert res.history["loss"].shape == (6,) and np.all(res.history["valid"])
     assert res.loss < res.history["loss"][0]                      # it improved on the starting law
     assert isinstance(res.law, PD) and res.law.kd == 1.5 and res.law.kp != 1.0
+
+
+def test_user_law_through_a_sweep_of_its_parameter_and_the_plant():
+    starts = np.array([[1.0, 0.5, 0.3], [-1.0, 1.0, -0.6]])
+    sw = js.sweep(starts, ["kp=0.5:2:2", "m=1:4:2"], controller=PD(1.0, 1.5), t_final=4.0, x64=True)
+    assert sw.values.shape == (4, 2) and sw.status.shape == (4, 2) and np.all(sw.status == 0)
+    for p, (kp, m) in enumerate(sw.values):
+        one = js.run_ensemble(starts, plant=js.plant_params(m, 1.0, 1.0), controller=PD(kp, 1.5), t_final=4.0,
+                              x64=True)
+        np.testing.assert_allclose(sw.T_eps[p], one.T_eps, rtol=1e-12)
+    assert sw.settings["controller"]["type"] == "PD" and sw.settings["gains"] is None
+    with pytest.raises(ValueError, match="gain of the paper's law"):
+        js.sweep(starts, ["k=0.1:0.2:2"], controller=PD(), t_final=1.0)
+    with pytest.raises(ValueError, match="unknown parameter 'kq'"):
+        js.sweep(starts, ["kq=0.1:0.2:2"], controller=PD(), t_final=1.0)

@@ -88,28 +88,33 @@ class ParamAxis(NamedTuple):
         return f"{self.name}={self.lo:g}:{self.hi:g}:{self.n}" + (":log" if self.log else "")
 
 
-def _check_name(name: str, flag: str) -> None:
-    if name not in PARAM_NAMES:
-        raise ValueError(f"{flag}: unknown parameter {name!r}; choose one of {', '.join(PARAM_NAMES)} "
+def _check_name(name: str, flag: str, law_names: Sequence[str] = ()) -> None:
+    if name not in PARAM_NAMES and name not in law_names:
+        extra = f", or of the controller: {', '.join(law_names)}" if law_names else ""
+        raise ValueError(f"{flag}: unknown parameter {name!r}; choose one of {', '.join(PARAM_NAMES)}{extra} "
                          f"(e.g. {_EXAMPLE})")
 
 
 def _check_values(name: str, values: np.ndarray, label: str) -> None:
-    """Every value of ``name`` admissible, else a ValueError naming ``label`` (the --param)."""
-    _, cond, need = PARAM_NAMES[name]
+    """Every value of ``name`` admissible, else a ValueError naming ``label`` (the --param). A parameter of
+    a user's law needs only be finite (the law is checked on its first value set)."""
     v = np.asarray(values, np.float64)
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{label}: every value of {name} must be finite, got {v[~np.isfinite(v)][0]}")
+    if name not in PARAM_NAMES:
+        return
+    _, cond, need = PARAM_NAMES[name]
     bad = ~cond(v)
     if np.any(bad):
         raise ValueError(f"{label}: {name} must be {need}, but the range includes {name} = {v[bad][0]:g} "
                          f"({int(bad.sum())} of {v.size} values); change the range")
 
 
-def parse_param(spec, flag: str = "--param") -> ParamAxis:
+def parse_param(spec, flag: str = "--param", law_names: Sequence[str] = ()) -> ParamAxis:
     """A `ParamAxis` from ``"NAME=LO:HI:P[:log]"`` (or ``"NAME=VALUE"``), or a ParamAxis.
 
-    Values may use ``pi``. The values are checked eagerly: a range that includes an inadmissible
+    ``NAME`` is one of `PARAM_NAMES` or, sweeping a user's law, one of its scalar parameters
+    (``law_names``). Values may use ``pi``. The values are checked eagerly: a range that includes an inadmissible
     value (``m <= 0``, ``k <= 0``, ``J < 0``, ...) raises ``ValueError`` naming the ``--param``.
     """
     from ..files.npz import parse_number
@@ -123,7 +128,7 @@ def parse_param(spec, flag: str = "--param") -> ParamAxis:
         if "=" not in text:
             raise ValueError(f"could not parse {label}: no '='; {hint}")
         name, rng = (s.strip() for s in text.split("=", 1))
-        _check_name(name, label)
+        _check_name(name, label, law_names)
         parts = rng.split(":")
         log = False
         if parts and parts[-1].strip().lower() in ("log", "lin", "linear"):
@@ -140,7 +145,7 @@ def parse_param(spec, flag: str = "--param") -> ParamAxis:
             ax = ParamAxis(name, vals[0], vals[1], int(vals[2]), log)
         else:
             raise ValueError(f"could not parse {label}: got {len(vals)} number(s); {hint}")
-    _check_name(ax.name, label)
+    _check_name(ax.name, label, law_names)
     if not (math.isfinite(ax.lo) and math.isfinite(ax.hi)):
         raise ValueError(f"{label}: the bounds must be finite")
     if ax.n > 1 and not ax.lo < ax.hi:
@@ -154,9 +159,9 @@ def parse_param(spec, flag: str = "--param") -> ParamAxis:
     return ax
 
 
-def param_grid(axes: Sequence) -> tuple[tuple, np.ndarray, tuple]:
+def param_grid(axes: Sequence, law_names: Sequence[str] = ()) -> tuple[tuple, np.ndarray, tuple]:
     """``(names, values (P, n_params), grid_shape)`` of the product of the axes (first slowest)."""
-    axes = [parse_param(a) for a in axes]
+    axes = [parse_param(a, law_names=law_names) for a in axes]
     if not axes:
         raise ValueError(f"a sweep needs at least one parameter (e.g. {_EXAMPLE})")
     names = tuple(a.name for a in axes)
@@ -179,10 +184,13 @@ def check_rows(n_values: int, n_starts: int, what: str = "sweep") -> None:
 
 
 def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = None, gains: Any = None, *,
-                 labels: Optional[Mapping[str, str]] = None) -> tuple[PlantParams, Gains]:
+                 labels: Optional[Mapping[str, str]] = None, controller: Any = None) -> tuple[PlantParams, Any]:
     """Per-lane ``(plant, gains)`` with ``P`` lanes: the base ``plant`` / ``gains`` (the paper's by
     default) with parameter ``names[j]`` set to ``values[:, j]``; validated, every lane at once
-    (``labels``: name -> text naming it in messages, e.g. its ``--param``)."""
+    (``labels``: name -> text naming it in messages, e.g. its ``--param``). With ``controller`` (a user's
+    law, `jaxsleigh.model.controller`) the second item is that law per lane
+    (`jaxsleigh.model.controller.PerTrajectory`): names that are not plant parameters set its scalar
+    parameters."""
     from ..model.lanes import check_lanes
     from ..model.params import as_gains, as_plant
 
@@ -194,9 +202,12 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
         raise ValueError(f"values must have shape (P, {len(names)}) for the parameters {names}, got {values.shape}")
     labels = dict(labels or {})
     lab = lambda n: labels.get(n, f"parameter {n}")  # noqa: E731
+    law_names = _law_scalar_names(controller) if controller is not None else ()
     for j, n in enumerate(names):
-        _check_name(n, lab(n))
+        _check_name(n, lab(n), law_names)
         _check_values(n, values[:, j], lab(n))
+    if controller is not None:
+        return _apply_law_params(names, values, as_plant(plant), controller, lab)
     plant, gains = as_plant(plant), as_gains(gains)
     P = values.shape[0]
     col = {n: values[:, j] for j, n in enumerate(names)}
@@ -229,6 +240,41 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     flags = {"plant.m": lab("m"), "plant.J": lab("J") if "J" in col else lab("l") if "l" in col else "plant.J",
              "gains.D_hat": " / ".join(lab(n) for n in ("d11", "d22", "d12") if n in col) or "gains.D_hat"}
     return check_lanes(PlantParams(m, J, l, d), Gains(L, k, D), flags=flags)
+
+
+def _law_scalar_names(law) -> tuple:
+    """The names of a user's law's scalar parameters (what a sweep may set)."""
+    from ..model.controller import law_leaf_names
+
+    return tuple(n for n, v in law_leaf_names(law).items() if np.ndim(v) == 0)
+
+
+_GAIN_PARAMS = ("k", "l1", "l2", "l3", "d11", "d12", "d22")
+
+
+def _apply_law_params(names, values, plant: PlantParams, law, lab) -> tuple[PlantParams, Any]:
+    """`apply_params` for a user's law: the plant's parameters (as for the paper's law) and the law's scalar
+    parameters, per lane."""
+    import jax
+
+    from ..model.controller import PerTrajectory, law_leaf_names
+    from ..model.lanes import check_lanes
+
+    gain = [n for n in names if n in _GAIN_PARAMS]
+    if gain:
+        raise ValueError(f"{lab(gain[0])}: {gain[0]} is a gain of the paper's law; with a controller of your own a "
+                         f"sweep sets the plant's parameters and the controller's "
+                         f"({', '.join(_law_scalar_names(law))})")
+    P = values.shape[0]
+    plant_idx = [j for j, n in enumerate(names) if n in PARAM_NAMES]
+    if plant_idx:                  # the plant's lanes exactly as under the paper's law
+        plant, _ = apply_params([names[j] for j in plant_idx], values[:, plant_idx], plant, None,
+                                labels={names[j]: lab(names[j]) for j in plant_idx})
+    col = {n: values[:, j] for j, n in enumerate(names) if n not in PARAM_NAMES}
+    leaves, tree = jax.tree_util.tree_flatten(law)
+    lanes = [col[n] if n in col else np.repeat(np.asarray(x, np.float64)[..., None], P, axis=-1)
+             for n, x in zip(law_leaf_names(law), leaves)]
+    return check_lanes(plant, PerTrajectory(jax.tree_util.tree_unflatten(tree, lanes)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -366,7 +412,8 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
           rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
           check_passivity: bool = True, chunk_size: Optional[int] = None, devices: Any = None,
           checkpoint_dir=None, resume: bool = False, progress: Any = None,
-          labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None) -> Optional[SweepResult]:
+          labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None,
+          controller: Any = None) -> Optional[SweepResult]:
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
 
     Args:
@@ -386,6 +433,8 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
       shard: ``(index, count)``: compute only this process's share of the chunks into
         ``checkpoint_dir`` and return ``None`` (a multi-process run, `jaxsleigh.files.distributed`);
         a later call without ``shard`` and with ``resume=True`` assembles the result from them.
+      controller: a law of your own (`jaxsleigh.model.controller`) instead of the paper's; ``params`` may
+        then name its scalar parameters (e.g. ``"kp=0.5:4:8:log"``) as well as the plant's.
 
     Returns:
       `SweepResult` (``None`` with ``shard``).
@@ -400,6 +449,14 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     from ..model.params import as_gains, as_plant
 
     st = _as_starts(starts)
+    law_names = ()
+    if controller is not None:
+        from ..model.controller import as_controller
+
+        if gains is not None:
+            raise ValueError("give either gains (the paper's law) or controller (any law u = law(q, v)), not both")
+        controller = as_controller(controller)
+        law_names = _law_scalar_names(controller)
     if isinstance(params, Mapping):
         names = tuple(params)
         cols = [np.atleast_1d(np.asarray(params[n], np.float64)) for n in names]
@@ -410,14 +467,14 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     else:
         if isinstance(params, (str, ParamAxis)):
             params = [params]
-        axes = tuple(parse_param(a) for a in params)
+        axes = tuple(parse_param(a, law_names=law_names) for a in params)
         if len(axes) > 2:
             raise ValueError("a sweep grid takes one or two parameters; pass explicit value sets for more")
         check_rows(math.prod(a.n for a in axes), st.ics.shape[0])
-        names, values, shape = param_grid(axes)
+        names, values, shape = param_grid(axes, law_names)
         labels = {a.name: f"--param {a.spec()}" for a in axes} | dict(labels or {})
-    base_plant, base_gains = as_plant(plant), as_gains(gains)
-    lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels)
+    base_plant, base_gains = as_plant(plant), (as_gains(gains) if controller is None else None)
+    lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels, controller=controller)
     P, N = values.shape[0], st.ics.shape[0]
     rows = np.repeat(np.arange(P), N)                     # row p * N + i: start i, value set p
     from ..model.lanes import broadcast_lanes
@@ -426,7 +483,8 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     if chunk_size is None:
         n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
         chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
-    res = run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, gains=lg, t_final=t_final, dt=dt, eps=eps,
+    law = {"gains": lg} if controller is None else {"controller": lg}
+    res = run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps,
                        method=method, rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
                        resume=resume, progress=progress, shard=shard)
@@ -434,7 +492,12 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
         return None
     varying = ("wall_s", "devices", "chunks_reused")
     settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every", "plant", "gains")}
-    settings.update(plant=plant_to_dict(base_plant), gains=gains_to_dict(base_gains), starts=st.spec,
+    if controller is not None:
+        from ..model.controller import controller_record
+
+        settings["controller"] = controller_record(controller)
+    settings.update(plant=plant_to_dict(base_plant),
+                    gains=gains_to_dict(base_gains) if controller is None else None, starts=st.spec,
                     sweep={"names": list(names), "axes": [a.spec() for a in axes], "n_values": P, "n_starts": N})
     run_info = {k: res.settings.get(k) for k in varying}
     per = lambda a: np.asarray(a).reshape((P, N) + np.shape(a)[1:])  # noqa: E731
