@@ -12,6 +12,7 @@ from .model.params import (Gains, PlantParams, gains, load_gains, paper_gains, p
 from .studies.simulate import Solution, simulate
 from .integrate.solve import SolveOutput, solve
 from .integrate.stepsize import StepSizeController
+from .studies.options import RunOptions, SaveAt
 from .status import Status
 from .studies.sweep import SweepResult, load_sweep, save_sweep, sweep
 from .model import charts, controller  # noqa: F401

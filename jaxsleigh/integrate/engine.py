@@ -265,7 +265,7 @@ def _finish(full: StepState, t_final: float) -> StepState:
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
                 atol: float, eps: float, max_steps: int, max_step=None, segment: int = 1000,
                 compact: bool = True, monitor: bool = True, progress=None, mesh=None,
-                observers=DEFAULT_OBSERVERS) -> StepState:
+                observers=DEFAULT_OBSERVERS, policy=(0.9, 0.1, 5.0)) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
     (``observers``, `jaxsleigh.integrate.observers`).
 
@@ -289,7 +289,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     n = y0w.shape[0]
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
-    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
+    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step,
+                        safety=policy[0], factor_min=policy[1], factor_max=policy[2])
     target = jnp.asarray(horizon.t_final, dtype)
     lanes = has_lanes(args.plant, args.gains)
     if lanes:                                # per-lane parameters: one lane per trajectory of the batch
@@ -337,7 +338,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
 
 def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
                  atol: float, eps: float, max_steps: int, max_step=None, block: int = 100,
-                 monitor: bool = True, progress=None, observers=DEFAULT_OBSERVERS):
+                 monitor: bool = True, progress=None, observers=DEFAULT_OBSERVERS, policy=(0.9, 0.1, 5.0)):
     """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
@@ -345,7 +346,8 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: 
     from ..model.lanes import broadcast_lanes, has_lanes
 
     dtype = y0w.dtype
-    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step)
+    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step,
+                        safety=policy[0], factor_min=policy[1], factor_max=policy[2])
     if has_lanes(args.plant, args.gains):
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
                                       ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))

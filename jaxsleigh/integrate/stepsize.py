@@ -49,6 +49,9 @@ class StepSizeController(NamedTuple):
       factor_min, factor_max: limits of the change of step per attempt (0.1, 5).
       max_step: largest step (``None``: `MAX_STEP_FACTOR` base steps).
       max_steps: budget of attempted steps per trajectory (``None``: 20x the base steps + room).
+      method: ``"adaptive"`` (this policy) or ``"rk4"`` (fixed steps of the base step ``dt``; the policy's
+        numbers are then unused).
+      check_passivity: reject (adaptive) or flag (``"rk4"``) steps that increase the paper's H_d.
     """
 
     rtol: Optional[float] = None
@@ -58,6 +61,8 @@ class StepSizeController(NamedTuple):
     factor_max: float = 5.0
     max_step: Optional[float] = None
     max_steps: Optional[int] = None
+    method: str = "adaptive"
+    check_passivity: bool = True
 
 
 def error_ratio(h, y, y_new, k4, k5, ctl):

@@ -39,7 +39,9 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .config import reject_traced
-from .ensemble import run_ensemble
+from .ensemble import _run_ensemble
+from .options import RunOptions, SaveAt, front_options
+from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from ..files.npz import parse_number as _number
 from ..model.params import Gains, PlantParams
@@ -459,13 +461,13 @@ class BasinResult(NamedTuple):
                 f"p75 {p['p75']:.3g}, p90 {p['p90']:.3g}")
 
 
-def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 0.01,
+def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 0.01,
               method: str = "adaptive", plant: Optional[PlantParams] = None, gains: Optional[Gains] = None,
               x64: bool = False, rtol: Optional[float] = None, atol: Optional[float] = None,
               max_steps: Optional[int] = None, check_passivity: bool = True,
               chunk_size: Optional[int] = None, devices: Any = None, checkpoint_dir=None,
               resume: bool = False, progress: Any = None, shard: Optional[tuple] = None,
-              controller: Any = None) -> Optional[BasinResult]:
+              controller: Any = None, max_step=None, policy=(0.9, 0.1, 5.0)) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence.
 
     Args:
@@ -496,10 +498,10 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
     if chunk_size is None:
         n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
         chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
-    res = run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
-                       rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
-                       check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
-                       resume=resume, progress=progress, shard=shard, controller=controller)
+    res = _run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
+                        rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64, chunk_size=chunk_size,
+                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
+                        resume=resume, progress=progress, shard=shard, controller=controller, policy=policy)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
     varying = ("wall_s", "devices", "chunks_reused")
@@ -511,6 +513,37 @@ def run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 
         min_abs_theta=res.min_abs_theta, max_excursion=res.max_excursion, n_steps=res.n_steps,
         n_rejected=res.n_rejected, q_final=res.q, p_final=res.p, settings=settings, run_info=run_info,
         u_peak=res.u_peak, u_norm_peak=res.u_norm_peak, u_energy=res.u_energy, u_abs_int=res.u_abs_int)
+
+
+#: The keywords of jaxsleigh 0.1 that `run_basin` maps onto its option objects.
+BASIN_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "chunk_size",
+                            "devices", "checkpoint_dir", "resume", "progress", "shard"})
+
+
+def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Gains] = None, controller: Any = None,
+              t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
+              stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None,
+              **options) -> Optional[BasinResult]:
+    r"""Integrate the closed loop from every start and summarise convergence (settled within the horizon).
+
+    Args:
+      starts: a `BasinStarts` (`grid_starts`, `sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.
+      plant, gains, controller, t_final, dt, x64: as in `jaxsleigh.run_ensemble` (defaults: the paper's
+        plant and law, 100 s, float32).
+      eps: radius of the ball \(|q| \le \epsilon\) of ``T_eps``.
+      stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4).
+      run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 131072 on accelerators
+        (times the number of devices); ``checkpoint_dir`` and ``resume`` continue an interrupted run.
+      **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
+        ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
+        ``shard``), mapped onto the objects.
+
+    Returns:
+      `BasinResult` (``None`` for one share of a multi-process run).
+    """
+    kw = front_options("run_basin", BASIN_KEYWORDS, stepsize, None, run, options)
+    return _run_basin(starts, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
+                      x64=x64, **kw)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -31,6 +31,8 @@ from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from ..files.chunks import ChunkStore, starts_digest
 from .config import reject_traced, solve_config
+from .options import RunOptions, SaveAt, front_options
+from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from ..model.params import PlantParams
@@ -238,7 +240,7 @@ def _settings_key(settings: dict, ics: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
+def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, method: str = "adaptive",
                  rtol: Optional[float] = None, atol: Optional[float] = None, max_step: Optional[float] = None,
                  max_steps: Optional[int] = None, x64: bool = False, save_every: Optional[int] = None,
@@ -246,7 +248,8 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  summaries: bool = True,
                  devices: Any = None, checkpoint_dir=None, resume: bool = False,
                  progress: Any = None, shard: Optional[tuple] = None,
-                 observers: Optional[tuple] = None, controller: Any = None) -> Optional[EnsembleResult]:
+                 observers: Optional[tuple] = None, controller: Any = None,
+                  policy=(0.9, 0.1, 5.0)) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
     Args:
@@ -380,7 +383,7 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                         bar.update((lo + frac * (hi - lo)) / n)
 
                 kw = dict(adaptive=adaptive, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps,
-                          max_step=max_step, monitor=check_passivity)
+                          max_step=max_step, monitor=check_passivity, policy=policy)
                 if not summaries:
                     part = _plain_summaries(*drive_plain(y0w, st, args, horizon, segment=segment,
                                                          progress=_Sub()), y0w, st, args, horizon)
@@ -415,3 +418,44 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
     return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,
                           observed=observed or None)
+
+
+#: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.
+ENSEMBLE_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "save_every",
+                               "summaries", "chunk_size", "segment", "devices", "checkpoint_dir", "resume",
+                               "progress", "shard"})
+
+
+def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
+                 t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
+                 stepsize: Optional[StepSizeController] = None, saveat: Optional[SaveAt] = None,
+                 run: Optional[RunOptions] = None, observers: Optional[tuple] = None,
+                 **options) -> Optional[EnsembleResult]:
+    """Integrate the closed loop from many initial conditions; keep final states and summaries.
+
+    Args:
+      ics: ``(N, 3)`` or ``(N, 5)`` initial conditions (see `jaxsleigh.simulate`). Invalid rows (theta = 0
+        under the paper's law, non-finite) are flagged in ``status`` and the rest are computed.
+      plant, gains: the paper's plant and gains by default; their leaves may vary per trajectory, with a
+        trailing axis of size N (or 1) (`jaxsleigh.model.lanes`); the rows' values come back in ``params``.
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`),
+        integrated in the physical chart; ``Hd0``/``Hd_final`` are then NaN.
+      t_final, dt: horizon and base step; eps: radius of the ball ``|q| <= eps`` of ``T_eps``; x64: float64.
+      stepsize: `jaxsleigh.StepSizeController` (method, tolerances, policy, step cap and budget, passivity
+        monitor; defaults per dtype).
+      saveat: `jaxsleigh.SaveAt` (default: final states and summaries; ``every=k``: also the trajectories every
+        ``k`` base steps; ``summaries=False``: the plain fixed-step path).
+      run: `jaxsleigh.RunOptions` (chunks, devices, checkpoint and resume, progress, a process's share).
+        Every finished chunk is written atomically and carries the fingerprint of its run; a chunk of another
+        run stops the run with a `CheckpointError`, a damaged one is recomputed.
+      observers: the on-line summaries (`jaxsleigh.integrate.observers`; default `DEFAULT_OBSERVERS`).
+      **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
+        ``check_passivity``, ``save_every``, ``summaries``, ``chunk_size``, ``segment``, ``devices``,
+        ``checkpoint_dir``, ``resume``, ``progress``, ``shard``), mapped onto the objects.
+
+    Returns:
+      `EnsembleResult` (``None`` for one share of a multi-process run).
+    """
+    kw = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
+    return _run_ensemble(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
+                         x64=x64, observers=observers, **kw)

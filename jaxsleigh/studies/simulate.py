@@ -19,6 +19,8 @@ from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, 
 from ..model.paper_law import control_w
 from ..model.coordinates import w_to_q
 from ..integrate.engine import check_ics, drive_saving, initial_w
+from ..integrate.stepsize import StepSizeController
+from .options import RunOptions, SaveAt, front_options
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..model.params import PlantParams
 from ..model.plant import velocity
@@ -89,11 +91,11 @@ def _outputs_lanes(yw, args: ClosedLoop, chart=WChart()):
     return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a, chart), in_axes=(0, axes))(yw, args)
 
 
-def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
+def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
              t_final: float = 100.0, dt: float = 0.01, save_every: int = 10,
              method: str = "adaptive", rtol: Optional[float] = None, atol: Optional[float] = None,
              max_step: Optional[float] = None, max_steps: Optional[int] = None, x64: bool = False,
-             progress: Any = None, controller: Any = None) -> Solution:
+             progress: Any = None, controller: Any = None, policy=(0.9, 0.1, 5.0)) -> Solution:
     """Simulate the closed loop (plant eq. 1 + control law eq. 13).
 
     Args:
@@ -147,7 +149,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         with Progress(progress, desc="simulate") as bar:
             final, ys = drive_saving(y0w, status0, args, horizon, adaptive=cfg.adaptive, rtol=cfg.rtol,
                                      atol=cfg.atol, eps=cfg.eps, max_steps=cfg.max_steps, max_step=cfg.max_step,
-                                     progress=bar)
+                                     progress=bar, policy=policy)
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
@@ -172,3 +174,39 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
                     n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),
                     settings=settings, effort=effort)
+
+
+#: The keywords of jaxsleigh 0.1 that `simulate` maps onto its option objects.
+SIMULATE_KEYWORDS = frozenset({"save_every", "method", "rtol", "atol", "max_step", "max_steps", "progress"})
+
+
+def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
+             t_final: float = 100.0, dt: float = 0.01, x64: bool = False,
+             stepsize: Optional[StepSizeController] = None, saveat: Optional[SaveAt] = None,
+             run: Optional[RunOptions] = None, **options) -> Solution:
+    """Simulate the closed loop (plant eq. 1 + control law eq. 13, or any law) and keep decimated trajectories.
+
+    Args:
+      ics: ``(3,)``, ``(5,)``, ``(N, 3)`` or ``(N, 5)``: ``(x, y, theta[, p1, p2])``.
+      plant, gains: defaults are the paper's (m = 2, J = 1, l = 1, Coulomb; L = diag(2, .5, .8), k = 0.1,
+        D_hat = diag(4, 8)). ``gains`` may also be a preset name (``"tuned"``) or a gains file. Both are
+        validated eagerly. Leaves may vary per trajectory (`jaxsleigh.model.lanes`).
+      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`);
+        integrated in the physical chart, and ``Hd`` is NaN (H_d belongs to the paper's law).
+      t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``); x64: compute in float64.
+      stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4, tolerances per dtype, step cap 100 dt).
+      saveat: `jaxsleigh.SaveAt` (``every``: keep every ``every``-th base step, default 10).
+      run: `jaxsleigh.RunOptions` (only ``progress`` applies).
+      **options: the keywords of jaxsleigh 0.1 (``save_every``, ``method``, ``rtol``, ``atol``, ``max_step``,
+        ``max_steps``, ``progress``), mapped onto the objects.
+
+    Returns:
+      `Solution`, as NumPy arrays.
+
+    Raises:
+      ValueError: any bad option, or a single start (or every start of a batch) that cannot be integrated. A
+        bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in a
+        `FlaggedStartsWarning`; the other rows are computed.
+    """
+    kw = front_options("simulate", SIMULATE_KEYWORDS, stepsize, saveat, run, options)
+    return _simulate(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, x64=x64, **kw)

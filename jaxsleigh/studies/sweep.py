@@ -40,6 +40,8 @@ from ..model.params import Gains, PlantParams
 from ..status import NOT_INTEGRATED, Status, describe
 from ..validate import check_memory
 from .config import reject_traced
+from .options import RunOptions, front_options
+from ..integrate.stepsize import StepSizeController
 
 __all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
            "save_sweep", "load_sweep"]
@@ -407,13 +409,13 @@ def _as_starts(starts) -> BasinStarts:
     return starts if isinstance(starts, BasinStarts) else array_starts(starts)
 
 
-def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, eps: float = 0.05,
+def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, eps: float = 0.05,
           t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive", x64: bool = False,
           rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
           check_passivity: bool = True, chunk_size: Optional[int] = None, devices: Any = None,
           checkpoint_dir=None, resume: bool = False, progress: Any = None,
           labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None,
-          controller: Any = None) -> Optional[SweepResult]:
+          controller: Any = None, max_step=None, policy=(0.9, 0.1, 5.0)) -> Optional[SweepResult]:
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
 
     Args:
@@ -443,7 +445,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     import jax
 
     from .config import plant_to_dict
-    from .ensemble import run_ensemble
+    from .ensemble import _run_ensemble
     from ..model.lanes import take_lanes
     from ..model.params import gains_to_dict
     from ..model.params import as_gains, as_plant
@@ -484,10 +486,10 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
         n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
         chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
     law = {"gains": lg} if controller is None else {"controller": lg}
-    res = run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps,
-                       method=method, rtol=rtol, atol=atol, max_steps=max_steps, x64=x64, chunk_size=chunk_size,
-                       check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
-                       resume=resume, progress=progress, shard=shard)
+    res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps,
+                        method=method, rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64,
+                        chunk_size=chunk_size, check_passivity=check_passivity, devices=devices,
+                        checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, shard=shard, policy=policy)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
     varying = ("wall_s", "devices", "chunks_reused")
@@ -507,6 +509,37 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
                        ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
                        min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), effort=effort, settings=settings,
                        run_info=run_info)
+
+
+#: The keywords of jaxsleigh 0.1 that `sweep` maps onto its option objects.
+SWEEP_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "chunk_size",
+                            "devices", "checkpoint_dir", "resume", "progress", "shard", "labels"})
+
+
+def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
+          t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
+          stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None,
+          **options) -> Optional[SweepResult]:
+    r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
+
+    Args:
+      starts: a `BasinStarts` (`grid_starts`, `sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.
+      params: one or two ranges (``"NAME=LO:HI:P[:log]"`` strings or `ParamAxis`; two make a grid), or a
+        mapping ``{name: values}`` of explicit value sets (equal lengths ``P``; zipped, not crossed). Names:
+        `PARAM_NAMES`, or, with ``controller``, also its scalar parameters.
+      plant, gains, controller: the base values of everything not swept (default: the paper's).
+      t_final, dt, eps, x64, stepsize, run: as in `jaxsleigh.run_basin`; ``run.chunk_size`` counts rows
+        (start x value set): memory is bounded by the chunk, not by ``P * N``.
+      **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
+        ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
+        ``shard``) and ``labels`` (parameter name -> text naming it in messages).
+
+    Returns:
+      `SweepResult` (``None`` for one share of a multi-process run).
+    """
+    kw = front_options("sweep", SWEEP_KEYWORDS, stepsize, None, run, options)
+    return _sweep(starts, params, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
+                  x64=x64, **kw)
 
 
 # ---------------------------------------------------------------------------------------------

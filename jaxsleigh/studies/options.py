@@ -1,0 +1,121 @@
+"""The options of a study as small objects, in the manner of diffrax's ``saveat`` and ``stepsize_controller``.
+
+* `jaxsleigh.StepSizeController` (`jaxsleigh.integrate.stepsize`): how steps are taken (method, tolerances,
+  the policy's safety and factor limits, largest step, step budget, the passivity monitor);
+* `SaveAt`: what to keep (trajectories every ``every`` base steps, or final states and summaries only, or the
+  plain fast path without summaries);
+* `RunOptions`: how to run (chunks, segments, devices, checkpoint, resume, progress, the share of a
+  multi-process run).
+
+`front_options` maps them, and the keywords of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...), onto the one
+set of keywords the studies resolve (`jaxsleigh.studies.config.solve_config`), so that a front takes at most
+a dozen parameters and every earlier call keeps working.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple, Optional
+
+from ..integrate.stepsize import StepSizeController
+
+__all__ = ["SaveAt", "RunOptions", "front_options"]
+
+
+class SaveAt(NamedTuple):
+    """What a study keeps.
+
+    Attributes:
+      every: keep the trajectories every ``every`` base steps (``None``: final states and summaries only).
+      summaries: ``False`` runs the plain fixed-step path (final states only, no per-step checks or
+        summaries; needs ``StepSizeController(method="rk4", check_passivity=False)``).
+    """
+
+    every: Optional[int] = None
+    summaries: bool = True
+
+
+class RunOptions(NamedTuple):
+    """How a study runs (none of these changes the numbers).
+
+    Attributes:
+      chunk_size: trajectories integrated, and checkpointed, at once (``None``: the study's default).
+      segment: attempted steps per compiled segment between the host's checks.
+      devices: devices to shard each chunk over (default: all).
+      checkpoint_dir: write every finished chunk there; resume: reuse them (same settings and starts).
+      progress: ``True`` / ``False`` / ``None`` (auto: on a terminal).
+      shard: ``(index, count)``: compute only this process's share of the chunks (multi-process runs).
+    """
+
+    chunk_size: Optional[int] = None
+    segment: int = 1000
+    devices: Any = None
+    checkpoint_dir: Any = None
+    resume: bool = False
+    progress: Any = None
+    shard: Optional[tuple] = None
+
+
+def _check_policy(ss: StepSizeController) -> None:
+    for name, value, ok, need in (
+            ("safety", ss.safety, lambda v: 0 < v <= 1, "in (0, 1]"),
+            ("factor_min", ss.factor_min, lambda v: 0 < v < 1, "in (0, 1)"),
+            ("factor_max", ss.factor_max, lambda v: v > 1, "> 1")):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"stepsize.{name} must be a number {need}, got {value!r}") from None
+        if not (math.isfinite(v) and ok(v)):
+            raise ValueError(f"stepsize.{name} must be {need}, got {value!r}")
+    if ss.method not in ("adaptive", "rk4"):
+        raise ValueError(f"stepsize.method must be 'adaptive' or 'rk4', got {ss.method!r}")
+
+
+def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, run=None, options=None) -> dict:
+    """The keywords a study resolves, from its option objects and the 0.1 keywords in ``options``.
+
+    An unknown keyword is a ``TypeError`` naming the valid ones; a keyword given both as an object's field
+    and by itself (with another value) is a ``ValueError``; an object's field the front has no use for
+    (a chunk size for `jaxsleigh.simulate`) is a ``ValueError`` naming it.
+    """
+    options = dict(options or {})
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise TypeError(f"{front}() got unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
+                        f"{', '.join(repr(k) for k in unknown)}; its keywords beyond the objects are "
+                        f"{', '.join(sorted(allowed))}")
+    out = dict(options)
+
+    def put(key, value, source, default=None):
+        if key not in allowed:
+            if value != default:
+                raise ValueError(f"{front}() has no use for {source}.{key} = {value!r} (drop it)")
+            return
+        if key in out and out[key] != value:
+            raise ValueError(f"{front}(): {key} given twice, {source}.{key} = {value!r} and {key}={out[key]!r}; "
+                             f"give it once")
+        out[key] = value
+
+    if stepsize is not None:
+        if not isinstance(stepsize, StepSizeController):
+            raise ValueError(f"stepsize must be a jaxsleigh.StepSizeController, got {type(stepsize).__name__}")
+        _check_policy(stepsize)
+        for key in ("rtol", "atol", "max_step", "max_steps"):
+            if getattr(stepsize, key) is not None:
+                put(key, getattr(stepsize, key), "stepsize")
+        put("method", stepsize.method, "stepsize", "adaptive")
+        put("check_passivity", stepsize.check_passivity, "stepsize", True)
+        out["policy"] = (float(stepsize.safety), float(stepsize.factor_min), float(stepsize.factor_max))
+    if saveat is not None:
+        if not isinstance(saveat, SaveAt):
+            raise ValueError(f"saveat must be a jaxsleigh.SaveAt, got {type(saveat).__name__}")
+        if saveat.every is not None:
+            put("save_every", saveat.every, "saveat")
+        put("summaries", saveat.summaries, "saveat", True)
+    if run is not None:
+        if not isinstance(run, RunOptions):
+            raise ValueError(f"run must be a jaxsleigh.RunOptions, got {type(run).__name__}")
+        for key, default in zip(RunOptions._fields, RunOptions()):
+            value = getattr(run, key)
+            if value != default:
+                put(key, value, "run", default)
+    return out

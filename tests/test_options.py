@@ -1,0 +1,57 @@
+"""The studies' options as small objects: every front takes at most 13 parameters, the objects and the
+keywords of jaxsleigh 0.1 give the same numbers, and what is wrong is named."""
+import inspect
+
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+
+STARTS = np.array([[1.0, 1.0, 0.5], [-2.0, 1.0, -1.0], [0.5, -1.5, 2.0]])
+
+
+@pytest.mark.parametrize("front", [js.simulate, js.run_ensemble, js.run_basin, js.sweep])
+def test_every_front_takes_at_most_13_parameters(front):
+    assert len(inspect.signature(front).parameters) <= 13, inspect.signature(front)
+
+
+def test_objects_and_old_keywords_give_the_same_numbers():
+    a = js.run_ensemble(STARTS, t_final=5.0, stepsize=js.StepSizeController(rtol=1e-7, atol=1e-7, max_step=0.5),
+                        saveat=js.SaveAt(every=100), run=js.RunOptions(chunk_size=2, segment=200))
+    b = js.run_ensemble(STARTS, t_final=5.0, rtol=1e-7, atol=1e-7, max_step=0.5, save_every=100, chunk_size=2,
+                        segment=200)
+    for k in ("q", "T_eps", "u_energy", "n_steps", "status"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    np.testing.assert_array_equal(a.q_traj, b.q_traj)
+    s1 = js.simulate(STARTS, t_final=2.0, stepsize=js.StepSizeController(method="rk4"), saveat=js.SaveAt(every=50))
+    s2 = js.simulate(STARTS, t_final=2.0, method="rk4", save_every=50)
+    np.testing.assert_array_equal(s1.q, s2.q)
+
+
+def test_the_policy_reaches_the_stepper():
+    """A smaller safety factor takes more steps (the policy's numbers are traced into the step)."""
+    a = js.run_ensemble(STARTS, t_final=5.0)
+    b = js.run_ensemble(STARTS, t_final=5.0, stepsize=js.StepSizeController(safety=0.5))
+    assert np.all(b.n_steps >= a.n_steps) and b.n_steps.sum() > a.n_steps.sum()
+    c = js.run_basin(STARTS, t_final=5.0, stepsize=js.StepSizeController(safety=0.5))
+    np.testing.assert_array_equal(c.n_steps, b.n_steps)
+
+
+@pytest.mark.parametrize("call, err, match", [
+    (lambda: js.run_ensemble(STARTS, rtoll=1e-6), TypeError, "unexpected keyword argument 'rtoll'"),
+    (lambda: js.run_ensemble(STARTS, rtol=1e-6, stepsize=js.StepSizeController(rtol=1e-7)), ValueError,
+     "rtol given twice"),
+    (lambda: js.simulate(STARTS, run=js.RunOptions(chunk_size=4)), ValueError, "no use for run.chunk_size"),
+    (lambda: js.run_ensemble(STARTS, stepsize=js.StepSizeController(safety=1.5)), ValueError,
+     "stepsize.safety must be in"),
+    (lambda: js.run_ensemble(STARTS, stepsize=js.StepSizeController(factor_max=0.5)), ValueError,
+     "stepsize.factor_max must be > 1"),
+    (lambda: js.run_ensemble(STARTS, stepsize=js.StepSizeController(method="euler")), ValueError,
+     "stepsize.method must be"),
+    (lambda: js.run_ensemble(STARTS, stepsize=js.StepSizeController(rtol=-1.0)), ValueError, "rtol must be > 0"),
+    (lambda: js.run_basin(STARTS, saveat=js.SaveAt(every=10)), TypeError, "unexpected keyword argument 'saveat'"),
+    (lambda: js.run_ensemble(STARTS, stepsize={"rtol": 1e-6}), ValueError, "StepSizeController"),
+])
+def test_wrong_options_are_named(call, err, match):
+    with pytest.raises(err, match=match):
+        call()
