@@ -65,7 +65,7 @@ def test_api_reference_shows_the_function_once_with_its_signature(site):
     sig = _text(api[start:api.index("Simulate the closed loop", start)])
     # Ruff (a docs extra) formats long signatures one parameter a line
     assert "\n    t_final: float = 100.0,\n" in sig, sig
-    assert 'method: str = "adaptive"' in sig and "-> Solution" in sig
+    assert "stepsize: Optional[StepSizeController] = None" in sig and "-> Solution" in sig
     for page in (site / "api").rglob("*.html"):
         body = _text(page.read_text().split('<div class="md-content"', 1)[-1])
         assert "required" not in body.lower(), f"{page.relative_to(site)} marks a parameter required"
