@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Status", "DESCRIPTIONS", "NOT_INTEGRATED", "describe", "counts_in_words"]
+import numpy as np
+
+__all__ = ["Status", "DESCRIPTIONS", "NOT_INTEGRATED", "describe", "counts_in_words", "converged", "integrated"]
 
 
 class Status(enum.IntEnum):
@@ -57,3 +59,14 @@ def counts_in_words(status) -> str:
     codes, counts = np.unique(np.asarray(status, dtype=np.int64), return_counts=True)
     names = {int(s): s.name.lower() for s in Status}
     return ", ".join(f"{int(n)} {names.get(int(c), f'code {int(c)}')}" for c, n in zip(codes, counts))
+
+
+def converged(status, T_eps):
+    """The one definition of "converged": the trajectory reached the horizon with status OK and settled in the
+    ball, ``T_eps`` finite. Arrays of any shape (a sweep's (P, N) too)."""
+    return (np.asarray(status) == Status.OK) & np.isfinite(np.asarray(T_eps, np.float64))
+
+
+def integrated(status):
+    """Starts that were integrated (not flagged as `NOT_INTEGRATED`): the population of a fraction."""
+    return ~np.isin(np.asarray(status), [int(s) for s in NOT_INTEGRATED])

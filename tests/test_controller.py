@@ -2,7 +2,6 @@
 physical chart, checked against scipy's Radau integrating the same closed loop written independently."""
 from __future__ import annotations
 
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -14,15 +13,7 @@ import jaxsleigh as js
 from jaxsleigh.model.charts import PhysicalChart, WChart, chart_for
 
 
-class PD(NamedTuple):
-    """Proportional-derivative law on the forward distance and the heading (the concepts page's example)."""
-
-    kp: float = 1.0
-    kd: float = 2.0
-
-    def __call__(self, q, v):
-        along = q[0] * jnp.cos(q[2]) + q[1] * jnp.sin(q[2])
-        return jnp.stack([-self.kp * along - self.kd * v[0], -self.kp * q[2] - self.kd * v[1]])
+from laws import PD  # noqa: E402
 
 
 def _scipy_closed_loop(law_np, m=2.0, J=1.0, l=1.0, eps=0.1, scale=1.0):

@@ -3,7 +3,6 @@ outputs with respect to the controller's parameters, the plant's and the start m
 differences in float64, under jit and vmap."""
 from __future__ import annotations
 
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -14,13 +13,7 @@ import jaxsleigh as js
 from jaxsleigh.integrate.solve import solve
 
 
-class PD(NamedTuple):
-    kp: float = 1.0
-    kd: float = 2.0
-
-    def __call__(self, q, v):
-        along = q[0] * jnp.cos(q[2]) + q[1] * jnp.sin(q[2])
-        return jnp.stack([-self.kp * along - self.kd * v[0], -self.kp * q[2] - self.kd * v[1]])
+from laws import PD  # noqa: E402
 
 
 Y0 = np.array([1.0, 1.0, 0.5, 0.1, -0.2])

@@ -20,7 +20,6 @@ of one run share the family and differ in its numbers.
 """
 from __future__ import annotations
 
-import functools
 
 import hashlib
 from typing import Any, Optional, Sequence
@@ -28,7 +27,6 @@ from typing import Any, Optional, Sequence
 import jax
 import numpy as np
 
-from .closed_loop import ClosedLoop
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
 from .controller import PerTrajectory, as_controller, is_paper_law, law_leaf_names
 from .params import Gains, PlantParams, as_gains, as_plant

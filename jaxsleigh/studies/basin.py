@@ -40,12 +40,12 @@ import numpy as np
 
 from .config import reject_traced
 from .ensemble import _run_ensemble
-from .options import RunOptions, SaveAt, front_options
+from .options import RunOptions, front_options
 from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from ..files.npz import parse_number as _number
 from ..model.params import Gains, PlantParams
-from ..status import NOT_INTEGRATED, Status, describe
+from ..status import NOT_INTEGRATED, Status, converged, describe, integrated
 from ..validate import check_memory, whole
 
 __all__ = [
@@ -391,12 +391,12 @@ class BasinResult(NamedTuple):
     @property
     def valid(self) -> np.ndarray:
         """Integrated starts (not on the singular set, finite): the population of the fraction."""
-        return ~np.isin(self.status, [int(s) for s in _FLAGGED])
+        return integrated(self.status)
 
     @property
     def converged(self) -> np.ndarray:
-        """Reached the horizon (status OK) and settled in the ball: ``T_eps`` finite."""
-        return (self.status == Status.OK) & np.isfinite(self.T_eps)
+        """Reached the horizon (status OK) and settled in the ball: ``T_eps`` finite (`jaxsleigh.status.converged`)."""
+        return converged(self.status, self.T_eps)
 
     @property
     def not_converged(self) -> np.ndarray:

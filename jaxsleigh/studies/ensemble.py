@@ -37,7 +37,7 @@ from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from ..model.params import PlantParams
 from ..progress import Progress
-from ..status import Status
+from ..status import Status, converged
 from ..validate import check_memory, whole
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
@@ -92,7 +92,7 @@ class EnsembleResult(NamedTuple):
 
     def converged(self) -> np.ndarray:
         """Boolean (N,): OK and settled within the horizon."""
-        return (self.status == Status.OK) & np.isfinite(self.T_eps)
+        return converged(self.status, self.T_eps)
 
     def __repr__(self) -> str:
         # a summary, not every array (print(result) of 10^6 starts would dump them all)
@@ -130,7 +130,7 @@ def summary_repr(name: str, result, *, status, T_eps, Hd0=None, u_energy=None, h
     st = np.asarray(status).ravel()
     t = np.asarray(T_eps, np.float64).ravel()
     valid = ~np.isin(st, [int(c) for c in NOT_INTEGRATED])
-    conv = (st == Status.OK) & np.isfinite(t)
+    conv = converged(st, t)
     n_valid = int(valid.sum())
     frac = f"{conv.sum() / n_valid:.4f}" if n_valid else "nan"
     med = f"{np.median(t[conv]):.4g} s" if conv.any() else "none converged"

@@ -37,7 +37,7 @@ import numpy as np
 from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, t_eps_percentiles
 from ..model.damping import CoulombDamping, ViscousDamping, damping_from_name
 from ..model.params import Gains, PlantParams
-from ..status import NOT_INTEGRATED, Status, describe
+from ..status import Status, converged, describe, integrated
 from ..validate import check_memory
 from .config import reject_traced
 from .options import RunOptions, front_options
@@ -315,11 +315,11 @@ class SweepResult(NamedTuple):
 
     @property
     def valid(self) -> np.ndarray:
-        return ~np.isin(self.status, [int(s) for s in NOT_INTEGRATED])
+        return integrated(self.status)
 
     @property
     def converged(self) -> np.ndarray:
-        return (self.status == Status.OK) & np.isfinite(self.T_eps)
+        return converged(self.status, self.T_eps)
 
     def fractions(self) -> tuple[np.ndarray, np.ndarray]:
         """``(fraction (P,), fraction_se (P,))`` of the valid starts that converged, per value set."""
