@@ -219,3 +219,15 @@ def test_user_law_through_a_sweep_of_its_parameter_and_the_plant():
         js.sweep(starts, ["k=0.1:0.2:2"], controller=PD(), t_final=1.0)
     with pytest.raises(ValueError, match="unknown parameter 'kq'"):
         js.sweep(starts, ["kq=0.1:0.2:2"], controller=PD(), t_final=1.0)
+
+
+def test_a_user_law_that_blows_up_ends_with_a_status_never_a_silent_nan():
+    def law(q, v):                       # finite at the validation point, infinite beyond x = 5
+        return jnp.where(q[0] > 5.0, jnp.inf, 1.0) * jnp.stack([-q[0] - v[0], -q[2] - v[1]])
+
+    res = js.run_ensemble(np.array([[6.0, 0.0, 0.3], [1.0, 0.5, 0.3]]), controller=law, t_final=2.0)
+    assert res.status[1] == js.Status.OK and np.all(np.isfinite(res.q[1]))
+    assert res.status[0] in (js.Status.STEP_UNDERFLOW, js.Status.NONFINITE)
+    assert np.all(np.isnan(res.q[0])) and np.isnan(res.T_eps[0])
+    fixed = js.run_ensemble(np.array([[6.0, 0.0, 0.3]]), controller=law, t_final=2.0, method="rk4")
+    assert fixed.status[0] == js.Status.NONFINITE and np.all(np.isnan(fixed.q[0]))
