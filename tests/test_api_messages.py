@@ -356,3 +356,19 @@ def test_figure_formats_matplotlib_writes_are_accepted(tmp_path, suffix):
     from jaxsleigh.cli.common import check_figure
 
     assert check_figure(tmp_path / "sub" / f"f{suffix}") == tmp_path / "sub" / f"f{suffix}"
+
+
+def test_result_files_carry_a_format_version_and_old_files_still_load(tmp_path):
+    """Version 2 files name their format; a file of 0.1 (no version) loads as before; a newer one is refused."""
+    from jaxsleigh.files.npz import FORMAT_VERSION
+
+    res = js.run_basin(js.grid_starts(x=(-1, 1, 2), y=(-1, 1, 2), theta=0.4), t_final=1.0, progress=False)
+    path = js.save_basin(tmp_path / "b.npz", res)
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    assert int(data.pop("format_version")) == FORMAT_VERSION == 2
+    np.savez(tmp_path / "v1.npz", **data)                       # as jaxsleigh 0.1 wrote it
+    np.testing.assert_array_equal(js.load_basin(tmp_path / "v1.npz").T_eps, res.T_eps)
+    np.savez(tmp_path / "v9.npz", **data, format_version=np.int64(9))
+    with pytest.raises(ValueError, match="newer jaxsleigh .result format 9.*upgrade"):
+        js.load_basin(tmp_path / "v9.npz")

@@ -231,3 +231,18 @@ def test_a_user_law_that_blows_up_ends_with_a_status_never_a_silent_nan():
     assert np.all(np.isnan(res.q[0])) and np.isnan(res.T_eps[0])
     fixed = js.run_ensemble(np.array([[6.0, 0.0, 0.3]]), controller=law, t_final=2.0, method="rk4")
     assert fixed.status[0] == js.Status.NONFINITE and np.all(np.isnan(fixed.q[0]))
+
+
+def test_results_of_a_user_law_are_saved_and_loaded(tmp_path):
+    from jaxsleigh.files.npz import FORMAT_VERSION, write_npz
+    from jaxsleigh.plots.paper_figures import load_solution
+
+    res = js.run_basin(js.grid_starts(x=(-1, 1, 2), y=(-1, 1, 2), theta=0.4), controller=PD(), t_final=2.0)
+    back = js.load_basin(js.save_basin(tmp_path / "b.npz", res))
+    np.testing.assert_array_equal(back.T_eps, res.T_eps)
+    assert back.settings["controller"]["type"] == "PD"
+    sol = js.simulate(np.array([1.0, 0.5, 0.3]), controller=PD(), t_final=1.0)
+    path = write_npz(tmp_path / "s.npz", sol, ics=np.array([[1.0, 0.5, 0.3]]))
+    np.testing.assert_array_equal(load_solution(path).q, sol.q)
+    with np.load(path) as z:
+        assert int(z["format_version"]) == FORMAT_VERSION

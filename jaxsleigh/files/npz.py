@@ -80,16 +80,17 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     settings = {**s, "ics": ics.tolist(), "command": list(command) if command is not None else None,
                 "status_codes": describe()}
     plant, g = s["plant"], s["gains"]
+    # a law of the user's own has no paper gains: its record is in settings_json ("controller")
+    gains = {} if g is None else {"gains_L": np.asarray(g["L"], dtype=np.float64), "gains_k": np.float64(g["k"]),
+                                  "gains_D_hat": np.asarray(g["D_hat"], dtype=np.float64)}
     atomic_write(path, lambda f: np.savez_compressed(
-        f,
+        f, format_version=np.int64(FORMAT_VERSION),
         t=np.asarray(sol.t), q=np.asarray(sol.q), p=np.asarray(sol.p), u=np.asarray(sol.u),
         Hd=np.asarray(sol.Hd), status=np.asarray(sol.status, dtype=np.int32),
         n_steps=np.asarray(sol.n_steps), n_rejected=np.asarray(sol.n_rejected), ics=ics,
         settings_json=np.array(json.dumps(settings)),
         dt=np.float64(s["dt"]), t_final=np.float64(s["t_final"]), save_every=np.int64(s["save_every"]),
-        method=np.array(s["method"]), dtype=np.array(s["dtype"]),
-        gains_L=np.asarray(g["L"], dtype=np.float64), gains_k=np.float64(g["k"]),
-        gains_D_hat=np.asarray(g["D_hat"], dtype=np.float64),
+        method=np.array(s["method"]), dtype=np.array(s["dtype"]), **gains,
         params=np.array([plant["m"], plant["J"], plant["l"]], dtype=np.float64),
         damping=np.array(damping_name(plant["damping"])),
         **{k: np.asarray(v) for k, v in (getattr(sol, "effort", None) or {}).items()},
@@ -101,20 +102,27 @@ def settings_arrays(s: dict) -> dict:
     """The settings every result file repeats as scalars next to ``settings_json``: ``eps``,
     ``t_final``, ``dt``, ``method``, ``dtype``, ``max_steps``, ``gains_L``, ``gains_k``,
     ``gains_D_hat``, ``params (m, J, l)``, ``damping``."""
-    plant, g = s["plant"], s["gains"]
+    plant, g = s["plant"], s.get("gains")
+    # a law of the user's own has no paper gains: its record is in settings_json ("controller")
+    gains = {} if g is None else {"gains_L": np.asarray(g["L"], np.float64), "gains_k": np.float64(g["k"]),
+                                  "gains_D_hat": np.asarray(g["D_hat"], np.float64)}
     return dict(
         eps=np.float64(s["eps"]), t_final=np.float64(s["t_final"]), dt=np.float64(s["dt"]),
         method=np.array(s["method"]), dtype=np.array(s["dtype"]), max_steps=np.int64(s["max_steps"]),
-        gains_L=np.asarray(g["L"], np.float64), gains_k=np.float64(g["k"]),
-        gains_D_hat=np.asarray(g["D_hat"], np.float64),
-        params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
+        **gains, params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
         damping=np.array(damping_name(plant["damping"])),
     )
 
 
+#: Version of the result files' layout, written into every result file as ``format_version``. 1: files of
+#: jaxsleigh 0.1 (no ``format_version`` key), still read; 2: the same arrays, versioned.
+FORMAT_VERSION = 2
+
+
 def write_npz_deterministic(path, arrays: dict) -> Path:
     """Like ``np.savez_compressed`` but with fixed zip timestamps (equal inputs, equal bytes),
-    written atomically (:func:`atomic_write`)."""
+    written atomically (:func:`atomic_write`); the file carries ``format_version`` (`FORMAT_VERSION`)."""
+    arrays = {"format_version": np.int64(FORMAT_VERSION), **arrays}
     import io as _io
     import zipfile
 
@@ -155,6 +163,10 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"cannot read {str(p)!r} ({type(e).__name__}: {e}); the path must be a .npz written by "
                          f"jaxsleigh: give the {what}") from None
+    version = int(data["format_version"]) if "format_version" in data else 1
+    if version > FORMAT_VERSION:
+        raise ValueError(f"{str(p)!r} was written by a newer jaxsleigh (result format {version}); this one reads "
+                         f"formats up to {FORMAT_VERSION}: upgrade jaxsleigh to read it")
     found = npz_kind(data)
     if kind is not None and found is not None and found != kind:
         _, name, reader = NPZ_KINDS[found]
