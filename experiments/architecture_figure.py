@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent / "jaxsleigh"
 FLOORS = [
     ("base", ["errors", "validate", "progress", "status", "cache"]),
     ("files", ["files"]),
-    ("model", ["model"]),
+    ("model", ["model", "controllers"]),
     ("integrate", ["integrate"]),
     ("studies", ["studies"]),
     ("tuning / plots", ["tuning", "plots"]),

@@ -91,11 +91,10 @@ def vector_field_law_control(t, y, args: ClosedLoop):
     """Closed loop of any law ``u = law(q, v)`` in the physical state ``y = (x, y, theta, p1, p2)``, and
     the control it applies (a tuple of two components). Written on components: ``y`` may be one
     state (5,) or a batch-last array (5, N) (the law is then vmapped over the batch)."""
-    del t
     q, p = y[:3], (y[3], y[4])
     v = velocity_components(p, args.plant)
     qdot = matvec(Q_entries(q), v)
-    u = apply_law(args.controller, q, jnp.stack(v))
+    u = apply_law(args.controller, q, jnp.stack(v), t)
     pdot = momentum_rhs_components(q, p, u, args.plant)
     return jnp.stack(qdot + pdot).astype(y.dtype), u
 

@@ -16,6 +16,9 @@ engine integrates it there (`jaxsleigh.model.charts.WChart`). Any other law is i
 physical chart (`jaxsleigh.model.charts.PhysicalChart`). A law may declare its own chart with a class
 attribute ``chart``.
 
+A *time-varying* law (the classic answer to Brockett's condition) says so with a class attribute
+``time_varying = True`` and is called as ``law(q, v, t)``, ``t`` the time since the start of the run.
+
 Example: a PD law on the distance and heading to the origin (not a stabiliser of the sleigh, which
 no smooth static law is, by Brockett's condition; it shows the contract):
 
@@ -41,7 +44,8 @@ import numpy as np
 
 from .params import Gains
 
-__all__ = ["FunctionLaw", "PerTrajectory", "as_controller", "apply_law", "is_paper_law", "controller_record"]
+__all__ = ["FunctionLaw", "PerTrajectory", "as_controller", "apply_law", "is_paper_law", "is_time_varying",
+           "controller_record"]
 
 
 @jax.tree_util.register_pytree_node_class
@@ -51,8 +55,8 @@ class FunctionLaw:
     def __init__(self, fn):
         self.fn = fn
 
-    def __call__(self, q, v):
-        return self.fn(q, v)
+    def __call__(self, q, v, *t):
+        return self.fn(q, v, *t)
 
     def tree_flatten(self):
         return (), self.fn
@@ -77,8 +81,8 @@ class PerTrajectory:
     def __init__(self, law):
         self.law = law
 
-    def __call__(self, q, v):
-        return self.law(q, v)
+    def __call__(self, q, v, *t):
+        return self.law(q, v, *t)
 
     def tree_flatten(self):
         return (self.law,), None
@@ -96,16 +100,30 @@ def is_paper_law(controller) -> bool:
     return isinstance(controller, Gains)
 
 
-def apply_law(law, q, v):
-    """``law(q, v)`` as a tuple ``(u1, u2)``, for one trajectory (``q`` (3,), ``v`` (2,)) or a batch-last
-    batch (``q`` (3, N), ``v`` (2, N): the law, written for one trajectory, is vmapped over the batch)."""
+def is_time_varying(law) -> bool:
+    """True for a law that says ``time_varying = True``: it is called as ``law(q, v, t)``."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    return bool(getattr(inner, "time_varying", False))
+
+
+def apply_law(law, q, v, t=0.0):
+    """``law(q, v)`` (``law(q, v, t)`` for a time-varying law) as a tuple ``(u1, u2)``, for one trajectory
+    (``q`` (3,), ``v`` (2,)) or a batch-last batch (``q`` (3, N), ``v`` (2, N), ``t`` a scalar or (N,): the
+    law, written for one trajectory, is vmapped over the batch)."""
     q, v = jnp.asarray(q), jnp.asarray(v)
+    tv = is_time_varying(law)
+
+    def call(c, qi, vi, ti):
+        return jnp.asarray(c(qi, vi, ti) if tv else c(qi, vi))
+
     if q.ndim == 1:
-        u = jnp.asarray(law(q, v))
-    elif isinstance(law, PerTrajectory):        # one law per lane: vmap the law's leaves with the batch
-        u = jax.vmap(lambda c, qi, vi: jnp.asarray(c(qi, vi)), in_axes=(-1, 1, 1), out_axes=1)(law.law, q, v)
+        u = call(law, q, v, jnp.asarray(t, q.dtype))
     else:
-        u = jax.vmap(lambda qi, vi: jnp.asarray(law(qi, vi)), in_axes=(1, 1), out_axes=1)(q, v)
+        tb = jnp.broadcast_to(jnp.asarray(t, q.dtype), q.shape[1:])
+        if isinstance(law, PerTrajectory):      # one law per lane: vmap the law's leaves with the batch
+            u = jax.vmap(call, in_axes=(-1, 1, 1, 0), out_axes=1)(law.law, q, v, tb)
+        else:
+            u = jax.vmap(lambda qi, vi, ti: call(law, qi, vi, ti), in_axes=(1, 1, 0), out_axes=1)(q, v, tb)
     return u[0].astype(q.dtype), u[1].astype(q.dtype)
 
 
@@ -154,10 +172,10 @@ def as_controller(law: Any, name: str = "controller"):
     v = jnp.array([0.1, -0.2])
     try:
         with jax.enable_x64(True):
-            u = np.asarray(jax.jit(lambda c, q, v: jnp.asarray(c(q, v)))(law, q.astype(jnp.float64),
-                                                                          v.astype(jnp.float64)))
+            u = np.asarray(jax.jit(lambda c, q, v: jnp.asarray(c(q, v, 0.0) if is_time_varying(c) else c(q, v)))(
+                law, q.astype(jnp.float64), v.astype(jnp.float64)))
     except Exception as e:              # noqa: BLE001  (a user's code: report what it raised)
-        raise ValueError(f"the {name} {law!r} failed when called as law(q, v) with q = (1, 0.5, 0.3), "
+        raise ValueError(f"the {name} {law!r} failed when called as law(q, v{', t' if is_time_varying(law) else ''}) with q = (1, 0.5, 0.3), "
                          f"v = (0.1, -0.2) under jax.jit: {type(e).__name__}: {e}") from None
     if u.shape != (2,):
         raise ValueError(f"the {name} must return u of shape (2,) (forward force, turning moment), got shape "
