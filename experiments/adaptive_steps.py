@@ -50,11 +50,11 @@ def main() -> None:
         ref, _ = run(ics, gains, x64=True, rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000,
                      observers=REF)
         assert np.all(ref.status == 0), "the reference failed"
-        yref = np.concatenate([ref.q, ref.p], axis=1)
+        yref = np.concatenate([ref.q_final, ref.p_final], axis=1)
         configs = [("before (0.1 release)", 10, OLD)] + [("dense T_eps", c, DEFAULT_OBSERVERS) for c in caps]
         for label, cap, obs in configs:
             r, wall = run(ics, gains, max_step=cap * 0.01, observers=obs)
-            err = np.max(np.abs(np.concatenate([r.q, r.p], axis=1) - yref), axis=1)
+            err = np.max(np.abs(np.concatenate([r.q_final, r.p_final], axis=1) - yref), axis=1)
             err[~np.isfinite(err)] = np.inf
             wrong = (err > 1e-3) | (r.status != 0)
             both = np.isfinite(r.T_eps) & np.isfinite(ref.T_eps)

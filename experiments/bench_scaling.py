@@ -108,7 +108,7 @@ def worker(spec: dict) -> dict:
         "mean_steps": float(np.mean(r.n_steps)), "max_steps_taken": int(np.max(r.n_steps)),
         "mean_rejected": float(np.mean(r.n_rejected)),
         "not_ok": int(np.sum(status != Status.OK)), "status_counts": counts,
-        "converged": int(np.sum(r.converged())) if mode == "adaptive" else None,
+        "converged": int(np.sum(r.converged)) if mode == "adaptive" else None,
         "dtype": r.settings["dtype"], "chunk_size_effective": r.settings["chunk_size"],
         "rss_after_import_mb": rss_import, "rss_before_timed_mb": rss_before, "peak_rss_mb": peak_rss_mb(),
         "machine": machine(),

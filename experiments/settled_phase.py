@@ -223,9 +223,9 @@ def main(argv=None) -> int:
         ref = js.run_ensemble(ics, gains=gains, t_final=a.t_final, x64=True, rtol=1e-11, atol=1e-11,
                               max_steps=20_000_000, progress=False)
         log(f"  {time.perf_counter() - t0:.1f} s; status {ref.status.tolist()}, T_eps {np.round(ref.T_eps, 3).tolist()}")
-        ref_state = np.concatenate([ref.q, ref.p], axis=1)
+        ref_state = np.concatenate([ref.q_final, ref.p_final], axis=1)
         lib = js.run_ensemble(ics, gains=gains, t_final=a.t_final, progress=False, max_steps=a.max_steps)
-        lib_err = np.max(np.abs(np.concatenate([lib.q, lib.p], axis=1) - ref_state), axis=1)
+        lib_err = np.max(np.abs(np.concatenate([lib.q_final, lib.p_final], axis=1) - ref_state), axis=1)
         y0w = np.asarray(state_to_w(jnp.asarray(np.concatenate([ics, np.zeros((len(ics), 2))], axis=1).T)).T, np.float32)
         t_mark = np.where(np.isfinite(ref.T_eps), ref.T_eps, np.inf).astype(np.float32)
         row_lib = {"gains": gname, "method": "library adaptive default (float32)", "max_step": 0.1,
@@ -246,8 +246,8 @@ def main(argv=None) -> int:
                 cpu_warm = time.process_time() - t0          # compiled: the stepping alone
                 st = np.asarray(state_from_w(jnp.asarray(yf.T)).T, np.float64)
                 err = np.max(np.abs(st - ref_state), axis=1)
-                qerr = np.max(np.abs(st[:, :3] - ref.q), axis=1)
-                qref = np.max(np.abs(ref.q), axis=1)
+                qerr = np.max(np.abs(st[:, :3] - ref.q_final), axis=1)
+                qref = np.max(np.abs(ref.q_final), axis=1)
                 settled_span = a.t_final - ref.T_eps
                 rate = np.where(settled_span > 1.0, ns / np.maximum(settled_span, 1e-9), np.nan)
                 row = {"gains": gname, "method": method, "max_step": ms, "wall_s_incl_compile": wall,
@@ -297,7 +297,7 @@ def eigenvalues(a) -> int:
         for T in (a.t_final / 3, 2 * a.t_final / 3, a.t_final):
             r = js.run_ensemble(ics, gains=gains, t_final=T, x64=True, rtol=1e-10, atol=1e-10,
                                 max_steps=20_000_000, progress=False)
-            y = state_to_w(jnp.asarray(np.concatenate([r.q[0], r.p[0]])))
+            y = state_to_w(jnp.asarray(np.concatenate([r.q_final[0], r.p_final[0]])))
             jac = np.asarray(jax.jacfwd(lambda yy: js.vector_field_w(0.0, yy, args))(y))
             lam = float(-(gains.D_hat[1, 1] + gains.k / y[0] ** 2) / I)
             rest = jac.copy()

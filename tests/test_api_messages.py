@@ -64,7 +64,7 @@ def _per_start(status, T_eps, Hd0=None, u_energy=None):
 def fake_ensemble(status, T_eps, Hd0=None, u_energy=None) -> EnsembleResult:
     d = _per_start(status, T_eps, Hd0, u_energy)
     n, z = d["n"], np.zeros(d["n"])
-    return EnsembleResult(ics=np.ones((n, 5)), q=np.zeros((n, 3)), p=np.zeros((n, 2)), T_eps=d["T_eps"],
+    return EnsembleResult(ics=np.ones((n, 5)), q_final=np.zeros((n, 3)), p_final=np.zeros((n, 2)), T_eps=d["T_eps"],
                           min_abs_theta=z, max_excursion=z, Hd0=d["Hd0"], Hd_final=z, t_reached=z,
                           n_steps=np.zeros(n, np.int64), n_rejected=np.zeros(n, np.int64), status=d["status"],
                           u_peak=np.zeros((n, 2)), u_norm_peak=z, u_energy=d["u_energy"], u_abs_int=z,
@@ -94,7 +94,7 @@ def fake_sweep(n_starts: int = 3) -> SweepResult:
                 "sweep": {"names": ["k"], "axes": [axis.spec()], "n_values": P, "n_starts": N}}
     return SweepResult(names=("k",), values=axis.values()[:, None], grid_shape=(P,), axes=(axis,), starts=starts,
                        ics=np.ones((N, 5)), T_eps=T, status=status, n_steps=np.zeros((P, N), np.int64),
-                       min_abs_theta=np.zeros((P, N)), Hd0=np.ones((P, N)), effort={"u_energy": np.ones((P, N))},
+                       min_abs_theta=np.zeros((P, N)), Hd0=np.ones((P, N)), u_energy=np.ones((P, N)),
                        settings=settings)
 
 
@@ -104,7 +104,7 @@ def fake_solution(n: int = 2, T: int = 5) -> Solution:
     return Solution(t=np.linspace(0, 1, T), q=np.zeros((n, T, 3)), p=np.zeros((n, T, 2)), u=np.zeros((n, T, 2)),
                     Hd=np.ones((n, T)), status=np.zeros(n, np.int32), n_steps=np.ones(n, np.int64),
                     n_rejected=np.zeros(n, np.int64), settings=s,
-                    effort={"T_eps": np.full(n, 0.5), "u_energy": np.ones(n)})
+                    T_eps=np.full(n, 0.5), u_energy=np.ones(n))
 
 
 @pytest.fixture(scope="module")

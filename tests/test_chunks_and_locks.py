@@ -123,7 +123,7 @@ def test_shuffled_copied_or_foreign_chunks_give_the_same_result_or_a_named_refus
         said = " | ".join(str(w.message) for w in caught if isinstance(w.message, DamagedCheckpointWarning))
         for f in misplaced:                                                # every misplaced chunk is named
             assert f in said, (f, said)
-        assert res.settings["chunks_reused"] == 4 - len(missing | {int(f[6:12]) for f in misplaced})
+        assert res.run_info["chunks_reused"] == 4 - len(missing | {int(f[6:12]) for f in misplaced})
 
 
 def test_a_swapped_basin_chunk_is_named_and_recomputed(tmp_path, capsys):
@@ -149,7 +149,7 @@ def test_a_chunk_without_its_identity_is_not_trusted(tmp_path):
     _strip_identity(d / "chunk_000001.npz")
     with pytest.warns(DamagedCheckpointWarning, match=r"chunk_000001\.npz.*earlier jaxsleigh"):
         res = js.run_ensemble(ics, chunk_size=4, checkpoint_dir=d, resume=True, **KW)
-    assert res.settings["chunks_reused"] == 1
+    assert res.run_info["chunks_reused"] == 1
 
 
 def test_store_checks_rows_and_starts(tmp_path):

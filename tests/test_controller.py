@@ -56,7 +56,7 @@ def test_user_law_matches_scipy_radau(method):
         status = out.status
     else:
         out = js.run_ensemble(ics, controller=law, t_final=10.0, x64=True)
-        final = np.concatenate([out.q, out.p], axis=1)
+        final = np.concatenate([out.q_final, out.p_final], axis=1)
         status = out.status
     assert np.all(status == 0)
     f = _scipy_closed_loop(_pd_np(2.0, 1.5))
@@ -156,7 +156,7 @@ def test_paper_gains_given_as_controller_are_the_paper_law():
     ics = np.array([[1.0, 0.5, 0.3]])
     a = js.run_ensemble(ics, controller=js.paper_gains(), t_final=5.0)
     b = js.run_ensemble(ics, t_final=5.0)
-    np.testing.assert_array_equal(a.q, b.q)
+    np.testing.assert_array_equal(a.q_final, b.q_final)
 
 
 def test_per_trajectory_law_equals_separate_runs_and_records_its_values():
@@ -167,7 +167,7 @@ def test_per_trajectory_law_equals_separate_runs_and_records_its_values():
     lanes = js.run_ensemble(ics, controller=PerTrajectory(PD(kp=kps, kd=np.full(3, 1.5))), t_final=4.0, x64=True)
     for i, kp in enumerate(kps):
         one = js.run_ensemble(ics[i:i + 1], controller=PD(kp, 1.5), t_final=4.0, x64=True)
-        np.testing.assert_allclose(lanes.q[i], one.q[0], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(lanes.q_final[i], one.q_final[0], rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(lanes.u_energy[i], one.u_energy[0], rtol=1e-12)
     np.testing.assert_array_equal(lanes.params["kp"], kps)
 
@@ -178,8 +178,8 @@ def test_per_trajectory_plant_under_a_user_law():
     res = js.run_ensemble(ics, plant=plant, controller=PD(), t_final=4.0, x64=True)
     for i, m in enumerate((1.0, 4.0)):
         one = js.run_ensemble(ics[:1], plant=js.plant_params(m, 1.0, 1.0), controller=PD(), t_final=4.0, x64=True)
-        np.testing.assert_allclose(res.q[i], one.q[0], rtol=1e-12, atol=1e-14)
-    assert not np.allclose(res.q[0], res.q[1])
+        np.testing.assert_allclose(res.q_final[i], one.q_final[0], rtol=1e-12, atol=1e-14)
+    assert not np.allclose(res.q_final[0], res.q_final[1])
 
 
 def test_user_law_through_run_basin():
@@ -226,11 +226,11 @@ def test_a_user_law_that_blows_up_ends_with_a_status_never_a_silent_nan():
         return jnp.where(q[0] > 5.0, jnp.inf, 1.0) * jnp.stack([-q[0] - v[0], -q[2] - v[1]])
 
     res = js.run_ensemble(np.array([[6.0, 0.0, 0.3], [1.0, 0.5, 0.3]]), controller=law, t_final=2.0)
-    assert res.status[1] == js.Status.OK and np.all(np.isfinite(res.q[1]))
+    assert res.status[1] == js.Status.OK and np.all(np.isfinite(res.q_final[1]))
     assert res.status[0] in (js.Status.STEP_UNDERFLOW, js.Status.NONFINITE)
-    assert np.all(np.isnan(res.q[0])) and np.isnan(res.T_eps[0])
+    assert np.all(np.isnan(res.q_final[0])) and np.isnan(res.T_eps[0])
     fixed = js.run_ensemble(np.array([[6.0, 0.0, 0.3]]), controller=law, t_final=2.0, method="rk4")
-    assert fixed.status[0] == js.Status.NONFINITE and np.all(np.isnan(fixed.q[0]))
+    assert fixed.status[0] == js.Status.NONFINITE and np.all(np.isnan(fixed.q_final[0]))
 
 
 def test_results_of_a_user_law_are_saved_and_loaded(tmp_path):

@@ -52,9 +52,9 @@ def test_compaction_equals_no_compaction():
     hz = make_horizon(10.0, 0.01)
     with jax.enable_x64(True):
         y0 = initial_w(ics5, st, jnp.float64)
-        kw = dict(adaptive=True, rtol=1e-8, atol=1e-8, eps=0.1, max_steps=10 ** 5, max_step=0.1, segment=50)
-        a = drive_final(y0, st, args, hz, compact=True, **kw)
-        b = drive_final(y0, st, args, hz, compact=False, **kw)
+        step = js.StepSizeController(rtol=1e-8, atol=1e-8, max_steps=10 ** 5, max_step=0.1)
+        a = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, compact=True)
+        b = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, compact=False)
     # the starts need very different numbers of steps, so compaction really happened
     assert a.n_accept.max() > 4 * np.median(a.n_accept)
     for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(a), jax.tree_util.tree_leaves(b)):
@@ -82,12 +82,12 @@ def test_summaries_equal_those_from_full_trajectories(method):
     eps, T = 0.6, 30.0
     r = run_ensemble(ics, t_final=T, dt=0.01, eps=eps, method=method, save_every=1, x64=True)
     assert np.all(r.status == Status.OK)
-    qn = np.linalg.norm(r.q_traj, axis=2)
+    qn = np.linalg.norm(r.q, axis=2)
     T_path = np.array([_T_eps_from_path(r.t, qn[i], eps) for i in range(len(ics))])
     assert np.isfinite(T_path).sum() >= 5 and (~np.isfinite(T_path)).sum() >= 1   # both kinds present
-    min_th = np.abs(r.q_traj[..., 2]).min(axis=1)
+    min_th = np.abs(r.q[..., 2]).min(axis=1)
     max_q = qn.max(axis=1)
-    np.testing.assert_allclose(r.q, r.q_traj[:, -1], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r.q_final, r.q[:, -1], rtol=1e-12, atol=1e-12)
     if method == "rk4":
         np.testing.assert_array_equal(np.isfinite(r.T_eps), np.isfinite(T_path))
         fin = np.isfinite(T_path)
@@ -115,7 +115,7 @@ _SHARD_SCRIPT = textwrap.dedent("""
     for name, dev in (("sharded", None), ("single", jax.devices()[:1])):
         r = run_ensemble(ics, t_final=10.0, eps=0.5, x64=True, chunk_size=32, devices=dev)
         out[name] = {k: np.asarray(getattr(r, k), np.float64).tolist() for k in SUMMARY_FIELDS}
-        out[name + "_devices"] = r.settings["devices"]
+        out[name + "_devices"] = r.run_info["devices"]
     print("RESULT" + json.dumps(out))
 """)
 
@@ -146,7 +146,7 @@ def test_bad_rows_do_not_spoil_the_batch():
     for k in SUMMARY_FIELDS:
         np.testing.assert_allclose(np.asarray(getattr(r, k), float)[keep], np.asarray(getattr(good, k), float),
                                    rtol=1e-12, err_msg=k)
-    assert np.isnan(r.q[3]).all() and np.isnan(r.T_eps[3]) and np.isnan(r.Hd0[4])
+    assert np.isnan(r.q_final[3]).all() and np.isnan(r.T_eps[3]) and np.isnan(r.Hd0[4])
 
 
 def test_checkpoint_resume_gives_the_same_result(tmp_path):
@@ -190,7 +190,7 @@ def test_near_singular_matches_stiff_reference(ic):
     r = run_ensemble(np.array([ic]), t_final=T, x64=True)
     assert r.status[0] == Status.OK
     ref = _radau(np.r_[ic, 0.0, 0.0], T)
-    err = np.abs(r.q[0] - ref[:3]).max()
+    err = np.abs(r.q_final[0] - ref[:3]).max()
     assert err <= 1e-3 * r.max_excursion[0], (err, r.max_excursion[0])
     assert r.max_excursion[0] > 100.0          # it really wandered far
 
@@ -201,11 +201,11 @@ def test_tiny_theta0_budget_is_reported_then_raised():
     ic = np.array([[3.0, 3.0, 1e-3]])
     short = run_ensemble(ic, t_final=2.0, x64=True)
     assert short.status[0] == Status.BUDGET_EXHAUSTED
-    assert 0.0 < short.t_reached[0] < 2.0 and np.isnan(short.q[0]).all()
+    assert 0.0 < short.t_reached[0] < 2.0 and np.isnan(short.q_final[0]).all()
     ok = run_ensemble(ic, t_final=2.0, x64=True, max_steps=2_000_000)
     tight = run_ensemble(ic, t_final=2.0, x64=True, max_steps=4_000_000, rtol=1e-10, atol=1e-10)
     assert ok.status[0] == Status.OK and tight.status[0] == Status.OK
-    assert np.abs(ok.q[0] - tight.q[0]).max() <= 1e-6 * ok.max_excursion[0]
+    assert np.abs(ok.q_final[0] - tight.q_final[0]).max() <= 1e-6 * ok.max_excursion[0]
     assert ok.max_excursion[0] > 1e5
 
 
@@ -217,10 +217,10 @@ def test_starts_off_the_singular_set_never_go_nonfinite():
     ics = np.column_stack([rng.uniform(-5, 5, (n, 2)), rng.choice([-1, 1], n) * 10 ** rng.uniform(-2, 0.5, n)])
     r = run_ensemble(ics, t_final=20.0, max_steps=400_000)
     assert np.all(r.status == Status.OK), np.bincount(r.status)
-    assert np.isfinite(r.q).all() and np.isfinite(r.Hd_final).all()
+    assert np.isfinite(r.q_final).all() and np.isfinite(r.Hd_final).all()
     fixed = run_ensemble(ics, t_final=20.0, method="rk4")
     assert np.any(fixed.status != Status.OK)
-    assert np.isnan(fixed.q[fixed.status != Status.OK]).all()
+    assert np.isnan(fixed.q_final[fixed.status != Status.OK]).all()
 
 
 def test_plain_fixed_path_equals_the_checked_stepper():
@@ -232,8 +232,8 @@ def test_plain_fixed_path_equals_the_checked_stepper():
     full = run_ensemble(ics, **kw)
     ok = full.status == Status.OK
     assert ok[:-1].all() and plain.status[-1] in (Status.NONFINITE, Status.CROSSED_SINGULAR)
-    np.testing.assert_allclose(plain.q[ok], full.q[ok], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(plain.q_final[ok], full.q_final[ok], rtol=1e-10, atol=1e-12)
     np.testing.assert_array_equal(plain.status[ok], Status.OK)
-    assert np.isnan(plain.T_eps).all() and np.isnan(plain.q[-1]).all()
+    assert np.isnan(plain.T_eps).all() and np.isnan(plain.q_final[-1]).all()
     with pytest.raises(ValueError, match="summaries=False"):
         run_ensemble(ics, t_final=5.0, summaries=False)

@@ -105,8 +105,8 @@ def test_status_logic_unchanged_on_failing_starts():
         r = run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, t_final=5.0, dt=0.25,
                          progress=False)
     np.testing.assert_array_equal(r.status, s_blk)
-    assert np.all(np.isnan(r.q[r.status != Status.OK]))
-    assert np.all(np.isfinite(r.q[r.status == Status.OK]))
+    assert np.all(np.isnan(r.q_final[r.status != Status.OK]))
+    assert np.all(np.isfinite(r.q_final[r.status == Status.OK]))
 
 
 def test_fast_path_matches_the_per_step_path():
@@ -118,7 +118,7 @@ def test_fast_path_matches_the_per_step_path():
     slow = run_ensemble(ics, summaries=True, **kw)
     np.testing.assert_array_equal(fast.status, slow.status)
     assert np.all(fast.status == Status.OK)
-    rel = _rel(np.hstack([fast.q, fast.p]), np.hstack([slow.q, slow.p]))
+    rel = _rel(np.hstack([fast.q_final, fast.p_final]), np.hstack([slow.q_final, slow.p_final]))
     assert np.max(rel) < 1e-4 and np.median(rel) < 1e-6, (np.max(rel), np.median(rel))
     assert fast.settings["summaries"] is False and np.all(np.isnan(fast.T_eps))
 

@@ -20,9 +20,9 @@ def test_objects_and_old_keywords_give_the_same_numbers():
                         saveat=js.SaveAt(every=100), run=js.RunOptions(chunk_size=2, segment=200))
     b = js.run_ensemble(STARTS, t_final=5.0, rtol=1e-7, atol=1e-7, max_step=0.5, save_every=100, chunk_size=2,
                         segment=200)
-    for k in ("q", "T_eps", "u_energy", "n_steps", "status"):
+    for k in ("q_final", "T_eps", "u_energy", "n_steps", "status"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
-    np.testing.assert_array_equal(a.q_traj, b.q_traj)
+    np.testing.assert_array_equal(a.q, b.q)
     s1 = js.simulate(STARTS, t_final=2.0, stepsize=js.StepSizeController(method="rk4"), saveat=js.SaveAt(every=50))
     s2 = js.simulate(STARTS, t_final=2.0, method="rk4", save_every=50)
     np.testing.assert_array_equal(s1.q, s2.q)

@@ -75,9 +75,9 @@ def test_objective_energy_agrees_with_the_accurate_engine():
     assert np.all(np.asarray(aux["lanes"].t) == 5.0)
     v = tu.validate("paper", _ICS, t_final=5.0, x64=True, rtol=1e-9, atol=1e-9)
     # trapezoid (second order) on the adaptive steps vs the engine's RK4-order quadrature
-    np.testing.assert_allclose(np.asarray(aux["lanes"].energy), v.energy, rtol=1e-3)
-    assert float(aux["energy"]) == pytest.approx(np.exp(np.mean(np.log(v.energy))), rel=1e-3)
-    np.testing.assert_allclose(np.asarray(aux["lanes"].u_peak), v.u_peak, rtol=5e-3)
+    np.testing.assert_allclose(np.asarray(aux["lanes"].u_energy), v.u_energy, rtol=1e-3)
+    assert float(aux["energy"]) == pytest.approx(np.exp(np.mean(np.log(v.u_energy))), rel=1e-3)
+    np.testing.assert_allclose(np.asarray(aux["lanes"].u_norm_peak), v.u_norm_peak, rtol=5e-3)
 
 
 @pytest.mark.usefixtures("x64")

@@ -69,7 +69,7 @@ def test_damaged_chunks_are_named_and_recomputed(tmp_path):
         res = js.run_ensemble(ics, checkpoint_dir=d, resume=True, **kw)
     text = " | ".join(str(w.message) for w in record)
     assert "chunk_000000.npz" in text and "chunk_000001.npz" in text and "manifest.json" in text
-    assert res.settings["chunks_reused"] == 1                           # only chunk 2 was sound
+    assert res.run_info["chunks_reused"] == 1                           # only chunk 2 was sound
     for f in ("T_eps", "q", "status", "n_steps"):
         np.testing.assert_array_equal(getattr(res, f), getattr(ref, f))
     assert json.loads((d / "manifest.json").read_text())["n"] == 48     # rewritten

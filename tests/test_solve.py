@@ -27,7 +27,7 @@ def test_solve_equals_the_ensemble_engine():
     with jax.enable_x64(True):
         out = jax.jit(lambda y: solve(js.paper_gains(), y, t_final=10.0))(jnp.asarray(Y0))
     res = js.run_ensemble(Y0[None], t_final=10.0, x64=True)
-    np.testing.assert_allclose(np.asarray(out.q), res.q[0], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.q_final), res.q_final[0], rtol=1e-12)
     np.testing.assert_allclose(float(out.summaries["u_energy"]), res.u_energy[0], rtol=1e-12)
     np.testing.assert_allclose(float(out.summaries["T_eps"]), res.T_eps[0], rtol=1e-12)
     assert int(out.n_steps) == res.n_steps[0] and int(out.status) == res.status[0] == 0
@@ -52,7 +52,7 @@ def test_gradients_wrt_user_law_plant_and_start_match_finite_differences():
         def final_x(kp, m, x0):
             plant = js.PlantParams(m, 1.0, 1.0, js.CoulombDamping())
             y0 = jnp.asarray(Y0).at[0].set(x0)
-            return solve(PD(kp, 1.5), y0, plant=plant, t_final=5.0, method="rk4").q[0]
+            return solve(PD(kp, 1.5), y0, plant=plant, t_final=5.0, method="rk4").q_final[0]
         grads = jax.jit(jax.grad(final_x, argnums=(0, 1, 2)))(2.0, 2.0, 1.0)
         fds = (_fd(lambda a: final_x(a, 2.0, 1.0), 2.0, 1e-5), _fd(lambda a: final_x(2.0, a, 1.0), 2.0, 1e-5),
                _fd(lambda a: final_x(2.0, 2.0, a), 1.0, 1e-5))
@@ -63,7 +63,7 @@ def test_forward_mode_and_vmap_over_starts():
     with jax.enable_x64(True):
         starts = jnp.asarray(np.random.default_rng(0).uniform([-2, -2, 0.3], [2, 2, 2], (4, 3)))
         def final_q(kp, y0):
-            return solve(PD(kp, 1.5), y0, t_final=3.0, method="rk4").q
+            return solve(PD(kp, 1.5), y0, t_final=3.0, method="rk4").q_final
         jac = jax.vmap(jax.jacfwd(final_q), in_axes=(None, 0))(2.0, starts)
         fd = jax.vmap(lambda y: _fd(lambda a: final_q(a, y), 2.0, 1e-5))(starts)
     assert jac.shape == (4, 3)

@@ -59,7 +59,7 @@ def test_effort_medians_equal_those_of_separate_runs(ml_sweep, ml_separate, tmp_
     med = ml_sweep.effort_medians()
     assert set(med) == {"u_energy_median", "u_norm_peak_median"}
     for p, one in enumerate(ml_separate):
-        c = one.converged()
+        c = one.converged
         assert c.any()                                         # every value set has converged starts
         np.testing.assert_allclose(med["u_energy_median"][p], np.median(one.u_energy[c]), rtol=1e-9)
         np.testing.assert_allclose(med["u_norm_peak_median"][p], np.median(one.u_norm_peak[c]), rtol=1e-9)
@@ -139,7 +139,7 @@ def test_knife_edge_and_sampled_plant_agree_with_scipy():
     assert sol.settings["params"]["l"] == [0.0, 0.0, 0.4, 0.4]
     for i, plant in enumerate(plants):
         ref = _reference_final(np.concatenate([ics[i], [0, 0]]), plant, g, t_final)
-        np.testing.assert_allclose(np.concatenate([res.q[i], res.p[i]]), ref, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(np.concatenate([res.q_final[i], res.p_final[i]]), ref, rtol=1e-6, atol=1e-7)
         np.testing.assert_allclose(np.concatenate([sol.q[i, -1], sol.p[i, -1]]), ref, rtol=1e-6, atol=1e-7)
 
 

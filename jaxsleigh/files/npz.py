@@ -78,7 +78,7 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
         ics = np.concatenate([ics, np.zeros((ics.shape[0], 2))], axis=1)
     s = dict(sol.settings)
     settings = {**s, "ics": ics.tolist(), "command": list(command) if command is not None else None,
-                "status_codes": describe()}
+                "status_codes": describe(), "run_info": getattr(sol, "run_info", None)}
     plant, g = s["plant"], s["gains"]
     # a law of the user's own has no paper gains: its record is in settings_json ("controller")
     gains = {} if g is None else {"gains_L": np.asarray(g["L"], dtype=np.float64), "gains_k": np.float64(g["k"]),

@@ -19,6 +19,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_
 from ..model.charts import chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
+from .stepsize import StepSizeController
 from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
                       run_segment)
 
@@ -232,6 +233,13 @@ def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_st
                                                              ("factor_max", factor_max))})
 
 
+def step_controls(horizon: Horizon, dtype, step: StepSizeController, eps) -> Controls:
+    """`make_controls` from a resolved `StepSizeController` and the ball's radius ``eps``."""
+    return make_controls(horizon, dtype, rtol=step.rtol, atol=step.atol, eps=eps, max_steps=step.max_steps,
+                         max_step=step.max_step, safety=step.safety, factor_min=step.factor_min,
+                         factor_max=step.factor_max)
+
+
 def shard_batch(tree, mesh):
     """Place every leaf of a batch-last pytree with its last axis split over ``mesh``'s devices."""
     from jax.sharding import NamedSharding, PartitionSpec
@@ -262,12 +270,13 @@ def _finish(full: StepState, t_final: float) -> StepState:
     return full._replace(status=status)
 
 
-def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
-                atol: float, eps: float, max_steps: int, max_step=None, segment: int = 1000,
-                compact: bool = True, monitor: bool = True, progress=None, mesh=None,
-                observers=DEFAULT_OBSERVERS, policy=(0.9, 0.1, 5.0)) -> StepState:
+def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
+                segment: int = 1000, compact: bool = True, progress=None, mesh=None,
+                observers=DEFAULT_OBSERVERS) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
-    (``observers``, `jaxsleigh.integrate.observers`).
+    (``observers``, `jaxsleigh.integrate.observers`), taking steps as ``step`` says (a resolved
+    `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.step_controller`);
+    ``eps`` is the radius of the ball of ``T_eps``.
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
@@ -289,8 +298,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     n = y0w.shape[0]
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
-    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step,
-                        safety=policy[0], factor_min=policy[1], factor_max=policy[2])
+    ctl = step_controls(horizon, dtype, step, eps)
+    adaptive, monitor, max_steps = step.method == "adaptive", step.check_passivity, step.max_steps
     target = jnp.asarray(horizon.t_final, dtype)
     lanes = has_lanes(args.plant, args.gains)
     if lanes:                                # per-lane parameters: one lane per trajectory of the batch
@@ -336,18 +345,17 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: b
     return _finish(full, horizon.t_final)
 
 
-def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, *, adaptive: bool, rtol: float,
-                 atol: float, eps: float, max_steps: int, max_step=None, block: int = 100,
-                 monitor: bool = True, progress=None, observers=DEFAULT_OBSERVERS, policy=(0.9, 0.1, 5.0)):
-    """Run a batch through the horizon's save grid; returns ``(final_state, ys)`` with ``ys`` of
+def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
+                 block: int = 100, progress=None, observers=DEFAULT_OBSERVERS):
+    """Run a batch through the horizon's save grid (steps as in `drive_final`); returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
     leaves, as in `drive_final`."""
     from ..model.lanes import broadcast_lanes, has_lanes
 
     dtype = y0w.dtype
-    ctl = make_controls(horizon, dtype, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps, max_step=max_step,
-                        safety=policy[0], factor_min=policy[1], factor_max=policy[2])
+    ctl = step_controls(horizon, dtype, step, eps)
+    adaptive, monitor = step.method == "adaptive", step.check_passivity
     if has_lanes(args.plant, args.gains):
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
                                       ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))

@@ -39,15 +39,15 @@ class SolveOutput(NamedTuple):
     """What `solve` returns for one start (JAX arrays; vmap adds a leading batch axis).
 
     Attributes:
-      q, p: final configuration (3,) and momentum (2,).
+      q_final, p_final: final configuration (3,) and momentum (2,).
       status: `jaxsleigh.Status` code (``BUDGET_EXHAUSTED`` when the attempts ran out first).
       t_reached: time reached.
       n_steps, n_rejected: accepted and rejected attempts.
       summaries: the observers' values (``T_eps``, ``u_energy``, ``u_peak``, ...).
     """
 
-    q: jax.Array
-    p: jax.Array
+    q_final: jax.Array
+    p_final: jax.Array
     status: jax.Array
     t_reached: jax.Array
     n_steps: jax.Array
@@ -108,5 +108,5 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
     y = chart.from_chart(s.y)
-    return SolveOutput(q=y[:3], p=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
+    return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
                        n_rejected=s.n_reject, summaries=collect_values(tuple(observers), s.obs, s.quad))

@@ -73,6 +73,12 @@ def _get(sol, name):
     return getattr(sol, name)
 
 
+def _run_info(sol) -> dict:
+    """Wall time and devices of the run: the result's ``run_info``, or the file's ``settings_json["run_info"]``."""
+    info = getattr(sol, "run_info", None)
+    return dict(info) if info else dict(_settings(sol).get("run_info") or {})
+
+
 def _settings(sol) -> dict:
     try:
         s = _get(sol, "settings")
@@ -226,7 +232,7 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)})", fontsize=11)
         if _pb.check_stamp(stamp):
-            _pb.stamp(fig, _settings(sol))
+            _pb.stamp(fig, _settings(sol), _run_info(sol))
     else:
         axes[0].set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:
@@ -346,7 +352,7 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)}, t ∈ [0, {t[-1]:g}] s)", fontsize=11)
         if _pb.check_stamp(stamp):
-            _pb.stamp(fig, _settings(sol))
+            _pb.stamp(fig, _settings(sol), _run_info(sol))
     else:
         ax.set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:

@@ -504,14 +504,13 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
                         resume=resume, progress=progress, shard=shard, controller=controller, policy=policy)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
-    varying = ("wall_s", "devices", "chunks_reused")
-    settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every",)}
+    settings = {k: v for k, v in res.settings.items() if k not in ("save_every",)}
     settings["starts"] = starts.spec
-    run_info = {k: res.settings.get(k) for k in varying}
+    run_info = dict(res.run_info)
     return BasinResult(
         starts=starts, ics=res.ics, T_eps=res.T_eps, status=res.status, Hd0=res.Hd0, Hd_final=res.Hd_final,
         min_abs_theta=res.min_abs_theta, max_excursion=res.max_excursion, n_steps=res.n_steps,
-        n_rejected=res.n_rejected, q_final=res.q, p_final=res.p, settings=settings, run_info=run_info,
+        n_rejected=res.n_rejected, q_final=res.q_final, p_final=res.p_final, settings=settings, run_info=run_info,
         u_peak=res.u_peak, u_norm_peak=res.u_norm_peak, u_energy=res.u_energy, u_abs_int=res.u_abs_int)
 
 

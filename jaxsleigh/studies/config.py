@@ -13,7 +13,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 
 from ..model.controller import as_controller, controller_record
-from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
+from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, StepSizeController
 from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from ..validate import INT32_MAX, real, whole
@@ -46,6 +46,13 @@ class SolveConfig(NamedTuple):
     def law(self):
         """The controller the engine runs: ``controller``, or the paper's law with ``gains``."""
         return self.gains if self.controller is None else self.controller
+
+    def step_controller(self, policy=(0.9, 0.1, 5.0)) -> StepSizeController:
+        """The resolved `jaxsleigh.StepSizeController` (every number set) with the policy ``(safety,
+        factor_min, factor_max)``: what the engine's drivers take."""
+        return StepSizeController(rtol=self.rtol, atol=self.atol, safety=policy[0], factor_min=policy[1],
+                                  factor_max=policy[2], max_step=self.max_step, max_steps=self.max_steps,
+                                  method=self.method, check_passivity=self.check_passivity)
 
     @property
     def adaptive(self) -> bool:
@@ -116,25 +123,37 @@ def reject_traced(front: str, **inputs) -> None:
                     f"differentiate, use {DIFFERENTIABLE_PATHS}")
 
 
+#: The step-size keywords `solve_config` also takes one by one (the command line's flags).
+_STEP_KEYWORDS = ("method", "rtol", "atol", "max_step", "max_steps", "check_passivity")
+
+
 def _flag(name: str, flags: Optional[dict]) -> str:
     return (flags or {}).get(name, name)
 
 
-def solve_config(*, plant: Any = None, gains: Any = None, t_final: Any = 100.0, dt: Any = 0.01,
-                 save_every: Any = None, method: str = "adaptive", rtol: Any = None, atol: Any = None,
-                 max_step: Any = None, max_steps: Any = None, x64: Any = False, eps: Any = 0.05,
-                 check_passivity: Any = True, controller: Any = None, flags: Optional[dict] = None) -> SolveConfig:
+def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None, t_final: Any = 100.0,
+                 dt: Any = 0.01, save_every: Any = None, eps: Any = 0.05, x64: Any = False,
+                 stepsize: Optional[StepSizeController] = None, flags: Optional[dict] = None,
+                 **step) -> SolveConfig:
     """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
 
-    Args mean the same as in `jaxsleigh.simulate`. ``gains`` may be a `Gains`, a preset
+    Args mean the same as in `jaxsleigh.simulate`. ``stepsize`` is a `jaxsleigh.StepSizeController` (its
+    ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here);
+    those six may also come as keywords (``**step``), as the command line passes them. ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
     `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
     (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
     flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
     """
+    f = lambda n: _flag(n, flags)  # noqa: E731
+    unknown = sorted(set(step) - set(_STEP_KEYWORDS))
+    if unknown:
+        raise TypeError(f"solve_config() got an unexpected keyword argument {unknown[0]!r}")
+    stepsize = (stepsize or StepSizeController())._replace(**step)
+    method, rtol, atol = stepsize.method, stepsize.rtol, stepsize.atol
+    max_step, max_steps, check_passivity = stepsize.max_step, stepsize.max_steps, stepsize.check_passivity
     reject_traced("solve_config", plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every,
                   rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, eps=eps)
-    f = lambda n: _flag(n, flags)  # noqa: E731
     if method not in METHODS:
         raise ValueError(f"{f('method')} must be one of {', '.join(METHODS)}, got {method!r}")
     if not isinstance(x64, (bool, np.bool_)) and x64 not in (0, 1):

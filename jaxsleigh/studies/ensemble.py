@@ -37,21 +37,21 @@ from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from ..model.params import PlantParams
 from ..progress import Progress
-from ..status import Status, converged
+from ..status import Status, converged, integrated
 from ..validate import check_memory, whole
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
-SUMMARY_FIELDS = ("q", "p", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
+SUMMARY_FIELDS = ("q_final", "p_final", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
                   "n_steps", "n_rejected", "status", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
 
 
 class EnsembleResult(NamedTuple):
     r"""Per-initial-condition results (NumPy arrays, first axis N) and the settings.
 
-    Attributes:
+    Attributes (the library's one vocabulary, `docs/concepts.md`):
       ics: (N, 5) initial conditions ``(x, y, theta, p1, p2)``.
-      q, p: (N, 3), (N, 2) final state (NaN if the trajectory failed).
+      q_final, p_final: (N, 3), (N, 2) state at the horizon (NaN if the trajectory failed).
       T_eps: (N,) convergence time (``inf``: not settled by the horizon; ``nan``: failed).
       min_abs_theta, max_excursion, Hd0, Hd_final, t_reached: (N,) on-line summaries.
       n_steps, n_rejected, status: (N,) integers.
@@ -59,17 +59,19 @@ class EnsembleResult(NamedTuple):
         largest ``||u||``; u_energy: (N,) control energy \(\int_0^T \|u\|^2 dt\); u_abs_int: (N,)
         \(\int_0^T \|u\| dt\) (RK4-order quadrature, `ControlEffort`;
         up to the time reached; NaN for starts not integrated and on the plain fixed-step path).
-      t, q_traj, p_traj: decimated trajectories ``(T,)``, ``(N, T, 3)``, ``(N, T, 2)`` when
-        ``save_every`` was given, else ``None``.
-      settings: everything that produced the result.
+      t, q, p: trajectories ``(T,)``, ``(N, T, 3)``, ``(N, T, 2)`` (every ``save_every`` base steps) when
+        ``save_every`` was given, else ``None`` (as in `jaxsleigh.Solution`).
+      settings: everything that produced the result (the same for every run of the same call).
+      run_info: what varies between runs: ``wall_s``, ``devices``, ``chunks_reused``.
       params: with per-trajectory parameters, the values each row used: ``{name: (N,)}`` with
         names ``m, J, l``, the damping's numbers, ``k, l1, l2, l3, d11, d12, d22``
         (`jaxsleigh.model.lanes.lane_table`); ``None`` for one plant and one set of gains.
+      observed: the fields of observers beyond the standard ones, ``{name: (N, ...)}``.
     """
 
     ics: np.ndarray
-    q: np.ndarray
-    p: np.ndarray
+    q_final: np.ndarray
+    p_final: np.ndarray
     T_eps: np.ndarray
     min_abs_theta: np.ndarray
     max_excursion: np.ndarray
@@ -85,14 +87,28 @@ class EnsembleResult(NamedTuple):
     u_abs_int: np.ndarray
     settings: dict
     t: Optional[np.ndarray] = None
-    q_traj: Optional[np.ndarray] = None
-    p_traj: Optional[np.ndarray] = None
+    q: Optional[np.ndarray] = None
+    p: Optional[np.ndarray] = None
     params: Optional[dict] = None
     observed: Optional[dict] = None
+    run_info: Optional[dict] = None
 
+    @property
     def converged(self) -> np.ndarray:
-        """Boolean (N,): OK and settled within the horizon."""
+        """Boolean (N,): OK and settled within the horizon (`jaxsleigh.status.converged`)."""
         return converged(self.status, self.T_eps)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Boolean (N,): integrated (not on the singular set, finite start)."""
+        return integrated(self.status)
+
+    def __getattr__(self, name):
+        renamed = {"q_traj": "q", "p_traj": "p"}
+        if name in renamed:
+            raise AttributeError(f"EnsembleResult.{name} is now .{renamed[name]} (the trajectory, as in Solution); "
+                                 f"the final state is .q_final / .p_final")
+        raise AttributeError(f"'EnsembleResult' object has no attribute {name!r}")
 
     def __repr__(self) -> str:
         # a summary, not every array (print(result) of 10^6 starts would dump them all)
@@ -200,7 +216,7 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
                      ("u_norm_peak", ()), ("u_energy", ()), ("u_abs_int", ())):
         obs.setdefault(k, np.full((n,) + shape, np.nan))
     out = {
-        "q": yq[:, :3], "p": yq[:, 3:],
+        "q_final": yq[:, :3], "p_final": yq[:, 3:],
         "T_eps": np.where(ok, obs.pop("T_eps"), np.nan),
         "Hd0": hd0,
         "Hd_final": np.where(ok & chart.has_energy, np.asarray(final.Hd, np.float64), np.nan),
@@ -226,7 +242,7 @@ def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
     hd0[invalid] = np.nan
     hd = np.array(_hd_batch(jnp.asarray(y, y0w.dtype), args), np.float64) if chart.has_energy else nan
     nan = np.full(len(status), np.nan)
-    return {"q": yq[:, :3], "p": yq[:, 3:], "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
+    return {"q_final": yq[:, :3], "p_final": yq[:, 3:], "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
             "Hd0": hd0, "Hd_final": np.where(ok, hd, np.nan), "t_reached": np.where(ok, horizon.t_final, np.nan),
             "n_steps": np.where(invalid, 0, horizon.n_steps).astype(np.int64),
             "n_rejected": np.zeros(len(status), np.int64), "status": status.astype(np.int32),
@@ -330,15 +346,15 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
             raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
                              "per-trajectory parameters need summaries=True")
         lane_args = ClosedLoop(*broadcast_lanes(plant, cfg.law, ics5.shape[0]))
-    rtol, atol, max_step, max_steps = cfg.rtol, cfg.atol, cfg.max_step, cfg.max_steps
+    step = cfg.step_controller(policy)
     mesh = batch_mesh(devices)
     n_dev = 1 if mesh is None else mesh.size
     with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
         settings = {
             **cfg.settings(), "save_every": save_every, "chunk_size": chunk_size, "summaries": bool(summaries),
-            "devices": [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])],
         }
+        devices_used = [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])]
         if observers is not None:
             settings["observers"] = [repr(o) for o in observers]
         n = ics5.shape[0]
@@ -382,17 +398,15 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                     def update(self, frac, lo=lo, hi=hi):
                         bar.update((lo + frac * (hi - lo)) / n)
 
-                kw = dict(adaptive=adaptive, rtol=rtol, atol=atol, eps=eps, max_steps=max_steps,
-                          max_step=max_step, monitor=check_passivity, policy=policy)
+                kw = dict(eps=eps, progress=_Sub(), observers=observers)
                 if not summaries:
                     part = _plain_summaries(*drive_plain(y0w, st, args, horizon, segment=segment,
                                                          progress=_Sub()), y0w, st, args, horizon)
                 elif save_every is None:
-                    final = drive_final(y0w, st, args, horizon, segment=segment, progress=_Sub(),
-                                        mesh=mesh, observers=observers, **kw)
+                    final = drive_final(y0w, st, args, horizon, step, segment=segment, mesh=mesh, **kw)
                     part = _chunk_summaries(final, y0w, st, args, observers)
                 else:
-                    final, ys = drive_saving(y0w, st, args, horizon, progress=_Sub(), observers=observers, **kw)
+                    final, ys = drive_saving(y0w, st, args, horizon, step, **kw)
                     part = _chunk_summaries(final, y0w, st, args, observers)
                     yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
                     yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
@@ -406,18 +420,17 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
-    settings["wall_s"] = time.perf_counter() - t_start
-    settings["chunks_reused"] = reused
+    run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
     traj = {}
     if save_every is not None:
-        traj = {"t": horizon.t(), "q_traj": out.pop("q_traj"), "p_traj": out.pop("p_traj")}
+        traj = {"t": horizon.t(), "q": out.pop("q_traj"), "p": out.pop("p_traj")}
     if lane_args is not None:
         from ..model.lanes import lane_table
 
         traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
     observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
     return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,
-                          observed=observed or None)
+                          observed=observed or None, run_info=run_info)
 
 
 #: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.

@@ -25,26 +25,27 @@ from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..model.params import PlantParams
 from ..model.plant import velocity
 from ..progress import Progress
+from ..status import converged
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
 
 class Solution(NamedTuple):
-    r"""Decimated closed-loop trajectories.
+    r"""Decimated closed-loop trajectories, and the per-trajectory summaries of the whole run.
 
-    Attributes:
+    Attributes (the library's one vocabulary, `docs/concepts.md`):
       t: (T,) saved times (0 included).
-      q: (N, T, 3) configuration ``(x, y, theta)``.
-      p: (N, T, 2) momentum.
+      q: (N, T, 3) configuration ``(x, y, theta)``; p: (N, T, 2) momentum (``q_final``, ``p_final``: the
+        last saved state).
       u: (N, T, 2) control.
-      Hd: (N, T) closed-loop Hamiltonian.
+      Hd: (N, T) closed-loop Hamiltonian (NaN for a law without it).
       status: (N,) `Status` codes.
       n_steps: (N,) accepted steps; ``n_rejected``: (N,) rejected attempts.
-      effort: per-trajectory control effort and the other on-line summaries over the horizon
-        (``u_peak`` (N, 2), ``u_norm_peak``, ``u_energy`` = \(\int \|u\|^2 dt\), ``u_abs_int``,
-        ``T_eps``, ``min_abs_theta``, ``max_excursion``; see `jaxsleigh.integrate.observers`),
-        integrated to RK4 order along every step, not from the saved samples.
-      settings: what produced it (plant, gains, horizon, method, dtype, tolerances).
+      settings: what produced it (plant, law, horizon, method, dtype, tolerances).
+      T_eps, min_abs_theta, max_excursion, u_peak (N, 2), u_norm_peak, u_energy = \(\int \|u\|^2 dt\),
+        u_abs_int: the on-line summaries, as in `jaxsleigh.EnsembleResult`, integrated to RK4 order along
+        every step (not from the saved samples); `effort` gathers them in a dict.
+      run_info: what varies between runs (``wall_s``, ``devices``).
     """
 
     t: np.ndarray
@@ -56,39 +57,71 @@ class Solution(NamedTuple):
     n_steps: np.ndarray
     n_rejected: np.ndarray
     settings: dict
-    effort: Optional[dict] = None
+    T_eps: Optional[np.ndarray] = None
+    min_abs_theta: Optional[np.ndarray] = None
+    max_excursion: Optional[np.ndarray] = None
+    u_peak: Optional[np.ndarray] = None
+    u_norm_peak: Optional[np.ndarray] = None
+    u_energy: Optional[np.ndarray] = None
+    u_abs_int: Optional[np.ndarray] = None
+    run_info: Optional[dict] = None
+
+    @property
+    def effort(self) -> dict:
+        """The summaries as ``{name: (N, ...)}`` (those recorded)."""
+        return {k: getattr(self, k) for k in SUMMARY_NAMES if getattr(self, k) is not None}
+
+    @property
+    def q_final(self) -> np.ndarray:
+        """(N, 3) the configuration at the last saved time."""
+        return np.asarray(self.q)[:, -1]
+
+    @property
+    def p_final(self) -> np.ndarray:
+        """(N, 2) the momentum at the last saved time."""
+        return np.asarray(self.p)[:, -1]
+
+    @property
+    def converged(self) -> np.ndarray:
+        """Boolean (N,): OK and settled within the horizon (`jaxsleigh.status.converged`)."""
+        nan = np.full(np.shape(self.status), np.nan)
+        return converged(self.status, nan if self.T_eps is None else self.T_eps)
 
     def __repr__(self) -> str:
         # a summary, not every trajectory
         from .ensemble import summary_repr
 
-        eff = self.effort or {}
         nan = np.full(np.shape(self.status), np.nan)
         Hd = np.asarray(self.Hd, np.float64)
-        return summary_repr("Solution", self, status=self.status, T_eps=eff.get("T_eps", nan),
-                            Hd0=Hd[:, 0] if Hd.ndim == 2 and Hd.shape[1] else None, u_energy=eff.get("u_energy"),
+        return summary_repr("Solution", self, status=self.status, T_eps=nan if self.T_eps is None else self.T_eps,
+                            Hd0=Hd[:, 0] if Hd.ndim == 2 and Hd.shape[1] else None, u_energy=self.u_energy,
                             head=f" trajectories, {np.size(self.t)} saved times")
 
 
-@functools.partial(jax.jit, static_argnames=("chart",))
-def _outputs(yw, args: ClosedLoop, chart=WChart()):
-    """Chart trajectories -> q, u, Hd (vmapped over batch and time; Hd is NaN for a law without it)."""
+#: The per-trajectory summaries a `Solution` carries (the observers' standard fields).
+SUMMARY_NAMES = ("T_eps", "min_abs_theta", "max_excursion", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
 
-    def one(y):
+
+@functools.partial(jax.jit, static_argnames=("chart",))
+def _outputs(yw, t, args: ClosedLoop, chart=WChart()):
+    """Chart trajectories ``(N, T, 5)`` at times ``t`` (T,) -> q, u, Hd (vmapped over batch and time; Hd is
+    NaN for a law without it)."""
+
+    def one(y, t):
         if chart.name == "w":
             w, p = y[:3], y[3:]
             return w_to_q(w), control_w(w, velocity(p, args.plant), args.gains), closed_loop_hamiltonian_w(y, args)
-        u = jnp.stack(chart.field_and_control(0.0, y, args)[1])
+        u = jnp.stack(chart.field_and_control(t, y, args)[1])
         return chart.from_chart(y)[:3], u, jnp.full((), jnp.nan, y.dtype)
 
-    return jax.vmap(jax.vmap(one))(yw)
+    return jax.vmap(jax.vmap(one, in_axes=(0, 0)), in_axes=(0, None))(yw, t)
 
 
 @functools.partial(jax.jit, static_argnames=("chart",))
-def _outputs_lanes(yw, args: ClosedLoop, chart=WChart()):
+def _outputs_lanes(yw, t, args: ClosedLoop, chart=WChart()):
     """`_outputs` with canonical per-lane ``args`` (one lane per trajectory)."""
     axes = jax.tree_util.tree_map(lambda _: -1, args)
-    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], a, chart), in_axes=(0, axes))(yw, args)
+    return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], t, a, chart), in_axes=(0, axes))(yw, args)
 
 
 def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
@@ -147,18 +180,18 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
-            final, ys = drive_saving(y0w, status0, args, horizon, adaptive=cfg.adaptive, rtol=cfg.rtol,
-                                     atol=cfg.atol, eps=cfg.eps, max_steps=cfg.max_steps, max_step=cfg.max_step,
-                                     progress=bar, policy=policy)
+            final, ys = drive_saving(y0w, status0, args, horizon, cfg.step_controller(policy), eps=cfg.eps,
+                                     progress=bar)
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
         if cfg.lanes is None:
-            q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), args, chart))
+            q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), jnp.asarray(horizon.t(), yw.dtype), args, chart))
         else:
-            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), args, chart))
-    settings = {**cfg.settings(), "save_every": horizon.save_every, "wall_s": time.perf_counter() - t_start,
-                "devices": [str(jax.devices()[0])]}   # where it ran: named on every figure of it
+            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), jnp.asarray(horizon.t(), yw.dtype), args, chart))
+    settings = {**cfg.settings(), "save_every": horizon.save_every}
+    # where it ran (named on every figure of it) and how long it took: they vary between runs
+    run_info = {"wall_s": time.perf_counter() - t_start, "devices": [str(jax.devices()[0])]}
     if cfg.lanes is not None:
         from ..model.lanes import lane_table
 
@@ -173,7 +206,7 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     effort["T_eps"] = np.where(np.asarray(final.status) == 0, effort["T_eps"], np.nan)
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
                     n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),
-                    settings=settings, effort=effort)
+                    settings=settings, run_info=run_info, **{k: effort[k] for k in SUMMARY_NAMES if k in effort})
 
 
 #: The keywords of jaxsleigh 0.1 that `simulate` maps onto its option objects.

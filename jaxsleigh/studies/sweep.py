@@ -292,8 +292,9 @@ class SweepResult(NamedTuple):
         ``(P,)`` for explicit value sets; axes: the `ParamAxis` of a grid (``()`` otherwise).
       starts: the `BasinStarts`; ics: ``(N, 5)``.
       T_eps, status, n_steps, min_abs_theta, Hd0: ``(P, N)`` per-row results.
-      effort: ``{name: (P, N)}`` control-effort summaries when the engine records them (else empty);
-        `effort_medians` summarises them per value set.
+      u_energy, u_abs_int, u_norm_peak: ``(P, N)`` control effort (as in `jaxsleigh.EnsembleResult`;
+        ``None`` when not recorded); `effort` gathers them in a dict and `effort_medians` summarises
+        them per value set.
       settings: base plant and gains, the sweep, the starts, the solver settings.
       run_info: wall time, devices, chunks reused (not saved: they vary between runs).
     """
@@ -309,9 +310,16 @@ class SweepResult(NamedTuple):
     n_steps: np.ndarray
     min_abs_theta: np.ndarray
     Hd0: np.ndarray
-    effort: dict
     settings: dict
     run_info: Optional[dict] = None
+    u_energy: Optional[np.ndarray] = None
+    u_abs_int: Optional[np.ndarray] = None
+    u_norm_peak: Optional[np.ndarray] = None
+
+    @property
+    def effort(self) -> dict:
+        """``{name: (P, N)}`` of the control-effort fields that were recorded."""
+        return {k: getattr(self, k) for k in ("u_energy", "u_abs_int", "u_norm_peak") if getattr(self, k) is not None}
 
     @property
     def valid(self) -> np.ndarray:
@@ -492,8 +500,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
                         checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, shard=shard, policy=policy)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
-    varying = ("wall_s", "devices", "chunks_reused")
-    settings = {k: v for k, v in res.settings.items() if k not in varying + ("save_every", "plant", "gains")}
+    settings = {k: v for k, v in res.settings.items() if k not in ("save_every", "plant", "gains")}
     if controller is not None:
         from ..model.controller import controller_record
 
@@ -501,13 +508,13 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
     settings.update(plant=plant_to_dict(base_plant),
                     gains=gains_to_dict(base_gains) if controller is None else None, starts=st.spec,
                     sweep={"names": list(names), "axes": [a.spec() for a in axes], "n_values": P, "n_starts": N})
-    run_info = {k: res.settings.get(k) for k in varying}
+    run_info = dict(res.run_info)
     per = lambda a: np.asarray(a).reshape((P, N) + np.shape(a)[1:])  # noqa: E731
     effort = {k: per(getattr(res, k)) for k in ("u_energy", "u_abs_int", "u_norm_peak")
               if getattr(res, k, None) is not None}
     return SweepResult(names=names, values=values, grid_shape=tuple(shape), axes=axes, starts=st,
                        ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
-                       min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), effort=effort, settings=settings,
+                       min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), **effort, settings=settings,
                        run_info=run_info)
 
 
@@ -606,4 +613,4 @@ def load_sweep(path) -> SweepResult:
                        grid_shape=tuple(int(x) for x in d["grid_shape"]), axes=axes,
                        starts=_starts_from_spec(d["ics"], settings["starts"]), ics=d["ics"], T_eps=d["T_eps"],
                        status=d["status"], n_steps=d["n_steps"], min_abs_theta=d["min_abs_theta"], Hd0=d["Hd0"],
-                       effort=effort, settings=settings, run_info=None)
+                       **effort, settings=settings, run_info=None)

@@ -165,7 +165,7 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
     T = np.where(np.isnan(T), np.inf, T)
     E = np.asarray(r.u_energy, np.float64).reshape(P, N)
     th0 = np.tile(ics[:, 2], P).reshape(P, N)
-    crossed = np.sign(np.asarray(r.q)[:, 2].reshape(P, N)) != np.sign(th0)
+    crossed = np.sign(np.asarray(r.q_final)[:, 2].reshape(P, N)) != np.sign(th0)
     med_E = np.array([np.median(E[i][ok[i]]) if ok[i].any() else np.inf for i in range(P)])
     return PopulationFigures(np.median(T, axis=1), med_E, np.isfinite(T).mean(axis=1),
                              np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1))
@@ -346,7 +346,7 @@ def _guard_failure(g: Gains, guard, plant, t_final, x64) -> str:
     from ..studies.ensemble import run_ensemble
 
     r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, progress=False)
-    bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q)[:, 2]) != np.sign(guard[:, 2]))
+    bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q_final)[:, 2]) != np.sign(guard[:, 2]))
     return f"{int(bad.sum())} of {bad.size} failed or crossed theta = 0" if bad.any() else ""
 
 

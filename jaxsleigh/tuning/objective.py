@@ -80,9 +80,10 @@ class LaneSummary(NamedTuple):
       ok: reached the horizon or stopped in the ball, with status OK.
       stopped: stopped in the ball (``|q| <= stop_fraction * eps``).
       t: time reached; for stopped lanes the first passage into the stopping ball.
-      status, n_attempts, min_abs_theta, max_q: as the stepper reports them.
-      energy: control energy \(\int |u|^2 dt\) over the lane's integration (trapezoid on the
-        accepted steps, differentiable) [N^2 s]; u_peak: largest \(|u|\) at a step's end [N].
+      status, n_attempts, min_abs_theta, max_excursion: as the stepper reports them.
+      u_energy: control energy \(\int |u|^2 dt\) over the lane's integration (trapezoid on the
+        accepted steps, differentiable) [N^2 s]; u_norm_peak: largest \(|u|\) at a step's end [N]
+        (the names of `jaxsleigh.EnsembleResult`).
     """
 
     soft_time: jax.Array
@@ -93,9 +94,9 @@ class LaneSummary(NamedTuple):
     status: jax.Array
     n_attempts: jax.Array
     min_abs_theta: jax.Array
-    max_q: jax.Array
-    energy: Any = None
-    u_peak: Any = None
+    max_excursion: jax.Array
+    u_energy: Any = None
+    u_norm_peak: Any = None
 
 
 def _soft_indicator(y, eps, tau, chart=WChart()):
@@ -210,7 +211,7 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
     (min_abs_theta,), (max_q2,) = s.obs
     lanes = LaneSummary(soft, bar, ok, stopped, s.t, s.status, s.n_accept + s.n_reject, min_abs_theta,
                        jnp.sqrt(max_q2))
-    return lanes._replace(energy=energy, u_peak=jnp.sqrt(peak2))
+    return lanes._replace(u_energy=energy, u_norm_peak=jnp.sqrt(peak2))
 
 
 class TrainingSet(NamedTuple):
@@ -317,7 +318,7 @@ def loss_from_lanes(lanes: LaneSummary, guard: Optional[LaneSummary], cfg: LossC
     valid = valid & jnp.isfinite(loss)
     # the effort budget: g = mean_i log E_i - log E_max <= 0 (the geometric mean, a smooth stand-in for
     # the median that validation reports), by an augmented Lagrangian (Rockafellar's form for an inequality)
-    log_e = jnp.mean(jnp.log(lanes.energy + 1e-12))
+    log_e = jnp.mean(jnp.log(lanes.u_energy + 1e-12))
     g_c = log_e - jnp.log(jnp.asarray(cfg.energy_budget, log_e.dtype))
     lam = jnp.asarray(cfg.multiplier, log_e.dtype)
     rho = jnp.asarray(cfg.penalty, log_e.dtype)

@@ -26,7 +26,7 @@ class Validation(NamedTuple):
       max_attempts: most attempted steps of one trajectory (the engine's default budget for 100 s
         is 200180; a trajectory that needs more ends with status BUDGET_EXHAUSTED).
       settings: of the ensemble run.
-      energy: (N,) control energy \(\int_0^T |u|^2 dt\) [N^2 s]; u_peak: (N,) largest
+      u_energy: (N,) control energy \(\int_0^T |u|^2 dt\) [N^2 s]; u_norm_peak: (N,) largest
         \(|u|\) [N]; median_energy, median_peak_u: their medians over the starts that did not
         fail; n_crossed: starts that failed or whose theta changed sign (crossed the singular set).
     """
@@ -42,8 +42,8 @@ class Validation(NamedTuple):
     mean_steps: float
     max_attempts: int
     settings: dict
-    energy: Optional[np.ndarray] = None
-    u_peak: Optional[np.ndarray] = None
+    u_energy: Optional[np.ndarray] = None
+    u_norm_peak: Optional[np.ndarray] = None
     median_energy: float = float("nan")
     median_peak_u: float = float("nan")
     n_crossed: int = 0
@@ -74,7 +74,7 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     ok = r.status == Status.OK
     energy, peak = _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw)
     th0 = np.asarray(r.ics)[:, 2]
-    th1 = np.asarray(r.q)[:, 2]
+    th1 = np.asarray(r.q_final)[:, 2]
     crossed = ~ok | (np.sign(th1) != np.sign(th0)) | ~(np.asarray(r.min_abs_theta) > 0)
     return Validation(T, med, se, frac, math.sqrt(max(frac * (1 - frac), 0.0) / n), n,
                       int(np.sum(~ok)), r.status, float(np.mean(r.n_steps)),
@@ -98,8 +98,8 @@ def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarra
     p = paper_plant() if plant is None else plant
     s = run_ensemble(ics, plant=p, gains=g, t_final=t_final, eps=eps, x64=x64, save_every=1, progress=False,
                      **ensemble_kw)
-    w = np.asarray(q_to_w(jnp.moveaxis(jnp.asarray(s.q_traj), -1, 0)), np.float64)
-    v = velocity_components(np.moveaxis(np.asarray(s.p_traj, np.float64), -1, 0), p)
+    w = np.asarray(q_to_w(jnp.moveaxis(jnp.asarray(s.q), -1, 0)), np.float64)
+    v = velocity_components(np.moveaxis(np.asarray(s.p, np.float64), -1, 0), p)
     u = np.stack([np.asarray(c, np.float64) for c in control_w_components(w, v, g)])
     e = np.sum(u * u, axis=0)
     return np.trapezoid(e, s.t, axis=-1), np.sqrt(e.max(axis=-1))

@@ -41,16 +41,19 @@ def golden_runs() -> dict:
                                    **_flat("effort", sol.effort)}
     starts = np.random.default_rng(7).uniform([-3, -3, 0.3], [3, 3, 3], (48, 3))
     res = js.run_ensemble(starts, t_final=30.0, gains="balanced")
-    runs["ensemble"] = {k: getattr(res, k) for k in ("q", "p", "T_eps", "min_abs_theta", "max_excursion", "Hd0",
+    # the golden file's keys are the 0.2 names: "q" / "p" there are the final state (now q_final / p_final)
+    runs["ensemble"] = {"q": res.q_final, "p": res.p_final}
+    runs["ensemble"].update({k: getattr(res, k) for k in ("T_eps", "min_abs_theta", "max_excursion", "Hd0",
                                                       "Hd_final", "t_reached", "n_steps", "n_rejected", "status",
-                                                      "u_peak", "u_norm_peak", "u_energy", "u_abs_int")}
+                                                      "u_peak", "u_norm_peak", "u_energy", "u_abs_int")})
     fast = js.run_ensemble(starts, t_final=30.0, method="rk4", summaries=False, check_passivity=False)
-    runs["ensemble_plain"] = {"q": fast.q, "p": fast.p, "status": fast.status, "Hd_final": fast.Hd_final}
+    runs["ensemble_plain"] = {"q": fast.q_final, "p": fast.p_final, "status": fast.status, "Hd_final": fast.Hd_final}
     basin = js.run_basin(js.grid_starts(x=(-2, 2, 4), y=(-2, 2, 3), theta=0.5), t_final=20.0)
     runs["basin"] = {k: v for k, v in basin._asdict().items()
                      if isinstance(v, np.ndarray) and v.dtype != object}
     sw = js.sweep(starts[:8], ["k=0.05:0.2:2"], t_final=20.0)
-    runs["sweep"] = {k: v for k, v in sw._asdict().items() if isinstance(v, np.ndarray) and v.dtype != object}
+    runs["sweep"] = {k: v for k, v in sw._asdict().items()
+                     if isinstance(v, np.ndarray) and v.dtype != object and k not in sw.effort}
     runs["sweep"].update(_flat("effort", sw.effort))
     runs.update(golden_tune())
     return runs
