@@ -1,0 +1,274 @@
+r"""The sampled-data loop: a digital controller (zero-order hold, delay, noise) on the continuous plant.
+
+At the sampling instants \(t_k = k T_s\), \(k = 0, \dots, K-1\) (\(K = t_\mathrm{final} / T_s\)), the
+controller measures
+
+\[ \tilde q_k = q(t_k) + \sigma \xi^q_k, \qquad \tilde v_k = M^{-1} p(t_k) + \sigma \xi^v_k, \qquad
+   \xi_k \sim \mathcal N(0, I_5) \text{ keyed by (seed, k)}, \]
+
+computes \(\hat u_k = \mathrm{law}(\tilde q_k, \tilde v_k, t_k)\) once, and the plant (paper eq. 1-2)
+
+\[ \dot q = Q(q) M^{-1} p, \qquad \dot p = (J(p) - D(q, p)) M^{-1} p + u_k^\mathrm{held} \]
+
+receives the held input \(u_k^\mathrm{held} = \hat u_{k-d}\) on \([t_k, t_{k+1})\) (\(\hat u_j = 0\) for
+\(j < 0\); ``d = sampler.delay``, kept in a ring buffer of the last \(d\) controls). With \(u\) constant the
+plant is smooth on each interval, so ``substeps`` classical RK4 steps of \(h = T_s / \text{substeps}\)
+integrate it to \(O(h^4)\): ``substeps`` is the accuracy knob.
+
+Summaries, per start:
+
+* ``T_eps``: the start of the last stay in the ball \(|q| \le \epsilon\), judged at the RK4 substep points
+  (the crossing located by linear interpolation of \(|q|\) inside the substep); ``inf`` if outside at
+  \(t_\mathrm{final}\).
+* ``u_energy`` \(= \sum_k \|u_k^\mathrm{held}\|^2 T_s = \int_0^{t_\mathrm{final}} \|u\|^2 dt\) (exact for a held
+  input); ``u_norm_peak`` \(= \max_k \|u_k^\mathrm{held}\|\).
+* ``min_abs_theta``: \(\min |\theta|\) over the substep points.
+* ``status``: `jaxsleigh.Status.OK`; ``INVALID_INPUT`` for a non-finite start (not integrated);
+  ``NONFINITE`` where the law's output or the state became non-finite (e.g. the paper's law on
+  \(\theta = 0\)). A row that is not OK has NaN summaries and NaN samples from its failing sample on; its
+  state is frozen at the last good one, so nothing silently turns NaN.
+
+Everything is one jitted ``lax.scan`` over the samples (the law vmapped over the batch through
+`jaxsleigh.model.controller.apply_law`), differentiable with respect to the starts, the law's and the
+plant's numbers.
+"""
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.controller import FunctionLaw, apply_law, is_paper_law
+from ..model.params import PlantParams, plant_params
+from ..model.plant import open_loop, velocity
+from ..status import Status
+from .rk4 import rk4_step
+
+__all__ = ["SampledRun", "solve_sampled"]
+
+
+class SampledRun(NamedTuple):
+    """Result of `solve_sampled` (JAX arrays; first axis the start).
+
+    Attributes:
+      t: (K+1,) sampling instants \\(t_k = k T_s\\), ``t_final`` included.
+      q, p: (N, K+1, 3), (N, K+1, 2) the state at the sampling instants (NaN from a row's failure on).
+      u: (N, K, 2) the input held on \\([t_k, t_{k+1})\\) (zero before the first delayed control).
+      q_final, p_final: (N, 3), (N, 2) state at ``t_final``.
+      T_eps, u_energy, u_norm_peak, min_abs_theta: (N,) summaries (see the module).
+      status: (N,) int32 `jaxsleigh.Status` codes.
+    """
+
+    t: Any
+    q: Any
+    p: Any
+    u: Any
+    q_final: Any
+    p_final: Any
+    T_eps: Any
+    u_energy: Any
+    u_norm_peak: Any
+    min_abs_theta: Any
+    status: Any
+
+
+def _check_sampler(sampler):
+    # the checks live with the Sampler (controllers), which this floor does not import: duck-typed here
+    fields = ("period", "delay", "noise", "seed")
+    if not all(hasattr(sampler, f) for f in fields):
+        raise ValueError(f"sampler must be a Sampler(period, delay=0, noise=0.0, seed=0) "
+                         f"(jaxsleigh.controllers.actuators), got {type(sampler).__name__}")
+    try:
+        period = float(sampler.period)
+    except (TypeError, ValueError):
+        raise ValueError(f"sampler period must be a number of seconds, got {sampler.period!r}") from None
+    if not (math.isfinite(period) and period > 0):
+        raise ValueError(f"sampler period must be > 0 and finite [s], got {sampler.period!r}")
+    d = sampler.delay
+    if isinstance(d, (bool, np.bool_)) or not float(d).is_integer() or int(d) < 0:
+        raise ValueError(f"sampler delay must be a whole number of samples >= 0, got {d!r}")
+    try:
+        noise = float(sampler.noise)
+    except (TypeError, ValueError):
+        raise ValueError(f"sampler noise must be a number >= 0, got {sampler.noise!r}") from None
+    if not (math.isfinite(noise) and noise >= 0):
+        raise ValueError(f"sampler noise must be >= 0 and finite (a standard deviation), got {sampler.noise!r}")
+    seed = sampler.seed
+    if isinstance(seed, (bool, np.bool_)) or not float(seed).is_integer():
+        raise ValueError(f"sampler seed must be an integer, got {seed!r}")
+    return period, int(d), noise, int(seed)
+
+
+def _is_concrete(tree) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
+def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final: float, sampler,
+                  substeps: int = 20, eps: float = 0.05, dtype=jnp.float32) -> SampledRun:
+    """Integrate the sampled-data closed loop (module docstring) from a batch of starts.
+
+    Args:
+      law: a controller ``u = law(q, v)`` (or time-varying ``law(q, v, t)``, or a `PerTrajectory` law), e.g.
+        `jaxsleigh.controllers.paper.PaperLaw`, possibly wrapped in actuator pieces. `jaxsleigh.Gains` is
+        refused: pass ``PaperLaw(gains)``.
+      plant: `jaxsleigh.PlantParams` (default: the paper's, ``jaxsleigh.plant_params()``).
+      ics: ``(N, 5)`` starts ``(x, y, theta, p1, p2)``, or ``(N, 3)`` with zero momentum (a single start
+        ``(5,)``/``(3,)`` is a batch of one).
+      t_final: horizon [s], a whole number of sampling periods.
+      sampler: `jaxsleigh.controllers.actuators.Sampler` (period, delay, noise, seed).
+      substeps: RK4 steps per sampling period (the accuracy knob); eps: radius of the ball of ``T_eps``.
+      dtype: ``jnp.float32`` or ``jnp.float64`` (the latter needs ``jax.enable_x64(True)``).
+
+    Returns:
+      `SampledRun`.
+
+    Raises:
+      ValueError: a bad sampler, horizon, ``substeps``, ``eps``, ``dtype`` or ``ics`` shape.
+    """
+    period, delay, noise, seed = _check_sampler(sampler)
+    if ics is None:
+        raise ValueError("ics (the starts, (N, 5) or (N, 3)) is required")
+    dtype = jnp.dtype(dtype)
+    if dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64)):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    if jax.dtypes.canonicalize_dtype(dtype) != dtype:
+        raise ValueError(f"dtype {dtype} needs 64-bit JAX: run inside `with jax.enable_x64(True):` "
+                         f"(or set jax.config.update('jax_enable_x64', True))")
+    if isinstance(substeps, (bool, np.bool_)) or not float(substeps).is_integer() or int(substeps) < 1:
+        raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+    substeps = int(substeps)
+    try:
+        t_final = float(t_final)
+    except (TypeError, ValueError):
+        raise ValueError(f"t_final must be a number of seconds, got {t_final!r}") from None
+    if not (math.isfinite(t_final) and t_final > 0):
+        raise ValueError(f"t_final must be > 0 and finite, got {t_final!r}")
+    K = int(round(t_final / period))
+    if K < 1 or abs(K * period - t_final) > 1e-9 * max(1.0, t_final):
+        raise ValueError(f"t_final = {t_final} must be a whole number of sampling periods "
+                         f"(period = {period}): t_final / period = {t_final / period:.6g}")
+    eps = float(eps)
+    if not (math.isfinite(eps) and eps > 0):
+        raise ValueError(f"eps must be > 0 and finite, got {eps!r}")
+    if is_paper_law(law):
+        raise ValueError("solve_sampled needs a law u = law(q, v); for the paper's gains pass "
+                         "jaxsleigh.controllers.paper.PaperLaw(gains)")
+    if not callable(law):
+        raise ValueError(f"law must be a feedback law u = law(q, v), got {type(law).__name__}")
+    if not (isinstance(law, tuple) or hasattr(law, "tree_flatten")) and jax.tree_util.tree_leaves(law) == [law]:
+        law = FunctionLaw(law)                   # a plain function: static
+    plant = plant_params() if plant is None else plant
+
+    y0 = jnp.asarray(ics)
+    if _is_concrete(y0):
+        y0 = jnp.asarray(np.asarray(ics, dtype=np.float64), dtype)
+    else:
+        y0 = y0.astype(dtype)
+    if y0.ndim == 1:
+        y0 = y0[None]
+    if y0.ndim != 2 or y0.shape[1] not in (3, 5) or y0.shape[0] < 1:
+        raise ValueError(f"ics must have shape (N, 5) (x, y, theta, p1, p2) or (N, 3) (x, y, theta), got "
+                         f"{tuple(jnp.shape(ics))}")
+    if y0.shape[1] == 3:
+        y0 = jnp.concatenate([y0, jnp.zeros((y0.shape[0], 2), dtype)], axis=1)
+
+    return _solve(law, plant, y0, jnp.asarray(period, dtype), jnp.asarray(noise, dtype),
+                  jnp.asarray(seed % 2**32, jnp.uint32), jnp.asarray(eps, dtype), K=K, substeps=substeps, delay=delay)
+
+
+def _field(y, u, plant):
+    """Plant vector field with a held input, one trajectory ``y`` (5,)."""
+    qdot, pdot = open_loop(y[:3], y[3:], u, plant)
+    return jnp.concatenate([qdot, pdot]).astype(y.dtype)
+
+
+@partial(jax.jit, static_argnames=("K", "substeps", "delay"))
+def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
+    dtype = y0.dtype
+    N = y0.shape[0]
+    h = period / substeps
+    eps_ = eps.astype(dtype)
+    key0 = jax.random.PRNGKey(seed)
+
+    valid = jnp.all(jnp.isfinite(y0), axis=1)
+    y0 = jnp.where(valid[:, None], y0, jnp.zeros_like(y0))     # never step a bad start
+    status0 = jnp.where(valid, int(Status.OK), int(Status.INVALID_INPUT)).astype(jnp.int32)
+
+    def qnorm(y):
+        return jnp.sqrt(jnp.sum(y[:, :3] * y[:, :3], axis=1))
+
+    inside0 = qnorm(y0) <= eps_
+    t_enter0 = jnp.where(inside0, jnp.zeros((), dtype), jnp.inf).astype(dtype)
+    step = jax.vmap(lambda y, u: rk4_step(lambda t, yy, a: _field(yy, a, plant), 0.0, y, h, u))
+
+    def sample(carry, k):
+        y, buf, status, t_enter, min_th, energy, peak = carry
+        tk = k.astype(dtype) * period
+        v = jax.vmap(lambda p: velocity(p, plant))(y[:, 3:])
+        z = jax.random.normal(jax.random.fold_in(key0, k), (N, 5), dtype)
+        q_meas = y[:, :3] + noise * z[:, :3]
+        v_meas = v + noise * z[:, 3:]
+        # a row that is not OK is frozen: the law sees a fixed harmless point there (no inf in the program)
+        ok_k = (status == int(Status.OK))[:, None]
+        q_meas = jnp.where(ok_k, q_meas, jnp.asarray([1.0, 0.5, 0.3], dtype))
+        v_meas = jnp.where(ok_k, v_meas, jnp.zeros((), dtype))
+        u1, u2 = apply_law(law, q_meas.T, v_meas.T, tk)
+        u_new = jnp.stack([u1, u2], axis=1).astype(dtype)
+        if delay:
+            u = buf[0]
+            buf = jnp.concatenate([buf[1:], u_new[None]], axis=0)
+        else:
+            u = u_new
+
+        def sub(c, j):
+            yy, t_in, mth, fin = c
+            y_new = step(yy, u)
+            fin = fin & jnp.all(jnp.isfinite(y_new), axis=1)
+            r0, r1 = qnorm(yy), qnorm(y_new)
+            t0 = tk + j.astype(dtype) * h
+            inside = r1 <= eps_
+            s = jnp.clip((r0 - eps_) / jnp.where(r0 > r1, r0 - r1, jnp.ones_like(r0)), 0.0, 1.0)
+            entry = jnp.where(r0 > eps_, t0 + s * h, t_in)
+            t_in = jnp.where(inside, entry, jnp.inf).astype(dtype)
+            mth = jnp.minimum(mth, jnp.abs(y_new[:, 2]))
+            return (y_new, t_in, mth, fin), None
+
+        fin0 = jnp.all(jnp.isfinite(u), axis=1)
+        (y_new, t_new, mth_new, fin), _ = jax.lax.scan(sub, (y, t_enter, min_th, fin0),
+                                                       jnp.arange(substeps))
+        ok = status == int(Status.OK)
+        good = ok & fin
+        status = jnp.where(ok & ~fin, int(Status.NONFINITE), status).astype(jnp.int32)
+        # a failed row is frozen at its last good state (no inf/NaN carried on)
+        y = jnp.where(good[:, None], y_new, y)
+        t_enter = jnp.where(good, t_new, t_enter)
+        min_th = jnp.where(good, mth_new, min_th)
+        un2 = jnp.sum(u * u, axis=1)
+        energy = jnp.where(good, energy + un2 * period, energy)
+        peak = jnp.where(good, jnp.maximum(peak, jnp.sqrt(un2)), peak)
+        nan = jnp.full_like(y, jnp.nan)
+        y_out = jnp.where(good[:, None], y, nan)
+        u_out = jnp.where(good[:, None], u, jnp.full_like(u, jnp.nan))
+        return (y, buf, status, t_enter, min_th, energy, peak), (y_out, u_out)
+
+    buf0 = jnp.zeros((max(delay, 1), N, 2), dtype)
+    zeros = jnp.zeros((N,), dtype)
+    carry0 = (y0, buf0, status0, t_enter0, jnp.abs(y0[:, 2]), zeros, zeros)
+    (y, _, status, t_enter, min_th, energy, peak), (ys, us) = jax.lax.scan(sample, carry0, jnp.arange(K))
+
+    ok = status == int(Status.OK)
+    nanN = jnp.full((N,), jnp.nan, dtype)
+    y_first = jnp.where(valid[:, None], y0, jnp.full_like(y0, jnp.nan))
+    traj = jnp.concatenate([y_first[:, None], jnp.swapaxes(ys, 0, 1)], axis=1)       # (N, K+1, 5)
+    y_fin = jnp.where(ok[:, None], y, jnp.full_like(y, jnp.nan))
+    return SampledRun(
+        t=jnp.arange(K + 1, dtype=dtype) * period,
+        q=traj[:, :, :3], p=traj[:, :, 3:], u=jnp.swapaxes(us, 0, 1),
+        q_final=y_fin[:, :3], p_final=y_fin[:, 3:],
+        T_eps=jnp.where(ok, t_enter, nanN), u_energy=jnp.where(ok, energy, nanN),
+        u_norm_peak=jnp.where(ok, peak, nanN), min_abs_theta=jnp.where(ok, min_th, nanN),
+        status=status)
