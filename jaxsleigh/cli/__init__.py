@@ -7,6 +7,8 @@ Subcommands (one module each; shared helpers in `jaxsleigh.cli.common`)::
     jaxsleigh basin --x -3:3:128 --y -3:3:128 --theta pi/8 --out xy.npz --plot xy.png
     jaxsleigh tune --out gains.json
     jaxsleigh bench --json
+    jaxsleigh controllers
+    jaxsleigh compare --samples 256 --seed 0 --out table.json --plot table.png
 
 Adding a subcommand ``name``: a module with ``add_<name>(subparsers)`` that creates its parser
 (``subparsers.add_parser("name", ...)``), adds its options (the shared groups of
@@ -23,6 +25,7 @@ from typing import Optional, Sequence
 from . import clock  # first: its fallback origin is the earliest moment of the command line
 from .basin import add_basin
 from .bench import add_bench
+from .compare import add_compare, add_controllers
 from .common import EXIT_INTERRUPTED, EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic
 from .paper import add_paper
 from .simulate import add_simulate
@@ -31,7 +34,7 @@ from .tune import add_tune
 
 __all__ = ["main", "build_parser", "parse_ic", "SUBCOMMANDS"]
 
-SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_sweep]
+SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_sweep, add_controllers, add_compare]
 
 
 def build_parser() -> Parser:

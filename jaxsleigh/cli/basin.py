@@ -24,7 +24,7 @@ from pathlib import Path
 from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
 from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     check_outputs, compute_share, exit_code, finish_chunked, load_average, model_from_args,
+                     check_outputs, compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args,
                      run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
@@ -184,8 +184,8 @@ def _check(args) -> dict:
     from ..studies.config import solve_config
     from ..files.npz import npz_path
 
-    plant, gains = model_from_args(args)
-    solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
+    plant, law = model_from_args(args)
+    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
                  max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
     starts = _starts_from_args(args)
     out = npz_path(args.out)
@@ -193,7 +193,7 @@ def _check(args) -> dict:
     side = _sidecar(out)
     check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
     lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
-    return {"args": args, "plant": plant, "gains": gains, "starts": starts, "out": out, "chunks": chunks,
+    return {"args": args, "plant": plant, "law": law, "starts": starts, "out": out, "chunks": chunks,
             "side": side, "had": len(have), "load_start": load_average(), "t0": time.perf_counter(), "lock": lock}
 
 
@@ -207,7 +207,7 @@ def _prepare(st: dict) -> None:
 
 def _run_kw(st: dict) -> dict:
     a = st["args"]
-    return dict(eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method, plant=st["plant"], gains=st["gains"],
+    return dict(eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method, plant=st["plant"], **law_kwargs(st["law"]),
                 x64=a.x64, max_steps=a.max_steps, chunk_size=a.chunk_size, checkpoint_dir=st["chunks"],
                 progress=a.progress)
 

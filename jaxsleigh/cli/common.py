@@ -30,7 +30,7 @@ from ..files.npz import parse_number as _number
 __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
-           "model_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
+           "model_from_args", "law_kwargs", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
            "check_figure", "figure_formats",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
            "add_distributed_options", "run_distributed"]
@@ -164,16 +164,43 @@ def add_model_options(parser) -> None:
                    help="open-loop friction of the plant (default: coulomb, the paper's "
                         "D = diag(1/sqrt(0.1 + p_i^2)))")
     g.add_argument("--x64", action="store_true", help="compute in float64 (default: float32)")
+    g.add_argument("--controller", default="paper", metavar="NAME",
+                   help="the feedback law: paper (default, with --gains) or a law from the literature "
+                        "(jaxsleigh controllers lists them, with what of the plant each must know)")
+    g.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
+                   help="actuator saturation: clip each component of u to |u_i| <= U (N, N m)")
 
 
 def model_from_args(args):
-    """(plant, gains) from the options of `add_model_options`."""
+    """(plant, law) from the options of `add_model_options`: ``law`` is the paper's `Gains` (``--gains``) unless
+    ``--controller`` names another law or ``--saturation`` wraps it in an actuator (then a law ``u = law(q, v)``)."""
+    from ..controllers.registry import make_controller
     from ..model.params import load_gains, plant_params
 
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
     plant = plant_params(m, J, l, damping=args.damping)
-    gains = load_gains(args.gains)
-    return plant, gains
+    name = getattr(args, "controller", "paper")
+    if name != "paper" and args.gains != "paper":
+        raise ValueError(f"--gains sets the paper's law; it does not apply to --controller {name}")
+    law = make_controller(name, load_gains(args.gains)) if name == "paper" else make_controller(name)
+    u_max = getattr(args, "saturation", None)
+    if u_max is not None:
+        from ..controllers.actuators import saturate
+        from ..controllers.paper import PaperLaw
+        from ..model.params import Gains
+
+        try:
+            law = saturate(PaperLaw(law) if isinstance(law, Gains) else law, u_max)
+        except ValueError as e:
+            raise ValueError(f"--saturation: {e}") from None
+    return plant, law
+
+
+def law_kwargs(law) -> dict:
+    """``{"gains": law}`` for the paper's law, else ``{"controller": law}``: the keyword a front takes it by."""
+    from ..model.params import Gains
+
+    return {"gains": law} if isinstance(law, Gains) else {"controller": law}
 
 
 def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, save_every: Optional[int] = 10,

@@ -8,7 +8,7 @@ import warnings
 
 from ..errors import FlaggedStartsWarning
 from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, check_outputs,
-                     exit_code, ics_from_args, model_from_args, report_warnings, status_epilog, status_line)
+                     exit_code, ics_from_args, law_kwargs, model_from_args, report_warnings, status_epilog, status_line)
 
 __all__ = ["add_simulate"]
 
@@ -52,15 +52,15 @@ def _cmd_simulate(args) -> int:
     from ..files.npz import npz_path, write_npz
     from ..studies.simulate import simulate
 
-    plant, gains = model_from_args(args)
-    solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, save_every=args.save_every,
+    plant, law = model_from_args(args)
+    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=args.save_every,
                  method=args.method, max_steps=args.max_steps, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": npz_path(args.out)})
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        sol = simulate(ics, plant=plant, gains=gains, t_final=args.t_final, dt=args.dt,
+        sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
                        save_every=args.save_every, method=args.method, max_steps=args.max_steps,
                        x64=args.x64, progress=args.progress)
     wall = time.perf_counter() - t0

@@ -23,7 +23,7 @@ import time
 
 from .basin import _chunk_dir, _sidecar, _starts_from_args, _whole
 from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     check_outputs, compute_share, exit_code, finish_chunked, load_average, model_from_args,
+                     check_outputs, compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args,
                      run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
 
@@ -138,15 +138,15 @@ def _check(args) -> dict:
     # values x starts, from the counts alone: refused before any value set or row is built
     check_rows(math.prod(a.n for a in axes), starts.ics.shape[0], "jaxsleigh sweep")
     names, values, _ = param_grid(axes)
-    plant, gains = model_from_args(args)
-    apply_params(names, values, plant, gains, labels=labels)
-    solve_config(plant=plant, gains=gains, t_final=args.t_final, dt=args.dt, method=args.method,
+    plant, law = model_from_args(args)
+    apply_params(names, values, plant, labels=labels, **law_kwargs(law))
+    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
                  max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
     out = npz_path(args.out)
     chunks, side = _chunk_dir(out), _sidecar(out)
     check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
     lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
-    return {"args": args, "axes": axes, "labels": labels, "plant": plant, "gains": gains, "starts": starts,
+    return {"args": args, "axes": axes, "labels": labels, "plant": plant, "law": law, "starts": starts,
             "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": load_average(),
             "t0": time.perf_counter(), "lock": lock}
 
@@ -160,7 +160,7 @@ def _prepare(st: dict) -> None:
 
 def _run_kw(st: dict) -> dict:
     a = st["args"]
-    return dict(plant=st["plant"], gains=st["gains"], eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method,
+    return dict(plant=st["plant"], **law_kwargs(st["law"]), eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method,
                 x64=a.x64, max_steps=a.max_steps, chunk_size=a.chunk_size, checkpoint_dir=st["chunks"],
                 progress=a.progress, labels=st["labels"])
 

@@ -14,6 +14,7 @@ The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -165,11 +166,48 @@ def _checked_checkpoint(args, what: str) -> Path:
     return ckpt
 
 
+def _law_tunables(law) -> list:
+    """The leaves of a law worth tuning: its gains, not the plant model it carries nor an actuator's bound."""
+    from ..model.controller import law_leaf_names
+
+    return [n for n in law_leaf_names(law) if not (n.startswith("model") or ".model" in n or "u_max" in n)]
+
+
+def _cmd_tune_law(args, plant, law) -> int:
+    """``jaxsleigh tune --controller NAME``: Adam on the tuner's objective over the law's gains
+    (`jaxsleigh.tuning.tune_law`), under ``--energy-budget``; writes the law's record as JSON."""
+    from .. import tuning
+    from ..files.npz import atomic_write_text
+    from ..model.controller import controller_record
+
+    check_outputs(args.out, args.history)
+    names = _law_tunables(law) if args.tune == "L,k,D_hat" else [n.strip() for n in args.tune.split(",")]
+    starts = tuning.draw_starts(tuning.UniformStarts(), args.batch, args.seed)
+    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
+                             energy_budget=math.inf if args.energy_budget is None else args.energy_budget)
+    t0 = time.perf_counter()
+    res = tuning.tune_law(law, starts, tune=names, plant=plant, loss=loss, steps=args.steps, lr=args.lr,
+                          x64=args.x64, n_attempts=args.n_attempts)
+    out = {"controller": args.controller, "saturation": args.saturation, "tuned": names,
+           "law": controller_record(res.law), "training_loss": res.loss, "training_energy": res.energy,
+           "history": {k: np.asarray(v).tolist() for k, v in res.history.items()},
+           "command": [PROG, *getattr(args, "_argv", [])], "wall_s": time.perf_counter() - t0}
+    atomic_write_text(args.out, json.dumps(out, indent=1))
+    print(f"{PROG} tune --controller {args.controller}: tuned {', '.join(names)} in {len(res.history['loss'])} "
+          f"steps; training loss {res.loss:.4g}, energy {res.energy:.4g}; wrote {args.out}")
+    return 0
+
+
 def _cmd_tune(args) -> int:
     from .. import tuning
     from ..model.params import gains_to_dict, save_gains
 
     search = args.search
+    if getattr(args, "controller", "paper") != "paper" or getattr(args, "saturation", None) is not None:
+        for flag, on in (("--search", search), ("--pareto", args.pareto is not None), ("--robust", args.robust),
+                         ("--resume", args.resume)):
+            if on:
+                raise ValueError(f"{flag} tunes the paper's gains; with --controller / --saturation drop {flag}")
     if args.steps is None:
         args.steps = 100 if search else 150
     if args.batch is None:
@@ -186,6 +224,10 @@ def _cmd_tune(args) -> int:
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
     plant, gains0 = model_from_args(args)
+    from ..model.params import Gains
+
+    if not isinstance(gains0, Gains):
+        return _cmd_tune_law(args, plant, gains0)
     ckpt = _checked_checkpoint(args, "tuning run")
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)

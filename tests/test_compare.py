@@ -1,0 +1,126 @@
+"""The controllers by name (``--controller``, ``jaxsleigh controllers``) and the comparison (``jaxsleigh compare``,
+`jaxsleigh.studies.compare`)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+from jaxsleigh.cli import main
+from jaxsleigh.controllers.actuators import sampler
+from jaxsleigh.controllers.registry import CONTROLLERS, controller_class, make_controller
+from jaxsleigh.studies.compare import METRICS, _pct, compare, draw_compare_starts
+
+
+def _run(argv, capsys):
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_controllers_lists_every_law_with_its_citation(capsys):
+    code, out, _ = _run(["controllers"], capsys)
+    lines = out.strip().splitlines()
+    assert code == 0 and [ln.split()[0] for ln in lines] == list(CONTROLLERS)
+    for name, line in zip(CONTROLLERS, lines):
+        cls = controller_class(name)
+        assert cls.citation in line and ("nothing" in line) == (cls.needs == ())
+
+
+def test_every_named_law_is_a_valid_controller_and_runs():
+    ics = np.array([[1.0, 1.0, 0.5], [-2.0, 1.0, -1.0]])
+    for name in CONTROLLERS:
+        law = make_controller(name)
+        r = js.run_ensemble(ics, **({"gains": law} if name == "paper" else {"controller": law}), t_final=5.0)
+        assert np.all(r.status == js.Status.OK) and np.all(np.isfinite(r.q_final)), name
+        assert np.all(np.isfinite(r.u_energy) & (r.u_energy > 0)), name      # each law acts (its own claims:
+        # tests/test_literature_*.py)
+
+
+def test_unknown_controller_is_named_with_the_choices(capsys):
+    code, _, err = _run(["simulate", "--controller", "pid", "--ic", "1,1,0.5", "--out", "never.npz"], capsys)
+    assert code == 2 and "unknown controller 'pid'" in err and "aicardi" in err
+
+
+def test_gains_do_not_apply_to_another_law(capsys, tmp_path):
+    code, _, err = _run(["simulate", "--controller", "astolfi", "--gains", "tuned", "--ic", "1,1,0.5",
+                         "--out", str(tmp_path / "s.npz")], capsys)
+    assert code == 2 and "--gains" in err
+
+
+def test_simulate_with_saturation_keeps_u_within_the_bound(capsys, tmp_path):
+    out = tmp_path / "s.npz"
+    code, _, _ = _run(["simulate", "--saturation", "3", "--ic=-3,-2,pi/8", "--t-final", "5", "--out", str(out)],
+                      capsys)
+    u = np.load(out)["u"]
+    assert code == 0 and np.nanmax(np.abs(u)) <= 3.0 + 1e-6 and np.nanmax(np.abs(u)) > 2.9   # the bound is hit
+    code, _, err = _run(["simulate", "--saturation", "-1", "--ic", "1,1,0.5", "--out", str(out)], capsys)
+    assert code == 2 and "--saturation" in err
+
+
+def test_percentile_is_an_order_statistic_with_infinities():
+    assert _pct([1.0, 2.0, np.inf, np.inf], 50) == 2.0
+    assert _pct([1.0, np.inf, np.inf, np.inf], 50) == np.inf
+    assert np.isnan(_pct([np.nan], 50))
+
+
+def test_starts_are_reproducible_and_distinct_per_distribution():
+    a, b = draw_compare_starts("wide", 8, 3), draw_compare_starts("wide", 8, 3)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(draw_compare_starts("uniform", 8, 3)[:, :2], a[:, :2])
+    near = draw_compare_starts("near", 64, 0)
+    assert np.all((np.abs(near[:, 2]) >= 0.05) & (np.abs(near[:, 2]) <= 0.3)) and np.all(near[:, 3:] == 0)
+    assert np.any(a[:, 3:] != 0)
+    with pytest.raises(ValueError, match="unknown start distribution"):
+        draw_compare_starts("far", 4, 0)
+
+
+def test_compare_rows_measure_what_the_ensemble_measures():
+    ics = draw_compare_starts("uniform", 6, 1)
+    rows = compare({"paper": js.paper_gains()}, {"u": ics}, t_final=60.0)
+    r = js.run_ensemble(ics, t_final=60.0)
+    (row,) = rows
+    assert set(METRICS) <= set(row) and row["n"] == 6
+    assert row["settled"] == pytest.approx(np.mean(r.converged))
+    assert row["energy_p90"] == pytest.approx(np.percentile(r.u_energy, 90, method="inverted_cdf"))
+    assert row["u_peak_max"] == pytest.approx(r.u_norm_peak.max())
+
+
+def test_compare_under_actuators_changes_the_numbers():
+    ics = draw_compare_starts("uniform", 4, 2)
+    laws = {"paper": js.paper_gains()}
+    free = compare(laws, {"u": ics}, t_final=20.0)[0]
+    sat = compare(laws, {"u": ics}, t_final=20.0, saturation=1.0)[0]
+    assert sat["u_peak_max"] <= np.sqrt(2) * 1.0 + 1e-6 < free["u_peak_max"]
+    held = compare(laws, {"u": ics}, t_final=20.0, sampler=sampler(0.5), substeps=50)[0]
+    fine = compare(laws, {"u": ics}, t_final=20.0, sampler=sampler(0.005), substeps=2)[0]
+    assert fine["energy_p50"] == pytest.approx(free["energy_p50"], rel=0.1)
+    assert abs(held["energy_p50"] - free["energy_p50"]) > 0.1 * free["energy_p50"]
+
+
+def test_compare_command_writes_rows_and_a_figure(capsys, tmp_path):
+    argv = ["compare", "--controllers", "paper,astolfi", "--starts", "uniform,near", "--samples", "3",
+            "--t-final", "10", "--seed", "4"]
+    code, out, _ = _run(argv + ["--out", str(tmp_path / "a.json"), "--plot", str(tmp_path / "a.png")], capsys)
+    assert code == 0 and (tmp_path / "a.png").stat().st_size > 0
+    a = json.loads((tmp_path / "a.json").read_text())
+    assert [(r["controller"], r["starts"]) for r in a["rows"]] == [("paper", "uniform"), ("paper", "near"),
+                                                                     ("astolfi", "uniform"), ("astolfi", "near")]
+    assert a["settings"]["seed"] == 4 and a["command"][:2] == ["jaxsleigh", "compare"]
+    _run(argv + ["--out", str(tmp_path / "b.json")], capsys)
+    assert json.loads((tmp_path / "b.json").read_text())["rows"] == a["rows"]      # same seed, same numbers
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--controllers", "paper,lqr"], "--controllers"),
+    (["--starts", "far"], "--starts"),
+    (["--delay", "1"], "--sample-period"),
+    (["--sample-period", "0.3"], "whole number"),
+    (["--noise", "-1"], "--noise"),
+])
+def test_compare_refuses_bad_options_naming_them(capsys, tmp_path, extra, message):
+    code, _, err = _run(["compare", "--samples", "2", "--t-final", "10", "--out", str(tmp_path / "x.json")] + extra,
+                        capsys)
+    assert code == 2 and message in err and not (tmp_path / "x.json").exists()
