@@ -129,7 +129,7 @@ class AicardiLaw(NamedTuple):
         ca = jnp.cos(alpha)
         sinc = _sin_over(alpha)
         v = self.gamma * ca * e
-        omega = self.k * alpha + self.gamma * ca * sinc * (alpha - self.h * vartheta)
+        omega = self.k * alpha + self.gamma * ca * sinc * (alpha + self.h * vartheta)
         return jnp.stack([v, omega])
 
     def lyapunov(self, q, lam=1.0):

@@ -118,7 +118,7 @@ class AstolfiLaw(NamedTuple):
         z3 = jnp.where(on_singular, 0.0, x3 / jnp.where(on_singular, 1.0, x1))
         u1 = -self.k * x1
         u2 = -self.p2 * x2 - self.p3 * z3
-        return jnp.stack([u2 - u1 * x3, u1])
+        return jnp.stack([u2 + u1 * x3, u1])
 
     def __call__(self, q, v):
         return velocity_loop(lambda qq, t: self.kinematic(qq), q, v, 0.0, self.K, self.model)
