@@ -186,11 +186,9 @@ def model_from_args(args):
     u_max = getattr(args, "saturation", None)
     if u_max is not None:
         from ..controllers.actuators import saturate
-        from ..controllers.paper import PaperLaw
-        from ..model.params import Gains
 
         try:
-            law = saturate(PaperLaw(law) if isinstance(law, Gains) else law, u_max)
+            law = saturate(law, u_max)
         except ValueError as e:
             raise ValueError(f"--saturation: {e}") from None
     return plant, law

@@ -82,11 +82,13 @@ def _cmd_compare(args) -> int:
     if args.sample_period is not None:
         from ..controllers.actuators import sampler as make_sampler
 
+        from ..integrate.sampled import sample_count
+
         sampler = make_sampler(args.sample_period, args.delay, args.noise, args.seed)
-        k = args.t_final / args.sample_period
-        if abs(k - round(k)) > 1e-9 * max(1.0, k):
-            raise ValueError(f"--t-final {args.t_final:g} must be a whole number of --sample-period "
-                             f"{args.sample_period:g} periods")
+        try:
+            sample_count(args.t_final, args.sample_period)
+        except ValueError as e:
+            raise ValueError(f"--t-final / --sample-period: {e}") from None
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
     laws = {n: make_controller(n) for n in names}

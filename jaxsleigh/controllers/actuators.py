@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.controller import FunctionLaw, is_time_varying
+from ..model.controller import FunctionLaw, is_paper_law, is_time_varying
+from .paper import PaperLaw
 
 __all__ = ["Saturation", "NormSaturation", "Sampler", "saturate", "sampler", "check_u_max", "check_sampler"]
 
@@ -155,10 +156,11 @@ def saturate(law, u_max, norm: bool = False):
     """Checked `Saturation` (``norm=False``: per component) or `NormSaturation` (``norm=True``) of ``law``.
 
     ``u_max`` must be finite and > 0 (``ValueError`` naming it otherwise). A plain function is wrapped in
-    `jaxsleigh.model.controller.FunctionLaw`.
+    `jaxsleigh.model.controller.FunctionLaw`; the paper's `jaxsleigh.Gains` in `PaperLaw` (the law evaluated from
+    the measured q and v, as an actuator sees it).
     """
     a = check_u_max(u_max, norm=norm)
-    law = _as_law(law)
+    law = PaperLaw(law) if is_paper_law(law) else _as_law(law)
     value = float(a) if a.ndim == 0 else tuple(float(x) for x in a)
     return NormSaturation(law, value) if norm else Saturation(law, value)
 

@@ -42,13 +42,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controllers.actuators import check_sampler
+from ..controllers.paper import PaperLaw
 from ..model.controller import FunctionLaw, apply_law, is_paper_law
 from ..model.params import PlantParams, plant_params
 from ..model.plant import open_loop, velocity
 from ..status import Status
 from .rk4 import rk4_step
 
-__all__ = ["SampledRun", "solve_sampled"]
+__all__ = ["SampledRun", "solve_sampled", "sample_count"]
 
 
 class SampledRun(NamedTuple):
@@ -76,31 +78,20 @@ class SampledRun(NamedTuple):
     status: Any
 
 
-def _check_sampler(sampler):
-    # the checks live with the Sampler (controllers), which this floor does not import: duck-typed here
-    fields = ("period", "delay", "noise", "seed")
-    if not all(hasattr(sampler, f) for f in fields):
-        raise ValueError(f"sampler must be a Sampler(period, delay=0, noise=0.0, seed=0) "
-                         f"(jaxsleigh.controllers.actuators), got {type(sampler).__name__}")
+def sample_count(t_final, period) -> int:
+    """The number of samples ``K = t_final / period``; ``ValueError`` unless ``t_final`` is a positive, finite, whole
+    number of periods."""
     try:
-        period = float(sampler.period)
+        t_final = float(t_final)
     except (TypeError, ValueError):
-        raise ValueError(f"sampler period must be a number of seconds, got {sampler.period!r}") from None
-    if not (math.isfinite(period) and period > 0):
-        raise ValueError(f"sampler period must be > 0 and finite [s], got {sampler.period!r}")
-    d = sampler.delay
-    if isinstance(d, (bool, np.bool_)) or not float(d).is_integer() or int(d) < 0:
-        raise ValueError(f"sampler delay must be a whole number of samples >= 0, got {d!r}")
-    try:
-        noise = float(sampler.noise)
-    except (TypeError, ValueError):
-        raise ValueError(f"sampler noise must be a number >= 0, got {sampler.noise!r}") from None
-    if not (math.isfinite(noise) and noise >= 0):
-        raise ValueError(f"sampler noise must be >= 0 and finite (a standard deviation), got {sampler.noise!r}")
-    seed = sampler.seed
-    if isinstance(seed, (bool, np.bool_)) or not float(seed).is_integer():
-        raise ValueError(f"sampler seed must be an integer, got {seed!r}")
-    return period, int(d), noise, int(seed)
+        raise ValueError(f"t_final must be a number of seconds, got {t_final!r}") from None
+    if not (math.isfinite(t_final) and t_final > 0):
+        raise ValueError(f"t_final must be > 0 and finite, got {t_final!r}")
+    K = int(round(t_final / period))
+    if K < 1 or abs(K * period - t_final) > 1e-9 * max(1.0, t_final):
+        raise ValueError(f"t_final = {t_final} must be a whole number of sampling periods "
+                         f"(period = {period}): t_final / period = {t_final / period:.6g}")
+    return K
 
 
 def _is_concrete(tree) -> bool:
@@ -113,8 +104,8 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
 
     Args:
       law: a controller ``u = law(q, v)`` (or time-varying ``law(q, v, t)``, or a `PerTrajectory` law), e.g.
-        `jaxsleigh.controllers.paper.PaperLaw`, possibly wrapped in actuator pieces. `jaxsleigh.Gains` is
-        refused: pass ``PaperLaw(gains)``.
+        `jaxsleigh.controllers.paper.PaperLaw`, possibly wrapped in actuator pieces; `jaxsleigh.Gains` runs as
+        ``PaperLaw(gains)``.
       plant: `jaxsleigh.PlantParams` (default: the paper's, ``jaxsleigh.plant_params()``).
       ics: ``(N, 5)`` starts ``(x, y, theta, p1, p2)``, or ``(N, 3)`` with zero momentum (a single start
         ``(5,)``/``(3,)`` is a batch of one).
@@ -129,7 +120,7 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     Raises:
       ValueError: a bad sampler, horizon, ``substeps``, ``eps``, ``dtype`` or ``ics`` shape.
     """
-    period, delay, noise, seed = _check_sampler(sampler)
+    period, delay, noise, seed = check_sampler(sampler)
     if ics is None:
         raise ValueError("ics (the starts, (N, 5) or (N, 3)) is required")
     dtype = jnp.dtype(dtype)
@@ -141,22 +132,12 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     if isinstance(substeps, (bool, np.bool_)) or not float(substeps).is_integer() or int(substeps) < 1:
         raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
     substeps = int(substeps)
-    try:
-        t_final = float(t_final)
-    except (TypeError, ValueError):
-        raise ValueError(f"t_final must be a number of seconds, got {t_final!r}") from None
-    if not (math.isfinite(t_final) and t_final > 0):
-        raise ValueError(f"t_final must be > 0 and finite, got {t_final!r}")
-    K = int(round(t_final / period))
-    if K < 1 or abs(K * period - t_final) > 1e-9 * max(1.0, t_final):
-        raise ValueError(f"t_final = {t_final} must be a whole number of sampling periods "
-                         f"(period = {period}): t_final / period = {t_final / period:.6g}")
+    K = sample_count(t_final, period)
     eps = float(eps)
     if not (math.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be > 0 and finite, got {eps!r}")
-    if is_paper_law(law):
-        raise ValueError("solve_sampled needs a law u = law(q, v); for the paper's gains pass "
-                         "jaxsleigh.controllers.paper.PaperLaw(gains)")
+    if is_paper_law(law):                        # the paper's gains: the law from measurements, as sampled
+        law = PaperLaw(law)
     if not callable(law):
         raise ValueError(f"law must be a feedback law u = law(q, v), got {type(law).__name__}")
     if not (isinstance(law, tuple) or hasattr(law, "tree_flatten")) and jax.tree_util.tree_leaves(law) == [law]:
