@@ -124,3 +124,25 @@ def test_compare_refuses_bad_options_naming_them(capsys, tmp_path, extra, messag
     code, _, err = _run(["compare", "--samples", "2", "--t-final", "10", "--out", str(tmp_path / "x.json")] + extra,
                         capsys)
     assert code == 2 and message in err and not (tmp_path / "x.json").exists()
+
+
+def test_near_the_singular_set_nothing_turns_nan_silently():
+    """The paper's law evaluated from measurements (PaperLaw, no w chart) and its saturated version, from theta0 = 0,
+    1e-8 and 1e-3: a row is either OK with a finite state or flagged with NaN outputs, in the engine, in simulate
+    and in the sampled loop; compare counts the flagged rows as failed and never as settled."""
+    from jaxsleigh.controllers.paper import PaperLaw
+    from jaxsleigh.controllers.actuators import saturate
+    from jaxsleigh.integrate.sampled import solve_sampled
+
+    ics = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1e-8], [1.0, 1.0, 1e-3]])
+    for law in (PaperLaw(), saturate(js.paper_gains(), 5.0)):
+        r = js.run_ensemble(ics, controller=law, t_final=5.0)
+        s = js.simulate(ics, controller=law, t_final=2.0)
+        ss = solve_sampled(law, None, ics, t_final=5.0, sampler=sampler(0.1))
+        for status, final in ((r.status, r.q_final), (s.status, s.q[:, -1]),
+                              (np.asarray(ss.status), np.asarray(ss.q_final))):
+            ok = status == js.Status.OK
+            assert np.all(np.isfinite(final[ok])) and np.all(np.isnan(final[~ok])), (law, status)
+        assert r.status[0] != js.Status.OK                  # theta0 = 0 exactly: the law is undefined there
+        (row,) = compare({"p": law}, {"s": ics}, t_final=5.0)
+        assert row["failed"] == int(np.sum(r.status != js.Status.OK)) and row["settled"] == 0.0
