@@ -167,6 +167,53 @@ def _field(y, u, plant):
     return jnp.concatenate([qdot, pdot]).astype(y.dtype)
 
 
+def _qnorm(y):
+    """\\(|q|\\) per row of a batch ``y`` (N, 5)."""
+    return jnp.sqrt(jnp.sum(y[:, :3] * y[:, :3], axis=1))
+
+
+def _control(law, plant, y, buf, status, k, key0, noise, period, delay: int):
+    """Sample ``k``: measure (with noise), evaluate the law once, and return the input held on
+    \\([t_k, t_{k+1})\\) (the one computed ``delay`` samples ago) and the updated ring buffer."""
+    dtype = y.dtype
+    v = jax.vmap(lambda p: velocity(p, plant))(y[:, 3:])
+    z = jax.random.normal(jax.random.fold_in(key0, k), (y.shape[0], 5), dtype)
+    q_meas = y[:, :3] + noise * z[:, :3]
+    v_meas = v + noise * z[:, 3:]
+    # a row that is not OK is frozen: the law sees a fixed harmless point there (no inf in the program)
+    ok_k = (status == int(Status.OK))[:, None]
+    q_meas = jnp.where(ok_k, q_meas, jnp.asarray([1.0, 0.5, 0.3], dtype))
+    v_meas = jnp.where(ok_k, v_meas, jnp.zeros((), dtype))
+    u1, u2 = apply_law(law, q_meas.T, v_meas.T, k.astype(dtype) * period)
+    u_new = jnp.stack([u1, u2], axis=1).astype(dtype)
+    if not delay:
+        return u_new, buf
+    return buf[0], jnp.concatenate([buf[1:], u_new[None]], axis=0)
+
+
+def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int):
+    """The plant over one period with ``u`` held: ``substeps`` RK4 steps of ``h``, tracking the entry time into
+    the ball (linear interpolation of \\(|q|\\) inside a substep), \\(\\min |\\theta|\\) and whether every value stayed
+    finite. Returns ``(y_new, t_enter, min_th, finite)``."""
+    dtype = y.dtype
+
+    def sub(c, j):
+        yy, t_in, mth, fin = c
+        y_new = step(yy, u)
+        fin = fin & jnp.all(jnp.isfinite(y_new), axis=1)
+        r0, r1 = _qnorm(yy), _qnorm(y_new)
+        t0 = tk + j.astype(dtype) * h
+        inside = r1 <= eps
+        s = jnp.clip((r0 - eps) / jnp.where(r0 > r1, r0 - r1, jnp.ones_like(r0)), 0.0, 1.0)
+        entry = jnp.where(r0 > eps, t0 + s * h, t_in)
+        t_in = jnp.where(inside, entry, jnp.inf).astype(dtype)
+        mth = jnp.minimum(mth, jnp.abs(y_new[:, 2]))
+        return (y_new, t_in, mth, fin), None
+
+    fin0 = jnp.all(jnp.isfinite(u), axis=1)
+    return jax.lax.scan(sub, (y, t_enter, min_th, fin0), jnp.arange(substeps))[0]
+
+
 @partial(jax.jit, static_argnames=("K", "substeps", "delay"))
 def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
     dtype = y0.dtype
@@ -178,49 +225,13 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
     valid = jnp.all(jnp.isfinite(y0), axis=1)
     y0 = jnp.where(valid[:, None], y0, jnp.zeros_like(y0))     # never step a bad start
     status0 = jnp.where(valid, int(Status.OK), int(Status.INVALID_INPUT)).astype(jnp.int32)
-
-    def qnorm(y):
-        return jnp.sqrt(jnp.sum(y[:, :3] * y[:, :3], axis=1))
-
-    inside0 = qnorm(y0) <= eps_
-    t_enter0 = jnp.where(inside0, jnp.zeros((), dtype), jnp.inf).astype(dtype)
+    t_enter0 = jnp.where(_qnorm(y0) <= eps_, jnp.zeros((), dtype), jnp.inf).astype(dtype)
     step = jax.vmap(lambda y, u: rk4_step(lambda t, yy, a: _field(yy, a, plant), 0.0, y, h, u))
 
     def sample(carry, k):
         y, buf, status, t_enter, min_th, energy, peak = carry
-        tk = k.astype(dtype) * period
-        v = jax.vmap(lambda p: velocity(p, plant))(y[:, 3:])
-        z = jax.random.normal(jax.random.fold_in(key0, k), (N, 5), dtype)
-        q_meas = y[:, :3] + noise * z[:, :3]
-        v_meas = v + noise * z[:, 3:]
-        # a row that is not OK is frozen: the law sees a fixed harmless point there (no inf in the program)
-        ok_k = (status == int(Status.OK))[:, None]
-        q_meas = jnp.where(ok_k, q_meas, jnp.asarray([1.0, 0.5, 0.3], dtype))
-        v_meas = jnp.where(ok_k, v_meas, jnp.zeros((), dtype))
-        u1, u2 = apply_law(law, q_meas.T, v_meas.T, tk)
-        u_new = jnp.stack([u1, u2], axis=1).astype(dtype)
-        if delay:
-            u = buf[0]
-            buf = jnp.concatenate([buf[1:], u_new[None]], axis=0)
-        else:
-            u = u_new
-
-        def sub(c, j):
-            yy, t_in, mth, fin = c
-            y_new = step(yy, u)
-            fin = fin & jnp.all(jnp.isfinite(y_new), axis=1)
-            r0, r1 = qnorm(yy), qnorm(y_new)
-            t0 = tk + j.astype(dtype) * h
-            inside = r1 <= eps_
-            s = jnp.clip((r0 - eps_) / jnp.where(r0 > r1, r0 - r1, jnp.ones_like(r0)), 0.0, 1.0)
-            entry = jnp.where(r0 > eps_, t0 + s * h, t_in)
-            t_in = jnp.where(inside, entry, jnp.inf).astype(dtype)
-            mth = jnp.minimum(mth, jnp.abs(y_new[:, 2]))
-            return (y_new, t_in, mth, fin), None
-
-        fin0 = jnp.all(jnp.isfinite(u), axis=1)
-        (y_new, t_new, mth_new, fin), _ = jax.lax.scan(sub, (y, t_enter, min_th, fin0),
-                                                       jnp.arange(substeps))
+        u, buf = _control(law, plant, y, buf, status, k, key0, noise, period, delay)
+        y_new, t_new, mth_new, fin = _hold(step, y, u, t_enter, min_th, k.astype(dtype) * period, h, eps_, substeps)
         ok = status == int(Status.OK)
         good = ok & fin
         status = jnp.where(ok & ~fin, int(Status.NONFINITE), status).astype(jnp.int32)
@@ -231,8 +242,7 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
         un2 = jnp.sum(u * u, axis=1)
         energy = jnp.where(good, energy + un2 * period, energy)
         peak = jnp.where(good, jnp.maximum(peak, jnp.sqrt(un2)), peak)
-        nan = jnp.full_like(y, jnp.nan)
-        y_out = jnp.where(good[:, None], y, nan)
+        y_out = jnp.where(good[:, None], y, jnp.full_like(y, jnp.nan))
         u_out = jnp.where(good[:, None], u, jnp.full_like(u, jnp.nan))
         return (y, buf, status, t_enter, min_th, energy, peak), (y_out, u_out)
 
