@@ -70,3 +70,17 @@ def converged(status, T_eps):
 def integrated(status):
     """Starts that were integrated (not flagged as `NOT_INTEGRATED`): the population of a fraction."""
     return ~np.isin(np.asarray(status), [int(s) for s in NOT_INTEGRATED])
+
+
+def _converged_of(result):
+    t_eps = getattr(result, "T_eps", None)
+    return converged(result.status, np.full(np.shape(result.status), np.nan) if t_eps is None else t_eps)
+
+
+#: The results' ``converged`` property (every result class takes it as ``converged = CONVERGED``): `converged` of
+#: its ``status`` and ``T_eps`` (none when no ``T_eps`` was recorded).
+CONVERGED = property(_converged_of, doc="Boolean: status OK and settled within the horizon (`jaxsleigh.status.converged`).")
+
+#: The results' ``valid`` property: `integrated` of its ``status``.
+VALID = property(lambda result: integrated(result.status),
+                 doc="Boolean: integrated (not on the singular set, finite start): the population of a fraction.")

@@ -45,7 +45,7 @@ from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from ..files.npz import parse_number as _number
 from ..model.params import Gains, PlantParams
-from ..status import NOT_INTEGRATED, Status, converged, describe, integrated
+from ..status import CONVERGED, NOT_INTEGRATED, VALID, Status, describe
 from ..validate import check_memory, whole
 
 __all__ = [
@@ -388,15 +388,8 @@ class BasinResult(NamedTuple):
     u_energy: Optional[np.ndarray] = None
     u_abs_int: Optional[np.ndarray] = None
 
-    @property
-    def valid(self) -> np.ndarray:
-        """Integrated starts (not on the singular set, finite): the population of the fraction."""
-        return integrated(self.status)
-
-    @property
-    def converged(self) -> np.ndarray:
-        """Reached the horizon (status OK) and settled in the ball: ``T_eps`` finite (`jaxsleigh.status.converged`)."""
-        return converged(self.status, self.T_eps)
+    valid = VALID
+    converged = CONVERGED
 
     @property
     def not_converged(self) -> np.ndarray:

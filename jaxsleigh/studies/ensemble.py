@@ -37,7 +37,7 @@ from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from ..model.params import PlantParams
 from ..progress import Progress
-from ..status import Status, converged, integrated
+from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
@@ -93,15 +93,8 @@ class EnsembleResult(NamedTuple):
     observed: Optional[dict] = None
     run_info: Optional[dict] = None
 
-    @property
-    def converged(self) -> np.ndarray:
-        """Boolean (N,): OK and settled within the horizon (`jaxsleigh.status.converged`)."""
-        return converged(self.status, self.T_eps)
-
-    @property
-    def valid(self) -> np.ndarray:
-        """Boolean (N,): integrated (not on the singular set, finite start)."""
-        return integrated(self.status)
+    converged = CONVERGED
+    valid = VALID
 
     def __getattr__(self, name):
         renamed = {"q_traj": "q", "p_traj": "p"}
@@ -141,11 +134,9 @@ def summary_repr(name: str, result, *, status, T_eps, Hd0=None, u_energy=None, h
         (any shape); Hd0, u_energy: optional per-start energies; head: text after ``N = ...``;
         extra: further lines (without indent) after the convergence line.
     """
-    from ..status import NOT_INTEGRATED, counts_in_words
-
     st = np.asarray(status).ravel()
     t = np.asarray(T_eps, np.float64).ravel()
-    valid = ~np.isin(st, [int(c) for c in NOT_INTEGRATED])
+    valid = integrated(st)
     conv = converged(st, t)
     n_valid = int(valid.sum())
     frac = f"{conv.sum() / n_valid:.4f}" if n_valid else "nan"

@@ -25,7 +25,7 @@ from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..model.params import PlantParams
 from ..model.plant import velocity
 from ..progress import Progress
-from ..status import converged
+from ..status import CONVERGED, VALID
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
@@ -81,11 +81,8 @@ class Solution(NamedTuple):
         """(N, 2) the momentum at the last saved time."""
         return np.asarray(self.p)[:, -1]
 
-    @property
-    def converged(self) -> np.ndarray:
-        """Boolean (N,): OK and settled within the horizon (`jaxsleigh.status.converged`)."""
-        nan = np.full(np.shape(self.status), np.nan)
-        return converged(self.status, nan if self.T_eps is None else self.T_eps)
+    converged = CONVERGED
+    valid = VALID
 
     def __repr__(self) -> str:
         # a summary, not every trajectory

@@ -37,7 +37,7 @@ import numpy as np
 from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, t_eps_percentiles
 from ..model.damping import CoulombDamping, ViscousDamping, damping_from_name
 from ..model.params import Gains, PlantParams
-from ..status import Status, converged, describe, integrated
+from ..status import CONVERGED, VALID, Status, describe
 from ..validate import check_memory
 from .config import reject_traced
 from .options import RunOptions, front_options
@@ -321,13 +321,8 @@ class SweepResult(NamedTuple):
         """``{name: (P, N)}`` of the control-effort fields that were recorded."""
         return {k: getattr(self, k) for k in ("u_energy", "u_abs_int", "u_norm_peak") if getattr(self, k) is not None}
 
-    @property
-    def valid(self) -> np.ndarray:
-        return integrated(self.status)
-
-    @property
-    def converged(self) -> np.ndarray:
-        return converged(self.status, self.T_eps)
+    valid = VALID
+    converged = CONVERGED
 
     def fractions(self) -> tuple[np.ndarray, np.ndarray]:
         """``(fraction (P,), fraction_se (P,))`` of the valid starts that converged, per value set."""
