@@ -69,6 +69,17 @@ def _stamp(fig, res: BasinResult, on: bool = True) -> None:
         stamp(fig, res.settings, res.run_info)
 
 
+def _titled(fig, ax, own: bool, title: str, res: BasinResult, stamp: bool):
+    """Finish a panel: on its own figure, ``title`` with the provenance and the fraction as the suptitle and the
+    stamp; on a caller's axes, ``title`` as the axes' title. Returns the figure."""
+    if own:
+        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
+        _stamp(fig, res, stamp)
+    else:
+        ax.set_title(title, fontsize=9)
+    return fig
+
+
 def _fraction_text(res: BasinResult) -> str:
     s, se = fraction_converged(res.converged, res.valid)
     return f"converged: {s:.3f} ± {se:.3f} of N = {int(res.valid.sum())}"
@@ -226,13 +237,7 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     title = "Fraction converged against the initial heading"
-    sub = f"{_provenance(res)}; {_fraction_text(res)}"
-    if own:
-        fig.suptitle(f"{title}\n({sub})", fontsize=10)
-        _stamp(fig, res, stamp)
-    else:
-        ax.set_title(title, fontsize=9)
-    return fig
+    return _titled(fig, ax, own, title, res, stamp)
 
 
 def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16, stamp: bool = True):
@@ -249,12 +254,7 @@ def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16, stam
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     title = "Fraction converged against the initial distance"
-    if own:
-        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res, stamp)
-    else:
-        ax.set_title(title, fontsize=9)
-    return fig
+    return _titled(fig, ax, own, title, res, stamp)
 
 
 def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40, stamp: bool = True):
@@ -289,12 +289,7 @@ def plot_t_eps_distribution(res: BasinResult, ax=None, *, bins: int = 40, stamp:
     ax.annotate(note, xy=(0.0, 0.0), xycoords=("axes fraction", ax.xaxis.label), xytext=(0, -2),
                 textcoords="offset points", ha="left", va="top", fontsize=7, color="0.3", gid=FOOTER_GID)
     title = "Distribution of the convergence time"
-    if own:
-        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res, stamp)
-    else:
-        ax.set_title(title, fontsize=9)
-    return fig
+    return _titled(fig, ax, own, title, res, stamp)
 
 
 def plot_t_eps_scatter(res: BasinResult, ax=None, *, stamp: bool = True):
@@ -320,12 +315,7 @@ def plot_t_eps_scatter(res: BasinResult, ax=None, *, stamp: bool = True):
     ax.grid(True, which="both", alpha=0.25)
     ax.legend(fontsize=7, loc="best")
     title = "Convergence time against the distance to the singular set"
-    if own:
-        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res, stamp)
-    else:
-        ax.set_title(title, fontsize=9)
-    return fig
+    return _titled(fig, ax, own, title, res, stamp)
 
 
 def plot_basin(res: BasinResult, *, stamp: bool = True):
