@@ -33,13 +33,9 @@ import jaxsleigh as js
 from jaxsleigh import tuning
 from jaxsleigh.controllers.actuators import sampler
 from jaxsleigh.controllers.registry import controller_names, make_controller
-from jaxsleigh.model.controller import controller_record, law_leaf_names
+from jaxsleigh.model.controller import controller_record
 from jaxsleigh.plots.compare import plot_against, plot_compare_table
 from jaxsleigh.studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts
-
-
-def tunables(law):
-    return [n for n in law_leaf_names(law) if not n.startswith("model")]
 
 
 def main() -> int:
@@ -67,7 +63,7 @@ def main() -> int:
         law = make_controller(name)
         t0 = time.perf_counter()
         try:
-            res = tuning.tune_law(law, train, tune=tunables(law), loss=loss._replace(energy_budget=e_paper),
+            res = tuning.tune_law(law, train, tune=tuning.gain_names(law), loss=loss._replace(energy_budget=e_paper),
                                   steps=a.steps, lr=0.05)
             laws[name] = res.law
             tuned_info[name] = {"law": controller_record(res.law), "training_energy": res.energy,

@@ -146,3 +146,12 @@ def test_near_the_singular_set_nothing_turns_nan_silently():
         assert r.status[0] != js.Status.OK                  # theta0 = 0 exactly: the law is undefined there
         (row,) = compare({"p": law}, {"s": ics}, t_final=5.0)
         assert row["failed"] == int(np.sum(r.status != js.Status.OK)) and row["settled"] == 0.0
+
+
+def test_gain_names_leave_out_the_plant_model_and_the_actuator_bound():
+    from jaxsleigh.controllers.actuators import saturate
+    from jaxsleigh.tuning import gain_names
+
+    assert gain_names(make_controller("astolfi")) == ["k", "p2", "p3", "K"]
+    assert gain_names(saturate(make_controller("samson"), 5.0)) == ["law.k1", "law.k2", "law.k3", "law.alpha",
+                                                                      "law.nu", "law.K"]

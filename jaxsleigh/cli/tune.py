@@ -166,13 +166,6 @@ def _checked_checkpoint(args, what: str) -> Path:
     return ckpt
 
 
-def _law_tunables(law) -> list:
-    """The leaves of a law worth tuning: its gains, not the plant model it carries nor an actuator's bound."""
-    from ..model.controller import law_leaf_names
-
-    return [n for n in law_leaf_names(law) if not (n.startswith("model") or ".model" in n or "u_max" in n)]
-
-
 def _cmd_tune_law(args, plant, law) -> int:
     """``jaxsleigh tune --controller NAME``: Adam on the tuner's objective over the law's gains
     (`jaxsleigh.tuning.tune_law`), under ``--energy-budget``; writes the law's record as JSON."""
@@ -181,7 +174,7 @@ def _cmd_tune_law(args, plant, law) -> int:
     from ..model.controller import controller_record
 
     check_outputs(args.out, args.history)
-    names = _law_tunables(law) if args.tune == "L,k,D_hat" else [n.strip() for n in args.tune.split(",")]
+    names = tuning.gain_names(law) if args.tune == "L,k,D_hat" else [n.strip() for n in args.tune.split(",")]
     starts = tuning.draw_starts(tuning.UniformStarts(), args.batch, args.seed)
     loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
                              energy_budget=math.inf if args.energy_budget is None else args.energy_budget)

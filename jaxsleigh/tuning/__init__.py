@@ -84,7 +84,7 @@ from .optimizer import BacktrackState, TuneConfig, TuneHistory, TuneResult, back
 from .optimizer import _Bar  # noqa: F401  (the tuner's progress bar; tests patch its update)
 from .pareto import (FRONT_METHODS, Front, FrontPoint, budgets_between, default_budgets, evaluate_front, front_dict,
                      load_front, pareto_front, point_gains, random_search, save_front, training_energy)
-from .law import LawTuneResult, tune_law
+from .law import LawTuneResult, gain_names, tune_law
 from .cma_search import PopulationFigures, SearchConfig, SearchResult, evaluate_population, search
 from .params import (D_FLOOR, TUNABLE, GainParams, gains_from_params, merge_params, params_from_gains, parse_tune,
                      split_params)
@@ -105,5 +105,5 @@ __all__ = [
     "FRONT_METHODS", "Front", "FrontPoint", "training_energy", "default_budgets", "budgets_between", "pareto_front",
     "random_search", "evaluate_front", "front_dict", "save_front", "load_front", "point_gains",
     "SearchConfig", "SearchResult", "PopulationFigures", "evaluate_population", "search",
-    "LawTuneResult", "tune_law",
+    "LawTuneResult", "tune_law", "gain_names",
 ]

@@ -23,7 +23,7 @@ from ..model.params import PlantParams, as_plant
 from ..status import Status
 from .objective import LossConfig, loss_from_lanes, soft_convergence
 
-__all__ = ["LawTuneResult", "tune_law", "law_loss"]
+__all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names"]
 
 
 class LawTuneResult(NamedTuple):
@@ -39,6 +39,12 @@ class LawTuneResult(NamedTuple):
     loss: float
     energy: float
     history: dict
+
+
+def gain_names(law) -> list:
+    """The leaves of ``law`` worth tuning (`jaxsleigh.model.controller.law_leaf_names`): its gains, not the plant
+    model it carries (``model.m``, ...) nor an actuator's bound (``u_max``)."""
+    return [n for n in law_leaf_names(law) if not (n.startswith("model") or ".model" in n or "u_max" in n)]
 
 
 def _split(law, tune):
