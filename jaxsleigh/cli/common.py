@@ -30,7 +30,7 @@ from ..files.npz import parse_number as _number
 __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
-           "model_from_args", "law_kwargs", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
+           "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
            "check_figure", "figure_formats",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
            "add_distributed_options", "run_distributed"]
@@ -192,6 +192,40 @@ def model_from_args(args):
         except ValueError as e:
             raise ValueError(f"--saturation: {e}") from None
     return plant, law
+
+
+def add_sampler_options(parser, *, seed: bool = True) -> None:
+    """--sample-period, --delay, --noise[, --seed]: the law behind a digital controller."""
+    a = parser.add_argument_group("digital controller")
+    a.add_argument("--sample-period", type=number("--sample-period", "0.01"), default=None, metavar="TS",
+                   help="zero-order hold at period TS: the law evaluated once per sample and held, the plant "
+                        "integrated by RK4 substeps of at most --dt in between; --t-final must be a whole number of "
+                        "periods")
+    a.add_argument("--delay", type=whole("--delay", "1", minimum=0), default=0, metavar="K",
+                   help="delay of K whole samples (needs --sample-period)")
+    a.add_argument("--noise", type=number("--noise", "0.01", positive=False, nonnegative=True), default=0.0,
+                   metavar="SIGMA", help="Gaussian measurement noise on q and v, standard deviation SIGMA, seeded "
+                                         "by --seed (needs --sample-period)")
+    if seed:
+        a.add_argument("--seed", type=whole("--seed", "0", minimum=0, maximum=2**62), default=0, metavar="S",
+                       help="seed of the measurement noise (default 0)")
+
+
+def sampler_from_args(args):
+    """The `jaxsleigh.controllers.actuators.Sampler` of `add_sampler_options` (``None`` without --sample-period),
+    checked against the horizon before any work."""
+    if args.sample_period is None:
+        if args.delay or args.noise:
+            raise ValueError("--delay and --noise belong to the digital controller: add --sample-period TS")
+        return None
+    from ..controllers.actuators import sampler
+    from ..integrate.sampled import sample_count
+
+    try:
+        sample_count(args.t_final, args.sample_period)
+    except ValueError as e:
+        raise ValueError(f"--t-final / --sample-period: {e}") from None
+    return sampler(args.sample_period, args.delay, args.noise, args.seed)
 
 
 def law_kwargs(law) -> dict:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import time
 
-from .common import PROG, add_progress_option, check_outputs, number, whole
+from .common import PROG, add_progress_option, add_sampler_options, check_outputs, number, sampler_from_args, whole
 
 __all__ = ["add_controllers", "add_compare"]
 
@@ -48,17 +48,9 @@ def add_compare(subparsers) -> None:
     p.add_argument("--eps", type=number("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS of T_eps (default 0.05)")
     p.add_argument("--x64", action="store_true", help="compute in float64 (default: float32)")
-    a = p.add_argument_group("actuator")
-    a.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
-                   help="clip each component of u to |u_i| <= U")
-    a.add_argument("--sample-period", type=number("--sample-period", "0.01"), default=None, metavar="TS",
-                   help="digital control: zero-order hold at period TS (the plant integrated accurately between "
-                        "samples); --t-final must be a whole number of periods")
-    a.add_argument("--delay", type=whole("--delay", "1", minimum=0), default=0, metavar="K",
-                   help="delay of K whole samples (needs --sample-period)")
-    a.add_argument("--noise", type=number("--noise", "0.01", positive=False, nonnegative=True), default=0.0,
-                   metavar="SIGMA", help="Gaussian measurement noise on q and v, standard deviation SIGMA, seeded "
-                                         "by --seed (needs --sample-period)")
+    p.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
+                   help="actuator saturation: clip each component of u to |u_i| <= U")
+    add_sampler_options(p, seed=False)
     p.add_argument("--out", required=True, metavar="TABLE.json", help="the rows, with what made them")
     p.add_argument("--plot", default=None, metavar="FIG.png", help="draw the table as a figure")
     add_progress_option(p)
@@ -76,19 +68,7 @@ def _cmd_compare(args) -> int:
         bad = [n for n in got if n not in known]
         if bad or not got:
             raise ValueError(f"{flag}: unknown {bad or got!r}; choose from {', '.join(known)}")
-    if args.sample_period is None and (args.delay or args.noise):
-        raise ValueError("--delay and --noise belong to the sampled loop: add --sample-period TS")
-    sampler = None
-    if args.sample_period is not None:
-        from ..controllers.actuators import sampler as make_sampler
-
-        from ..integrate.sampled import sample_count
-
-        sampler = make_sampler(args.sample_period, args.delay, args.noise, args.seed)
-        try:
-            sample_count(args.t_final, args.sample_period)
-        except ValueError as e:
-            raise ValueError(f"--t-final / --sample-period: {e}") from None
+    sampler = sampler_from_args(args)
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
     laws = {n: make_controller(n) for n in names}

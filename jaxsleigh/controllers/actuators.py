@@ -27,10 +27,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.controller import FunctionLaw, is_paper_law, is_time_varying
+from ..model.controller import FunctionLaw, PerTrajectory, is_paper_law, is_time_varying
 from .paper import PaperLaw
 
-__all__ = ["Saturation", "NormSaturation", "Sampler", "saturate", "sampler", "check_u_max", "check_sampler"]
+__all__ = ["Saturation", "NormSaturation", "Sampler", "Sampled", "saturate", "sampler", "sampled", "is_sampled",
+           "check_u_max", "check_sampler"]
 
 
 def _inner_u(law, q, v, t):
@@ -197,3 +198,42 @@ def check_sampler(s: Sampler) -> Sampler:
 def sampler(period, delay=0, noise=0.0, seed=0) -> Sampler:
     """Checked `Sampler` (see `check_sampler`)."""
     return check_sampler(Sampler(period, delay, noise, seed))
+
+
+class Sampled(NamedTuple):
+    r"""A law run by a digital controller: the `Sampler` (zero-order hold at period \(T_s\), a delay of whole
+    samples, measurement noise) between the law and the plant.
+
+    \[ u(t) = \mathrm{law}(\tilde q_{k-d}, \tilde v_{k-d}, t_{k-d}) \quad (t \in [t_k, t_{k+1})) \]
+
+    It is a piece like the others: ``js.simulate(ics, controller=sampled(law, 0.05))``, ``js.run_ensemble``,
+    ``js.run_basin`` and ``js.compare`` integrate it with the sampled-data loop
+    (`jaxsleigh.integrate.sampled.solve_sampled`: the law evaluated once per sample, the plant by fixed RK4
+    substeps in between). Called as a law it is the continuous idealisation (the wrapped law itself).
+    Build it with `sampled` (checks the numbers, and runs the paper's `jaxsleigh.Gains` as `PaperLaw`).
+    """
+
+    law: Any
+    sampler: Sampler
+
+    name = "sampled"
+
+    @property
+    def time_varying(self) -> bool:
+        return is_time_varying(self.law)
+
+    def __call__(self, q, v, *t):
+        return _inner_u(self.law, q, v, t[0] if t else 0.0)
+
+
+def sampled(law, period, delay=0, noise=0.0, seed=0) -> Sampled:
+    """Checked `Sampled`: ``law`` (any controller, the paper's gains included, possibly saturated) behind a
+    `Sampler` of period ``period`` [s], ``delay`` whole samples, noise ``noise`` and ``seed``."""
+    law = PaperLaw(law) if is_paper_law(law) else _as_law(law)
+    return Sampled(law, sampler(period, delay, noise, seed))
+
+
+def is_sampled(law) -> bool:
+    """True for a `Sampled` law, bare or inside `jaxsleigh.model.controller.PerTrajectory` (the studies then run the
+    sampled-data loop, or say what they cannot do with one; nothing integrates it as if it were continuous)."""
+    return isinstance(law.law if isinstance(law, PerTrajectory) else law, Sampled)

@@ -60,9 +60,12 @@ class SampledRun(NamedTuple):
       t: (K+1,) sampling instants \\(t_k = k T_s\\), ``t_final`` included.
       q, p: (N, K+1, 3), (N, K+1, 2) the state at the sampling instants (NaN from a row's failure on).
       u: (N, K, 2) the input held on \\([t_k, t_{k+1})\\) (zero before the first delayed control).
+      (``t``, ``q``, ``p``, ``u`` are ``None`` with ``save=False``: summaries only, memory independent of K.)
       q_final, p_final: (N, 3), (N, 2) state at ``t_final``.
       T_eps, u_energy, u_norm_peak, min_abs_theta: (N,) summaries (see the module).
       status: (N,) int32 `jaxsleigh.Status` codes.
+      u_peak: (N, 2) largest \\(|u_i|\\) held; u_abs_int: (N,) \\(\\int \\|u\\| dt = \\sum_k \\|u_k\\| T_s\\);
+      max_excursion: (N,) largest \\(|q|\\) at the substep points (the names of `jaxsleigh.EnsembleResult`).
     """
 
     t: Any
@@ -76,6 +79,9 @@ class SampledRun(NamedTuple):
     u_norm_peak: Any
     min_abs_theta: Any
     status: Any
+    u_peak: Any = None
+    u_abs_int: Any = None
+    max_excursion: Any = None
 
 
 def sample_count(t_final, period) -> int:
@@ -99,7 +105,7 @@ def _is_concrete(tree) -> bool:
 
 
 def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final: float, sampler,
-                  substeps: int = 20, eps: float = 0.05, dtype=jnp.float32) -> SampledRun:
+                  substeps: int = 20, eps: float = 0.05, dtype=jnp.float32, save: bool = True) -> SampledRun:
     """Integrate the sampled-data closed loop (module docstring) from a batch of starts.
 
     Args:
@@ -113,6 +119,7 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
       sampler: `jaxsleigh.controllers.actuators.Sampler` (period, delay, noise, seed).
       substeps: RK4 steps per sampling period (the accuracy knob); eps: radius of the ball of ``T_eps``.
       dtype: ``jnp.float32`` or ``jnp.float64`` (the latter needs ``jax.enable_x64(True)``).
+      save: keep the samples (``t``, ``q``, ``p``, ``u``); ``False``: summaries and final states only.
 
     Returns:
       `SampledRun`.
@@ -158,7 +165,8 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
         y0 = jnp.concatenate([y0, jnp.zeros((y0.shape[0], 2), dtype)], axis=1)
 
     return _solve(law, plant, y0, jnp.asarray(period, dtype), jnp.asarray(noise, dtype),
-                  jnp.asarray(seed % 2**32, jnp.uint32), jnp.asarray(eps, dtype), K=K, substeps=substeps, delay=delay)
+                  jnp.asarray(seed % 2**32, jnp.uint32), jnp.asarray(eps, dtype), K=K, substeps=substeps, delay=delay,
+                  save=bool(save))
 
 
 def _field(y, u, plant):
@@ -194,11 +202,11 @@ def _control(law, plant, y, buf, status, k, key0, noise, period, delay: int):
 def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int):
     """The plant over one period with ``u`` held: ``substeps`` RK4 steps of ``h``, tracking the entry time into
     the ball (linear interpolation of \\(|q|\\) inside a substep), \\(\\min |\\theta|\\) and whether every value stayed
-    finite. Returns ``(y_new, t_enter, min_th, finite)``."""
+    finite, and \\(\\max |q|\\). Returns ``(y_new, t_enter, min_th, finite, max_q)``."""
     dtype = y.dtype
 
     def sub(c, j):
-        yy, t_in, mth, fin = c
+        yy, t_in, mth, fin, mq = c
         y_new = step(yy, u)
         fin = fin & jnp.all(jnp.isfinite(y_new), axis=1)
         r0, r1 = _qnorm(yy), _qnorm(y_new)
@@ -208,14 +216,14 @@ def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int):
         entry = jnp.where(r0 > eps, t0 + s * h, t_in)
         t_in = jnp.where(inside, entry, jnp.inf).astype(dtype)
         mth = jnp.minimum(mth, jnp.abs(y_new[:, 2]))
-        return (y_new, t_in, mth, fin), None
+        return (y_new, t_in, mth, fin, jnp.maximum(mq, r1)), None
 
     fin0 = jnp.all(jnp.isfinite(u), axis=1)
-    return jax.lax.scan(sub, (y, t_enter, min_th, fin0), jnp.arange(substeps))[0]
+    return jax.lax.scan(sub, (y, t_enter, min_th, fin0, _qnorm(y)), jnp.arange(substeps))[0]
 
 
-@partial(jax.jit, static_argnames=("K", "substeps", "delay"))
-def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
+@partial(jax.jit, static_argnames=("K", "substeps", "delay", "save"))
+def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save=True):
     dtype = y0.dtype
     N = y0.shape[0]
     h = period / substeps
@@ -229,9 +237,10 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
     step = jax.vmap(lambda y, u: rk4_step(lambda t, yy, a: _field(yy, a, plant), 0.0, y, h, u))
 
     def sample(carry, k):
-        y, buf, status, t_enter, min_th, energy, peak = carry
+        y, buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry
         u, buf = _control(law, plant, y, buf, status, k, key0, noise, period, delay)
-        y_new, t_new, mth_new, fin = _hold(step, y, u, t_enter, min_th, k.astype(dtype) * period, h, eps_, substeps)
+        y_new, t_new, mth_new, fin, mq_new = _hold(step, y, u, t_enter, min_th, k.astype(dtype) * period, h, eps_,
+                                                   substeps)
         ok = status == int(Status.OK)
         good = ok & fin
         status = jnp.where(ok & ~fin, int(Status.NONFINITE), status).astype(jnp.int32)
@@ -242,24 +251,36 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay):
         un2 = jnp.sum(u * u, axis=1)
         energy = jnp.where(good, energy + un2 * period, energy)
         peak = jnp.where(good, jnp.maximum(peak, jnp.sqrt(un2)), peak)
+        peak_c = jnp.where(good[:, None], jnp.maximum(peak_c, jnp.abs(u)), peak_c)
+        abs_int = jnp.where(good, abs_int + jnp.sqrt(un2) * period, abs_int)
+        max_q = jnp.where(good, jnp.maximum(max_q, mq_new), max_q)
+        carry = (y, buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q)
+        if not save:
+            return carry, None
         y_out = jnp.where(good[:, None], y, jnp.full_like(y, jnp.nan))
         u_out = jnp.where(good[:, None], u, jnp.full_like(u, jnp.nan))
-        return (y, buf, status, t_enter, min_th, energy, peak), (y_out, u_out)
+        return carry, (y_out, u_out)
 
     buf0 = jnp.zeros((max(delay, 1), N, 2), dtype)
     zeros = jnp.zeros((N,), dtype)
-    carry0 = (y0, buf0, status0, t_enter0, jnp.abs(y0[:, 2]), zeros, zeros)
-    (y, _, status, t_enter, min_th, energy, peak), (ys, us) = jax.lax.scan(sample, carry0, jnp.arange(K))
+    carry0 = (y0, buf0, status0, t_enter0, jnp.abs(y0[:, 2]), zeros, zeros, jnp.zeros((N, 2), dtype), zeros,
+              _qnorm(y0))
+    carry, saved = jax.lax.scan(sample, carry0, jnp.arange(K))
+    y, _, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry
 
     ok = status == int(Status.OK)
     nanN = jnp.full((N,), jnp.nan, dtype)
-    y_first = jnp.where(valid[:, None], y0, jnp.full_like(y0, jnp.nan))
-    traj = jnp.concatenate([y_first[:, None], jnp.swapaxes(ys, 0, 1)], axis=1)       # (N, K+1, 5)
     y_fin = jnp.where(ok[:, None], y, jnp.full_like(y, jnp.nan))
+    t = q = p = u = None
+    if save:
+        ys, us = saved
+        y_first = jnp.where(valid[:, None], y0, jnp.full_like(y0, jnp.nan))
+        traj = jnp.concatenate([y_first[:, None], jnp.swapaxes(ys, 0, 1)], axis=1)       # (N, K+1, 5)
+        t, q, p, u = jnp.arange(K + 1, dtype=dtype) * period, traj[:, :, :3], traj[:, :, 3:], jnp.swapaxes(us, 0, 1)
     return SampledRun(
-        t=jnp.arange(K + 1, dtype=dtype) * period,
-        q=traj[:, :, :3], p=traj[:, :, 3:], u=jnp.swapaxes(us, 0, 1),
+        t=t, q=q, p=p, u=u,
         q_final=y_fin[:, :3], p_final=y_fin[:, 3:],
         T_eps=jnp.where(ok, t_enter, nanN), u_energy=jnp.where(ok, energy, nanN),
         u_norm_peak=jnp.where(ok, peak, nanN), min_abs_theta=jnp.where(ok, min_th, nanN),
-        status=status)
+        status=status, u_peak=jnp.where(ok[:, None], peak_c, jnp.full_like(peak_c, jnp.nan)),
+        u_abs_int=jnp.where(ok, abs_int, nanN), max_excursion=jnp.where(ok, max_q, nanN))

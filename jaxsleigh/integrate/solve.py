@@ -24,6 +24,7 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
+from ..controllers.actuators import is_sampled
 from ..model.charts import chart_for
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
@@ -79,6 +80,9 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     """
     if method not in ("adaptive", "rk4"):
         raise ValueError(f"method must be 'adaptive' or 'rk4', got {method!r}")
+    if is_sampled(controller):
+        raise ValueError("solve integrates the continuous loop; a sampled law (controller=sampled(...)) runs in "
+                         "jaxsleigh.integrate.sampled.solve_sampled, which is differentiable too")
     y0 = jnp.asarray(y0)
     if not jnp.issubdtype(y0.dtype, jnp.floating):
         y0 = y0.astype(jnp.zeros(()).dtype)

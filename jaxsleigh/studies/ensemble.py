@@ -36,6 +36,7 @@ from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
 from ..model.params import PlantParams
+from ..controllers.actuators import is_sampled
 from ..progress import Progress
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
@@ -240,6 +241,30 @@ def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
             "u_peak": np.full((len(status), 2), np.nan), "u_norm_peak": nan, "u_energy": nan, "u_abs_int": nan}
 
 
+def _sampled_ensemble(cfg, ics, chunk_size: int, progress, **unsupported) -> EnsembleResult:
+    """`run_ensemble` of a law behind a digital controller (`jaxsleigh.studies.sampled`), chunk by chunk."""
+    from .sampled import sampled_settings, sampled_summaries
+
+    what = {"checkpoint_dir": "checkpoint_dir (chunks on disk)", "shard": "shard (a share of a multi-process run)",
+            "save_every": "save_every (use simulate for the samples)", "observers": "observers",
+            "per_trajectory": "per-trajectory parameters (a sweep)"}
+    for name, value in unsupported.items():
+        if value not in (None, False):
+            raise ValueError(f"not available for a sampled law (controller=sampled(...)) yet: {what[name]}")
+    ics5, _ = check_ics(ics, cfg.dtype, singular=False)
+    n = ics5.shape[0]
+    t0 = time.perf_counter()
+    parts = []
+    with Progress(progress, desc=f"ensemble ({n} ics, sampled)") as bar:
+        for lo in range(0, n, chunk_size):
+            parts.append(sampled_summaries(cfg, ics5[lo:lo + chunk_size]))
+            bar.update(min(lo + chunk_size, n) / n)
+    out = {k: np.concatenate([p[k] for p in parts]) for k in SUMMARY_FIELDS}
+    settings = {**sampled_settings(cfg), "chunk_size": chunk_size}
+    run_info = {"wall_s": time.perf_counter() - t0, "devices": [str(jax.devices()[0])], "chunks_reused": 0}
+    return EnsembleResult(ics=ics5, settings=settings, **out, run_info=run_info)
+
+
 def _settings_key(settings: dict, ics: np.ndarray) -> str:
     h = hashlib.sha256(json.dumps({k: v for k, v in settings.items() if k not in ("wall_s", "devices")},
                                   sort_keys=True, default=str).encode())
@@ -323,6 +348,9 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
     n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
     check_memory(n_rows, "run_ensemble")
+    if is_sampled(cfg.controller):
+        return _sampled_ensemble(cfg, ics, chunk_size, progress, checkpoint_dir=checkpoint_dir, shard=shard,
+                                 save_every=save_every, observers=observers, per_trajectory=cfg.lanes is not None)
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps

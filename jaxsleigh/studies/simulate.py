@@ -24,7 +24,9 @@ from .options import RunOptions, SaveAt, front_options
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..model.params import PlantParams
 from ..model.plant import velocity
+from ..controllers.actuators import is_sampled
 from ..progress import Progress
+from .sampled import sampled_solution
 from ..status import CONVERGED, VALID
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
@@ -161,6 +163,10 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     reject_traced("simulate", **locals())    # first: a NumPy front, neither jittable nor differentiable
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, controller=controller)
+    if is_sampled(cfg.controller):
+        if cfg.lanes is not None:
+            raise ValueError("per-trajectory parameters are not available for a sampled law yet; drop them")
+        return Solution(**sampled_solution(cfg, ics, progress))
     horizon = cfg.horizon
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)

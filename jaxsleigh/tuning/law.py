@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ..controllers.actuators import is_sampled
 from ..model.charts import chart_for
 from ..model.controller import as_controller, is_paper_law, law_leaf_names
 from ..integrate.engine import check_ics, initial_w
@@ -76,6 +77,9 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
       steps, lr: Adam iterations and learning rate; x64: float64.
       n_attempts: attempted steps per start (default 4x the base steps of ``loss.t_final``).
     """
+    if is_sampled(law):
+        raise ValueError("tuning a sampled law (controller=sampled(...)) is not available yet: tune the law itself, "
+                         "then measure it sampled with run_ensemble or compare")
     if is_paper_law(law):
         raise ValueError("the paper's law has its own tuner with admissible gains: jaxsleigh.tuning.tune")
     law = as_controller(law)

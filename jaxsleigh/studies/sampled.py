@@ -1,0 +1,85 @@
+r"""The studies' path for a law behind a digital controller (`jaxsleigh.controllers.actuators.Sampled`).
+
+`jaxsleigh.simulate` and `jaxsleigh.run_ensemble` (hence `jaxsleigh.run_basin`) hand a sampled law here: it runs
+through `jaxsleigh.integrate.sampled.solve_sampled` (the law once per sample, held; the plant by fixed RK4
+substeps of at most ``dt`` in between, at least 4 per period) and comes back in the library's vocabulary
+(`jaxsleigh.Solution`, `jaxsleigh.EnsembleResult`). What an adaptive run has and a sampled one has not is NaN:
+``Hd`` (the closed loop is no longer port-Hamiltonian), ``t_reached`` of a failed row; ``n_rejected`` is 0.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..integrate.engine import check_ics
+from ..integrate.sampled import solve_sampled
+from ..progress import Progress
+from ..status import Status
+
+__all__ = ["substeps_for", "sampled_settings", "sampled_solution", "sampled_summaries"]
+
+
+def substeps_for(period: float, dt: float) -> int:
+    """RK4 substeps per sampling period: steps of at most ``dt``, and at least 4."""
+    return max(4, math.ceil(period / dt - 1e-9))
+
+
+def sampled_settings(cfg) -> dict:
+    """The settings of a sampled run: the configuration's, with the adaptive numbers replaced by the sampler's."""
+    law = cfg.controller
+    s = cfg.settings()
+    for k in ("rtol", "atol", "max_step", "max_steps", "check_passivity"):
+        s.pop(k, None)
+    s.update(method="sampled", sampler=dict(law.sampler._asdict()),
+             substeps=substeps_for(law.sampler.period, cfg.horizon.dt))
+    return s
+
+
+def _run(cfg, ics5, *, save: bool):
+    law = cfg.controller
+    with jax.enable_x64(cfg.x64):
+        r = solve_sampled(law.law, cfg.plant, ics5, t_final=cfg.horizon.t_final, sampler=law.sampler,
+                          substeps=substeps_for(law.sampler.period, cfg.horizon.dt), eps=cfg.eps,
+                          dtype=jnp.float64 if cfg.x64 else jnp.float32, save=save)
+        return jax.tree_util.tree_map(lambda a: None if a is None else np.asarray(a), r)
+
+
+def sampled_summaries(cfg, ics5) -> dict:
+    """The per-start fields of an `jaxsleigh.EnsembleResult` (``SUMMARY_FIELDS``) for ``ics5`` (N, 5)."""
+    r = _run(cfg, ics5, save=False)
+    ok = r.status == Status.OK
+    n = ics5.shape[0]
+    nan = np.full(n, np.nan)
+    K = round(cfg.horizon.t_final / cfg.controller.sampler.period)
+    steps = K * substeps_for(cfg.controller.sampler.period, cfg.horizon.dt)
+    f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    return {"q_final": f64(r.q_final), "p_final": f64(r.p_final), "T_eps": f64(r.T_eps),
+            "min_abs_theta": f64(r.min_abs_theta), "max_excursion": f64(r.max_excursion), "Hd0": nan, "Hd_final": nan,
+            "t_reached": np.where(ok, cfg.horizon.t_final, np.nan), "n_steps": np.where(ok, steps, 0).astype(np.int64),
+            "n_rejected": np.zeros(n, np.int64), "status": r.status.astype(np.int32), "u_peak": f64(r.u_peak),
+            "u_norm_peak": f64(r.u_norm_peak), "u_energy": f64(r.u_energy), "u_abs_int": f64(r.u_abs_int)}
+
+
+def sampled_solution(cfg, ics, progress=None) -> dict:
+    """The fields of the `jaxsleigh.Solution` of a sampled law: the state and the held input at every sample
+    instant (``save_every`` = 1 sample; the last input is the one held up to the horizon)."""
+    ics5, _ = check_ics(ics, cfg.dtype, singular=False)
+    t0 = time.perf_counter()
+    with Progress(progress, desc="simulate (sampled)") as bar:
+        r = _run(cfg, ics5, save=True)
+        bar.update(1.0)
+    u = np.concatenate([r.u, r.u[:, -1:]], axis=1)
+    steps = (len(r.t) - 1) * substeps_for(cfg.controller.sampler.period, cfg.horizon.dt)
+    ok = r.status == Status.OK
+    settings = {**sampled_settings(cfg), "save_every": 1}      # every sample instant
+    settings.pop("eps")
+    return dict(t=r.t, q=r.q, p=r.p, u=u,
+                Hd=np.full(r.q.shape[:2], np.nan), status=r.status.astype(np.int32),
+                n_steps=np.where(ok, steps, 0).astype(np.int64), n_rejected=np.zeros(len(ok), np.int64),
+                settings=settings, T_eps=r.T_eps, min_abs_theta=r.min_abs_theta, max_excursion=r.max_excursion,
+                u_peak=r.u_peak, u_norm_peak=r.u_norm_peak, u_energy=r.u_energy, u_abs_int=r.u_abs_int,
+                run_info={"wall_s": time.perf_counter() - t0, "devices": [str(jax.devices()[0])]})

@@ -1,0 +1,88 @@
+"""A law behind a digital controller (``controller=sampled(law, Ts)``) runs through the studies: simulate,
+run_ensemble, run_basin and the command line give what the sampled-data loop computes, in the library's
+vocabulary; what cannot take a sampled law yet says so instead of integrating it as if it were continuous."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+from jaxsleigh.cli import main
+from jaxsleigh.controllers.actuators import Sampler, sampled, saturate
+from jaxsleigh.controllers.paper import PaperLaw
+from jaxsleigh.integrate.sampled import solve_sampled
+from jaxsleigh.studies.sampled import substeps_for
+
+ICS = np.array([[1.0, 1.0, 0.5, 0.0, 0.0], [-3.0, -2.0, np.pi / 8, 0.0, 0.0], [2.0, -1.0, -1.0, 0.3, -0.2]])
+LAW = sampled(js.paper_gains(), 0.05, delay=1)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return solve_sampled(PaperLaw(), None, ICS, t_final=10.0, sampler=Sampler(0.05, delay=1),
+                         substeps=substeps_for(0.05, 0.01))
+
+
+def test_simulate_returns_the_sampled_loop(reference):
+    sol = js.simulate(ICS, controller=LAW, t_final=10.0)
+    np.testing.assert_array_equal(sol.t, np.asarray(reference.t))
+    np.testing.assert_array_equal(sol.q, np.asarray(reference.q))
+    np.testing.assert_array_equal(sol.u[:, :-1], np.asarray(reference.u))       # held input per sample
+    np.testing.assert_array_equal(sol.u[:, -1], np.asarray(reference.u)[:, -1])
+    np.testing.assert_array_equal(sol.u_energy, np.asarray(reference.u_energy))
+    assert sol.settings["method"] == "sampled" and sol.settings["sampler"]["delay"] == 1
+    assert np.all(np.isnan(sol.Hd)) and np.all(sol.u[:, 0] == 0.0)                # one sample of delay: u = 0 first
+
+
+def test_run_ensemble_and_basin_summarise_the_sampled_loop(reference):
+    r = js.run_ensemble(ICS, controller=LAW, t_final=10.0)
+    np.testing.assert_array_equal(r.q_final, np.asarray(reference.q_final))
+    np.testing.assert_array_equal(r.T_eps, np.asarray(reference.T_eps))
+    u = np.asarray(reference.u)
+    np.testing.assert_allclose(r.u_peak, np.abs(u).max(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(r.u_abs_int, np.linalg.norm(u, axis=2).sum(axis=1) * 0.05, rtol=1e-5)
+    assert np.all(r.max_excursion >= np.linalg.norm(np.asarray(reference.q), axis=2).max(axis=1) - 1e-6)
+    assert r.settings["method"] == "sampled" and np.all(np.isnan(r.Hd0)) and np.all(r.n_rejected == 0)
+    chunked = js.run_ensemble(ICS, controller=LAW, t_final=10.0, chunk_size=2)
+    np.testing.assert_allclose(chunked.q_final, r.q_final, rtol=1e-5, atol=1e-6)
+    b = js.run_basin(ICS, controller=LAW, t_final=10.0)
+    np.testing.assert_array_equal(b.q_final, r.q_final)
+    assert b.fraction == np.mean(r.converged)
+
+
+def test_the_sampling_period_matters_in_the_studies():
+    # the gentle starts (from (-3, -2, pi/8) the first second's |u| ~ 1e3 makes any held loop drift; see
+    # tests/test_actuators.py for its accuracy with more substeps)
+    ics = ICS[[0, 2]]
+    fine = js.run_ensemble(ics, controller=sampled(js.paper_gains(), 0.01), t_final=20.0)
+    coarse = js.run_ensemble(ics, controller=sampled(js.paper_gains(), 0.5), t_final=20.0)
+    cont = js.run_ensemble(ics, t_final=20.0)
+    assert np.abs(fine.q_final - cont.q_final).max() < 0.2 < np.abs(coarse.q_final - cont.q_final).max()
+
+
+def test_what_cannot_take_a_sampled_law_says_so(tmp_path):
+    from jaxsleigh.tuning import tune_law
+
+    with pytest.raises(ValueError, match="checkpoint_dir"):
+        js.run_ensemble(ICS, controller=LAW, t_final=1.0, checkpoint_dir=tmp_path / "ck")
+    with pytest.raises(ValueError, match="sampled"):
+        js.sweep(ICS[:, :3], ["law.gains.k=0.05:0.2:2"], controller=LAW, t_final=1.0)
+    with pytest.raises(ValueError, match="sampled"):
+        tune_law(sampled(PaperLaw(), 0.05), ICS[:, :3], steps=1)
+    with pytest.raises(ValueError, match="solve_sampled"):
+        js.solve(LAW, ICS[0], t_final=1.0)
+    with pytest.raises(ValueError, match="whole number of sampling periods"):
+        js.simulate(ICS, controller=sampled(js.paper_gains(), 0.3), t_final=10.0)
+
+
+def test_command_line_simulate_with_a_digital_saturated_controller(tmp_path, capsys):
+    out = tmp_path / "s.npz"
+    code = main(["simulate", "--ic=-3,-2,pi/8", "--sample-period", "0.05", "--delay", "1", "--noise", "0.001",
+                 "--seed", "3", "--saturation", "50", "--t-final", "5", "--out", str(out)])
+    d = np.load(out)
+    assert code == 0 and d["u"].shape == (1, 101, 2) and np.nanmax(np.abs(d["u"])) == pytest.approx(50.0)
+    law = sampled(saturate(js.paper_gains(), 50.0), 0.05, delay=1, noise=0.001, seed=3)
+    np.testing.assert_array_equal(d["q"], js.simulate([-3.0, -2.0, np.pi / 8], controller=law, t_final=5.0).q)
+    capsys.readouterr()
+    assert main(["simulate", "--ic", "1,1,0.5", "--noise", "0.1", "--out", str(out)]) == 2
+    assert "--sample-period" in capsys.readouterr().err
