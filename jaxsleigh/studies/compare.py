@@ -24,7 +24,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from ..controllers.actuators import saturate
+from ..controllers.actuators import sampled, saturate
 from ..status import Status, converged
 
 __all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS"]
@@ -92,25 +92,18 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         `jaxsleigh.controllers.actuators.Sampler` for the sampled-data loop (``t_final`` a whole number of
         periods; ``substeps`` RK4 steps per period).
     """
-    from ..integrate.sampled import solve_sampled
     from .ensemble import run_ensemble
 
     rows = []
     for name, law in laws.items():
         law = law if saturation is None else saturate(law, saturation)
+        dt = 0.01
+        if sampler is not None:                    # the sampled-data loop: substeps of period / substeps
+            law, dt = sampled(law, *sampler), sampler.period / substeps
         for sname, ics in starts.items():
             ics = np.asarray(ics, np.float64)
-            if sampler is None:
-                r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, eps=eps, x64=x64, progress=False)
-                row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
-            else:
-                import jax
-                import jax.numpy as jnp
-
-                with jax.enable_x64(bool(x64)):
-                    r = solve_sampled(law, plant, ics, t_final=t_final, sampler=sampler, eps=eps, substeps=substeps,
-                                      dtype=jnp.float64 if x64 else jnp.float32)
-                    r = jax.tree_util.tree_map(np.asarray, r)
-                row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
+            r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, dt=dt, eps=eps, x64=x64,
+                             progress=False)
+            row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
             rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row})
     return rows
