@@ -155,3 +155,20 @@ def test_gain_names_leave_out_the_plant_model_and_the_actuator_bound():
     assert gain_names(make_controller("astolfi")) == ["k", "p2", "p3", "K"]
     assert gain_names(saturate(make_controller("samson"), 5.0)) == ["law.k1", "law.k2", "law.k3", "law.alpha",
                                                                       "law.nu", "law.K"]
+
+
+def test_tuning_keeps_declared_positive_gains_positive():
+    """A law's ``positive`` gains are tuned as logarithms: a large first step that would take k through zero
+    cannot (Aicardi's law, whose Lyapunov argument needs k, h > 0)."""
+    from jaxsleigh.model.controller import positive_names
+    from jaxsleigh.tuning import LossConfig, tune_law
+    from jaxsleigh.controllers.actuators import saturate
+
+    law = make_controller("aicardi")
+    assert positive_names(law) == {"gamma", "k", "h", "K"}
+    assert positive_names(saturate(law, 5.0)) == {"law.gamma", "law.k", "law.h", "law.K"}
+    starts = draw_compare_starts("uniform", 4, 5)[:, :3]
+    res = tune_law(law, starts, loss=LossConfig(t_final=5.0, energy_budget=1.0), steps=3, lr=2.0)
+    assert all(float(getattr(res.law, n)) > 0 for n in ("gamma", "k", "h", "K"))
+    with pytest.raises(ValueError, match="must be > 0"):
+        tune_law(law._replace(k=-1.0), starts, loss=LossConfig(t_final=5.0), steps=1)

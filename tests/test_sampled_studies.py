@@ -50,6 +50,20 @@ def test_run_ensemble_and_basin_summarise_the_sampled_loop(reference):
     assert b.fraction == np.mean(r.converged)
 
 
+def test_a_sampled_run_checkpoints_and_resumes_like_any_other(tmp_path):
+    whole = js.run_ensemble(ICS, controller=LAW, t_final=2.0, chunk_size=1)
+    ck = tmp_path / "chunks"
+    js.run_ensemble(ICS, controller=LAW, t_final=2.0, chunk_size=1, checkpoint_dir=ck)
+    (sorted(ck.glob("chunk_*"))[1]).unlink()                        # an interrupted run: one chunk missing
+    resumed = js.run_ensemble(ICS, controller=LAW, t_final=2.0, chunk_size=1, checkpoint_dir=ck, resume=True)
+    assert resumed.run_info["chunks_reused"] == 2
+    for k in ("q_final", "T_eps", "u_energy", "status"):
+        np.testing.assert_array_equal(getattr(resumed, k), getattr(whole, k))
+    with pytest.raises(Exception, match="period"):                  # another sampler is another run
+        js.run_ensemble(ICS, controller=sampled(js.paper_gains(), 0.1), t_final=2.0, chunk_size=1,
+                        checkpoint_dir=ck, resume=True)
+
+
 def test_the_sampling_period_matters_in_the_studies():
     # the gentle starts (from (-3, -2, pi/8) the first second's |u| ~ 1e3 makes any held loop drift; see
     # tests/test_actuators.py for its accuracy with more substeps)
@@ -63,8 +77,8 @@ def test_the_sampling_period_matters_in_the_studies():
 def test_what_cannot_take_a_sampled_law_says_so(tmp_path):
     from jaxsleigh.tuning import tune_law
 
-    with pytest.raises(ValueError, match="checkpoint_dir"):
-        js.run_ensemble(ICS, controller=LAW, t_final=1.0, checkpoint_dir=tmp_path / "ck")
+    with pytest.raises(ValueError, match="save_every"):
+        js.run_ensemble(ICS, controller=LAW, t_final=1.0, save_every=10)
     with pytest.raises(ValueError, match="sampled"):
         js.sweep(ICS[:, :3], ["law.gains.k=0.05:0.2:2"], controller=LAW, t_final=1.0)
     with pytest.raises(ValueError, match="sampled"):

@@ -119,6 +119,7 @@ class AicardiLaw(NamedTuple):
     model: Any = PlantParams()
 
     name = "aicardi"
+    positive = ("gamma", "k", "h", "K")          # the Lyapunov argument needs them > 0 (tuning keeps them so)
     citation = ("Aicardi, Casalino, Bicchi, Balestrino, 'Closed loop steering of unicycle-like vehicles via "
                 "Lyapunov techniques', IEEE Robot. Autom. Mag. 2(1):27-35, 1995")
     needs = ("m", "J", "l", "damping")

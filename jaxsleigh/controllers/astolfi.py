@@ -97,6 +97,7 @@ class AstolfiLaw(NamedTuple):
     model: Any = PlantParams()
 
     name = "astolfi"
+    positive = ("k", "p2", "K")                  # k > 0 and p2 > k are part of the Hurwitz conditions
     citation = ("Astolfi, 'Discontinuous control of nonholonomic systems', Syst. Control Lett. 27(1):37-45, "
                 "1996")
     needs = ("m", "J", "l", "damping")

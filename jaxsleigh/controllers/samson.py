@@ -101,6 +101,7 @@ class Samson(NamedTuple):
     model: Any = PlantParams()
 
     name = "samson"
+    positive = ("k1", "k2", "k3", "alpha", "nu", "K")   # every gain of the design is > 0
     citation = ("C. Samson, Control of chained systems: application to path following and time-varying "
                 "point-stabilization of mobile robots, IEEE TAC 40(1):64-77, 1995")
     needs = ("m", "J", "l", "damping")

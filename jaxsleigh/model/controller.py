@@ -14,7 +14,8 @@ The paper's law (eq. 13) is the controller `jaxsleigh.Gains`: ``gains=`` keeps m
 declares the w chart (its singular set \(\theta = 0\) belongs to it, not to the plant), so the
 engine integrates it there (`jaxsleigh.model.charts.WChart`). Any other law is integrated in the
 physical chart (`jaxsleigh.model.charts.PhysicalChart`). A law may declare its own chart with a class
-attribute ``chart``.
+attribute ``chart``, and the parameters that must stay positive with a class attribute ``positive`` (names of
+its fields; the tuner then optimises their logarithm).
 
 A *time-varying* law (the classic answer to Brockett's condition) says so with a class attribute
 ``time_varying = True`` and is called as ``law(q, v, t)``, ``t`` the time since the start of the run.
@@ -200,6 +201,18 @@ def controller_record(law) -> dict:
     params = {jax.tree_util.keystr(path) or "value": rec(x) for path, x in leaves}
     kind = repr(inner) if isinstance(inner, FunctionLaw) else type(inner).__qualname__
     return {"type": kind, "params": params}
+
+
+def positive_names(law) -> set:
+    """Names (spelled as `law_leaf_names` spells them) of the leaves a law declares positive with a class attribute
+    ``positive``, also through wrappers that hold their law in a field ``law`` (``law.k``). The tuner keeps them
+    positive (it optimises their logarithm)."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    out = set(getattr(type(inner), "positive", ()))
+    sub = getattr(inner, "law", None)
+    if sub is not None and sub is not inner and callable(sub):
+        out |= {"law." + n for n in positive_names(sub)}
+    return out
 
 
 def law_leaf_names(law) -> dict:

@@ -38,6 +38,7 @@ from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, 
 from ..model.params import PlantParams
 from ..controllers.actuators import is_sampled
 from ..progress import Progress
+from .sampled import sampled_settings, sampled_summaries
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
 
@@ -241,28 +242,13 @@ def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
             "u_peak": np.full((len(status), 2), np.nan), "u_norm_peak": nan, "u_energy": nan, "u_abs_int": nan}
 
 
-def _sampled_ensemble(cfg, ics, chunk_size: int, progress, **unsupported) -> EnsembleResult:
-    """`run_ensemble` of a law behind a digital controller (`jaxsleigh.studies.sampled`), chunk by chunk."""
-    from .sampled import sampled_settings, sampled_summaries
-
-    what = {"checkpoint_dir": "checkpoint_dir (chunks on disk)", "shard": "shard (a share of a multi-process run)",
-            "save_every": "save_every (use simulate for the samples)", "observers": "observers",
-            "per_trajectory": "per-trajectory parameters (a sweep)"}
-    for name, value in unsupported.items():
+def _refuse_for_sampled(**given) -> None:
+    """What a sampled law (`jaxsleigh.studies.sampled`) cannot do in `run_ensemble` yet, refused by name."""
+    what = {"save_every": "save_every (use simulate for the samples)", "observers": "observers",
+            "per_trajectory": "per-trajectory parameters (a sweep)", "summaries": "summaries=False"}
+    for name, value in given.items():
         if value not in (None, False):
             raise ValueError(f"not available for a sampled law (controller=sampled(...)) yet: {what[name]}")
-    ics5, _ = check_ics(ics, cfg.dtype, singular=False)
-    n = ics5.shape[0]
-    t0 = time.perf_counter()
-    parts = []
-    with Progress(progress, desc=f"ensemble ({n} ics, sampled)") as bar:
-        for lo in range(0, n, chunk_size):
-            parts.append(sampled_summaries(cfg, ics5[lo:lo + chunk_size]))
-            bar.update(min(lo + chunk_size, n) / n)
-    out = {k: np.concatenate([p[k] for p in parts]) for k in SUMMARY_FIELDS}
-    settings = {**sampled_settings(cfg), "chunk_size": chunk_size}
-    run_info = {"wall_s": time.perf_counter() - t0, "devices": [str(jax.devices()[0])], "chunks_reused": 0}
-    return EnsembleResult(ics=ics5, settings=settings, **out, run_info=run_info)
 
 
 def _settings_key(settings: dict, ics: np.ndarray) -> str:
@@ -348,9 +334,10 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
     n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
     check_memory(n_rows, "run_ensemble")
-    if is_sampled(cfg.controller):
-        return _sampled_ensemble(cfg, ics, chunk_size, progress, checkpoint_dir=checkpoint_dir, shard=shard,
-                                 save_every=save_every, observers=observers, per_trajectory=cfg.lanes is not None)
+    sampled = is_sampled(cfg.controller)
+    if sampled:
+        _refuse_for_sampled(save_every=save_every, observers=observers, per_trajectory=cfg.lanes is not None,
+                            summaries=not summaries)
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
@@ -371,7 +358,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
     with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
         settings = {
-            **cfg.settings(), "save_every": save_every, "chunk_size": chunk_size, "summaries": bool(summaries),
+            **(sampled_settings(cfg) if sampled else cfg.settings()), "save_every": save_every,
+            "chunk_size": chunk_size, "summaries": bool(summaries),
         }
         devices_used = [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])]
         if observers is not None:
@@ -389,6 +377,38 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
+        def engine_part(lo, hi):
+            """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape."""
+            pad = chunk - (hi - lo)
+            st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
+            ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
+            y0w = initial_w(ic, st, dtype, chart)
+            a = args
+            if lane_args is not None:      # this chunk's lanes; padding rows reuse its first
+                from ..model.lanes import take_lanes
+
+                a = take_lanes(lane_args, np.concatenate([np.arange(lo, hi), np.full(pad, lo)]))
+
+            class _Sub:  # maps this chunk's progress onto the whole run
+                def update(self, frac, lo=lo, hi=hi):
+                    bar.update((lo + frac * (hi - lo)) / n)
+
+            kw = dict(eps=eps, progress=_Sub(), observers=observers)
+            if not summaries:
+                part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment,
+                                                     progress=_Sub()), y0w, st, a, horizon)
+            elif save_every is None:
+                final = drive_final(y0w, st, a, horizon, step, segment=segment, mesh=mesh, **kw)
+                part = _chunk_summaries(final, y0w, st, a, observers)
+            else:
+                final, ys = drive_saving(y0w, st, a, horizon, step, **kw)
+                part = _chunk_summaries(final, y0w, st, a, observers)
+                yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
+                yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
+                yq[st != Status.OK] = np.nan
+                part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
+            return part
+
         t_start = time.perf_counter()
         # the store's lock on the folder is held until the last chunk is written or read
         with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()):
@@ -404,33 +424,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                         reused += 1
                         bar.update(hi / n)
                         continue
-                pad = chunk - (hi - lo)
-                st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
-                ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
-                y0w = initial_w(ic, st, dtype, chart)
-                if lane_args is not None:      # this chunk's lanes; padding rows reuse its first
-                    from ..model.lanes import take_lanes
-
-                    args = take_lanes(lane_args, np.concatenate([np.arange(lo, hi), np.full(pad, lo)]))
-
-                class _Sub:  # maps this chunk's progress onto the whole run
-                    def update(self, frac, lo=lo, hi=hi):
-                        bar.update((lo + frac * (hi - lo)) / n)
-
-                kw = dict(eps=eps, progress=_Sub(), observers=observers)
-                if not summaries:
-                    part = _plain_summaries(*drive_plain(y0w, st, args, horizon, segment=segment,
-                                                         progress=_Sub()), y0w, st, args, horizon)
-                elif save_every is None:
-                    final = drive_final(y0w, st, args, horizon, step, segment=segment, mesh=mesh, **kw)
-                    part = _chunk_summaries(final, y0w, st, args, observers)
-                else:
-                    final, ys = drive_saving(y0w, st, args, horizon, step, **kw)
-                    part = _chunk_summaries(final, y0w, st, args, observers)
-                    yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
-                    yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
-                    yq[st != Status.OK] = np.nan
-                    part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
+                part = sampled_summaries(cfg, ics5[lo:hi]) if sampled else engine_part(lo, hi)
                 part = {k: v[:hi - lo] for k, v in part.items()}
                 if store is not None:
                     store.save(ci, part, lo=lo, starts=ics5[lo:hi])

@@ -1,10 +1,11 @@
 r"""Tuning any feedback law by gradient: the tuner's objective (`jaxsleigh.tuning.objective`) over the
-numeric leaves of a user's law ``u = law(q, v)`` (`jaxsleigh.model.controller`), with optax.
+numeric leaves of a user's law ``u = law(q, v)`` (`jaxsleigh.model.controller`), with optax. The leaves a law
+declares ``positive`` are optimised as their logarithm, so they stay positive.
 
 The loss is the tuner's: the batch's mean soft convergence time \(S\) (plus the singular-set term for
 a law that has one), subject to a budget on the geometric-mean control energy by an augmented
-Lagrangian (`jaxsleigh.tuning.objective.loss_from_lanes`). The law's leaves are optimised as they are
-(unconstrained): a law whose parameter must stay positive should hold its logarithm. The paper's law
+Lagrangian (`jaxsleigh.tuning.objective.loss_from_lanes`). The other leaves are optimised as they are
+(unconstrained). The paper's law
 has its own tuner with an admissible parametrisation, checkpoints and checks (`jaxsleigh.tuning.tune`).
 """
 from __future__ import annotations
@@ -18,7 +19,7 @@ import optax
 
 from ..controllers.actuators import is_sampled
 from ..model.charts import chart_for
-from ..model.controller import as_controller, is_paper_law, law_leaf_names
+from ..model.controller import as_controller, is_paper_law, law_leaf_names, positive_names
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import PlantParams, as_plant
 from ..status import Status
@@ -51,7 +52,7 @@ def gain_names(law) -> list:
 def _split(law, tune):
     leaves, tree = jax.tree_util.tree_flatten(law)
     names = list(law_leaf_names(law))
-    chosen = names if tune is None else list(tune)
+    chosen = gain_names(law) if tune is None else list(tune)
     bad = [n for n in chosen if n not in names]
     if bad or not chosen:
         raise ValueError(f"tune must name parameters of the law ({', '.join(names)}), got {list(tune or [])}")
@@ -72,7 +73,8 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     Args:
       law: any feedback law ``u = law(q, v)`` (`jaxsleigh.model.controller`).
       starts: training starts ``(N, 3)`` or ``(N, 5)``.
-      tune: names of the leaves to tune (`jaxsleigh.model.controller.law_leaf_names`); default all.
+      tune: names of the leaves to tune (`jaxsleigh.model.controller.law_leaf_names`); default `gain_names`: every
+        leaf but the plant model the law carries and an actuator's bound.
       plant: the plant (default: the paper's); loss: `LossConfig` (horizon, tolerances, energy budget).
       steps, lr: Adam iterations and learning rate; x64: float64.
       n_attempts: attempted steps per start (default 4x the base steps of ``loss.t_final``).
@@ -97,12 +99,21 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64
         leaves, tree, names, idx = _split(law, tune)
-        params = [jnp.asarray(leaves[i], dtype) for i in idx]
+        positive = positive_names(law)
+        logs = [names[i] in positive for i in idx]        # declared positive: optimised as a logarithm
+        for i, lg in zip(idx, logs):
+            if lg and not np.all(np.asarray(leaves[i], np.float64) > 0):
+                raise ValueError(f"{names[i]} must be > 0 to be tuned (the law declares it positive), got {leaves[i]!r}")
+        params = [jnp.log(jnp.asarray(leaves[i], dtype)) if lg else jnp.asarray(leaves[i], dtype)
+                  for i, lg in zip(idx, logs)]
+
+        def value_of(p, lg):
+            return jnp.exp(p) if lg else p
 
         def rebuild(ps):
             full = [jnp.asarray(x, dtype) for x in leaves]
-            for i, p in zip(idx, ps):
-                full[i] = p
+            for i, p, lg in zip(idx, ps, logs):
+                full[i] = value_of(p, lg)
             return jax.tree_util.tree_unflatten(tree, full)
 
         def f(ps):
@@ -128,7 +139,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
             raise ValueError("the starting law is not a valid candidate (a training start failed or the loss is not "
                              "finite); check it with jaxsleigh.run_ensemble(starts, controller=law)")
         final = list(leaves)
-        for i, p in zip(idx, best[0]):
-            final[i] = np.asarray(p, np.float64)
+        for i, p, lg in zip(idx, best[0], logs):
+            final[i] = np.asarray(value_of(p, lg), np.float64)
         tuned = jax.tree_util.tree_unflatten(tree, final)
     return LawTuneResult(tuned, best[1], best[2], {k: np.asarray(v) for k, v in hist.items()})
