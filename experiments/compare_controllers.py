@@ -15,7 +15,7 @@
 Writes ``compare.json``, ``compare_table.png``, ``compare_saturation.png``, ``compare_sampling.png`` into
 ``--out`` (default docs/figures). About 10 minutes on 2 cores with the defaults.
 
-Usage: ``python experiments/compare_controllers.py [--n 128] [--train 32] [--steps 15] [--seed 0]``
+Usage: ``python experiments/compare_controllers.py [--n 128] [--train 32] [--steps 60] [--lr 0.1] [--seed 0]``
 """
 from __future__ import annotations
 
@@ -42,7 +42,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=128, help="held-out starts per distribution")
     ap.add_argument("--train", type=int, default=32, help="training starts")
-    ap.add_argument("--steps", type=int, default=15, help="tuner iterations per law")
+    ap.add_argument("--steps", type=int, default=60, help="tuner iterations per law")
+    ap.add_argument("--lr", type=float, default=0.1, help="the tuner's Adam learning rate")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--t-final", type=float, default=100.0)
     ap.add_argument("--curve-n", type=int, default=64, help="starts per point of the actuator curves")
@@ -63,8 +64,7 @@ def main() -> int:
         law = make_controller(name)
         t0 = time.perf_counter()
         try:
-            res = tuning.tune_law(law, train, tune=tuning.gain_names(law), loss=loss._replace(energy_budget=e_paper),
-                                  steps=a.steps, lr=0.05)
+            res = tuning.tune_law(law, train, loss=loss._replace(energy_budget=e_paper), steps=a.steps, lr=a.lr)
             laws[name] = res.law
             tuned_info[name] = {"law": controller_record(res.law), "training_energy": res.energy,
                                 "training_loss": res.loss, "steps": len(res.history["loss"]),
