@@ -460,7 +460,7 @@ def test_cli_outputs_plot_and_sidecar(tmp_path, basin_main):
     (["--theta", "0"], "singular set"),
     (["--ics", "missing.npy"], "not found"),
     (["--ics", "missing.npy", "--x", "1"], "cannot be combined with --ics"),
-    (["--seed", "3"], "--seed applies to --samples only"),
+    (["--seed", "3"], "--seed seeds --samples and --noise only"),
     (["--samples", "10", "--theta", "1:0.5"], "write e.g. --theta 0.5:1"),
     (["--samples", "0"], "--samples must be >= 1"),
     (["--eps", "-1"], "--eps must be a finite number > 0"),

@@ -100,3 +100,15 @@ def test_command_line_simulate_with_a_digital_saturated_controller(tmp_path, cap
     capsys.readouterr()
     assert main(["simulate", "--ic", "1,1,0.5", "--noise", "0.1", "--out", str(out)]) == 2
     assert "--sample-period" in capsys.readouterr().err
+
+
+def test_command_line_basin_with_a_digital_controller_gives_the_same_bytes_twice(tmp_path, capsys):
+    argv = ["basin", "--x", "-2:2:3", "--y", "-2:2:2", "--theta", "0.8", "--sample-period", "0.05", "--noise", "0.001",
+            "--seed", "2", "--t-final", "10", "--chunk-size", "2"]
+    assert main(argv + ["--out", str(tmp_path / "a.npz")]) == 0
+    assert main(argv + ["--out", str(tmp_path / "b.npz")]) == 0
+    b = js.load_basin(tmp_path / "b.npz")
+    assert b.settings["method"] == "sampled" and b.settings["sampler"] == {"period": 0.05, "delay": 0,
+                                                                         "noise": 0.001, "seed": 2}
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()      # same command, same bytes
+    capsys.readouterr()

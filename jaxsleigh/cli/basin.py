@@ -24,8 +24,8 @@ from pathlib import Path
 from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
 from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     check_outputs, compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args,
-                     run_chunked, run_distributed, status_epilog)
+                     add_sampler_options, check_outputs, compute_share, exit_code, finish_chunked, law_kwargs,
+                     load_average, model_from_args, run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 
@@ -86,12 +86,13 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
     src.add_argument("--samples", type=_whole("--samples", "100000", 1), metavar="N",
                      help="N Monte-Carlo starts, uniform in the --x/--y/--theta box")
     g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
-                   help="seed of --samples (default 0)")
+                   help="seed of --samples and of --noise (default 0)")
     c = p.add_argument_group("convergence")
     c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
     add_horizon_options(p, save_every=None)
     add_model_options(p)
+    add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
     r = p.add_argument_group("run")
     r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None, metavar="N",
                    help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
@@ -125,8 +126,8 @@ def _starts_from_args(args):
     from ..studies.basin import array_starts, grid_starts, parse_axis, sample_starts
 
     coords = {"x": args.x, "y": args.y, "theta": args.theta}
-    if args.seed is not None and args.samples is None:
-        raise ValueError("--seed applies to --samples only; add --samples N or drop --seed")
+    if args.seed is not None and args.samples is None and not args.noise:
+        raise ValueError("--seed seeds --samples and --noise only; add one of them or drop --seed")
     if args.ics is not None:
         given = [f"--{k}" for k, v in coords.items() if v is not None]
         if given:

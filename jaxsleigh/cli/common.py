@@ -172,8 +172,9 @@ def add_model_options(parser) -> None:
 
 
 def model_from_args(args):
-    """(plant, law) from the options of `add_model_options`: ``law`` is the paper's `Gains` (``--gains``) unless
-    ``--controller`` names another law or ``--saturation`` wraps it in an actuator (then a law ``u = law(q, v)``)."""
+    """(plant, law) from the options of `add_model_options` (and `add_sampler_options` where the command has them):
+    ``law`` is the paper's `Gains` (``--gains``) unless ``--controller`` names another law, or ``--saturation`` or
+    ``--sample-period`` wrap it in an actuator (then a law ``u = law(q, v)``)."""
     from ..controllers.registry import make_controller
     from ..model.params import load_gains, plant_params
 
@@ -191,6 +192,11 @@ def model_from_args(args):
             law = saturate(law, u_max)
         except ValueError as e:
             raise ValueError(f"--saturation: {e}") from None
+    smp = sampler_from_args(args) if hasattr(args, "sample_period") else None
+    if smp is not None:
+        from ..controllers.actuators import sampled
+
+        law = sampled(law, *smp)
     return plant, law
 
 
@@ -225,7 +231,7 @@ def sampler_from_args(args):
         sample_count(args.t_final, args.sample_period)
     except ValueError as e:
         raise ValueError(f"--t-final / --sample-period: {e}") from None
-    return sampler(args.sample_period, args.delay, args.noise, args.seed)
+    return sampler(args.sample_period, args.delay, args.noise, args.seed or 0)
 
 
 def law_kwargs(law) -> dict:

@@ -9,7 +9,7 @@ import warnings
 from ..errors import FlaggedStartsWarning
 from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
                      check_outputs, exit_code, ics_from_args, law_kwargs, model_from_args, report_warnings,
-                     sampler_from_args, status_epilog, status_line)
+                     status_epilog, status_line)
 
 __all__ = ["add_simulate"]
 
@@ -55,11 +55,6 @@ def _cmd_simulate(args) -> int:
     from ..studies.simulate import simulate
 
     plant, law = model_from_args(args)
-    smp = sampler_from_args(args)
-    if smp is not None:
-        from ..controllers.actuators import sampled
-
-        law = sampled(law, *smp)
     solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=args.save_every,
                  method=args.method, max_steps=args.max_steps, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)

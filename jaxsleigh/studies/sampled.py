@@ -32,10 +32,11 @@ def sampled_settings(cfg) -> dict:
     """The settings of a sampled run: the configuration's, with the adaptive numbers replaced by the sampler's."""
     law = cfg.controller
     s = cfg.settings()
-    for k in ("rtol", "atol", "max_step", "max_steps", "check_passivity"):
+    for k in ("rtol", "atol", "max_step", "check_passivity"):
         s.pop(k, None)
-    s.update(method="sampled", sampler=dict(law.sampler._asdict()),
-             substeps=substeps_for(law.sampler.period, cfg.horizon.dt))
+    substeps = substeps_for(law.sampler.period, cfg.horizon.dt)
+    s.update(method="sampled", sampler=dict(law.sampler._asdict()), substeps=substeps,
+             max_steps=round(cfg.horizon.t_final / law.sampler.period) * substeps)    # the RK4 steps it takes
     return s
 
 
