@@ -23,8 +23,8 @@ import time
 
 from .basin import _chunk_dir, _sidecar, _starts_from_args, _whole
 from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     check_outputs, compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args,
-                     run_chunked, run_distributed, status_epilog)
+                     add_sampler_options, check_outputs, compute_share, exit_code, finish_chunked, law_kwargs,
+                     load_average, model_from_args, run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
 
 __all__ = ["add_sweep", "run_sweep_command"]
@@ -86,12 +86,13 @@ def add_sweep(subparsers) -> argparse.ArgumentParser:
                      help=f"N Monte-Carlo starts, uniform in the --x/--y/--theta box (default {DEFAULT_SAMPLES} "
                           "when no starts are given)")
     g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
-                   help="seed of --samples (default 0)")
+                   help="seed of --samples and of --noise (default 0)")
     c = p.add_argument_group("convergence")
     c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
     add_horizon_options(p, save_every=None)
     add_model_options(p)
+    add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
     r = p.add_argument_group("run")
     r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None,
                    metavar="N", help="rows (start x value) integrated and checkpointed at once (default 16384 "

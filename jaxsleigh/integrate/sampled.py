@@ -112,7 +112,8 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
       law: a controller ``u = law(q, v)`` (or time-varying ``law(q, v, t)``, or a `PerTrajectory` law), e.g.
         `jaxsleigh.controllers.paper.PaperLaw`, possibly wrapped in actuator pieces; `jaxsleigh.Gains` runs as
         ``PaperLaw(gains)``.
-      plant: `jaxsleigh.PlantParams` (default: the paper's, ``jaxsleigh.plant_params()``).
+      plant: `jaxsleigh.PlantParams` (default: the paper's, ``jaxsleigh.plant_params()``); a leaf may carry one
+        value per start (a trailing axis of size N), as in the studies' per-trajectory parameters.
       ics: ``(N, 5)`` starts ``(x, y, theta, p1, p2)``, or ``(N, 3)`` with zero momentum (a single start
         ``(5,)``/``(3,)`` is a batch of one).
       t_final: horizon [s], a whole number of sampling periods.
@@ -180,11 +181,16 @@ def _qnorm(y):
     return jnp.sqrt(jnp.sum(y[:, :3] * y[:, :3], axis=1))
 
 
+def _row_axes(plant):
+    """vmap axes of a plant over the rows: a leaf with a trailing axis (one value per start) maps over it."""
+    return jax.tree_util.tree_map(lambda x: -1 if jnp.ndim(x) >= 1 else None, plant)
+
+
 def _control(law, plant, y, buf, status, k, key0, noise, period, delay: int):
     """Sample ``k``: measure (with noise), evaluate the law once, and return the input held on
     \\([t_k, t_{k+1})\\) (the one computed ``delay`` samples ago) and the updated ring buffer."""
     dtype = y.dtype
-    v = jax.vmap(lambda p: velocity(p, plant))(y[:, 3:])
+    v = jax.vmap(lambda p, pl: velocity(p, pl), in_axes=(0, _row_axes(plant)))(y[:, 3:], plant)
     z = jax.random.normal(jax.random.fold_in(key0, k), (y.shape[0], 5), dtype)
     q_meas = y[:, :3] + noise * z[:, :3]
     v_meas = v + noise * z[:, 3:]
@@ -234,7 +240,11 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save
     y0 = jnp.where(valid[:, None], y0, jnp.zeros_like(y0))     # never step a bad start
     status0 = jnp.where(valid, int(Status.OK), int(Status.INVALID_INPUT)).astype(jnp.int32)
     t_enter0 = jnp.where(_qnorm(y0) <= eps_, jnp.zeros((), dtype), jnp.inf).astype(dtype)
-    step = jax.vmap(lambda y, u: rk4_step(lambda t, yy, a: _field(yy, a, plant), 0.0, y, h, u))
+    rows = jax.vmap(lambda y, u, pl: rk4_step(lambda t, yy, a: _field(yy, a, pl), 0.0, y, h, u),
+                    in_axes=(0, 0, _row_axes(plant)))
+
+    def step(y, u):
+        return rows(y, u, plant)
 
     def sample(carry, k):
         y, buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry

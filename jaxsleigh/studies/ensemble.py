@@ -245,7 +245,7 @@ def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
 def _refuse_for_sampled(**given) -> None:
     """What a sampled law (`jaxsleigh.studies.sampled`) cannot do in `run_ensemble` yet, refused by name."""
     what = {"save_every": "save_every (use simulate for the samples)", "observers": "observers",
-            "per_trajectory": "per-trajectory parameters (a sweep)", "summaries": "summaries=False"}
+            "summaries": "summaries=False"}
     for name, value in given.items():
         if value not in (None, False):
             raise ValueError(f"not available for a sampled law (controller=sampled(...)) yet: {what[name]}")
@@ -336,8 +336,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
     check_memory(n_rows, "run_ensemble")
     sampled = is_sampled(cfg.controller)
     if sampled:
-        _refuse_for_sampled(save_every=save_every, observers=observers, per_trajectory=cfg.lanes is not None,
-                            summaries=not summaries)
+        _refuse_for_sampled(save_every=save_every, observers=observers, summaries=not summaries)
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
@@ -377,6 +376,14 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
+        def sampled_part(lo, hi):
+            """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
+            if lane_args is None:
+                return sampled_summaries(cfg, ics5[lo:hi])
+            from ..model.lanes import take_lanes
+
+            return sampled_summaries(cfg, ics5[lo:hi], take_lanes(lane_args, np.arange(lo, hi)))
+
         def engine_part(lo, hi):
             """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape."""
             pad = chunk - (hi - lo)
@@ -424,7 +431,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                         reused += 1
                         bar.update(hi / n)
                         continue
-                part = sampled_summaries(cfg, ics5[lo:hi]) if sampled else engine_part(lo, hi)
+                part = sampled_part(lo, hi) if sampled else engine_part(lo, hi)
                 part = {k: v[:hi - lo] for k, v in part.items()}
                 if store is not None:
                     store.save(ci, part, lo=lo, starts=ics5[lo:hi])

@@ -15,12 +15,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..controllers.actuators import Sampler
 from ..integrate.engine import check_ics
+from ..model.controller import PerTrajectory
 from ..integrate.sampled import solve_sampled
 from ..progress import Progress
 from ..status import Status
 
-__all__ = ["substeps_for", "sampled_settings", "sampled_solution", "sampled_summaries"]
+__all__ = ["substeps_for", "split_sampled", "sampled_settings", "sampled_solution", "sampled_summaries"]
 
 
 def substeps_for(period: float, dt: float) -> int:
@@ -28,35 +30,54 @@ def substeps_for(period: float, dt: float) -> int:
     return max(4, math.ceil(period / dt - 1e-9))
 
 
+def split_sampled(law):
+    """``(held law, Sampler)`` of a sampled law. A sweep's ``PerTrajectory(Sampled(law, sampler))`` gives
+    ``PerTrajectory(law)`` and the sampler's numbers, which must be the same on every trajectory (the number of
+    samples is part of the compiled loop): ``ValueError`` naming the one that varies."""
+    if not isinstance(law, PerTrajectory):
+        return law.law, law.sampler
+    inner, nums = law.law, []
+    for name, x in zip(Sampler._fields, inner.sampler):
+        a = np.asarray(x).reshape(-1)
+        if not np.all(a == a[0]):
+            raise ValueError(f"the sampler's {name} cannot vary per trajectory (a sweep of sampler.{name}): run one "
+                             f"sweep per value")
+        nums.append(a[0].item())
+    period, delay, noise, seed = nums            # lanes hold numbers as floats: whole ones back to integers
+    return PerTrajectory(inner.law), Sampler(float(period), int(round(delay)), float(noise), int(round(seed)))
+
+
 def sampled_settings(cfg) -> dict:
     """The settings of a sampled run: the configuration's, with the adaptive numbers replaced by the sampler's."""
-    law = cfg.controller
+    _, smp = split_sampled(cfg.controller)
     s = cfg.settings()
     for k in ("rtol", "atol", "max_step", "check_passivity"):
         s.pop(k, None)
-    substeps = substeps_for(law.sampler.period, cfg.horizon.dt)
-    s.update(method="sampled", sampler=dict(law.sampler._asdict()), substeps=substeps,
-             max_steps=round(cfg.horizon.t_final / law.sampler.period) * substeps)    # the RK4 steps it takes
+    substeps = substeps_for(smp.period, cfg.horizon.dt)
+    s.update(method="sampled", sampler=dict(smp._asdict()), substeps=substeps,
+             max_steps=round(cfg.horizon.t_final / smp.period) * substeps)    # the RK4 steps it takes
     return s
 
 
-def _run(cfg, ics5, *, save: bool):
-    law = cfg.controller
+def _run(cfg, ics5, *, save: bool, args=None):
+    plant, law = (cfg.plant, cfg.controller) if args is None else (args.plant, args.controller)
+    held, smp = split_sampled(law)
     with jax.enable_x64(cfg.x64):
-        r = solve_sampled(law.law, cfg.plant, ics5, t_final=cfg.horizon.t_final, sampler=law.sampler,
-                          substeps=substeps_for(law.sampler.period, cfg.horizon.dt), eps=cfg.eps,
+        r = solve_sampled(held, plant, ics5, t_final=cfg.horizon.t_final, sampler=smp,
+                          substeps=substeps_for(smp.period, cfg.horizon.dt), eps=cfg.eps,
                           dtype=jnp.float64 if cfg.x64 else jnp.float32, save=save)
         return jax.tree_util.tree_map(lambda a: None if a is None else np.asarray(a), r)
 
 
-def sampled_summaries(cfg, ics5) -> dict:
-    """The per-start fields of an `jaxsleigh.EnsembleResult` (``SUMMARY_FIELDS``) for ``ics5`` (N, 5)."""
-    r = _run(cfg, ics5, save=False)
+def sampled_summaries(cfg, ics5, args=None) -> dict:
+    """The per-start fields of an `jaxsleigh.EnsembleResult` (``SUMMARY_FIELDS``) for ``ics5`` (N, 5); ``args``: the
+    rows' `jaxsleigh.ClosedLoop` when the plant or the law vary per trajectory (a sweep)."""
+    r = _run(cfg, ics5, save=False, args=args)
     ok = r.status == Status.OK
     n = ics5.shape[0]
     nan = np.full(n, np.nan)
-    K = round(cfg.horizon.t_final / cfg.controller.sampler.period)
-    steps = K * substeps_for(cfg.controller.sampler.period, cfg.horizon.dt)
+    period = split_sampled(cfg.controller)[1].period
+    steps = round(cfg.horizon.t_final / period) * substeps_for(period, cfg.horizon.dt)
     f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
     return {"q_final": f64(r.q_final), "p_final": f64(r.p_final), "T_eps": f64(r.T_eps),
             "min_abs_theta": f64(r.min_abs_theta), "max_excursion": f64(r.max_excursion), "Hd0": nan, "Hd_final": nan,
@@ -74,7 +95,7 @@ def sampled_solution(cfg, ics, progress=None) -> dict:
         r = _run(cfg, ics5, save=True)
         bar.update(1.0)
     u = np.concatenate([r.u, r.u[:, -1:]], axis=1)
-    steps = (len(r.t) - 1) * substeps_for(cfg.controller.sampler.period, cfg.horizon.dt)
+    steps = (len(r.t) - 1) * substeps_for(split_sampled(cfg.controller)[1].period, cfg.horizon.dt)
     ok = r.status == Status.OK
     settings = {**sampled_settings(cfg), "save_every": 1}      # every sample instant
     settings.pop("eps")
