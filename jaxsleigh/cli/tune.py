@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (EXIT_INTERRUPTED, EXIT_NONE_OK, PROG, add_model_options, add_progress_option, check_outputs,
-                     model_from_args, number, whole)
+from .common import (EXIT_INTERRUPTED, EXIT_NONE_OK, PROG, add_model_options, add_progress_option, add_sampler_options,
+                     check_outputs, model_from_args, number, whole)
 
 __all__ = ["add_tune"]
 
@@ -140,6 +140,7 @@ def add_tune(subparsers) -> None:
                    help="also run a random search with the same number of objective evaluations")
     f.add_argument("--plot", default=None, metavar="FILE.png", help="draw the front")
     add_model_options(p)
+    add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
     p.add_argument("--history", default=None, metavar="FILE.npz",
                    help="also write the history (loss, gains, gradient norm per iteration)")
     p.add_argument("--validate", type=whole("--validate", "256", minimum=0), default=256, metavar="N",
@@ -196,11 +197,13 @@ def _cmd_tune(args) -> int:
     from ..model.params import gains_to_dict, save_gains
 
     search = args.search
-    if getattr(args, "controller", "paper") != "paper" or getattr(args, "saturation", None) is not None:
+    if (getattr(args, "controller", "paper") != "paper" or getattr(args, "saturation", None) is not None
+            or getattr(args, "sample_period", None) is not None):
         for flag, on in (("--search", search), ("--pareto", args.pareto is not None), ("--robust", args.robust),
                          ("--resume", args.resume)):
             if on:
-                raise ValueError(f"{flag} tunes the paper's gains; with --controller / --saturation drop {flag}")
+                raise ValueError(f"{flag} tunes the paper's gains; with --controller / --saturation / --sample-period "
+                                 f"drop {flag}")
     if args.steps is None:
         args.steps = 100 if search else 150
     if args.batch is None:

@@ -94,7 +94,7 @@ def sample_count(t_final, period) -> int:
     if not (math.isfinite(t_final) and t_final > 0):
         raise ValueError(f"t_final must be > 0 and finite, got {t_final!r}")
     K = int(round(t_final / period))
-    if K < 1 or abs(K * period - t_final) > 1e-9 * max(1.0, t_final):
+    if K < 1 or abs(K * period - t_final) > 1e-6 * max(1.0, t_final):     # float32's rounding of a period allowed
         raise ValueError(f"t_final = {t_final} must be a whole number of sampling periods "
                          f"(period = {period}): t_final / period = {t_final / period:.6g}")
     return K

@@ -30,21 +30,26 @@ def substeps_for(period: float, dt: float) -> int:
     return max(4, math.ceil(period / dt - 1e-9))
 
 
+def plain_sampler(smp) -> Sampler:
+    """The sampler's numbers as Python numbers (whole ones as integers): lanes and the tuner hold every leaf as a
+    float array."""
+    period, delay, noise, seed = (np.asarray(x).reshape(-1)[0].item() for x in smp)
+    return Sampler(float(period), int(round(delay)), float(noise), int(round(seed)))
+
+
 def split_sampled(law):
     """``(held law, Sampler)`` of a sampled law. A sweep's ``PerTrajectory(Sampled(law, sampler))`` gives
     ``PerTrajectory(law)`` and the sampler's numbers, which must be the same on every trajectory (the number of
     samples is part of the compiled loop): ``ValueError`` naming the one that varies."""
     if not isinstance(law, PerTrajectory):
-        return law.law, law.sampler
-    inner, nums = law.law, []
+        return law.law, plain_sampler(law.sampler)
+    inner = law.law
     for name, x in zip(Sampler._fields, inner.sampler):
         a = np.asarray(x).reshape(-1)
         if not np.all(a == a[0]):
             raise ValueError(f"the sampler's {name} cannot vary per trajectory (a sweep of sampler.{name}): run one "
                              f"sweep per value")
-        nums.append(a[0].item())
-    period, delay, noise, seed = nums            # lanes hold numbers as floats: whole ones back to integers
-    return PerTrajectory(inner.law), Sampler(float(period), int(round(delay)), float(noise), int(round(seed)))
+    return PerTrajectory(inner.law), plain_sampler(inner.sampler)
 
 
 def sampled_settings(cfg) -> dict:

@@ -23,7 +23,7 @@ from ..model.controller import as_controller, is_paper_law, law_leaf_names, posi
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import PlantParams, as_plant
 from ..status import Status
-from .objective import LossConfig, loss_from_lanes, soft_convergence
+from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
 
 __all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names"]
 
@@ -45,8 +45,10 @@ class LawTuneResult(NamedTuple):
 
 def gain_names(law) -> list:
     """The leaves of ``law`` worth tuning (`jaxsleigh.model.controller.law_leaf_names`): its gains, not the plant
-    model it carries (``model.m``, ...) nor an actuator's bound (``u_max``)."""
-    return [n for n in law_leaf_names(law) if not (n.startswith("model") or ".model" in n or "u_max" in n)]
+    model it carries (``model.m``, ...), an actuator's bound (``u_max``) nor a sampler's numbers (``sampler.*``)."""
+    hardware = ("model", "sampler")
+    return [n for n in law_leaf_names(law)
+            if not (n.split(".")[0] in hardware or any(f".{h}." in f".{n}" for h in hardware) or "u_max" in n)]
 
 
 def _split(law, tune):
@@ -59,9 +61,39 @@ def _split(law, tune):
     return leaves, tree, names, [names.index(n) for n in chosen]
 
 
+def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
+    r"""The tuner's lane summaries of a law behind a digital controller (`jaxsleigh.controllers.actuators.Sampled`),
+    from the sampled-data loop (`jaxsleigh.integrate.sampled.solve_sampled`, RK4 substeps of at most ``cfg.dt``):
+    the soft time \(S = \int_0^T \phi\,dt\) by the trapezoid rule on the sample instants, the control energy exact
+    for the held input. A lane that failed counts the whole horizon and energy 1 (values only; the candidate is
+    then invalid)."""
+    from ..integrate.sampled import solve_sampled
+    from ..model.charts import PhysicalChart
+    from ..studies.sampled import plain_sampler, substeps_for
+
+    smp = plain_sampler(law.sampler)
+    r = solve_sampled(law.law, plant, y0, t_final=float(cfg.t_final), sampler=smp, eps=float(cfg.eps),
+                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype)
+    ok = r.status == Status.OK
+    q = jnp.where(jnp.isfinite(r.q), r.q, 0.0)                              # (N, K+1, 3); no NaN in the gradient
+    y = jnp.moveaxis(jnp.concatenate([q, jnp.zeros(q.shape[:2] + (2,), q.dtype)], axis=-1), -1, 0)
+    phi = soft_indicator(y, jnp.asarray(cfg.eps, q.dtype), jnp.asarray(cfg.temperature, q.dtype), PhysicalChart())
+    soft = smp.period * (jnp.sum(phi, axis=-1) - 0.5 * (phi[..., 0] + phi[..., -1]))
+    T = jnp.asarray(cfg.t_final, q.dtype)
+    zero = jnp.zeros_like(soft)
+    return LaneSummary(soft_time=jnp.where(ok, soft, T), barrier=zero, ok=ok, stopped=jnp.zeros_like(ok), t=zero + T,
+                       status=r.status, n_attempts=jnp.zeros_like(r.status), min_abs_theta=r.min_abs_theta,
+                       max_excursion=r.max_excursion, u_energy=jnp.where(ok, r.u_energy, 1.0),
+                       u_norm_peak=r.u_norm_peak)
+
+
 def law_loss(law, y0, plant: PlantParams, cfg: LossConfig, *, n_attempts: int, adaptive: bool = True):
-    """``(loss, aux)`` of ``law`` on the chart starts ``y0`` (N, 5): the tuner's objective without guard starts."""
-    lanes = soft_convergence(law, y0, plant, cfg, n_attempts=n_attempts, adaptive=adaptive)
+    """``(loss, aux)`` of ``law`` on the chart starts ``y0`` (N, 5): the tuner's objective without guard starts (for a
+    sampled law, on the sampled-data loop: `sampled_lanes`)."""
+    if is_sampled(law):
+        lanes = sampled_lanes(law, y0, plant, cfg)
+    else:
+        lanes = soft_convergence(law, y0, plant, cfg, n_attempts=n_attempts, adaptive=adaptive)
     return loss_from_lanes(lanes, None, cfg)
 
 
@@ -79,9 +111,6 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
       steps, lr: Adam iterations and learning rate; x64: float64.
       n_attempts: attempted steps per start (default 4x the base steps of ``loss.t_final``).
     """
-    if is_sampled(law):
-        raise ValueError("tuning a sampled law (controller=sampled(...)) is not available yet: tune the law itself, "
-                         "then measure it sampled with run_ensemble or compare")
     if is_paper_law(law):
         raise ValueError("the paper's law has its own tuner with admissible gains: jaxsleigh.tuning.tune")
     law = as_controller(law)
@@ -111,7 +140,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
             return jnp.exp(p) if lg else p
 
         def rebuild(ps):
-            full = [jnp.asarray(x, dtype) for x in leaves]
+            full = [np.asarray(x, dtype) for x in leaves]          # constants (concrete under jit)
             for i, p, lg in zip(idx, ps, logs):
                 full[i] = value_of(p, lg)
             return jax.tree_util.tree_unflatten(tree, full)

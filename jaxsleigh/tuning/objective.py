@@ -99,7 +99,7 @@ class LaneSummary(NamedTuple):
     u_norm_peak: Any = None
 
 
-def _soft_indicator(y, eps, tau, chart=WChart()):
+def soft_indicator(y, eps, tau, chart=WChart()):
     """\\(\\phi(\\log(|q|/\\epsilon)/\\tau)\\), zero inside the ball, from a state in ``chart``."""
     q2 = chart.q_norm2(y)
     u = jnp.maximum(0.5 * (jnp.log(q2 + 1e-30) - 2.0 * jnp.log(eps)) / tau, 0.0)
@@ -179,7 +179,7 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
         s, soft, bar, (energy, e0, peak2) = carry
         s_new = attempt(s, target_of(s), args, ctl, adaptive=adaptive, observers=_OBSERVERS)
         h = (s_new.t - s.t) + (s_new.t_lo - s.t_lo)       # 0 unless accepted; no gradient (times are fixed)
-        phi0, phi1 = _soft_indicator(s.y, eps, tau, chart), _soft_indicator(s_new.y, eps, tau, chart)
+        phi0, phi1 = soft_indicator(s.y, eps, tau, chart), soft_indicator(s_new.y, eps, tau, chart)
         soft = soft + h * 0.5 * (phi0 + phi1)
         bar = bar + h * 0.5 * (phi0 * _near_singular(s.y, theta_b, chart) + phi1 * _near_singular(s_new.y, theta_b,
                                                                                                     chart))
