@@ -1,7 +1,7 @@
 r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the same closed loop (issue 12).
 
     python experiments/bench_c_limit.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--seed 0]
-                                        [--repeats 7] [--devices 1] [--whole-batch] [--vector-width 512]
+                                        [--repeats 7] [--cores N] [--c-threads N] [--whole-batch] [--vector-width 512]
                                         [--c-variants strict,shared_recip,rsqrt_nr]
                                         [--out out/bench_c_limit.json]
 
@@ -13,10 +13,10 @@ compile and warm-up excluded) on the workload of :func:`jaxsleigh.studies.bench.
 trajectory-steps/s of both per CPU second (``time.process_time``: every thread of the process) and
 per wall second, the ratio JAX / C, and the agreement of the final states (w chart).
 
-The C program runs on one thread (per core). The JAX call timed is
+The C program runs on as many OpenMP threads as the JAX call uses cores (``--c-threads`` to choose). The JAX call timed is
 ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, t_final, dt, progress=False)``.
-``--devices 2`` sets ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` before JAX is imported,
-so the plain path splits the batch over two host devices (two cores); the JSON records the flag.
+By default the JAX call uses every core (`jaxsleigh.cores`); ``--cores 1`` sets ``JAXSLEIGH_CORES=1``
+before jaxsleigh is imported (the one-core run); the JSON records the cores and threads.
 """
 from __future__ import annotations
 
@@ -35,8 +35,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=7, help="interleaved C/JAX repetitions (default 7)")
-    ap.add_argument("--devices", type=int, default=1,
-                    help="host devices for JAX (>1 sets XLA_FLAGS=--xla_force_host_platform_device_count)")
+    ap.add_argument("--c-threads", type=int, default=None,
+                    help="OpenMP threads of the C program (default: the cores the JAX call uses)")
+    ap.add_argument("--cores", type=int, default=None, help="cores for JAX (sets JAXSLEIGH_CORES; default: all)")
     ap.add_argument("--whole-batch", action="store_true",
                     help="also time the earlier kernel (one scan over the whole batch) in the same rotation")
     ap.add_argument("--vector-width", type=int, default=None,
@@ -47,12 +48,11 @@ def main(argv=None) -> int:
     ap.add_argument("--build-dir", default="out/c_reference", help="where the C library is built")
     ap.add_argument("--out", default="out/bench_c_limit.json")
     a = ap.parse_args(argv)
-    if a.devices > 1:
-        if "jax" in sys.modules:
-            ap.error("--devices needs to set XLA_FLAGS before JAX is imported")
-        flag = f"--xla_force_host_platform_device_count={a.devices}"
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
-
+    if a.cores is not None:
+        os.environ["JAXSLEIGH_CORES"] = str(a.cores)
+    # OpenMP's threads would otherwise spin after each C run and take the JAX run's cores
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    import jaxsleigh  # noqa: F401  (first: one JAX device per core)
     import jax
 
     from jaxsleigh.studies.bench import build_c_reference, c_limit, machine, workload
@@ -62,6 +62,7 @@ def main(argv=None) -> int:
     mach = machine()
     mach["os_cpu_count"] = os.cpu_count()
     mach["xla_flags"] = os.environ.get("XLA_FLAGS", "")
+    mach["jaxsleigh_cores"] = os.environ.get("JAXSLEIGH_CORES", "")
     if lib is None:
         print(f"C limit skipped: {reason}")
         res = {"available": False, "reason": reason}
@@ -69,15 +70,16 @@ def main(argv=None) -> int:
         log(f"C reference built: {lib}; JAX on {jax.devices()}; {a.repeats} interleaved repetitions ...")
         res = c_limit(workload(a.n_ics, a.seed), t_final=a.t_final, dt=a.dt, repeats=a.repeats, lib=lib, log=log,
                       whole_batch=a.whole_batch, c_variants=[v for v in a.c_variants.split(",") if v],
-                      variants={f"jax_vw{a.vector_width}": {"vector_width": a.vector_width}} if a.vector_width else None)
+                      variants={f"jax_vw{a.vector_width}": {"vector_width": a.vector_width}} if a.vector_width else None,
+                      c_threads=a.c_threads)
         c, j = res["c_traj_steps_per_cpu_s"], res["jax_traj_steps_per_cpu_s"]
         cw, jw = res["c_traj_steps_per_wall_s"], res["jax_traj_steps_per_wall_s"]
         rc, rw = res["ratio_cpu"], res["ratio_wall"]
         ag = res["agreement"]
         print(f"C reference: {res['c_divider_ops_per_evaluation']} divisions + square roots per evaluation")
         print(f"workload: {res['n_ics']} starts (seed {a.seed}), {res['steps']} steps of dt = {a.dt:g}, float32, "
-              f"final state only; JAX devices: {len(jax.devices())} (XLA_FLAGS='{mach['xla_flags']}'); "
-              f"C: one thread, {res['c_flags']}")
+              f"final state only; JAX cores: {res['jax_cores']}; "
+              f"C: {res['c_threads']} thread(s), {res['c_flags']}")
         print("trajectory-steps/s, median [min, max] over the interleaved repetitions:")
         print(f"  C    per CPU s {c['median']:.3e} [{c['min']:.3e}, {c['max']:.3e}]   "
               f"wall {cw['median']:.3e} [{cw['min']:.3e}, {cw['max']:.3e}]")

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from jaxsleigh.plots.base import device_text
 import pytest
 
 import jaxsleigh
@@ -286,7 +288,7 @@ def test_basin_map_shows_the_t_eps_map(xt_result):
     assert "singular set θ = 0" in legend
     # provenance: dtype, method and the device the run was on
     text = _stamp_text(fig)
-    assert text.startswith("float32  ·  adaptive RK4") and f"device {xt_result.run_info['devices'][0]}" in text
+    assert text.startswith("float32  ·  adaptive RK4") and f"device {device_text(None, xt_result.run_info)}" in text
 
 
 def test_basin_map_of_another_field(xt_result):

@@ -9,6 +9,8 @@ import subprocess
 import sys
 
 import numpy as np
+
+from jaxsleigh.plots.base import device_text
 import pytest
 
 import jaxsleigh
@@ -258,7 +260,7 @@ def test_provenance_stamp_names_dtype_method_and_device():
     real = jaxsleigh.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01, method="rk4")
     fig = plotting.plot_hamiltonian(real)
     (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
-    assert text.startswith("float32") and f"device {real.run_info['devices'][0]}" in text
+    assert text.startswith("float32") and f"device {device_text(None, real.run_info)}" in text
 
 
 def test_save_figure_writes_the_format_of_the_suffix(tmp_path):

@@ -259,6 +259,14 @@ def batch_mesh(devices=None):
     return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
 
+#: the smallest batch compaction gathers the active lanes into (a power of two), per dtype. A few stiff
+#: stragglers (starts near theta = 0) can take 100x the median's steps; in batches of 8 they cost a quarter
+#: of what they did in batches of 64, and on several cores each part has its own. In float64 a batch of
+#: 32 or more lanes steps every lane bitwise as the uncompacted batch (tests/test_engine.py), 16 does not;
+#: in float32 no size did (XLA compiles small batches with other rounding), so float32 takes the fastest.
+MIN_BATCH = {"float32": 8, "float64": 32}
+
+
 def _bucket(n: int) -> int:
     return 1 << max(0, (n - 1).bit_length())
 
@@ -280,7 +288,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
-    batch (a power of two, >= 64, so few shapes compile): the cost then follows the sum over
+    batch (a power of two, >= `MIN_BATCH`, so few shapes compile): the cost then follows the sum over
     trajectories of the steps each needs, not the batch's maximum.
 
     Returns the final `StepState` as batch-last NumPy arrays, with
@@ -296,6 +304,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     dtype = y0w.dtype
     n = y0w.shape[0]
+    min_batch = MIN_BATCH.get(np.dtype(dtype).name, 32)
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = step_controls(horizon, dtype, step, eps)
@@ -321,9 +330,9 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
             progress.update((n - idx.size + frac.sum()) / n)
         if not act.any():
             break
-        if compact and idx.size > 64 and act.sum() <= idx.size // 4:
+        if compact and idx.size > min_batch and act.sum() <= idx.size // 4:
             keep = np.flatnonzero(act)
-            size = _bucket(max(keep.size, 64))
+            size = _bucket(max(keep.size, min_batch))
             if mesh is not None:
                 size = -(-size // mesh.size) * mesh.size
             host = jax.tree_util.tree_map(np.asarray, state)

@@ -83,13 +83,16 @@ def provenance(settings: Mapping, *, fields: Sequence[str] = ("dt",)) -> str:
 
 def device_text(settings: Optional[Mapping], run_info: Optional[Mapping] = None) -> str:
     """The device(s) the data was computed on, from ``settings`` or ``run_info`` (``'cpu:0'``,
-    ``'2 devices: cuda:0, cuda:1'``); ``'device not recorded'`` when neither names one."""
+    ``'cpu, 2 cores'`` for one CPU device per core, ``'2 devices: cuda:0, cuda:1'``); ``'device not
+    recorded'`` when neither names one."""
     for src in (settings or {}, run_info or {}):
         dev = src.get("devices", src.get("device"))
         if dev:
             if isinstance(dev, str):
                 return dev
             dev = [str(d) for d in dev]
+            if len(dev) > 1 and all(d.startswith("cpu") for d in dev):
+                return f"cpu, {len(dev)} cores"
             return dev[0] if len(dev) == 1 else f"{len(dev)} devices: {', '.join(dev)}"
     return "device not recorded"
 

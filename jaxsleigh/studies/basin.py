@@ -458,7 +458,7 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
               method: str = "adaptive", plant: Optional[PlantParams] = None, gains: Optional[Gains] = None,
               x64: bool = False, rtol: Optional[float] = None, atol: Optional[float] = None,
               max_steps: Optional[int] = None, check_passivity: bool = True,
-              chunk_size: Optional[int] = None, devices: Any = None, checkpoint_dir=None,
+              chunk_size: Optional[int] = None, devices: Any = None, cores: Optional[int] = None, checkpoint_dir=None,
               resume: bool = False, progress: Any = None, shard: Optional[tuple] = None,
               controller: Any = None, max_step=None, policy=(0.9, 0.1, 5.0)) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence.
@@ -471,8 +471,9 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
         `jaxsleigh.studies.ensemble.run_ensemble` (defaults: the paper's plant and gains, 100 s,
         adaptive RK4, float32).
       chunk_size: starts integrated at once and written per checkpoint (default 16384 on CPU,
-        131072 on accelerators; times the number of devices).
-      devices: devices to shard each chunk over (default: all).
+        131072 per device on accelerators).
+      devices, cores: the devices each chunk is split over and at most how many (default: every core;
+        `jaxsleigh.cores`); neither changes a result.
       checkpoint_dir: write every finished chunk there; ``resume=True`` reuses the finished chunks
         of an interrupted run with the same settings and starts.
       progress: progress bar with ETA (``None``: on a terminal).
@@ -489,11 +490,14 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
     if chunk_size is None:
-        n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
+        # on CPU the cores split each chunk (jaxsleigh.cores), so the chunks, and the files, do not
+        # depend on how many there are; accelerators take a chunk per device
+        n_dev = 1 if jax.default_backend() == "cpu" else len(jax.local_devices()) if devices is None \
+            else len(list(devices))
         chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
     res = _run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
                         rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64, chunk_size=chunk_size,
-                        check_passivity=check_passivity, devices=devices, checkpoint_dir=checkpoint_dir,
+                        check_passivity=check_passivity, devices=devices, cores=cores, checkpoint_dir=checkpoint_dir,
                         resume=resume, progress=progress, shard=shard, controller=controller, policy=policy)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
@@ -509,7 +513,7 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
 
 #: The keywords of jaxsleigh 0.1 that `run_basin` maps onto its option objects.
 BASIN_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "chunk_size",
-                            "devices", "checkpoint_dir", "resume", "progress", "shard"})
+                            "devices", "cores", "checkpoint_dir", "resume", "progress", "shard"})
 
 
 def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Gains] = None, controller: Any = None,
@@ -524,8 +528,8 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
         plant and law, 100 s, float32).
       eps: radius of the ball \(|q| \le \epsilon\) of ``T_eps``.
       stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4).
-      run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 131072 on accelerators
-        (times the number of devices); ``checkpoint_dir`` and ``resume`` continue an interrupted run.
+      run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 131072 per device on
+        accelerators); ``checkpoint_dir`` and ``resume`` continue an interrupted run.
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
         ``shard``), mapped onto the objects.

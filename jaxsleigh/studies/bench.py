@@ -99,8 +99,9 @@ def _timed(fn, repeats: int = 1):
 #: the C reference (a repository checkout has it; an installed package may not)
 C_REFERENCE_SOURCE = Path(__file__).resolve().parent / "c_reference" / "rk4_w.c"
 #: compiler flags: -O3 -march=native, no -ffast-math; -fno-math-errno only lets gcc vectorise sqrtf
-#: (its argument eps + p^2 is never negative, so no result changes)
-C_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-shared", "-fPIC")
+#: (its argument eps + p^2 is never negative, so no result changes); -fopenmp: its blocks on several
+#: threads (``c_threads``), as the JAX path's parts on several cores; without OpenMP it builds serial
+C_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC")
 #: variants of the C reference (preprocessor macros of rk4_w.c), timed only on request: the literal
 #: 6-division form, one shared division, and XLA's rsqrt (estimate + Newton step); the default build
 #: (3 IEEE divisions + 2 IEEE square roots per evaluation) is the reference of ``c_limit_ratio``
@@ -129,6 +130,9 @@ def build_c_reference(out_dir=None, source=None, defines=()):
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     except (OSError, subprocess.SubprocessError) as e:
         return None, f"C build failed to run: {e}"
+    if r.returncode != 0 and "-fopenmp" in cmd:        # a compiler without OpenMP: the serial build
+        cmd.remove("-fopenmp")
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     if r.returncode != 0:
         return None, f"C build failed ({' '.join(cmd)}): {r.stderr.strip()[:400]}"
     return lib, None
@@ -178,10 +182,11 @@ def _summary(xs):
 
 def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, lib=None, build_dir=None,
             log=None, whole_batch: bool = False, variants: Optional[dict] = None,
-            c_variants: Optional[list] = None) -> dict:
+            c_variants: Optional[list] = None, c_threads: Optional[int] = None) -> dict:
     """The plain fixed-step path against the C reference in ONE interleaved timing run.
 
-    Each repetition times the C program (one thread, via ctypes) and
+    Each repetition times the C program (via ctypes, on ``c_threads`` OpenMP threads; default: as many
+    as the cores the JAX call uses, `jaxsleigh.cores.workers`) and
     ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, ...)`` back to back,
     alternating which goes first; compile and warm-up runs are not timed. Throughput is
     trajectory-steps per second of wall time and per second of CPU time (``time.process_time``:
@@ -228,15 +233,20 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     y0w = initial_w(ics5, status0, jnp.float32)
     kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
 
+    from ..cores import workers
+
+    cores = len(workers())
+    c_threads = cores if c_threads is None else int(c_threads)
+
     def run_c():
-        return c_reference_run(lib, y0w, args, dt, steps)
+        return c_reference_run(lib, y0w, args, dt, steps, c_threads)
 
     def run_jax():
         return run_ensemble(ics, **kw)
 
     contestants = [("c", run_c), ("jax", run_jax)]
     for cv, vl in c_libs.items():
-        contestants.append((f"c_{cv}", lambda vl=vl: c_reference_run(vl, y0w, args, dt, steps)))
+        contestants.append((f"c_{cv}", lambda vl=vl: c_reference_run(vl, y0w, args, dt, steps, c_threads)))
     variants = dict(variants or {})
     if whole_batch:
         variants["jax_whole_batch"] = {"block": None}
@@ -268,7 +278,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
                                                    for name, v in rec.items()))
     work = n * steps
     out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
-           "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": 1,
+           "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": c_threads, "jax_cores": cores,
            "c_divider_ops_per_evaluation": _divider_ops(lib),
            "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
                          f"t_final={t_final:g}, dt={dt:g}, progress=False)"}

@@ -20,6 +20,7 @@ import contextlib
 import functools
 import hashlib
 import json
+import threading
 import time
 from typing import Any, NamedTuple, Optional
 
@@ -34,7 +35,8 @@ from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import batch_mesh, check_ics, drive_final, drive_plain, drive_saving, initial_w
+from ..integrate.engine import check_ics, drive_final, drive_plain, drive_saving, initial_w
+from ..cores import PART_SIZE, run_parts, workers
 from ..model.params import PlantParams
 from ..controllers.actuators import is_sampled
 from ..progress import Progress
@@ -264,7 +266,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                  max_steps: Optional[int] = None, x64: bool = False, save_every: Optional[int] = None,
                  chunk_size: int = 65536, segment: int = 1000, check_passivity: bool = True,
                  summaries: bool = True,
-                 devices: Any = None, checkpoint_dir=None, resume: bool = False,
+                 devices: Any = None, cores: Optional[int] = None, checkpoint_dir=None, resume: bool = False,
                  progress: Any = None, shard: Optional[tuple] = None,
                  observers: Optional[tuple] = None, controller: Any = None,
                   policy=(0.9, 0.1, 5.0)) -> Optional[EnsembleResult]:
@@ -295,7 +297,9 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
       observers: the on-line summaries (`jaxsleigh.integrate.observers`; default
         `DEFAULT_OBSERVERS`). The standard fields of the result that no
         given observer provides are NaN; other observers' results are in ``result.observed``.
-      devices: devices to shard each chunk over (default: all of ``jax.devices()``).
+      devices, cores: the devices each chunk is split over, one thread per device (default: every core
+        on CPU, every local device elsewhere; `jaxsleigh.cores`), and at most how many of them. The
+        results are byte-identical whatever the count.
       checkpoint_dir: write every finished chunk there (atomically: a file is either complete or
         absent); with ``resume=True`` reuse the finished chunks of an earlier run with the same
         settings and initial conditions. Every chunk carries the fingerprint of the run that wrote
@@ -352,20 +356,25 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                              "per-trajectory parameters need summaries=True")
         lane_args = ClosedLoop(*broadcast_lanes(plant, cfg.law, ics5.shape[0]))
     step = cfg.step_controller(policy)
-    mesh = batch_mesh(devices)
-    n_dev = 1 if mesh is None else mesh.size
+    if cores is not None:
+        cores = whole("cores", cores, example=2)
+    devs = workers(devices, cores)
     with jax.enable_x64(cfg.x64):
         dtype = jnp.zeros(()).dtype
         settings = {
             **(sampled_settings(cfg) if sampled else cfg.settings()), "save_every": save_every,
             "chunk_size": chunk_size, "summaries": bool(summaries),
         }
-        devices_used = [str(d) for d in (mesh.devices.flat if mesh is not None else jax.devices()[:1])]
+        devices_used = [str(d) for d in devs]
         if observers is not None:
             settings["observers"] = [repr(o) for o in observers]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
-        chunk = -(-chunk // n_dev) * n_dev
+        # every chunk is cut into parts of PART_SIZE lanes (a smaller chunk is one part), the last padded
+        # (jaxsleigh.cores): the same parts whatever the number of cores, so every start meets the same
+        # compiled program, and the bytes never depend on how many cores ran it
+        lanes = min(PART_SIZE, -(-chunk // 8) * 8)
+        part_sizes = [lanes] * -(-chunk // lanes)
         store = None
         if checkpoint_dir is not None:
             store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
@@ -385,27 +394,47 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
             return sampled_summaries(cfg, ics5[lo:hi], take_lanes(lane_args, np.arange(lo, hi)))
 
         def engine_part(lo, hi):
-            """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape."""
-            pad = chunk - (hi - lo)
+            """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape and
+            cut into its parts, which run concurrently on the devices."""
+            pad = sum(part_sizes) - (hi - lo)
             st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
             ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
-            y0w = initial_w(ic, st, dtype, chart)
+            rows = np.concatenate([np.arange(lo, hi), np.full(pad, lo)])   # padding rows reuse the first's lanes
+            y0w = np.asarray(initial_w(ic, st, dtype, chart))     # once per chunk: op by op, it is not cheap
+            cuts = np.cumsum([0] + part_sizes)
+            bar_lock = threading.Lock()
+            done = np.zeros(len(part_sizes))
+
+            class _Sub:  # maps one part's progress onto the whole run
+                def __init__(self, i):
+                    self.i = i
+
+                def update(self, frac):
+                    done[self.i] = frac
+                    with bar_lock:
+                        bar.update((lo + float(done @ np.diff(cuts)) / cuts[-1] * (hi - lo)) / n)
+
+            def part(i):
+                a0, a1 = cuts[i], cuts[i + 1]
+                with jax.enable_x64(cfg.x64):       # the dtype switch is per thread
+                    return _engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], _Sub(i))
+
+            pieces = run_parts(part, range(len(part_sizes)), devs)
+            return {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
+
+        def _engine_rows(y0w, st, rows, sub):
+            """The engine's summaries (and trajectories) of one part, on the current default device."""
             a = args
-            if lane_args is not None:      # this chunk's lanes; padding rows reuse its first
+            if lane_args is not None:      # this part's lanes
                 from ..model.lanes import take_lanes
 
-                a = take_lanes(lane_args, np.concatenate([np.arange(lo, hi), np.full(pad, lo)]))
-
-            class _Sub:  # maps this chunk's progress onto the whole run
-                def update(self, frac, lo=lo, hi=hi):
-                    bar.update((lo + frac * (hi - lo)) / n)
-
-            kw = dict(eps=eps, progress=_Sub(), observers=observers)
+                a = take_lanes(lane_args, rows)
+            kw = dict(eps=eps, progress=sub, observers=observers)
             if not summaries:
-                part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment,
-                                                     progress=_Sub()), y0w, st, a, horizon)
+                part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
+                                        y0w, st, a, horizon)
             elif save_every is None:
-                final = drive_final(y0w, st, a, horizon, step, segment=segment, mesh=mesh, **kw)
+                final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw)
                 part = _chunk_summaries(final, y0w, st, a, observers)
             else:
                 final, ys = drive_saving(y0w, st, a, horizon, step, **kw)
@@ -455,7 +484,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
 
 #: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.
 ENSEMBLE_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "save_every",
-                               "summaries", "chunk_size", "segment", "devices", "checkpoint_dir", "resume",
+                               "summaries", "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume",
                                "progress", "shard"})
 
 

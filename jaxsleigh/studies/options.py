@@ -40,7 +40,9 @@ class RunOptions(NamedTuple):
     Attributes:
       chunk_size: trajectories integrated, and checkpointed, at once (``None``: the study's default).
       segment: attempted steps per compiled segment between the host's checks.
-      devices: devices to shard each chunk over (default: all).
+      devices: the devices each chunk is split over (default: every core on CPU, every local device
+        elsewhere; `jaxsleigh.cores`); cores: use at most this many of them (``None``: all; ``1``: one core).
+        Neither changes a result: the parts of a chunk are integrated exactly as the whole chunk.
       checkpoint_dir: write every finished chunk there; resume: reuse them (same settings and starts).
       progress: ``True`` / ``False`` / ``None`` (auto: on a terminal).
       shard: ``(index, count)``: compute only this process's share of the chunks (multi-process runs).
@@ -49,6 +51,7 @@ class RunOptions(NamedTuple):
     chunk_size: Optional[int] = None
     segment: int = 1000
     devices: Any = None
+    cores: Optional[int] = None
     checkpoint_dir: Any = None
     resume: bool = False
     progress: Any = None

@@ -416,7 +416,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
           t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive", x64: bool = False,
           rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
           check_passivity: bool = True, chunk_size: Optional[int] = None, devices: Any = None,
-          checkpoint_dir=None, resume: bool = False, progress: Any = None,
+          cores: Optional[int] = None, checkpoint_dir=None, resume: bool = False, progress: Any = None,
           labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None,
           controller: Any = None, max_step=None, policy=(0.9, 0.1, 5.0)) -> Optional[SweepResult]:
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
@@ -486,12 +486,15 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
 
     lp, lg = take_lanes(broadcast_lanes(lane_plant, lane_gains, P), rows)
     if chunk_size is None:
-        n_dev = len(jax.local_devices()) if devices is None else len(list(devices))
+        # on CPU the cores split each chunk (jaxsleigh.cores), so the chunks, and the files, do not
+        # depend on how many there are; accelerators take a chunk per device
+        n_dev = 1 if jax.default_backend() == "cpu" else len(jax.local_devices()) if devices is None \
+            else len(list(devices))
         chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
     law = {"gains": lg} if controller is None else {"controller": lg}
     res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps,
                         method=method, rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64,
-                        chunk_size=chunk_size, check_passivity=check_passivity, devices=devices,
+                        chunk_size=chunk_size, check_passivity=check_passivity, devices=devices, cores=cores,
                         checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, shard=shard, policy=policy)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
@@ -515,7 +518,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
 
 #: The keywords of jaxsleigh 0.1 that `sweep` maps onto its option objects.
 SWEEP_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "chunk_size",
-                            "devices", "checkpoint_dir", "resume", "progress", "shard", "labels"})
+                            "devices", "cores", "checkpoint_dir", "resume", "progress", "shard", "labels"})
 
 
 def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,

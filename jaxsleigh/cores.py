@@ -1,0 +1,154 @@
+"""Every core of the machine: one JAX CPU device per core, and batches split over them.
+
+XLA:CPU runs one program on one core (apart from the threads it splits a whole-batch loop over).
+jaxsleigh therefore asks JAX, when it is imported and before JAX has started, for one CPU device
+per core this process may use (``len(os.sched_getaffinity(0))``), and its studies cut every chunk
+of starts into parts that run concurrently, one thread per device, each part on its own device
+(`run_parts`). The parts are the same whatever the number of cores (`PART_SIZE` starts each), and
+a lane's arithmetic does not depend on the other lanes of its part: results are therefore
+**byte-identical whatever the number of cores**, a one-core run included.
+
+Settings, in order of precedence:
+
+* ``JAXSLEIGH_CORES=N`` (environment): use at most ``N`` cores; ``1`` is the one-core run.
+* a device count the program chose itself (``JAX_NUM_CPU_DEVICES``, ``jax_num_cpu_devices`` or
+  ``XLA_FLAGS=--xla_force_host_platform_device_count``) is left as it is;
+* ``cores=`` in `jaxsleigh.RunOptions` (``--cores`` on the command line) limits one run.
+
+When JAX was started before jaxsleigh was imported (a JAX operation ran first), its CPU device
+count can no longer change; jaxsleigh then says so once, with how to get every core.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import threading
+import warnings
+from typing import Callable, Optional, Sequence
+
+__all__ = ["available_cores", "configure", "workers", "run_parts", "PART_SIZE"]
+
+#: lanes per part: every chunk is cut into parts of this many starts (the last padded), whatever the
+#: number of cores. XLA:CPU compiles a batch's loops differently for different batch sizes (it splits
+#: large ones over its threads), and the rounding can follow; with one part size, every start meets the
+#: same compiled program on any number of cores (tests/test_cores.py).
+PART_SIZE = 1024
+
+_state = {"configured": None, "warned": False}
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):       # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _env_limit() -> Optional[int]:
+    raw = os.environ.get("JAXSLEIGH_CORES", "").strip()
+    if not raw:
+        return None
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        warnings.warn(f"JAXSLEIGH_CORES={raw!r} is not a whole number >= 1; it is ignored", stacklevel=3)
+        return None
+    return n
+
+
+def _user_chose() -> bool:
+    """Whether the program set JAX's CPU device count itself."""
+    if os.environ.get("JAX_NUM_CPU_DEVICES", "").strip():
+        return True
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return True
+    import jax
+
+    return jax.config.jax_num_cpu_devices != -1
+
+
+def configure() -> Optional[int]:
+    """Ask JAX for one CPU device per available core (at most ``JAXSLEIGH_CORES``), if JAX has not
+    started yet and the program did not choose a count itself. Called by ``import jaxsleigh``;
+    returns the count asked for (``None``: left as it was)."""
+    if _state["configured"] is not None:
+        return _state["configured"] or None
+    from jax._src import xla_bridge
+
+    n = min(available_cores(), _env_limit() or available_cores())
+    asked = 0
+    if not _user_chose() and not xla_bridge.backends_are_initialized():
+        import jax
+
+        jax.config.update("jax_num_cpu_devices", n)
+        asked = n
+    _state["configured"] = asked
+    return asked or None
+
+
+def workers(devices: Optional[Sequence] = None, cores: Optional[int] = None) -> list:
+    """The devices a run splits its batches over: ``devices`` if given, else every local device of
+    JAX's default backend (on CPU, one per core), limited to ``cores`` and ``JAXSLEIGH_CORES``.
+    On CPU with fewer devices than cores (JAX started before jaxsleigh was imported), warns once."""
+    import jax
+
+    if devices is not None:
+        devs = list(devices)
+        if not devs:
+            raise ValueError("devices is empty; give at least one device (or None for every core)")
+    else:
+        devs = list(jax.local_devices())
+        if jax.default_backend() == "cpu" and cores is None and _env_limit() is None:
+            have = available_cores()
+            if len(devs) < have and not _state["warned"] and not _user_chose():
+                _state["warned"] = True
+                warnings.warn(
+                    f"JAX runs on {len(devs)} of this machine's {have} cores: it was started before jaxsleigh "
+                    f"was imported. Import jaxsleigh before running any JAX operation, or set "
+                    f"JAX_NUM_CPU_DEVICES={have} in the environment, to use every core.", stacklevel=3)
+    limit = min(x for x in (cores, _env_limit(), len(devs)) if x is not None)
+    return devs[:max(1, limit)]
+
+
+def run_parts(fn: Callable, parts: Sequence, devices: Sequence) -> list:
+    """``[fn(part) for part in parts]``, the parts run concurrently, one thread per device, each
+    call under ``jax.default_device`` of the device that takes
+    it (the next free one). With one device it is a plain loop on that device. The
+    first exception is raised again (the other threads finish the part they hold and stop)."""
+    import jax
+
+    parts = list(parts)
+    if not parts:
+        return []
+    if len(devices) == 1 or len(parts) == 1:
+        with jax.default_device(devices[0]):
+            return [fn(p) for p in parts]
+    todo: queue.Queue = queue.Queue()
+    for i in range(len(parts)):
+        todo.put(i)
+    out: list = [None] * len(parts)
+    errors: list = []
+
+    def work(dev):
+        with jax.default_device(dev):
+            while not errors:
+                try:
+                    i = todo.get_nowait()
+                except queue.Empty:
+                    return
+                try:
+                    out[i] = fn(parts[i])
+                except BaseException as e:      # noqa: BLE001 - raised again in the caller's thread
+                    errors.append(e)
+
+    threads = [threading.Thread(target=work, args=(d,), daemon=True) for d in devices[:len(parts)]]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return out

@@ -1,0 +1,126 @@
+"""Every core (`jaxsleigh.cores`): one JAX CPU device per core from ``import jaxsleigh``, chunks cut into
+parts that run concurrently, and results byte-identical whatever the number of cores."""
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+from jaxsleigh import cores
+from jaxsleigh.plots.base import device_text
+
+
+def _python(code: str, **env) -> str:
+    full = dict(os.environ, JAX_PLATFORMS="cpu", JAXSLEIGH_NO_COMPILE_CACHE="1")
+    for k in ("JAX_NUM_CPU_DEVICES", "JAXSLEIGH_CORES", "XLA_FLAGS"):
+        full.pop(k, None)
+    full.update(env)
+    r = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, env=full,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return r.stdout.strip().splitlines()[-1]
+
+
+def test_import_asks_for_one_device_per_core():
+    out = json.loads(_python("""
+        import json, jaxsleigh, jax
+        from jaxsleigh.cores import available_cores
+        print(json.dumps([len(jax.devices()), available_cores()]))
+    """))
+    assert out[0] == out[1] >= 1
+    assert _python("import jaxsleigh, jax; print(len(jax.devices()))", JAXSLEIGH_CORES="1") == "1"
+    # a count the program chose itself is kept
+    assert _python("import jaxsleigh, jax; print(len(jax.devices()))", JAX_NUM_CPU_DEVICES="3") == "3"
+
+
+def test_results_are_byte_identical_on_one_two_and_three_cores():
+    """Three forced CPU devices, so the test holds on a machine of any size: the adaptive engine (starts
+    near theta = 0 included, so compaction and stragglers happen in some parts), float64 too, the plain
+    fixed-step path, decimated trajectories and per-trajectory gains give the same bytes on 1, 2 and 3."""
+    out = _python("""
+        import hashlib, json, numpy as np, jaxsleigh as js
+        rng = np.random.default_rng(4)
+        ics = np.column_stack([rng.uniform(-3, 3, (2600, 2)), rng.uniform(0.3, 3, 2600) * rng.choice([-1, 1], 2600)])
+        ics[:40, 2] = np.geomspace(1e-3, 0.1, 40)
+        def digest(r, *fields):
+            h = hashlib.sha256()
+            for f in fields:
+                h.update(np.ascontiguousarray(getattr(r, f)).tobytes())
+            return h.hexdigest()
+        runs = {}
+        for c in (1, 2, 3):
+            a = js.run_ensemble(ics, t_final=8.0, chunk_size=2600, cores=c, progress=False)
+            b = js.run_ensemble(ics[:300], t_final=4.0, x64=True, chunk_size=300, cores=c, progress=False)
+            p = js.run_ensemble(ics, t_final=8.0, method="rk4", summaries=False, check_passivity=False,
+                                chunk_size=2600, cores=c, progress=False)
+            s = js.run_ensemble(ics[:2100], t_final=3.0, save_every=50, chunk_size=2100, cores=c, progress=False)
+            g = js.sweep(ics[:1100], {"k": [0.5, 2.0]}, t_final=4.0, cores=c, progress=False)
+            runs[c] = [digest(a, "q_final", "p_final", "T_eps", "n_steps", "n_rejected", "u_energy", "status"),
+                       digest(b, "q_final", "T_eps", "n_steps"), digest(p, "q_final", "p_final", "status"),
+                       digest(s, "q", "p", "T_eps"), hashlib.sha256(np.ascontiguousarray(g.T_eps).tobytes()).hexdigest(),
+                       a.run_info["devices"], str(b.q_final.dtype)]
+        print(json.dumps(runs))
+    """, JAX_NUM_CPU_DEVICES="3")
+    runs = json.loads(out)
+    assert runs["1"][:5] == runs["2"][:5] == runs["3"][:5]
+    assert [len(runs[c][5]) for c in ("1", "2", "3")] == [1, 2, 3]
+    assert runs["1"][6] == "float64"
+
+
+def test_jax_started_first_is_said_once_with_the_way_out():
+    if cores.available_cores() < 2:
+        pytest.skip("one core: nothing to say")
+    out = _python("""
+        import warnings, jax, jax.numpy as jnp
+        jnp.zeros(1).block_until_ready()          # JAX starts before jaxsleigh is imported
+        import jaxsleigh as js
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            for _ in range(2):
+                js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, progress=False)
+        said = [str(x.message) for x in w if "cores" in str(x.message)]
+        print(len(said), said[0] if said else "")
+    """)
+    assert out.startswith("1 ") and "JAX_NUM_CPU_DEVICES=" in out and "Import jaxsleigh before" in out
+
+
+def test_bad_core_counts_are_refused_or_named():
+    with pytest.raises(ValueError, match="cores"):
+        js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, cores=0, progress=False)
+    with pytest.raises(ValueError, match="cores"):
+        js.run_basin(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, cores=1.5, progress=False)
+    with pytest.raises(ValueError, match="devices is empty"):
+        cores.workers([])
+    out = _python("""
+        import warnings
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            import jaxsleigh, jax
+        print(len(jax.devices()) >= 1, any("JAXSLEIGH_CORES" in str(x.message) for x in w))
+    """, JAXSLEIGH_CORES="many")
+    assert out == "True True"
+
+
+def test_run_parts_keeps_order_and_raises_the_first_error():
+    import jax
+
+    devs = jax.devices()[:1] * 3              # three threads on one device: order and errors, not speed
+    assert cores.run_parts(lambda i: i * i, range(7), devs) == [0, 1, 4, 9, 16, 25, 36]
+
+    def boom(i):
+        if i == 3:
+            raise RuntimeError("part 3 failed")
+        return i
+
+    with pytest.raises(RuntimeError, match="part 3 failed"):
+        cores.run_parts(boom, range(6), devs)
+
+
+def test_the_device_line_names_the_cores():
+    assert device_text(None, {"devices": ["cpu:0", "cpu:1"]}) == "cpu, 2 cores"
+    assert device_text(None, {"devices": ["cpu:0"]}) == "cpu:0"
+    assert device_text(None, {"devices": ["cuda:0", "cuda:1"]}) == "2 devices: cuda:0, cuda:1"
