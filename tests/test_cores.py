@@ -124,3 +124,18 @@ def test_the_device_line_names_the_cores():
     assert device_text(None, {"devices": ["cpu:0", "cpu:1"]}) == "cpu, 2 cores"
     assert device_text(None, {"devices": ["cpu:0"]}) == "cpu:0"
     assert device_text(None, {"devices": ["cuda:0", "cuda:1"]}) == "2 devices: cuda:0, cuda:1"
+
+
+def test_the_command_line_limits_the_cores_and_the_bytes_stay(tmp_path):
+    args = ["--x", "-2:2:40", "--y", "-1.5:1.5:30", "--theta", "0.9", "--t-final", "5", "--no-progress"]
+    for c in ("1", "2"):
+        r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "--no-compile-cache", "--cores", c, "basin", *args,
+                            "--out", str(tmp_path / f"b{c}.npz")], capture_output=True, text=True, timeout=600,
+                           env=dict(os.environ, JAX_NUM_CPU_DEVICES="2"))
+        assert r.returncode == 0, r.stderr[-2000:]
+    info = {c: json.loads((tmp_path / f"b{c}.run.json").read_text()) for c in ("1", "2")}
+    assert [len(info[c]["devices"]) for c in ("1", "2")] == [1, 2]
+    assert (tmp_path / "b1.npz").read_bytes() == (tmp_path / "b2.npz").read_bytes()
+    r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "--cores", "none", "basin", *args, "--out",
+                        str(tmp_path / "x.npz")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 2 and "--cores" in r.stderr and "Traceback" not in r.stderr

@@ -19,6 +19,7 @@ as ``jaxsleigh: error: ...`` and returns 2. Exit codes: `EXIT_CODES`.
 """
 from __future__ import annotations
 
+import os
 import sys
 from typing import Optional, Sequence
 
@@ -52,10 +53,25 @@ def build_parser() -> Parser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("--no-compile-cache", action="store_true",
                         help="do not use the persistent compilation cache (every process compiles afresh)")
+    parser.add_argument("--cores", type=_cores, default=None, metavar="N",
+                        help="use at most N cores (default: every core; as JAXSLEIGH_CORES=N). The results do "
+                             "not depend on it")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     for add in SUBCOMMANDS:
         add(sub)
     return parser
+
+
+def _cores(text: str) -> int:
+    import argparse
+
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number of cores >= 1, e.g. --cores 2 (got {text!r})")
+    return n
 
 
 def _join_negative_values(argv: list[str]) -> list[str]:
@@ -83,6 +99,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if getattr(args, "func", None) is None:
             parser.print_help(sys.stderr)
             return EXIT_USAGE
+        if args.cores is not None:
+            os.environ["JAXSLEIGH_CORES"] = str(args.cores)     # read by every run (jaxsleigh.cores.workers)
         if not args.no_compile_cache:
             enable_compilation_cache()
         args._argv = argv
