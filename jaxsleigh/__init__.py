@@ -5,6 +5,8 @@ from . import cores
 cores.configure()            # one JAX CPU device per core, before anything starts JAX (jaxsleigh.cores)
 
 from .cache import enable_compilation_cache  # noqa: E402
+
+enable_compilation_cache()   # Python sessions share the command line's compiled programs (JAXSLEIGH_NO_COMPILE_CACHE=1: off)
 from .studies.basin import BasinResult, BasinStarts, grid_starts, load_basin, run_basin, sample_starts, save_basin
 from .model.closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w, dissipation_w,
                           state_from_w, state_to_w, vector_field, vector_field_w)

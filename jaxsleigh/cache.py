@@ -1,7 +1,7 @@
 """JAX's persistent compilation cache for jaxsleigh: compile once per machine, not once per process.
 
-The command line turns it on at start; a Python session turns it on with
-`enable_compilation_cache` (``jaxsleigh.enable_compilation_cache()``). Both use the same folder
+``import jaxsleigh`` turns it on (the command line and Python sessions alike; ``JAXSLEIGH_NO_COMPILE_CACHE=1``
+keeps it off); `enable_compilation_cache` moves it to another folder. Both use the same folder
 (`compilation_cache_dir`), so a program compiled by one is reused by the other.
 """
 from __future__ import annotations

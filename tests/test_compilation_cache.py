@@ -55,3 +55,19 @@ def test_bad_path_is_a_value_error_naming_path(tmp_path, bad):
         bad.write_text("x")
     with pytest.raises(ValueError, match=r"^path .*(folder|file)"):
         enable_compilation_cache(bad)
+
+
+@pytest.mark.parametrize("off", [False, True])
+def test_import_alone_turns_the_cache_on_unless_told_not_to(tmp_path, off):
+    """``import jaxsleigh`` is enough for a Python session to reuse (and fill) the command line's cache."""
+    cache = tmp_path / "cache"
+    code = "import jaxsleigh as js; js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXSLEIGH_CACHE_DIR": str(cache),
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    env.pop("JAXSLEIGH_NO_COMPILE_CACHE", None)
+    if off:
+        env["JAXSLEIGH_NO_COMPILE_CACHE"] = "1"
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    files = [p for p in cache.rglob("*") if p.is_file()] if cache.exists() else []
+    assert (len(files) == 0) if off else (len(files) >= 3)

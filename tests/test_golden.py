@@ -1,13 +1,12 @@
 """Golden outputs: the numbers of a handful of runs (simulate in float32 and float64, an ensemble with
 the default observers, the plain fixed-step path, a basin, a sweep, three iterations of the gradient
-tuner) are those recorded before the upper floors were rebuilt (``tests/golden/make_golden.py``, recorded at commit 2fa58a2).
+tuner), recorded by ``tests/golden/make_golden.py`` at 2fa58a2 and re-recorded when the adaptive step
+became the exponential RK4 with a PI controller in the w chart (issue 20).
 
 Statuses must be equal, step counts equal to a step or two (at most 1% of them), floating-point results
 equal to float32 rounding as a stiff run grows it (1e-4 of each field's scale). They are not bitwise:
-another CPU rounds XLA's transcendental functions differently (the plain path's final states moved by 1e-5 on
-an AVX-512 EPYC), and since issue 20 every start is integrated in parts of at most 1024 lanes and stragglers are
-gathered into batches as small as 8 (`jaxsleigh.cores`), which XLA compiles with other rounding than the whole
-batches of 2fa58a2. A change of the method, the policy or the observers moves them by far more.
+another CPU rounds XLA's transcendental functions differently (the plain path's final states moved by 1e-5
+on an AVX-512 EPYC). A change of the method, the policy or the observers moves them by far more.
 """
 import sys
 from pathlib import Path

@@ -191,6 +191,10 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
     return arr, status
 
 
+#: the starts' chart change, compiled (op by op it was ~10 programs per process, each a cache load)
+_to_w_batch = jax.jit(jax.vmap(state_to_w))
+
+
 def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.Array:
     """Map validated physical starts to the w chart (or to ``chart``, `jaxsleigh.model.charts`), in float64
     then cast to ``dtype``. Rows whose ``status0`` is not OK get a harmless placeholder (they are never
@@ -199,11 +203,11 @@ def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.A
     if chart is not None and not chart.singular:
         return jnp.asarray(chart.to_chart(safe), dtype)
     with jax.enable_x64(True):
-        yw = np.asarray(jax.vmap(state_to_w)(jnp.asarray(safe, jnp.float64)))
+        yw = np.asarray(_to_w_batch(np.asarray(safe, np.float64)))
     if np.any(~np.isfinite(yw[status0 == 0])):
         raise ValueError("an initial condition overflows the w chart (|theta0| too small for this "
                          "precision); check the starts with check_ics(ics, dtype) first, or use |theta0| >= 1e-150")
-    return jnp.asarray(yw, dtype)
+    return jnp.asarray(np.asarray(yw, np.dtype(dtype)))     # cast on the host: no program for it
 
 
 @functools.partial(jax.jit, static_argnames=("observers",))
@@ -374,7 +378,8 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):
-        state, ys = _saving_batch(state, jnp.asarray(save_times[i:i + block], dtype), args, ctl, adaptive, monitor,
+        state, ys = _saving_batch(state, jnp.asarray(np.asarray(save_times[i:i + block], np.dtype(dtype))), args, ctl,
+                                  adaptive, monitor,
                                   observers)
         out.append(np.asarray(ys))
         if progress is not None:

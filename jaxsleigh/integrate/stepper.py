@@ -42,6 +42,7 @@ import jax.numpy as jnp
 from ..model.charts import chart_for, q_norm2_w  # noqa: F401  (q_norm2_w: re-exported)
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, StepInfo
+from .etd import etd_stages
 from .rk4 import rk4_stages, rk4_step
 from ..status import Status
 from .stepsize import error_ratio, next_step
@@ -92,6 +93,7 @@ class StepState(NamedTuple):
     obs: tuple            # one tuple of arrays per observer (jaxsleigh.integrate.observers)
     quad: jax.Array       # (m,) quadrature rows of the observers, integrated with the RK4 weights
     g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
+    err_prev: jax.Array   # error ratio of the last accepted step (the PI controller's memory)
 
 
 def _integrands(observers, y, u, dtype):
@@ -125,8 +127,15 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
         n_accept=jnp.zeros((), jnp.int32), n_reject=jnp.zeros((), jnp.int32),
         Hd=chart.energy(y0w, args),
         obs=tuple(o.init(t0, y0w, u0, ctl, chart) for o in observers),
-        quad=jnp.zeros_like(g1), g1=g1,
+        quad=jnp.zeros_like(g1), g1=g1, err_prev=jnp.ones((), dtype),
     )
+
+
+def _stage_quadrature(observers, h, g1, stages, dtype):
+    """The observers' integrands over a step's stages ``((y2, u2), (y3, u3), (y4, u4))`` with RK4's
+    weights."""
+    g2, g3, g4 = (_integrands(observers, yi, ui, dtype) for yi, ui in stages)
+    return (h / 6.0) * (g1 + 2.0 * g2 + 2.0 * g3 + g4)
 
 
 def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
@@ -139,9 +148,8 @@ def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
     k3, u3 = f(t + 0.5 * h, y3, args)
     y4 = y + h * k3
     k4, u4 = f(t + h, y4, args)
-    g2, g3, g4 = (_integrands(observers, yi, ui, y.dtype) for yi, ui in ((y2, u2), (y3, u3), (y4, u4)))
-    w = h / 6.0
-    return w * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4, w * (g1 + 2.0 * g2 + 2.0 * g3 + g4)
+    dq = _stage_quadrature(observers, h, g1, ((y2, u2), (y3, u3), (y4, u4)), y.dtype)
+    return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4, dq
 
 
 def _all_finite(*xs):
@@ -189,7 +197,13 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     # needs no fifth evaluation for an error estimate. Those observers need f(y_new) anyway.
     fsal = adaptive or _needs_fsal(observers)
     k1 = s.k1 if fsal else f(s.t, s.y, args)
-    if s.quad.shape[0]:
+    # adaptive steps in the w chart: the exponential RK4 for the stiff damping (jaxsleigh.integrate.etd)
+    lam = chart.stiff_rate(s.y, args) if adaptive else None
+    e5 = None
+    if lam is not None:
+        dy, k4, e5, stages = etd_stages(chart.field_and_control, s.t, s.y, h, args, k1, lam)
+        dq = _stage_quadrature(observers, h, s.g1, stages, dtype) if s.quad.shape[0] else s.quad
+    elif s.quad.shape[0]:
         dy, k4, dq = _stages_with_quadrature(s.t, s.y, h, args, k1, s.g1, observers)
     else:
         dy, k4 = rk4_stages(f, s.t, s.y, h, args, k1)
@@ -211,11 +225,11 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     status = s.status
     if adaptive:
         # the error measure and the step-size policy: jaxsleigh.integrate.stepsize
-        err = error_ratio(h, s.y, y_new, k4, k5, ctl)
+        err = error_ratio(h, s.y, y_new, k4, k5, ctl, p2_error=None if e5 is None else e5(y_new, k5))
         good = finite & ~crossed & ~rose
         err = jnp.where(good, err, jnp.inf)
         ok = good & (err <= 1.0)
-        h_next = next_step(h, err, ctl)
+        h_next = next_step(h, err, ctl, err_prev=s.err_prev)
         h_next = jnp.where(ok & hit, jnp.maximum(h_next, s.h), h_next)
         h_next = jnp.minimum(h_next, ctl.max_step)
         # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
@@ -253,6 +267,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         Hd=jnp.where(acc, Hd_new, s.Hd),
         obs=tuple(o.update(st, info, ctl) for o, st in zip(observers, s.obs)),
         quad=quad, g1=g1,
+        err_prev=jnp.where(acc, jnp.maximum(err, 1e-4), s.err_prev).astype(dtype) if adaptive else s.err_prev,
     )
 
 

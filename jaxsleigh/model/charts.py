@@ -62,6 +62,17 @@ class WChart:
     def crossed(self, y, y_new):
         return jnp.sign(y_new[0]) != jnp.sign(y[0])
 
+    def stiff_rate(self, y, args):
+        """The rate \\(\\lambda = -(\\hat D_{22} + k / w_1^2) / (J + m l^2) \\le 0\\) of the linear term
+        \\(\\lambda p_2\\) of the \\(p_2\\) equation that the injected damping puts there (stiff near
+        \\(\\theta = 0\\); `jaxsleigh.integrate.etd`), or ``None`` for a law without the paper's ``k`` and
+        ``D_hat``."""
+        g, pl = args.controller, args.plant
+        if not (hasattr(g, "k") and hasattr(g, "D_hat")):
+            return None
+        lam = -(g.D_hat[1, 1] + g.k / (y[0] * y[0])) / (pl.J + pl.m * pl.l * pl.l)
+        return jnp.minimum(lam, 0.0).astype(y.dtype)
+
     def to_chart(self, y):
         return state_to_w(y)
 
@@ -95,6 +106,9 @@ class PhysicalChart:
 
     def crossed(self, y, y_new):
         return jnp.zeros(y.shape[1:], bool)
+
+    def stiff_rate(self, y, args):
+        return None                      # no injected k / theta^2 damping: classical RK4
 
     def to_chart(self, y):
         return y
