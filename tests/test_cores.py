@@ -139,3 +139,20 @@ def test_the_command_line_limits_the_cores_and_the_bytes_stay(tmp_path):
     r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "--cores", "none", "basin", *args, "--out",
                         str(tmp_path / "x.npz")], capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and "--cores" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bench_json_reports_cores_wall_ratio_and_steps():
+    r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", "bench", "--json", "--n-ics", "64", "--t-final", "2"],
+                       capture_output=True, text=True, timeout=600,
+                       env=dict(os.environ, JAX_PLATFORMS="cpu", OMP_WAIT_POLICY="PASSIVE"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    assert res["cores"] == res["n_devices"] == cores.available_cores()
+    assert res["accurate_mean_steps"] > 0 and res["wrong_or_nonfinite"] == 0
+    assert len(res["load_average"]) == 3
+    if res["c_limit_reason"] is None:          # a C compiler is here: the wall ratio against as many threads
+        assert res["c_threads"] == res["cores"] and 0 < res["c_limit_ratio_wall"] < 10
+        lo, hi = res["c_limit_ratio_wall_range"]
+        assert lo <= res["c_limit_ratio_wall"] <= hi
+    else:
+        assert res["c_limit_ratio_wall"] is None and res["c_limit_reason"]

@@ -57,7 +57,7 @@ class Horizon(NamedTuple):
         return np.concatenate([[0.0], self.save_times()])
 
 
-#: Most base steps (t_final / dt) of one run: the step budget (20x that, adaptive) must fit the
+#: Most base steps (t_final / dt) of one run: the step budget (30x that, adaptive) must fit the
 #: engine's int32 counters.
 MAX_BASE_STEPS = 50_000_000
 
@@ -516,6 +516,7 @@ def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
 
 
 def default_max_steps(horizon: Horizon, adaptive: bool) -> int:
-    """Per-trajectory budget of attempted steps: the base steps, plus 20x room when adaptive."""
+    """Per-trajectory budget of attempted steps: the base steps, plus 30x room when adaptive (the exponential
+    step needs ~20% more attempts than classical RK4 did out of the stiffest starts in float64, e.g. theta0 = 1e-2)."""
     base = horizon.n_steps + horizon.n_out + 8
-    return min(20 * base if adaptive else base, 2**31 - 2)
+    return min(30 * base if adaptive else base, 2**31 - 2)

@@ -15,10 +15,16 @@ the last term a rounding floor: \(k_4 - k_5\) cannot be resolved better than a f
 \(|k|\), so asking for more would reject forever in float32 where \(|w|\) is huge (starts near
 \(\theta = 0\)). The step is accepted when \(\mathrm{err} = \max_i |e_i| / \mathrm{scale}_i \le 1\).
 
-**Next step.** \(h_{\text{next}} = h \cdot \mathrm{clip}(\mathrm{safety}\ \mathrm{err}^{-1/4},\ \mathrm{factor\_min},\ \mathrm{factor\_max})\),
-never above ``max_step``; the error estimate is \(O(h^4)\), hence the exponent. The choice is not
-differentiated (``stop_gradient``): gradients flow through the accepted steps, not through the
-controller's decisions.
+**Next step.** After an accepted step, the PI controller of Gustafsson
+\(h_{\text{next}} = h \cdot \mathrm{clip}(\mathrm{safety}\ \mathrm{err}^{-\alpha}\ \mathrm{err}_{\text{prev}}^{\beta},\ \mathrm{factor\_min},\ \mathrm{factor\_max})\)
+with \(\alpha = 0.15\), \(\beta = 0.05\) and \(\mathrm{err}_{\text{prev}}\) the ratio of the last accepted
+step (it damps the step sequence that the stiff settled phase makes oscillate between accepted and
+rejected); after a rejected step, \(h \cdot \mathrm{clip}(\mathrm{safety}\ \mathrm{err}^{-1/4}, \ldots)\). Never above
+``max_step``; the error estimate is \(O(h^4)\), hence the exponents. The choice is not differentiated
+(``stop_gradient``): gradients flow through the accepted steps, not through the controller's decisions.
+
+In the w chart the step itself is the exponential RK4 of `jaxsleigh.integrate.etd` on \(p_2\) (classical
+RK4 on the rest), whose error estimate of \(p_2\) replaces the one above (``p2_error``).
 """
 from __future__ import annotations
 
@@ -48,7 +54,7 @@ class StepSizeController(NamedTuple):
       safety: factor on the optimal step (0.9).
       factor_min, factor_max: limits of the change of step per attempt (0.1, 5).
       max_step: largest step (``None``: `MAX_STEP_FACTOR` base steps).
-      max_steps: budget of attempted steps per trajectory (``None``: 20x the base steps + room).
+      max_steps: budget of attempted steps per trajectory (``None``: 30x the base steps + room).
       method: ``"adaptive"`` (this policy) or ``"rk4"`` (fixed steps of the base step ``dt``; the policy's
         numbers are then unused).
       check_passivity: reject (adaptive) or flag (``"rk4"``) steps that increase the paper's H_d.

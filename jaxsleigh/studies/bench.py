@@ -357,6 +357,9 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
     return {
         "n_ics": n_ics, "steps": steps, "t_final": t_final, "dt": dt,
         "dtype": r_acc.settings["dtype"], "device": machine()["devices"][0], "n_devices": jax.device_count(),
+        # the cores the runs used (jaxsleigh.cores) and the C reference's threads in the same comparison
+        "cores": len(r_acc.run_info["devices"]), "c_threads": lim.get("c_threads") if ok_lim else None,
+        "load_average": [round(x, 2) for x in os.getloadavg()],
         "traj_steps_per_s": n_ics * steps / wall_rk4,
         "traj_steps_per_s_with_summaries": n_ics * steps / wall_rk4s,
         "traj_steps_per_s_with_passivity_check": n_ics * steps / wall_rk4m,
@@ -375,6 +378,7 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
         "c_limit_ratio": lim["ratio_cpu"]["median"] if ok_lim else None,
         "c_limit_ratio_range": [lim["ratio_cpu"]["min"], lim["ratio_cpu"]["max"]] if ok_lim else None,
         "c_limit_ratio_wall": lim["ratio_wall"]["median"] if ok_lim else None,
+        "c_limit_ratio_wall_range": [lim["ratio_wall"]["min"], lim["ratio_wall"]["max"]] if ok_lim else None,
         "c_limit_traj_steps_per_cpu_s": lim["c_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
         "traj_steps_per_cpu_s": lim["jax_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
         "c_limit_reason": None if ok_lim else lim.get("reason"),
