@@ -36,6 +36,7 @@ BASIN = r"""
 import hashlib, json, sys, time
 import numpy as np, jax, jaxsleigh as js
 n = int(sys.argv[1])
+where = js.__file__
 js.run_basin(js.sample_starts(2048, seed=1), progress=False)            # compile, not timed
 starts = js.sample_starts(n, seed=0)
 t0, c0 = time.perf_counter(), time.process_time()
@@ -44,7 +45,7 @@ w, c = time.perf_counter() - t0, time.process_time() - c0
 print(json.dumps({"wall_s": w, "cpu_s": c, "starts_per_s": n / w, "devices": len(jax.devices()),
                   "settled": float(np.mean(r.converged)),
                   "mean_steps": float(np.mean(r.n_steps)),
-                  "T_eps_sha": hashlib.sha256(np.ascontiguousarray(r.T_eps).tobytes()).hexdigest()[:16]}))
+                  "T_eps_sha": hashlib.sha256(np.ascontiguousarray(r.T_eps).tobytes()).hexdigest()[:16], "module": where}))
 """
 
 SWEEP = r"""
@@ -72,8 +73,10 @@ def load() -> list:
 
 
 def run_py(code: str, args=(), env=None) -> dict:
-    r = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
-                       env={**os.environ, **(env or {})}, timeout=3600)
+    # from an empty folder: `python -c` puts the working folder first on sys.path, which would shadow PYTHONPATH
+    with tempfile.TemporaryDirectory() as cwd:
+        r = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
+                           env={**os.environ, **(env or {})}, timeout=3600, cwd=cwd)
     if r.returncode != 0:
         raise RuntimeError(r.stderr[-3000:])
     return json.loads(r.stdout.strip().splitlines()[-1])

@@ -32,8 +32,9 @@ METHODS = ("adaptive", "rk4")
 
 
 def working_dtype():
-    """float64 where x64 is enabled (``jax.enable_x64``), else float32."""
-    return jnp.zeros(()).dtype
+    """float64 where x64 is enabled (``jax.enable_x64``), else float32 (no computation: an array made
+    to ask would be a program of its own)."""
+    return np.dtype(jax.dtypes.canonicalize_dtype(np.float64))
 
 
 class Horizon(NamedTuple):
@@ -207,12 +208,16 @@ def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.A
     if np.any(~np.isfinite(yw[status0 == 0])):
         raise ValueError("an initial condition overflows the w chart (|theta0| too small for this "
                          "precision); check the starts with check_ics(ics, dtype) first, or use |theta0| >= 1e-150")
-    return jnp.asarray(np.asarray(yw, np.dtype(dtype)))     # cast on the host: no program for it
+    return jax.device_put(np.asarray(yw, np.dtype(dtype)))   # cast on the host, copied: no program for it
 
 
 @functools.partial(jax.jit, static_argnames=("observers",))
 def _init_batch(y0w, status0, args, ctl, observers=DEFAULT_OBSERVERS):
     return init_batch(y0w, status0, args, ctl, observers=observers)
+
+
+#: which lanes still step, compiled (the host asks once per segment; op by op it was five programs)
+_active = jax.jit(is_active)
 
 
 @functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
@@ -231,10 +236,12 @@ def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_st
     """The stepper's traced numbers for a run (`jaxsleigh.integrate.stepper.Controls`; the policy's
     ``safety``, ``factor_min``, ``factor_max`` as in `jaxsleigh.integrate.stepsize.StepSizeController`)."""
     max_step = horizon.dt if max_step is None else max_step
-    return Controls(*(jnp.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
-                    max_steps=jnp.asarray(max_steps, jnp.int32),
-                    **{k: jnp.asarray(v, dtype) for k, v in (("safety", safety), ("factor_min", factor_min),
-                                                             ("factor_max", factor_max))})
+    # NumPy scalars: the compiled step takes them as arguments; made on the device, each cast was a program
+    dtype = np.dtype(dtype)
+    return Controls(*(np.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
+                    max_steps=np.asarray(max_steps, np.int32),
+                    **{k: np.asarray(v, dtype) for k, v in (("safety", safety), ("factor_min", factor_min),
+                                                            ("factor_max", factor_max))})
 
 
 def step_controls(horizon: Horizon, dtype, step: StepSizeController, eps) -> Controls:
@@ -313,14 +320,14 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = step_controls(horizon, dtype, step, eps)
     adaptive, monitor, max_steps = step.method == "adaptive", step.check_passivity, step.max_steps
-    target = jnp.asarray(horizon.t_final, dtype)
+    target = np.asarray(horizon.t_final, np.dtype(dtype))
     lanes = has_lanes(args.plant, args.gains)
     if lanes:                                # per-lane parameters: one lane per trajectory of the batch
         lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
-        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+        state = init_batch_lanes(y0w, np.asarray(status0, np.int32), args, ctl, observers)
     else:
-        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+        state = _init_batch(y0w, np.asarray(status0, np.int32), args, ctl, observers)
     if mesh is not None:
         state = shard_batch(state, mesh)
         if lanes:
@@ -328,7 +335,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     idx = np.arange(n)                       # rows of the full batch held by the current batch
     full = None                              # the full batch, as lanes are compacted away
     for _ in range(-(-max_steps // segment) + 1):
-        act = np.asarray(is_active(state, target, ctl))
+        act = np.asarray(_active(state, target, ctl))
         if progress is not None:
             frac = np.where(act, np.asarray(state.t, np.float64) / horizon.t_final, 1.0)
             progress.update((n - idx.size + frac.sum()) / n)
@@ -372,13 +379,13 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
     if has_lanes(args.plant, args.gains):
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
                                       ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))
-        state = init_batch_lanes(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+        state = init_batch_lanes(y0w, np.asarray(status0, np.int32), args, ctl, observers)
     else:
-        state = _init_batch(y0w, jnp.asarray(status0, jnp.int32), args, ctl, observers)
+        state = _init_batch(y0w, np.asarray(status0, np.int32), args, ctl, observers)
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):
-        state, ys = _saving_batch(state, jnp.asarray(np.asarray(save_times[i:i + block], np.dtype(dtype))), args, ctl,
+        state, ys = _saving_batch(state, np.asarray(save_times[i:i + block], np.dtype(dtype)), args, ctl,
                                   adaptive, monitor,
                                   observers)
         out.append(np.asarray(ys))

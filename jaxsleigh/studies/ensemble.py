@@ -35,7 +35,7 @@ from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import check_ics, drive_final, drive_plain, drive_saving, initial_w
+from ..integrate.engine import check_ics, drive_final, drive_plain, drive_saving, initial_w, working_dtype
 from ..cores import PART_SIZE, run_parts, workers
 from ..model.params import PlantParams
 from ..controllers.actuators import is_sampled
@@ -360,7 +360,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         cores = whole("cores", cores, example=2)
     devs = workers(devices, cores)
     with jax.enable_x64(cfg.x64):
-        dtype = jnp.zeros(()).dtype
+        dtype = working_dtype()
         settings = {
             **(sampled_settings(cfg) if sampled else cfg.settings()), "save_every": save_every,
             "chunk_size": chunk_size, "summaries": bool(summaries),

@@ -18,7 +18,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
 from ..model.paper_law import control_w
 from ..model.coordinates import w_to_q
-from ..integrate.engine import check_ics, drive_saving, initial_w
+from ..integrate.engine import check_ics, drive_saving, initial_w, working_dtype
 from ..integrate.stepsize import StepSizeController
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
@@ -171,7 +171,7 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     with jax.enable_x64(cfg.x64):
-        dtype = jnp.zeros(()).dtype
+        dtype = working_dtype()
         args = ClosedLoop(cfg.plant, cfg.law)
         if cfg.lanes is not None:
             from ..model.lanes import broadcast_lanes
@@ -189,9 +189,9 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         bad = status0 != 0
         yw[bad] = np.nan
         if cfg.lanes is None:
-            q, u, Hd = (np.array(a) for a in _outputs(jnp.asarray(yw), jnp.asarray(horizon.t(), yw.dtype), args, chart))
+            q, u, Hd = (np.array(a) for a in _outputs(yw, np.asarray(horizon.t(), yw.dtype), args, chart))
         else:
-            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(jnp.asarray(yw), jnp.asarray(horizon.t(), yw.dtype), args, chart))
+            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(yw, np.asarray(horizon.t(), yw.dtype), args, chart))
     settings = {**cfg.settings(), "save_every": horizon.save_every}
     # where it ran (named on every figure of it) and how long it took: they vary between runs
     run_info = {"wall_s": time.perf_counter() - t_start, "devices": [str(jax.devices()[0])]}
