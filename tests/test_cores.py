@@ -156,3 +156,35 @@ def test_bench_json_reports_cores_wall_ratio_and_steps():
         assert lo <= res["c_limit_ratio_wall"] <= hi
     else:
         assert res["c_limit_ratio_wall"] is None and res["c_limit_reason"]
+
+
+def test_interrupted_while_a_tail_runs_loses_nothing_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    """Chunks of two parts: each part hands its stiff stragglers to the chunk's tail batch, which runs behind
+    the next chunk's parts. Ctrl-C during the second chunk's parts still writes the first chunk; resuming
+    ends with the uninterrupted run's numbers."""
+    import jaxsleigh.studies.ensemble as ens
+
+    rng = np.random.default_rng(11)
+    ics = np.column_stack([rng.uniform(-3, 3, (5000, 2)), rng.uniform(0.3, 3, 5000) * rng.choice([-1, 1], 5000)])
+    ics[::250, 2] = 0.01                                     # stragglers in every part
+    kw = dict(t_final=6.0, chunk_size=2048, progress=False)
+    whole = js.run_ensemble(ics, **kw)
+    real, calls = ens.drive_final, []
+
+    def interrupted(*a, **k):
+        if k.get("stop_at"):
+            calls.append(1)
+            if len(calls) == 3:                              # the second chunk's first part
+                raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(ens, "drive_final", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        js.run_ensemble(ics, checkpoint_dir=tmp_path / "ck", **kw)
+    assert sorted(p.name for p in (tmp_path / "ck").glob("chunk_*.npz")) == ["chunk_000000.npz"]
+    monkeypatch.setattr(ens, "drive_final", real)
+    resumed = js.run_ensemble(ics, checkpoint_dir=tmp_path / "ck", resume=True, **kw)
+    assert resumed.run_info["chunks_reused"] == 1
+    for f in ("q_final", "T_eps", "n_steps", "status", "u_energy"):
+        np.testing.assert_array_equal(getattr(resumed, f), getattr(whole, f), err_msg=f)
+    assert np.any(whole.n_steps > 20 * np.median(whole.n_steps))    # the stragglers were there

@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +25,7 @@ from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_acti
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
            "make_controls",
-           "shard_batch", "batch_mesh",
+           "shard_batch", "batch_mesh", "active_lanes", "take_lanes_of", "put_lanes", "finish_state",
            "working_dtype", "default_max_steps", "METHODS"]
 
 METHODS = ("adaptive", "rk4")
@@ -291,7 +291,8 @@ def _finish(full: StepState, t_final: float) -> StepState:
 
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
                 segment: int = 1000, compact: bool = True, progress=None, mesh=None,
-                observers=DEFAULT_OBSERVERS) -> StepState:
+                observers=DEFAULT_OBSERVERS, state: Optional[StepState] = None, stop_at: int = 0,
+                finish: bool = True) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
     (``observers``, `jaxsleigh.integrate.observers`), taking steps as ``step`` says (a resolved
     `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.step_controller`);
@@ -310,11 +311,17 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
     `jaxsleigh.model.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
+
+    **Tails.** ``stop_at`` returns as soon as at most that many lanes are still active, and
+    ``finish=False`` returns the state as it is (still-active lanes not marked); ``state`` (a batch-last host
+    `StepState`, ``y0w`` and ``status0`` then ``None``) continues from there. Together they let several
+    batches hand their few stiff stragglers to one batch (`active_lanes`, `take_lanes_of`), which costs a
+    fraction of each batch finishing its own in batches of `MIN_BATCH` lanes.
     """
     from ..model.lanes import broadcast_lanes, has_lanes, take_lanes
 
-    dtype = y0w.dtype
-    n = y0w.shape[0]
+    dtype = y0w.dtype if state is None else state.y.dtype
+    n = y0w.shape[0] if state is None else state.t.shape[-1]
     min_batch = MIN_BATCH.get(np.dtype(dtype).name, 32)
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
@@ -325,6 +332,9 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     if lanes:                                # per-lane parameters: one lane per trajectory of the batch
         lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
+    if state is not None:
+        state = jax.tree_util.tree_map(jnp.asarray, state)
+    elif lanes:
         state = init_batch_lanes(y0w, np.asarray(status0, np.int32), args, ctl, observers)
     else:
         state = _init_batch(y0w, np.asarray(status0, np.int32), args, ctl, observers)
@@ -339,7 +349,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
         if progress is not None:
             frac = np.where(act, np.asarray(state.t, np.float64) / horizon.t_final, 1.0)
             progress.update((n - idx.size + frac.sum()) / n)
-        if not act.any():
+        if not act.any() or act.sum() <= stop_at:
             break
         if compact and idx.size > min_batch and act.sum() <= idx.size // 4:
             keep = np.flatnonzero(act)
@@ -362,6 +372,29 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
         state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor, observers)
     host = jax.tree_util.tree_map(np.asarray, state)
     full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
+    return _finish(full, horizon.t_final) if finish else full
+
+
+def active_lanes(full: StepState, horizon: Horizon, step: StepSizeController) -> np.ndarray:
+    """The lanes of a host state (from ``drive_final(finish=False)``) that would still step: OK, short of
+    the horizon, within budget (`is_active`, on the host)."""
+    t_final = np.asarray(horizon.t_final, np.asarray(full.t).dtype)
+    return ((np.asarray(full.status) == Status.OK) & (np.asarray(full.t) < t_final)
+            & (np.asarray(full.n_accept) + np.asarray(full.n_reject) < step.max_steps))
+
+
+def take_lanes_of(full: StepState, rows: np.ndarray) -> StepState:
+    """Lanes ``rows`` of a batch-last host state."""
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[..., rows], full)
+
+
+def put_lanes(full: StepState, rows: np.ndarray, part: StepState) -> StepState:
+    """``full`` with its lanes ``rows`` replaced by those of ``part`` (in order)."""
+    return jax.tree_util.tree_map(lambda f, h: _scatter(f, rows, h), full, part)
+
+
+def finish_state(full: StepState, horizon: Horizon) -> StepState:
+    """Mark the lanes of a host state that stopped short of the horizon while OK (out of budget)."""
     return _finish(full, horizon.t_final)
 
 

@@ -16,6 +16,8 @@ from the finished chunks, ending with the same result as an uninterrupted run.
 """
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import contextlib
 import functools
 import hashlib
@@ -35,7 +37,8 @@ from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import check_ics, drive_final, drive_plain, drive_saving, initial_w, working_dtype
+from ..integrate.engine import (active_lanes, check_ics, drive_final, drive_plain, drive_saving, finish_state,
+                                initial_w, put_lanes, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, run_parts, workers
 from ..model.params import PlantParams
 from ..controllers.actuators import is_sampled
@@ -45,6 +48,9 @@ from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integ
 from ..validate import check_memory, whole
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
+
+#: a part hands its still-active lanes to the chunk's tail batch once at most this many are left
+TAIL_LANES = 16
 
 SUMMARY_FIELDS = ("q_final", "p_final", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
                   "n_steps", "n_rejected", "status", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
@@ -414,25 +420,37 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                     with bar_lock:
                         bar.update((lo + float(done @ np.diff(cuts)) / cuts[-1] * (hi - lo)) / n)
 
+            # the adaptive engine's few stiff stragglers are gathered from the parts into one batch (below)
+            tails = summaries and save_every is None and adaptive and len(part_sizes) > 1
+
             def part(i):
                 a0, a1 = cuts[i], cuts[i + 1]
                 with jax.enable_x64(cfg.x64):       # the dtype switch is per thread
-                    return _engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], _Sub(i))
+                    return _engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], _Sub(i), tails)
 
             pieces = run_parts(part, range(len(part_sizes)), devs)
-            return {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
+            if not tails:
+                return lambda: {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
+            return _tail(pieces, [np.arange(cuts[i], cuts[i + 1]) for i in range(len(part_sizes))], y0w, st, rows)
 
-        def _engine_rows(y0w, st, rows, sub):
-            """The engine's summaries (and trajectories) of one part, on the current default device."""
-            a = args
-            if lane_args is not None:      # this part's lanes
-                from ..model.lanes import take_lanes
+        def _lanes_args(rows):
+            if lane_args is None:
+                return args
+            from ..model.lanes import take_lanes
 
-                a = take_lanes(lane_args, rows)
+            return take_lanes(lane_args, rows)
+
+        def _engine_rows(y0w, st, rows, sub, tails=False):
+            """The engine's summaries (and trajectories) of one part, on the current default device; with
+            ``tails``, its final state with its last few still-active lanes not yet finished."""
+            a = _lanes_args(rows)
             kw = dict(eps=eps, progress=sub, observers=observers)
             if not summaries:
                 part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
                                         y0w, st, a, horizon)
+            elif tails:
+                return drive_final(y0w, st, a, horizon, step, segment=segment, stop_at=TAIL_LANES, finish=False,
+                                   **kw)
             elif save_every is None:
                 final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw)
                 part = _chunk_summaries(final, y0w, st, a, observers)
@@ -445,27 +463,83 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                 part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
             return part
 
+        def _tail(fulls, where, y0w, st, rows):
+            """The parts' still-active lanes (a few stiff stragglers each) gathered into one batch and run to
+            the horizon on the last device, in the background while the next chunk's parts run; returns a
+            function that waits for it and gives the chunk's summaries. The gathering does not depend on
+            the number of cores, so neither do the results."""
+            active = [active_lanes(f, horizon, step) for f in fulls]
+            sel = np.concatenate([w[a] for w, a in zip(where, active)])
+
+            def run():
+                merged = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
+                                                *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
+                with jax.default_device(devs[-1]), jax.enable_x64(cfg.x64):
+                    return drive_final(None, None, _lanes_args(rows[sel]), horizon, step, eps=eps, segment=segment,
+                                       observers=observers, state=merged, finish=False)
+
+            job = tail_pool.submit(run) if sel.size else None
+
+            def result():
+                done = job.result() if job is not None else None
+                out, k = [], 0
+                for f, w, a in zip(fulls, where, active):
+                    if a.any():
+                        m = int(a.sum())
+                        f = put_lanes(f, np.flatnonzero(a), take_lanes_of(done, np.arange(k, k + m)))
+                        k += m
+                    with jax.enable_x64(cfg.x64):
+                        out.append(_chunk_summaries(finish_state(f, horizon), y0w[w], st[w], _lanes_args(rows[w]),
+                                                    observers))
+                return {key: np.concatenate([p[key] for p in out]) for key in out[0]}
+
+            result.ready = lambda: job is None or job.done()
+            return result
+
+        pending: collections.deque = collections.deque()
+
+        def done_chunk(ci, lo, hi, result, new):
+            part = {k: v[:hi - lo] for k, v in result().items()}
+            if store is not None and new:
+                store.save(ci, part, lo=lo, starts=ics5[lo:hi])
+            if shard is None:
+                parts.append(part)
+            bar.update(hi / n)
+
         t_start = time.perf_counter()
         # the store's lock on the folder is held until the last chunk is written or read
-        with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()):
+        with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
+                concurrent.futures.ThreadPoolExecutor(1) as tail_pool:
             starts = list(range(0, n, chunk))
-            for ci, lo in enumerate(starts):
-                hi = min(lo + chunk, n)
-                if shard is not None and ci % shard[1] != shard[0]:
-                    continue
-                if store is not None and resume:
-                    part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
-                    if part is not None:
-                        parts.append(part)
-                        reused += 1
-                        bar.update(hi / n)
+            try:
+                for ci, lo in enumerate(starts):
+                    hi = min(lo + chunk, n)
+                    if shard is not None and ci % shard[1] != shard[0]:
                         continue
-                part = sampled_part(lo, hi) if sampled else engine_part(lo, hi)
-                part = {k: v[:hi - lo] for k, v in part.items()}
-                if store is not None:
-                    store.save(ci, part, lo=lo, starts=ics5[lo:hi])
-                if shard is None:
-                    parts.append(part)
+                    if store is not None and resume:
+                        part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
+                        if part is not None:                 # in order, behind any chunk still finishing
+                            pending.append((ci, lo, hi, lambda part=part: part, False))
+                            reused += 1
+                            continue
+                    if sampled:
+                        part = sampled_part(lo, hi)
+                        pending.append((ci, lo, hi, lambda part=part: part, True))
+                    else:
+                        pending.append((ci, lo, hi, engine_part(lo, hi), True))
+                    # chunks end in order; at most one chunk's tail runs behind the next chunk's parts
+                    while pending and (len(pending) > 1 or getattr(pending[0][3], "ready", lambda: True)()):
+                        done_chunk(*pending.popleft())
+            except BaseException:
+                # interrupted: a chunk whose tail is running still ends and is written (nothing finished is lost)
+                while pending:
+                    try:
+                        done_chunk(*pending.popleft())
+                    except BaseException:
+                        break
+                raise
+            while pending:
+                done_chunk(*pending.popleft())
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
