@@ -260,7 +260,7 @@ def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, sav
                             "wrong or unstable for stiff starts and strong gains, e.g. the tuned preset needs "
                             "--dt 0.001)")
         g.add_argument("--max-steps", type=whole("--max-steps", "2000000"), default=None, metavar="N",
-                       help="budget of attempted steps per trajectory (default: 30x the base steps for "
+                       help="budget of attempted steps per trajectory (default: 20x (float32) or 30x (float64) the base steps for "
                             "adaptive; at most 2147483646); a run that exhausts it gets status 4")
 
 

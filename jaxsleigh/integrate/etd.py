@@ -43,24 +43,31 @@ import jax.numpy as jnp
 __all__ = ["phis", "etd_stages"]
 
 
-def phis(z):
-    """\\(\\varphi_1, \\varphi_2, \\varphi_3\\) of ``z <= 0`` (any shape): series for ``|z| < 1``, closed
-    forms otherwise."""
+#: Taylor coefficients 1 / (j + k)! of phi_k, j = 0..13 (truncation below 1e-11 for |z| < 1)
+_COEF = {k: [1.0 / math.factorial(j + k) for j in range(14)] for k in (1, 2, 3)}
+
+
+def _series(z, k):
+    """phi_k(z) by Horner's scheme on its Taylor series (multiplications and additions only)."""
+    acc = jnp.full_like(z, _COEF[k][-1])
+    for c in reversed(_COEF[k][:-1]):
+        acc = acc * z + c
+    return acc
+
+
+def phis(z, upto: int = 3):
+    """\\(\\varphi_1, \\ldots, \\varphi_{\\text{upto}}\\) of ``z <= 0`` (any shape): the series for
+    ``|z| < 1``, the closed forms otherwise (one division, by ``z``, shared)."""
     small = jnp.abs(z) < 1.0
     zs = jnp.where(small, z, jnp.zeros_like(z))
     zl = jnp.where(small, -jnp.ones_like(z), z)
-
-    def series(k):          # sum_j z^j / (j + k)!
-        term, acc = jnp.ones_like(z), jnp.zeros_like(z)
-        for j in range(14):
-            acc = acc + term / float(math.factorial(j + k))
-            term = term * zs
-        return acc
-
-    p1 = jnp.expm1(zl) / zl
-    p2 = (p1 - 1.0) / zl
-    p3 = (p2 - 0.5) / zl
-    return jnp.where(small, series(1), p1), jnp.where(small, series(2), p2), jnp.where(small, series(3), p3)
+    r = 1.0 / zl
+    out, p = [], jnp.expm1(zl) * r
+    for k in range(1, upto + 1):
+        if k > 1:
+            p = (p - 1.0 / math.factorial(k - 1)) * r
+        out.append(jnp.where(small, _series(zs, k), p))
+    return tuple(out)
 
 
 def etd_stages(field_and_control, t, y, h, args, k1, lam):
@@ -72,7 +79,7 @@ def etd_stages(field_and_control, t, y, h, args, k1, lam):
     ``((A, uA), (B, uB), (C, uC))`` (for the observers' quadrature)."""
     dtype = y.dtype
     z = lam * h
-    p1h, _, _ = phis(0.5 * z)
+    (p1h,) = phis(0.5 * z, upto=1)
     p1, p2, p3 = phis(z)
     e2, e1 = jnp.exp(0.5 * z), jnp.exp(z)
     f1, f2, f3 = p1 - 3.0 * p2 + 4.0 * p3, p2 - 2.0 * p3, -p2 + 4.0 * p3

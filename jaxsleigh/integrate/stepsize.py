@@ -54,7 +54,7 @@ class StepSizeController(NamedTuple):
       safety: factor on the optimal step (0.9).
       factor_min, factor_max: limits of the change of step per attempt (0.1, 5).
       max_step: largest step (``None``: `MAX_STEP_FACTOR` base steps).
-      max_steps: budget of attempted steps per trajectory (``None``: 30x the base steps + room).
+      max_steps: budget of attempted steps per trajectory (``None``: 20x the base steps in float32, 30x in float64, + room).
       method: ``"adaptive"`` (this policy) or ``"rk4"`` (fixed steps of the base step ``dt``; the policy's
         numbers are then unused).
       check_passivity: reject (adaptive) or flag (``"rk4"``) steps that increase the paper's H_d.

@@ -196,7 +196,7 @@ def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None
     else:
         max_step = real(f("max_step"), max_step, positive=True, example=0.1)
     if max_steps is None:
-        max_steps = default_max_steps(horizon, adaptive)
+        max_steps = default_max_steps(horizon, adaptive, dtype)
     else:
         max_steps = whole(f("max_steps"), max_steps, minimum=1, maximum=INT32_MAX - 1, example=2000000)
         if not adaptive and max_steps < horizon.n_steps:

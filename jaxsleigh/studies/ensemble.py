@@ -37,8 +37,8 @@ from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import (active_lanes, check_ics, drive_final, drive_plain, drive_saving, finish_state,
-                                initial_w, put_lanes, take_lanes_of, working_dtype)
+from ..integrate.engine import (active_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
+                                finish_state, initial_w, put_lanes, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, run_parts, workers
 from ..model.params import PlantParams
 from ..controllers.actuators import is_sampled
@@ -431,7 +431,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
             pieces = run_parts(part, range(len(part_sizes)), devs)
             if not tails:
                 return lambda: {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
-            return _tail(pieces, [np.arange(cuts[i], cuts[i + 1]) for i in range(len(part_sizes))], y0w, st, rows)
+            return _tail(pieces, [np.arange(cuts[i], cuts[i + 1]) for i in range(len(part_sizes))], y0w, st, rows, lo)
 
         def _lanes_args(rows):
             if lane_args is None:
@@ -463,9 +463,9 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                 part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
             return part
 
-        def _tail(fulls, where, y0w, st, rows):
+        def _tail(fulls, where, y0w, st, rows, lo):
             """The parts' still-active lanes (a few stiff stragglers each) gathered into one batch and run to
-            the horizon on the last device, in the background while the next chunk's parts run; returns a
+            the horizon on one device, in the background while the next chunks' parts run; returns a
             function that waits for it and gives the chunk's summaries. The gathering does not depend on
             the number of cores, so neither do the results."""
             active = [active_lanes(f, horizon, step) for f in fulls]
@@ -474,9 +474,15 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
             def run():
                 merged = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
                                                 *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
-                with jax.default_device(devs[-1]), jax.enable_x64(cfg.x64):
-                    return drive_final(None, None, _lanes_args(rows[sel]), horizon, step, eps=eps, segment=segment,
-                                       observers=observers, state=merged, finish=False)
+                # padded to a power of two with idle copies of its first lane, so few shapes compile
+                m = sel.size
+                fill = np.concatenate([np.arange(m), np.zeros(bucket(m) - m, int)])
+                merged = take_lanes_of(merged, fill)
+                merged = merged._replace(status=np.where(np.arange(fill.size) < m, merged.status, Status.INVALID_INPUT))
+                with jax.default_device(devs[lo // chunk % len(devs)]), jax.enable_x64(cfg.x64):
+                    done = drive_final(None, None, _lanes_args(rows[sel[fill]]), horizon, step, eps=eps,
+                                       segment=segment, observers=observers, state=merged, finish=False)
+                return take_lanes_of(done, np.arange(m))
 
             job = tail_pool.submit(run) if sel.size else None
 
@@ -509,7 +515,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         t_start = time.perf_counter()
         # the store's lock on the folder is held until the last chunk is written or read
         with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
-                concurrent.futures.ThreadPoolExecutor(1) as tail_pool:
+                concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
             starts = list(range(0, n, chunk))
             try:
                 for ci, lo in enumerate(starts):
@@ -527,8 +533,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                         pending.append((ci, lo, hi, lambda part=part: part, True))
                     else:
                         pending.append((ci, lo, hi, engine_part(lo, hi), True))
-                    # chunks end in order; at most one chunk's tail runs behind the next chunk's parts
-                    while pending and (len(pending) > 1 or getattr(pending[0][3], "ready", lambda: True)()):
+                    # chunks end in order; the tails of up to one chunk per device run behind the next chunk's parts
+                    while pending and (len(pending) > len(devs) or getattr(pending[0][3], "ready", lambda: True)()):
                         done_chunk(*pending.popleft())
             except BaseException:
                 # interrupted: a chunk whose tail is running still ends and is written (nothing finished is lost)

@@ -144,7 +144,7 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         accurate near theta = 0) or ``"rk4"`` (classical fixed-step RK4 at ``dt``).
       rtol, atol: tolerances of ``"adaptive"`` (defaults per dtype, see ``DEFAULT_RTOL``).
       max_step: largest adaptive step (default ``100 * dt``; steps also never pass a save time).
-      max_steps: budget of attempted steps per trajectory (default: 30x the base steps when
+      max_steps: budget of attempted steps per trajectory (default: 20x (float32) or 30x (float64) the base steps when
         adaptive); a trajectory that runs out gets status ``BUDGET_EXHAUSTED``.
       x64: compute in float64 (default float32).
       progress: ``True`` for a progress bar, ``False``/``None`` for none (auto on a terminal).
