@@ -478,7 +478,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                 m = sel.size
                 fill = np.concatenate([np.arange(m), np.zeros(bucket(m) - m, int)])
                 merged = take_lanes_of(merged, fill)
-                merged = merged._replace(status=np.where(np.arange(fill.size) < m, merged.status, Status.INVALID_INPUT))
+                idle = np.where(np.arange(fill.size) < m, merged.status, Status.INVALID_INPUT)
+                merged = merged._replace(status=idle.astype(merged.status.dtype))
                 with jax.default_device(devs[lo // chunk % len(devs)]), jax.enable_x64(cfg.x64):
                     done = drive_final(None, None, _lanes_args(rows[sel[fill]]), horizon, step, eps=eps,
                                        segment=segment, observers=observers, state=merged, finish=False)
