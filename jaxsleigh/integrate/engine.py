@@ -498,8 +498,8 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     devices of ``XLA_FLAGS=--xla_force_host_platform_device_count=2``; the batch is padded with
     harmless starts to a multiple of the device count. Sharded results agree with one device to
     float32 rounding (not bitwise: XLA compiles the sharded program's arithmetic slightly
-    differently), and on the 2-core test machine two host devices were not faster (docs/
-    performance_fastpath.md), so the default is one device (``None``).
+    differently). The studies do not use it: `jaxsleigh.studies.ensemble` cuts each chunk into parts
+    that run on one device each (`jaxsleigh.cores`), bitwise the same on any number of cores.
 
     ``vector_width`` (CPU only, one device; e.g. 512 on AVX-512 machines) compiles the kernel with
     that preferred SIMD width: ~15% less CPU time on the test machine, final states within ~1e-5
