@@ -5,8 +5,10 @@ jaxsleigh therefore asks JAX, when it is imported and before JAX has started, fo
 per core this process may use (``len(os.sched_getaffinity(0))``), and its studies cut every chunk
 of starts into parts that run concurrently, one thread per device, each part on its own device
 (`run_parts`). The parts are the same whatever the number of cores (`PART_SIZE` starts each), and
-a lane's arithmetic does not depend on the other lanes of its part: results are therefore
-**byte-identical whatever the number of cores**, a one-core run included.
+a lane's arithmetic does not depend on the other lanes of its part; the parts' few stiff stragglers are
+gathered into one batch per chunk in the parts' order. Results are therefore **byte-identical whatever
+the number of cores**, a one-core run included. (On an accelerator each chunk is cut into one part per
+device instead: large batches are what a GPU is for.)
 
 Settings, in order of precedence:
 

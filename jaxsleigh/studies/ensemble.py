@@ -379,7 +379,10 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         # every chunk is cut into parts of PART_SIZE lanes (a smaller chunk is one part), the last padded
         # (jaxsleigh.cores): the same parts whatever the number of cores, so every start meets the same
         # compiled program, and the bytes never depend on how many cores ran it
-        lanes = min(PART_SIZE, -(-chunk // 8) * 8)
+        # (on an accelerator one part per device: a GPU wants large batches, not parts of 1024)
+        per_part = PART_SIZE if jax.default_backend() == "cpu" else -(-chunk // len(devs))
+        lanes = min(per_part, -(-chunk // 8) * 8)
+        lanes = -(-lanes // 8) * 8
         part_sizes = [lanes] * -(-chunk // lanes)
         store = None
         if checkpoint_dir is not None:
