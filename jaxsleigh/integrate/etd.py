@@ -73,9 +73,9 @@ def phis(z, upto: int = 3):
 def etd_stages(field_and_control, t, y, h, args, k1, lam):
     """One exponential RK4 step from ``k1 = f(t, y)`` with the frozen rate ``lam`` on ``p2``.
 
-    Returns ``(dy, k4, e5, stages)``: the increment (``y + dy`` is the step's result), the classical
-    last-stage slope ``k4 = f(C)`` (for the error of components 0-3), a function ``e5(k5)`` giving the
-    error estimate of ``p2`` from the FSAL slope ``k5 = f(y + dy)``, and the stage states and controls
+    Returns ``(dy, k4, error, stages)``: the increment (``y + dy`` is the step's result), the last-stage
+    slope ``k4 = f(C)``, a function ``error(y_new, k5)`` giving the step's error estimate from the FSAL
+    slope ``k5 = f(y + dy)`` (the module docstring's), and the stage states and controls
     ``((A, uA), (B, uB), (C, uC))`` (for the observers' quadrature)."""
     dtype = y.dtype
     z = lam * h
@@ -105,7 +105,7 @@ def etd_stages(field_and_control, t, y, h, args, k1, lam):
     y5_new = e1 * y[4] + h * (f1 * nu + 2.0 * f2 * (na + nb) + f3 * nc)
     dy = with5(dy, y5_new - y[4])
 
-    def e5(y_new, k5):
-        return h * f3 * (nc - n5(y_new, k5))
+    def error(y_new, k5):                 # classical h (k4 - k5) / 6, its p2 row the exponential one
+        return with5((h / 6.0) * (k4 - k5), h * f3 * (nc - n5(y_new, k5)))
 
-    return dy, k4, e5, ((A, u2), (B, u3), (C, u4))
+    return dy, k4, error, ((A, u2), (B, u3), (C, u4))

@@ -157,6 +157,21 @@ def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
     return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4, dq
 
 
+def _increment(chart, s: "StepState", h, args, k1, observers, adaptive: bool):
+    """One step's increment, last-stage slope, observers' quadrature and error estimate (``None``: the
+    classical one): the exponential RK4 for the stiff damping when adaptive in a chart that has it
+    (`jaxsleigh.integrate.etd`), classical RK4 otherwise."""
+    lam = chart.stiff_rate(s.y, args) if adaptive else None
+    if lam is not None:
+        dy, k4, error, stages = etd_stages(chart.field_and_control, s.t, s.y, h, args, k1, lam)
+        dq = _stage_quadrature(observers, h, s.g1, stages, s.y.dtype) if s.quad.shape[0] else s.quad
+        return dy, k4, dq, error
+    if s.quad.shape[0]:
+        return (*_stages_with_quadrature(s.t, s.y, h, args, k1, s.g1, observers), None)
+    dy, k4 = rk4_stages(chart.field, s.t, s.y, h, args, k1)
+    return dy, k4, s.quad, None
+
+
 def _all_finite(*xs):
     """All components (axis 0) finite: a scalar for one trajectory, (N,) for a batch-last batch."""
     out = jnp.all(jnp.isfinite(xs[0]), axis=0)
@@ -202,17 +217,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     # needs no fifth evaluation for an error estimate. Those observers need f(y_new) anyway.
     fsal = adaptive or _needs_fsal(observers)
     k1 = s.k1 if fsal else f(s.t, s.y, args)
-    # adaptive steps in the w chart: the exponential RK4 for the stiff damping (jaxsleigh.integrate.etd)
-    lam = chart.stiff_rate(s.y, args) if adaptive else None
-    e5 = None
-    if lam is not None:
-        dy, k4, e5, stages = etd_stages(chart.field_and_control, s.t, s.y, h, args, k1, lam)
-        dq = _stage_quadrature(observers, h, s.g1, stages, dtype) if s.quad.shape[0] else s.quad
-    elif s.quad.shape[0]:
-        dy, k4, dq = _stages_with_quadrature(s.t, s.y, h, args, k1, s.g1, observers)
-    else:
-        dy, k4 = rk4_stages(f, s.t, s.y, h, args, k1)
-        dq = s.quad
+    dy, k4, dq, error = _increment(chart, s, h, args, k1, observers, adaptive)
     y_new = s.y + dy
     if fsal:
         k5, u_new = chart.field_and_control(s.t + h, y_new, args)
@@ -230,7 +235,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     status = s.status
     if adaptive:
         # the error measure and the step-size policy: jaxsleigh.integrate.stepsize
-        err = error_ratio(h, s.y, y_new, k4, k5, ctl, p2_error=None if e5 is None else e5(y_new, k5))
+        err = error_ratio(h, s.y, y_new, k4, k5, ctl, e=None if error is None else error(y_new, k5))
         good = finite & ~crossed & ~rose
         err = jnp.where(good, err, jnp.inf)
         ok = good & (err <= 1.0)

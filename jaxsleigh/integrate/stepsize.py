@@ -24,7 +24,7 @@ rejected); after a rejected step, \(h \cdot \mathrm{clip}(\mathrm{safety}\ \math
 (``stop_gradient``): gradients flow through the accepted steps, not through the controller's decisions.
 
 In the w chart the step itself is the exponential RK4 of `jaxsleigh.integrate.etd` on \(p_2\) (classical
-RK4 on the rest), whose error estimate of \(p_2\) replaces the one above (``p2_error``).
+RK4 on the rest), whose own error estimate replaces the one above on \(p_2\) (``e``).
 """
 from __future__ import annotations
 
@@ -71,16 +71,15 @@ class StepSizeController(NamedTuple):
     check_passivity: bool = True
 
 
-def error_ratio(h, y, y_new, k4, k5, ctl, p2_error=None):
-    """\\(\\max_i |h (k_4 - k_5)_i / 6| / \\mathrm{scale}_i\\) per trajectory (axis 0 is the state);
-    ``p2_error`` replaces the estimate of the last component (the exponential step's,
+def error_ratio(h, y, y_new, k4, k5, ctl, e=None):
+    """\\(\\max_i |e_i| / \\mathrm{scale}_i\\) per trajectory (axis 0 is the state), with the error estimate
+    \\(e = h (k_4 - k_5) / 6\\) unless the step gives its own ``e`` (the exponential step's,
     `jaxsleigh.integrate.etd`)."""
     dtype = y.dtype
     noise = 16.0 * jnp.finfo(dtype).eps * jnp.abs(h) * jnp.maximum(jnp.abs(k4), jnp.abs(k5))
     scale = ctl.atol + ctl.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y_new)) + noise
-    e = (h / 6.0) * (k4 - k5)
-    if p2_error is not None:
-        e = jnp.concatenate([e[:4], p2_error[None].astype(e.dtype)], axis=0)
+    if e is None:
+        e = (h / 6.0) * (k4 - k5)
     return jnp.max(jnp.abs(e) / scale, axis=0)
 
 
