@@ -271,8 +271,7 @@ def batch_mesh(devices=None):
 
 
 #: the smallest batch compaction gathers the active lanes into (a power of two), per dtype. A few stiff
-#: stragglers (starts near theta = 0) can take 100x the median's steps; in batches of 8 they cost a quarter
-#: of what they did in batches of 64, and on several cores each part has its own. In float64 a batch of
+#: stragglers (starts near theta = 0) can take 100x the median's steps, and small batches make them cheaper. In float64 a batch of
 #: 32 or more lanes steps every lane bitwise as the uncompacted batch (tests/test_engine.py), 16 does not;
 #: in float32 no size did (XLA compiles small batches with other rounding), so float32 takes the fastest.
 MIN_BATCH = {"float32": 8, "float64": 32}
@@ -557,7 +556,8 @@ def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
 
 
 #: room of the adaptive budget, in base steps, per dtype: float64's 100x tighter tolerances need ~20% more
-#: attempts than 20x out of the stiffest starts (theta0 = 1e-2 took 25,415 of a 10 s run's 1,008 base steps)
+#: attempts than 20x out of the stiffest starts (theta0 = 1e-2 took 25,387 attempts for a 10 s run's 1,008 base
+#: steps; python experiments/issue20_details.py)
 BUDGET_FACTOR = {"float32": 20, "float64": 30}
 
 

@@ -83,9 +83,9 @@ def error_ratio(h, y, y_new, k4, k5, ctl, e=None):
     return jnp.max(jnp.abs(e) / scale, axis=0)
 
 
-#: exponents of the PI controller (Gustafsson's form, err ~ h^4). Hairer & Wanner's 0.7 / 4 and 0.4 / 4
-#: took 1,005 steps on the benchmark's 4096 starts (T_eps within 7.0e-4 s of float64); these, 924 (9.3e-4 s);
-#: the I controller (0.25, 0) 826 per 512 starts but 1.6e-3 s (experiments/settled_phase_adopted.py)
+#: exponents of the PI controller (Gustafsson's form, err ~ h^4). On 512 benchmark starts (100 s, float32,
+#: python experiments/issue20_details.py): Hairer & Wanner's 0.7 / 4, 0.4 / 4 took 1,008 mean steps, T_eps
+#: within 6.8e-4 s of float64; these 927 steps, 9.1e-4 s; the I controller (0.25, 0) 804 steps but 1.7e-3 s
 PI_ALPHA, PI_BETA = 0.15, 0.05
 
 

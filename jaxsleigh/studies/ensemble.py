@@ -49,8 +49,9 @@ from ..validate import check_memory, whole
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
-#: a part hands its still-active lanes to the chunk's tail batch once at most this many are left (of 1024; on the
-#: default 10^5-start basin 128 took 18.9 s, 16 took 23.2 s, 64 21.7-23.4 s, 256 or 512 22-23 s)
+#: a part hands its still-active lanes to the chunk's tail batch once at most this many are left (of 1024); the
+#: default 10^5-start basin took 20.9 s with 128, 24.7 s with 16, 67.3 s with 0 (every part finishing its own
+#: stragglers; python experiments/issue20_details.py)
 TAIL_LANES = 128
 
 SUMMARY_FIELDS = ("q_final", "p_final", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
