@@ -90,9 +90,10 @@ class ConvergenceTime:
         inside = chart.q_norm2(y) <= ctl.eps * ctl.eps
         return (jnp.where(inside, t0, jnp.inf).astype(y.dtype),)
 
-    def update(self, state, step, ctl):
-        (t_enter,) = state
-        dtype = t_enter.dtype
+    def entry(self, step, ctl):
+        """``(inside_end, entered, fraction)``: whether the step ends in the ball, whether the trajectory was
+        outside it at some sample of the step, and the fraction of the step at which it last entered."""
+        dtype = step.y.dtype
         eps2 = ctl.eps * ctl.eps
         q_norm2 = step.chart.q_norm2
         outside = lambda th: q_norm2(hermite(step, th)) > eps2  # noqa: E731
@@ -115,9 +116,14 @@ class ConvergenceTime:
 
         # a loop, not unrolled: the step's program stays small (compile time) for any count
         lo, hi = jax.lax.fori_loop(0, self.bisections, bisect, (lo, hi))
-        entry = jnp.where(hi >= 1.0, step.t_new, step.t + hi * step.h).astype(dtype)
-        new = jnp.where(inside_end, jnp.where(last_out >= 0, entry, t_enter), jnp.inf)
-        return (jnp.where(step.acc, new, t_enter).astype(dtype),)
+        return inside_end, last_out >= 0, hi
+
+    def update(self, state, step, ctl):
+        (t_enter,) = state
+        inside_end, entered, hi = self.entry(step, ctl)
+        entry = jnp.where(hi >= 1.0, step.t_new, step.t + hi * step.h).astype(t_enter.dtype)
+        new = jnp.where(inside_end, jnp.where(entered, entry, t_enter), jnp.inf)
+        return (jnp.where(step.acc, new, t_enter).astype(t_enter.dtype),)
 
     def integrand(self, y, u):
         return ()

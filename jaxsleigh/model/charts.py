@@ -10,8 +10,9 @@ A chart is a small static object (hashable: part of the compiled program) that t
 * ``q_norm2(y)``, ``abs_theta(y)``: \(|q|^2\) and \(|\theta|\) of a chart state (for the observers);
 * ``to_chart`` / ``from_chart``: the physical state ``(x, y, theta, p1, p2)`` to and from the chart.
 
-`WChart` is the paper's law in its w chart (eq. 15: port-Hamiltonian, \(H_d\) non-increasing, no
-trigonometry, the singular set \(w_1 = \theta = 0\)); `PhysicalChart` is any other law ``u = law(q, v)``
+`WChart` is the paper's law, or another energy-shaping law of `jaxsleigh.model.w_laws`, in its w chart (eq. 15:
+port-Hamiltonian, \(H_d\) non-increasing, no trigonometry, the singular set \(w_1 = \theta = 0\));
+`PhysicalChart` is any other law ``u = law(q, v)``
 in the physical state. `chart_for` picks the chart of a controller.
 """
 from __future__ import annotations
@@ -23,8 +24,8 @@ import jax.numpy as jnp
 
 from .closed_loop import (closed_loop_hamiltonian_w, state_from_w, state_to_w, vector_field_law_control,
                           vector_field_w_control)
-from .controller import is_paper_law
 from .coordinates import f_w_inv
+from .w_laws import is_w_law, stiff_coeff
 
 __all__ = ["WChart", "PhysicalChart", "chart_for", "q_norm2_w"]
 
@@ -38,7 +39,8 @@ def q_norm2_w(w):
 
 @dataclass(frozen=True)
 class WChart:
-    """The paper's law (eq. 13) in the chart ``y = (w1, w2, w3, p1, p2)`` (eq. 15)."""
+    """A w-chart law (the paper's eq. 13, or `jaxsleigh.model.shaped_law.ShapedGains`) in the chart
+    ``y = (w1, w2, w3, p1, p2)`` (eq. 15)."""
 
     name: ClassVar[str] = "w"
     singular: ClassVar[bool] = True
@@ -67,10 +69,11 @@ class WChart:
         \\(\\lambda p_2\\) of the \\(p_2\\) equation that the injected damping puts there (stiff near
         \\(\\theta = 0\\); `jaxsleigh.integrate.etd`), or ``None`` for a law without the paper's ``k`` and
         ``D_hat``."""
-        g, pl = args.controller, args.plant
-        if not (hasattr(g, "k") and hasattr(g, "D_hat")):
+        pl = args.plant
+        c = stiff_coeff((y[0], y[1], y[2]), args.controller)
+        if c is None:
             return None
-        lam = -(g.D_hat[1, 1] + g.k / (y[0] * y[0])) / (pl.J + pl.m * pl.l * pl.l)
+        lam = -c / (pl.J + pl.m * pl.l * pl.l)
         return jnp.minimum(lam, 0.0).astype(y.dtype)
 
     def to_chart(self, y):
@@ -119,8 +122,8 @@ class PhysicalChart:
 
 def chart_for(controller):
     """The chart a controller is integrated in: its own ``chart`` attribute if it declares one, the w chart
-    for the paper's law (`jaxsleigh.Gains`), else the physical chart."""
+    for a w-chart law (`jaxsleigh.model.w_laws`: the paper's `jaxsleigh.Gains`, `ShapedGains`), else the physical chart."""
     declared = getattr(type(controller), "chart", None)
     if declared is not None:
         return declared
-    return WChart() if is_paper_law(controller) else PhysicalChart()
+    return WChart() if is_w_law(controller) else PhysicalChart()

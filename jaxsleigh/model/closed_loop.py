@@ -18,7 +18,8 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 
 from .controller import apply_law
-from .paper_law import control, control_w_components, damping_injection_components, potential
+from .paper_law import control
+from .w_laws import control_w_components, injection_components, potential
 from .coordinates import Q_entries, Q_w_entries, q_to_w, w_to_q
 from .smallmat import matvec
 from .params import Gains, PlantParams
@@ -79,7 +80,7 @@ def vector_field_w_control(t, y, args: ClosedLoop):
     del t
     w, p = (y[0], y[1], y[2]), (y[3], y[4])
     v = velocity_components(p, args.plant)
-    u = control_w_components(w, v, args.gains)
+    u = control_w_components(w, v, args.controller)
     # q is needed only by a damping model that depends on it; unused trig is removed by XLA.
     q = w_to_q(y[:3])
     wdot = matvec(Q_w_entries(w), v)
@@ -101,12 +102,12 @@ def vector_field_law_control(t, y, args: ClosedLoop):
 
 def closed_loop_hamiltonian(y, args: ClosedLoop):
     """\\(H_d(q, p) = \\tfrac12 p^\\top M^{-1} p + \\tfrac12 w(q)^\\top L w(q)\\) (eq. 15)."""
-    return hamiltonian(y[3:], args.plant) + potential(q_to_w(y[:3]), args.gains)
+    return hamiltonian(y[3:], args.plant) + potential(q_to_w(y[:3]), args.controller)
 
 
 def closed_loop_hamiltonian_w(y, args: ClosedLoop):
     """\\(H_d\\) of a w-chart state ``(w, p)``."""
-    return hamiltonian(y[3:], args.plant) + potential(y[:3], args.gains)
+    return hamiltonian(y[3:], args.plant) + potential(y[:3], args.controller)
 
 
 def dissipation_w(y, args: ClosedLoop):
@@ -114,7 +115,7 @@ def dissipation_w(y, args: ClosedLoop):
     w, p = y[:3], y[3:]
     v = velocity_components(p, args.plant)
     d = args.plant.damping.force(w_to_q(w), p, v)
-    inj = damping_injection_components(w, v, args.gains)
+    inj = injection_components(w, v, args.controller)
     return -(v[0] * (d[0] + inj[0]) + v[1] * (d[1] + inj[1]))
 
 

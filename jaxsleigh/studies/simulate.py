@@ -16,7 +16,7 @@ import numpy as np
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
-from ..model.paper_law import control_w
+from ..model.w_laws import control_w_components
 from ..model.coordinates import w_to_q
 from ..integrate.engine import check_ics, drive_saving, initial_w, working_dtype
 from ..integrate.stepsize import StepSizeController
@@ -109,7 +109,8 @@ def _outputs(yw, t, args: ClosedLoop, chart=WChart()):
     def one(y, t):
         if chart.name == "w":
             w, p = y[:3], y[3:]
-            return w_to_q(w), control_w(w, velocity(p, args.plant), args.gains), closed_loop_hamiltonian_w(y, args)
+            u = jnp.stack(control_w_components(w, velocity(p, args.plant), args.controller)).astype(y.dtype)
+            return w_to_q(w), u, closed_loop_hamiltonian_w(y, args)
         u = jnp.stack(chart.field_and_control(t, y, args)[1])
         return chart.from_chart(y)[:3], u, jnp.full((), jnp.nan, y.dtype)
 

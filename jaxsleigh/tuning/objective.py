@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.closed_loop import ClosedLoop
-from ..model.paper_law import control_w_components
+from ..model.w_laws import control_w_components
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import Gains, PlantParams
 from ..model.plant import velocity_components
@@ -117,7 +117,7 @@ def _near_singular(y, theta_b, chart=WChart()):
 def _effort_rate(y, args: ClosedLoop, chart=WChart()):
     """\\(|u|^2\\) of the controller at the state ``y`` (batch-last) of ``chart``."""
     if chart.name == "w":
-        u = control_w_components((y[0], y[1], y[2]), velocity_components((y[3], y[4]), args.plant), args.gains)
+        u = control_w_components((y[0], y[1], y[2]), velocity_components((y[3], y[4]), args.plant), args.controller)
     else:
         u = chart.field_and_control(0.0, y, args)[1]
     return u[0] * u[0] + u[1] * u[1]

@@ -89,7 +89,7 @@ def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarra
         return np.asarray(r.u_energy, np.float64), np.asarray(r.u_norm_peak, np.float64)
     import jax.numpy as jnp
 
-    from ..model.paper_law import control_w_components
+    from ..model.w_laws import control_w_components
     from ..model.coordinates import q_to_w
     from ..studies.ensemble import run_ensemble
     from ..model.params import paper_plant

@@ -1,0 +1,52 @@
+r"""The laws integrated in the w chart, behind one interface: the paper's `jaxsleigh.Gains` (eq. 13) and any
+law that declares ``w_chart = True`` (`jaxsleigh.model.shaped_law.ShapedGains`).
+
+A w-chart law is energy shaping plus damping injection,
+
+\[ u = -Q_w^\top(w)\,\nabla V(w) - \big(\hat D(w, v) + D_i(w, v)\big) v, \qquad H_d = \tfrac12 p^\top M^{-1} p + V(w), \]
+
+so along the closed loop \(\dot H_d = -v^\top (D + \hat D + D_i) v \le 0\) whatever \(V\) is (the engine monitors
+it). Such a law provides ``potential(w)``, ``control_w_components(w, v)``, ``injection_components(w, v)`` and
+``stiff_coeff(w)`` (the coefficient of \(-v_2\) in the turning moment, for the exponential step of
+`jaxsleigh.integrate.etd`); the paper's law has them as the functions of `jaxsleigh.model.paper_law`.
+"""
+from __future__ import annotations
+
+from .params import Gains
+from . import paper_law
+
+__all__ = ["is_w_law", "potential", "control_w_components", "injection_components", "stiff_coeff"]
+
+
+def is_w_law(controller) -> bool:
+    """True for a law integrated in the w chart: `jaxsleigh.Gains` or one that says ``w_chart = True``."""
+    return isinstance(controller, Gains) or bool(getattr(type(controller), "w_chart", False))
+
+
+def potential(w, law):
+    """\\(V(w)\\), the shaped potential of \\(H_d\\)."""
+    if isinstance(law, Gains):
+        return paper_law.potential(w, law)
+    return law.potential(w)
+
+
+def control_w_components(w, v, law):
+    """\\(u\\) on components, from \\(w\\) and \\(v = \\nabla_p H\\)."""
+    if isinstance(law, Gains):
+        return paper_law.control_w_components(w, v, law)
+    return law.control_w_components(w, v)
+
+
+def injection_components(w, v, law):
+    """\\((\\hat D + D_i) v\\) on components."""
+    if isinstance(law, Gains):
+        return paper_law.damping_injection_components(w, v, law)
+    return law.injection_components(w, v)
+
+
+def stiff_coeff(w, law):
+    """\\(\\hat D_{22} + k / w_1^2\\) (may depend on \\(w\\)), or ``None`` for a law without that form."""
+    if isinstance(law, Gains):
+        return law.D_hat[1, 1] + law.k / (w[0] * w[0])
+    fn = getattr(law, "stiff_coeff", None)
+    return None if fn is None else fn(w)

@@ -1,0 +1,117 @@
+r"""The hard settling time and its gradient, by the implicit function theorem.
+
+\(T_\epsilon\) is the last entry into the ball \(|q| \le \epsilon\) (`jaxsleigh.integrate.observers.ConvergenceTime`):
+a root of \(F(T, \vartheta) = |q(T; \vartheta)|^2 - \epsilon^2\) in which \(F\) falls through zero. Where
+\(\partial_T F = \tfrac{d}{dt}|q|^2 < 0\) at the root, the implicit function theorem gives
+
+\[ \frac{dT}{d\vartheta} = -\frac{\partial_\vartheta |q(T; \vartheta)|^2}{\tfrac{d}{dt}|q|^2\big|_{t = T}} . \]
+
+Both derivatives are read off the step in which the entry happened: the engine's dense output (the cubic Hermite
+interpolant of the accepted RK4 step, `jaxsleigh.integrate.observers.hermite`) at the entry's fraction of that step
+gives \(|q(T)|^2\) and its time derivative, and the sensitivity \(\partial_\vartheta y\) of the step's end points
+is carried through the adaptive RK4 by forward mode (``jax.jvp`` / ``jax.jacfwd`` through the engine's
+``while_loop``; what is differentiated is the discrete scheme along the steps it chose). `settling` returns
+
+\[ \tilde T = T + \frac{\mathrm{sg}(|q|^2) - |q|^2}{\mathrm{sg}(\tfrac{d}{dt}|q|^2)} \]
+
+(``sg`` = ``jax.lax.stop_gradient``): its value is \(T\) exactly and its derivative the formula above. A start that
+never settles (or settled at the start) has \(\tilde T = T\) with a zero derivative. Quantiles of \(\tilde T\) over a
+batch (``jnp.quantile``) are then differentiable where the hard quantile is: between switches of the lane that
+holds it. tests/test_event_time.py checks the derivative of the median against finite differences of the hard
+median.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..integrate.observers import ControlEffort, ConvergenceTime, hermite
+from ..integrate.stepper import Controls, init_state, run_to
+from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
+from ..model.closed_loop import ClosedLoop
+from ..status import Status
+
+__all__ = ["EntryState", "Settling", "settling"]
+
+
+@dataclass(frozen=True)
+class EntryState(ConvergenceTime):
+    r"""`ConvergenceTime` that also keeps \(|q|^2\) and \(\tfrac{d}{dt}|q|^2\) at the last entry, from the step's
+    dense output, with whatever tangents the step's end points carry."""
+
+    fields: ClassVar[tuple] = ("T_eps", "entry_q2", "entry_rate")
+
+    def init(self, t0, y, u, ctl, chart):
+        (t,) = super().init(t0, y, u, ctl, chart)
+        return t, chart.q_norm2(y), jnp.full_like(t, -1.0)
+
+    def update(self, state, step, ctl):
+        t_enter, q2, rate = state
+        inside_end, entered, hi = self.entry(step, ctl)
+        th = jax.lax.stop_gradient(hi)
+        q2_new, dq2 = jax.jvp(lambda f: step.chart.q_norm2(hermite(step, f)), (th,), (jnp.ones_like(th),))
+        h = jnp.where(step.h > 0, step.h, 1.0)
+        entry = jnp.where(hi >= 1.0, step.t_new, step.t + hi * step.h).astype(t_enter.dtype)
+        t_new = jnp.where(inside_end, jnp.where(entered, entry, t_enter), jnp.inf)
+        took = step.acc & inside_end & entered
+        return (jnp.where(step.acc, t_new, t_enter).astype(t_enter.dtype), jnp.where(took, q2_new, q2),
+                jnp.where(took, dq2 / h, rate))
+
+    def values(self, state, quad):
+        return {"T_eps": state[0], "entry_q2": state[1], "entry_rate": state[2]}
+
+    def results(self, state, quad):
+        raise NotImplementedError("EntryState is for traced use (jaxsleigh.tuning.event_time.settling)")
+
+
+class Settling(NamedTuple):
+    r"""Per-start results of `settling` (arrays over the batch).
+
+    Attributes:
+      T: the settling time \(\tilde T\) with the implicit-function derivative (value: ``T_eps``; ``t_final`` where
+        the start did not settle, with a zero derivative) [s].
+      settled: ``T_eps <= t_final`` and status OK.
+      u_energy: \(\int_0^{t_f} \|u\|^2 dt\), differentiable (the engine's fourth-order quadrature).
+      u_norm_peak: \(\max \|u\|\) at the steps' ends.
+      status: `jaxsleigh.Status` codes; n_steps: accepted steps.
+    """
+
+    T: jax.Array
+    settled: jax.Array
+    u_energy: jax.Array
+    u_norm_peak: jax.Array
+    status: jax.Array
+    n_steps: jax.Array
+
+
+_OBSERVERS = (EntryState(), ControlEffort())
+
+
+def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.05, dt: float = 0.01,
+             rtol=None, atol=None, max_steps: int = 100_000) -> Settling:
+    r"""Integrate the chart starts ``y0w`` (N, 5) under ``controller`` to ``t_final`` with the engine's adaptive
+    stepper and return `Settling`. Traced code (``jit`` it); differentiate it in forward mode (``jax.jvp``,
+    ``jax.jacfwd``: the stepper's ``while_loop`` has no reverse mode). ``max_steps``: attempted steps per start."""
+    dtype = y0w.dtype
+    name = jnp.dtype(dtype).name
+    rtol = DEFAULT_RTOL.get(name, 1e-6) if rtol is None else rtol
+    atol = DEFAULT_ATOL.get(name, 1e-6) if atol is None else atol
+    ctl = Controls(*(jnp.asarray(v, dtype) for v in (dt, MAX_STEP_FACTOR * dt, rtol, atol, eps)),
+                   max_steps=jnp.asarray(max_steps, jnp.int32))
+    args = ClosedLoop(plant, controller)
+    n = y0w.shape[0]
+    s = jax.vmap(lambda y, st: init_state(y, st, args, ctl, observers=_OBSERVERS), out_axes=-1)(
+        y0w, jnp.zeros(n, jnp.int32))
+    T_end = jnp.asarray(t_final, dtype)
+    s = run_to(s, T_end, args, ctl, adaptive=True, observers=_OBSERVERS)
+    (t_hard, q2, rate), (_, _, peak) = s.obs
+    ok = (s.status == Status.OK) & (s.t >= T_end)
+    settled = ok & (t_hard <= T_end)
+    moving = settled & (t_hard > 0) & (rate < 0)
+    safe_rate = jnp.where(moving, jax.lax.stop_gradient(rate), -1.0)
+    correction = jnp.where(moving, (jax.lax.stop_gradient(q2) - q2) / safe_rate, 0.0)
+    T = jnp.where(settled, jax.lax.stop_gradient(t_hard) + correction, T_end)
+    return Settling(T=T, settled=settled, u_energy=s.quad[0], u_norm_peak=peak, status=s.status, n_steps=s.n_accept)
