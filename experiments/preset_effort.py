@@ -2,7 +2,7 @@
 
     python experiments/preset_effort.py [--n 2048] [--out docs/figures/preset_effort.json]
 
-For the presets ``paper``, ``balanced`` and ``tuned``, on held-out starts from two distributions:
+For the presets ``paper``, ``balanced``, ``tuned`` (gains of the paper's law) and ``shaped`` (`jaxsleigh.ShapedGains`), on held-out starts from two distributions:
 
 * ``readme``: the README's held-out starts (those of ``experiments/balanced_search.py``): ``x, y``
   uniform in (-3, 3), ``|theta0|`` uniform in (0.3, pi) with a random sign, zero momentum,
@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-PRESETS = ("paper", "balanced", "tuned")
+PRESETS = ("paper", "balanced", "tuned", "shaped")
 QS = (10, 25, 50, 75, 90)
 
 
@@ -46,14 +46,11 @@ def readme_starts(n: int, seed: int = 20240611) -> np.ndarray:
 
 
 def wide_starts(n: int, seed: int = 20240612) -> np.ndarray:
-    """Wider starts: |x|, |y| <= 4, |theta0| in (0.05, pi) (1 in 8 below 0.3), momentum for half."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(-4.0, 4.0, size=(n, 2))
-    near = rng.random(n) < 0.125
-    mag = np.where(near, rng.uniform(0.05, 0.3, size=n), rng.uniform(0.05, math.pi, size=n))
-    th = rng.choice([-1.0, 1.0], size=n) * mag
-    p = rng.normal(0.0, 1.0, size=(n, 2)) * (rng.random(n) < 0.5)[:, None]
-    return np.column_stack([xy, th, p])
+    """Wider starts (`jaxsleigh.tuning.starts.WideStarts`): |x|, |y| <= 4, |theta0| in (0.05, pi) (1 in 8 below
+    0.3), momentum for half."""
+    from jaxsleigh.tuning.starts import WideStarts
+
+    return WideStarts()(np.random.default_rng(seed), n)
 
 
 def _num(v: float):
@@ -91,7 +88,7 @@ def main(argv=None) -> None:
 
     import jax
 
-    from jaxsleigh import run_ensemble
+    from jaxsleigh import load_shaped, run_ensemble
 
     dists = {"readme": (readme_starts(args.n), "x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi), random sign, "
                         "zero momentum; numpy default_rng(20240611)"),
@@ -103,13 +100,14 @@ def main(argv=None) -> None:
                        "jax": jax.__version__},
            "energy": "int_0^T ||u||^2 dt over the starts that reached the horizon; ratio_to_paper: each "
                      "percentile / the paper gains' same percentile on the same starts",
-           "T": "T_0.05 (first time |q| <= 0.05); a start not settled by 100 s counts as infinite (null)",
+           "T": "T_0.05 (the start of the last stay in |q| <= 0.05); a start not settled by 100 s counts as infinite (null)",
            "distributions": {}}
     for name, (ics, how) in dists.items():
         rows = {}
         for preset in PRESETS:
             t0 = time.perf_counter()
-            r = run_ensemble(ics, gains=preset, t_final=100.0, eps=0.05, method="adaptive", progress=False)
+            law = {"controller": load_shaped(preset)} if preset == "shaped" else {"gains": preset}
+            r = run_ensemble(ics, t_final=100.0, eps=0.05, method="adaptive", progress=False, **law)
             rows[preset] = figures(r)
             rows[preset]["wall_s"] = round(time.perf_counter() - t0, 1)
             print(f"{name:6s} {preset:8s} {json.dumps(rows[preset])}", flush=True)

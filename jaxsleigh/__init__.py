@@ -15,6 +15,7 @@ from .model.damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamp
 from .studies.ensemble import EnsembleResult, run_ensemble
 from .model.params import (Gains, PlantParams, gains, load_gains, paper_gains, paper_plant, plant_params,
                      save_gains)
+from .model.shaped_law import ShapedGains, load_shaped, shaped_from_gains, shaped_gains
 from .studies.simulate import Solution, simulate
 from .integrate.solve import SolveOutput, solve
 from .integrate.stepsize import StepSizeController

@@ -167,19 +167,27 @@ def test_getting_started_counts_the_notebooks_and_offers_the_cache(site):
 
 
 def test_readme_preset_numbers_are_the_committed_measurements():
-    """The README's sentence on the presets quotes `experiments/preset_effort.py`'s JSON: the median
-    and the upper percentiles of balanced's energy relative to the paper's, and names the command."""
+    """The README's preset table quotes `experiments/preset_effort.py`'s JSON: for every preset and both start
+    distributions, the median T_0.05 and the control energy's 25/50/75/90th percentiles as ratios to the paper's."""
     import json
 
     d = json.loads((DOCS / "figures" / "preset_effort.json").read_text())
     assert d["dtype"] == "float32" and d["command"].startswith("python experiments/preset_effort.py")
-    readme_starts = d["distributions"]["readme"]
-    assert readme_starts["n"] == 2048
-    bal = readme_starts["presets"]["balanced"]
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert "python experiments/preset_effort.py" in readme
-    for q, fmt in (("p50", "{:.2f}x"), ("p75", "{:.1f}x"), ("p90", "{:.1f}x")):
-        assert fmt.format(bal["energy_ratio_to_paper"][q]) in readme, (q, bal["energy_ratio_to_paper"][q])
-    assert f"{bal['T_median']:.1f} s" in readme and f"{bal['energy']['p50']:.2f}" in readme
+    for dist in ("readme", "wide"):
+        rows = d["distributions"][dist]
+        assert rows["n"] == 2048
+        for name, f in rows["presets"].items():
+            ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
+            if name == "paper":
+                ratios = "1 / 1 / 1 / 1"
+            assert f"{f['T_median']:.1f} s | {ratios}" in readme, (dist, name, f"{f['T_median']:.1f} s | {ratios}")
+    sh, pa = (d["distributions"]["readme"]["presets"][k] for k in ("shaped", "paper"))
+    assert (f"median peak ‖u‖ is {sh['peak_u_median']:.2f} (90th pct {sh['peak_u_p90']:.0f}; the paper's "
+            f"{pa['peak_u_median']:.2f}, {pa['peak_u_p90']:.0f}), {sh['mean_steps']:,.0f} mean steps (the paper's "
+            f"{pa['mean_steps']:,.0f})") in readme
+    bal = d["distributions"]["readme"]["presets"]["balanced"]
     tuning = (DOCS / "how-to" / "tuning.md").read_text()
     assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning
+

@@ -173,3 +173,24 @@ def test_shaped_gains_say_which_condition_fails(field, value, msg):
 def test_is_a_namedtuple_of_positive_leaves_for_the_tuner():
     assert isinstance(SHAPED, ShapedGains)
     assert set(ShapedGains.positive) == set(ShapedGains._fields)
+
+
+def test_shaped_preset_runs_from_the_command_line_and_python(tmp_path, capsys):
+    from jaxsleigh.cli import main
+
+    law = js.load_shaped("shaped")
+    assert isinstance(law, ShapedGains) and law == ShapedGains.preset()
+    out = tmp_path / "s.npz"
+    code = main(["simulate", "--controller", "shaped", "--ic", "1,1,0.5", "--t-final", "5", "--out", str(out)])
+    assert code == 0
+    d = np.load(out)
+    assert np.all(np.isfinite(d["q"])) and np.all(np.diff(d["Hd"], axis=-1) <= 1e-5 * d["Hd"][..., :1])
+
+
+def test_load_shaped_says_what_is_wrong(tmp_path):
+    with pytest.raises(ValueError, match="not found"):
+        js.load_shaped("no-such-preset")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"L": [1, 1, 1]}')
+    with pytest.raises(ValueError, match="fields L, B, C, k, D_near, D_far, s"):
+        js.load_shaped(str(bad))

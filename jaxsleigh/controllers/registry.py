@@ -2,7 +2,8 @@
 
 ``paper`` is the paper's law with its gains (`jaxsleigh.Gains`, integrated in the w chart); the others are
 the literature's stabilisers of unicycle-like vehicles, each in its own module with its citation, lifted to
-force level by a velocity loop that knows the plant's model (`jaxsleigh.controllers.lift`).
+force level by a velocity loop that knows the plant's model (`jaxsleigh.controllers.lift`); ``shaped`` is the
+shaped-energy law (`jaxsleigh.ShapedGains`, w chart) with its tuned preset.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ CONTROLLERS = {
     "aicardi": ("jaxsleigh.controllers.aicardi", "AicardiLaw"),
     "astolfi": ("jaxsleigh.controllers.astolfi", "AstolfiLaw"),
     "samson": ("jaxsleigh.controllers.samson", "Samson"),
+    "shaped": ("jaxsleigh.model.shaped_law", "ShapedGains"),
 }
 
 
@@ -35,13 +37,14 @@ def controller_class(name: str):
 
 def make_controller(name: str, gains=None):
     """The law called ``name`` with its default parameters. For ``"paper"`` this is the paper's law as the
-    engine integrates it best: its `jaxsleigh.Gains` (``gains``, default the paper's), in the w chart."""
+    engine integrates it best: its `jaxsleigh.Gains` (``gains``, default the paper's), in the w chart; for a law
+    with a ``preset`` (``"shaped"``) its shipped preset."""
     cls = controller_class(name)
     if name == "paper":
         from ..model.params import as_gains
 
         return as_gains(gains)
-    return cls()
+    return cls.preset() if hasattr(cls, "preset") else cls()
 
 
 def describe_controllers() -> list[str]:

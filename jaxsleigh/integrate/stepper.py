@@ -332,6 +332,36 @@ def run_to(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: b
     return jax.lax.while_loop(cond, lambda c: step(c, target, args, ctl), s)
 
 
+def starting_step(s: StepState, ctl: Controls) -> StepState:
+    r"""``s`` (batch-last) with each lane's first step at most \(0.01\,\|y_0\| / \|f(y_0)\|\) in the tolerances'
+    norm (Hairer's starting-step rule), no less than \(10^{-6}\) ``dt``; no derivative flows through the choice.
+    From near \(\theta = 0\) a first trial step of ``dt`` overflows float32: the stepper rejects it, but in reverse
+    mode the discarded infinities turn the gradient into NaN (differentiated runs start this way)."""
+    sc = ctl.atol + ctl.rtol * jnp.abs(s.y)
+    d0 = jnp.sqrt(jnp.mean(jnp.square(s.y / sc), axis=0))
+    d1 = jnp.sqrt(jnp.mean(jnp.square(s.k1 / sc), axis=0))
+    h0 = jax.lax.stop_gradient(jnp.where(d1 > 0, 0.01 * d0 / jnp.maximum(d1, 1e-30), s.h))
+    return s._replace(h=jnp.clip(h0, 1e-6 * ctl.dt, s.h).astype(s.y.dtype))
+
+
+def run_checkpointed(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_attempts: int, segment: int = 200,
+                     adaptive: bool = True, monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
+    """`run_segment` of ``n_attempts`` attempts (static) as ``ceil(n_attempts / segment)`` checkpointed segments, a
+    segment in which no trajectory is active skipped: differentiable in reverse mode (``jax.grad``) at a memory of
+    one segment's steps, where `run_to`'s ``while_loop`` has forward mode only."""
+    step = _batched_attempt(adaptive, monitor, observers)
+
+    @functools.partial(jax.checkpoint, prevent_cse=False)
+    def run(c):
+        return jax.lax.scan(lambda c, _: (step(c, target, args, ctl), None), c, None, length=segment)[0]
+
+    def outer(c, _):
+        busy = jnp.any(is_active(c, jnp.asarray(target, c.y.dtype), ctl))
+        return jax.lax.cond(busy, run, lambda c: c, c), None
+
+    return jax.lax.scan(outer, s, None, length=-(-int(n_attempts) // int(segment)))[0]
+
+
 def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
                monitor: bool = True, observers=DEFAULT_OBSERVERS):
     """Step a batch through ``save_times`` (shape (K,)), returning ``(state, ys)`` with ``ys`` of

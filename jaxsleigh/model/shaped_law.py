@@ -28,6 +28,8 @@ only \(q\) and \(v = Q(q)^\top \dot q\) (Remark 1).
 """
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
@@ -36,7 +38,7 @@ import numpy as np
 from .coordinates import Q_w_entries, q_to_w
 from .smallmat import rmatvec
 
-__all__ = ["ShapedGains", "shaped_gains", "shaped_from_gains"]
+__all__ = ["ShapedGains", "shaped_gains", "shaped_from_gains", "load_shaped"]
 
 
 def _huber_slope(w, c):
@@ -79,6 +81,11 @@ class ShapedGains(NamedTuple):
     needs = ()
     w_chart = True
     positive = ("L", "B", "C", "k", "D_near", "D_far", "s")
+
+    @classmethod
+    def preset(cls, name: str = "shaped") -> "ShapedGains":
+        """The shipped preset ``name`` (`load_shaped`): what ``--controller shaped`` runs."""
+        return load_shaped(name)
 
     def potential(self, w):
         """\\(V(w) = \\sum_i \\phi_i(w_i)\\)."""
@@ -148,3 +155,24 @@ def shaped_from_gains(gains, *, B=(0.0, 0.0, 0.0), C=(1.0, 1.0, 1.0), s=1.0) -> 
         raise ValueError(f"shaped_from_gains needs a diagonal D_hat, got {D.tolist()}")
     d = np.diag(D)
     return shaped_gains(gains.L, B, C, gains.k, d, d, s)
+
+
+_PRESETS = Path(__file__).resolve().parent.parent / "presets" / "controllers"
+
+
+def load_shaped(spec="shaped") -> ShapedGains:
+    """A `ShapedGains` from a preset name (``"shaped"``: ``jaxsleigh/presets/controllers/shaped.json``, written by
+    ``experiments/shaped_study.py``) or a JSON file with the fields of `ShapedGains` (a ``"meta"`` entry is kept
+    out)."""
+    path = _PRESETS / f"{spec}.json"
+    if not path.is_file():
+        path = Path(spec)
+    if not path.is_file():
+        names = sorted(p.stem for p in _PRESETS.glob("*.json"))
+        raise ValueError(f"shaped gains {str(spec)!r} not found; give a JSON file or a preset ({', '.join(names)})")
+    try:
+        d = json.loads(path.read_text())
+        return shaped_gains(**{k: d[k] for k in ShapedGains._fields})
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"shaped gains file {str(path)!r} is not a JSON object with the fields "
+                         f"{', '.join(ShapedGains._fields)} ({type(e).__name__}: {e})") from None

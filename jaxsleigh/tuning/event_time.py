@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ..integrate.observers import ControlEffort, ConvergenceTime, hermite
-from ..integrate.stepper import Controls, init_state, run_to
+from ..integrate.stepper import Controls, init_state, run_checkpointed, run_to, starting_step
 from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
 from ..model.closed_loop import ClosedLoop
 from ..status import Status
@@ -91,10 +91,15 @@ _OBSERVERS = (EntryState(), ControlEffort())
 
 
 def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.05, dt: float = 0.01,
-             rtol=None, atol=None, max_steps: int = 100_000) -> Settling:
+             rtol=None, atol=None, max_steps: int = 100_000, reverse: bool = False, segment: int = 200) -> Settling:
     r"""Integrate the chart starts ``y0w`` (N, 5) under ``controller`` to ``t_final`` with the engine's adaptive
-    stepper and return `Settling`. Traced code (``jit`` it); differentiate it in forward mode (``jax.jvp``,
-    ``jax.jacfwd``: the stepper's ``while_loop`` has no reverse mode). ``max_steps``: attempted steps per start."""
+    stepper and return `Settling`. Traced code (``jit`` it). ``max_steps``: attempted steps per start (a start that
+    needs more ends ``BUDGET_EXHAUSTED``, not settled).
+
+    ``reverse=False`` (static) steps in a ``while_loop``: differentiate in forward mode (``jax.jvp``,
+    ``jax.jacfwd``, one tangent per parameter). ``reverse=True`` steps in checkpointed segments of ``segment``
+    attempts (`jaxsleigh.integrate.stepper.run_checkpointed`): ``jax.grad`` too, whose cost does not grow with the
+    number of parameters (``max_steps`` is then static)."""
     dtype = y0w.dtype
     name = jnp.dtype(dtype).name
     rtol = DEFAULT_RTOL.get(name, 1e-6) if rtol is None else rtol
@@ -105,8 +110,13 @@ def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.0
     n = y0w.shape[0]
     s = jax.vmap(lambda y, st: init_state(y, st, args, ctl, observers=_OBSERVERS), out_axes=-1)(
         y0w, jnp.zeros(n, jnp.int32))
+    s = starting_step(s, ctl)
     T_end = jnp.asarray(t_final, dtype)
-    s = run_to(s, T_end, args, ctl, adaptive=True, observers=_OBSERVERS)
+    if reverse:
+        s = run_checkpointed(s, T_end, args, ctl, n_attempts=int(max_steps), segment=int(segment),
+                             observers=_OBSERVERS)
+    else:
+        s = run_to(s, T_end, args, ctl, adaptive=True, observers=_OBSERVERS)
     (t_hard, q2, rate), (_, _, peak) = s.obs
     ok = (s.status == Status.OK) & (s.t >= T_end)
     settled = ok & (t_hard <= T_end)

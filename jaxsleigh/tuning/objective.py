@@ -13,12 +13,12 @@ import numpy as np
 from ..model.closed_loop import ClosedLoop
 from ..model.w_laws import control_w_components
 from ..integrate.engine import check_ics, initial_w
-from ..model.params import Gains, PlantParams
+from ..model.params import PlantParams
 from ..model.plant import velocity_components
 from ..status import Status
 from ..integrate.observers import ClosestApproach, Excursion
 from ..model.charts import WChart, chart_for
-from ..integrate.stepper import Controls, StepState, attempt, init_state, is_active
+from ..integrate.stepper import Controls, StepState, attempt, init_state, is_active, starting_step
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups
@@ -164,11 +164,7 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
     s0 = jax.vmap(functools.partial(init_state, observers=_OBSERVERS), in_axes=in_axes,
                   out_axes=-1)(y0w, jnp.zeros(n, jnp.int32), args, ctl)
     if adaptive:
-        sc = ctl.atol + ctl.rtol * jnp.abs(s0.y)
-        d0 = jnp.sqrt(jnp.mean(jnp.square(s0.y / sc), axis=0))
-        d1 = jnp.sqrt(jnp.mean(jnp.square(s0.k1 / sc), axis=0))
-        h0 = jax.lax.stop_gradient(jnp.where(d1 > 0, 0.01 * d0 / jnp.maximum(d1, 1e-30), s0.h))
-        s0 = s0._replace(h=jnp.clip(h0, 1e-6 * ctl.dt, s0.h).astype(dtype))
+        s0 = starting_step(s0, ctl)
 
     def target_of(s: StepState):
         # a lane in the stopping ball idles: its target is where it is

@@ -18,7 +18,7 @@ from ..model.damping import CoulombDamping, NoDamping, ViscousDamping
 from ..integrate.engine import check_ics
 from ..model.params import PlantParams, paper_plant
 
-__all__ = ["UniformStarts", "draw_starts", "sample_starts", "guard_starts", "PlantDistribution", "sample_plants",
+__all__ = ["UniformStarts", "WideStarts", "draw_starts", "sample_starts", "guard_starts", "PlantDistribution", "sample_plants",
            "validation_plants", "plant_groups", "first_lane"]
 
 
@@ -34,6 +34,26 @@ class UniformStarts(NamedTuple):
         xy = rng.uniform(-self.xy, self.xy, size=(n, 2))
         th = rng.choice([-1.0, 1.0], size=n) * rng.uniform(self.theta_min, self.theta_max, size=n)
         return np.column_stack([xy, th])
+
+
+class WideStarts(NamedTuple):
+    """Wider starts than `UniformStarts`: ``x, y`` uniform in ``(-xy, xy)``, ``|theta0|`` uniform in
+    ``(theta_min, pi)`` except a fraction ``near`` drawn in ``(theta_min, theta_near)`` (close to the singular set),
+    random sign, momentum ``p1, p2 ~ N(0, 1)`` for half the starts and zero for the rest."""
+
+    xy: float = 4.0
+    theta_min: float = 0.05
+    theta_near: float = 0.3
+    near: float = 0.125
+
+    def __call__(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        xy = rng.uniform(-self.xy, self.xy, size=(n, 2))
+        near = rng.random(n) < self.near
+        mag = np.where(near, rng.uniform(self.theta_min, self.theta_near, size=n),
+                       rng.uniform(self.theta_min, math.pi, size=n))
+        th = rng.choice([-1.0, 1.0], size=n) * mag
+        p = rng.normal(0.0, 1.0, size=(n, 2)) * (rng.random(n) < 0.5)[:, None]
+        return np.column_stack([xy, th, p])
 
 
 def draw_starts(starts, n: int, seed: int) -> np.ndarray:

@@ -1,0 +1,210 @@
+r"""Tuning on the objective users measure: quantiles of the hard settling time under budgets on quantiles of the
+control energy, by gradient (the implicit-function derivative of `jaxsleigh.tuning.event_time`) or by CMA-ES on the
+same numbers.
+
+For a law with parameters \(\vartheta\) (its leaves declared ``positive``, optimised as \(x = \log \vartheta\)) and a
+batch of starts,
+
+\[ f(x) = \sum_j a_j\, \frac{Q_{q_j}(T)}{t_f} + \rho \sum_k \max\big(0,\ \log Q_{r_k}(E) - \log E^{max}_k\big)^2
+          + \rho\, \max(0,\ s_{min} - \bar s)^2 , \]
+
+\(Q_q\) the \(q\)-quantile over the batch (``jnp.quantile``, linear interpolation), \(T\) the settling time
+\(T_{0.05}\) (``t_final`` for a start that did not settle), \(E = \int_0^{t_f} \|u\|^2 dt\), \(\bar s\) the fraction
+of starts settled with a smooth stand-in (\(\bar s\) is counted but has no derivative). The budgets
+\(E^{max}_k\) are, by default, the reference law's (the paper's gains') own energy quantiles on the same starts:
+"no more energy than the paper's at the 25th, 50th, 75th and 90th percentiles". A candidate is *feasible* when
+every budget and the settled floor hold and every start ends with status OK; the tuners keep the best feasible one.
+
+The simulation budget of a run is counted in trajectory-seconds: starts x horizon per evaluation of \(f\) (a
+gradient evaluation also re-simulates each checkpointed segment once on the way back; the study reports wall time
+next to it).
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+
+from ..integrate.engine import check_ics, initial_w
+from ..model.charts import chart_for
+from ..model.controller import positive_names
+from ..model.params import PlantParams, as_plant
+from ..status import Status
+from .cmaes import cma_ask, cma_init, cma_tell
+from .event_time import settling
+
+__all__ = ["HardTimeConfig", "HardTimeProblem", "hard_time_problem", "tune_by_gradient", "tune_by_cma", "TuneRun"]
+
+
+class HardTimeConfig(NamedTuple):
+    """Numbers of the hard-time objective (module docstring).
+
+    Attributes:
+      t_final, eps: horizon [s] and ball radius of \\(T_\\epsilon\\).
+      time_quantiles, time_weights: the \\(q_j\\) and \\(a_j\\).
+      energy_quantiles: the \\(r_k\\); energy_margin: the budgets are ``margin x`` the reference's quantiles.
+      settled_margin: the floor \\(s_{min}\\) is the reference's settled fraction minus this.
+      penalty: \\(\\rho\\).
+      max_steps: attempted steps per start (static); segment: checkpointed segment length.
+    """
+
+    t_final: float = 100.0
+    eps: float = 0.05
+    time_quantiles: tuple = (0.5, 0.9)
+    time_weights: tuple = (1.0, 0.5)
+    energy_quantiles: tuple = (0.25, 0.5, 0.75, 0.9)
+    energy_margin: float = 0.95
+    settled_margin: float = 0.0
+    penalty: float = 10.0
+    max_steps: int = 40_000
+    segment: int = 200
+
+
+class HardTimeProblem(NamedTuple):
+    """A law family, its starts and budgets, ready to evaluate: ``value(x)`` and ``value_and_grad(x)`` of the
+    objective in log-parameters ``x`` (flat, float), ``law_of(x)`` the law, ``x0`` the start."""
+
+    x0: np.ndarray
+    law_of: Callable
+    value: Callable
+    value_and_grad: Callable
+    budgets: np.ndarray
+    settled_floor: float
+    n: int
+    cfg: HardTimeConfig
+
+
+def _figures(r, cfg: HardTimeConfig):
+    T = r.T
+    tq = jnp.stack([jnp.quantile(T, q) for q in cfg.time_quantiles])
+    eq = jnp.stack([jnp.quantile(r.u_energy, q) for q in cfg.energy_quantiles])
+    return tq, eq, jnp.mean(r.settled.astype(T.dtype)), jnp.sum(r.status != Status.OK)
+
+
+def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParams] = None,
+                      cfg: HardTimeConfig = HardTimeConfig(), dtype=jnp.float32) -> HardTimeProblem:
+    """The objective of ``law``'s positive leaves on ``starts`` (N, 3|5), the budgets from ``reference`` (default: the
+    paper's gains) on the same starts. Both laws must be w-chart laws (`jaxsleigh.model.w_laws`)."""
+    from ..model.params import paper_gains
+
+    ics5, status0 = check_ics(starts, name="training start")
+    if np.any(status0 != Status.OK):
+        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
+    chart = chart_for(law)
+    if chart.name != "w":
+        raise ValueError("hard_time_problem tunes a w-chart law (jaxsleigh.Gains or jaxsleigh.ShapedGains)")
+    positive = positive_names(law)
+    names = type(law)._fields
+    if set(names) - set(positive):
+        raise ValueError(f"every leaf of the law must be declared positive to be tuned in logarithm, got {names}")
+    plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), as_plant(plant))
+    y0w = initial_w(ics5, status0, dtype, chart)
+    x0, unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: jnp.log(jnp.asarray(a, dtype)), law))
+    x0 = np.asarray(x0, np.float64)
+    if not np.all(np.isfinite(x0)):
+        raise ValueError("every tuned leaf must be > 0 at the start (B = 0 has no logarithm: start from B > 0)")
+
+    def law_of(x):
+        return jax.tree_util.tree_map(jnp.exp, unravel(jnp.asarray(x, dtype)))
+
+    def run(c):
+        return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps, max_steps=cfg.max_steps, reverse=True,
+                        segment=cfg.segment)
+
+    ref = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), paper_gains() if reference is None else reference)
+    _, eq_ref, s_ref, bad_ref = jax.jit(lambda c: _figures(run(c), cfg))(ref)
+    budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
+    floor = float(s_ref) - cfg.settled_margin
+    lb = jnp.log(jnp.asarray(budgets, dtype))
+    weights = jnp.asarray(cfg.time_weights, dtype)
+
+    def objective(x):
+        r = run(law_of(x))
+        tq, eq, settled, n_bad = _figures(r, cfg)
+        over = jnp.maximum(jnp.log(eq) - lb, 0.0)
+        short = jnp.maximum(floor - settled, 0.0)
+        f = jnp.sum(weights * tq) / cfg.t_final + cfg.penalty * (jnp.sum(over * over) + short * short)
+        feasible = (n_bad == 0) & jnp.all(over <= 1e-6) & (short <= 0)      # within rounding of the budgets
+        aux = {"T_quantiles": tq, "energy_quantiles": eq, "settled": settled, "n_bad": n_bad, "feasible": feasible,
+               "mean_steps": jnp.mean(r.n_steps.astype(dtype))}
+        return f, aux
+
+    value = jax.jit(objective)
+    vg = jax.jit(jax.value_and_grad(objective, has_aux=True))
+    return HardTimeProblem(x0, law_of, value, vg, budgets, floor, int(ics5.shape[0]), cfg)
+
+
+class TuneRun(NamedTuple):
+    """A tuner's record: the best feasible ``x`` (or ``None``), its value and figures, and the history (one row per
+    evaluation: ``value``, ``feasible``, ``trajectory_seconds`` so far, ``wall_s`` so far)."""
+
+    x: Any
+    value: float
+    figures: dict
+    history: list
+
+
+def _host(aux) -> dict:
+    return {k: np.asarray(v, np.float64).tolist() for k, v in aux.items()}
+
+
+def tune_by_gradient(problem: HardTimeProblem, *, steps: int = 40, lr: float = 0.05, b1: float = 0.5, x0=None,
+                     progress: Optional[Callable] = None) -> TuneRun:
+    """Adam on \\(f\\) from ``x0`` (default ``problem.x0``); keeps the best feasible iterate. A non-finite gradient
+    stops the run (reported in the history). ``b1`` is Adam's momentum: lower than optax's 0.9 by default, because a
+    budget's penalty switches on abruptly and momentum then carries the iterate far past the budget's edge (a first
+    run with 0.9 lost its way after 7 steps: docs/evidence/shaped-energy.md)."""
+    x = jnp.asarray(problem.x0 if x0 is None else x0)
+    opt = optax.adam(lr, b1=b1)
+    state = opt.init(x)
+    best, hist, t0 = None, [], time.perf_counter()
+    for i in range(steps):
+        (f, aux), g = problem.value_and_grad(x)
+        f = float(f)
+        feas = bool(aux["feasible"]) and np.isfinite(f)
+        row = {"value": f, "feasible": feas, "trajectory_seconds": (i + 1) * problem.n * problem.cfg.t_final,
+               "wall_s": time.perf_counter() - t0, **_host(aux)}
+        hist.append(row)
+        if progress:
+            progress(i, row)
+        if feas and (best is None or f < best[1]):
+            best = (np.asarray(x, np.float64), f, _host(aux))
+        if not bool(jnp.all(jnp.isfinite(g))):
+            break
+        updates, state = opt.update(g, state, x)
+        x = optax.apply_updates(x, updates)
+    return TuneRun(*(best if best else (None, float("inf"), {})), hist)
+
+
+def tune_by_cma(problem: HardTimeProblem, *, evaluations: int = 120, population: int = 12, sigma0: float = 0.3,
+                seed: int = 0, x0=None, progress: Optional[Callable] = None) -> TuneRun:
+    """CMA-ES (`jaxsleigh.tuning.cmaes`) on the same \\(f\\) (values only), ``evaluations`` in all; keeps the best
+    feasible candidate."""
+    rng = np.random.default_rng(seed)
+    state = cma_init(np.asarray(problem.x0 if x0 is None else x0, np.float64), sigma0)
+    best, hist, t0, done = None, [], time.perf_counter(), 0
+    while done < evaluations:
+        xs, ys = cma_ask(state, rng, population)
+        scores = []
+        for x in xs[: evaluations - done]:
+            f, aux = problem.value(jnp.asarray(x))
+            f = float(f)
+            feas = bool(aux["feasible"]) and np.isfinite(f)
+            done += 1
+            row = {"value": f, "feasible": feas, "trajectory_seconds": done * problem.n * problem.cfg.t_final,
+                   "wall_s": time.perf_counter() - t0, **_host(aux)}
+            hist.append(row)
+            if progress:
+                progress(done - 1, row)
+            if feas and (best is None or f < best[1]):
+                best = (np.asarray(x, np.float64), f, _host(aux))
+            scores.append(f if np.isfinite(f) else 1e6)
+        if len(scores) < len(xs):
+            break
+        state = cma_tell(state, ys, np.asarray(scores))
+    return TuneRun(*(best if best else (None, float("inf"), {})), hist)
