@@ -4,9 +4,10 @@ tuner), recorded by ``tests/golden/make_golden.py`` at 2fa58a2 and re-recorded w
 became the exponential RK4 with a PI controller in the w chart (issue 20).
 
 Statuses must be equal, step counts equal to a step or two (at most 1% of them), floating-point results
-equal to float32 rounding as a stiff run grows it (1e-4 of each field's scale). They are not bitwise:
-another CPU rounds XLA's transcendental functions differently (the plain path's final states moved by 1e-5
-on an AVX-512 EPYC). A change of the method, the policy or the observers moves them by far more.
+equal to float32 rounding as a stiff run grows it (1e-4 of each field's scale), float64 runs to 1e-10 relative.
+They are not bitwise: another CPU rounds XLA's transcendental functions differently (the plain path's final
+states moved by 1e-5 on an AVX-512 EPYC; a float64 peak |u| by 1.2e-12 relative between that EPYC and a CPU
+without AVX-512). A change of the method, the policy or the observers moves them by far more.
 """
 import sys
 from pathlib import Path
@@ -38,7 +39,7 @@ def test_golden_runs_are_unchanged(runs):
             assert moved.mean() <= 0.25, key
             np.testing.assert_allclose(got, want, rtol=0.01, atol=2, err_msg=key)
         elif want.dtype == np.float64 and "f64" in key:
-            np.testing.assert_allclose(got, want, rtol=1e-12, atol=0, equal_nan=True, err_msg=key)
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=0, equal_nan=True, err_msg=key)
         else:
             finite = np.abs(want[np.isfinite(want)])
             scale = finite.max() if finite.size else 0.0

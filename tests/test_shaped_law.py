@@ -194,3 +194,17 @@ def test_load_shaped_says_what_is_wrong(tmp_path):
     bad.write_text('{"L": [1, 1, 1]}')
     with pytest.raises(ValueError, match="fields L, B, C, k, D_near, D_far, s"):
         js.load_shaped(str(bad))
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_near_theta_zero_the_shaped_preset_says_what_it_did(x64):
+    """Starts down to theta0 = 1e-6 under the shaped preset, float32 and float64: a start either ends OK with a finite
+    state and summaries, or with another status and NaN outputs; no silent non-finite value."""
+    th = np.r_[np.geomspace(1e-6, 0.05, 24) * np.resize([1, -1], 24), 0.5, -1.0, 2.0, -2.5]
+    ics = np.column_stack([np.resize([2.0, -1.0, 0.5], 28), np.resize([1.0, 2.0, -2.5], 28), th])
+    r = js.run_ensemble(ics, controller=js.load_shaped(), t_final=5.0, max_steps=4000, x64=x64, progress=False)
+    ok = r.status == Status.OK
+    assert ok[24:].all()                                     # the ordinary starts run through
+    fields = np.column_stack([r.q_final, r.p_final, r.u_energy, r.min_abs_theta])
+    assert np.all(np.isfinite(fields[ok])) and np.all(r.min_abs_theta[ok] > 0)
+    assert np.all(np.isnan(r.q_final[~ok])) and np.all(np.isin(r.status[~ok], [s.value for s in Status]))
