@@ -7,7 +7,8 @@ Two charts of the same system, both as ``f(t, y, args)`` with ``args = ClosedLoo
   closed loop is port-Hamiltonian with \(H_d = \tfrac12 p^\top M^{-1} p + \tfrac12 w^\top L w\)
   and \(D_d = D + \hat D + D_i\) (eq. 15-16), so ``w`` stays in the bounded set
   \(H_d \le H_d(0)\) and the right-hand side needs no trigonometry. The ensemble engine
-  integrates in this chart.
+  integrates in this chart. Another energy-shaping law (`jaxsleigh.ShapedGains`) replaces
+  \(\tfrac12 w^\top L w\) by its own potential \(V(w)\) here (`jaxsleigh.model.w_laws`).
 
 Along either, \(\dot H_d = -\nabla_p H^\top D_d \nabla_p H \le 0\) (eq. 18).
 """
@@ -101,7 +102,8 @@ def vector_field_law_control(t, y, args: ClosedLoop):
 
 
 def closed_loop_hamiltonian(y, args: ClosedLoop):
-    """\\(H_d(q, p) = \\tfrac12 p^\\top M^{-1} p + \\tfrac12 w(q)^\\top L w(q)\\) (eq. 15)."""
+    """\\(H_d(q, p) = \\tfrac12 p^\\top M^{-1} p + V(w(q))\\), \\(V = \\tfrac12 w^\\top L w\\) for the paper's law
+    (eq. 15), the law's own potential for another w-chart law (`jaxsleigh.model.w_laws`)."""
     return hamiltonian(y[3:], args.plant) + potential(q_to_w(y[:3]), args.controller)
 
 
