@@ -59,6 +59,7 @@ def test_tuners_keep_the_best_feasible_and_count_the_budget(problem):
         else:                                                # nothing feasible: nothing to keep, and it says so
             assert run.x is None and run.value == float("inf")
     assert grad.history[0]["feasible"]                       # starts at the reference: within its own budgets
+    assert all(r["gradient_finite"] for r in grad.history)
 
 
 def test_a_law_outside_the_w_chart_or_with_a_zero_leaf_is_refused():

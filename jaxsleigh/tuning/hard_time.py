@@ -117,7 +117,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
                         segment=cfg.segment)
 
     ref = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), paper_gains() if reference is None else reference)
-    _, eq_ref, s_ref, bad_ref = jax.jit(lambda c: _figures(run(c), cfg))(ref)
+    _, eq_ref, s_ref, _ = jax.jit(lambda c: _figures(run(c), cfg))(ref)
     budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
     floor = float(s_ref) - cfg.settled_margin
     lb = jnp.log(jnp.asarray(budgets, dtype))
@@ -153,32 +153,50 @@ def _host(aux) -> dict:
     return {k: np.asarray(v, np.float64).tolist() for k, v in aux.items()}
 
 
+class _Record:
+    """The tuners' shared bookkeeping: one history row per evaluation (trajectory-seconds and wall time so far), the
+    progress callback, and the best feasible point."""
+
+    def __init__(self, problem: HardTimeProblem, progress: Optional[Callable]):
+        self.problem, self.progress = problem, progress
+        self.best, self.history, self.t0 = None, [], time.perf_counter()
+
+    def add(self, x, f, aux) -> float:
+        f = float(f)
+        feas = bool(aux["feasible"]) and np.isfinite(f)
+        n = len(self.history) + 1
+        row = {"value": f, "feasible": feas, "trajectory_seconds": n * self.problem.n * self.problem.cfg.t_final,
+               "wall_s": time.perf_counter() - self.t0, **_host(aux)}
+        self.history.append(row)
+        if self.progress:
+            self.progress(n - 1, row)
+        if feas and (self.best is None or f < self.best[1]):
+            self.best = (np.asarray(x, np.float64), f, _host(aux))
+        return f
+
+    def result(self) -> TuneRun:
+        return TuneRun(*(self.best if self.best else (None, float("inf"), {})), self.history)
+
+
 def tune_by_gradient(problem: HardTimeProblem, *, steps: int = 40, lr: float = 0.05, b1: float = 0.5, x0=None,
                      progress: Optional[Callable] = None) -> TuneRun:
     """Adam on \\(f\\) from ``x0`` (default ``problem.x0``); keeps the best feasible iterate. A non-finite gradient
-    stops the run (reported in the history). ``b1`` is Adam's momentum: lower than optax's 0.9 by default, because a
+    stops the run (each row says ``gradient_finite``). ``b1`` is Adam's momentum: lower than optax's 0.9 by default, because a
     budget's penalty switches on abruptly and momentum then carries the iterate far past the budget's edge (a first
     run with 0.9 lost its way after 7 steps: docs/evidence/shaped-energy.md)."""
     x = jnp.asarray(problem.x0 if x0 is None else x0)
     opt = optax.adam(lr, b1=b1)
     state = opt.init(x)
-    best, hist, t0 = None, [], time.perf_counter()
-    for i in range(steps):
+    rec = _Record(problem, progress)
+    for _ in range(steps):
         (f, aux), g = problem.value_and_grad(x)
-        f = float(f)
-        feas = bool(aux["feasible"]) and np.isfinite(f)
-        row = {"value": f, "feasible": feas, "trajectory_seconds": (i + 1) * problem.n * problem.cfg.t_final,
-               "wall_s": time.perf_counter() - t0, **_host(aux)}
-        hist.append(row)
-        if progress:
-            progress(i, row)
-        if feas and (best is None or f < best[1]):
-            best = (np.asarray(x, np.float64), f, _host(aux))
-        if not bool(jnp.all(jnp.isfinite(g))):
+        rec.add(x, f, aux)
+        rec.history[-1]["gradient_finite"] = finite = bool(jnp.all(jnp.isfinite(g)))
+        if not finite:                          # said in the history, not hidden: the run stops there
             break
         updates, state = opt.update(g, state, x)
         x = optax.apply_updates(x, updates)
-    return TuneRun(*(best if best else (None, float("inf"), {})), hist)
+    return rec.result()
 
 
 def tune_by_cma(problem: HardTimeProblem, *, evaluations: int = 120, population: int = 12, sigma0: float = 0.3,
@@ -187,24 +205,14 @@ def tune_by_cma(problem: HardTimeProblem, *, evaluations: int = 120, population:
     feasible candidate."""
     rng = np.random.default_rng(seed)
     state = cma_init(np.asarray(problem.x0 if x0 is None else x0, np.float64), sigma0)
-    best, hist, t0, done = None, [], time.perf_counter(), 0
-    while done < evaluations:
+    rec = _Record(problem, progress)
+    while len(rec.history) < evaluations:
         xs, ys = cma_ask(state, rng, population)
         scores = []
-        for x in xs[: evaluations - done]:
-            f, aux = problem.value(jnp.asarray(x))
-            f = float(f)
-            feas = bool(aux["feasible"]) and np.isfinite(f)
-            done += 1
-            row = {"value": f, "feasible": feas, "trajectory_seconds": done * problem.n * problem.cfg.t_final,
-                   "wall_s": time.perf_counter() - t0, **_host(aux)}
-            hist.append(row)
-            if progress:
-                progress(done - 1, row)
-            if feas and (best is None or f < best[1]):
-                best = (np.asarray(x, np.float64), f, _host(aux))
+        for x in xs[: evaluations - len(rec.history)]:
+            f = rec.add(x, *problem.value(jnp.asarray(x)))
             scores.append(f if np.isfinite(f) else 1e6)
         if len(scores) < len(xs):
             break
         state = cma_tell(state, ys, np.asarray(scores))
-    return TuneRun(*(best if best else (None, float("inf"), {})), hist)
+    return rec.result()
