@@ -14,10 +14,11 @@ import pytest
 
 import jaxsleigh as js
 from jaxsleigh.errors import FlaggedStartsWarning
-from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.model.closed_loop import ClosedLoop
 from jaxsleigh.integrate.engine import check_ics, drive_final, initial_w, make_horizon
 from jaxsleigh.studies.ensemble import SUMMARY_FIELDS, run_ensemble
 from jaxsleigh.status import Status
+from numpy_field import numpy_field  # noqa: E402
 
 
 def _ics(n, seed=0, theta_lo=0.3):
@@ -173,10 +174,8 @@ def _radau(y0, t_final):
     from scipy.integrate import solve_ivp
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
-        f = jax.jit(lambda y: vector_field(0.0, y, args))
-        jac = jax.jit(jax.jacfwd(lambda y: vector_field(0.0, y, args)))
-        sol = solve_ivp(lambda t, y: np.asarray(f(jnp.asarray(y))), (0.0, t_final), np.asarray(y0, float),
-                        method="Radau", rtol=1e-10, atol=1e-10, jac=lambda t, y: np.asarray(jac(jnp.asarray(y))))
+        f, jac = numpy_field(args)
+        sol = solve_ivp(f, (0.0, t_final), np.asarray(y0, float), method="Radau", rtol=1e-10, atol=1e-10, jac=jac)
     assert sol.status == 0
     return sol.y[:, -1]
 

@@ -21,14 +21,14 @@ records the gap.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-from jaxsleigh.model.closed_loop import ClosedLoop, vector_field
+from jaxsleigh.model.closed_loop import ClosedLoop
 from jaxsleigh.status import Status
+from numpy_field import numpy_field  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
@@ -56,12 +56,10 @@ def radau_reference():
     t_eval = np.linspace(0.0, T_FINAL, int(round(T_FINAL / (DT * SAVE_EVERY))) + 1)
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
-        f = jax.jit(lambda t, y: vector_field(t, y, args))
-        jac = jax.jit(jax.jacfwd(lambda y: vector_field(0.0, y, args)))
+        f, jac = numpy_field(args)
         refs = []
         for y0 in ICS:
-            sol = solve_ivp(lambda t, y: np.asarray(f(t, jnp.asarray(y))), (0.0, T_FINAL), y0, method="Radau",
-                            rtol=1e-10, atol=1e-12, jac=lambda t, y: np.asarray(jac(jnp.asarray(y))), t_eval=t_eval)
+            sol = solve_ivp(f, (0.0, T_FINAL), y0, method="Radau", rtol=1e-10, atol=1e-12, jac=jac, t_eval=t_eval)
             assert sol.status == 0, sol.message
             refs.append(sol.y.T)
     return t_eval, np.array(refs)

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -24,6 +23,7 @@ from jaxsleigh.studies.basin import sample_starts
 from jaxsleigh.model.lanes import check_lanes, lane_count, stack_gains, stack_plants
 from jaxsleigh.model.params import Gains, PlantParams, gains, load_gains, plant_params
 from jaxsleigh.studies.sweep import apply_params, load_sweep, parse_param, save_sweep, sweep
+from numpy_field import numpy_field  # noqa: E402
 
 # starts that settle within a short horizon under the tuned gains (and some that do not)
 STARTS = sample_starts(6, seed=3, x="-1:1", y="-1:1", theta="0.3:1.5")
@@ -117,9 +117,8 @@ def _reference_final(y0, plant, g, t_final):
 
     args = jaxsleigh.ClosedLoop(plant, g)
     with jax.enable_x64(True):
-        f = jax.jit(lambda y: jaxsleigh.vector_field(0.0, y, args))
-        sol = solve_ivp(lambda t, y: np.asarray(f(jnp.asarray(y))), (0.0, t_final), y0, method="DOP853",
-                        rtol=1e-10, atol=1e-12)
+        f, _ = numpy_field(args)
+        sol = solve_ivp(f, (0.0, t_final), y0, method="DOP853", rtol=1e-10, atol=1e-12)
     assert sol.success
     return sol.y[:, -1]
 
