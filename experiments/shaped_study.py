@@ -1,13 +1,19 @@
-"""The shaped-energy family tuned by gradient and by CMA-ES on the same objective (issue 21).
+"""A law family tuned by gradient and by CMA-ES on the same objective (issue 21): the shaped-energy family, the
+paper's own 7 gains, or a literature law.
 
-    python experiments/shaped_study.py [--n 1024] [--steps 40] [--cma-factor 3] [--out docs/figures/shaped_study.json]
-                                       [--write-preset]
+    python experiments/shaped_study.py [--family shaped|paper|aicardi] [--n 1024] [--steps 40] [--cma-factor 3]
+                                       [--out docs/figures/<family>_study.json] [--write-preset]
 
 Objective (`jaxsleigh.tuning.hard_time`): median + 0.5 x 90th percentile of the hard settling time T_0.05 over
 100 s, with budgets of the paper's gains' control energy at the 25th, 50th, 75th and 90th percentiles on the
 same starts, and no fewer starts settled. Training starts: ``--n`` starts, half `UniformStarts` (seed 11), half
-`WideStarts` (seed 12). Family: `jaxsleigh.ShapedGains`, 15 positive parameters in logarithm, started from the
-paper's gains with a negligible pseudo-Huber part (B = 0.001, C = 1, s = 1).
+`WideStarts` (seed 12). Families (``--family``, coordinates of `jaxsleigh.tuning.law.law_coordinates`):
+
+* ``shaped``: `jaxsleigh.ShapedGains`, 15 positive parameters in logarithm, started from the paper's gains with a
+  negligible pseudo-Huber part (B = 0.001, C = 1, s = 1); ``--write-preset`` writes the preset ``shaped``;
+* ``paper``: the paper's `jaxsleigh.Gains` in their 7 admissible coordinates, started from the paper's gains;
+* ``aicardi``: `jaxsleigh.controllers.aicardi.AicardiLaw`'s 4 positive gains in logarithm, from its defaults
+  (its plant model is not tuned).
 
 * gradient: Adam (lr 0.05, momentum b1 = 0.5) on the implicit-function derivative (`jaxsleigh.tuning.event_time`), ``--steps``
   evaluations;
@@ -34,20 +40,39 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+def host(law):
+    """The law with its array leaves as float64 NumPy arrays (what run_ensemble takes from a user)."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), law)
+
+
+def law_dict(law) -> dict:
+    """``{leaf name: value}`` of a law's numeric leaves (JSON-ready)."""
+    from jaxsleigh.model.controller import law_leaf_names
+
+    return {k: np.asarray(v, np.float64).tolist() for k, v in law_leaf_names(host(law)).items()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--family", choices=("shaped", "paper", "aicardi"), default="shaped")
     ap.add_argument("--n", type=int, default=1024)
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--cma-factor", type=int, default=3)
-    ap.add_argument("--out", default=str(ROOT / "docs/figures/shaped_study.json"))
+    ap.add_argument("--out", default=None, help="default docs/figures/<family>_study.json")
     ap.add_argument("--write-preset", action="store_true")
     args = ap.parse_args(argv)
+    if args.write_preset and args.family != "shaped":
+        ap.error("--write-preset writes the shaped preset: use it with --family shaped")
+    args.out = args.out or str(ROOT / f"docs/figures/{args.family}_study.json")
 
     import jax
     import jaxsleigh as js
     from jaxsleigh.model.params import paper_gains
     from jaxsleigh.model.shaped_law import shaped_from_gains
     from jaxsleigh.tuning.hard_time import HardTimeConfig, hard_time_problem, tune_by_cma, tune_by_gradient
+    from jaxsleigh.tuning.law import law_coordinates
     from jaxsleigh.tuning.starts import UniformStarts, WideStarts
     sys.path.insert(0, str(ROOT / "experiments"))
     from preset_effort import figures, readme_starts, wide_starts
@@ -56,13 +81,19 @@ def main(argv=None) -> int:
     uni = UniformStarts()(np.random.default_rng(11), half)
     starts = np.concatenate([np.column_stack([uni, np.zeros((half, 2))]),
                              WideStarts()(np.random.default_rng(12), args.n - half)])
-    law0 = shaped_from_gains(paper_gains(), B=(1e-3, 1e-3, 1e-3))
+    if args.family == "shaped":
+        law0 = shaped_from_gains(paper_gains(), B=(1e-3, 1e-3, 1e-3))
+    elif args.family == "paper":
+        law0 = paper_gains()
+    else:
+        law0 = js.make_controller(args.family)
+    coords = law_coordinates(law0)
     cfg = HardTimeConfig(energy_margin=1.0)
     out = {"command": ["python", "experiments/shaped_study.py"] + list(argv if argv is not None else sys.argv[1:]),
            "dtype": "float32", "machine": {"arch": platform.machine(), "cpu_count": __import__("os").cpu_count(),
                                            "jax_backend": jax.default_backend(), "jax": jax.__version__},
-           "config": cfg._asdict(), "n_train": args.n, "start_law": {k: np.asarray(v).tolist()
-                                                                      for k, v in law0._asdict().items()}}
+           "family": args.family, "config": cfg._asdict(), "n_train": args.n,
+           "coordinates": list(coords.names), "x0": coords.x0.tolist()}
     path = Path(args.out)
 
     def save():
@@ -95,18 +126,19 @@ def main(argv=None) -> int:
     out["cma"]["best_within_gradient_budget"] = min(within)[0] if within else None
     for key, run in runs.items():
         out[key].update(best_value=run.value, best_figures=run.figures,
-                        law=None if run.x is None else {k: np.asarray(v, np.float64).tolist()
-                                                        for k, v in prob.law_of(run.x)._asdict().items()},
+                        x=None if run.x is None else np.asarray(run.x).tolist(),
+                        law=None if run.x is None else law_dict(prob.law_of(run.x)),
                         trajectory_seconds=out[key]["history"][-1]["trajectory_seconds"],
                         wall_s=out[key]["history"][-1]["wall_s"])
     save()
 
     # held-out judgement
-    from jaxsleigh.model.shaped_law import shaped_gains
     laws = {"paper": {"gains": paper_gains()}}
-    for key in runs:
-        if out[key]["law"] is not None:
-            laws[key] = {"controller": shaped_gains(**out[key]["law"])}
+    if args.family != "paper":
+        laws["start"] = {"controller": law0}
+    for key, run in runs.items():
+        if run.x is not None:
+            laws[key] = {"controller": host(prob.law_of(run.x))}
     out["held_out"] = {}
     for dist, draw in (("readme", readme_starts), ("wide", wide_starts)):
         ics = draw(2048)

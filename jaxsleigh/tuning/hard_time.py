@@ -2,8 +2,9 @@ r"""Tuning on the objective users measure: quantiles of the hard settling time u
 control energy, by gradient (the implicit-function derivative of `jaxsleigh.tuning.event_time`) or by CMA-ES on the
 same numbers.
 
-For a law with parameters \(\vartheta\) (its leaves declared ``positive``, optimised as \(x = \log \vartheta\)) and a
-batch of starts,
+For a law with parameters \(\vartheta\), moved in unconstrained coordinates \(x\) (`jaxsleigh.tuning.law.law_coordinates`:
+a leaf declared ``positive`` as its logarithm, the paper's gains as `jaxsleigh.tuning.params.GainParams`) and a batch of
+starts,
 
 \[ f(x) = \sum_j a_j\, \frac{Q_{q_j}(T)}{t_f} + \rho \sum_k \max\big(0,\ \log Q_{r_k}(E) - \log E^{max}_k\big)^2
           + \rho\, \max(0,\ s_{min} - \bar s)^2 , \]
@@ -28,15 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jax.flatten_util import ravel_pytree
 
+from ..controllers.actuators import is_sampled
 from ..integrate.engine import check_ics, initial_w
 from ..model.charts import chart_for
-from ..model.controller import positive_names
 from ..model.params import PlantParams, as_plant
 from ..status import Status
 from .cmaes import cma_ask, cma_init, cma_tell
 from .event_time import settling
+from .law import law_coordinates
 
 __all__ = ["HardTimeConfig", "HardTimeProblem", "hard_time_problem", "tune_by_gradient", "tune_by_cma", "TuneRun"]
 
@@ -88,43 +89,37 @@ def _figures(r, cfg: HardTimeConfig):
 
 def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParams] = None,
                       cfg: HardTimeConfig = HardTimeConfig(), dtype=jnp.float32) -> HardTimeProblem:
-    """The objective of ``law``'s positive leaves on ``starts`` (N, 3|5), the budgets from ``reference`` (default: the
-    paper's gains) on the same starts. Both laws must be w-chart laws (`jaxsleigh.model.w_laws`)."""
+    """The objective of ``law``'s gains on ``starts`` (N, 3|5), the budgets from ``reference`` (default: the paper's
+    gains) on the same starts. ``law`` is any law the engine integrates without a sampler (the paper's `Gains`, a
+    `ShapedGains`, a literature law of `jaxsleigh.controllers`), moved in its coordinates
+    (`jaxsleigh.tuning.law.law_coordinates`: the paper's gains in their 7 admissible numbers, another law's positive
+    gains in logarithm)."""
     from ..model.params import paper_gains
 
+    if is_sampled(law):
+        raise ValueError("hard_time_problem tunes a law the adaptive engine integrates; a sampled law "
+                         "(jaxsleigh.controllers.actuators.Sampled) is tuned by jaxsleigh.tuning.tune_law")
     ics5, status0 = check_ics(starts, name="training start")
     if np.any(status0 != Status.OK):
         raise ValueError("training starts must all be valid (finite, theta0 != 0)")
-    chart = chart_for(law)
-    if chart.name != "w":
-        raise ValueError("hard_time_problem tunes a w-chart law (jaxsleigh.Gains or jaxsleigh.ShapedGains)")
-    positive = positive_names(law)
-    names = type(law)._fields
-    if set(names) - set(positive):
-        raise ValueError(f"every leaf of the law must be declared positive to be tuned in logarithm, got {names}")
     plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), as_plant(plant))
-    y0w = initial_w(ics5, status0, dtype, chart)
-    x0, unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: jnp.log(jnp.asarray(a, dtype)), law))
-    x0 = np.asarray(x0, np.float64)
-    if not np.all(np.isfinite(x0)):
-        raise ValueError("every tuned leaf must be > 0 at the start (B = 0 has no logarithm: start from B > 0)")
+    coords = law_coordinates(law, dtype=dtype)
+    ref = paper_gains() if reference is None else reference
+    y0_law, y0_ref = (initial_w(ics5, status0, dtype, chart_for(c)) for c in (law, ref))    # each in its own chart
 
-    def law_of(x):
-        return jax.tree_util.tree_map(jnp.exp, unravel(jnp.asarray(x, dtype)))
-
-    def run(c):
+    def run(c, y0w):
         return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps, max_steps=cfg.max_steps, reverse=True,
                         segment=cfg.segment)
 
-    ref = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), paper_gains() if reference is None else reference)
-    _, eq_ref, s_ref, _ = jax.jit(lambda c: _figures(run(c), cfg))(ref)
+    ref_run = jax.jit(lambda c: _figures(run(c, y0_ref), cfg))
+    _, eq_ref, s_ref, _ = ref_run(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), ref))
     budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
     floor = float(s_ref) - cfg.settled_margin
     lb = jnp.log(jnp.asarray(budgets, dtype))
     weights = jnp.asarray(cfg.time_weights, dtype)
 
     def objective(x):
-        r = run(law_of(x))
+        r = run(coords.law_of(x), y0_law)
         tq, eq, settled, n_bad = _figures(r, cfg)
         over = jnp.maximum(jnp.log(eq) - lb, 0.0)
         short = jnp.maximum(floor - settled, 0.0)
@@ -136,7 +131,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
 
     value = jax.jit(objective)
     vg = jax.jit(jax.value_and_grad(objective, has_aux=True))
-    return HardTimeProblem(x0, law_of, value, vg, budgets, floor, int(ics5.shape[0]), cfg)
+    return HardTimeProblem(coords.x0, coords.law_of, value, vg, budgets, floor, int(ics5.shape[0]), cfg)
 
 
 class TuneRun(NamedTuple):

@@ -10,7 +10,7 @@ has its own tuner with an admissible parametrisation, checkpoints and checks (`j
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Optional, Sequence
+from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -23,9 +23,10 @@ from ..model.controller import as_controller, is_paper_law, law_leaf_names, posi
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import PlantParams, as_plant
 from ..status import Status
+from .params import GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
 
-__all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names"]
+__all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names", "LawCoordinates", "law_coordinates"]
 
 
 class LawTuneResult(NamedTuple):
@@ -59,6 +60,79 @@ def _split(law, tune):
     if bad or not chosen:
         raise ValueError(f"tune must name parameters of the law ({', '.join(names)}), got {list(tune or [])}")
     return leaves, tree, names, [names.index(n) for n in chosen]
+
+
+class LawCoordinates(NamedTuple):
+    r"""A law's tuned parameters as one flat vector \(x\) in which every value is admissible.
+
+    Attributes:
+      x0: (n,) float64, the starting law's coordinates.
+      law_of: ``x -> law`` (traceable; the leaves not tuned are the starting law's, unchanged).
+      names: (n,) what each coordinate is (``"log gamma"``, ``"kp"``, ``"d_chol[1]"``).
+    """
+
+    x0: np.ndarray
+    law_of: Callable
+    names: tuple
+
+
+def law_coordinates(law, tune: Optional[Sequence[str]] = None, *, dtype=jnp.float32) -> LawCoordinates:
+    r"""The unconstrained coordinates the tuners move in.
+
+    * the paper's law (`jaxsleigh.Gains`): `jaxsleigh.tuning.params.GainParams` flattened, \(x = (\log L,
+      \log k, c_0, c_1, c_2)\), 7 numbers, \(\hat D = C C^\top + \delta I\) (``tune`` must be ``None``);
+    * any other law: the leaves named in ``tune`` (default `gain_names`), each leaf the law declares ``positive``
+      as its logarithm (it stays positive), the others as they are.
+
+    ``law_of(x)`` computes in ``dtype``. Raises ``ValueError`` for a positive leaf that is not > 0."""
+    if is_paper_law(law):
+        if tune is not None:
+            raise ValueError("the paper's gains are tuned as a whole here (7 coordinates); tune=None")
+        p = params_from_gains(law)
+        x0 = np.concatenate([np.ravel(a) for a in p]).astype(np.float64)
+
+        def gains_of(x):
+            x = jnp.asarray(x, dtype)
+            return gains_from_params(GainParams(x[0:3], x[3], x[4:7]))
+
+        names = ("log L1", "log L2", "log L3", "log k", "d_chol[0]", "d_chol[1]", "d_chol[2]")
+        return LawCoordinates(x0, gains_of, names)
+    leaves, tree, names, idx = _split(law, tune)
+    positive = positive_names(law)
+    logs = [names[i] in positive for i in idx]             # declared positive: optimised as a logarithm
+    parts, labels = [], []
+    for i, lg in zip(idx, logs):
+        try:
+            v = np.asarray(leaves[i], np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"the law's leaf {names[i]!r} is {leaves[i]!r}, not a number: only numeric leaves (gains) "
+                             f"can be tuned") from None
+        if lg and not np.all(v > 0):
+            raise ValueError(f"{names[i]} must be > 0 to be tuned (the law declares it positive), got {leaves[i]!r}")
+        parts.append(np.ravel(np.log(v) if lg else v))
+        labels += [("log " if lg else "") + names[i] + (f"[{j}]" if v.ndim else "") for j in range(v.size)]
+    shapes = [np.shape(leaves[i]) for i in idx]
+
+    def law_of(x):
+        x = jnp.asarray(x, dtype)
+        full, o = list(leaves), 0
+        for i, shape, lg in zip(idx, shapes, logs):
+            n = int(np.prod(shape, dtype=int))
+            p = x[o:o + n].reshape(shape)
+            full[i], o = (jnp.exp(p) if lg else p), o + n
+        return jax.tree_util.tree_unflatten(tree, full)
+
+    return LawCoordinates(np.concatenate(parts), law_of, tuple(labels))
+
+
+def _host_law(start, law, tune):
+    """``law`` with its tuned leaves as float64 NumPy arrays and every other leaf ``start``'s own, bit for bit."""
+    leaves, tree, _, idx = _split(start, tune)
+    new = jax.tree_util.tree_leaves(law)
+    final = list(leaves)
+    for i in idx:
+        final[i] = np.asarray(new[i], np.float64)
+    return jax.tree_util.tree_unflatten(tree, final)
 
 
 def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
@@ -127,26 +201,11 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64
-        leaves, tree, names, idx = _split(law, tune)
-        positive = positive_names(law)
-        logs = [names[i] in positive for i in idx]        # declared positive: optimised as a logarithm
-        for i, lg in zip(idx, logs):
-            if lg and not np.all(np.asarray(leaves[i], np.float64) > 0):
-                raise ValueError(f"{names[i]} must be > 0 to be tuned (the law declares it positive), got {leaves[i]!r}")
-        params = [jnp.log(jnp.asarray(leaves[i], dtype)) if lg else jnp.asarray(leaves[i], dtype)
-                  for i, lg in zip(idx, logs)]
+        coords = law_coordinates(law, tune, dtype=dtype)
+        params = jnp.asarray(coords.x0, dtype)
 
-        def value_of(p, lg):
-            return jnp.exp(p) if lg else p
-
-        def rebuild(ps):
-            full = [np.asarray(x, dtype) for x in leaves]          # constants (concrete under jit)
-            for i, p, lg in zip(idx, ps, logs):
-                full[i] = value_of(p, lg)
-            return jax.tree_util.tree_unflatten(tree, full)
-
-        def f(ps):
-            return law_loss(rebuild(ps), y0, plant, loss, n_attempts=n_attempts)
+        def f(x):
+            return law_loss(coords.law_of(x), y0, plant, loss, n_attempts=n_attempts)
 
         step_fn = jax.jit(jax.value_and_grad(f, has_aux=True))
         opt = optax.adam(lr)
@@ -154,7 +213,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         best, hist = None, {"loss": [], "energy": [], "valid": []}
         for _ in range(steps):
             (value, aux), grads = step_fn(params)
-            valid = bool(aux["valid"]) and all(bool(jnp.all(jnp.isfinite(g))) for g in grads)
+            valid = bool(aux["valid"]) and bool(jnp.all(jnp.isfinite(grads)))
             hist["loss"].append(float(value))
             hist["energy"].append(float(aux["energy"]))
             hist["valid"].append(valid)
@@ -167,8 +226,5 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         if best is None:
             raise ValueError("the starting law is not a valid candidate (a training start failed or the loss is not "
                              "finite); check it with jaxsleigh.run_ensemble(starts, controller=law)")
-        final = list(leaves)
-        for i, p, lg in zip(idx, best[0], logs):
-            final[i] = np.asarray(value_of(p, lg), np.float64)
-        tuned = jax.tree_util.tree_unflatten(tree, final)
+        tuned = _host_law(law, coords.law_of(best[0]), tune)
     return LawTuneResult(tuned, best[1], best[2], {k: np.asarray(v) for k, v in hist.items()})
