@@ -191,3 +191,20 @@ def test_readme_preset_numbers_are_the_committed_measurements():
     tuning = (DOCS / "how-to" / "tuning.md").read_text()
     assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning
 
+
+
+def test_family_study_tables_quote_their_json():
+    """The shaped-energy page's tables of the two tuner studies quote `experiments/shaped_study.py`'s JSON (shaped
+    and paper families): each tuner's best training objective, and every held-out median T and energy ratio row."""
+    import json
+
+    page = " ".join((DOCS / "evidence" / "shaped-energy.md").read_text().split())
+    for fam, label in (("shaped", "shaped family, gradient's best (`shaped`)"), ("paper", "paper family, gradient's best")):
+        d = json.loads((DOCS / "figures" / f"{fam}_study.json").read_text())
+        assert d["dtype"] == "float32" and d["n_train"] == 1024
+        for tuner in ("gradient", "cma"):
+            assert f"{d[tuner]['best_value']:.4f}" in page, (fam, tuner)
+        for dist, name in (("readme", "README"), ("wide", "wide")):
+            f = d["held_out"][dist]["gradient"]
+            ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
+            assert f"| {label} | {name} | {f['T_median']:.1f} | {ratios} |" in page, (fam, dist)
