@@ -86,7 +86,8 @@ def main(argv=None) -> int:
     elif args.family == "paper":
         law0 = paper_gains()
     else:
-        law0 = js.make_controller(args.family)
+        from jaxsleigh.controllers.registry import make_controller
+        law0 = make_controller(args.family)
     coords = law_coordinates(law0)
     cfg = HardTimeConfig(energy_margin=1.0)
     out = {"command": ["python", "experiments/shaped_study.py"] + list(argv if argv is not None else sys.argv[1:]),
