@@ -114,3 +114,23 @@ def test_a_literature_law_is_tuned_on_the_same_objective():
     assert np.all(r.status == 0)
     np.testing.assert_allclose(float(aux["T_quantiles"][0]), np.median(T), rtol=1e-3)
     assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g))) > 0
+
+
+def test_a_non_finite_gradient_stops_the_gradient_tuner_and_says_so():
+    """Where the objective's gradient is NaN (Aicardi's lifted law near the goal over long horizons,
+    docs/evidence/shaped-energy.md), the row says ``gradient_finite: False`` and the run stops there: no step is
+    taken with it and nothing non-finite becomes the best point."""
+    from jaxsleigh.tuning.hard_time import HardTimeProblem
+
+    calls = []
+
+    def value_and_grad(x):
+        calls.append(np.asarray(x))
+        aux = {"T_quantiles": jnp.array([10.0]), "energy_quantiles": jnp.array([1.0]), "settled": jnp.array(1.0),
+               "n_bad": jnp.array(0), "feasible": jnp.array(True), "mean_steps": jnp.array(100.0)}
+        return (jnp.asarray(0.1), aux), jnp.array([jnp.nan, 1.0])
+
+    prob = HardTimeProblem(np.zeros(2), None, None, value_and_grad, np.ones(1), 0.5, 4, CFG)
+    run = tune_by_gradient(prob, steps=5)
+    assert len(calls) == 1 and [r["gradient_finite"] for r in run.history] == [False]
+    np.testing.assert_array_equal(run.x, np.zeros(2))        # the evaluated point itself is finite and feasible
