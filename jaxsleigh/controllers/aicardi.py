@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 
+from ..model.charts import PhysicalChart
 from ..model.params import PlantParams
 from .lift import velocity_loop
 
@@ -39,14 +40,15 @@ def polar_coordinates(q):
     \((-\pi, \pi]\)) the angle between the heading and that line. At the goal (\(e = 0\)) the line is
     undefined: the function returns \(e = 0\), \(\vartheta = 0\), \(\alpha = -\theta\) (wrapped), finite
     with finite derivatives (the safe branch of a double ``jnp.where``). "At the goal" means
-    \(\max(|x|, |y|) \le \sqrt{\text{tiny}}\) of the dtype (about \(10^{-19}\) in float32, \(10^{-154}\) in
-    float64), below which the derivatives the velocity loop takes would underflow.
+    \(s = \max(|x|, |y|) \le \text{max}^{-1/4}\) of the dtype (about \(7 \times 10^{-10}\) in float32,
+    \(3 \times 10^{-78}\) in float64): the velocity loop differentiates \(\vartheta\) once and a tuner's reverse pass
+    twice more, and their factors up to \(1/s^4\) then stay finite (with \(\sqrt{\text{tiny}}\), \(10^{-19}\) in
+    float32, the gradient of a 100 s horizon was NaN). The trajectory is then far inside any settling ball.
     """
     x, y, th = q[0], q[1], q[2]
-    # scale-invariant: (x, y) / max(|x|, |y|), so that neither e^2 nor the 1/e^2 of the derivatives
-    # underflows as e -> 0 (e decays like exp(-gamma t): 1e-19 after 45 s, below float32's sqrt(tiny))
+    # scale-invariant: (x, y) / max(|x|, |y|), so that e^2 does not underflow as e -> 0 (e decays like exp(-gamma t))
     s = jnp.maximum(jnp.abs(x), jnp.abs(y))
-    at_goal = s <= jnp.sqrt(jnp.finfo(jnp.result_type(s, jnp.float32)).tiny)
+    at_goal = s <= float(jnp.finfo(jnp.result_type(s, jnp.float32)).max) ** -0.25
     s_safe = jnp.where(at_goal, 1.0, s)
     xs = jnp.where(at_goal, -1.0, x / s_safe)          # a safe point on the goal's approach line
     ys = jnp.where(at_goal, 0.0, y / s_safe)
@@ -87,6 +89,9 @@ class AicardiLaw(NamedTuple):
     polynomial near 0); at \(e = 0\) `polar_coordinates` returns a safe finite value, so ``u`` is finite
     everywhere. The heading converges to 0 modulo \(2\pi\) (the law sees angles only through
     \(\alpha, \vartheta \in (-\pi, \pi]\)); \(\alpha = \pm\pi\) is repelling (\(\dot\alpha = \mp k\pi\) there).
+    So the law declares the physical chart that measures the heading modulo \(2\pi\)
+    (`jaxsleigh.model.charts.PhysicalChart`, ``heading_modulo=True``): \(T_\epsilon\) and \(\min|\theta|\) count
+    \(\theta = \pm 2\pi\) at the goal as the goal's heading.
 
     **What was checked.** The form of \(v\), \(\omega\) and \(V\), and the sign conventions above
     (\(\vartheta\) the angle of the vector from the vehicle to the goal, \(\alpha = \vartheta - \theta\)),
@@ -119,6 +124,7 @@ class AicardiLaw(NamedTuple):
     model: Any = PlantParams()
 
     name = "aicardi"
+    chart = PhysicalChart(heading_modulo=True)   # the heading converges to 0 modulo 2 pi
     positive = ("gamma", "k", "h", "K")          # the Lyapunov argument needs them > 0 (tuning keeps them so)
     citation = ("Aicardi, Casalino, Bicchi, Balestrino, 'Closed loop steering of unicycle-like vehicles via "
                 "Lyapunov techniques', IEEE Robot. Autom. Mag. 2(1):27-35, 1995")

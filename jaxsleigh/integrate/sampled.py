@@ -44,6 +44,7 @@ import numpy as np
 
 from ..controllers.actuators import check_sampler
 from ..controllers.paper import PaperLaw
+from ..model.charts import physical_chart_for
 from ..model.controller import FunctionLaw, apply_law, is_paper_law
 from ..model.params import PlantParams, plant_params
 from ..model.plant import open_loop, velocity
@@ -176,9 +177,10 @@ def _field(y, u, plant):
     return jnp.concatenate([qdot, pdot]).astype(y.dtype)
 
 
-def _qnorm(y):
-    """\\(|q|\\) per row of a batch ``y`` (N, 5)."""
-    return jnp.sqrt(jnp.sum(y[:, :3] * y[:, :3], axis=1))
+def _qnorm(y, chart):
+    """\\(|q|\\) per row of a batch ``y`` (N, 5), the heading measured as the law's chart measures it
+    (`jaxsleigh.model.charts.PhysicalChart`: modulo \\(2\\pi\\) for a law that declares so)."""
+    return jnp.sqrt(chart.q_norm2(y.T))
 
 
 def _row_axes(plant):
@@ -205,7 +207,7 @@ def _control(law, plant, y, buf, status, k, key0, noise, period, delay: int):
     return buf[0], jnp.concatenate([buf[1:], u_new[None]], axis=0)
 
 
-def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int):
+def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int, chart):
     """The plant over one period with ``u`` held: ``substeps`` RK4 steps of ``h``, tracking the entry time into
     the ball (linear interpolation of \\(|q|\\) inside a substep), \\(\\min |\\theta|\\) and whether every value stayed
     finite, and \\(\\max |q|\\). Returns ``(y_new, t_enter, min_th, finite, max_q)``."""
@@ -215,17 +217,17 @@ def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int):
         yy, t_in, mth, fin, mq = c
         y_new = step(yy, u)
         fin = fin & jnp.all(jnp.isfinite(y_new), axis=1)
-        r0, r1 = _qnorm(yy), _qnorm(y_new)
+        r0, r1 = _qnorm(yy, chart), _qnorm(y_new, chart)
         t0 = tk + j.astype(dtype) * h
         inside = r1 <= eps
         s = jnp.clip((r0 - eps) / jnp.where(r0 > r1, r0 - r1, jnp.ones_like(r0)), 0.0, 1.0)
         entry = jnp.where(r0 > eps, t0 + s * h, t_in)
         t_in = jnp.where(inside, entry, jnp.inf).astype(dtype)
-        mth = jnp.minimum(mth, jnp.abs(y_new[:, 2]))
+        mth = jnp.minimum(mth, chart.abs_theta(y_new.T))
         return (y_new, t_in, mth, fin, jnp.maximum(mq, r1)), None
 
     fin0 = jnp.all(jnp.isfinite(u), axis=1)
-    return jax.lax.scan(sub, (y, t_enter, min_th, fin0, _qnorm(y)), jnp.arange(substeps))[0]
+    return jax.lax.scan(sub, (y, t_enter, min_th, fin0, _qnorm(y, chart)), jnp.arange(substeps))[0]
 
 
 @partial(jax.jit, static_argnames=("K", "substeps", "delay", "save"))
@@ -235,11 +237,12 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save
     h = period / substeps
     eps_ = eps.astype(dtype)
     key0 = jax.random.PRNGKey(seed)
+    chart = physical_chart_for(law)
 
     valid = jnp.all(jnp.isfinite(y0), axis=1)
     y0 = jnp.where(valid[:, None], y0, jnp.zeros_like(y0))     # never step a bad start
     status0 = jnp.where(valid, int(Status.OK), int(Status.INVALID_INPUT)).astype(jnp.int32)
-    t_enter0 = jnp.where(_qnorm(y0) <= eps_, jnp.zeros((), dtype), jnp.inf).astype(dtype)
+    t_enter0 = jnp.where(_qnorm(y0, chart) <= eps_, jnp.zeros((), dtype), jnp.inf).astype(dtype)
     rows = jax.vmap(lambda y, u, pl: rk4_step(lambda t, yy, a: _field(yy, a, pl), 0.0, y, h, u),
                     in_axes=(0, 0, _row_axes(plant)))
 
@@ -250,7 +253,7 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save
         y, buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry
         u, buf = _control(law, plant, y, buf, status, k, key0, noise, period, delay)
         y_new, t_new, mth_new, fin, mq_new = _hold(step, y, u, t_enter, min_th, k.astype(dtype) * period, h, eps_,
-                                                   substeps)
+                                                   substeps, chart)
         ok = status == int(Status.OK)
         good = ok & fin
         status = jnp.where(ok & ~fin, int(Status.NONFINITE), status).astype(jnp.int32)
@@ -273,8 +276,8 @@ def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save
 
     buf0 = jnp.zeros((max(delay, 1), N, 2), dtype)
     zeros = jnp.zeros((N,), dtype)
-    carry0 = (y0, buf0, status0, t_enter0, jnp.abs(y0[:, 2]), zeros, zeros, jnp.zeros((N, 2), dtype), zeros,
-              _qnorm(y0))
+    carry0 = (y0, buf0, status0, t_enter0, chart.abs_theta(y0.T), zeros, zeros, jnp.zeros((N, 2), dtype), zeros,
+              _qnorm(y0, chart))
     carry, saved = jax.lax.scan(sample, carry0, jnp.arange(K))
     y, _, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry
 

@@ -13,12 +13,16 @@ A chart is a small static object (hashable: part of the compiled program) that t
 `WChart` is the paper's law, or another energy-shaping law of `jaxsleigh.model.w_laws`, in its w chart (eq. 15:
 port-Hamiltonian, \(H_d\) non-increasing, no trigonometry, the singular set \(w_1 = \theta = 0\));
 `PhysicalChart` is any other law ``u = law(q, v)``
-in the physical state. `chart_for` picks the chart of a controller.
+in the physical state; with ``heading_modulo=True`` it measures the heading modulo \(2\pi\) (for a law that steers
+\(\theta\) to 0 modulo \(2\pi\), e.g. `jaxsleigh.controllers.aicardi.AicardiLaw`). `chart_for` picks the chart of a
+controller.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import ClassVar
+
+import math
 
 import jax.numpy as jnp
 
@@ -27,7 +31,14 @@ from .closed_loop import (closed_loop_hamiltonian_w, state_from_w, state_to_w, v
 from .coordinates import f_w_inv
 from .w_laws import is_w_law, stiff_coeff
 
-__all__ = ["WChart", "PhysicalChart", "chart_for", "q_norm2_w"]
+__all__ = ["WChart", "PhysicalChart", "chart_for", "q_norm2_w", "heading_mod_2pi", "physical_chart_for"]
+
+
+def heading_mod_2pi(theta):
+    r"""\(\theta - 2\pi\,\mathrm{round}(\theta / 2\pi) \in [-\pi, \pi]\): the heading's distance to the nearest
+    multiple of \(2\pi\), signed (derivative 1 away from odd multiples of \(\pi\))."""
+    two_pi = 2.0 * math.pi
+    return theta - two_pi * jnp.round(theta / two_pi)
 
 
 def q_norm2_w(w):
@@ -85,8 +96,16 @@ class WChart:
 
 @dataclass(frozen=True)
 class PhysicalChart:
-    """Any law ``u = law(q, v)`` in the physical state ``y = (x, y, theta, p1, p2)``: no singular set, no
-    known non-increasing energy (the passivity monitor is off)."""
+    r"""Any law ``u = law(q, v)`` in the physical state ``y = (x, y, theta, p1, p2)``: no singular set, no
+    known non-increasing energy (the passivity monitor is off).
+
+    ``heading_modulo``: measure the heading modulo \(2\pi\) in \(|q|\) and \(|\theta|\) (`heading_mod_2pi`), so
+    that \(T_\epsilon\) counts a start that reaches the goal with \(\theta = \pm 2\pi\) (the same physical pose) as
+    settled. For a law that sees the heading only through wrapped angles and so steers it to 0 modulo \(2\pi\); a
+    law declares it with the class attribute ``chart = PhysicalChart(heading_modulo=True)``. The state itself (and
+    ``q_final``) keeps \(\theta\) as integrated."""
+
+    heading_modulo: bool = False
 
     name: ClassVar[str] = "q"
     singular: ClassVar[bool] = False
@@ -101,11 +120,16 @@ class PhysicalChart:
     def energy(self, y, args):
         return jnp.zeros(y.shape[1:], y.dtype)
 
+    def heading(self, y):
+        r"""\(\theta\) as the chart measures it: modulo \(2\pi\) with ``heading_modulo``, else as integrated."""
+        return heading_mod_2pi(y[2]) if self.heading_modulo else y[2]
+
     def q_norm2(self, y):
-        return y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+        th = self.heading(y)
+        return y[0] * y[0] + y[1] * y[1] + th * th
 
     def abs_theta(self, y):
-        return jnp.abs(y[2])
+        return jnp.abs(self.heading(y))
 
     def crossed(self, y, y_new):
         return jnp.zeros(y.shape[1:], bool)
@@ -122,8 +146,24 @@ class PhysicalChart:
 
 def chart_for(controller):
     """The chart a controller is integrated in: its own ``chart`` attribute if it declares one, the w chart
-    for a w-chart law (`jaxsleigh.model.w_laws`: the paper's `jaxsleigh.Gains`, `ShapedGains`), else the physical chart."""
+    for a w-chart law (`jaxsleigh.model.w_laws`: the paper's `jaxsleigh.Gains`, `ShapedGains`), else the physical chart.
+    An actuator piece that holds its law in a field ``law`` (saturation, sampling) is in the physical chart with the
+    heading convention of the law it wraps."""
     declared = getattr(type(controller), "chart", None)
     if declared is not None:
         return declared
-    return WChart() if is_w_law(controller) else PhysicalChart()
+    if is_w_law(controller):
+        return WChart()
+    inner = getattr(controller, "law", None)
+    if inner is not None:
+        wrapped = chart_for(inner)
+        if isinstance(wrapped, PhysicalChart):
+            return wrapped
+    return PhysicalChart()
+
+
+def physical_chart_for(controller) -> PhysicalChart:
+    """The physical chart with ``controller``'s heading convention, for a loop that runs in the physical state
+    whatever chart the law would have in the adaptive engine (the sampled-data loop)."""
+    chart = chart_for(controller)
+    return chart if isinstance(chart, PhysicalChart) else PhysicalChart()

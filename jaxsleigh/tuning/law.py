@@ -142,7 +142,7 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     for the held input. A lane that failed counts the whole horizon and energy 1 (values only; the candidate is
     then invalid)."""
     from ..integrate.sampled import solve_sampled
-    from ..model.charts import PhysicalChart
+    from ..model.charts import physical_chart_for
     from ..studies.sampled import plain_sampler, substeps_for
 
     smp = plain_sampler(law.sampler)
@@ -151,7 +151,8 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     ok = r.status == Status.OK
     q = jnp.where(jnp.isfinite(r.q), r.q, 0.0)                              # (N, K+1, 3); no NaN in the gradient
     y = jnp.moveaxis(jnp.concatenate([q, jnp.zeros(q.shape[:2] + (2,), q.dtype)], axis=-1), -1, 0)
-    phi = soft_indicator(y, jnp.asarray(cfg.eps, q.dtype), jnp.asarray(cfg.temperature, q.dtype), PhysicalChart())
+    phi = soft_indicator(y, jnp.asarray(cfg.eps, q.dtype), jnp.asarray(cfg.temperature, q.dtype),
+                         physical_chart_for(law.law))
     soft = smp.period * (jnp.sum(phi, axis=-1) - 0.5 * (phi[..., 0] + phi[..., -1]))
     T = jnp.asarray(cfg.t_final, q.dtype)
     zero = jnp.zeros_like(soft)
