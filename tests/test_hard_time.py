@@ -98,7 +98,8 @@ def test_a_literature_law_is_tuned_on_the_same_objective():
     """Aicardi's law (physical chart) on the hard-time objective: the objective's median T is the engine's own
     T_eps on the same starts (the heading measured modulo 2 pi, as the law's chart says), the plant model the law
     carries is not a coordinate, and the gradient is finite over the full 100 s horizon (it was NaN before the
-    goal's threshold in `polar_coordinates` kept the derivatives up to 1/e^4 finite: docs/evidence/shaped-energy.md)."""
+    goal threshold of `polar_coordinates` and the effort observer's sqrt(0) were made safe:
+    docs/evidence/shaped-energy.md)."""
     import jaxsleigh as js
     from jaxsleigh.controllers.aicardi import AicardiLaw
 
@@ -134,3 +135,23 @@ def test_a_non_finite_gradient_stops_the_gradient_tuner_and_says_so():
     run = tune_by_gradient(prob, steps=5)
     assert len(calls) == 1 and [r["gradient_finite"] for r in run.history] == [False]
     np.testing.assert_array_equal(run.x, np.zeros(2))        # the evaluated point itself is finite and feasible
+
+
+def test_a_force_that_is_exactly_zero_keeps_the_gradient_finite():
+    """A law whose force is exactly 0 (here a PD law at rest on its goal; Aicardi's law once at its goal) has
+    ||u|| = sqrt(0) in the effort observer: its derivative there is taken as 0, so the reverse-mode gradient through
+    the step loop is finite (0 * inf was NaN) and equals 0, the true value."""
+    from jaxsleigh.model.params import paper_plant
+    from jaxsleigh.tuning.event_time import settling
+
+    from laws import PD
+
+    y0 = jnp.zeros((3, 5), jnp.float32).at[2, 0].set(1e-3)       # two starts at the goal, at rest; one not
+    plant = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), paper_plant())
+
+    def energy(kp):
+        r = settling(PD(kp=kp, kd=2.0), y0, plant, t_final=5.0, max_steps=2000, reverse=True, segment=100)
+        return jnp.sum(r.u_energy[:2])
+
+    g = jax.grad(energy)(jnp.asarray(1.0, jnp.float32))
+    assert np.isfinite(float(g)) and float(g) == 0.0

@@ -185,6 +185,14 @@ class Excursion:
         return {"max_excursion": np.sqrt(_np(state[0]))}
 
 
+def _sqrt0(e):
+    """\\(\\sqrt{e}\\) of ``e >= 0`` with derivative 0 at ``e = 0`` (a double ``jnp.where``): a law whose force is
+    exactly 0 (one at rest at its goal) would otherwise put \\(0 \\cdot \\infty\\) = NaN into a reverse-mode gradient
+    through the step loop, where zero cotangents are numbers, not symbols."""
+    pos = e > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, e, jnp.ones_like(e))), jnp.zeros_like(e))
+
+
 @dataclass(frozen=True)
 class ControlEffort:
     r"""Control effort over the horizon, in the paper's units (``u`` is a generalised force: the
@@ -202,7 +210,7 @@ class ControlEffort:
     needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl, chart):
-        return (jnp.abs(u[0]), jnp.abs(u[1]), jnp.sqrt(u[0] * u[0] + u[1] * u[1]))
+        return (jnp.abs(u[0]), jnp.abs(u[1]), _sqrt0(u[0] * u[0] + u[1] * u[1]))
 
     def update(self, state, step, ctl):
         new = self.init(step.t_new, step.y_new, step.u_new, ctl, step.chart)
@@ -210,7 +218,7 @@ class ControlEffort:
 
     def integrand(self, y, u):
         e = u[0] * u[0] + u[1] * u[1]
-        return (e, jnp.sqrt(e))
+        return (e, _sqrt0(e))
 
     def values(self, state, quad):
         return {"u_peak": jnp.stack([state[0], state[1]], axis=-1), "u_norm_peak": state[2],
