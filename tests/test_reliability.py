@@ -209,6 +209,29 @@ def test_one_unrepresentable_row_is_flagged_and_named(tmp_path, capsys):
     assert rc == 0 and "row 1" in err and "left out of the fraction" in err, err
 
 
+def test_the_plain_region_needs_no_compiled_check(monkeypatch):
+    """`_representable` skips its float64 program for starts with |theta0| >= 1e-2 and |x|, |y|, |p| <= 1e2: every
+    corner of that region (and random points in it) passes the full check in float32, so skipping it changes no
+    status; a start outside the region still gets the full check."""
+    import itertools
+
+    from jaxsleigh.integrate import engine
+
+    r, th = engine._PLAIN_REACH, engine._PLAIN_THETA
+    corners = [(x, y, t, p1, p2) for x, y, p1, p2 in itertools.product((-r, r, 0.0), repeat=4)
+               for t in (-th, th, -np.pi, np.pi)]
+    rng = np.random.default_rng(0)
+    inside = np.vstack([corners, np.column_stack([rng.uniform(-r, r, (500, 2)),
+                                                  rng.choice([-1, 1], 500) * rng.uniform(th, np.pi, 500),
+                                                  rng.uniform(-r, r, (500, 2))])])
+    assert np.all(engine._representable(inside, np.float32))
+    monkeypatch.setattr(engine, "_PLAIN_THETA", np.inf)                # force the compiled check everywhere
+    assert np.all(engine._representable(inside, np.float32))
+    monkeypatch.undo()
+    outside = np.array([[1.0, 1.0, 1e-30, 0.0, 0.0], [1.0, 1.0, 0.5, 0.0, 0.0], [1e3, 0.0, 1e-3, 0.0, 0.0]])
+    assert engine._representable(outside, np.float32).tolist() == [False, True, True]
+
+
 def test_float32_underflow_hints_at_x64():
     with pytest.warns(FlaggedStartsWarning, match="x64"):
         sol = js.simulate([[1, 1, 0.5], [1, 1, 1e-30]], t_final=0.5, save_every=10)
