@@ -136,7 +136,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
 
 class TuneRun(NamedTuple):
     """A tuner's record: the best feasible ``x`` (or ``None``), its value and figures, and the history (one row per
-    evaluation: ``value``, ``feasible``, ``trajectory_seconds`` so far, ``wall_s`` so far)."""
+    evaluation: ``value``, ``feasible``, ``trajectory_seconds`` so far, ``wall_s`` so far, the point ``x``)."""
 
     x: Any
     value: float
@@ -161,7 +161,7 @@ class _Record:
         feas = bool(aux["feasible"]) and np.isfinite(f)
         n = len(self.history) + 1
         row = {"value": f, "feasible": feas, "trajectory_seconds": n * self.problem.n * self.problem.cfg.t_final,
-               "wall_s": time.perf_counter() - self.t0, **_host(aux)}
+               "wall_s": time.perf_counter() - self.t0, "x": np.asarray(x, np.float64).tolist(), **_host(aux)}
         self.history.append(row)
         if self.progress:
             self.progress(n - 1, row)
