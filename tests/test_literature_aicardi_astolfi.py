@@ -294,3 +294,17 @@ def test_astolfi_force_level_converges(astolfi_run, x64):
 
 def test_astolfi_against_radau(astolfi_run, x64):
     check_against_radau(AstolfiLaw(), astolfi_run)
+
+
+def test_aicardi_settling_time_is_the_same_in_float32_and_float64():
+    """Tuned gains whose heading mode is slower than e (here gamma = 0.36, k = 0.64, h = 0.37: heading rate ~0.085 /s,
+    e ~ exp(-0.36 t)) reach the goal's threshold of `polar_coordinates` before the heading settles. The threshold
+    depends on the dtype, so it must be small enough not to decide T_0.05: float32 and float64 agree within 0.1 s on
+    every start (with a threshold of 4e-7 in float32 they differed by up to 15 s)."""
+    law = AicardiLaw(gamma=0.358, k=0.636, h=0.365, K=1.60)
+    starts = np.array([(2.0, 1.0, 0.5), (-2.0, 1.5, -1.0), (-1.5, -2.0, 2.0), (2.5, -1.0, -2.5), (0.5, 0.2, 3.0),
+                       (-2.8, 0.3, 0.4)])
+    r32 = js.run_ensemble(starts, controller=law, t_final=100.0, progress=False)
+    r64 = js.run_ensemble(starts, controller=law, t_final=100.0, progress=False, x64=True)
+    assert np.all(np.isfinite(r64.T_eps)) and np.all(r64.T_eps > 20.0)
+    np.testing.assert_allclose(r32.T_eps, r64.T_eps, rtol=0, atol=0.1)
