@@ -2,7 +2,8 @@
 paper's own 7 gains, or a literature law.
 
     python experiments/shaped_study.py [--family shaped|paper|aicardi] [--n 1024] [--steps 40] [--cma-factor 3]
-                                       [--out docs/figures/<family>_study.json] [--write-preset]
+                                       [--multiplier-every 0] [--out docs/figures/<family>_study.json]
+                                       [--write-preset]
 
 Objective (`jaxsleigh.tuning.hard_time`): median + 0.5 x 90th percentile of the hard settling time T_0.05 over
 100 s, with budgets of the paper's gains' control energy at the 25th, 50th, 75th and 90th percentiles on the
@@ -16,7 +17,8 @@ same starts, and no fewer starts settled. Training starts: ``--n`` starts, half 
   (its plant model is not tuned).
 
 * gradient: Adam (lr 0.05, momentum b1 = 0.5) on the implicit-function derivative (`jaxsleigh.tuning.event_time`), ``--steps``
-  evaluations;
+  evaluations; with ``--multiplier-every m`` the budgets' multipliers are updated every m evaluations (the method of
+  multipliers of `jaxsleigh.tuning.hard_time`), else the penalty alone;
 * CMA-ES (`jaxsleigh.tuning.cmaes`, population 12, sigma0 0.3): ``--cma-factor`` x as many evaluations; its best
   within the gradient's budget is reported too.
 
@@ -61,6 +63,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--cma-factor", type=int, default=3)
     ap.add_argument("--out", default=None, help="default docs/figures/<family>_study.json")
+    ap.add_argument("--multiplier-every", type=int, default=0)
     ap.add_argument("--write-preset", action="store_true")
     args = ap.parse_args(argv)
     if args.write_preset and args.family != "shaped":
@@ -94,6 +97,7 @@ def main(argv=None) -> int:
            "dtype": "float32", "machine": {"arch": platform.machine(), "cpu_count": __import__("os").cpu_count(),
                                            "jax_backend": jax.default_backend(), "jax": jax.__version__},
            "family": args.family, "config": cfg._asdict(), "n_train": args.n,
+           "multiplier_every": args.multiplier_every,
            "coordinates": list(coords.names), "x0": coords.x0.tolist()}
     path = Path(args.out)
 
@@ -118,7 +122,8 @@ def main(argv=None) -> int:
         return log
 
     runs = {}
-    runs["gradient"] = tune_by_gradient(prob, steps=args.steps, progress=logger("gradient"))
+    runs["gradient"] = tune_by_gradient(prob, steps=args.steps, multiplier_every=args.multiplier_every,
+                                        progress=logger("gradient"))
     n_cma = args.cma_factor * args.steps
     runs["cma"] = tune_by_cma(prob, evaluations=n_cma, progress=logger("cma"))
     # CMA-ES's best within the gradient's budget (the first --steps evaluations)

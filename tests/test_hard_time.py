@@ -125,7 +125,7 @@ def test_a_non_finite_gradient_stops_the_gradient_tuner_and_says_so():
 
     calls = []
 
-    def value_and_grad(x):
+    def value_and_grad(x, lam=None):
         calls.append(np.asarray(x))
         aux = {"T_quantiles": jnp.array([10.0]), "energy_quantiles": jnp.array([1.0]), "settled": jnp.array(1.0),
                "n_bad": jnp.array(0), "feasible": jnp.array(True), "mean_steps": jnp.array(100.0)}
@@ -155,3 +155,53 @@ def test_a_force_that_is_exactly_zero_keeps_the_gradient_finite():
 
     g = jax.grad(energy)(jnp.asarray(1.0, jnp.float32))
     assert np.isfinite(float(g)) and float(g) == 0.0
+
+
+def test_multipliers_enter_as_the_augmented_lagrangian(problem):
+    """value(x, lam) - value(x, 0) is the sum of psi(c, lam) - psi(c, 0) over the constraints the evaluation reports,
+    psi(c, lam) = lam c + mu c^2 / 2 where lam + mu c >= 0, else -lam^2 / (2 mu), mu = 2 x penalty."""
+    mu = 2.0 * CFG.penalty
+
+    def psi(c, lam):
+        return np.where(lam + mu * c >= 0, lam * c + 0.5 * mu * c * c, -lam * lam / (2 * mu))
+
+    with jax.enable_x64(True):
+        x = jnp.asarray(problem.x0) + 0.05 * jnp.asarray(np.random.default_rng(1).normal(size=problem.x0.shape))
+        f0, aux = problem.value(x)
+        lam = np.array([0.3, 0.0, 2.0])                     # two energy quantiles, then the settled floor
+        f1, aux1 = problem.value(x, lam)
+    c = np.asarray(aux["constraints"], np.float64)
+    assert c.shape == (3,) and np.any(c != 0)
+    np.testing.assert_allclose(np.asarray(aux1["constraints"]), c, rtol=0, atol=0)
+    np.testing.assert_allclose(float(f1) - float(f0), np.sum(psi(c, lam) - psi(c, 0 * lam)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(float(f0), float(aux["time_term"]) + np.sum(psi(c, 0 * lam)), rtol=1e-12)
+
+
+def test_the_method_of_multipliers_lands_on_the_budget_where_the_penalty_stops_outside():
+    """On a model problem with the hard-time problem's interface (time exp(-x), one budget c = x <= 0), the penalty
+    alone converges to the balance x* > 0 (outside the budget, never feasible); multipliers updated every 5
+    evaluations by lam <- max(0, lam + mu min(c, 0.1)) bring x to the budget's edge."""
+    from jaxsleigh.tuning.hard_time import HardTimeProblem
+
+    cfg = CFG._replace(energy_quantiles=(0.5,), penalty=1.0)
+    mu = 2.0 * cfg.penalty
+
+    def objective(x, lam=np.zeros(2)):
+        c = jnp.stack([x[0], jnp.asarray(-1.0)])
+        lam = jnp.asarray(lam, c.dtype)
+        psi = jnp.where(lam + mu * c >= 0, lam * c + 0.5 * mu * c * c, -lam * lam / (2 * mu))
+        t = jnp.exp(-x[0])
+        return t + jnp.sum(psi), {"T_quantiles": t[None], "energy_quantiles": jnp.exp(x), "settled": jnp.asarray(1.0),
+                                  "n_bad": jnp.asarray(0), "feasible": c[0] <= 1e-6, "mean_steps": jnp.asarray(1.0),
+                                  "time_term": t, "constraints": c}
+
+    vg = jax.jit(jax.value_and_grad(objective, has_aux=True))
+    prob = HardTimeProblem(np.array([1.0]), None, objective, vg, np.ones(1), 0.0, 1, cfg)
+    penalty = tune_by_gradient(prob, steps=300, lr=0.05)
+    mult = tune_by_gradient(prob, steps=300, lr=0.05, multiplier_every=5)
+    x_pen, x_mult = penalty.history[-1]["x"][0], mult.history[-1]["x"][0]
+    assert 0.2 < x_pen < 0.5 and not any(r["feasible"] for r in penalty.history)   # x* = W(1/2) ~ 0.35
+    assert abs(x_mult) < 0.02 < x_pen / 10 and mult.x is not None
+    lams = [r["lam"][0] for r in mult.history]
+    assert lams[:5] == [0.0] * 5 and lams[5] == pytest.approx(mu * min(mult.history[4]["constraints"][0], 0.1))
+    assert lams[-1] == pytest.approx(1.0, abs=0.05)           # the budget's true multiplier: exp(-0) = 1

@@ -16,6 +16,19 @@ of starts settled with a smooth stand-in (\(\bar s\) is counted but has no deriv
 "no more energy than the paper's at the 25th, 50th, 75th and 90th percentiles". A candidate is *feasible* when
 every budget and the settled floor hold and every start ends with status OK; the tuners keep the best feasible one.
 
+The penalty is the \(\lambda = 0\) case of an augmented Lagrangian: with the constraints
+\(c_k = \log Q_{r_k}(E) - \log E^{max}_k \le 0\) and \(c_0 = s_{min} - \bar s \le 0\), multipliers
+\(\lambda_k \ge 0\) and \(\mu = 2\rho\), each constraint adds
+
+\[ \psi(c, \lambda) = \begin{cases} \lambda c + \tfrac{\mu}{2} c^2, & \lambda + \mu c \ge 0, \\
+    -\lambda^2 / (2\mu), & \text{otherwise,} \end{cases} \]
+
+which is \(\rho \max(0, c)^2\) at \(\lambda = 0\). A penalty alone settles where its pull balances the time's,
+just outside the budget; `tune_by_gradient` with ``multiplier_every = m`` updates
+\(\lambda \leftarrow \max(0, \lambda + \mu c)\) every \(m\) evaluations (the method of multipliers), which moves
+that balance onto the budget's edge (each update uses at most a violation of 0.1, `MULTIPLIER_STEP_CAP`). The tuners
+rank feasible points by the time term alone.
+
 The simulation budget of a run is counted in trajectory-seconds: starts x horizon per evaluation of \(f\) (a
 gradient evaluation also re-simulates each checkpointed segment once on the way back; the study reports wall time
 next to it).
@@ -67,8 +80,9 @@ class HardTimeConfig(NamedTuple):
 
 
 class HardTimeProblem(NamedTuple):
-    """A law family, its starts and budgets, ready to evaluate: ``value(x)`` and ``value_and_grad(x)`` of the
-    objective in log-parameters ``x`` (flat, float), ``law_of(x)`` the law, ``x0`` the start."""
+    """A law family, its starts and budgets, ready to evaluate: ``value(x, lam=0)`` and ``value_and_grad(x, lam=0)``
+    of the objective in the law's coordinates ``x`` (flat, float) with multipliers ``lam`` (one per energy quantile,
+    then the settled floor; module docstring), ``law_of(x)`` the law, ``x0`` the start."""
 
     x0: np.ndarray
     law_of: Callable
@@ -118,25 +132,39 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     lb = jnp.log(jnp.asarray(budgets, dtype))
     weights = jnp.asarray(cfg.time_weights, dtype)
 
-    def objective(x):
+    mu = 2.0 * cfg.penalty
+    n_con = len(cfg.energy_quantiles) + 1
+
+    def objective(x, lam):
         r = run(coords.law_of(x), y0_law)
         tq, eq, settled, n_bad = _figures(r, cfg)
-        over = jnp.maximum(jnp.log(eq) - lb, 0.0)
-        short = jnp.maximum(floor - settled, 0.0)
-        f = jnp.sum(weights * tq) / cfg.t_final + cfg.penalty * (jnp.sum(over * over) + short * short)
-        feasible = (n_bad == 0) & jnp.all(over <= 1e-6) & (short <= 0)      # within rounding of the budgets
+        c = jnp.concatenate([jnp.log(eq) - lb, (floor - settled)[None]])
+        lam = jnp.asarray(lam, dtype)
+        psi = jnp.where(lam + mu * c >= 0, lam * c + 0.5 * mu * c * c, -lam * lam / (2.0 * mu))
+        time_term = jnp.sum(weights * tq) / cfg.t_final
+        f = time_term + jnp.sum(psi)
+        feasible = (n_bad == 0) & jnp.all(c[:-1] <= 1e-6) & (c[-1] <= 0)      # within rounding of the budgets
         aux = {"T_quantiles": tq, "energy_quantiles": eq, "settled": settled, "n_bad": n_bad, "feasible": feasible,
-               "mean_steps": jnp.mean(r.n_steps.astype(dtype))}
+               "mean_steps": jnp.mean(r.n_steps.astype(dtype)), "time_term": time_term, "constraints": c}
         return f, aux
 
-    value = jax.jit(objective)
-    vg = jax.jit(jax.value_and_grad(objective, has_aux=True))
-    return HardTimeProblem(coords.x0, coords.law_of, value, vg, budgets, floor, int(ics5.shape[0]), cfg)
+    lam0 = np.zeros(n_con)
+    value_lam = jax.jit(objective)
+    vg_lam = jax.jit(jax.value_and_grad(objective, has_aux=True))
+
+    def value(x, lam=lam0):
+        return value_lam(x, lam)
+
+    def value_and_grad(x, lam=lam0):
+        return vg_lam(x, lam)
+
+    return HardTimeProblem(coords.x0, coords.law_of, value, value_and_grad, budgets, floor, int(ics5.shape[0]), cfg)
 
 
 class TuneRun(NamedTuple):
-    """A tuner's record: the best feasible ``x`` (or ``None``), its value and figures, and the history (one row per
-    evaluation: ``value``, ``feasible``, ``trajectory_seconds`` so far, ``wall_s`` so far, the point ``x``)."""
+    """A tuner's record: the best feasible ``x`` (or ``None``), its value (the time term: no budget is active there)
+    and figures, and the history (one row per evaluation: ``value``, ``feasible``, ``trajectory_seconds`` so far,
+    ``wall_s`` so far, the point ``x``, and the multipliers ``lam`` where a run updates them)."""
 
     x: Any
     value: float
@@ -159,33 +187,50 @@ class _Record:
     def add(self, x, f, aux) -> float:
         f = float(f)
         feas = bool(aux["feasible"]) and np.isfinite(f)
+        score = float(aux.get("time_term", f))           # a feasible point's value without the multipliers' terms
         n = len(self.history) + 1
         row = {"value": f, "feasible": feas, "trajectory_seconds": n * self.problem.n * self.problem.cfg.t_final,
                "wall_s": time.perf_counter() - self.t0, "x": np.asarray(x, np.float64).tolist(), **_host(aux)}
         self.history.append(row)
         if self.progress:
             self.progress(n - 1, row)
-        if feas and (self.best is None or f < self.best[1]):
-            self.best = (np.asarray(x, np.float64), f, _host(aux))
+        if feas and (self.best is None or score < self.best[1]):
+            self.best = (np.asarray(x, np.float64), score, _host(aux))
         return f
 
     def result(self) -> TuneRun:
         return TuneRun(*(self.best if self.best else (None, float("inf"), {})), self.history)
 
 
+#: The largest violation a multiplier update uses: \(\lambda \leftarrow \max(0, \lambda + \mu \min(c, 0.1))\). Far
+#: outside a budget the first-order update overshoots (one Aicardi run from its defaults, 30x over the budget, got
+#: \(\lambda \approx 50\) at its first update and was then pushed far inside every budget).
+MULTIPLIER_STEP_CAP = 0.1
+
+
 def tune_by_gradient(problem: HardTimeProblem, *, steps: int = 40, lr: float = 0.05, b1: float = 0.5, x0=None,
-                     progress: Optional[Callable] = None) -> TuneRun:
+                     multiplier_every: int = 0, progress: Optional[Callable] = None) -> TuneRun:
     """Adam on \\(f\\) from ``x0`` (default ``problem.x0``); keeps the best feasible iterate. A non-finite gradient
     stops the run (each row says ``gradient_finite``). ``b1`` is Adam's momentum: lower than optax's 0.9 by default, because a
     budget's penalty switches on abruptly and momentum then carries the iterate far past the budget's edge (a first
-    run with 0.9 lost its way after 7 steps: docs/evidence/shaped-energy.md)."""
+    run with 0.9 lost its way after 7 steps: docs/evidence/shaped-energy.md). ``multiplier_every = m > 0`` runs the
+    method of multipliers (module docstring): after every ``m``-th evaluation the multipliers move by
+    \\(\\lambda \\leftarrow \\max(0, \\lambda + \\mu \\min(c, 0.1))\\) with that evaluation's constraints (the cap:
+    `MULTIPLIER_STEP_CAP`); 0 keeps the penalty."""
+    if not (isinstance(multiplier_every, int) and multiplier_every >= 0):
+        raise ValueError(f"multiplier_every must be a whole number >= 0, got {multiplier_every!r}")
     x = jnp.asarray(problem.x0 if x0 is None else x0)
     opt = optax.adam(lr, b1=b1)
     state = opt.init(x)
     rec = _Record(problem, progress)
-    for _ in range(steps):
-        (f, aux), g = problem.value_and_grad(x)
+    lam = np.zeros(len(problem.cfg.energy_quantiles) + 1)
+    for i in range(steps):
+        (f, aux), g = problem.value_and_grad(x, lam)
         rec.add(x, f, aux)
+        rec.history[-1]["lam"] = lam.tolist()
+        if multiplier_every and (i + 1) % multiplier_every == 0:
+            c = np.minimum(np.asarray(aux["constraints"], np.float64), MULTIPLIER_STEP_CAP)
+            lam = np.maximum(0.0, lam + 2.0 * problem.cfg.penalty * c)
         rec.history[-1]["gradient_finite"] = finite = bool(jnp.all(jnp.isfinite(g)))
         if not finite:                          # said in the history, not hidden: the run stops there
             break
