@@ -208,3 +208,22 @@ def test_family_study_tables_quote_their_json():
             f = d["held_out"][dist]["gradient"]
             ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
             assert f"| {label} | {name} | {f['T_median']:.1f} | {ratios} |" in page, (fam, dist)
+
+
+def test_aicardi_study_table_quotes_its_json():
+    """The shaped-energy page's held-out table of Aicardi's law quotes `experiments/shaped_study.py --family aicardi`'s
+    JSON: CMA-ES's best training objective and each held-out row's median T and energy ratios."""
+    import json
+
+    page = " ".join((DOCS / "evidence" / "shaped-energy.md").read_text().split())
+    d = json.loads((DOCS / "figures" / "aicardi_study.json").read_text())
+    assert d["dtype"] == "float32" and d["n_train"] == 1024 and d["family"] == "aicardi"
+    assert f"{d['cma']['best_value']:.4f}" in page
+    labels = {"start": "Aicardi, defaults", "gradient": "Aicardi, gradient's best", "cma": "Aicardi, CMA-ES's best"}
+    for dist, name in (("readme", "README"), ("wide", "wide")):
+        for key, label in labels.items():
+            if key not in d["held_out"][dist]:
+                continue
+            f = d["held_out"][dist][key]
+            ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
+            assert f"| {label} | {name} | {f['T_median']:.1f} | {ratios} |" in page, (key, dist)
