@@ -110,7 +110,7 @@ def _rows(idx: np.ndarray, limit: int = 5) -> str:
 
 
 #: Starts with |theta0| >= this and |x|, |y|, |p1|, |p2| <= `_PLAIN_REACH` are representable in float32 with a wide
-#: margin (w ~ |z| / theta0^2 <= 1e6; tests/test_reliability.py checks the corners): `_representable` needs no
+#: margin (w ~ |z| / theta0^2 <= 2e6; tests/test_reliability.py checks the corners): `_representable` needs no
 #: compiled check for them, which saves a float64 program's tracing in every process that runs ordinary starts.
 _PLAIN_THETA, _PLAIN_REACH = 1e-2, 1e2
 
