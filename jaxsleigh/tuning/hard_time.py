@@ -101,6 +101,11 @@ def _figures(r, cfg: HardTimeConfig):
     return tq, eq, jnp.mean(r.settled.astype(T.dtype)), jnp.sum(r.status != Status.OK)
 
 
+def _no_multipliers(cfg: HardTimeConfig) -> np.ndarray:
+    """Zero multipliers: one per energy quantile, then the settled floor (the order of the objective's constraints)."""
+    return np.zeros(len(cfg.energy_quantiles) + 1)
+
+
 def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParams] = None,
                       cfg: HardTimeConfig = HardTimeConfig(), dtype=jnp.float32) -> HardTimeProblem:
     """The objective of ``law``'s gains on ``starts`` (N, 3|5), the budgets from ``reference`` (default: the paper's
@@ -133,7 +138,6 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     weights = jnp.asarray(cfg.time_weights, dtype)
 
     mu = 2.0 * cfg.penalty
-    n_con = len(cfg.energy_quantiles) + 1
 
     def objective(x, lam):
         r = run(coords.law_of(x), y0_law)
@@ -148,7 +152,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
                "mean_steps": jnp.mean(r.n_steps.astype(dtype)), "time_term": time_term, "constraints": c}
         return f, aux
 
-    lam0 = np.zeros(n_con)
+    lam0 = _no_multipliers(cfg)
     value_lam = jax.jit(objective)
     vg_lam = jax.jit(jax.value_and_grad(objective, has_aux=True))
 
@@ -223,7 +227,7 @@ def tune_by_gradient(problem: HardTimeProblem, *, steps: int = 40, lr: float = 0
     opt = optax.adam(lr, b1=b1)
     state = opt.init(x)
     rec = _Record(problem, progress)
-    lam = np.zeros(len(problem.cfg.energy_quantiles) + 1)
+    lam = _no_multipliers(problem.cfg)
     for i in range(steps):
         (f, aux), g = problem.value_and_grad(x, lam)
         rec.add(x, f, aux)
