@@ -1,6 +1,6 @@
 r"""The settled-phase step adopted (issue 20, part 2): steps and accuracy before and after, side by side.
 
-    python experiments/settled_phase_adopted.py [--baseline af0756c] [--n 4096] [--n-fast 256]
+    python experiments/settled_phase_adopted.py [--baseline af0756c] [--also 72f4f8f] [--n 4096] [--n-fast 256]
                                                 [--out docs/figures/settled_phase_adopted.json]
 
 Runs the default adaptive method (float32, 100 s, eps = 0.05) of this tree and of ``--baseline`` (a
@@ -10,7 +10,9 @@ benchmark workload (`jaxsleigh.studies.bench.workload`, seed 0): ``--n`` starts 
 computed by the *baseline* (classical RK4, rtol = atol = 1e-11, T_eps on the dense output with 8 samples and
 30 bisections), so the reference does not share the new scheme. Reports the mean accepted steps and attempts,
 the wrong final states (max-norm error > 1e-3, as ``jaxsleigh bench``), the final-state error quantiles and
-the T_eps error quantiles (starts that settle in both), and the wall time.
+the T_eps error quantiles (starts that settle in both), and the wall time. ``--also COMMIT`` measures that
+commit too, in the same run and against the same reference (column ``also``; e.g. the exponential step on p2
+alone, before the (w2, p1) oscillation was added to it).
 """
 from __future__ import annotations
 
@@ -63,27 +65,36 @@ def compare(run: dict, ref: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--baseline", default="af0756c")
+    ap.add_argument("--also", default=None, help="a commit measured in between (column 'also')")
     ap.add_argument("--n", type=int, default=4096)
     ap.add_argument("--n-fast", type=int, default=256)
     ap.add_argument("--out", default="docs/figures/settled_phase_adopted.json")
     a = ap.parse_args(argv)
     log = lambda *m: print(*m, file=sys.stderr, flush=True)  # noqa: E731
     base = baseline_tree(a.baseline)
+    trees = [("before", base)]
+    if a.also:
+        trees.append(("also", baseline_tree(a.also)))
+    trees.append(("after", ROOT))
     out = {"command": "python experiments/settled_phase_adopted.py " + " ".join(sys.argv[1:] if argv is None else argv),
-           "baseline": a.baseline, "dtype": "float32", "t_final": 100.0, "load_before": load(), "gains": {}}
+           "baseline": a.baseline, "also": a.also, "dtype": "float32", "t_final": 100.0, "load_before": load(),
+           "gains": {}}
     try:
         for gains, n in (("paper", a.n), ("balanced", a.n_fast), ("tuned", a.n_fast)):
             ref = run_py(RUN, [gains, n, "ref"], env={"PYTHONPATH": str(base)})
             row = {}
-            for name, tree in (("before", base), ("after", ROOT)):
+            for name, tree in trees:
                 row[name] = compare(run_py(RUN, [gains, n, "run"], env={"PYTHONPATH": str(tree)}), ref)
             row["steps_ratio"] = row["before"]["mean_steps"] / row["after"]["mean_steps"]
+            if a.also:
+                row["steps_ratio_also"] = row["also"]["mean_steps"] / row["after"]["mean_steps"]
             out["gains"][gains] = {"n": n, **row}
             log(f"{gains} ({n} starts): steps {row['before']['mean_steps']:.0f} -> {row['after']['mean_steps']:.0f} "
                 f"({row['steps_ratio']:.2f}x fewer), wrong {row['before']['wrong']} -> {row['after']['wrong']}, "
                 f"T_eps error max {row['before']['T_eps_error_max']:.1e} -> {row['after']['T_eps_error_max']:.1e} s")
     finally:
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base)], capture_output=True)
+        for name, tree in trees[:-1]:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
     out["load_after"] = load()
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1) + "\n")

@@ -1,7 +1,8 @@
 """Golden outputs: the numbers of a handful of runs (simulate in float32 and float64, an ensemble with
 the default observers, the plain fixed-step path, a basin, a sweep, three iterations of the gradient
 tuner), recorded by ``tests/golden/make_golden.py`` at 2fa58a2 and re-recorded when the adaptive step
-became the exponential RK4 with a PI controller in the w chart (issue 20).
+became the exponential RK4 with a PI controller in the w chart (issue 20), and again when the (w2, p1)
+oscillation joined that step (issue 20, the settled phase).
 
 Statuses must be equal, step counts equal to a step or two (at most 1% of them), floating-point results
 equal to float32 rounding as a stiff run grows it (1e-4 of each field's scale), float64 runs to 1e-10 relative.

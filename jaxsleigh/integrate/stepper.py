@@ -163,7 +163,8 @@ def _increment(chart, s: "StepState", h, args, k1, observers, adaptive: bool):
     (`jaxsleigh.integrate.etd`), classical RK4 otherwise."""
     lam = chart.stiff_rate(s.y, args) if adaptive else None
     if lam is not None:
-        dy, k4, error, stages = etd_stages(chart.field_and_control, s.t, s.y, h, args, k1, lam)
+        osc = chart.oscillation(s.y, args)
+        dy, k4, error, stages = etd_stages(chart.field_and_control, s.t, s.y, h, args, k1, lam, osc)
         dq = _stage_quadrature(observers, h, s.g1, stages, s.y.dtype) if s.quad.shape[0] else s.quad
         return dy, k4, dq, error
     if s.quad.shape[0]:

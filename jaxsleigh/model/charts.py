@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from .closed_loop import (closed_loop_hamiltonian_w, state_from_w, state_to_w, vector_field_law_control,
                           vector_field_w_control)
 from .coordinates import f_w_inv
-from .w_laws import is_w_law, stiff_coeff
+from .w_laws import is_w_law, stiff_coeff, w2_stiffness
 
 __all__ = ["WChart", "PhysicalChart", "chart_for", "q_norm2_w", "heading_mod_2pi", "physical_chart_for"]
 
@@ -87,6 +87,17 @@ class WChart:
         lam = -c / (pl.J + pl.m * pl.l * pl.l)
         return jnp.minimum(lam, 0.0).astype(y.dtype)
 
+    def oscillation(self, y, args):
+        r"""The coefficients \((a, b)\) of the linear pair \(\dot w_2 = a p_1 + \ldots\),
+        \(\dot p_1 = -b w_2 + \ldots\): \(a = 1 / (m w_1)\), \(b = V_{22} / w_1\) (`w2_stiffness`), an
+        oscillation of frequency \(\sqrt{ab} = \sqrt{V_{22} / m} / |w_1|\), stiff near \(\theta = 0\)
+        (`jaxsleigh.integrate.etd`); ``None`` for a law that does not give \(V_{22}\)."""
+        v22 = w2_stiffness((y[0], y[1], y[2]), args.controller)
+        if v22 is None:
+            return None
+        inv = 1.0 / y[0]
+        return (inv / args.plant.m).astype(y.dtype), (inv * v22).astype(y.dtype)
+
     def to_chart(self, y):
         return state_to_w(y)
 
@@ -136,6 +147,9 @@ class PhysicalChart:
 
     def stiff_rate(self, y, args):
         return None                      # no injected k / theta^2 damping: classical RK4
+
+    def oscillation(self, y, args):
+        return None
 
     def to_chart(self, y):
         return y

@@ -102,6 +102,12 @@ class ShapedGains(NamedTuple):
         return tuple(jnp.exp(sigma * jnp.log(self.D_near[j]) + (1.0 - sigma) * jnp.log(self.D_far[j]))
                      for j in range(2))
 
+    def w2_stiffness(self, w):
+        """\\(\\phi_2''(w_2) = l_2 + b_2 (1 + (w_2/c_2)^2)^{-3/2}\\) (`jaxsleigh.model.w_laws.w2_stiffness`)."""
+        r = w[1] / self.C[1]
+        g = 1.0 / jnp.sqrt(1.0 + r * r)
+        return self.L[1] + self.B[1] * (g * g * g)
+
     def stiff_coeff(self, w):
         """\\(\\hat d_2(w) + k / w_1^2\\): the coefficient of \\(-v_2\\) in the turning moment."""
         return self.damping_diag(w)[1] + self.k / (w[0] * w[0])

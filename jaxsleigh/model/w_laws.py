@@ -7,15 +7,16 @@ A w-chart law is energy shaping plus damping injection,
 
 so along the closed loop \(\dot H_d = -v^\top (D + \hat D + D_i) v \le 0\) whatever \(V\) is (the engine monitors
 it). Such a law provides ``potential(w)``, ``control_w_components(w, v)``, ``injection_components(w, v)`` and
-``stiff_coeff(w)`` (the coefficient of \(-v_2\) in the turning moment, for the exponential step of
-`jaxsleigh.integrate.etd`); the paper's law has them as the functions of `jaxsleigh.model.paper_law`.
+``stiff_coeff(w)`` (the coefficient of \(-v_2\) in the turning moment) and ``w2_stiffness(w)``
+(\(\partial^2 V / \partial w_2^2\)), for the exponential step of `jaxsleigh.integrate.etd`; the paper's law has
+them as the functions of `jaxsleigh.model.paper_law`.
 """
 from __future__ import annotations
 
 from .params import Gains
 from . import paper_law
 
-__all__ = ["is_w_law", "potential", "control_w_components", "injection_components", "stiff_coeff"]
+__all__ = ["is_w_law", "potential", "control_w_components", "injection_components", "stiff_coeff", "w2_stiffness"]
 
 
 def is_w_law(controller) -> bool:
@@ -49,4 +50,14 @@ def stiff_coeff(w, law):
     if isinstance(law, Gains):
         return law.D_hat[1, 1] + law.k / (w[0] * w[0])
     fn = getattr(law, "stiff_coeff", None)
+    return None if fn is None else fn(w)
+
+
+def w2_stiffness(w, law):
+    """\\(\\partial^2 V / \\partial w_2^2\\) (the paper's: \\(L_2\\)), or ``None`` for a law that does not say.
+    With \\(\\dot w_2 = p_1 / (m w_1) + \\ldots\\) and \\(u_1 = -\\partial_{w_2} V / w_1 - \\ldots\\) it sets the
+    frequency \\(\\sqrt{V_{22} / m} / |w_1|\\) of the (w2, p1) oscillation, stiff near \\(\\theta = 0\\)."""
+    if isinstance(law, Gains):
+        return law.L[1] + 0.0 * w[1]
+    fn = getattr(law, "w2_stiffness", None)
     return None if fn is None else fn(w)
