@@ -68,14 +68,14 @@ def test_rotation_functions_match_the_matrix_functions_on_both_sides_of_the_swit
 
 
 def test_rotation_step_is_exact_for_the_frozen_linear_oscillation():
-    """With N = 0 (f = L y, L the phased-in block) the block's update is the exact flow exp(hL) y, and its stages
+    """With N = 0 (f = L y) the block's update is the exact flow exp(hL) y, and its stages
     are the exact flow to the half step (Cox & Matthews' formulas reduce to exp)."""
     with jax.enable_x64(True):
-        h, a, b = 0.7, 30.0, 4.0
+        h, a, b = 0.7, 60.0, 10.0                              # omega = 24.5 rad/s: the block is on
         y = jnp.array([0.0, 0.3, 0.0, -1.2, 0.0])
         rot = _Rotation(jnp.asarray(h), jnp.asarray(a), jnp.asarray(b))
-        rho = a * b / (a * b + OSCILLATION_PHASE_IN ** 2)             # the phased-in block
-        L = rho * np.array([[0.0, a], [-b, 0.0]])
+        assert a * b >= OSCILLATION_PHASE_IN ** 2
+        L = np.array([[0.0, a], [-b, 0.0]])
         k = jnp.array([0.0, L[0, 1] * y[3], 0.0, L[1, 0] * y[1], 0.0])
         n = rot.rest(y, k)
         np.testing.assert_allclose(n, 0.0, atol=1e-15)
@@ -99,7 +99,10 @@ def _fixed(y0, args, n, T, etd, osc=True):
     return jax.jit(lambda y: jax.lax.scan(body, y, None, length=n)[0])(y0)
 
 
-def test_exponential_step_is_fourth_order_and_classical_rk4_without_the_rate():
+def test_exponential_step_is_fourth_order_and_classical_rk4_without_the_rate(monkeypatch):
+    import jaxsleigh.integrate.etd as etd
+
+    monkeypatch.setattr(etd, "OSCILLATION_PHASE_IN", 0.0)       # the (w2, p1) block on at this state too
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
         y0 = state_to_w(jnp.array([1.0, -0.5, 0.4, 0.2, -0.3]))

@@ -42,8 +42,9 @@ truncation below 1e-11, and the closed forms otherwise, so they are accurate in 
 closed forms cancel). On \((w_2, p_1)\) the step's matrix \(M = hL\) has \(M^2 = -\theta^2 I\),
 \(\theta = h\omega\), so every power series of it is \(\alpha I + \beta M\): \(\varphi_k(M) = \alpha_k I +
 \alpha_{k+1} M\) with \(\alpha_0 = \cos\theta\), \(\alpha_1 = \sin\theta / \theta\) and
-\(\alpha_{k+2} = (1/k! - \alpha_k) / \theta^2\) (`rotation_alphas`). A law that does not give \(V_{22}\) gets the
-step on \(p_2\) alone.
+\(\alpha_{k+2} = (1/k! - \alpha_k) / \theta^2\) (`rotation_alphas`). The block is used where \(\omega \ge\)
+`OSCILLATION_PHASE_IN` (20 rad/s: after settling), and the pair is stepped by RK4 elsewhere; a law that does not
+give \(V_{22}\) gets the step on \(p_2\) alone.
 """
 from __future__ import annotations
 
@@ -111,10 +112,11 @@ def rotation_alphas(theta2, upto: int):
     return tuple(jnp.where(small, series[k], closed[k]) for k in range(upto + 1))
 
 
-#: the frequency (rad/s) from which on the (w2, p1) oscillation is integrated exponentially: the step takes
-#: \(\rho L\), \(\rho = \omega^2 / (\omega^2 + \omega_c^2)\), so that slow oscillations (the transient, where the
-#: frozen block's error constant is larger than RK4's and its error estimate does not show it: T_eps errors up to
-#: 1.3e-3 s with the paper's gains and \(\omega_c = 0\)) are stepped as before (python experiments/settled_phase_adopted.py)
+#: the frequency \(\omega_c\) (rad/s) from which on the (w2, p1) oscillation is integrated exponentially
+#: (\(\omega = \sqrt{V_{22}/m}/|w_1| \ge \omega_c\); below it the pair is stepped as before). In the transient the
+#: frozen block's error constant is larger than RK4's and its error estimate does not show it: with the block
+#: everywhere the paper's T_eps moved by up to 1.3e-3 s; phased in smoothly, \(\rho = \omega^2/(\omega^2 +
+#: \omega_c^2)\), a half-on block excited the oscillation of one benchmark start (docs/evidence/settled-phase.md)
 OSCILLATION_PHASE_IN = 20.0
 
 
@@ -175,15 +177,16 @@ def _lin(ca, a, cb, b):
 
 
 class _Rotation:
-    r"""The oscillation \(\dot w_2 = a p_1 + N_2,\ \dot p_1 = -b w_2 + N_4\) frozen over a step of ``h``, phased in
-    with \(\rho = \omega^2 / (\omega^2 + \omega_c^2)\) (`OSCILLATION_PHASE_IN`): the step's matrix
-    \(M = \rho h \begin{pmatrix} 0 & a \\ -b & 0 \end{pmatrix}\), \(M^2 = -\theta^2 I\), and its functions
-    \(\varphi_k(M) = \alpha_k I + \alpha_{k+1} M\) (`rotation_alphas`), applied to the pair (w2, p1) in the
-    Cox-Matthews formulas (module docstring)."""
+    r"""The oscillation \(\dot w_2 = a p_1 + N_2,\ \dot p_1 = -b w_2 + N_4\) frozen over a step of ``h`` where its
+    frequency \(\omega = \sqrt{ab}\) is at least `OSCILLATION_PHASE_IN` (elsewhere \(a = b = 0\): RK4 on the pair):
+    the step's matrix \(M = h \begin{pmatrix} 0 & a \\ -b & 0 \end{pmatrix}\), \(M^2 = -\theta^2 I\), and its
+    functions \(\varphi_k(M) = \alpha_k I + \alpha_{k+1} M\) (`rotation_alphas`), applied to the pair (w2, p1) in
+    the Cox-Matthews formulas (module docstring)."""
 
     def __init__(self, h, a, b):
         w2 = a * b
-        rho = w2 / (w2 + OSCILLATION_PHASE_IN ** 2)
+        on = w2 >= OSCILLATION_PHASE_IN ** 2
+        rho = jnp.where(on, 1.0, 0.0).astype(w2.dtype)
         self.h, self.a, self.b = h, rho * a, rho * b
         th2 = (h * self.a) * (h * self.b)
         al, self.half = jax.lax.optimization_barrier((rotation_alphas(th2, 4), rotation_alphas(0.25 * th2, 2)))
