@@ -25,9 +25,11 @@ from jaxsleigh.model.params import Gains, PlantParams, gains, load_gains, plant_
 from jaxsleigh.studies.sweep import apply_params, load_sweep, parse_param, save_sweep, sweep
 from numpy_field import numpy_field  # noqa: E402
 
-# starts that settle within a short horizon under the tuned gains (and some that do not)
+# starts that settle within a short horizon under the tuned gains (and, with m = 3 and l = 1.5, some that do
+# not: their T_0.2 are 6.4-8.1 s; with m = 1 and l = 0 every start settles in 1.2-3.9 s, as scipy's Radau says,
+# where the step on p2 alone ran out of budget)
 STARTS = sample_starts(6, seed=3, x="-1:1", y="-1:1", theta="0.3:1.5")
-FAST = dict(t_final=12.0, dt=0.02, eps=0.2, gains="tuned")
+FAST = dict(t_final=6.0, dt=0.02, eps=0.2, gains="tuned")
 
 
 @pytest.fixture(scope="module")
