@@ -187,6 +187,10 @@ def test_readme_preset_numbers_are_the_committed_measurements():
     assert (f"median peak ‖u‖ is {sh['peak_u_median']:.2f} (90th pct {sh['peak_u_p90']:.0f}; the paper's "
             f"{pa['peak_u_median']:.2f}, {pa['peak_u_p90']:.0f}), {sh['mean_steps']:,.0f} mean steps (the paper's "
             f"{pa['mean_steps']:,.0f})") in readme
+    d64 = json.loads((DOCS / "figures" / "preset_effort_x64.json").read_text())
+    assert d64["dtype"] == "float64" and d64["command"].startswith("python experiments/preset_effort.py --x64")
+    bal64 = d64["distributions"]["readme"]["presets"]["balanced"]["energy_ratio_to_paper"]["p50"]
+    assert f"in float64 (`--x64`) its median is {bal64:.1f}x the paper's" in readme
     bal = d["distributions"]["readme"]["presets"]["balanced"]
     tuning = (DOCS / "how-to" / "tuning.md").read_text()
     assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning

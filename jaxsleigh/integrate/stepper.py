@@ -22,10 +22,11 @@ this error exceeds the tolerance, when it produces a non-finite value, or when i
 \(w_1 = \theta\) across zero, which the exact flow never does (Lemma 2). Steps never exceed
 the base step ``dt`` and are clipped to land exactly on the save times.
 
-**The settled phase.** Close to the target \(k / w_1^2\) makes the \(p_2\) equation stiff and would cap
-classical RK4's step by stability long after accuracy allows more; in the w chart the adaptive step is
-therefore the exponential RK4 of `jaxsleigh.integrate.etd` (classical RK4 on \(w\) and \(p_1\), the stiff
-linear term of \(p_2\) integrated exactly over the step), with a PI controller (`jaxsleigh.integrate.stepsize`).
+**The settled phase.** Close to the target \(k / w_1^2\) makes the \(p_2\) equation stiff, and the pair
+\((w_2, p_1)\) oscillates at a frequency \(\sqrt{V_{22}/m}/|w_1|\); both would cap classical RK4's step by
+stability long after accuracy allows more. In the w chart the adaptive step is therefore the exponential RK4
+of `jaxsleigh.integrate.etd` (the linear term of \(p_2\) and, from 20 rad/s, the oscillation integrated
+exactly over the step; classical RK4 on the rest), with a PI controller (`jaxsleigh.integrate.stepsize`).
 
 **Fixed shape.** One loop iteration is one attempted step of every trajectory of a batch; a
 trajectory that has reached its target time, failed, or used its budget idles. Every step of a
