@@ -5,7 +5,7 @@ Near the target (and near the singular set) two linear terms of the w-chart loop
 
 \[ \dot p_2 = \lambda(w_1)\, p_2 + N_5(y), \qquad \lambda = -\frac{\hat D_{22} + k / w_1^2}{J + m l^2}, \]
 
-and the shaped potential couples \(w_2\) and \(p_1\) through \(\dot w_2 = p_1 / (m w_1) + \ldots\) and
+and the shaped potential V couples \(w_2\) and \(p_1\) through \(\dot w_2 = p_1 / (m w_1) + \ldots\) and
 \(u_1 = -V_{22} w_2 / w_1 + \ldots\) (\(V_{22} = \partial^2 V / \partial w_2^2\), the paper's \(L_2\)):
 
 \[ \begin{pmatrix} \dot w_2 \\ \dot p_1 \end{pmatrix} = \begin{pmatrix} 0 & a \\ -b & 0 \end{pmatrix}
