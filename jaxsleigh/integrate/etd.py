@@ -184,10 +184,8 @@ class _Rotation:
     the Cox-Matthews formulas (module docstring)."""
 
     def __init__(self, h, a, b):
-        w2 = a * b
-        on = w2 >= OSCILLATION_PHASE_IN ** 2
-        rho = jnp.where(on, 1.0, 0.0).astype(w2.dtype)
-        self.h, self.a, self.b = h, rho * a, rho * b
+        on = a * b >= OSCILLATION_PHASE_IN ** 2
+        self.h, self.a, self.b = h, jnp.where(on, a, 0.0), jnp.where(on, b, 0.0)
         th2 = (h * self.a) * (h * self.b)
         al, self.half = jax.lax.optimization_barrier((rotation_alphas(th2, 4), rotation_alphas(0.25 * th2, 2)))
         self.E = (al[0], al[1])

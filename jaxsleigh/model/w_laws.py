@@ -58,6 +58,6 @@ def w2_stiffness(w, law):
     With \\(\\dot w_2 = p_1 / (m w_1) + \\ldots\\) and \\(u_1 = -\\partial_{w_2} V / w_1 - \\ldots\\) it sets the
     frequency \\(\\sqrt{V_{22} / m} / |w_1|\\) of the (w2, p1) oscillation, stiff near \\(\\theta = 0\\)."""
     if isinstance(law, Gains):
-        return law.L[1] + 0.0 * w[1]
+        return law.L[1]
     fn = getattr(law, "w2_stiffness", None)
     return None if fn is None else fn(w)

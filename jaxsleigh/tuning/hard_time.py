@@ -101,6 +101,11 @@ def _figures(r, cfg: HardTimeConfig):
     return tq, eq, jnp.mean(r.settled.astype(T.dtype)), jnp.sum(r.status != Status.OK)
 
 
+def _mu(cfg: HardTimeConfig) -> float:
+    """\\(\\mu = 2\\rho\\): the augmented Lagrangian's quadratic weight, and the multipliers' step (module docstring)."""
+    return 2.0 * cfg.penalty
+
+
 def _no_multipliers(cfg: HardTimeConfig) -> np.ndarray:
     """Zero multipliers: one per energy quantile, then the settled floor (the order of the objective's constraints)."""
     return np.zeros(len(cfg.energy_quantiles) + 1)
@@ -137,7 +142,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     lb = jnp.log(jnp.asarray(budgets, dtype))
     weights = jnp.asarray(cfg.time_weights, dtype)
 
-    mu = 2.0 * cfg.penalty
+    mu = _mu(cfg)
 
     def objective(x, lam):
         r = run(coords.law_of(x), y0_law)
@@ -234,7 +239,7 @@ def tune_by_gradient(problem: HardTimeProblem, *, steps: int = 40, lr: float = 0
         rec.history[-1]["lam"] = lam.tolist()
         if multiplier_every and (i + 1) % multiplier_every == 0:
             c = np.minimum(np.asarray(aux["constraints"], np.float64), MULTIPLIER_STEP_CAP)
-            lam = np.maximum(0.0, lam + 2.0 * problem.cfg.penalty * c)
+            lam = np.maximum(0.0, lam + _mu(problem.cfg) * c)
         rec.history[-1]["gradient_finite"] = finite = bool(jnp.all(jnp.isfinite(g)))
         if not finite:                          # said in the history, not hidden: the run stops there
             break
