@@ -308,9 +308,14 @@ class KeptProgram:
 
 
 def _jax_cache_off():
-    """A context (this thread) in which JAX neither reads nor writes its persistent cache."""
-    from jax._src import config
+    """A context (this thread) in which JAX neither reads nor writes its persistent cache.
 
+    JAX decides once per process, at its first compilation, whether its cache is used at all; that
+    decision is made here first, outside the context, so that the rest of the process keeps the cache."""
+    import jax
+    from jax._src import compilation_cache, config
+
+    compilation_cache.is_cache_used(jax.local_devices()[0].client)
     return config.enable_compilation_cache(False)
 
 

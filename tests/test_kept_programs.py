@@ -98,3 +98,25 @@ def test_the_key_names_shape_dtype_and_static_arguments():
     assert cache._describe_static(obs) != cache._describe_static(obs[:2])
     assert cache._describe_static(lambda x: x) is None
     assert cache._describe_static((1, PD())) is None
+
+
+def test_the_rest_of_the_process_keeps_jaxs_cache(tmp_path):
+    """A kept program compiles outside JAX's cache; JAX decides once per process whether its cache is on,
+    so a kept program compiled first must not turn it off for the programs compiled after it."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cache_dir = tmp_path / "cache"
+    code = ("import jax, jaxsleigh as js; js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1); "
+            "jax.jit(lambda x: x * 3.25 + 1.0)(2.0)")
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXSLEIGH_CACHE_DIR": str(cache_dir),
+           "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    env.pop("JAXSLEIGH_NO_COMPILE_CACHE", None)
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300,
+                       cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert len(list((cache_dir / "kept").glob("*.exe"))) >= 3
+    assert any(p.name.startswith("jit__lambda") for p in cache_dir.iterdir()), sorted(p.name for p in cache_dir.iterdir())
