@@ -1,8 +1,7 @@
 r"""Issue 20's figures, side by side in one session: every core, start-up, sweeps against basins.
 
     python experiments/bench_cores.py [--basin-n 100000] [--baseline 2fa58a2] [--repeats 2]
-                                      [--skip c,basin,startup,sweep] [--startup-baseline 09e52bf]
-                                      [--out docs/figures/bench_cores.json]
+                                      [--skip c,basin,startup,sweep] [--out docs/figures/bench_cores.json]
 
 1. **The fixed-step path against C** (`jaxsleigh.studies.bench.c_limit`): ``run_ensemble(method="rk4",
    summaries=False, check_passivity=False)`` on the benchmark workload (4096 starts, 100 s, float32) against
@@ -12,9 +11,8 @@ r"""Issue 20's figures, side by side in one session: every core, start-up, sweep
    ``PYTHONPATH``), each in a fresh process, alternating, ``--repeats`` times; a warm-up run of 2048 other
    starts compiles first (not timed). Throughput = starts per wall second; the mean steps and a digest of
    ``T_eps`` say whether the two computed the same thing.
-3. **Start-up**: two fresh processes of each of the README's commands (`STARTUP`) with a new compilation-cache
-   folder (the first compiles, the second loads), by this tree and by ``--startup-baseline`` (a worktree),
-   alternating, medians of ``--repeats``.
+3. **Start-up**: two fresh processes of ``jaxsleigh simulate --ic=-3,-2,pi/8 --ic 1,1,0.5 --t-final 100``
+   and of ``jaxsleigh paper`` with a new compilation-cache folder: the first compiles, the second loads.
 4. **Sweeps against basins**: ``sweep`` of 8 values of ``k`` x 2048 starts against ``run_basin`` of the same
    16,384 (start, k) rows' starts, 30 s horizon, warm, in one process.
 
@@ -91,60 +89,12 @@ def baseline_tree(commit: str) -> Path:
     return d
 
 
-#: the README's commands, as a fresh process runs them (``{d}``: a scratch folder)
-STARTUP = {
-    "simulate": ["simulate", "--ic=-3,-2,pi/8", "--ic", "1,1,0.5", "--t-final", "100", "--out", "{d}/run.npz"],
-    "simulate tuned x64": ["simulate", "--ics", "{d}/starts.npy", "--gains", "tuned", "--x64", "--out",
-                           "{d}/run_tuned.npz"],
-    "basin 32x32": ["basin", "--x", "-3:3:32", "--y", "-3:3:32", "--theta", "0.5", "--t-final", "100", "--out",
-                    "{d}/basin.npz"],
-    "paper": ["paper", "--out", "{d}/paper"],
-}
-
-
-def startup(baseline: str, repeats: int, log) -> dict:
-    """Two fresh processes of each README command with a new compilation-cache folder (the first compiles, the
-    second loads), for this tree and ``baseline`` (a worktree), alternating; medians of ``repeats``."""
-    import numpy as np
-
-    trees = {"this": ROOT}
-    if baseline:
-        trees[baseline] = baseline_tree(baseline)
-    out = {}
-    for name, cmd in STARTUP.items():
-        walls = {k: [] for k in trees}
-        before = load()
-        for rep in range(repeats):
-            for tree_name, tree in (list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]):
-                with tempfile.TemporaryDirectory() as d:
-                    np.save(Path(d) / "starts.npy", [[-3, -2, 0.39], [1, 1, 0.5], [2, -1, -1.0]])
-                    env = {**os.environ, "JAXSLEIGH_CACHE_DIR": str(Path(d) / "cache"), "MPLBACKEND": "Agg",
-                           "PYTHONPATH": str(tree)}
-                    pair = []
-                    for _ in range(2):
-                        t0 = time.perf_counter()
-                        subprocess.run([sys.executable, "-m", "jaxsleigh.cli", *(c.format(d=d) for c in cmd)],
-                                       check=True, capture_output=True, env=env, cwd=d)
-                        pair.append(time.perf_counter() - t0)
-                    walls[tree_name].append(pair)
-        out[name] = {"load_before_after": [before, load()]}
-        for tree_name, pairs in walls.items():
-            first, second = (float(np.median([p[i] for p in pairs])) for i in range(2))
-            out[name][tree_name] = {"first_s": first, "second_s": second, "ratio": first / second, "runs": pairs}
-            log(f"start-up {name} ({tree_name}): {first:.2f} s then {second:.2f} s ({first / second:.2f}x)")
-    for tree_name, tree in trees.items():
-        if tree != ROOT:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--basin-n", type=int, default=100_000)
     ap.add_argument("--baseline", default="2fa58a2")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--skip", default="")
-    ap.add_argument("--startup-baseline", default="09e52bf", help="the commit the start-up is compared with")
     ap.add_argument("--out", default="docs/figures/bench_cores.json")
     a = ap.parse_args(argv)
     skip = set(a.skip.split(",")) - {""}
@@ -188,7 +138,25 @@ def main(argv=None) -> int:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base)], capture_output=True)
         log(f"basin speed-up over {a.baseline}: {res['basin']['speedup']:.2f}x")
     if "startup" not in skip:
-        res["startup"] = startup(a.startup_baseline, a.repeats, log)
+        res["startup"] = {}
+        for name, cmd in (("simulate", ["simulate", "--ic=-3,-2,pi/8", "--ic", "1,1,0.5", "--t-final", "100"]),
+                          ("paper", ["paper"])):
+            with tempfile.TemporaryDirectory() as d:
+                walls = []
+                before = load()
+                for i in range(2):
+                    out = Path(d) / f"out{i}"
+                    args = [*cmd, "--out", str(out) + (".npz" if name == "simulate" else "")]
+                    t0 = time.perf_counter()
+                    subprocess.run([sys.executable, "-m", "jaxsleigh.cli", *args], check=True, capture_output=True,
+                                   env={**os.environ, "JAXSLEIGH_CACHE_DIR": str(Path(d) / "cache"),
+                                        "MPLBACKEND": "Agg"})
+                    walls.append(time.perf_counter() - t0)
+                programs = len([p for p in (Path(d) / "cache").rglob("*") if p.is_file()])
+            res["startup"][name] = {"first_s": walls[0], "second_s": walls[1], "ratio": walls[0] / walls[1],
+                                    "cached_programs": programs, "load_before_after": [before, load()]}
+            log(f"start-up {name}: {walls[0]:.2f} s then {walls[1]:.2f} s ({walls[0] / walls[1]:.2f}x), "
+                f"{programs} cached programs")
     if "sweep" not in skip:
         before = load()
         res["sweep"] = {**run_py(SWEEP), "load_before_after": [before, load()]}
