@@ -163,6 +163,50 @@ def test_search_refuses_bad_settings():
         tu.search(config=TINY, energy_budget=-1.0)
 
 
+def test_search_refuses_bad_energy_percentiles():
+    for bad in [(), (0.0,), (50.0, 100.0), (50.0, 50.0), ("50",), (True,)]:
+        with pytest.raises(ValueError, match="energy_percentiles"):
+            tu.search(config=TINY._replace(energy_percentiles=bad))
+    with pytest.raises(ValueError, match="budget on the median"):
+        tu.search(config=TINY._replace(energy_percentiles=(50.0, 90.0)), energy_budget=8.0)
+
+
+def test_a_budget_at_several_percentiles_rejects_a_heavy_upper_tail():
+    """A candidate at the reference's median energy but 3x its 90th percentile passes a median budget and fails
+    one at (50, 90); the penalty grows with the log of the excess at each percentile."""
+    figs = tu.PopulationFigures(median_T=np.array([30.0, 40.0]), median_energy=np.array([8.0, 8.0]),
+                                frac_converged=np.array([0.95, 0.95]), n_bad=np.array([0, 0]),
+                                mean_steps=np.array([1e3, 1e3]),
+                                energy_at=np.array([[8.0, 3000.0], [8.0, 900.0]]))
+    cfg = TINY._replace(energy_percentiles=(50.0, 90.0), energy_margin=1.0, penalty=200.0)
+    budgets = np.array([8.0, 1000.0])
+    (s0, ok0), (s1, ok1) = (search_mod._score(figs, i, budgets, 0.9, cfg) for i in (0, 1))
+    assert not ok0 and ok1 and s1 == 40.0
+    assert s0 == pytest.approx(30.0 + 200.0 * np.log(3.0))
+    median_only = figs._replace(energy_at=figs.energy_at[:, :1])
+    assert search_mod._score(median_only, 0, budgets[:1], 0.9, cfg._replace(energy_percentiles=(50.0,)))[1]
+
+
+def test_search_holds_its_budget_at_every_percentile_with_the_given_tolerance(monkeypatch):
+    seen = []
+    real = search_mod.evaluate_population
+
+    def record(glist, *a, **k):
+        seen.append(k["stepsize"])
+        return real(glist, *a, **k)
+
+    monkeypatch.setattr(search_mod, "evaluate_population", record)
+    cfg = TINY._replace(generations=2, energy_percentiles=(50.0, 90.0), converged_margin=0.0, energy_margin=1.5)
+    ss = js.StepSizeController(atol=1e-7)
+    res = tu.search(config=cfg, stepsize=ss)
+    assert seen and all(s == ss for s in seen) and res.settings["stepsize"]["atol"] == 1e-7
+    b = res.reference["energy_budgets"]
+    assert set(b) == {"p50", "p90"} and b["p90"] > b["p50"] == res.reference["energy_budget"]
+    ics = tu.draw_starts(tu.UniformStarts(), cfg.batch, cfg.seed)
+    again = real([res.gains], ics, stepsize=ss, percentiles=(50.0, 90.0))
+    assert again.energy_at[0, 0] <= b["p50"] * (1 + 1e-5) and again.energy_at[0, 1] <= b["p90"] * (1 + 1e-5)
+
+
 def test_an_impossible_budget_says_what_to_change():
     with pytest.raises(RuntimeError, match="raise the budget"):
         tu.search(config=TINY._replace(generations=1), energy_budget=1e-6)
@@ -194,6 +238,12 @@ def test_cli_search_writes_gains_with_their_figures(tmp_path, capsys):
     (["--population", "4"], "belong to --search"),
     (["--search", "--population", "1"], "--population"),
     (["--search", "--energy-budget", "8", "--energy-margin", "0.9"], "not both"),
+    (["--energy-percentiles", "50,90"], "belong to --search"),
+    (["--atol", "1e-8"], "belong to --search"),
+    (["--search", "--energy-percentiles", "50,100"], "in (0, 100)"),
+    (["--search", "--energy-percentiles", "50,50"], "distinct"),
+    (["--search", "--energy-percentiles", "median"], "e.g. --energy-percentiles 50,75,90"),
+    (["--search", "--energy-budget", "8", "--energy-percentiles", "50,90"], "budget on the median"),
 ])
 def test_cli_search_refuses_options_it_would_ignore(tmp_path, capsys, argv, msg):
     rc = cli_main(["tune", "--out", str(tmp_path / "g.json"), "--no-progress", *argv])

@@ -6,7 +6,8 @@
     jaxsleigh tune --pareto N --out front.json [--front-method warm|vmap] [--budgets LO:HI]
                    [--warm-steps N] [--baseline] [--plot front.png] [--validate N] ...
     jaxsleigh tune --search --out gains.json [--steps G] [--batch B] [--population P]
-                   [--energy-margin F | --energy-budget E] [--history FILE.npz] [--validate N]
+                   [--energy-margin F | --energy-budget E] [--energy-percentiles 50,75,90] [--atol A]
+                   [--history FILE.npz] [--validate N]
 
 The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the subcommand with
 `add_tune` (it is a thin layer over `jaxsleigh.tuning.tune`).
@@ -52,19 +53,34 @@ random search spending the same number of objective evaluations.
 --search replaces the gradient descent by a derivative-free search (CMA-ES, jaxsleigh.tuning.search)
 on the figures the accurate engine reports over 100 s: the shortest median T_0.05 on --batch training
 starts subject to median control energy <= --energy-margin x the --gains' on the same starts (or
---energy-budget E, an absolute median energy), no fewer converged and no start failing or crossing
-theta = 0. Each generation's --population candidates run as one ensemble (gains per trajectory).
-The 'balanced' preset is its result (experiments/balanced_search.py: two such searches in a row).
+--energy-budget E, an absolute median energy; --energy-percentiles 50,75,90: at each of those
+percentiles), no fewer converged and no start failing or crossing theta = 0. Each generation's
+--population candidates run as one ensemble (gains per trajectory). Use --atol 1e-8 when effort
+matters: float32's default 1e-6 does not resolve energy spent after settling. The 'balanced' preset
+is its result (experiments/balanced_search.py: two such searches in a row, at --atol 1e-8 with
+--energy-percentiles 50,75,90).
 
 examples:
   jaxsleigh tune --out gains.json
-  jaxsleigh tune --search --out mine.json --steps 200 --history search.npz
+  jaxsleigh tune --search --out mine.json --steps 60 --energy-percentiles 50,75,90 --atol 1e-8 --history search.npz
   jaxsleigh tune --out eco.json --energy-budget 19 --t-final 100 --stop-fraction 0.001 --n-attempts 6000
   jaxsleigh tune --pareto 5 --out front.json --plot front.png --baseline --t-final 100 --stop-fraction 0.001
   jaxsleigh tune --out gains.json --tune k,D_hat --steps 60 --history history.npz
   jaxsleigh tune --out robust.json --robust --steps 200
   jaxsleigh simulate --ic=-3,-2,pi/8 --gains gains.json --out run.npz
 """
+
+
+def _percentiles(text: str) -> tuple:
+    """argparse ``type=`` of ``--energy-percentiles``: distinct numbers in (0, 100), comma-separated."""
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if not vals or len(set(vals)) != len(vals) or not all(0 < v < 100 for v in vals):
+        raise argparse.ArgumentTypeError(f"--energy-percentiles must be distinct percentiles in (0, 100), comma-"
+                                         f"separated, got {text!r} (e.g. --energy-percentiles 50,75,90)")
+    return vals
 
 
 def add_tune(subparsers) -> None:
@@ -126,6 +142,14 @@ def add_tune(subparsers) -> None:
     d.add_argument("--energy-margin", type=number("--energy-margin", "0.95"), default=0.95, metavar="F",
                    help="energy budget as a fraction of the starting gains' median energy on the training "
                         "starts (default 0.95: room for the median's sampling noise on other starts)")
+    d.add_argument("--energy-percentiles", type=_percentiles, default=(50.0,), metavar="P,P,...",
+                   help="hold the energy within --energy-margin x the --gains' at each of these percentiles over the "
+                        "training starts, not only the median (e.g. 50,75,90: the energy is bimodal, and a median "
+                        "budget lets the upper half grow several-fold)")
+    d.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
+                   help="absolute tolerance of every run of the search and its validation (default: the library's, "
+                        "1e-6 in float32). Energy spent after settling needs 1e-8 in float32 to be seen (the "
+                        "settled-phase page of the docs)")
     f = p.add_argument_group("Pareto front")
     f.add_argument("--pareto", type=whole("--pareto", "6"), default=None, metavar="N",
                    help="compute N points (at most 100) of the time-effort front instead of one set of gains")
@@ -210,8 +234,10 @@ def _cmd_tune(args) -> int:
         args.batch = 128 if search else 256
     if search:
         return _cmd_search(args)
-    if args.population != 16 or args.energy_margin != 0.95:
-        raise ValueError("--population and --energy-margin belong to --search; add --search or drop them")
+    if (args.population != 16 or args.energy_margin != 0.95 or args.energy_percentiles != (50.0,)
+            or args.atol is not None):
+        raise ValueError("--population, --energy-margin, --energy-percentiles and --atol belong to --search; add "
+                         "--search or drop them")
     if args.pareto is not None:
         return _cmd_pareto(args)
     if args.plot is not None:         # refused now, not silently ignored after the run
@@ -297,6 +323,7 @@ def _cmd_search(args) -> int:
     from .. import tuning
     from ..files.npz import atomic_write
     from ..model.params import gains_to_dict, save_gains
+    from ..integrate.stepsize import StepSizeController
 
     used = [k for k, v in _GRADIENT_ONLY.items() if getattr(args, k) != v]
     if used:
@@ -321,13 +348,17 @@ def _cmd_search(args) -> int:
     ckpt = _checked_checkpoint(args, "search")
     names = tuning.parse_tune(args.tune)
     config = tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
-                                 seed=args.seed, energy_margin=args.energy_margin)
+                                 seed=args.seed, energy_margin=args.energy_margin,
+                                 energy_percentiles=args.energy_percentiles)
+    stepsize = None if args.atol is None else StepSizeController(atol=args.atol)
     command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     t0 = time.perf_counter()
 
     def write(res, **extra):
-        meta = {"how": "jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under a median "
-                       "control-energy budget", "command": command, "tuned": list(names),
+        meta = {"how": "jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under a "
+                       "control-energy budget at the percentiles "
+                       + ", ".join(f"{q:g}" for q in args.energy_percentiles), "command": command, "tuned": list(names),
+                "atol": args.atol,
                 "initial_gains": gains_to_dict(res.initial), "training_figures": res.figures,
                 "reference_figures": res.reference, "best_generation": res.best_generation,
                 "generations_run": res.settings["generations_run"], "seed": args.seed, "batch": args.batch,
@@ -347,7 +378,7 @@ def _cmd_search(args) -> int:
     try:
         res = tuning.search(gains0, config=config, reference=gains0,
                             energy_budget=args.energy_budget, tune=names, plant=plant, x64=args.x64,
-                            progress=args.progress, checkpoint=ckpt, resume=args.resume)
+                            stepsize=stepsize, progress=args.progress, checkpoint=ckpt, resume=args.resume)
     except NoFeasibleCandidate as e:
         # the run finished: keep its history and checkpoint (more generations resume it), name the flags
         hist = write_history(e.history)
@@ -387,8 +418,9 @@ def _cmd_search(args) -> int:
     ckpt.unlink(missing_ok=True)
     if args.validate:
         ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64),
-                "searched": tuning.validate(res.gains, ics, plant=plant, x64=args.x64)}
+        kw = {} if stepsize is None else {"stepsize": stepsize}
+        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, **kw),
+                "searched": tuning.validate(res.gains, ics, plant=plant, x64=args.x64, **kw)}
         print(tuning.markdown_table(rows))
         write(res, wall_s=wall, validation={k: tuning.validation_dict(v, seed=args.seed + 1000)
                                             for k, v in rows.items()})
@@ -507,7 +539,10 @@ def _canonical_argv(args) -> list:
                 "--seed", str(args.seed), "--population", str(args.population), "--energy-margin",
                 repr(args.energy_margin), "--tune", args.tune, "--gains", str(args.gains), "--params", args.params,
                 "--damping", args.damping] + (["--energy-budget", repr(args.energy_budget)]
-                                              if args.energy_budget is not None else []) + (["--x64"] if args.x64 else [])
+                                              if args.energy_budget is not None else []) + (
+            ["--energy-percentiles", ",".join(f"{q:g}" for q in args.energy_percentiles)]
+            if args.energy_percentiles != (50.0,) else []) + (["--atol", repr(args.atol)] if args.atol is not None
+                                                              else []) + (["--x64"] if args.x64 else [])
     argv = ["tune", "--out", str(args.out), "--steps", str(args.steps), "--batch", str(args.batch),
             "--seed", str(args.seed), "--lr", repr(args.lr), "--tune", args.tune, "--mode", args.mode,
             "--t-final", repr(args.t_final), "--dt", repr(args.dt), "--n-attempts", str(args.n_attempts),

@@ -3,19 +3,21 @@ r"""Derivative-free search of the gains on the accurate engine's own figures, un
 The gradient tuner (`tune`) descends a smooth *surrogate* (the soft time outside the ball, with a
 budget on the geometric-mean energy of its training batch, integrated by its own differentiable scan).
 What a user reads, and what the ``balanced`` preset promises, are other numbers: the **median hard
-convergence time** \(T_{0.05}\) over starts, the **median control energy** \(\int_0^{100}|u|^2 dt\),
+convergence time** \(T_{0.05}\) over starts, **percentiles of the control energy** \(\int_0^{100}|u|^2 dt\),
 the converged fraction, no start failing or crossing \(\theta = 0\), all measured by the accurate
 engine (`jaxsleigh.studies.ensemble.run_ensemble`). `search` optimises exactly those:
 
-\[ \min_{\text{gains}}\ \operatorname{median}_i T_{0.05,i} \quad \text{s.t.}\quad \operatorname{median}_i E_i \le E_{max},\ \ \text{converged} \ge F_{min},\ \ \text{no start fails or crosses } \theta = 0, \]
+\[ \min_{\text{gains}}\ \operatorname{median}_i T_{0.05,i} \quad \text{s.t.}\quad P_q(E) \le E_{max,q}\ (q \in Q),\ \ \text{converged} \ge F_{min},\ \ \text{no start fails or crosses } \theta = 0, \]
 
 on a training batch of starts, by CMA-ES (`jaxsleigh.tuning.cmaes`) in the unconstrained
 parametrisation of `GainParams`, with the constraints as an exact penalty
 
-\[ s = \min(\operatorname{median} T, 2 T_f) + \rho\,\big[\max(0, \log(\operatorname{median} E / E_{max})) + \max(0, F_{min} - F) + n_{bad}\big] \]
+\[ s = \min(\operatorname{median} T, 2 T_f) + \rho\,\big[\textstyle\sum_{q \in Q} \max(0, \log(P_q(E) / E_{max,q})) + \max(0, F_{min} - F) + n_{bad}\big] \]
 
 (\(\rho\) = ``penalty``, large: a feasible candidate always beats an infeasible one that is not
-much faster). \(E_{max}\) is ``energy_margin`` times the reference gains' median energy on the same
+much faster). \(P_q(E)\) is the \(q\)-th percentile of the control energy over the training starts,
+\(Q\) = ``energy_percentiles`` (the median alone by default), and \(E_{max,q}\) is ``energy_margin`` times the
+reference gains' same percentile on the same
 starts (or ``energy_budget``) and \(F_{min}\) their converged fraction plus ``converged_margin``: the
 margins leave room for the sampling noise when the result is re-measured on other starts.
 
@@ -44,7 +46,7 @@ import math
 import time
 import zipfile
 from pathlib import Path
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -99,6 +101,10 @@ class SearchConfig(NamedTuple):
       penalty: \\(\\rho\\) of the exact penalty (module docstring).
       t_final: horizon [s] (the validation's 100 s). eps: radius of the ball of \\(T_\\epsilon\\).
       verify: feasible candidates tried against the guard starts, best first.
+      energy_percentiles: the percentiles of the control energy over the training starts that must each stay
+        within ``energy_margin`` x the reference's same percentile (``(50,)``: the median only). The energy is
+        bimodal (starts near theta = 0 carry \\(H_d(0) \\sim \\theta_0^{-4}\\)): a median budget alone lets the
+        upper half grow several-fold.
     """
 
     generations: int = 100
@@ -112,18 +118,29 @@ class SearchConfig(NamedTuple):
     t_final: float = 100.0
     eps: float = 0.05
     verify: int = 5
+    energy_percentiles: tuple = (50.0,)
 
 
 class PopulationFigures(NamedTuple):
     """Figures of each candidate on the training starts (arrays over the candidates): median T_eps
     (failures and unconverged count as inf), median control energy (of the OK starts), converged
-    fraction, starts that failed or crossed theta = 0, mean accepted steps."""
+    fraction, starts that failed or crossed theta = 0, mean accepted steps; and the energy at each of the
+    ``percentiles`` asked for, shape (candidates, percentiles) (not one of `SCALAR_FIGURES`)."""
 
     median_T: np.ndarray
     median_energy: np.ndarray
     frac_converged: np.ndarray
     n_bad: np.ndarray
     mean_steps: np.ndarray
+    energy_at: np.ndarray
+
+
+#: The figures of one candidate that a search keeps for its best ones (one number each).
+SCALAR_FIGURES = PopulationFigures._fields[:-1]
+
+
+def _scalars(fig: PopulationFigures, i: int) -> tuple:
+    return tuple(float(getattr(fig, k)[i]) for k in SCALAR_FIGURES)
 
 
 class SearchResult(NamedTuple):
@@ -149,9 +166,11 @@ class SearchResult(NamedTuple):
 
 
 def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0,
-                        eps: float = 0.05, x64: bool = False) -> PopulationFigures:
+                        eps: float = 0.05, x64: bool = False, stepsize=None,
+                        percentiles: Sequence[float] = (50.0,)) -> PopulationFigures:
     """Run every candidate of ``gains_list`` from every start of ``ics`` in one ensemble (gains as
-    per-lane parameters) and reduce per candidate (`PopulationFigures`)."""
+    per-lane parameters, ``stepsize`` a `jaxsleigh.StepSizeController` or ``None`` for the defaults) and reduce
+    per candidate (`PopulationFigures`)."""
     from ..studies.ensemble import run_ensemble
     from ..model.lanes import stack_gains
 
@@ -159,7 +178,7 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
     ics = np.asarray(ics, np.float64)
     P, N = len(glist), ics.shape[0]
     r = run_ensemble(np.tile(ics, (P, 1)), plant=plant, gains=stack_gains([g for g in glist for _ in range(N)]),
-                     t_final=t_final, eps=eps, x64=x64, progress=False)
+                     t_final=t_final, eps=eps, x64=x64, stepsize=stepsize, progress=False)
     ok = (r.status == Status.OK).reshape(P, N)
     T = np.where(ok, np.asarray(r.T_eps).reshape(P, N), np.inf)
     T = np.where(np.isnan(T), np.inf, T)
@@ -167,13 +186,18 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
     th0 = np.tile(ics[:, 2], P).reshape(P, N)
     crossed = np.sign(np.asarray(r.q_final)[:, 2].reshape(P, N)) != np.sign(th0)
     med_E = np.array([np.median(E[i][ok[i]]) if ok[i].any() else np.inf for i in range(P)])
+    at = np.array([np.percentile(E[i][ok[i]], percentiles) if ok[i].any() else np.full(len(percentiles), np.inf)
+                   for i in range(P)]).reshape(P, len(percentiles))
     return PopulationFigures(np.median(T, axis=1), med_E, np.isfinite(T).mean(axis=1),
-                             np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1))
+                             np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1), at)
 
 
-def _score(fig: PopulationFigures, i: int, e_max: float, f_min: float, cfg: SearchConfig) -> tuple[float, bool]:
-    viol = (max(0.0, math.log(max(fig.median_energy[i], 1e-300) / e_max)) if math.isfinite(fig.median_energy[i])
-            else 1e3) + max(0.0, f_min - fig.frac_converged[i]) + float(fig.n_bad[i])
+def _score(fig: PopulationFigures, i: int, e_max, f_min: float, cfg: SearchConfig) -> tuple[float, bool]:
+    """The penalised score of candidate ``i`` and whether it is feasible; ``e_max``: the budget at each of
+    ``cfg.energy_percentiles`` (the module docstring's \\(E_{max}\\), one per percentile)."""
+    viol = sum(max(0.0, math.log(max(e, 1e-300) / b)) if math.isfinite(e) else 1e3
+               for e, b in zip(fig.energy_at[i], np.atleast_1d(e_max)))
+    viol += max(0.0, f_min - fig.frac_converged[i]) + float(fig.n_bad[i])
     t = min(float(fig.median_T[i]), 2.0 * cfg.t_final)
     return t + cfg.penalty * viol, viol == 0.0
 
@@ -203,7 +227,7 @@ def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list) -> 
     arrays["top/score"] = np.asarray([t[0] for t in top], np.float64)
     arrays["top/generation"] = np.asarray([t[1] for t in top], np.int64)
     arrays["top/x"] = np.asarray([t[2] for t in top], np.float64).reshape(len(top), state.mean.size)
-    arrays["top/figures"] = np.asarray([t[3] for t in top], np.float64).reshape(len(top), len(PopulationFigures._fields))
+    arrays["top/figures"] = np.asarray([t[3] for t in top], np.float64).reshape(len(top), len(SCALAR_FIGURES))
     atomic_write(path, lambda fh: np.savez(fh, **arrays))
 
 
@@ -228,14 +252,18 @@ def _load(path: Path, key: str, rng):
 
 def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = SearchConfig(), reference="paper",
            energy_budget: Optional[float] = None, tune=None, plant: Optional[PlantParams] = None, x64: bool = False,
-           d_floor: float = D_FLOOR, progress: Any = None, checkpoint=None, resume: bool = False) -> SearchResult:
+           d_floor: float = D_FLOOR, stepsize=None, progress: Any = None, checkpoint=None,
+           resume: bool = False) -> SearchResult:
     """The fastest gains (median T_eps on ``config.batch`` training starts) whose median control energy
     is at most ``energy_budget`` (default: ``config.energy_margin`` x the ``reference`` gains' on the
     same starts), with no fewer converged than ``reference`` and no start failing or crossing
     theta = 0, by CMA-ES from ``gains0`` over the gains named in ``tune`` (default all; module
     docstring). ``checkpoint``: a ``.npz`` written after every generation; ``resume=True`` continues
     from it (also with more ``generations`` than the run that wrote it: the first ones are identical). Raises `TuningInterrupted` on Ctrl-C (``partial``: the best so far, or ``None``) and
-    ``RuntimeError`` if no feasible candidate passes the guard starts."""
+    ``RuntimeError`` if no feasible candidate passes the guard starts. ``stepsize``: the engine's
+    `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Control energy spent after settling
+    needs a tighter absolute tolerance than the float32 default to be resolved (``atol=1e-8``:
+    docs/evidence/settled-phase.md); a search on the defaults can reward gains for energy that float32 does not see."""
     from ..validate import check_count, check_memory
 
     for name in ("generations", "population", "batch", "verify"):
@@ -258,6 +286,16 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
             raise ValueError(f"search: {name} must be a finite number > 0, got {v!r}")
     if energy_budget is not None and not (math.isfinite(energy_budget) and energy_budget > 0):
         raise ValueError(f"search: energy_budget must be a finite number > 0, got {energy_budget!r}")
+    pcts = config.energy_percentiles
+    if not (isinstance(pcts, (tuple, list)) and pcts and len(set(pcts)) == len(pcts) and all(
+            isinstance(q, (int, float, np.integer, np.floating)) and not isinstance(q, bool) and 0 < q < 100
+            for q in pcts)):
+        raise ValueError(f"search: energy_percentiles must be distinct percentiles in (0, 100), e.g. (50, 75, 90), "
+                         f"got {pcts!r}")
+    if energy_budget is not None and tuple(pcts) != (50.0,):
+        raise ValueError("search: energy_budget is a budget on the median; with other energy_percentiles the budgets "
+                         "are energy_margin x the reference's")
+    pcts = tuple(float(q) for q in pcts)
     names = parse_tune(tune)
     g0 = load_gains(gains0)
     full0 = np.concatenate([np.ravel(p) for p in params_from_gains(g0, d_floor=d_floor)])
@@ -268,9 +306,13 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
                 "energy_budget": energy_budget, "tuned": list(names), "x64": bool(x64), "d_floor": float(d_floor),
                 "starts": repr(starts) if callable(starts) else "array",
                 "plant": None if plant is None else repr(plant), "method": "CMA-ES on the accurate engine"}
+    if stepsize is not None:                 # (left out otherwise: the fingerprints of earlier runs hold)
+        settings["stepsize"] = stepsize._asdict()
     # the generation count is left out: a finished or interrupted run can be resumed for more generations
     # (a generation does not depend on how many follow it)
-    key = _fingerprint({**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"}}, ics)
+    # (the percentiles are left out at their default: the fingerprints of earlier runs hold)
+    key = _fingerprint({**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"
+                                               and not (k == "energy_percentiles" and pcts == (50.0,))}}, ics)
     ckpt = None if checkpoint is None else Path(checkpoint)
 
     def full(x):
@@ -279,17 +321,22 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
         return v
 
     # the reference and the start in one ensemble; the start is candidate "generation -1"
-    ref = evaluate_population([reference, g0], ics, plant=plant, t_final=config.t_final, eps=config.eps, x64=x64)
-    e_max = float(energy_budget) if energy_budget is not None else config.energy_margin * float(ref.median_energy[0])
+    ref = evaluate_population([reference, g0], ics, plant=plant, t_final=config.t_final, eps=config.eps, x64=x64,
+                              stepsize=stepsize, percentiles=pcts)
+    e_max = (np.array([float(energy_budget)]) if energy_budget is not None
+             else config.energy_margin * np.asarray(ref.energy_at[0], np.float64))
     f_min = min(1.0, float(ref.frac_converged[0]) + config.converged_margin)
     reference_figs = {"median_T": float(ref.median_T[0]), "median_energy": float(ref.median_energy[0]),
                       "frac_converged": float(ref.frac_converged[0]), "n_bad": int(ref.n_bad[0]), "mean_steps": float(ref.mean_steps[0]),
-                      "energy_budget": e_max, "converged_floor": f_min}
+                      "energy_budget": float(e_max[pcts.index(50.0)]) if 50.0 in pcts else math.nan,
+                      "converged_floor": f_min}
+    if pcts != (50.0,):
+        reference_figs["energy_budgets"] = {f"p{q:g}": float(b) for q, b in zip(pcts, e_max)}
     rng = np.random.default_rng(config.seed)
     state, hist, top = cma_init(full0[free], config.sigma0), [], []
     s0, feasible0 = _score(ref, 1, e_max, f_min, config)
     if feasible0:
-        top.append((float(s0), -1, full0[free].copy(), tuple(float(f[1]) for f in ref)))
+        top.append((float(s0), -1, full0[free].copy(), _scalars(ref, 1)))
     if resume and ckpt is not None and ckpt.exists():
         state, hist, top = _load(ckpt, key, rng)
     t0 = time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0)
@@ -306,13 +353,14 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
                 gen = int(state.generation)
                 xs, ys = cma_ask(state, rng, config.population)
                 figs = evaluate_population([_to_gains(full(x), d_floor, g0, names) for x in xs], ics, plant=plant,
-                                           t_final=config.t_final, eps=config.eps, x64=x64)
+                                           t_final=config.t_final, eps=config.eps, x64=x64, stepsize=stepsize,
+                                           percentiles=pcts)
                 scored = [_score(figs, i, e_max, f_min, config) for i in range(len(xs))]
                 scores = np.array([s for s, _ in scored])
                 state = cma_tell(state, ys, scores)
                 for i, (s, feas) in enumerate(scored):
                     if feas:
-                        top.append((float(s), gen, np.asarray(xs[i]), tuple(float(f[i]) for f in figs)))
+                        top.append((float(s), gen, np.asarray(xs[i]), _scalars(figs, i)))
                 top = sorted(top, key=lambda t: (t[0], t[1]))[:max(1, int(config.verify))]
                 b = int(np.argmin(scores))
                 hist.append({"generation": gen, "score": float(scores[b]), "median_T": float(figs.median_T[b]),
@@ -328,29 +376,30 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     why = []
     for s, gen, x, f in top:
         g = _to_gains(full(x), d_floor, g0, names)
-        bad = _guard_failure(g, guard, plant, config.t_final, x64)
+        bad = _guard_failure(g, guard, plant, config.t_final, x64, stepsize)
         if not bad:
             return _result(g, g0, f, reference_figs, hist, gen, settings)
         why.append(f"generation {gen}: guard starts {bad}")
     # the history is kept on the error: a caller (the command line) writes it, so the run is not lost
     history = {k: np.asarray([h[k] for h in hist]) for k in _HISTORY}
+    budgets = ", ".join(f"{b:.4g} at the {q:g}th percentile" for q, b in zip(pcts, e_max))
     raise NoFeasibleCandidate(
         "search: no feasible candidate" + (" passed the guard starts (" + "; ".join(why) + ")" if why
-                                           else f" (median energy <= {e_max:.4g} with converged >= {f_min:.3f}); raise "
+                                           else f" (energy <= {budgets} with converged >= {f_min:.3f}); raise "
                                                 "the budget (energy_margin / energy_budget) or the generations"),
         history=history, reference=reference_figs, settings={**settings, "generations_run": len(hist)},
         reason="guard" if why else "infeasible")
 
 
-def _guard_failure(g: Gains, guard, plant, t_final, x64) -> str:
+def _guard_failure(g: Gains, guard, plant, t_final, x64, stepsize=None) -> str:
     from ..studies.ensemble import run_ensemble
 
-    r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, progress=False)
+    r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, stepsize=stepsize, progress=False)
     bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q_final)[:, 2]) != np.sign(guard[:, 2]))
     return f"{int(bad.sum())} of {bad.size} failed or crossed theta = 0" if bad.any() else ""
 
 
 def _result(g, g0, f, reference, hist, gen, settings) -> SearchResult:
-    figures = dict(zip(PopulationFigures._fields, (float(v) for v in f)))
+    figures = dict(zip(SCALAR_FIGURES, (float(v) for v in f)))
     history = {k: np.asarray([h[k] for h in hist]) for k in _HISTORY}
     return SearchResult(g, g0, figures, reference, history, int(gen), {**settings, "generations_run": len(hist)})
