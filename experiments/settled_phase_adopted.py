@@ -6,7 +6,8 @@ r"""The settled-phase step adopted (issue 20, part 2): steps and accuracy before
 Runs the default adaptive method (float32, 100 s, eps = 0.05) of this tree and of ``--baseline`` (a
 ``git worktree`` of the commit before the exponential step, classical RK4 with the I controller) on the
 benchmark workload (`jaxsleigh.studies.bench.workload`, seed 0): ``--n`` starts under the paper's gains and
-``--n-fast`` under the ``balanced`` and ``tuned`` presets. Each is compared with a float64 reference
+``--n-fast`` under the ``balanced`` and ``tuned`` presets (``balanced``: the gains it had until 2026-11,
+``settled_tolerance.OLD_BALANCED``, the same in every tree, as when these figures were measured). Each is compared with a float64 reference
 computed by the *baseline* (classical RK4, rtol = atol = 1e-11, T_eps on the dense output with 8 samples and
 30 bisections), so the reference does not share the new scheme. Reports the mean accepted steps and attempts,
 the wrong final states (max-norm error > 1e-3, as ``jaxsleigh bench``), the final-state error quantiles and
@@ -20,10 +21,12 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_cores import ROOT, baseline_tree, load, run_py  # noqa: E402
+from settled_tolerance import OLD_BALANCED  # noqa: E402
 
 RUN = r"""
 import json, sys, time
@@ -79,12 +82,15 @@ def main(argv=None) -> int:
     out = {"command": "python experiments/settled_phase_adopted.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "baseline": a.baseline, "also": a.also, "dtype": "float32", "t_final": 100.0, "load_before": load(),
            "gains": {}}
+    old = Path(tempfile.mkdtemp()) / "old_balanced.json"                # a gains file every tree reads
+    old.write_text(json.dumps(OLD_BALANCED))
     try:
         for gains, n in (("paper", a.n), ("balanced", a.n_fast), ("tuned", a.n_fast)):
-            ref = run_py(RUN, [gains, n, "ref"], env={"PYTHONPATH": str(base)})
+            spec = str(old) if gains == "balanced" else gains
+            ref = run_py(RUN, [spec, n, "ref"], env={"PYTHONPATH": str(base)})
             row = {}
             for name, tree in trees:
-                row[name] = compare(run_py(RUN, [gains, n, "run"], env={"PYTHONPATH": str(tree)}), ref)
+                row[name] = compare(run_py(RUN, [spec, n, "run"], env={"PYTHONPATH": str(tree)}), ref)
             row["steps_ratio"] = row["before"]["mean_steps"] / row["after"]["mean_steps"]
             if a.also:
                 row["steps_ratio_also"] = row["also"]["mean_steps"] / row["after"]["mean_steps"]

@@ -1,0 +1,115 @@
+"""Energy spent after settling: which tolerance resolves it, checked against SciPy's Radau.
+
+    python experiments/settled_tolerance.py [--n 256] [--out docs/figures/settled_tolerance.json]
+
+Under the gains that ``balanced`` had until 2026-11 (``OLD_BALANCED``: k = 0.0015), starts that have settled
+(|q| <= 0.05) later fall into an oscillation of (w2, p1) that spends most of their 100 s control energy. It is
+seeded at amplitudes of 1e-5 to 1e-8, below float32's default absolute tolerance (1e-6), so the adaptive
+step does not resolve it there. This script measures:
+
+1. **Radau.** Two starts (those of ``tests/test_etd.py::test_energy_spent_after_settling_needs_atol_1e_8_in_float32``):
+   the float64 state at 50 s, integrated to 65 s by ``scipy.integrate.solve_ivp(method="Radau", rtol=1e-10,
+   atol=1e-13)`` in the physical chart, against jaxsleigh in float64 (default tolerances), float32 at atol 1e-8,
+   float32 at its defaults, and float32 fixed-step RK4 at dt = 1e-3 (theta and p1 at 65 s).
+2. **Energy quantiles** over ``--n`` of the README's held-out starts (``preset_effort.readme_starts``) under
+   ``OLD_BALANCED`` and the paper's gains: 25/50/75/90th percentiles of int ||u||^2 dt over 100 s and mean steps, for
+   float64 (defaults), float32 (defaults) and float32 at atol 1e-7, 1e-8, 1e-9.
+
+Machine, dtype and command are recorded in the JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+sys.path.insert(0, str(ROOT / "tests"))
+
+#: The ``balanced`` preset before 2026-11-26 (CMA-ES on float32 at the default tolerance, median budget only).
+OLD_BALANCED = {"L": [2.152653933919823, 1.7424258224644875, 2.4920401566138226], "k": 0.0014669247735718393,
+                "D_hat": [[2.5652485388516872, -0.03276605028984544], [-0.03276605028984544, 10.823678151160923]]}
+STARTS = np.array([[2.6, 0.88, -2.13], [-1.83, 0.05, -1.5]])
+QS = (25, 50, 75, 90)
+
+
+def radau_check(g) -> list:
+    import jax
+    from scipy.integrate import solve_ivp
+
+    import jaxsleigh as js
+    from jaxsleigh.model.closed_loop import ClosedLoop
+    from numpy_field import numpy_field
+
+    f, jac = numpy_field(ClosedLoop(js.paper_plant(), g))
+    at50 = js.run_ensemble(STARTS, gains=g, t_final=50.0, x64=True, progress=False)
+    runs = {"float64": dict(x64=True), "float32 atol 1e-8": dict(stepsize=js.StepSizeController(atol=1e-8)),
+            "float32 defaults": dict(), "float32 RK4 dt 1e-3": dict(dt=1e-3, stepsize=js.StepSizeController(method="rk4"))}
+    finals = {k: js.run_ensemble(STARTS, gains=g, t_final=65.0, progress=False, **kw) for k, kw in runs.items()}
+    rows = []
+    for i in range(len(STARTS)):
+        y0 = np.concatenate([at50.q_final[i], at50.p_final[i]])
+        t0 = time.perf_counter()
+        with jax.enable_x64(True):
+            sol = solve_ivp(f, (50.0, 65.0), y0, method="Radau", rtol=1e-10, atol=1e-13, jac=jac)
+        y = sol.y[:, -1]
+        row = {"start": STARTS[i].tolist(), "radau": {"theta": float(y[2]), "p1": float(y[3]), "nfev": int(sol.nfev),
+                                                      "wall_s": round(time.perf_counter() - t0, 1)}}
+        for k, r in finals.items():
+            row[k] = {"theta": float(r.q_final[i, 2]), "p1": float(r.p_final[i, 0]),
+                      "theta_error": float(abs(r.q_final[i, 2] - y[2]))}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
+def quantiles(g, ics) -> dict:
+    import jaxsleigh as js
+
+    out = {}
+    for name, kw in (("float64", dict(x64=True)), ("float32 defaults", {}),
+                     *((f"float32 atol {a:g}", dict(stepsize=js.StepSizeController(atol=a))) for a in (1e-7, 1e-8, 1e-9))):
+        t0 = time.perf_counter()
+        r = js.run_ensemble(ics, gains=g, t_final=100.0, progress=False, **kw)
+        ok = r.status == 0
+        out[name] = {"energy": {f"p{q}": float(v) for q, v in zip(QS, np.percentile(r.u_energy[ok], QS))},
+                     "mean_steps": float(np.mean(r.n_steps)), "n_failed": int(np.sum(~ok)),
+                     "wall_s": round(time.perf_counter() - t0, 1)}
+        print(name, json.dumps(out[name]), flush=True)
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=256, help="README starts for the quantiles (default 256)")
+    ap.add_argument("--out", default=str(ROOT / "docs" / "figures" / "settled_tolerance.json"))
+    args = ap.parse_args(argv)
+    import jax
+
+    import jaxsleigh as js
+    from preset_effort import readme_starts
+
+    old = js.gains(**OLD_BALANCED)
+    doc = {"command": "python experiments/settled_tolerance.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])),
+           "machine": {"arch": platform.machine(), "cpu_count": os.cpu_count(), "jax_backend": jax.default_backend(),
+                       "jax": jax.__version__},
+           "gains": {"old balanced": OLD_BALANCED},
+           "radau": radau_check(old)}
+    ics = readme_starts(2048)[:args.n]
+    doc["quantiles"] = {"n": int(args.n), "starts": "readme_starts(2048)[:n] (experiments/preset_effort.py)",
+                        "old balanced": quantiles(old, ics), "paper": quantiles(js.paper_gains(), ics)}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
