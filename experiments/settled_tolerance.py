@@ -14,6 +14,8 @@ step does not resolve it there. This script measures:
 2. **Energy quantiles** over ``--n`` of the README's held-out starts (``preset_effort.readme_starts``) under
    ``OLD_BALANCED`` and the paper's gains: 25/50/75/90th percentiles of int ||u||^2 dt over 100 s and mean steps, for
    float64 (defaults), float32 (defaults) and float32 at atol 1e-7, 1e-8, 1e-9.
+3. **Other laws the README quotes**, the same ``--n`` starts: the ``shaped`` preset and Aicardi's law as tuned by
+   CMA-ES (``docs/figures/aicardi_study.json``), float32 at the defaults and at atol 1e-8.
 
 Machine, dtype and command are recorded in the JSON.
 """
@@ -71,14 +73,15 @@ def radau_check(g) -> list:
     return rows
 
 
-def quantiles(g, ics) -> dict:
+def quantiles(g, ics, runs=None, law_kw=None) -> dict:
     import jaxsleigh as js
 
     out = {}
-    for name, kw in (("float64", dict(x64=True)), ("float32 defaults", {}),
-                     *((f"float32 atol {a:g}", dict(stepsize=js.StepSizeController(atol=a))) for a in (1e-7, 1e-8, 1e-9))):
+    runs = runs or (("float64", dict(x64=True)), ("float32 defaults", {}),
+                    *((f"float32 atol {a:g}", dict(stepsize=js.StepSizeController(atol=a))) for a in (1e-7, 1e-8, 1e-9)))
+    for name, kw in runs:
         t0 = time.perf_counter()
-        r = js.run_ensemble(ics, gains=g, t_final=100.0, progress=False, **kw)
+        r = js.run_ensemble(ics, t_final=100.0, progress=False, **(law_kw or {"gains": g}), **kw)
         ok = r.status == 0
         out[name] = {"energy": {f"p{q}": float(v) for q, v in zip(QS, np.percentile(r.u_energy[ok], QS))},
                      "mean_steps": float(np.mean(r.n_steps)), "n_failed": int(np.sum(~ok)),
@@ -106,6 +109,12 @@ def main(argv=None) -> None:
     ics = readme_starts(2048)[:args.n]
     doc["quantiles"] = {"n": int(args.n), "starts": "readme_starts(2048)[:n] (experiments/preset_effort.py)",
                         "old balanced": quantiles(old, ics), "paper": quantiles(js.paper_gains(), ics)}
+    from jaxsleigh.controllers.aicardi import AicardiLaw
+
+    a = json.loads((ROOT / "docs" / "figures" / "aicardi_study.json").read_text())["cma"]["law"]
+    laws = {"shaped": js.load_shaped("shaped"), "aicardi (CMA-ES)": AicardiLaw(a["gamma"], a["k"], a["h"], a["K"])}
+    two = (("float32 defaults", {}), ("float32 atol 1e-8", dict(stepsize=js.StepSizeController(atol=1e-8))))
+    doc["other_laws"] = {name: quantiles(None, ics, two, {"controller": law}) for name, law in laws.items()}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {args.out}")
