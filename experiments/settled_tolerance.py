@@ -14,8 +14,9 @@ step does not resolve it there. This script measures:
 2. **Energy quantiles** over ``--n`` of the README's held-out starts (``preset_effort.readme_starts``) under
    ``OLD_BALANCED`` and the paper's gains: 25/50/75/90th percentiles of int ||u||^2 dt over 100 s and mean steps, for
    float64 (defaults), float32 (defaults) and float32 at atol 1e-7, 1e-8, 1e-9.
-3. **Other laws the README quotes**, the same ``--n`` starts: the ``shaped`` preset and Aicardi's law as tuned by
-   CMA-ES (``docs/figures/aicardi_study.json``), float32 at the defaults and at atol 1e-8.
+3. **Other laws the README quotes**, the same ``--n`` starts: the ``shaped`` preset, Aicardi's law as tuned by
+   CMA-ES (``docs/figures/aicardi_study.json``) and the three literature laws as tuned by
+   ``experiments/compare_controllers.py`` (``docs/figures/compare.json``), float32 at the defaults and at atol 1e-8.
 
 Machine, dtype and command are recorded in the JSON.
 """
@@ -111,8 +112,15 @@ def main(argv=None) -> None:
                         "old balanced": quantiles(old, ics), "paper": quantiles(js.paper_gains(), ics)}
     from jaxsleigh.controllers.aicardi import AicardiLaw
 
+    from jaxsleigh.controllers.astolfi import AstolfiLaw
+    from jaxsleigh.controllers.samson import Samson
+
     a = json.loads((ROOT / "docs" / "figures" / "aicardi_study.json").read_text())["cma"]["law"]
     laws = {"shaped": js.load_shaped("shaped"), "aicardi (CMA-ES)": AicardiLaw(a["gamma"], a["k"], a["h"], a["K"])}
+    tuned = json.loads((ROOT / "docs" / "figures" / "compare.json").read_text())["tuned"]
+    for name, cls in (("astolfi", AstolfiLaw), ("samson", Samson), ("aicardi", AicardiLaw)):
+        kw = {k.lstrip("."): v for k, v in tuned[name]["law"]["params"].items() if not k.startswith(".model")}
+        laws[f"{name} (compare_controllers.py)"] = cls(**kw)
     two = (("float32 defaults", {}), ("float32 atol 1e-8", dict(stepsize=js.StepSizeController(atol=1e-8))))
     doc["other_laws"] = {name: quantiles(None, ics, two, {"controller": law}) for name, law in laws.items()}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -118,6 +118,8 @@ def _write(tmp_path, name, text):
     (["--ics", "BADSHAPE"], "shape (2, 4)"),
     (["--ics", "missing.npy"], "not found"),
     (["--ic", "1,1,1", "--damping", "sticky"], "invalid choice"),
+    (["--ic", "1,1,1", "--atol", "0"], "--atol must be a finite number > 0"),
+    (["--ic", "1,1,1", "--method", "rk4", "--rtol", "1e-7", "--atol", "1e-8"], "--rtol and --atol set the adaptive"),
     ([], "one of the arguments --ics --ic is required"),
 ])
 def test_bad_input_exits_2_with_a_message(tmp_path, capsys, case, expect):
@@ -133,6 +135,25 @@ def test_bad_input_exits_2_with_a_message(tmp_path, capsys, case, expect):
     assert err.startswith("jaxsleigh: error: ") and expect in err, err
     assert "Traceback" not in err
     assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("cmd", ["simulate", "basin", "sweep"])
+def test_tolerance_flags_reach_the_engine_and_the_record(tmp_path, capsys, cmd):
+    """--rtol / --atol set the adaptive error control (more steps at tighter ones) and the output records them."""
+    where = {"simulate": ["--ic=-3,-2,pi/8", "--ic", "2,1,-1.5", "--t-final", "20"],
+             "basin": ["--x", "-2:2:2", "--y", "1", "--theta", "0.5", "--t-final", "20"],
+             "sweep": ["--x", "-2:2:2", "--y", "1", "--theta", "0.5", "--param", "k=0.05:0.1:2", "--t-final", "20"]}[cmd]
+    steps = {}
+    for tag, tol in (("default", []), ("tight", ["--rtol", "1e-7", "--atol", "1e-8"])):
+        out = tmp_path / f"{tag}.npz"
+        rc, _, err = _run([cmd, *where, *tol, "--out", str(out), "--no-progress"], capsys)
+        assert rc == 0, err
+        with np.load(out, allow_pickle=False) as z:
+            settings = json.loads(str(z["settings_json"]))
+            steps[tag] = np.asarray(z["n_steps"]).sum()
+        if tag == "tight":
+            assert settings["rtol"] == 1e-7 and settings["atol"] == 1e-8, settings
+    assert steps["tight"] > steps["default"]
 
 
 def test_help_documents_status_codes(capsys):

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
-from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
+from .common import (check_tolerance_flags, FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
                      add_sampler_options, check_outputs, compute_share, exit_code, finish_chunked, law_kwargs,
                      load_average, model_from_args, run_chunked, run_distributed, status_epilog)
 from .common import number as _positive_float
@@ -186,8 +186,9 @@ def _check(args) -> dict:
     from ..files.npz import npz_path
 
     plant, law = model_from_args(args)
+    check_tolerance_flags(args)
     solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
-                 max_steps=args.max_steps, x64=args.x64, eps=args.eps, flags=FLAGS)
+                 max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64, eps=args.eps, flags=FLAGS)
     starts = _starts_from_args(args)
     out = npz_path(args.out)
     chunks = _chunk_dir(out)
@@ -209,8 +210,8 @@ def _prepare(st: dict) -> None:
 def _run_kw(st: dict) -> dict:
     a = st["args"]
     return dict(eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method, plant=st["plant"], **law_kwargs(st["law"]),
-                x64=a.x64, max_steps=a.max_steps, chunk_size=a.chunk_size, checkpoint_dir=st["chunks"],
-                progress=a.progress)
+                x64=a.x64, max_steps=a.max_steps, rtol=a.rtol, atol=a.atol, chunk_size=a.chunk_size,
+                checkpoint_dir=st["chunks"], progress=a.progress)
 
 
 def _compute(st: dict, shard: tuple) -> None:

@@ -30,7 +30,7 @@ from ..files.npz import parse_number as _number
 __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
-           "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "add_progress_option", "FLAGS", "check_outputs",
+           "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "check_tolerance_flags", "add_progress_option", "FLAGS", "check_outputs",
            "check_figure", "figure_formats",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
            "add_distributed_options", "run_distributed"]
@@ -262,6 +262,21 @@ def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, sav
         g.add_argument("--max-steps", type=whole("--max-steps", "2000000"), default=None, metavar="N",
                        help="budget of attempted steps per trajectory (default: 20x (float32) or 30x (float64) the base steps for "
                             "adaptive; at most 2147483646); a run that exhausts it gets status 4")
+        g.add_argument("--rtol", type=number("--rtol", "1e-6"), default=None, metavar="R",
+                       help="relative tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64)")
+        g.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
+                       help="absolute tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64). "
+                            "Control energy and final states after settling need 1e-8 in float32 for gains whose "
+                            "settled starts oscillate (the settled-phase page of the docs)")
+
+
+def check_tolerance_flags(args) -> None:
+    """``--rtol`` / ``--atol`` belong to the adaptive method: refuse them with ``--method rk4`` (unused there)."""
+    used = [f for f, v in (("--rtol", args.rtol), ("--atol", args.atol)) if v is not None]
+    if used and args.method == "rk4":
+        raise ValueError(f"{' and '.join(used)} {'set' if len(used) > 1 else 'sets'} the adaptive method's error "
+                         f"control; --method rk4 takes fixed "
+                         f"steps of --dt: drop {' and '.join(used)} or use --method adaptive")
 
 
 def add_progress_option(parser) -> None:

@@ -7,7 +7,7 @@ import warnings
 
 
 from ..errors import FlaggedStartsWarning
-from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
+from .common import (check_tolerance_flags, FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
                      check_outputs, exit_code, ics_from_args, law_kwargs, model_from_args, report_warnings,
                      status_epilog, status_line)
 
@@ -55,8 +55,10 @@ def _cmd_simulate(args) -> int:
     from ..studies.simulate import simulate
 
     plant, law = model_from_args(args)
+    check_tolerance_flags(args)
     solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=args.save_every,
-                 method=args.method, max_steps=args.max_steps, x64=args.x64, flags=FLAGS)
+                 method=args.method, max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64,
+                 flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": npz_path(args.out)})
     t0 = time.perf_counter()
@@ -64,7 +66,7 @@ def _cmd_simulate(args) -> int:
         warnings.simplefilter("always")
         sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
                        save_every=args.save_every, method=args.method, max_steps=args.max_steps,
-                       x64=args.x64, progress=args.progress)
+                       rtol=args.rtol, atol=args.atol, x64=args.x64, progress=args.progress)
     wall = time.perf_counter() - t0
     report_warnings(caught)
     out = write_npz(args.out, sol, ics=ics, command=[PROG, *args._argv])
