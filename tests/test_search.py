@@ -264,6 +264,21 @@ def test_search_history_figure_shows_every_generation_and_the_budget(tiny_search
     np.testing.assert_allclose(ax_s.lines[0].get_ydata(), tiny_search.history["sigma"])
 
 
+@pytest.mark.parametrize("budget, says", [
+    (["--energy-budget", "1e-6"], "energy <= 1e-06 at the 50th percentile (--energy-budget 1e-06)"),
+    (["--energy-margin", "0.01", "--energy-percentiles", "50,90"], "at the 90th percentile (--energy-margin 0.01)"),
+])
+def test_cli_search_without_feasible_gains_names_the_budget_to_raise(tmp_path, capsys, budget, says):
+    from jaxsleigh.cli.common import EXIT_NONE_OK
+
+    out, hist = tmp_path / "g.json", tmp_path / "h.npz"
+    rc = cli_main(["tune", "--search", "--out", str(out), "--steps", "1", "--batch", "4", "--population", "2",
+                   "--history", str(hist), "--no-progress", *budget])
+    err = capsys.readouterr().err
+    assert rc == EXIT_NONE_OK and says in err and "Nothing written" in err and "Traceback" not in err, err
+    assert not out.exists() and hist.exists()
+
+
 def test_cli_search_checkpoint_and_resume_must_agree(tmp_path, capsys):
     out = tmp_path / "g.json"
     rc = cli_main(["tune", "--search", "--out", str(out), "--resume", "--no-progress"])

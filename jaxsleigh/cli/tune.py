@@ -319,12 +319,8 @@ _GRADIENT_ONLY = {"pareto": None, "robust": False, "lr": 0.05, "mode": "forward"
                   "budgets": None, "warm_steps": None, "baseline": False, "plot": None}
 
 
-def _cmd_search(args) -> int:
-    from .. import tuning
-    from ..files.npz import atomic_write
-    from ..model.params import gains_to_dict, save_gains
-    from ..integrate.stepsize import StepSizeController
-
+def _check_search(args) -> None:
+    """Every flag of ``--search`` checked before any work (`ValueError` naming the flag)."""
     used = [k for k, v in _GRADIENT_ONLY.items() if getattr(args, k) != v]
     if used:
         raise ValueError("--search measures 100 s with the accurate engine and has no gradient optimiser: drop "
@@ -333,7 +329,7 @@ def _cmd_search(args) -> int:
         raise ValueError("give the budget once: --energy-budget E (absolute) or --energy-margin F (relative), not both")
     if not 0 < args.energy_margin <= 10:
         raise ValueError(f"--energy-margin must be in (0, 10], got {args.energy_margin}")
-    from ..tuning.cma_search import MAX_GENERATIONS, MAX_POPULATION, NoFeasibleCandidate
+    from ..tuning.cma_search import MAX_GENERATIONS, MAX_POPULATION
     from ..validate import check_count, check_memory
 
     check_count("--steps (generations of --search)", args.steps, maximum=MAX_GENERATIONS,
@@ -344,6 +340,33 @@ def _cmd_search(args) -> int:
                 fix="use a smaller --population (16 is the default)")
     check_memory(args.population * args.batch, "--population x --batch", unit="trajectories per generation",
                  fix="use a smaller --population or --batch")
+
+
+def _no_feasible_message(args, e, hist) -> str:
+    """What to change when a search finished without feasible gains (`NoFeasibleCandidate` ``e``)."""
+    r = e.reference
+    if e.reason == "infeasible":
+        budget = (f"--energy-budget {args.energy_budget:g}" if args.energy_budget is not None
+                  else f"--energy-margin {args.energy_margin:g}")
+        at = r.get("energy_budgets", {"p50": r["energy_budget"]})
+        budgets = ", ".join(f"{v:.4g} at the {k[1:]}th percentile" for k, v in at.items())
+        fix = (f"no candidate had energy <= {budgets} ({budget}) with converged >= {r['converged_floor']:.3f}; raise "
+               f"{budget.split()[0]}, or run more generations (the same command with a larger --steps and --resume)")
+    else:
+        fix = (f"{str(e).split('search: ', 1)[-1]}; run more generations (the same command with a larger --steps "
+               f"and --resume) or a larger --population")
+    return (f"{PROG}: error: tune --search found no feasible gains in {e.settings['generations_run']} generations: "
+            f"{fix}. Nothing written to {args.out}" + (f"; wrote the history {hist}" if hist else ""))
+
+
+def _cmd_search(args) -> int:
+    from .. import tuning
+    from ..files.npz import atomic_write
+    from ..model.params import gains_to_dict, save_gains
+    from ..integrate.stepsize import StepSizeController
+    from ..tuning.cma_search import NoFeasibleCandidate
+
+    _check_search(args)
     plant, gains0 = model_from_args(args)
     ckpt = _checked_checkpoint(args, "search")
     names = tuning.parse_tune(args.tune)
@@ -381,20 +404,7 @@ def _cmd_search(args) -> int:
                             stepsize=stepsize, progress=args.progress, checkpoint=ckpt, resume=args.resume)
     except NoFeasibleCandidate as e:
         # the run finished: keep its history and checkpoint (more generations resume it), name the flags
-        hist = write_history(e.history)
-        r = e.reference
-        if e.reason == "infeasible":
-            budget = (f"--energy-budget {args.energy_budget:g}" if args.energy_budget is not None
-                      else f"--energy-margin {args.energy_margin:g}")
-            fix = (f"no candidate had median energy <= {r['energy_budget']:.4g} ({budget}) with converged >= "
-                   f"{r['converged_floor']:.3f}; raise {budget.split()[0]}, or run more generations (the same "
-                   f"command with a larger --steps and --resume)")
-        else:
-            fix = (f"{str(e).split('search: ', 1)[-1]}; run more generations (the same command with a larger --steps "
-                   f"and --resume) or a larger --population")
-        print(f"{PROG}: error: tune --search found no feasible gains in {e.settings['generations_run']} generations: "
-              f"{fix}. Nothing written to {args.out}" + (f"; wrote the history {hist}" if hist else ""),
-              file=sys.stderr)
+        print(_no_feasible_message(args, e, write_history(e.history)), file=sys.stderr)
         return EXIT_NONE_OK
     except RuntimeError as e:
         raise ValueError(str(e)) from None
