@@ -23,9 +23,10 @@ from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
-from .common import (check_tolerance_flags, FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     add_sampler_options, check_outputs, compute_share, exit_code, finish_chunked, law_kwargs,
-                     load_average, model_from_args, run_chunked, run_distributed, status_epilog)
+from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
+                     add_sampler_options, check_outputs, check_tolerance_flags, compute_share, exit_code,
+                     finish_chunked, law_kwargs, load_average, model_from_args, run_chunked, run_distributed,
+                     status_epilog)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 

@@ -272,11 +272,11 @@ def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, sav
 
 def check_tolerance_flags(args) -> None:
     """``--rtol`` / ``--atol`` belong to the adaptive method: refuse them with ``--method rk4`` (unused there)."""
-    used = [f for f, v in (("--rtol", args.rtol), ("--atol", args.atol)) if v is not None]
+    used = " and ".join(f for f, v in (("--rtol", args.rtol), ("--atol", args.atol)) if v is not None)
     if used and args.method == "rk4":
-        raise ValueError(f"{' and '.join(used)} {'set' if len(used) > 1 else 'sets'} the adaptive method's error "
-                         f"control; --method rk4 takes fixed "
-                         f"steps of --dt: drop {' and '.join(used)} or use --method adaptive")
+        verb = "set" if " and " in used else "sets"
+        raise ValueError(f"{used} {verb} the adaptive method's error control; --method rk4 takes fixed steps of --dt: "
+                         f"drop {used} or use --method adaptive")
 
 
 def add_progress_option(parser) -> None:

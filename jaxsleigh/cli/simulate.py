@@ -7,9 +7,9 @@ import warnings
 
 
 from ..errors import FlaggedStartsWarning
-from .common import (check_tolerance_flags, FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
-                     check_outputs, exit_code, ics_from_args, law_kwargs, model_from_args, report_warnings,
-                     status_epilog, status_line)
+from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
+                     check_outputs, check_tolerance_flags, exit_code, ics_from_args, law_kwargs, model_from_args,
+                     report_warnings, status_epilog, status_line)
 
 __all__ = ["add_simulate"]
 

@@ -22,9 +22,10 @@ import sys
 import time
 
 from .basin import _chunk_dir, _sidecar, _starts_from_args, _whole
-from .common import (check_tolerance_flags, FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     add_sampler_options, check_outputs, compute_share, exit_code, finish_chunked, law_kwargs,
-                     load_average, model_from_args, run_chunked, run_distributed, status_epilog)
+from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
+                     add_sampler_options, check_outputs, check_tolerance_flags, compute_share, exit_code,
+                     finish_chunked, law_kwargs, load_average, model_from_args, run_chunked, run_distributed,
+                     status_epilog)
 from .common import number as _positive_float
 
 __all__ = ["add_sweep", "run_sweep_command"]
