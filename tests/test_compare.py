@@ -100,6 +100,20 @@ def test_compare_under_actuators_changes_the_numbers():
     assert abs(held["energy_p50"] - free["energy_p50"]) > 0.1 * free["energy_p50"]
 
 
+def test_compare_takes_the_engine_tolerance():
+    """Under the gains `balanced` had until 2026-11, energy after settling needs atol 1e-8 in float32
+    (docs/evidence/settled-phase.md): compare's rows follow the tolerance they are given."""
+    ics = np.array([[2.6, 0.88, -2.13], [-1.83, 0.05, -1.5]])
+    old = js.gains(L=[2.152653933919823, 1.7424258224644875, 2.4920401566138226], k=0.0014669247735718393,
+                   D_hat=[[2.5652485388516872, -0.03276605028984544], [-0.03276605028984544, 10.823678151160923]])
+    tight = js.StepSizeController(atol=1e-8)
+    loose_row, = compare({"old": old}, {"u": ics}, t_final=100.0)
+    tight_row, = compare({"old": old}, {"u": ics}, t_final=100.0, stepsize=tight)
+    r = js.run_ensemble(ics, gains=old, t_final=100.0, stepsize=tight)
+    assert tight_row["energy_p90"] == pytest.approx(np.percentile(r.u_energy, 90, method="inverted_cdf"))
+    assert tight_row["energy_p50"] > 5 * loose_row["energy_p50"]
+
+
 def test_compare_command_writes_rows_and_a_figure(capsys, tmp_path):
     argv = ["compare", "--controllers", "paper,astolfi", "--starts", "uniform,near", "--samples", "3",
             "--t-final", "10", "--seed", "4"]
@@ -109,6 +123,7 @@ def test_compare_command_writes_rows_and_a_figure(capsys, tmp_path):
     assert [(r["controller"], r["starts"]) for r in a["rows"]] == [("paper", "uniform"), ("paper", "near"),
                                                                      ("astolfi", "uniform"), ("astolfi", "near")]
     assert a["settings"]["seed"] == 4 and a["command"][:2] == ["jaxsleigh", "compare"]
+    assert a["settings"]["atol"] is None and a["settings"]["rtol"] is None
     _run(argv + ["--out", str(tmp_path / "b.json")], capsys)
     assert json.loads((tmp_path / "b.json").read_text())["rows"] == a["rows"]      # same seed, same numbers
 
@@ -119,6 +134,7 @@ def test_compare_command_writes_rows_and_a_figure(capsys, tmp_path):
     (["--delay", "1"], "--sample-period"),
     (["--sample-period", "0.3"], "whole number"),
     (["--noise", "-1"], "--noise"),
+    (["--atol", "0"], "--atol must be a finite number > 0"),
 ])
 def test_compare_refuses_bad_options_naming_them(capsys, tmp_path, extra, message):
     code, _, err = _run(["compare", "--samples", "2", "--t-final", "10", "--out", str(tmp_path / "x.json")] + extra,

@@ -48,6 +48,11 @@ def add_compare(subparsers) -> None:
     p.add_argument("--eps", type=number("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS of T_eps (default 0.05)")
     p.add_argument("--x64", action="store_true", help="compute in float64 (default: float32)")
+    p.add_argument("--rtol", type=number("--rtol", "1e-6"), default=None, metavar="R",
+                   help="relative tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64)")
+    p.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
+                   help="absolute tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64); "
+                        "energy spent after settling needs 1e-8 in float32 for some gains of the paper's law")
     p.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
                    help="actuator saturation: clip each component of u to |u_i| <= U")
     add_sampler_options(p, seed=False)
@@ -60,6 +65,7 @@ def add_compare(subparsers) -> None:
 def _cmd_compare(args) -> int:
     from ..controllers.registry import controller_names, make_controller
     from ..files.npz import atomic_write_text
+    from ..integrate.stepsize import StepSizeController
     from ..studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts
 
     names = [n.strip() for n in args.controllers.split(",") if n.strip()]
@@ -74,15 +80,17 @@ def _cmd_compare(args) -> int:
     laws = {n: make_controller(n) for n in names}
     starts = {d: draw_compare_starts(d, args.samples, args.seed) for d in dists}
     t0 = time.perf_counter()
+    stepsize = StepSizeController(rtol=args.rtol, atol=args.atol)
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
-                   x64=args.x64)
+                   x64=args.x64, stepsize=stepsize)
     import jax
 
     record = {"rows": rows, "command": [PROG, *getattr(args, "_argv", [])],
               "settings": {"controllers": names, "starts": {d: START_DISTRIBUTIONS[d] for d in dists},
                            "samples": args.samples, "seed": args.seed, "t_final": args.t_final, "eps": args.eps,
                            "dtype": "float64" if args.x64 else "float32", "saturation": args.saturation,
-                           "sample_period": args.sample_period, "delay": args.delay, "noise": args.noise},
+                           "sample_period": args.sample_period, "delay": args.delay, "noise": args.noise,
+                           "rtol": args.rtol, "atol": args.atol},
               "run_info": {"wall_s": time.perf_counter() - t0, "devices": [str(d) for d in jax.devices()]}}
     atomic_write_text(args.out, json.dumps(record, indent=1, default=float))
     if args.plot:

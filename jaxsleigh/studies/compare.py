@@ -80,7 +80,7 @@ def _row(T_eps, status, energy, u_peak, min_theta) -> dict:
 
 def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=None, t_final: float = 100.0,
             eps: float = 0.05, saturation: Optional[float] = None, sampler=None, x64: bool = False,
-            substeps: int = 20) -> list:
+            substeps: int = 20, stepsize=None) -> list:
     """One row per (law, start set): ``{"controller", "starts", "n", **METRICS}`` (module docstring).
 
     Args:
@@ -91,6 +91,8 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
       saturation: ``U`` to clip each component of ``u`` to ``[-U, U]``; sampler: a
         `jaxsleigh.controllers.actuators.Sampler` for the sampled-data loop (``t_final`` a whole number of
         periods; ``substeps`` RK4 steps per period).
+      stepsize: a `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Effort spent after settling
+        by the paper's law under small k needs ``atol=1e-8`` in float32 (docs/evidence/settled-phase.md).
     """
     from .ensemble import run_ensemble
 
@@ -103,7 +105,7 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         for sname, ics in starts.items():
             ics = np.asarray(ics, np.float64)
             r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, dt=dt, eps=eps, x64=x64,
-                             progress=False)
+                             stepsize=stepsize, progress=False)
             row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
             rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row})
     return rows
