@@ -30,7 +30,7 @@ from ..files.npz import parse_number as _number
 __all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
-           "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "check_tolerance_flags", "add_progress_option", "FLAGS", "check_outputs",
+           "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags", "add_progress_option", "FLAGS", "check_outputs",
            "check_figure", "figure_formats",
            "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
            "add_distributed_options", "run_distributed"]
@@ -262,9 +262,14 @@ def add_horizon_options(parser, *, t_final: float = 100.0, dt: float = 0.01, sav
         g.add_argument("--max-steps", type=whole("--max-steps", "2000000"), default=None, metavar="N",
                        help="budget of attempted steps per trajectory (default: 20x (float32) or 30x (float64) the base steps for "
                             "adaptive; at most 2147483646); a run that exhausts it gets status 4")
-        g.add_argument("--rtol", type=number("--rtol", "1e-6"), default=None, metavar="R",
+        add_tolerance_options(g)
+
+
+def add_tolerance_options(group) -> None:
+    """--rtol, --atol: the adaptive method's tolerances (``None``: the dtype's defaults)."""
+    group.add_argument("--rtol", type=number("--rtol", "1e-6"), default=None, metavar="R",
                        help="relative tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64)")
-        g.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
+    group.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
                        help="absolute tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64). "
                             "Control energy and final states after settling need 1e-8 in float32 for gains whose "
                             "settled starts oscillate (the settled-phase page of the docs)")

@@ -4,7 +4,8 @@ from __future__ import annotations
 import json
 import time
 
-from .common import PROG, add_progress_option, add_sampler_options, check_outputs, number, sampler_from_args, whole
+from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs, number,
+                     sampler_from_args, whole)
 
 __all__ = ["add_controllers", "add_compare"]
 
@@ -48,11 +49,7 @@ def add_compare(subparsers) -> None:
     p.add_argument("--eps", type=number("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS of T_eps (default 0.05)")
     p.add_argument("--x64", action="store_true", help="compute in float64 (default: float32)")
-    p.add_argument("--rtol", type=number("--rtol", "1e-6"), default=None, metavar="R",
-                   help="relative tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64)")
-    p.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
-                   help="absolute tolerance of the adaptive method (default 1e-6 in float32, 1e-8 in float64); "
-                        "energy spent after settling needs 1e-8 in float32 for some gains of the paper's law")
+    add_tolerance_options(p)
     p.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
                    help="actuator saturation: clip each component of u to |u_i| <= U")
     add_sampler_options(p, seed=False)
