@@ -118,9 +118,8 @@ def main(argv=None) -> int:
         np.savez(out / f"search_history_{name.replace(' ', '')}.npz", **st.history)
 
     held = tu.UniformStarts()(np.random.default_rng(args.val_seed), args.val_n)
-    kw = {} if ss is None else {"stepsize": ss}
-    rows = {"paper": tu.validate("paper", held, **kw), "searched": tu.validate(res.gains, held, **kw),
-            "tuned": tu.validate("tuned", held, **kw)}
+    rows = {"paper": tu.validate("paper", held, stepsize=ss), "searched": tu.validate(res.gains, held, stepsize=ss),
+            "tuned": tu.validate("tuned", held, stepsize=ss)}
     front_doc = json.loads((ROOT / "docs" / "figures" / "pareto_front.json").read_text())
     paper = rows["paper"]
     # the front's points were evaluated on the front experiment's held-out starts: select against its paper row
@@ -129,7 +128,7 @@ def main(argv=None) -> int:
             and p["evaluation"]["frac_converged"] >= fp["frac_converged"]]
     if grad:
         best = min(grad, key=lambda p: p["evaluation"]["median_T_0.05_s"])
-        rows["gradient front, fastest within the paper's energy"] = tu.validate(tu.point_gains(best), held, **kw)
+        rows["gradient front, fastest within the paper's energy"] = tu.validate(tu.point_gains(best), held, stepsize=ss)
     s = rows["searched"]
     pcts = config.energy_percentiles
 

@@ -7,7 +7,7 @@ Runs the default adaptive method (float32, 100 s, eps = 0.05) of this tree and o
 ``git worktree`` of the commit before the exponential step, classical RK4 with the I controller) on the
 benchmark workload (`jaxsleigh.studies.bench.workload`, seed 0): ``--n`` starts under the paper's gains and
 ``--n-fast`` under the ``balanced`` and ``tuned`` presets (``balanced``: the gains it had until 2026-11,
-``settled_tolerance.OLD_BALANCED``, the same in every tree, as when these figures were measured). Each is compared with a float64 reference
+``OLD_BALANCED`` of tests/laws.py, the same in every tree, as when these figures were measured). Each is compared with a float64 reference
 computed by the *baseline* (classical RK4, rtol = atol = 1e-11, T_eps on the dense output with 8 samples and
 30 bisections), so the reference does not share the new scheme. Reports the mean accepted steps and attempts,
 the wrong final states (max-norm error > 1e-3, as ``jaxsleigh bench``), the final-state error quantiles and
@@ -26,7 +26,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_cores import ROOT, baseline_tree, load, run_py  # noqa: E402
-from settled_tolerance import OLD_BALANCED  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))
+from laws import OLD_BALANCED  # noqa: E402
 
 RUN = r"""
 import json, sys, time

@@ -103,9 +103,9 @@ def test_compare_under_actuators_changes_the_numbers():
 def test_compare_takes_the_engine_tolerance():
     """Under the gains `balanced` had until 2026-11, energy after settling needs atol 1e-8 in float32
     (docs/evidence/settled-phase.md): compare's rows follow the tolerance they are given."""
-    ics = np.array([[2.6, 0.88, -2.13], [-1.83, 0.05, -1.5]])
-    old = js.gains(L=[2.152653933919823, 1.7424258224644875, 2.4920401566138226], k=0.0014669247735718393,
-                   D_hat=[[2.5652485388516872, -0.03276605028984544], [-0.03276605028984544, 10.823678151160923]])
+    from laws import OLD_BALANCED, OLD_BALANCED_STARTS
+
+    ics, old = np.array(OLD_BALANCED_STARTS), js.gains(**OLD_BALANCED)
     tight = js.StepSizeController(atol=1e-8)
     loose_row, = compare({"old": old}, {"u": ics}, t_final=100.0)
     tight_row, = compare({"old": old}, {"u": ics}, t_final=100.0, stepsize=tight)

@@ -182,9 +182,9 @@ def test_energy_spent_after_settling_needs_atol_1e_8_in_float32():
     them oscillate in (w2, p1) and spend most of their 100 s energy. float32 at atol 1e-8 follows float64 to 1%;
     at its default atol (1e-6) the oscillation, seeded at amplitudes below 1e-6, is never resolved (the docs'
     settled-phase page and the README say so: when this changes, they must)."""
-    ics = np.array([[2.6, 0.88, -2.13], [-1.83, 0.05, -1.5]])
-    old = js.gains(L=[2.152653933919823, 1.7424258224644875, 2.4920401566138226], k=0.0014669247735718393,
-                   D_hat=[[2.5652485388516872, -0.03276605028984544], [-0.03276605028984544, 10.823678151160923]])
+    from laws import OLD_BALANCED, OLD_BALANCED_STARTS
+
+    ics, old = np.array(OLD_BALANCED_STARTS), js.gains(**OLD_BALANCED)
     run = lambda x64, atol, T=100.0: js.run_ensemble(ics, gains=old, t_final=T, x64=x64,  # noqa: E731
                                                      stepsize=js.StepSizeController(atol=atol), progress=False)
     ref, tight, loose = run(True, None), run(False, 1e-8), run(False, None)

@@ -6,7 +6,7 @@
     jaxsleigh tune --pareto N --out front.json [--front-method warm|vmap] [--budgets LO:HI]
                    [--warm-steps N] [--baseline] [--plot front.png] [--validate N] ...
     jaxsleigh tune --search --out gains.json [--steps G] [--batch B] [--population P]
-                   [--energy-margin F | --energy-budget E] [--energy-percentiles 50,75,90] [--atol A]
+                   [--energy-margin F | --energy-budget E] [--energy-percentiles 50,75,90] [--rtol R] [--atol A]
                    [--history FILE.npz] [--validate N]
 
 The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the subcommand with
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .common import (EXIT_INTERRUPTED, EXIT_NONE_OK, PROG, add_model_options, add_progress_option, add_sampler_options,
-                     check_outputs, model_from_args, number, whole)
+                     add_tolerance_options, check_outputs, model_from_args, number, whole)
 
 __all__ = ["add_tune"]
 
@@ -83,19 +83,8 @@ def _percentiles(text: str) -> tuple:
     return vals
 
 
-def add_tune(subparsers) -> None:
-    """Register ``tune`` on an ``argparse`` subparsers object."""
-    p = subparsers.add_parser(
-        "tune", help="tune the gains for fast convergence (gradients through the integrator)",
-        description="Tune the controller's gains (L, k, D_hat) by gradient descent (optax Adam) on a smooth "
-                    "surrogate of the convergence time, differentiating through the integrator, and write "
-                    "the best valid gains as a gains JSON file.",
-        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, metavar="FILE.json",
-                   help="output gains file (with --pareto: the front's JSON file)")
-    p.add_argument("--resume", action="store_true",
-                   help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options; with "
-                        "--pareto: from the finished points kept in FILE.json)")
+def _add_optimiser_options(p) -> None:
+    """--steps, --batch, --seed, --lr, --tune, --robust, --mode."""
     g = p.add_argument_group("optimiser")
     g.add_argument("--steps", type=whole("--steps", "150"), default=None, metavar="N",
                    help="optimiser iterations (default 150; with --search: generations, default 100)")
@@ -114,6 +103,10 @@ def add_tune(subparsers) -> None:
     g.add_argument("--mode", choices=["forward", "reverse"], default="forward",
                    help="gradients: forward mode (default; fastest for the 7 gain parameters) or reverse "
                         "mode with checkpointed segments")
+
+
+def _add_objective_options(p) -> None:
+    """The gradient tuner's surrogate: horizon, steps, budgets."""
     h = p.add_argument_group("objective")
     h.add_argument("--t-final", type=number("--t-final", "30"), default=30.0, metavar="T",
                    help="training horizon in seconds (default 30)")
@@ -131,6 +124,10 @@ def add_tune(subparsers) -> None:
     h.add_argument("--energy-budget", type=number("--energy-budget", "29"), default=None, metavar="E",
                    help="budget on the training batch's geometric-mean control energy int |u|^2 dt "
                         "(default: none, the fastest gains the step budget allows)")
+
+
+def _add_search_options(p) -> None:
+    """--search and what only it uses."""
     d = p.add_argument_group("derivative-free search (the balanced preset's method)")
     d.add_argument("--search", action="store_true",
                    help="instead of gradient descent on the surrogate, search (CMA-ES) for the gains with the "
@@ -146,10 +143,11 @@ def add_tune(subparsers) -> None:
                    help="hold the energy within --energy-margin x the --gains' at each of these percentiles over the "
                         "training starts, not only the median (e.g. 50,75,90: the energy is bimodal, and a median "
                         "budget lets the upper half grow several-fold)")
-    d.add_argument("--atol", type=number("--atol", "1e-8"), default=None, metavar="A",
-                   help="absolute tolerance of every run of the search and its validation (default: the library's, "
-                        "1e-6 in float32). Energy spent after settling needs 1e-8 in float32 to be seen (the "
-                        "settled-phase page of the docs)")
+    add_tolerance_options(d)          # --rtol, --atol: every run of the search and of its validation
+
+
+def _add_pareto_options(p) -> None:
+    """--pareto and what only the front uses."""
     f = p.add_argument_group("Pareto front")
     f.add_argument("--pareto", type=whole("--pareto", "6"), default=None, metavar="N",
                    help="compute N points (at most 100) of the time-effort front instead of one set of gains")
@@ -163,6 +161,23 @@ def add_tune(subparsers) -> None:
     f.add_argument("--baseline", action="store_true",
                    help="also run a random search with the same number of objective evaluations")
     f.add_argument("--plot", default=None, metavar="FILE.png", help="draw the front")
+
+
+def add_tune(subparsers) -> None:
+    """Register ``tune`` on an ``argparse`` subparsers object."""
+    p = subparsers.add_parser(
+        "tune", help="tune the gains for fast convergence (gradients through the integrator)",
+        description="Tune the controller's gains (L, k, D_hat) by gradient descent (optax Adam) on a smooth "
+                    "surrogate of the convergence time, differentiating through the integrator, and write "
+                    "the best valid gains as a gains JSON file.",
+        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, metavar="FILE.json",
+                   help="output gains file (with --pareto: the front's JSON file)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options; with "
+                        "--pareto: from the finished points kept in FILE.json)")
+    for add in (_add_optimiser_options, _add_objective_options, _add_search_options, _add_pareto_options):
+        add(p)
     add_model_options(p)
     add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
     p.add_argument("--history", default=None, metavar="FILE.npz",
@@ -216,10 +231,12 @@ def _cmd_tune_law(args, plant, law) -> int:
     return 0
 
 
-def _cmd_tune(args) -> int:
-    from .. import tuning
-    from ..model.params import gains_to_dict, save_gains
+#: Options that only --search uses, with their defaults.
+_SEARCH_ONLY = {"population": 16, "energy_margin": 0.95, "energy_percentiles": (50.0,), "rtol": None, "atol": None}
 
+
+def _cmd_tune(args) -> int:
+    """``jaxsleigh tune``: the search, the front, or gradient descent, as the flags say."""
     search = args.search
     if (getattr(args, "controller", "paper") != "paper" or getattr(args, "saturation", None) is not None
             or getattr(args, "sample_period", None) is not None):
@@ -234,14 +251,21 @@ def _cmd_tune(args) -> int:
         args.batch = 128 if search else 256
     if search:
         return _cmd_search(args)
-    if (args.population != 16 or args.energy_margin != 0.95 or args.energy_percentiles != (50.0,)
-            or args.atol is not None):
-        raise ValueError("--population, --energy-margin, --energy-percentiles and --atol belong to --search; add "
-                         "--search or drop them")
+    used = ["--" + k.replace("_", "-") for k, v in _SEARCH_ONLY.items() if getattr(args, k) != v]
+    if used:
+        raise ValueError(f"{', '.join(used)} belong to --search; add --search or drop them")
     if args.pareto is not None:
         return _cmd_pareto(args)
     if args.plot is not None:         # refused now, not silently ignored after the run
         raise ValueError("--plot draws the Pareto front; add --pareto N, or drop --plot")
+    return _cmd_gradient(args)
+
+
+def _cmd_gradient(args) -> int:
+    """Gradient descent on the surrogate (`jaxsleigh.tuning.tune`), or `_cmd_tune_law` for another law."""
+    from .. import tuning
+    from ..model.params import gains_to_dict, save_gains
+
     names = tuning.parse_tune(args.tune)
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
@@ -264,22 +288,7 @@ def _cmd_tune(args) -> int:
     except RuntimeError as e:          # no candidate passed the final check: say what to change
         raise ValueError(str(e)) from None
     except tuning.TuningInterrupted as stop:
-        part = stop.partial
-        if part is None:
-            print(f"{PROG} tune: interrupted before any valid candidate; nothing written. Continue with the same "
-                  f"command and --resume", file=sys.stderr)
-            return EXIT_INTERRUPTED
-        save_gains(part.gains, args.out, how="jaxsleigh tune, INTERRUPTED: the best valid candidate so far, "
-                   "not re-checked with the accurate engine", command=command, interrupted=True,
-                   best_loss=part.best_loss, best_iteration=part.best_iteration,
-                   iterations_run=part.settings["iterations_run"])
-        written = [str(args.out)]
-        if args.history:
-            written.append(str(tuning.save_history(part.history, args.history)))
-        print(f"{PROG} tune: interrupted after {part.settings['iterations_run']} iterations; wrote the best valid "
-              f"gains so far (loss {part.best_loss:.4f}, not re-checked) to {', '.join(written)}; continue with "
-              f"the same command and --resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _gradient_interrupted(args, stop.partial, command)
     wall = time.perf_counter() - t0
     meta = {
         "how": f"jaxsleigh tune: {res.settings['method']}",
@@ -311,6 +320,28 @@ def _cmd_tune(args) -> int:
     print(f"{PROG} tune: wrote {args.out}: L = {np.round(g.L, 4).tolist()}, k = {float(g.k):.4g}, "
           f"D_hat = {np.round(g.D_hat, 4).tolist()}")
     return 0
+
+
+def _gradient_interrupted(args, part, command) -> int:
+    """Ctrl-C during gradient descent: write the best valid gains so far (if any) and say how to continue."""
+    from .. import tuning
+    from ..model.params import save_gains
+
+    if part is None:
+        print(f"{PROG} tune: interrupted before any valid candidate; nothing written. Continue with the same "
+              f"command and --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    save_gains(part.gains, args.out, how="jaxsleigh tune, INTERRUPTED: the best valid candidate so far, "
+               "not re-checked with the accurate engine", command=command, interrupted=True,
+               best_loss=part.best_loss, best_iteration=part.best_iteration,
+               iterations_run=part.settings["iterations_run"])
+    written = [str(args.out)]
+    if args.history:
+        written.append(str(tuning.save_history(part.history, args.history)))
+    print(f"{PROG} tune: interrupted after {part.settings['iterations_run']} iterations; wrote the best valid "
+          f"gains so far (loss {part.best_loss:.4f}, not re-checked) to {', '.join(written)}; continue with "
+          f"the same command and --resume", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 #: Options of the gradient tuner that a search does not use, with their defaults.
@@ -373,7 +404,9 @@ def _cmd_search(args) -> int:
     config = tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
                                  seed=args.seed, energy_margin=args.energy_margin,
                                  energy_percentiles=args.energy_percentiles)
-    stepsize = None if args.atol is None else StepSizeController(atol=args.atol)
+    # None without --rtol / --atol: the search's fingerprint (and so --resume of earlier runs) stays as it was
+    stepsize = (None if args.rtol is None and args.atol is None
+                else StepSizeController(rtol=args.rtol, atol=args.atol))
     command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     t0 = time.perf_counter()
 
@@ -381,7 +414,7 @@ def _cmd_search(args) -> int:
         meta = {"how": "jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under a "
                        "control-energy budget at the percentiles "
                        + ", ".join(f"{q:g}" for q in args.energy_percentiles), "command": command, "tuned": list(names),
-                "atol": args.atol,
+                "rtol": args.rtol, "atol": args.atol,
                 "initial_gains": gains_to_dict(res.initial), "training_figures": res.figures,
                 "reference_figures": res.reference, "best_generation": res.best_generation,
                 "generations_run": res.settings["generations_run"], "seed": args.seed, "batch": args.batch,
@@ -428,9 +461,8 @@ def _cmd_search(args) -> int:
     ckpt.unlink(missing_ok=True)
     if args.validate:
         ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        kw = {} if stepsize is None else {"stepsize": stepsize}
-        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, **kw),
-                "searched": tuning.validate(res.gains, ics, plant=plant, x64=args.x64, **kw)}
+        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, stepsize=stepsize),
+                "searched": tuning.validate(res.gains, ics, plant=plant, x64=args.x64, stepsize=stepsize)}
         print(tuning.markdown_table(rows))
         write(res, wall_s=wall, validation={k: tuning.validation_dict(v, seed=args.seed + 1000)
                                             for k, v in rows.items()})
@@ -551,8 +583,9 @@ def _canonical_argv(args) -> list:
                 "--damping", args.damping] + (["--energy-budget", repr(args.energy_budget)]
                                               if args.energy_budget is not None else []) + (
             ["--energy-percentiles", ",".join(f"{q:g}" for q in args.energy_percentiles)]
-            if args.energy_percentiles != (50.0,) else []) + (["--atol", repr(args.atol)] if args.atol is not None
-                                                              else []) + (["--x64"] if args.x64 else [])
+            if args.energy_percentiles != (50.0,) else []) + [
+            a for flag in ("rtol", "atol") if getattr(args, flag) is not None
+            for a in (f"--{flag}", repr(getattr(args, flag)))] + (["--x64"] if args.x64 else [])
     argv = ["tune", "--out", str(args.out), "--steps", str(args.steps), "--batch", str(args.batch),
             "--seed", str(args.seed), "--lr", repr(args.lr), "--tune", args.tune, "--mode", args.mode,
             "--t-final", repr(args.t_final), "--dt", repr(args.dt), "--n-attempts", str(args.n_attempts),

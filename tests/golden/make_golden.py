@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE.parent))
+from laws import OLD_BALANCED  # noqa: E402
 
 
 def _flat(prefix: str, obj) -> dict:
@@ -41,10 +43,7 @@ def golden_runs() -> dict:
                                    **_flat("effort", sol.effort)}
     starts = np.random.default_rng(7).uniform([-3, -3, 0.3], [3, 3, 3], (48, 3))
     # the gains the "balanced" preset had when this was recorded (it was re-derived in 2026-11)
-    old_balanced = js.gains(L=[2.152653933919823, 1.7424258224644875, 2.4920401566138226], k=0.0014669247735718393,
-                            D_hat=[[2.5652485388516872, -0.03276605028984544],
-                                   [-0.03276605028984544, 10.823678151160923]])
-    res = js.run_ensemble(starts, t_final=30.0, gains=old_balanced)
+    res = js.run_ensemble(starts, t_final=30.0, gains=js.gains(**OLD_BALANCED))
     # the golden file's keys are the 0.2 names: "q" / "p" there are the final state (now q_final / p_final)
     runs["ensemble"] = {"q": res.q_final, "p": res.p_final}
     runs["ensemble"].update({k: getattr(res, k) for k in ("T_eps", "min_abs_theta", "max_excursion", "Hd0",
