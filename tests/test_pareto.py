@@ -200,3 +200,16 @@ def test_balanced_preset_is_faster_than_the_papers_gains(balanced_vs_paper):
     the previous preset met only where float32 missed the energy it spent after settling: docs/how-to/tuning.md)."""
     paper, bal = balanced_vs_paper
     assert 1.2 * bal.median <= paper.median
+
+
+def test_balanced_near_the_singular_set_flags_what_it_cannot_integrate():
+    """`balanced` from starts down to |theta0| = 1e-4 (float32, a small step budget so that some give up): a start
+    either ends OK with finite figures or with another status and NaN outputs, never a silent NaN or inf."""
+    th = np.geomspace(1e-4, 0.05, 24) * np.resize([1, -1], 24)
+    ics = np.column_stack([np.resize([2.0, -1.5, 0.5], 24), np.resize([1.0, 2.5, -2.0], 24), th])
+    r = js.run_ensemble(ics, gains="balanced", t_final=5.0, max_steps=3000, progress=False)
+    ok = r.status == 0
+    assert ok.any() and (~ok).any()                     # both paths: integrated, and flagged
+    fields = np.column_stack([r.q_final, r.p_final, r.Hd_final, r.u_energy, r.min_abs_theta])
+    assert np.all(np.isfinite(fields[ok]))
+    assert np.all(np.isnan(r.q_final[~ok])) and np.all(np.isin(r.status[~ok], [s.value for s in js.Status]))
