@@ -12,7 +12,7 @@ step does not resolve it there. This script measures:
    atol=1e-13)`` in the physical chart, against jaxsleigh in float64 (default tolerances), float32 at atol 1e-8,
    float32 at its defaults, and float32 fixed-step RK4 at dt = 1e-3 (theta and p1 at 65 s).
 2. **Energy quantiles** over ``--n`` of the README's held-out starts (``preset_effort.readme_starts``) under
-   ``OLD_BALANCED`` and the paper's gains: 25/50/75/90th percentiles of int ||u||^2 dt over 100 s and mean steps, for
+   ``OLD_BALANCED``, the paper's gains and ``tuned``: 25/50/75/90th percentiles of int ||u||^2 dt over 100 s and mean steps, for
    float64 (defaults), float32 (defaults) and float32 at atol 1e-7, 1e-8, 1e-9, and the fraction of starts whose
    energy is more than 5% from the first run's (float64).
 3. **Other laws the README quotes**, the same ``--n`` starts: the ``shaped`` preset, Aicardi's law as tuned by
@@ -156,7 +156,8 @@ def main(argv=None) -> None:
     draw(old, doc["radau"], args.figure, doc["command"])
     ics = readme_starts(2048)[:args.n]
     doc["quantiles"] = {"n": int(args.n), "starts": "readme_starts(2048)[:n] (experiments/preset_effort.py)",
-                        "old balanced": quantiles(old, ics), "paper": quantiles(js.paper_gains(), ics)}
+                        "old balanced": quantiles(old, ics), "paper": quantiles(js.paper_gains(), ics),
+                        "tuned": quantiles(js.load_gains("tuned"), ics)}
     from jaxsleigh.controllers.aicardi import AicardiLaw
 
     from jaxsleigh.controllers.astolfi import AstolfiLaw
