@@ -97,7 +97,7 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
     r = p.add_argument_group("run")
     r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None, metavar="N",
                    help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
-                        "131072 per accelerator)")
+                        "2^22 per accelerator)")
     r.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
     r.add_argument("--keep-chunks", action="store_true",

@@ -97,7 +97,7 @@ def add_sweep(subparsers) -> argparse.ArgumentParser:
     r = p.add_argument_group("run")
     r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None,
                    metavar="N", help="rows (start x value) integrated and checkpointed at once (default 16384 "
-                                     "per CPU device, 131072 per accelerator); bounds the memory")
+                                     "per CPU device, 2^22 per accelerator); bounds the memory")
     r.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
     r.add_argument("--keep-chunks", action="store_true", help="keep FILE.npz.chunks/ after the .npz is written")

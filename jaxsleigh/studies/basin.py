@@ -39,6 +39,7 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .config import reject_traced
+from ..cores import default_chunk_size
 from .ensemble import _run_ensemble
 from .options import RunOptions, front_options
 from ..integrate.stepsize import StepSizeController
@@ -471,7 +472,7 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
         `jaxsleigh.studies.ensemble.run_ensemble` (defaults: the paper's plant and gains, 100 s,
         adaptive RK4, float32).
       chunk_size: starts integrated at once and written per checkpoint (default 16384 on CPU,
-        131072 per device on accelerators).
+        2^22 per device on accelerators, `jaxsleigh.cores.default_chunk_size`).
       devices, cores: the devices each chunk is split over and at most how many (default: every core;
         `jaxsleigh.cores`); neither changes a result.
       checkpoint_dir: write every finished chunk there; ``resume=True`` reuses the finished chunks
@@ -485,16 +486,10 @@ def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float =
       `BasinResult` (``None`` with ``shard``).
     """
     reject_traced("run_basin", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    import jax
-
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
     if chunk_size is None:
-        # on CPU the cores split each chunk (jaxsleigh.cores), so the chunks, and the files, do not
-        # depend on how many there are; accelerators take a chunk per device
-        n_dev = 1 if jax.default_backend() == "cpu" else len(jax.local_devices()) if devices is None \
-            else len(list(devices))
-        chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
+        chunk_size = default_chunk_size(16384, devices)
     res = _run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
                         rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64, chunk_size=chunk_size,
                         check_passivity=check_passivity, devices=devices, cores=cores, checkpoint_dir=checkpoint_dir,
@@ -528,7 +523,7 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
         plant and law, 100 s, float32).
       eps: radius of the ball \(|q| \le \epsilon\) of ``T_eps``.
       stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4).
-      run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 131072 per device on
+      run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 2^22 per device on
         accelerators); ``checkpoint_dir`` and ``resume`` continue an interrupted run.
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,

@@ -39,7 +39,7 @@ from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (active_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
                                 finish_state, initial_w, put_lanes, take_lanes_of, working_dtype)
-from ..cores import PART_SIZE, run_parts, workers
+from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import PlantParams
 from ..controllers.actuators import is_sampled
 from ..progress import Progress
@@ -272,7 +272,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, method: str = "adaptive",
                  rtol: Optional[float] = None, atol: Optional[float] = None, max_step: Optional[float] = None,
                  max_steps: Optional[int] = None, x64: bool = False, save_every: Optional[int] = None,
-                 chunk_size: int = 65536, segment: int = 1000, check_passivity: bool = True,
+                 chunk_size: Optional[int] = None, segment: int = 1000, check_passivity: bool = True,
                  summaries: bool = True,
                  devices: Any = None, cores: Optional[int] = None, checkpoint_dir=None, resume: bool = False,
                  progress: Any = None, shard: Optional[tuple] = None,
@@ -293,7 +293,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
       save_every: also keep decimated trajectories every ``save_every`` base steps (memory
         ``N * T * 5`` numbers); default: summaries and final states only.
       chunk_size: trajectories integrated at once (bounds memory). Each chunk is also the unit
-        of checkpointing and of the progress bar.
+        of checkpointing and of the progress bar. Default 65536 on CPU, 2^22 per device on an
+        accelerator (`jaxsleigh.cores.default_chunk_size`).
       check_passivity: reject (adaptive) or flag (``rk4``: status ``UNRELIABLE``) steps that
         increase H_d. Off, fixed-step RK4 runs faster on CPU.
       summaries: ``False`` (only with ``method="rk4"``, ``check_passivity=False``, no
@@ -333,7 +334,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
     if not summaries and (method != "rk4" or check_passivity or save_every is not None):
         raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
                          "check_passivity=False and no save_every")
-    chunk_size = whole("chunk_size", chunk_size, example=65536)
+    chunk_size = default_chunk_size(65536, devices) if chunk_size is None else \
+        whole("chunk_size", chunk_size, example=65536)
     if shard is not None:
         if checkpoint_dir is None:
             raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")

@@ -445,10 +445,9 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
       `SweepResult` (``None`` with ``shard``).
     """
     reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    import jax
-
     from .config import plant_to_dict
     from .ensemble import _run_ensemble
+    from ..cores import default_chunk_size
     from ..model.lanes import take_lanes
     from ..model.params import gains_to_dict
     from ..model.params import as_gains, as_plant
@@ -486,11 +485,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
 
     lp, lg = take_lanes(broadcast_lanes(lane_plant, lane_gains, P), rows)
     if chunk_size is None:
-        # on CPU the cores split each chunk (jaxsleigh.cores), so the chunks, and the files, do not
-        # depend on how many there are; accelerators take a chunk per device
-        n_dev = 1 if jax.default_backend() == "cpu" else len(jax.local_devices()) if devices is None \
-            else len(list(devices))
-        chunk_size = (16384 if jax.default_backend() == "cpu" else 131072) * n_dev
+        chunk_size = default_chunk_size(16384, devices)
     law = {"gains": lg} if controller is None else {"controller": lg}
     res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps,
                         method=method, rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64,
