@@ -441,6 +441,7 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
 
 # the plain fixed-step path: cache blocks of PLAIN_BLOCK trajectories, optionally over several devices
 from .stepper import PLAIN_BLOCK  # noqa: E402  (kept next to its users)
+from . import gpu_plain  # noqa: E402
 
 
 @functools.partial(jax.jit, static_argnames=("n_steps", "block"), donate_argnums=(0,))
@@ -493,8 +494,35 @@ def _plain_sharded(mesh, n_steps: int, block):
                    donate_argnums=(0,))
 
 
+def _plain_program(args: ClosedLoop, dt, dtype, *, mesh, block, vector_width, specialise, kernel):
+    """The program of `drive_plain` (see there): ``(run, auto_kernel)``, ``run(y, k)`` taking ``k`` plain
+    steps of a batch-last state; ``auto_kernel``: the one-kernel path was chosen by ``kernel="auto"``."""
+    try:
+        key = _args_key(args) if specialise else None
+    except (TypeError, jax.errors.ConcretizationTypeError):        # traced args: the generic kernel
+        specialise, key = False, None
+    cpu = jax.default_backend() == "cpu"
+    fits = specialise and mesh is None and gpu_plain.supported(args)
+    auto = isinstance(kernel, str) and kernel == "auto"
+    if auto:
+        kernel = fits and jax.default_backend() in ("gpu", "cuda", "rocm")
+    elif kernel and not fits:
+        raise ValueError("kernel=True runs the paper's law with a built-in damping model, concrete "
+                         "parameters and no mesh")
+    dtj = jnp.asarray(dt, dtype)
+    if kernel:
+        return (lambda y, k: gpu_plain.run_plain_kernel(y, dt, n_steps=k, key=key, interpret=cpu)), auto
+    if mesh is not None:
+        return (lambda y, k: _plain_sharded(mesh, k, block)(y, args, dtj)), False
+    if vector_width is not None and cpu:
+        return (lambda y, k: _plain_batch_wide(vector_width)(y, args, dtj, k, block)), False
+    if specialise and cpu:
+        return (lambda y, k: _plain_specialised(key, k, block, np.dtype(dtype).name)(y, dtj)), False
+    return (lambda y, k: _plain_batch(y, args, dtj, k, block)), False
+
+
 def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: int = 1000, progress=None,
-                mesh=None, block=PLAIN_BLOCK, vector_width=None, specialise: bool = True):
+                mesh=None, block="auto", vector_width=None, specialise: bool = True, kernel="auto"):
     """Plain fixed-step RK4 to the horizon, final state only; returns ``(y (N, 5), status (N,))``.
 
     Status is judged at the end: ``NONFINITE`` if the state is not finite, ``CROSSED_SINGULAR`` if
@@ -503,7 +531,9 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
 
     The kernel steps cache blocks of ``block`` trajectories (`run_plain`;
     ``None``: the whole batch per step, the earlier form; both give bitwise the same states for
-    batch sizes that are multiples of 8). XLA:CPU runs it on one core. ``mesh`` (a 1-D mesh with axis ``"batch"``, see `batch_mesh`;
+    batch sizes that are multiples of 8). XLA:CPU runs it on one core. ``"auto"`` (default):
+    `PLAIN_BLOCK` on CPU, the whole batch on an accelerator (blocks would run one after another
+    there: ``lax.map`` is a sequential loop, and a GPU wants every lane of the batch in each step). ``mesh`` (a 1-D mesh with axis ``"batch"``, see `batch_mesh`;
     ``"auto"``: every device of ``jax.devices()``) splits the batch over devices, e.g. the host
     devices of ``XLA_FLAGS=--xla_force_host_platform_device_count=2``; the batch is padded with
     harmless starts to a multiple of the device count. Sharded results agree with one device to
@@ -519,9 +549,16 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     ``specialise`` (default, CPU, one device) compiles the kernel for this run's plant and gains
     (`_plain_specialised`): their values become constants of the program, ~1.4x less CPU time on
     the test machine (experiments/bench_c_limit.py), final states within float32 rounding of the
-    generic kernel; a new plant or new gains compile again (a second or two)."""
+    generic kernel; a new plant or new gains compile again (a second or two).
+
+    ``kernel`` (``"auto"``: on a GPU, where `jaxsleigh.integrate.gpu_plain.supported`) runs the steps
+    as one Pallas kernel in which every lane keeps its state in registers
+    (`jaxsleigh.integrate.gpu_plain`); ``False`` keeps XLA's loop of kernels, ``True`` asks for it
+    on any backend (through Pallas' interpreter off a GPU: slow, for tests)."""
     dtype = y0w.dtype
     n = y0w.shape[0]
+    if isinstance(block, str) and block == "auto":
+        block = PLAIN_BLOCK if jax.default_backend() == "cpu" else None
     if isinstance(mesh, str) and mesh == "auto":
         mesh = batch_mesh()
     y = np.where(np.asarray(status0)[:, None] == Status.OK, np.asarray(y0w), [1.0, 0, 0, 0, 0])
@@ -530,22 +567,21 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     y = jnp.asarray(y, dtype).T
     if mesh is not None:
         y = shard_batch(y, mesh)
-    dt = jnp.asarray(horizon.dt, dtype)
-    try:
-        key = _args_key(args) if specialise else None
-    except (TypeError, jax.errors.ConcretizationTypeError):        # traced args: the generic kernel
-        specialise = False
+    run, auto_kernel = _plain_program(args, horizon.dt, dtype, mesh=mesh, block=block, vector_width=vector_width,
+                                      specialise=specialise, kernel=kernel)
     done = 0
     while done < horizon.n_steps:
         k = min(segment, horizon.n_steps - done)
-        if mesh is not None:
-            y = _plain_sharded(mesh, k, block)(y, args, dt)
-        elif vector_width is not None and jax.default_backend() == "cpu":
-            y = _plain_batch_wide(vector_width)(y, args, dt, k, block)
-        elif specialise and jax.default_backend() == "cpu":
-            y = _plain_specialised(key, k, block, np.dtype(dtype).name)(y, dt)
-        else:
-            y = _plain_batch(y, args, dt, k, block)
+        try:
+            y = run(y, k)
+        except Exception as e:      # noqa: BLE001 - a GPU whose compiler refuses the kernel
+            if not auto_kernel or done:
+                raise
+            warnings.warn(f"the one-kernel fixed-step path failed on this GPU ({type(e).__name__}: {e}); "
+                          f"running XLA's loop of kernels instead (drive_plain(kernel=False))", stacklevel=2)
+            run, auto_kernel = _plain_program(args, horizon.dt, dtype, mesh=mesh, block=block,
+                                              vector_width=vector_width, specialise=specialise, kernel=False)
+            continue
         done += k
         if progress is not None:
             progress.update(done / horizon.n_steps)

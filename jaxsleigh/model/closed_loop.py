@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 
 from .controller import apply_law
+from .damping import CoulombDamping, NoDamping, ViscousDamping
 from .paper_law import control
 from .w_laws import control_w_components, injection_components, potential
 from .coordinates import Q_entries, Q_w_entries, q_to_w, w_to_q
@@ -31,6 +32,7 @@ __all__ = [
     "vector_field",
     "vector_field_w",
     "vector_field_w_control",
+    "vector_field_w_components",
     "vector_field_law_control",
     "closed_loop_hamiltonian",
     "closed_loop_hamiltonian_w",
@@ -79,14 +81,23 @@ def vector_field_w_control(t, y, args: ClosedLoop):
     """`vector_field_w` and the control ``u`` (a tuple of two components) it applies: the
     observers of control effort read ``u`` without a second evaluation of the law."""
     del t
+    ydot, u = vector_field_w_components(y, args)
+    return jnp.stack(ydot).astype(y.dtype), u
+
+
+def vector_field_w_components(y, args: ClosedLoop):
+    r"""`vector_field_w_control` on components: ``y`` a sequence of the five components
+    \((w_1, w_2, w_3, p_1, p_2)\) (scalars or batch-last arrays); returns the five components of
+    \(\dot y\) (a tuple) and ``u``. It builds no array of them, so a kernel that holds each component
+    on its own (`jaxsleigh.integrate.gpu_plain`) can call it. \(q\) (from `w_to_q`) is formed only for a
+    damping model that reads it (the built-in ones do not)."""
     w, p = (y[0], y[1], y[2]), (y[3], y[4])
     v = velocity_components(p, args.plant)
     u = control_w_components(w, v, args.controller)
-    # q is needed only by a damping model that depends on it; unused trig is removed by XLA.
-    q = w_to_q(y[:3])
+    q = None if isinstance(args.plant.damping, (ViscousDamping, CoulombDamping, NoDamping)) else w_to_q(jnp.stack(w))
     wdot = matvec(Q_w_entries(w), v)
     pdot = momentum_rhs_components(q, p, u, args.plant)
-    return jnp.stack(wdot + pdot).astype(y.dtype), u
+    return wdot + pdot, u
 
 
 def vector_field_law_control(t, y, args: ClosedLoop):
