@@ -1,15 +1,17 @@
 r"""jaxsleigh's throughput and peak memory against the number of starts N and the horizon.
 
     python experiments/bench_scaling.py [--sizes 1000,10000,100000,1000000] [--t-final 100] [--dt 0.01]
-                                        [--horizons 10,30,100] [--horizon-n 4096] [--modes rk4,adaptive]
+                                        [--horizons 10,30,100] [--horizon-n 4096] [--modes rk4,plain,adaptive]
                                         [--chunk-size 65536] [--x64] [--rk4-check] [--warmup chunk|full|none]
                                         [--timeout S] [--out out/bench_scaling.json]
 
-Two modes on the measured workload (:func:`jaxsleigh.studies.bench.workload`), both through
-:func:`jaxsleigh.run_ensemble` with its default ``chunk_size`` (65536) and ``segment``:
+Three modes on the measured workload (:func:`jaxsleigh.studies.bench.workload`), all through
+:func:`jaxsleigh.run_ensemble` with its default ``chunk_size`` (65536 on CPU, 2^22 on an accelerator) and ``segment``:
 
-``rk4``       fixed-step RK4 at ``--dt``, final state only (``check_passivity=False`` unless
-              ``--rk4-check``): the throughput figure;
+``rk4``       fixed-step RK4 at ``--dt`` through the stepper, with its on-line summaries (T_eps,
+              excursion, ...; ``check_passivity=False`` unless ``--rk4-check``);
+``plain``     the plain fixed-step path (``summaries=False``: final state only, no per-step checks;
+              on a GPU one kernel, `jaxsleigh.integrate.gpu_plain`): the throughput figure;
 ``adaptive``  ``run_ensemble``'s default (adaptive, passivity-checked, all on-line summaries:
               T_eps, min |theta|, max excursion, H_d(0), H_d(T), steps, status), final states and
               summaries only.
@@ -83,9 +85,14 @@ def worker(spec: dict) -> dict:
               progress=False)
     if mode == "rk4":
         kw.update(method="rk4", check_passivity=spec["rk4_check"])
+    elif mode == "plain":
+        kw.update(method="rk4", check_passivity=False, summaries=False)
     elif mode != "adaptive":
         raise ValueError(f"unknown mode {mode!r}")
-    warm_n = {"chunk": min(n, spec["chunk_size"]), "full": n, "none": 0}[spec["warmup"]]
+    from jaxsleigh.cores import default_chunk_size
+
+    chunk = spec["chunk_size"] or default_chunk_size(65536)
+    warm_n = {"chunk": min(n, chunk), "full": n, "none": 0}[spec["warmup"]]
     t0 = time.perf_counter()
     if warm_n:
         run_ensemble(ics[:warm_n], **kw)
@@ -171,7 +178,7 @@ def target_line(rows) -> tuple[str, dict]:
     ok = r["peak_rss_mb"] < TARGET_MIB
     return (f"Target (10^6 starts, 10^4 steps, summaries only, peak < 2 GB = {TARGET_MIB:.0f} MiB): peak RSS "
             f"{r['peak_rss_mb']:.0f} MiB -> {'PASS' if ok else 'FAIL'} (wall {r['wall_s']:.0f} s, "
-            f"chunk_size {r['chunk_size']}).",
+            f"chunk_size {r['chunk_size_effective']}).",
             {"measured": True, "passed": ok, "peak_rss_mb": r["peak_rss_mb"], "limit_mib": TARGET_MIB})
 
 
@@ -188,7 +195,8 @@ def main(argv=None) -> int:
                     help="comma list of horizons for the horizon sweep ('' to skip); default 0.1, 0.3, 1 x --t-final")
     ap.add_argument("--horizon-n", type=int, default=4096, help="N of the horizon sweep")
     ap.add_argument("--modes", default="rk4,adaptive")
-    ap.add_argument("--chunk-size", type=int, default=None, help="run_ensemble chunk_size (default: its default)")
+    ap.add_argument("--chunk-size", type=int, default=None,
+                    help="run_ensemble chunk_size (default: its default, 65536 on CPU, 2^22 on an accelerator)")
     ap.add_argument("--x64", action="store_true")
     ap.add_argument("--rk4-check", action="store_true", help="passivity check on in the rk4 mode")
     ap.add_argument("--warmup", choices=("chunk", "full", "none"), default="chunk")
@@ -197,9 +205,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/bench_scaling.json")
     a = ap.parse_args(argv)
 
-    import inspect
-    from jaxsleigh.studies.ensemble import run_ensemble
-    chunk = a.chunk_size or inspect.signature(run_ensemble).parameters["chunk_size"].default
+    chunk = a.chunk_size        # None: run_ensemble's default, resolved in the worker (not here: on a GPU this
+    #                             process would take the device's memory from its workers)
 
     def floats(s):
         return [float(v) for v in s.split(",") if v.strip()]
@@ -207,24 +214,30 @@ def main(argv=None) -> int:
     sizes = [int(v) for v in floats(a.sizes)]
     horizons = ([round(f * a.t_final, 10) for f in (0.1, 0.3, 1.0)] if a.horizons is None else floats(a.horizons))
     modes = [m.strip() for m in a.modes.split(",") if m.strip()]
-    if set(modes) - {"rk4", "adaptive"}:
-        ap.error("--modes takes rk4 and/or adaptive")
+    if set(modes) - {"rk4", "plain", "adaptive"}:
+        ap.error("--modes takes rk4, plain and/or adaptive")
     for t in [a.t_final, *horizons]:
         if not math.isclose(round(t / a.dt) * a.dt, t, rel_tol=1e-9):
             ap.error(f"horizon {t} is not a whole number of steps dt = {a.dt}")
     base = dict(dt=a.dt, x64=a.x64, chunk_size=chunk, rk4_check=a.rk4_check, warmup=a.warmup, seed=a.seed)
-    plan = [dict(base, sweep="N", mode=m, n=n, t_final=a.t_final) for m in modes for n in sizes]
+    plan = [dict(base, sweep="N", mode=m, n=n, t_final=a.t_final) for n in sizes for m in modes]
     plan += [dict(base, sweep="horizon", mode=m, n=a.horizon_n, t_final=t) for m in modes for t in horizons]
     log(f"{len(plan)} runs, each in a fresh subprocess")
-    rows = [run_worker(s, a.timeout) for s in plan]
+    rows = []
+    for s in plan:      # the rows so far go to --out after each run: a run cut short keeps what it measured
+        rows.append(run_worker(s, a.timeout))
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps({"partial": True, "results": rows}, indent=1, default=float) + "\n")
 
     from jaxsleigh.studies.bench import machine
     mach = next((r["machine"] for r in rows if "machine" in r), machine())
     mach["os_cpu_count"] = os.cpu_count()
     dtype = "float64" if a.x64 else "float32"
     print("## jaxsleigh scaling\n")
-    print(f"Workload: jaxsleigh.studies.bench.workload (seed {a.seed}), dt = {a.dt:g}, dtype {dtype}, chunk_size {chunk}, "
-          f"rk4 = fixed-step final state only (passivity check {'on' if a.rk4_check else 'off'}), "
+    print(f"Workload: jaxsleigh.studies.bench.workload (seed {a.seed}), dt = {a.dt:g}, dtype {dtype}, "
+          f"chunk_size {chunk or 'run_ensemble default'}, "
+          f"rk4 = fixed-step RK4 through the stepper with its on-line summaries (passivity check "
+          f"{'on' if a.rk4_check else 'off'}), plain = the plain fixed-step path (summaries=False), "
           f"adaptive = run_ensemble default with summaries. Compile excluded (warm-up: {a.warmup}). "
           f"One fresh subprocess per row; peak RSS = its ru_maxrss.\n"
           f"Machine: {mach['processor']}, {mach['platform']}, os.cpu_count() = {mach['os_cpu_count']}, "

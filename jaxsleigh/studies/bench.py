@@ -186,7 +186,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     """The plain fixed-step path against the C reference in ONE interleaved timing run.
 
     Each repetition times the C program (via ctypes, on ``c_threads`` OpenMP threads; default: as many
-    as the cores the JAX call uses, `jaxsleigh.cores.workers`) and
+    as the cores the JAX call uses, `jaxsleigh.cores.workers`; on an accelerator, every core of the host) and
     ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, ...)`` back to back,
     alternating which goes first; compile and warm-up runs are not timed. Throughput is
     trajectory-steps per second of wall time and per second of CPU time (``time.process_time``:
@@ -233,10 +233,12 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     y0w = initial_w(ics5, status0, jnp.float32)
     kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
 
-    from ..cores import workers
+    from ..cores import available_cores, workers
 
     cores = len(workers())
-    c_threads = cores if c_threads is None else int(c_threads)
+    if c_threads is None:       # on an accelerator the C program gets every core of the host
+        c_threads = cores if jax.default_backend() == "cpu" else available_cores()
+    c_threads = int(c_threads)
 
     def run_c():
         return c_reference_run(lib, y0w, args, dt, steps, c_threads)
@@ -300,7 +302,6 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     yc = run_c()
     yc_var = {cv: c_reference_run(vl, y0w, args, dt, steps) for cv, vl in c_libs.items()}
     yj, st = drive_plain(y0w, status0, args, horizon)
-    import jax
     with jax.enable_x64(True):
         y64, _ = drive_plain(jnp.asarray(np.asarray(y0w), jnp.float64), status0, args, horizon)
     scale = np.maximum(np.max(np.abs(y64), axis=1), 1e-30)
