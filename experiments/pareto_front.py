@@ -1,7 +1,7 @@
 """The time-effort Pareto front of the gains (gradient tuner), and which front method is faster.
 
     python experiments/pareto_front.py [--points 3] [--steps 30] [--warm-steps 10] [--batch 32]
-                                       [--val-n 256] [--val-seed 20240611] [--compare]
+                                       [--val-n 256] [--val-seed 20240611] [--atol A] [--compare]
 
 1. Budgets: ``--points`` energy budgets (geometric-mean control energy of the training batch)
    from a quarter of the paper's gains' training energy to twice ``tuned``'s, plus the paper's own
@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+import jaxsleigh as js
 from jaxsleigh import tuning as tu
 from jaxsleigh.plots import tuning as tp
 
@@ -69,6 +70,9 @@ def main(argv=None) -> int:
                     help="balanced: held-out median energy <= this x the paper's (a margin for the median's sampling "
                          "noise, ~1%% on 256 starts; default 0.97)")
     ap.add_argument("--refine-steps", type=int, default=40, help="iterations of each refinement at the paper's energy")
+    ap.add_argument("--atol", type=float, default=None,
+                    help="absolute tolerance of every held-out evaluation (default: the engine's; 1e-8 resolves the "
+                         "energy spent after settling in float32, docs/evidence/settled-phase.md)")
     ap.add_argument("--figures", default=str(ROOT / "docs" / "figures"))
     ap.add_argument("--out", default=str(ROOT / "out" / "pareto"))
     args = ap.parse_args(argv)
@@ -103,11 +107,12 @@ def main(argv=None) -> int:
           f"{front.evaluations}", flush=True)
 
     held = tu.UniformStarts()(np.random.default_rng(args.val_seed), args.val_n)
-    refs = {"paper": tu.validate("paper", held), "tuned": tu.validate("tuned", held)}
+    ss = {} if args.atol is None else {"stepsize": js.StepSizeController(atol=args.atol)}
+    refs = {"paper": tu.validate("paper", held, **ss), "tuned": tu.validate("tuned", held, **ss)}
     for k, v in refs.items():
         print(f"{k}: {_fmt(v)}", flush=True)
-    evaluated = {m: tu.evaluate_front(f, held) for m, f in fronts.items()}
-    baseline = tu.evaluate_front(baseline, held)
+    evaluated = {m: tu.evaluate_front(f, held, **ss) for m, f in fronts.items()}
+    baseline = tu.evaluate_front(baseline, held, **ss)
     for m, f in evaluated.items():
         for p in f.points:
             print(f"{m} budget {p.budget:.4g}: {_fmt(p.evaluation)}", flush=True)
@@ -134,7 +139,7 @@ def main(argv=None) -> int:
                                                      "feasible": bool(res.history.feasible[i]),
                                                      "started_from_budget": src.budget,
                                                      "probe_at_result": res.settings["probe_at_result"]},
-                               tu.validate(res.gains, held), res.history)
+                               tu.validate(res.gains, held, **ss), res.history)
             print(f"refined from {src.budget:.4g} at {b:.4g}: {_fmt(pt.evaluation)}", flush=True)
             refined.append(pt)
     cands = [p for f in evaluated.values() for p in f.points] + refined
@@ -145,7 +150,7 @@ def main(argv=None) -> int:
     balanced = min(cands, key=lambda p: p.evaluation.median) if cands else None
 
     meta = {"command": command,
-            "held_out": {"n": args.val_n, "seed": args.val_seed, "starts": repr(tu.UniformStarts())},
+            "held_out": {"n": args.val_n, "seed": args.val_seed, "starts": repr(tu.UniformStarts()), "atol": args.atol},
             "training_energy": {"paper": e_paper, "tuned": e_tuned},
             "timing": {m: {"wall_s": f.wall_s, "evaluations": f.evaluations} for m, f in fronts.items()},
             "baseline": tu.front_dict(baseline)}
@@ -159,7 +164,8 @@ def main(argv=None) -> int:
 
     lines = [f"Produced by `{' '.join(command)}`.", "",
              f"Held-out: {args.val_n} starts `UniformStarts()` (seed {args.val_seed}), accurate engine "
-             "(run_ensemble, adaptive RK4, float32, 100 s).", ""]
+             f"(run_ensemble, adaptive RK4, float32, atol {args.atol if args.atol is not None else 'default'}, 100 s).",
+             ""]
     rows = dict(refs)
     if balanced is not None:
         rows = {"paper": refs["paper"], "gradient, fastest within the paper's energy": balanced.evaluation,

@@ -151,16 +151,28 @@ def test_front_points_respect_their_budgets(method, tmp_path):
         tu.point_gains(p)
 
 
-def test_cli_pareto_writes_the_front_and_its_figure(tmp_path, capsys):
+def test_cli_pareto_writes_the_front_and_its_figure(tmp_path, capsys, monkeypatch):
+    """... and --atol reaches every held-out evaluation (the points and the references), recorded in the file."""
+    seen = []
+    real = tu.validate
+
+    def spy(*a, **k):
+        seen.append(k.get("stepsize"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(tu, "validate", spy)
+    monkeypatch.setattr(tu.pareto, "validate", spy)
     out, png = tmp_path / "front.json", tmp_path / "front.png"
     rc = cli_main(["tune", "--pareto", "2", "--out", str(out), "--plot", str(png), "--steps", "2", "--warm-steps", "1",
                    "--batch", "8", "--t-final", "10", "--n-attempts", "1500", "--tune", "L,k", "--validate", "4",
-                   "--budgets", "5:50", "--no-progress"])
+                   "--budgets", "5:50", "--atol", "1e-7", "--no-progress"])
     assert rc == 0, capsys.readouterr().err
     doc = json.loads(out.read_text())
     assert [round(p["budget"]) for p in doc["points"]] == [5, 50]
     assert set(doc["references"]) == {"paper", "tuned"} and doc["command"][:2] == ["jaxsleigh", "tune"]
     assert png.stat().st_size > 10_000
+    assert len(seen) == 4 and all(s is not None and s.atol == 1e-7 for s in seen)
+    assert doc["held_out"]["atol"] == 1e-7 and doc["held_out"]["rtol"] is None
 
 
 # ---------------------------------------------------------------------------------------------

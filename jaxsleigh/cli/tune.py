@@ -143,7 +143,6 @@ def _add_search_options(p) -> None:
                    help="hold the energy within --energy-margin x the --gains' at each of these percentiles over the "
                         "training starts, not only the median (e.g. 50,75,90: the energy is bimodal, and a median "
                         "budget lets the upper half grow several-fold)")
-    add_tolerance_options(d)          # --rtol, --atol: every run of the search and of its validation
 
 
 def _add_pareto_options(p) -> None:
@@ -184,6 +183,8 @@ def add_tune(subparsers) -> None:
                    help="also write the history (loss, gains, gradient norm per iteration)")
     p.add_argument("--validate", type=whole("--validate", "256", minimum=0), default=256, metavar="N",
                    help="held-out starts for the final check with the accurate engine (0: skip; default 256)")
+    # --rtol, --atol: the accurate engine's, in the held-out check (every mode) and in every run of --search
+    add_tolerance_options(p.add_argument_group("the accurate engine's tolerances (held-out check; --search)"))
     add_progress_option(p)
     p.set_defaults(func=_cmd_tune)
 
@@ -232,7 +233,21 @@ def _cmd_tune_law(args, plant, law) -> int:
 
 
 #: Options that only --search uses, with their defaults.
-_SEARCH_ONLY = {"population": 16, "energy_margin": 0.95, "energy_percentiles": (50.0,), "rtol": None, "atol": None}
+_SEARCH_ONLY = {"population": 16, "energy_margin": 0.95, "energy_percentiles": (50.0,)}
+
+
+def _check_stepsize(args):
+    """The accurate engine's step-size controller from --rtol / --atol (``None`` without them: the
+    defaults, and the fingerprints of earlier runs unchanged); refused where nothing would use it."""
+    if args.rtol is None and args.atol is None:
+        return None
+    if not args.search and not args.validate:
+        used = " and ".join(f for f, v in (("--rtol", args.rtol), ("--atol", args.atol)) if v is not None)
+        raise ValueError(f"{used} set the tolerance of the held-out check, and --validate 0 skips it: drop {used} "
+                         f"or --validate 0")
+    from ..integrate.stepsize import StepSizeController
+
+    return StepSizeController(rtol=args.rtol, atol=args.atol)
 
 
 def _cmd_tune(args) -> int:
@@ -254,6 +269,7 @@ def _cmd_tune(args) -> int:
     used = ["--" + k.replace("_", "-") for k, v in _SEARCH_ONLY.items() if getattr(args, k) != v]
     if used:
         raise ValueError(f"{', '.join(used)} belong to --search; add --search or drop them")
+    _check_stepsize(args)
     if args.pareto is not None:
         return _cmd_pareto(args)
     if args.plot is not None:         # refused now, not silently ignored after the run
@@ -273,6 +289,9 @@ def _cmd_gradient(args) -> int:
     from ..model.params import Gains
 
     if not isinstance(gains0, Gains):
+        if args.rtol is not None or args.atol is not None:
+            raise ValueError("--rtol / --atol set the tolerance of the held-out check, which tune --controller "
+                             "does not run: drop them")
         return _cmd_tune_law(args, plant, gains0)
     ckpt = _checked_checkpoint(args, "tuning run")
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
@@ -308,9 +327,11 @@ def _cmd_gradient(args) -> int:
     ckpt.unlink(missing_ok=True)
     if args.validate:
         ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64),
-                "tuned": tuning.validate(res.gains, ics, plant=plant, x64=args.x64)}
-        meta["validation"] = {k: {"n": v.n, "seed": args.seed + 1000, "median_T_0.05": _num(v.median),
+        ss = {"stepsize": _check_stepsize(args)}
+        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, **ss),
+                "tuned": tuning.validate(res.gains, ics, plant=plant, x64=args.x64, **ss)}
+        meta["validation"] = {k: {"n": v.n, "seed": args.seed + 1000, "rtol": args.rtol, "atol": args.atol,
+                                  "median_T_0.05": _num(v.median),
                                   "median_se": _num(v.median_se), "frac_converged_100s": v.frac_converged,
                                   "frac_se": v.frac_se, "n_failed": v.n_failed}
                               for k, v in rows.items()}
@@ -394,7 +415,6 @@ def _cmd_search(args) -> int:
     from .. import tuning
     from ..files.npz import atomic_write
     from ..model.params import gains_to_dict, save_gains
-    from ..integrate.stepsize import StepSizeController
     from ..tuning.cma_search import NoFeasibleCandidate
 
     _check_search(args)
@@ -404,9 +424,7 @@ def _cmd_search(args) -> int:
     config = tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
                                  seed=args.seed, energy_margin=args.energy_margin,
                                  energy_percentiles=args.energy_percentiles)
-    # None without --rtol / --atol: the search's fingerprint (and so --resume of earlier runs) stays as it was
-    stepsize = (None if args.rtol is None and args.atol is None
-                else StepSizeController(rtol=args.rtol, atol=args.atol))
+    stepsize = _check_stepsize(args)
     command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     t0 = time.perf_counter()
 
@@ -550,17 +568,17 @@ def _cmd_pareto(args) -> int:
     refs, baseline = {}, None
     if args.validate:
         ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        front = tuning.evaluate_front(front, ics, plant=plant, x64=args.x64)
-        refs = {"paper": tuning.validate("paper", ics, plant=plant, x64=args.x64),
-                "tuned": tuning.validate("tuned", ics, plant=plant, x64=args.x64)}
+        ss = {"plant": plant, "x64": args.x64, "stepsize": _check_stepsize(args)}
+        front = tuning.evaluate_front(front, ics, **ss)
+        refs = {"paper": tuning.validate("paper", ics, **ss), "tuned": tuning.validate("tuned", ics, **ss)}
         if args.baseline:
             baseline = tuning.random_search(budgets, front.evaluations, seed=args.seed, progress=args.progress,
                                             **kw)
-            baseline = tuning.evaluate_front(baseline, ics, plant=plant, x64=args.x64)
+            baseline = tuning.evaluate_front(baseline, ics, **ss)
         rows = {**refs, **{f"budget {p.budget:.3g}": p.evaluation for p in front.points}}
         print(tuning.markdown_table(rows))
-    meta = {"command": command, "held_out": {"n": args.validate, "seed": args.seed + 1000,
-                                             "starts": repr(tuning.UniformStarts())},
+    meta = {"command": command, "held_out": {"n": args.validate, "seed": args.seed + 1000, "rtol": args.rtol,
+                                             "atol": args.atol, "starts": repr(tuning.UniformStarts())},
             "initial_gains": gains_to_dict(load_gains(gains0))}
     if baseline is not None:
         meta["baseline"] = tuning.front_dict(baseline)

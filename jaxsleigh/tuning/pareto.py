@@ -332,10 +332,13 @@ def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: Tune
 
 
 def evaluate_front(front: Front, ics, *, plant: Optional[PlantParams] = None, x64: bool = False,
-                   t_final: float = 100.0) -> Front:
+                   t_final: float = 100.0, **ensemble_kw) -> Front:
     """Re-evaluate every point on held-out starts ``ics`` with the accurate engine (median T_0.05 and
-    its s.e., converged fraction, median energy and peak |u|, mean adaptive steps)."""
-    pts = [p._replace(evaluation=validate(p.gains, ics, plant=plant, x64=x64, t_final=t_final)) for p in front.points]
+    its s.e., converged fraction, median energy and peak |u|, mean adaptive steps); ``ensemble_kw``
+    go to `validate` (e.g. ``stepsize=StepSizeController(atol=1e-8)``, which resolves the energy spent
+    after settling in float32)."""
+    pts = [p._replace(evaluation=validate(p.gains, ics, plant=plant, x64=x64, t_final=t_final, **ensemble_kw))
+           for p in front.points]
     return front._replace(points=pts)
 
 
