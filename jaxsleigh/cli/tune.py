@@ -411,10 +411,36 @@ def _no_feasible_message(args, e, hist) -> str:
             f"{fix}. Nothing written to {args.out}" + (f"; wrote the history {hist}" if hist else ""))
 
 
-def _cmd_search(args) -> int:
-    from .. import tuning
+def _search_record(args, res, names, command, plant, **extra) -> dict:
+    """What a ``--search`` gains file records beside the gains: how and from what they were found."""
+    from ..model.params import gains_to_dict
+
+    return {"how": "jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under a "
+                   "control-energy budget at the percentiles " + ", ".join(f"{q:g}" for q in args.energy_percentiles),
+            "command": command, "tuned": list(names), "rtol": args.rtol, "atol": args.atol,
+            "initial_gains": gains_to_dict(res.initial), "training_figures": res.figures,
+            "reference_figures": res.reference, "best_generation": res.best_generation,
+            "generations_run": res.settings["generations_run"], "seed": args.seed, "batch": args.batch,
+            "population": args.population, "plant": {"m": float(plant.m), "J": float(plant.J),
+                                                     "l": float(plant.l), "damping": args.damping},
+            "x64": bool(args.x64), **extra}
+
+
+def _write_search_history(args, history):
+    """``--history FILE.npz``: the search's generations; returns the path written (``None`` without it)."""
+    if not args.history:
+        return None
     from ..files.npz import atomic_write
-    from ..model.params import gains_to_dict, save_gains
+
+    hist = args.history if str(args.history).endswith(".npz") else str(args.history) + ".npz"
+    atomic_write(hist, lambda fh: np.savez(fh, **history))
+    return hist
+
+
+def _cmd_search(args) -> int:
+    """``jaxsleigh tune --search``: CMA-ES on the held-out figures themselves (`jaxsleigh.tuning.search`)."""
+    from .. import tuning
+    from ..model.params import save_gains
     from ..tuning.cma_search import NoFeasibleCandidate
 
     _check_search(args)
@@ -429,25 +455,8 @@ def _cmd_search(args) -> int:
     t0 = time.perf_counter()
 
     def write(res, **extra):
-        meta = {"how": "jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under a "
-                       "control-energy budget at the percentiles "
-                       + ", ".join(f"{q:g}" for q in args.energy_percentiles), "command": command, "tuned": list(names),
-                "rtol": args.rtol, "atol": args.atol,
-                "initial_gains": gains_to_dict(res.initial), "training_figures": res.figures,
-                "reference_figures": res.reference, "best_generation": res.best_generation,
-                "generations_run": res.settings["generations_run"], "seed": args.seed, "batch": args.batch,
-                "population": args.population, "plant": {"m": float(plant.m), "J": float(plant.J),
-                                                         "l": float(plant.l), "damping": args.damping},
-                "x64": bool(args.x64), **extra}
-        save_gains(res.gains, args.out, **meta)
-        write_history(res.history)
-        return meta
-
-    def write_history(history):
-        if args.history:
-            hist = args.history if str(args.history).endswith(".npz") else str(args.history) + ".npz"
-            atomic_write(hist, lambda fh: np.savez(fh, **history))
-            return hist
+        save_gains(res.gains, args.out, **_search_record(args, res, names, command, plant, **extra))
+        _write_search_history(args, res.history)
 
     try:
         res = tuning.search(gains0, config=config, reference=gains0,
@@ -455,7 +464,7 @@ def _cmd_search(args) -> int:
                             stepsize=stepsize, progress=args.progress, checkpoint=ckpt, resume=args.resume)
     except NoFeasibleCandidate as e:
         # the run finished: keep its history and checkpoint (more generations resume it), name the flags
-        print(_no_feasible_message(args, e, write_history(e.history)), file=sys.stderr)
+        print(_no_feasible_message(args, e, _write_search_history(args, e.history)), file=sys.stderr)
         return EXIT_NONE_OK
     except RuntimeError as e:
         raise ValueError(str(e)) from None
@@ -490,11 +499,11 @@ def _cmd_search(args) -> int:
     return 0
 
 
-def _cmd_pareto(args) -> int:
+def _earlier_front(args):
+    """Every flag of ``--pareto`` checked before any work (`ValueError` naming the flag); returns the
+    interrupted front that ``--resume`` continues (its JSON document), or ``None``."""
     from .. import tuning
-    from ..model.params import gains_to_dict, load_gains
-
-    from ..tuning.pareto import MAX_FRONT_POINTS, finished_points
+    from ..tuning.pareto import MAX_FRONT_POINTS
     from ..validate import check_count
 
     if args.robust or args.history or args.energy_budget is not None:
@@ -507,7 +516,6 @@ def _cmd_pareto(args) -> int:
     if args.front_method != "warm" and args.resume:
         raise ValueError("--resume continues a --front-method warm front (vmap computes every point at once); "
                          "drop --resume")
-    plant, gains0 = model_from_args(args)
     if args.plot and not args.validate:
         raise ValueError("--plot draws the front validated on the held-out starts; drop --validate 0 or drop --plot")
     check_outputs(args.out, figures={"--plot": args.plot})
@@ -523,24 +531,58 @@ def _cmd_pareto(args) -> int:
                          f"same options) to continue it, or delete it to start afresh")
     if args.resume and earlier is None:
         raise ValueError(f"--resume: {args.out!r} is not an interrupted front to continue; run without --resume")
+    return earlier
+
+
+def _front_budgets(args, kw) -> np.ndarray:
+    """``--budgets LO:HI`` spaced geometrically over ``--pareto`` points, else the default span."""
+    from .. import tuning
+
+    if not args.budgets:
+        return tuning.default_budgets(args.pareto, **kw)
+    try:
+        lo, hi = (float(x) for x in args.budgets.split(":"))
+    except ValueError:
+        raise ValueError(f"--budgets must be LO:HI (e.g. --budgets 7:2400), got {args.budgets!r}") from None
+    return tuning.budgets_between(lo, hi, args.pareto)
+
+
+def _validated_front(args, front, budgets, kw):
+    """The held-out check of a finished front: ``(front, references, baseline)``, evaluated on
+    ``--validate`` starts with the accurate engine (``--rtol`` / ``--atol``); printed as a table."""
+    from .. import tuning
+
+    if not args.validate:
+        return front, {}, None
+    ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
+    ss = {"plant": kw["plant"], "x64": args.x64, "stepsize": _check_stepsize(args)}
+    front = tuning.evaluate_front(front, ics, **ss)
+    refs = {"paper": tuning.validate("paper", ics, **ss), "tuned": tuning.validate("tuned", ics, **ss)}
+    baseline = None
+    if args.baseline:
+        baseline = tuning.random_search(budgets, front.evaluations, seed=args.seed, progress=args.progress, **kw)
+        baseline = tuning.evaluate_front(baseline, ics, **ss)
+    print(tuning.markdown_table({**refs, **{f"budget {p.budget:.3g}": p.evaluation for p in front.points}}))
+    return front, refs, baseline
+
+
+def _cmd_pareto(args) -> int:
+    """``jaxsleigh tune --pareto N``: the time-effort front, kept after every point, checked on held-out starts."""
+    from .. import tuning
+    from ..model.params import gains_to_dict, load_gains
+    from ..tuning.pareto import _front_settings, finished_points
+
+    earlier = _earlier_front(args)
+    plant, gains0 = model_from_args(args)
     names = tuning.parse_tune(args.tune)
     config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
                                n_attempts=args.n_attempts, probe_budget=args.probe_budget)
     loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction)
     kw = dict(config=config, loss=loss, plant=plant, x64=args.x64)
-    if args.budgets:
-        try:
-            lo, hi = (float(x) for x in args.budgets.split(":"))
-        except ValueError:
-            raise ValueError(f"--budgets must be LO:HI (e.g. --budgets 7:2400), got {args.budgets!r}") from None
-        budgets = tuning.budgets_between(lo, hi, args.pareto)
-    else:
-        budgets = tuning.default_budgets(args.pareto, **kw)
+    budgets = _front_budgets(args, kw)
     command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
     done = None
     if earlier is not None:
-        from ..tuning.pareto import _front_settings
-
         warm = max(1, config.steps // 2) if args.warm_steps is None else int(args.warm_steps)
         done = finished_points(earlier, _front_settings("warm", np.sort(budgets), config, loss, warm, args.x64,
                                                         gains0, names, tuning.UniformStarts()))
@@ -565,21 +607,9 @@ def _cmd_pareto(args) -> int:
         return EXIT_INTERRUPTED
     print(f"{PROG} tune: {len(front.points)} points ({args.front_method}) in {front.wall_s:.1f} s, "
           f"{front.evaluations} objective evaluations")
-    refs, baseline = {}, None
-    if args.validate:
-        ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        ss = {"plant": plant, "x64": args.x64, "stepsize": _check_stepsize(args)}
-        front = tuning.evaluate_front(front, ics, **ss)
-        refs = {"paper": tuning.validate("paper", ics, **ss), "tuned": tuning.validate("tuned", ics, **ss)}
-        if args.baseline:
-            baseline = tuning.random_search(budgets, front.evaluations, seed=args.seed, progress=args.progress,
-                                            **kw)
-            baseline = tuning.evaluate_front(baseline, ics, **ss)
-        rows = {**refs, **{f"budget {p.budget:.3g}": p.evaluation for p in front.points}}
-        print(tuning.markdown_table(rows))
+    front, refs, baseline = _validated_front(args, front, budgets, kw)
     meta = {"command": command, "held_out": {"n": args.validate, "seed": args.seed + 1000, "rtol": args.rtol,
-                                             "atol": args.atol, "starts": repr(tuning.UniformStarts())},
-            "initial_gains": gains_to_dict(load_gains(gains0))}
+                                             "atol": args.atol, "starts": repr(tuning.UniformStarts())}, **initial}
     if baseline is not None:
         meta["baseline"] = tuning.front_dict(baseline)
     tuning.save_front(front, args.out, references=refs, **meta)
