@@ -173,6 +173,11 @@ def test_cli_pareto_writes_the_front_and_its_figure(tmp_path, capsys, monkeypatc
     assert png.stat().st_size > 10_000
     assert len(seen) == 4 and all(s is not None and s.atol == 1e-7 for s in seen)
     assert doc["held_out"]["atol"] == 1e-7 and doc["held_out"]["rtol"] is None
+    from jaxsleigh.plots.tuning import _front_caption        # the figure says what made it
+
+    caption = _front_caption(doc)
+    assert "4 held-out starts" in caption and "float32" in caption and "atol 1e-07" in caption
+    assert "jaxsleigh tune --pareto 2" in caption
 
 
 # ---------------------------------------------------------------------------------------------

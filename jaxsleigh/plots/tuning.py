@@ -358,9 +358,30 @@ def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references
     ax.set_xlabel("median control energy ∫₀¹⁰⁰ |u|² dt on held-out starts")
     ax.set_ylabel("median T_0.05 on held-out starts [s]")
     ax.grid(True, alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper right")
     ax.set_title(title, fontsize=11)
+    caption = _front_caption(front)
+    if caption:
+        # bottom left: fast at little energy, where no gains are
+        ax.text(0.01, 0.01, caption, transform=ax.transAxes, ha="left", va="bottom", fontsize=6.5, color="0.4")
     return fig
+
+
+def _front_caption(front: Mapping) -> str:
+    """What made the front's held-out figures: starts, dtype, tolerance; then the command (what the document records)."""
+    held = front.get("held_out") or {}
+    parts = []
+    if held.get("n"):
+        parts.append(f"{held['n']} held-out starts (seed {held.get('seed', '?')})")
+    x64 = (front.get("settings") or {}).get("x64")
+    if x64 is not None:
+        parts.append("float64" if x64 else "float32")
+    if held:
+        parts.append("adaptive RK4, atol " + (f"{held['atol']:g}" if held.get("atol") else "default"))
+    text = "  ·  ".join(parts)
+    if front.get("command"):
+        text += ("\n" if text else "") + " ".join(map(str, front["command"]))
+    return text
 
 
 def _finite(x) -> float:
