@@ -533,9 +533,10 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     ``None``: the whole batch per step, the earlier form; both give bitwise the same states for
     batch sizes that are multiples of 8). XLA:CPU runs it on one core. ``"auto"`` (default):
     `PLAIN_BLOCK` on CPU, the whole batch on an accelerator (blocks would run one after another
-    there: ``lax.map`` is a sequential loop, and a GPU wants every lane of the batch in each step). ``mesh`` (a 1-D mesh with axis ``"batch"``, see `batch_mesh`;
-    ``"auto"``: every device of ``jax.devices()``) splits the batch over devices, e.g. the host
-    devices of ``XLA_FLAGS=--xla_force_host_platform_device_count=2``; the batch is padded with
+    there: ``lax.map`` is a sequential loop, and a GPU wants every lane of the batch in each step).
+    ``mesh`` (a 1-D mesh with axis ``"batch"``, see `batch_mesh`; ``"auto"``: every device of
+    ``jax.devices()``) splits the batch over devices, e.g. the host devices of
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=2``; the batch is padded with
     harmless starts to a multiple of the device count. Sharded results agree with one device to
     float32 rounding (not bitwise: XLA compiles the sharded program's arithmetic slightly
     differently). The studies do not use it: `jaxsleigh.studies.ensemble` cuts each chunk into parts

@@ -368,7 +368,7 @@ def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references
 
 
 def _front_caption(front: Mapping) -> str:
-    """What made the front's held-out figures: starts, dtype, tolerance; then the command (what the document records)."""
+    """What made the front's held-out figures (starts, dtype, tolerance), then the command: what the file records."""
     held = front.get("held_out") or {}
     parts = []
     if held.get("n"):
