@@ -363,7 +363,9 @@ def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references
     caption = _front_caption(front)
     if caption:
         # bottom left: fast at little energy, where no gains are
-        ax.text(0.01, 0.01, caption, transform=ax.transAxes, ha="left", va="bottom", fontsize=6.5, color="0.4")
+        t = ax.text(0.01, 0.01, caption, transform=ax.transAxes, ha="left", va="bottom", fontsize=6.5, color="0.4",
+                    wrap=True)
+        t.set_in_layout(False)          # a long command must not squeeze the axes
     return fig
 
 
@@ -380,7 +382,9 @@ def _front_caption(front: Mapping) -> str:
         parts.append("adaptive RK4, atol " + (f"{held['atol']:g}" if held.get("atol") else "default"))
     text = "  ·  ".join(parts)
     if front.get("command"):
-        text += ("\n" if text else "") + " ".join(map(str, front["command"]))
+        import textwrap
+
+        text += ("\n" if text else "") + "\n".join(textwrap.wrap(" ".join(map(str, front["command"])), 110))
     return text
 
 
