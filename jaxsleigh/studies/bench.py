@@ -8,6 +8,7 @@ reference: the adaptive method at rtol = atol = 1e-11, which ``tests/test_refere
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import platform
 import resource
@@ -206,7 +207,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     import jax.numpy as jnp
 
     from ..model.closed_loop import ClosedLoop
-    from ..integrate.engine import check_ics, drive_plain, initial_w, make_horizon
+    from ..integrate.engine import check_ics, initial_w, make_horizon
     from ..model.params import paper_gains, paper_plant
 
     log = log or (lambda *a: None)
@@ -253,31 +254,8 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     if whole_batch:
         variants["jax_whole_batch"] = {"block": None}
     for vname, vkw in variants.items():
-        import functools
-
-        from . import ensemble as _ensemble
-
-        def run_variant(vkw=vkw):
-            orig = _ensemble.drive_plain
-            _ensemble.drive_plain = functools.partial(orig, **vkw)
-            try:
-                return run_ensemble(ics, **kw)
-            finally:
-                _ensemble.drive_plain = orig
-
-        contestants.append((vname, run_variant))
-    for _, fn in contestants:
-        fn()                                             # compile and warm up; not timed
-    rec = {name: {"wall": [], "cpu": []} for name, _ in contestants}
-    for r in range(max(1, repeats)):
-        order = contestants if r % 2 == 0 else contestants[::-1]
-        for name, fn in order:
-            w0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            rec[name]["wall"].append(time.perf_counter() - w0)
-            rec[name]["cpu"].append(time.process_time() - c0)
-        log(f"  repetition {r + 1}: " + ", ".join(f"{name} {v['cpu'][-1]:.3f} s cpu / {v['wall'][-1]:.3f} s wall"
-                                                   for name, v in rec.items()))
+        contestants.append((vname, functools.partial(_run_variant, ics, kw, vkw)))
+    rec = _rotation(contestants, repeats, log)
     work = n * steps
     out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
            "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": c_threads, "jax_cores": cores,
@@ -298,9 +276,49 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
         out[f"ratio_cpu_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec[vname]["cpu"])])
         out[f"ratio_wall_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec[vname]["wall"])])
 
-    # agreement of the final states, w chart, same float32 starts
-    yc = run_c()
-    yc_var = {cv: c_reference_run(vl, y0w, args, dt, steps) for cv, vl in c_libs.items()}
+    out["agreement"] = _agreement(run_c(), {cv: c_reference_run(vl, y0w, args, dt, steps) for cv, vl in c_libs.items()},
+                                  y0w, status0, args, horizon)
+    return out
+
+
+def _run_variant(ics, kw, vkw):
+    """``run_ensemble(ics, **kw)`` with `drive_plain` given the keywords ``vkw`` (a variant of the kernel)."""
+    from . import ensemble as _ensemble
+
+    orig = _ensemble.drive_plain
+    _ensemble.drive_plain = functools.partial(orig, **vkw)
+    try:
+        return run_ensemble(ics, **kw)
+    finally:
+        _ensemble.drive_plain = orig
+
+
+def _rotation(contestants, repeats: int, log) -> dict:
+    """Each ``(name, fn)`` warmed up once, then timed ``repeats`` times in turn, the order reversed every
+    other repetition; ``{name: {"wall": [...], "cpu": [...]}}`` (seconds)."""
+    for _, fn in contestants:
+        fn()                                             # compile and warm up; not timed
+    rec = {name: {"wall": [], "cpu": []} for name, _ in contestants}
+    for r in range(max(1, repeats)):
+        order = contestants if r % 2 == 0 else contestants[::-1]
+        for name, fn in order:
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            rec[name]["wall"].append(time.perf_counter() - w0)
+            rec[name]["cpu"].append(time.process_time() - c0)
+        log(f"  repetition {r + 1}: " + ", ".join(f"{name} {v['cpu'][-1]:.3f} s cpu / {v['wall'][-1]:.3f} s wall"
+                                                   for name, v in rec.items()))
+    return rec
+
+
+def _agreement(yc, yc_var: dict, y0w, status0, args, horizon) -> dict:
+    """Final states (w chart) of the C program ``yc`` (and its variants ``yc_var``) against the JAX path's
+    from the same float32 starts, relative to each state's largest component, on the tame starts (float32
+    and float64 fixed-step results within 1e-3)."""
+    import jax.numpy as jnp
+
+    from ..integrate.engine import drive_plain
+
     yj, st = drive_plain(y0w, status0, args, horizon)
     with jax.enable_x64(True):
         y64, _ = drive_plain(jnp.asarray(np.asarray(y0w), jnp.float64), status0, args, horizon)
@@ -309,7 +327,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     rel_cj = np.max(np.abs(yc - yj), axis=1) / scale
     rel_32 = np.max(np.abs(yj - y64), axis=1) / scale
     fin = np.all(np.isfinite(yc), axis=1) == np.all(np.isfinite(yj), axis=1)
-    out["agreement"] = {
+    agreement = {
         "n_tame": int(tame.sum()),
         "c_vs_jax_rel_max_tame": float(rel_cj[tame].max()) if tame.any() else None,
         "c_vs_jax_rel_median_tame": float(np.median(rel_cj[tame])) if tame.any() else None,
@@ -322,9 +340,9 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     }
     for cv, yv in yc_var.items():
         rel_v = np.max(np.abs(yv - yc), axis=1) / scale
-        out["agreement"][f"c_{cv}_vs_c_rel_median_tame"] = float(np.median(rel_v[tame])) if tame.any() else None
-        out["agreement"][f"c_{cv}_vs_c_rel_max_tame"] = float(rel_v[tame].max()) if tame.any() else None
-    return out
+        agreement[f"c_{cv}_vs_c_rel_median_tame"] = float(np.median(rel_v[tame])) if tame.any() else None
+        agreement[f"c_{cv}_vs_c_rel_max_tame"] = float(rel_v[tame].max()) if tame.any() else None
+    return agreement
 
 
 def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool = False, seed: int = 0,
