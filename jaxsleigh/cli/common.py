@@ -568,6 +568,34 @@ _PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout",
                 "func", "_argv", "_run_id"}
 
 
+def _cluster_run_id(args, cluster) -> str:
+    """The fingerprint that the processes of one run share (their output and chunk folder are one): from
+    their coordinator (or the SLURM / Open MPI job) and their count; options that differ between them
+    are refused with a message of their own."""
+    import hashlib
+
+    where = getattr(args, "coordinator", None) or os.environ.get("SLURM_JOB_ID") or os.environ.get(
+        "OMPI_MCA_orte_hnp_uri", "")
+    return hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
+
+
+def _explained(e, state, args):
+    """A full disk or a refused checkpoint told with what to do (where the finished chunks are, which
+    options differ from the interrupted run's); ``None`` where there is nothing to add."""
+    from ..errors import CheckpointError, DiskFullError, RunLockedError
+
+    chunks = state.get("chunks") if isinstance(state, dict) else None
+    if isinstance(e, DiskFullError):
+        if chunks is None or "--resume" in str(e):
+            return None
+        return DiskFullError(e.errno, f"{e}; the finished chunks are kept in {str(chunks)!r}: once there is space, "
+                                      f"the same command with --resume continues", path=e.path)
+    why = _options_differ(chunks, args) if chunks is not None else ""
+    if not why or isinstance(e, RunLockedError):
+        return None
+    return CheckpointError(f"{e} (options that differ: {why})")
+
+
 def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:
     """Run a chunked subcommand in one process or, with the options of
     `add_distributed_options` (or under SLURM / Open MPI), in several; returns the exit code.
@@ -593,7 +621,7 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     options (except the three above and ``--progress``) must be equal in every process.
     """
     from ..files.distributed import ClusterError, run_shared, start
-    from ..errors import CheckpointError, DiskFullError, RunLockedError
+    from ..errors import CheckpointError, DiskFullError
 
     try:
         cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
@@ -605,13 +633,7 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
     options = json.loads(json.dumps(options, default=str))
     if cluster is not None:
-        # the processes of one run share its output and chunk folder: one fingerprint for all of them
-        # (their coordinator; options that differ between them are refused with a message of their own)
-        import hashlib
-
-        where = getattr(args, "coordinator", None) or os.environ.get("SLURM_JOB_ID") or os.environ.get(
-            "OMPI_MCA_orte_hnp_uri", "")
-        args._run_id = hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
+        args._run_id = _cluster_run_id(args, cluster)
     held = {}
 
     def checked():
@@ -640,18 +662,11 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
                 raise                               # a refusal before any work: JAX shuts down as usual
             print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
             code = EXIT_USAGE
-    except DiskFullError as e:
-        chunks = (held.get("state") or {}).get("chunks") if isinstance(held.get("state"), dict) else None
-        if chunks is None or "--resume" in str(e):
+    except (DiskFullError, CheckpointError) as e:
+        better = _explained(e, held.get("state"), args)
+        if better is None:
             raise
-        raise DiskFullError(e.errno, f"{e}; the finished chunks are kept in {str(chunks)!r}: once there is space, "
-                                     f"the same command with --resume continues", path=e.path) from None
-    except CheckpointError as e:
-        state = held.get("state")
-        why = _options_differ(state["chunks"], args) if isinstance(state, dict) and "chunks" in state else ""
-        if not why or isinstance(e, RunLockedError):
-            raise
-        raise CheckpointError(f"{e} (options that differ: {why})") from None
+        raise better from None
     finally:
         state = held.get("state")
         lock = state.get("lock") if isinstance(state, dict) else None
