@@ -109,3 +109,14 @@ def test_a_kernel_the_gpu_refuses_falls_back_with_a_warning(monkeypatch):
     assert np.all(s == Status.OK)
     with pytest.raises(RuntimeError, match="Triton"):
         drive_plain(y0, st, ARGS, hz, kernel=True)
+
+
+def test_kernel_in_float64():
+    """The one switch: float64 states give a float64 kernel, agreeing with XLA's float64 far below float32's rounding."""
+    y0, _ = _starts(64, 5)
+    with jax.enable_x64(True):
+        y = jnp.asarray(y0.T, jnp.float64)
+        ref = np.asarray(run_plain(y, ARGS, jnp.float64(0.01), n_steps=200, block=None))
+        got = gpu_plain.run_plain_kernel(y, 0.01, n_steps=200, key=_args_key(ARGS), interpret=True)
+        assert got.dtype == jnp.float64
+        assert np.max(_rel(np.asarray(got).T, ref.T)) < 1e-12
