@@ -218,6 +218,28 @@ def test_family_study_tables_quote_their_json():
             assert f"| {label} | {name} | {f['T_median']:.1f} | {ratios} |" in page, (fam, dist)
 
 
+def test_family_studies_judged_at_atol_1e_8_quote_their_json():
+    """The shaped-energy page's atol 1e-8 judgement (`experiments/shaped_held_out.py`) quotes the studies' JSON: the
+    shaped family's held-out table (both tuners, both tolerances) and the paper family's gradient ratios."""
+    import json
+
+    page = " ".join((DOCS / "evidence" / "shaped-energy.md").read_text().split())
+
+    def ratios(f):
+        return " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
+
+    d = json.loads((DOCS / "figures" / "shaped_study.json").read_text())
+    assert d["held_out_atol"]["atol"] == 1e-8
+    for key, label in (("gradient", "gradient's best (`shaped`)"), ("cma", "CMA-ES's best")):
+        for dist, name in (("readme", "README"), ("wide", "wide")):
+            f, f0 = d["held_out_atol"][dist][key], d["held_out"][dist][key]
+            tight = ratios(f) if key == "gradient" else f"**{ratios(f)}**"
+            assert f"| {label} | {name} |" in page and f"| {tight} | {ratios(f0)} |" in page, (key, dist)
+            assert f0["T_median"] == pytest.approx(f["T_median"], abs=0.05)      # the tolerance moves energy, not time
+    p = json.loads((DOCS / "figures" / "paper_study.json").read_text())["held_out_atol"]
+    assert f"{ratios(p['readme']['gradient'])} on the README's starts and {ratios(p['wide']['gradient'])}" in page
+
+
 def test_aicardi_study_table_quotes_its_json():
     """The shaped-energy page's held-out table of Aicardi's law quotes `experiments/shaped_study.py --family aicardi`'s
     JSON: CMA-ES's best training objective and each held-out row's median T and energy ratios."""

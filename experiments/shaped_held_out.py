@@ -1,0 +1,69 @@
+"""Judge a family study's laws again on its held-out starts, at another tolerance (shaped and paper families).
+
+    python experiments/shaped_held_out.py [--study docs/figures/shaped_study.json] [--atol 1e-8]
+
+`experiments/shaped_study.py` tunes a law family by gradient and by CMA-ES (34 min on 2 cores) and
+judges the best laws on 2048 held-out starts of two distributions at float32's default tolerance, which does not
+resolve the energy spent after settling (docs/evidence/settled-phase.md). This script takes the laws from the
+study's JSON (no tuning), runs the same judgement (`preset_effort.py`'s figures: paper's gains, the start law,
+the gradient's and CMA-ES's best) with ``StepSizeController(atol=--atol)`` and writes it into the same JSON as
+``held_out_atol`` (``{"atol": A, "command": ..., "readme": ..., "wide": ...}``). float32, CPU.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--study", default=str(ROOT / "docs/figures/shaped_study.json"))
+    ap.add_argument("--atol", type=float, default=1e-8)
+    a = ap.parse_args(argv)
+
+    import jaxsleigh as js
+    from jaxsleigh.model.params import gains, paper_gains
+    from jaxsleigh.model.shaped_law import ShapedGains, shaped_from_gains, shaped_gains
+    from preset_effort import figures, readme_starts, wide_starts
+
+    path = Path(a.study)
+    study = json.loads(path.read_text())
+    family = study.get("family", "shaped")         # the first shaped study predates the field
+    if family not in ("shaped", "paper"):
+        ap.error(f"--study: a {family!r} study; this script judges the shaped and paper families")
+    laws = {"paper": {"gains": paper_gains()}}
+    if family == "shaped":                          # the study's start law (the paper's family starts at the paper)
+        laws["start"] = {"controller": shaped_from_gains(paper_gains(), B=(1e-3, 1e-3, 1e-3))}
+    for key in ("gradient", "cma"):
+        law = (study.get(key) or {}).get("law")
+        if law is None:
+            continue
+        laws[key] = ({"controller": shaped_gains(**{k: law[k] for k in ShapedGains._fields})} if family == "shaped"
+                     else {"gains": gains(**law)})
+    ss = js.StepSizeController(atol=a.atol)
+    out = {"atol": a.atol, "command": ["python", "experiments/shaped_held_out.py", *(sys.argv[1:] if argv is None
+                                                                                    else argv)]}
+    for dist, draw in (("readme", readme_starts), ("wide", wide_starts)):
+        ics = draw(2048)
+        res = {name: figures(js.run_ensemble(ics, t_final=100.0, eps=0.05, stepsize=ss, progress=False, **kw))
+               for name, kw in laws.items()}
+        for name in res:
+            res[name]["energy_ratio_to_paper"] = {q: res[name]["energy"][q] / res["paper"]["energy"][q]
+                                                  for q in res[name]["energy"]}
+        out[dist] = res
+        print(dist, {k: (v["T_median"], {q: round(r, 2) for q, r in v["energy_ratio_to_paper"].items()})
+                     for k, v in res.items()}, flush=True)
+    study["held_out_atol"] = out
+    path.write_text(json.dumps(study, indent=1, default=float) + "\n")
+    print(f"wrote {path} (held_out_atol)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
