@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     import jaxsleigh as js
     from jaxsleigh.model.params import gains, paper_gains
     from jaxsleigh.model.shaped_law import ShapedGains, shaped_from_gains, shaped_gains
-    from preset_effort import figures, readme_starts, wide_starts
+    from shaped_study import judge
 
     path = Path(a.study)
     study = json.loads(path.read_text())
@@ -46,19 +46,9 @@ def main(argv=None) -> int:
             continue
         laws[key] = ({"controller": shaped_gains(**{k: law[k] for k in ShapedGains._fields})} if family == "shaped"
                      else {"gains": gains(**law)})
-    ss = js.StepSizeController(atol=a.atol)
     out = {"atol": a.atol, "command": ["python", "experiments/shaped_held_out.py", *(sys.argv[1:] if argv is None
-                                                                                    else argv)]}
-    for dist, draw in (("readme", readme_starts), ("wide", wide_starts)):
-        ics = draw(2048)
-        res = {name: figures(js.run_ensemble(ics, t_final=100.0, eps=0.05, stepsize=ss, progress=False, **kw))
-               for name, kw in laws.items()}
-        for name in res:
-            res[name]["energy_ratio_to_paper"] = {q: res[name]["energy"][q] / res["paper"]["energy"][q]
-                                                  for q in res[name]["energy"]}
-        out[dist] = res
-        print(dist, {k: (v["T_median"], {q: round(r, 2) for q, r in v["energy_ratio_to_paper"].items()})
-                     for k, v in res.items()}, flush=True)
+                                                                                    else argv)],
+           **judge(laws, stepsize=js.StepSizeController(atol=a.atol))}
     study["held_out_atol"] = out
     path.write_text(json.dumps(study, indent=1, default=float) + "\n")
     print(f"wrote {path} (held_out_atol)")

@@ -40,6 +40,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))        # preset_effort
 
 
 def host(law):
@@ -54,6 +55,26 @@ def law_dict(law) -> dict:
     from jaxsleigh.model.controller import law_leaf_names
 
     return {k: np.asarray(v, np.float64).tolist() for k, v in law_leaf_names(host(law)).items()}
+
+
+def judge(laws: dict, **engine) -> dict:
+    """``{"readme": ..., "wide": ...}``: `preset_effort.py`'s figures of each law (``{name: run_ensemble keywords}``,
+    one of them ``"paper"``) on 2048 held-out starts of each distribution over 100 s, energy also as a ratio to the
+    paper's at each percentile; ``engine``: more `run_ensemble` keywords (e.g. ``stepsize``)."""
+    import jaxsleigh as js
+    from preset_effort import figures, readme_starts, wide_starts
+
+    held = {}
+    for dist, draw in (("readme", readme_starts), ("wide", wide_starts)):
+        ics = draw(2048)
+        res = {name: figures(js.run_ensemble(ics, t_final=100.0, eps=0.05, progress=False, **kw, **engine))
+               for name, kw in laws.items()}
+        for name in res:
+            res[name]["energy_ratio_to_paper"] = {q: res[name]["energy"][q] / res["paper"]["energy"][q]
+                                                  for q in res[name]["energy"]}
+        held[dist] = res
+        print(dist, {k: (v["T_median"], v["energy_ratio_to_paper"]) for k, v in res.items()}, flush=True)
+    return held
 
 
 def main(argv=None) -> int:
@@ -71,14 +92,11 @@ def main(argv=None) -> int:
     args.out = args.out or str(ROOT / f"docs/figures/{args.family}_study.json")
 
     import jax
-    import jaxsleigh as js
     from jaxsleigh.model.params import paper_gains
     from jaxsleigh.model.shaped_law import shaped_from_gains
     from jaxsleigh.tuning.hard_time import HardTimeConfig, hard_time_problem, tune_by_cma, tune_by_gradient
     from jaxsleigh.tuning.law import law_coordinates
     from jaxsleigh.tuning.starts import UniformStarts, WideStarts
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from preset_effort import figures, readme_starts, wide_starts
 
     half = args.n // 2
     uni = UniformStarts()(np.random.default_rng(11), half)
@@ -145,18 +163,7 @@ def main(argv=None) -> int:
     for key, run in runs.items():
         if run.x is not None:
             laws[key] = {"controller": host(prob.law_of(run.x))}
-    out["held_out"] = {}
-    for dist, draw in (("readme", readme_starts), ("wide", wide_starts)):
-        ics = draw(2048)
-        res = {}
-        for name, kw in laws.items():
-            r = js.run_ensemble(ics, t_final=100.0, eps=0.05, progress=False, **kw)
-            res[name] = figures(r)
-        for name in res:
-            res[name]["energy_ratio_to_paper"] = {q: res[name]["energy"][q] / res["paper"]["energy"][q]
-                                                  for q in res[name]["energy"]}
-        out["held_out"][dist] = res
-        print(dist, {k: (v["T_median"], v["energy_ratio_to_paper"]) for k, v in res.items()}, flush=True)
+    out["held_out"] = judge(laws)
     save()
     if args.write_preset:
         cands = [k for k in runs if out[k]["law"] is not None]

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.closed_loop import ClosedLoop, vector_field_w_components
-from ..model.damping import CoulombDamping, NoDamping, ViscousDamping
+from ..model.damping import BUILTIN_DAMPINGS
 from ..model.params import Gains
 
 __all__ = ["supported", "run_plain_kernel", "KERNEL_BLOCK"]
@@ -39,8 +39,7 @@ KERNEL_BLOCK = 256
 
 def supported(args: ClosedLoop) -> bool:
     """Whether `run_plain_kernel` can run ``args``: the paper's law, a built-in damping model."""
-    return isinstance(args.controller, Gains) and isinstance(
-        args.plant.damping, (ViscousDamping, CoulombDamping, NoDamping))
+    return isinstance(args.controller, Gains) and isinstance(args.plant.damping, BUILTIN_DAMPINGS)
 
 
 def _rk4_components(f, y, h):

@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 
 from .controller import apply_law
-from .damping import CoulombDamping, NoDamping, ViscousDamping
+from .damping import BUILTIN_DAMPINGS
 from .paper_law import control
 from .w_laws import control_w_components, injection_components, potential
 from .coordinates import Q_entries, Q_w_entries, q_to_w, w_to_q
@@ -94,7 +94,7 @@ def vector_field_w_components(y, args: ClosedLoop):
     w, p = (y[0], y[1], y[2]), (y[3], y[4])
     v = velocity_components(p, args.plant)
     u = control_w_components(w, v, args.controller)
-    q = None if isinstance(args.plant.damping, (ViscousDamping, CoulombDamping, NoDamping)) else w_to_q(jnp.stack(w))
+    q = None if isinstance(args.plant.damping, BUILTIN_DAMPINGS) else w_to_q(jnp.stack(w))
     wdot = matvec(Q_w_entries(w), v)
     pdot = momentum_rhs_components(q, p, u, args.plant)
     return wdot + pdot, u

@@ -22,6 +22,7 @@ __all__ = [
     "ViscousDamping",
     "NoDamping",
     "CustomDamping",
+    "BUILTIN_DAMPINGS",
     "damping_from_name",
 ]
 
@@ -114,6 +115,10 @@ class CustomDamping:
 
     def __repr__(self):
         return f"CustomDamping({getattr(self.fn, '__name__', self.fn)!r})"
+
+
+#: the built-in models: elementwise in (p, v), none of them reads q (a `CustomDamping` may)
+BUILTIN_DAMPINGS = (CoulombDamping, ViscousDamping, NoDamping)
 
 
 def damping_from_name(name: str):
