@@ -120,3 +120,24 @@ def test_kernel_in_float64():
         got = gpu_plain.run_plain_kernel(y, 0.01, n_steps=200, key=_args_key(ARGS), interpret=True)
         assert got.dtype == jnp.float64
         assert np.max(_rel(np.asarray(got).T, ref.T)) < 1e-12
+
+
+def test_kernel_near_the_singular_set_flags_what_does_not_run():
+    """Starts near theta = 0 with momentum, on the one-kernel path (through the interpreter): a start either ends
+    OK with a finite state on the same side of theta = 0, or is flagged (NONFINITE / CROSSED_SINGULAR); no
+    non-finite or crossed state passes as OK. Its statuses are XLA's."""
+    rng = np.random.default_rng(4)
+    n = 96
+    th = rng.choice([-1.0, 1.0], n) * 10.0 ** rng.uniform(-3, -1, n)
+    ics = np.column_stack([rng.uniform(-3, 3, (n, 2)), th, rng.normal(0.0, 3.0, (n, 2))])
+    a, st = check_ics(ics)
+    y0 = np.asarray(initial_w(a, st, jnp.float32))
+    hz = make_horizon(5.0, 0.05)                      # a coarse fixed step: some of these cannot run
+    y_k, s_k = drive_plain(y0, st, ARGS, hz, kernel=True)
+    _, s_x = drive_plain(y0, st, ARGS, hz, kernel=False)
+    ok = s_k == Status.OK
+    assert np.all(np.isfinite(y_k[ok]))
+    assert np.all(np.sign(y_k[ok, 0]) == np.sign(y0[ok, 0]))
+    assert not np.all(ok), "the coarse step should leave some starts flagged"
+    assert set(np.unique(s_k[~ok])) <= {Status.NONFINITE, Status.CROSSED_SINGULAR}
+    np.testing.assert_array_equal(s_k, s_x)
