@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cache import kept_jit
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
 from ..model.charts import chart_for
 from ..status import Status
@@ -137,7 +138,7 @@ def _representable(ics5: np.ndarray, dtype, block: int = 1 << 16) -> np.ndarray:
     return ok
 
 
-@jax.jit
+@kept_jit()
 def _w_check(ics, args):
     def one(y):
         yw = state_to_w(y)
@@ -204,7 +205,9 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
 
 
 #: the starts' chart change, compiled (op by op it was ~10 programs per process, each a cache load)
-_to_w_batch = jax.jit(jax.vmap(state_to_w))
+@kept_jit()
+def _to_w_batch(ics):
+    return jax.vmap(state_to_w)(ics)
 
 
 def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.Array:
@@ -222,22 +225,24 @@ def initial_w(ics5: np.ndarray, status0: np.ndarray, dtype, chart=None) -> jax.A
     return jax.device_put(np.asarray(yw, np.dtype(dtype)))   # cast on the host, copied: no program for it
 
 
-@functools.partial(jax.jit, static_argnames=("observers",))
+@kept_jit(static_argnames=("observers",))
 def _init_batch(y0w, status0, args, ctl, observers=DEFAULT_OBSERVERS):
     return init_batch(y0w, status0, args, ctl, observers=observers)
 
 
 #: which lanes still step, compiled (the host asks once per segment; op by op it was five programs)
-_active = jax.jit(is_active)
+@kept_jit()
+def _active(s, target, ctl):
+    return is_active(s, target, ctl)
 
 
-@functools.partial(jax.jit, static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
+@kept_jit(static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
 def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
     return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive, monitor=monitor,
                        observers=observers)
 
 
-@functools.partial(jax.jit, static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
+@kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
 def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
     return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import contextlib
-import functools
 import hashlib
 import json
 import threading
@@ -30,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cache import kept_jit
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from ..files.chunks import ChunkStore, starts_digest
@@ -176,12 +176,12 @@ def summary_repr(name: str, result, *, status, T_eps, Hd0=None, u_energy=None, h
     return "\n".join(lines)
 
 
-@jax.jit
+@kept_jit()
 def _hd_batch(yw, args):
     return jax.vmap(closed_loop_hamiltonian_w, in_axes=(0, None))(yw, args)
 
 
-@jax.jit
+@kept_jit()
 def _hd_lanes(yw, args):
     # closed_loop_hamiltonian_w broadcasts over a trailing batch axis, per-lane args included
     return closed_loop_hamiltonian_w(yw.T, args)
@@ -194,7 +194,7 @@ def _hd_any(yw, args):
     return _hd_lanes(yw, args) if has_lanes(args.plant, args.gains) else _hd_batch(yw, args)
 
 
-@functools.partial(jax.jit, static_argnames=("chart",))
+@kept_jit(static_argnames=("chart",))
 def _to_q_batch(yw, chart=WChart()):
     return jax.vmap(chart.from_chart)(yw)
 

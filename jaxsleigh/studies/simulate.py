@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cache import kept_jit
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
@@ -101,7 +102,7 @@ class Solution(NamedTuple):
 SUMMARY_NAMES = ("T_eps", "min_abs_theta", "max_excursion", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
 
 
-@functools.partial(jax.jit, static_argnames=("chart",))
+@kept_jit(static_argnames=("chart",))
 def _outputs(yw, t, args: ClosedLoop, chart=WChart()):
     """Chart trajectories ``(N, T, 5)`` at times ``t`` (T,) -> q, u, Hd (vmapped over batch and time; Hd is
     NaN for a law without it)."""
