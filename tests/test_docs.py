@@ -257,3 +257,24 @@ def test_aicardi_study_table_quotes_its_json():
             f = d["held_out"][dist][key]
             ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
             assert f"| {label} | {name} | {f['T_median']:.1f} | {ratios} |" in page, (key, dist)
+
+
+def test_start_up_figures_are_the_committed_measurement():
+    """The performance page and getting started quote `experiments/compile_cache.py`'s JSON: first and second fresh
+    process of each README command, this tree against the baseline measured in the same run."""
+    import json
+
+    d = json.loads((DOCS / "figures" / "compile_cache.json").read_text())
+    assert d["command"].startswith("python experiments/compile_cache.py --repeats 5 --baseline f036c14")
+    perf = (DOCS / "evidence" / "performance.md").read_text()
+    start = " ".join((DOCS / "getting-started.md").read_text().split())
+    m = d["medians"]
+    for name in ("simulate", "basin", "x64", "paper"):
+        new, old = m[f"{name} | this tree"], m[f"{name} | f036c14"]
+        assert f"{old['first_s']:.2f} / {old['second_s']:.2f} s ({old['ratio']:.1f}x" in perf, name
+        assert f"{new['first_s']:.2f} / {new['second_s']:.2f} s" in perf and f"{new['ratio']:.1f}x" in perf, name
+    new, old = m["simulate | this tree"], m["simulate | f036c14"]
+    assert (f"takes {new['first_s']:.2f} s in a fresh process with an empty cache folder and {new['second_s']:.2f} s "
+            f"in the next one ({new['ratio']:.1f}x)") in start
+    assert f"{old['first_s']:.2f} s and {old['second_s']:.2f} s ({old['ratio']:.1f}x)" in start
+    assert new["ratio"] >= 3.0
