@@ -158,6 +158,11 @@ def _source_digest() -> str:
     return _SOURCE_DIGEST[0]
 
 
+#: JAX's settings that change what a function traces to (they are in a kept program's key)
+_TRACE_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
+                   "jax_numpy_rank_promotion", "jax_enable_checks")
+
+
 class KeptProgram:
     """A jitted function whose traced program is kept on disk (`jax.export`, StableHLO), so that a later
     process calls it without tracing it; JAX's persistent cache then finds the compiled program.
@@ -165,10 +170,11 @@ class KeptProgram:
     It is called like the function under `jax.jit`, and gives the same bytes. A call is kept only where
     everything the program depends on is in its key: jaxsleigh's source and JAX's version, the function,
     its static arguments, the argument tree (node types and their static data, all of them jaxsleigh's,
-    Python's or NumPy's: `_valuelike`) and every leaf's shape, dtype and weak type, float64 on or off and
-    the backend. Anything else (a user's controller class, whose code is not in the key; a call under a
-    transformation; a multi-process run; the cache turned off; a file that cannot be read or written)
-    runs through plain `jax.jit`, as before.
+    Python's or NumPy's: `_valuelike`) and every leaf's shape, dtype and weak type, the backend, and JAX's
+    settings that change a trace (`_TRACE_SETTINGS`: float64 on or off, matmul precision, promotion rules).
+    Anything else (a user's controller class, whose code is not in the key; a call under a
+    transformation or `jax.disable_jit`; a multi-process run; the cache turned off; a file that cannot be
+    read or written) runs through plain `jax.jit`, as before.
     """
 
     def __init__(self, fun, *, static_argnames=(), donate_argnums=()):
@@ -231,11 +237,12 @@ class KeptProgram:
         """The program's key, or None where it cannot be kept."""
         import jax
 
-        parts = [self.__wrapped__.__module__, self.__wrapped__.__qualname__, _source_digest(),
-                 f"x64={jax.config.jax_enable_x64}", jax.default_backend()]
+        parts = [self.__wrapped__.__module__, self.__wrapped__.__qualname__, _source_digest(), jax.default_backend(),
+                 *(f"{k}={getattr(jax.config, k, None)}" for k in _TRACE_SETTINGS)]
         if (not self.__wrapped__.__module__.startswith("jaxsleigh") or not hasattr(jax, "typeof")
-                or jax.process_count() > 1):
-            return None            # code outside the digest; an older JAX; a multi-process run (JAX's own cache)
+                or jax.process_count() > 1 or jax.config.jax_disable_jit):
+            return None            # code outside the digest; an older JAX; a multi-process run (JAX's own cache);
+            #                        jit turned off (plain jit then runs op by op, as asked)
         for k, v in static.items():
             d = _describe_static(v)
             if d is None:

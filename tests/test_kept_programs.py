@@ -119,6 +119,10 @@ def test_the_key_names_shape_dtype_and_static_arguments():
     assert k != key({}, [np.ones((2, 5), np.int32)])
     with jax.enable_x64(True):
         assert k != key({}, [np.ones((2, 5), np.float32)])
+    with jax.default_matmul_precision("highest"):
+        assert k != key({}, [np.ones((2, 5), np.float32)])
+    with jax.disable_jit():
+        assert key({}, [np.ones((2, 5), np.float32)]) is None      # op by op, as asked
     assert key({}, [PD()]) is None                        # a user's node type in the arguments
     obs = js.observers.DEFAULT_OBSERVERS
     assert cache._describe_static(obs) != cache._describe_static(obs[:2])
