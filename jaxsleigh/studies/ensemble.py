@@ -268,6 +268,281 @@ def _settings_key(settings: dict, ics: np.ndarray) -> str:
     return h.hexdigest()
 
 
+def _checked_options(*, summaries, method, check_passivity, save_every, chunk_size, devices, shard, checkpoint_dir,
+                     segment, resume) -> tuple:
+    """The run options checked in turn (the first wrong one is refused): ``(chunk_size, shard, segment)``
+    resolved (the default chunk size; whole numbers)."""
+    if not isinstance(summaries, (bool, np.bool_)):
+        raise ValueError(f"summaries must be True or False, got {summaries!r}")
+    if not summaries and (method != "rk4" or check_passivity or save_every is not None):
+        raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
+                         "check_passivity=False and no save_every")
+    chunk_size = default_chunk_size(65536, devices) if chunk_size is None else \
+        whole("chunk_size", chunk_size, example=65536)
+    if shard is not None:
+        if checkpoint_dir is None:
+            raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")
+        count = whole("shard count", shard[1])
+        shard = (whole("shard index", shard[0], minimum=0, maximum=count - 1), count)
+    segment = whole("segment", segment, example=1000)
+    if not isinstance(resume, (bool, np.bool_)):
+        raise ValueError(f"resume must be True or False, got {resume!r}")
+    if resume and checkpoint_dir is None:
+        raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
+    return chunk_size, shard, segment
+
+
+def _lane_args(cfg, ics5: np.ndarray, summaries) -> Optional[ClosedLoop]:
+    """The per-trajectory parameters broadcast to one lane per start (``None``: one plant and one law)."""
+    if cfg.lanes is None:
+        return None
+    from ..model.lanes import broadcast_lanes
+
+    if cfg.lanes not in (1, ics5.shape[0]):
+        raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are {ics5.shape[0]} "
+                         f"initial conditions; give one value per initial condition (or one for all)")
+    if not summaries:
+        raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
+                         "per-trajectory parameters need summaries=True")
+    return ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
+
+
+def _ensemble_settings(cfg, sampled: bool, save_every, chunk_size: int, summaries, observers) -> dict:
+    """Everything that produces the result (the same for every run of the same call)."""
+    settings = {
+        **(sampled_settings(cfg) if sampled else cfg.settings()), "save_every": save_every,
+        "chunk_size": chunk_size, "summaries": bool(summaries),
+    }
+    if observers is not None:
+        settings["observers"] = [repr(o) for o in observers]
+    return settings
+
+
+def _part_sizes(chunk: int, devs) -> list:
+    """The lanes of each part a chunk of ``chunk`` starts is cut into."""
+    # every chunk is cut into parts of PART_SIZE lanes (a smaller chunk is one part), the last padded
+    # (jaxsleigh.cores): the same parts whatever the number of cores, so every start meets the same
+    # compiled program, and the bytes never depend on how many cores ran it
+    # (on an accelerator one part per device: a GPU wants large batches, not parts of 1024)
+    per_part = PART_SIZE if jax.default_backend() == "cpu" else -(-chunk // len(devs))
+    lanes = min(per_part, -(-chunk // 8) * 8)
+    lanes = -(-lanes // 8) * 8
+    return [lanes] * -(-chunk // lanes)
+
+
+def _open_store(checkpoint_dir, resume, settings: dict, ics5: np.ndarray, chunk: int) -> Optional[ChunkStore]:
+    """The checkpoint folder's store, opened (``None`` without ``checkpoint_dir``)."""
+    if checkpoint_dir is None:
+        return None
+    store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
+    store.open(resume=bool(resume), manifest={"n": ics5.shape[0], "chunk": chunk, "starts": starts_digest(ics5),
+                                              "settings": settings})
+    return store
+
+
+class _PartProgress:
+    """One part's progress (reported from its thread), mapped onto the whole run's bar: the parts of the chunk
+    of rows lo:hi (of n) share ``done`` (each one's fraction) and ``lock``; ``cuts`` are their bounds."""
+
+    def __init__(self, i, done, lock, bar, cuts, lo, hi, n):
+        self.i, self.done, self.lock, self.bar = i, done, lock, bar
+        self.cuts, self.lo, self.hi, self.n = cuts, lo, hi, n
+
+    def update(self, frac):
+        self.done[self.i] = frac
+        with self.lock:
+            self.bar.update((self.lo + float(self.done @ np.diff(self.cuts)) / self.cuts[-1] * (self.hi - self.lo))
+                            / self.n)
+
+
+class _Chunks:
+    """The per-chunk work of `_run_ensemble`, holding what every chunk shares: a chunk's rows computed by the
+    sampled-data loop (`sampled_part`) or by the engine (`engine_part`: parts run concurrently on the devices,
+    their stiff stragglers finished in one tail batch in the background)."""
+
+    def __init__(self, cfg, *, step, observers, summaries, save_every, segment, chart, dtype, devs, args, lane_args,
+                 ics5, status0, chunk, part_sizes, bar, tail_pool):
+        self.cfg, self.horizon, self.eps, self.adaptive = cfg, cfg.horizon, cfg.eps, cfg.adaptive
+        self.step, self.observers, self.summaries, self.save_every = step, observers, summaries, save_every
+        self.segment, self.chart, self.dtype, self.devs = segment, chart, dtype, devs
+        self.args, self.lane_args, self.ics5, self.status0 = args, lane_args, ics5, status0
+        self.n, self.chunk, self.part_sizes = ics5.shape[0], chunk, part_sizes
+        self.bar, self.tail_pool = bar, tail_pool
+
+    def sampled_part(self, lo, hi):
+        """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
+        if self.lane_args is None:
+            return sampled_summaries(self.cfg, self.ics5[lo:hi])
+        from ..model.lanes import take_lanes
+
+        return sampled_summaries(self.cfg, self.ics5[lo:hi], take_lanes(self.lane_args, np.arange(lo, hi)))
+
+    def engine_part(self, lo, hi):
+        """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape and
+        cut into its parts, which run concurrently on the devices; returns a function that gives them."""
+        part_sizes = self.part_sizes
+        pad = sum(part_sizes) - (hi - lo)
+        st = np.concatenate([self.status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
+        ic = np.concatenate([self.ics5[lo:hi], np.zeros((pad, 5))])
+        rows = np.concatenate([np.arange(lo, hi), np.full(pad, lo)])   # padding rows reuse the first's lanes
+        y0w = np.asarray(initial_w(ic, st, self.dtype, self.chart))     # once per chunk: op by op, it is not cheap
+        cuts = np.cumsum([0] + part_sizes)
+        bar_lock = threading.Lock()
+        done = np.zeros(len(part_sizes))
+        # the adaptive engine's few stiff stragglers are gathered from the parts into one batch (_tail)
+        tails = self.summaries and self.save_every is None and self.adaptive and len(part_sizes) > 1
+
+        def part(i):
+            a0, a1 = cuts[i], cuts[i + 1]
+            with jax.enable_x64(self.cfg.x64):       # the dtype switch is per thread
+                sub = _PartProgress(i, done, bar_lock, self.bar, cuts, lo, hi, self.n)
+                return self._engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], sub, tails)
+
+        pieces = run_parts(part, range(len(part_sizes)), self.devs)
+        if not tails:
+            return lambda: {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
+        return self._tail(pieces, [np.arange(cuts[i], cuts[i + 1]) for i in range(len(part_sizes))], y0w, st, rows, lo)
+
+    def _lanes_args(self, rows):
+        """The closed loop's ``args`` for ``rows`` (their lanes, with per-trajectory parameters)."""
+        if self.lane_args is None:
+            return self.args
+        from ..model.lanes import take_lanes
+
+        return take_lanes(self.lane_args, rows)
+
+    def _engine_rows(self, y0w, st, rows, sub, tails=False):
+        """The engine's summaries (and trajectories) of one part, on the current default device; with
+        ``tails``, its final state with its last few still-active lanes not yet finished."""
+        a = self._lanes_args(rows)
+        horizon, step, segment, observers = self.horizon, self.step, self.segment, self.observers
+        kw = dict(eps=self.eps, progress=sub, observers=observers)
+        if not self.summaries:
+            part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
+                                    y0w, st, a, horizon)
+        elif tails:
+            return drive_final(y0w, st, a, horizon, step, segment=segment, stop_at=TAIL_LANES, finish=False,
+                               **kw)
+        elif self.save_every is None:
+            final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw)
+            part = _chunk_summaries(final, y0w, st, a, observers)
+        else:
+            final, ys = drive_saving(y0w, st, a, horizon, step, **kw)
+            part = _chunk_summaries(final, y0w, st, a, observers)
+            yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
+            chart = self.chart
+            yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
+            yq[st != Status.OK] = np.nan
+            part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
+        return part
+
+    def _tail(self, fulls, where, y0w, st, rows, lo):
+        """The parts' still-active lanes (a few stiff stragglers each) gathered into one batch and run to
+        the horizon on one device, in the background while the next chunks' parts run; returns a
+        function that waits for it and gives the chunk's summaries. The gathering does not depend on
+        the number of cores, so neither do the results."""
+        active = [active_lanes(f, self.horizon, self.step) for f in fulls]
+        sel = np.concatenate([w[a] for w, a in zip(where, active)])
+        job = self.tail_pool.submit(self._run_tail, fulls, active, sel, rows, lo) if sel.size else None
+
+        def result():
+            done = job.result() if job is not None else None
+            return self._tail_summaries(fulls, where, active, done, y0w, st, rows)
+
+        result.ready = lambda: job is None or job.done()
+        return result
+
+    def _run_tail(self, fulls, active, sel, rows, lo):
+        """The tail batch (the parts' ``active`` lanes, rows ``rows[sel]``) run to the horizon (in the tail pool)."""
+        merged = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
+                                        *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
+        # padded to a power of two with idle copies of its first lane, so few shapes compile
+        m = sel.size
+        fill = np.concatenate([np.arange(m), np.zeros(bucket(m) - m, int)])
+        merged = take_lanes_of(merged, fill)
+        idle = np.where(np.arange(fill.size) < m, merged.status, Status.INVALID_INPUT)
+        merged = merged._replace(status=idle.astype(merged.status.dtype))
+        with jax.default_device(self.devs[lo // self.chunk % len(self.devs)]), jax.enable_x64(self.cfg.x64):
+            done = drive_final(None, None, self._lanes_args(rows[sel[fill]]), self.horizon, self.step, eps=self.eps,
+                               segment=self.segment, observers=self.observers, state=merged, finish=False)
+        return take_lanes_of(done, np.arange(m))
+
+    def _tail_summaries(self, fulls, where, active, done, y0w, st, rows):
+        """The chunk's summaries: every part's final state with its finished tail lanes (``done``) put back."""
+        out, k = [], 0
+        for f, w, a in zip(fulls, where, active):
+            if a.any():
+                m = int(a.sum())
+                f = put_lanes(f, np.flatnonzero(a), take_lanes_of(done, np.arange(k, k + m)))
+                k += m
+            with jax.enable_x64(self.cfg.x64):
+                out.append(_chunk_summaries(finish_state(f, self.horizon), y0w[w], st[w], self._lanes_args(rows[w]),
+                                            self.observers))
+        return {key: np.concatenate([p[key] for p in out]) for key in out[0]}
+
+
+def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
+    """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
+    returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
+    n, chunk, ics5, devs = chunks.n, chunks.chunk, chunks.ics5, chunks.devs
+    parts, reused = [], 0
+    pending: collections.deque = collections.deque()
+
+    def done_chunk(ci, lo, hi, result, new):
+        part = {k: v[:hi - lo] for k, v in result().items()}
+        if store is not None and new:
+            store.save(ci, part, lo=lo, starts=ics5[lo:hi])
+        if shard is None:
+            parts.append(part)
+        chunks.bar.update(hi / n)
+
+    starts = list(range(0, n, chunk))
+    try:
+        for ci, lo in enumerate(starts):
+            hi = min(lo + chunk, n)
+            if shard is not None and ci % shard[1] != shard[0]:
+                continue
+            if store is not None and resume:
+                part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
+                if part is not None:                 # in order, behind any chunk still finishing
+                    pending.append((ci, lo, hi, lambda part=part: part, False))
+                    reused += 1
+                    continue
+            if sampled:
+                part = chunks.sampled_part(lo, hi)
+                pending.append((ci, lo, hi, lambda part=part: part, True))
+            else:
+                pending.append((ci, lo, hi, chunks.engine_part(lo, hi), True))
+            # chunks end in order; the tails of up to one chunk per device run behind the next chunk's parts
+            while pending and (len(pending) > len(devs) or getattr(pending[0][3], "ready", lambda: True)()):
+                done_chunk(*pending.popleft())
+    except BaseException:
+        # interrupted: a chunk whose tail is running still ends and is written (nothing finished is lost)
+        while pending:
+            try:
+                done_chunk(*pending.popleft())
+            except BaseException:
+                break
+        raise
+    while pending:
+        done_chunk(*pending.popleft())
+    return parts, reused
+
+
+def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_args, run_info) -> EnsembleResult:
+    """The `EnsembleResult` of the chunks' concatenated summaries ``out``."""
+    traj = {}
+    if save_every is not None:
+        traj = {"t": horizon.t(), "q": out.pop("q_traj"), "p": out.pop("p_traj")}
+    if lane_args is not None:
+        from ..model.lanes import lane_table
+
+        traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
+    observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
+    return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,
+                          observed=observed or None, run_info=run_info)
+
+
 def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, method: str = "adaptive",
                  rtol: Optional[float] = None, atol: Optional[float] = None, max_step: Optional[float] = None,
@@ -328,24 +603,10 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
                        rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
                        check_passivity=check_passivity, controller=controller)
-    horizon = cfg.horizon
-    if not isinstance(summaries, (bool, np.bool_)):
-        raise ValueError(f"summaries must be True or False, got {summaries!r}")
-    if not summaries and (method != "rk4" or check_passivity or save_every is not None):
-        raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
-                         "check_passivity=False and no save_every")
-    chunk_size = default_chunk_size(65536, devices) if chunk_size is None else \
-        whole("chunk_size", chunk_size, example=65536)
-    if shard is not None:
-        if checkpoint_dir is None:
-            raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")
-        count = whole("shard count", shard[1])
-        shard = (whole("shard index", shard[0], minimum=0, maximum=count - 1), count)
-    segment = whole("segment", segment, example=1000)
-    if not isinstance(resume, (bool, np.bool_)):
-        raise ValueError(f"resume must be True or False, got {resume!r}")
-    if resume and checkpoint_dir is None:
-        raise ValueError("resume=True needs checkpoint_dir (the folder of the interrupted run's chunks)")
+    chunk_size, shard, segment = _checked_options(
+        summaries=summaries, method=method, check_passivity=check_passivity, save_every=save_every,
+        chunk_size=chunk_size, devices=devices, shard=shard, checkpoint_dir=checkpoint_dir, segment=segment,
+        resume=resume)
     n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
     check_memory(n_rows, "run_ensemble")
     sampled = is_sampled(cfg.controller)
@@ -353,221 +614,38 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         _refuse_for_sampled(save_every=save_every, observers=observers, summaries=not summaries)
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
-    plant, gains, adaptive, eps = cfg.plant, cfg.gains, cfg.adaptive, cfg.eps
-    lane_args = None
-    if cfg.lanes is not None:
-        from ..model.lanes import broadcast_lanes
-
-        if cfg.lanes not in (1, ics5.shape[0]):
-            raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are {ics5.shape[0]} "
-                             f"initial conditions; give one value per initial condition (or one for all)")
-        if not summaries:
-            raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
-                             "per-trajectory parameters need summaries=True")
-        lane_args = ClosedLoop(*broadcast_lanes(plant, cfg.law, ics5.shape[0]))
+    lane_args = _lane_args(cfg, ics5, summaries)
     step = cfg.step_controller(policy)
     if cores is not None:
         cores = whole("cores", cores, example=2)
     devs = workers(devices, cores)
     with jax.enable_x64(cfg.x64):
         dtype = working_dtype()
-        settings = {
-            **(sampled_settings(cfg) if sampled else cfg.settings()), "save_every": save_every,
-            "chunk_size": chunk_size, "summaries": bool(summaries),
-        }
+        settings = _ensemble_settings(cfg, sampled, save_every, chunk_size, summaries, observers)
         devices_used = [str(d) for d in devs]
-        if observers is not None:
-            settings["observers"] = [repr(o) for o in observers]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
-        # every chunk is cut into parts of PART_SIZE lanes (a smaller chunk is one part), the last padded
-        # (jaxsleigh.cores): the same parts whatever the number of cores, so every start meets the same
-        # compiled program, and the bytes never depend on how many cores ran it
-        # (on an accelerator one part per device: a GPU wants large batches, not parts of 1024)
-        per_part = PART_SIZE if jax.default_backend() == "cpu" else -(-chunk // len(devs))
-        lanes = min(per_part, -(-chunk // 8) * 8)
-        lanes = -(-lanes // 8) * 8
-        part_sizes = [lanes] * -(-chunk // lanes)
-        store = None
-        if checkpoint_dir is not None:
-            store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
-            store.open(resume=bool(resume), manifest={"n": n, "chunk": chunk, "starts": starts_digest(ics5),
-                                                      "settings": settings})
-        args = ClosedLoop(plant, cfg.law)
-        parts, reused = [], 0
+        part_sizes = _part_sizes(chunk, devs)
+        store = _open_store(checkpoint_dir, resume, settings, ics5, chunk)
+        args = ClosedLoop(cfg.plant, cfg.law)
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
-        def sampled_part(lo, hi):
-            """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
-            if lane_args is None:
-                return sampled_summaries(cfg, ics5[lo:hi])
-            from ..model.lanes import take_lanes
-
-            return sampled_summaries(cfg, ics5[lo:hi], take_lanes(lane_args, np.arange(lo, hi)))
-
-        def engine_part(lo, hi):
-            """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape and
-            cut into its parts, which run concurrently on the devices."""
-            pad = sum(part_sizes) - (hi - lo)
-            st = np.concatenate([status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
-            ic = np.concatenate([ics5[lo:hi], np.zeros((pad, 5))])
-            rows = np.concatenate([np.arange(lo, hi), np.full(pad, lo)])   # padding rows reuse the first's lanes
-            y0w = np.asarray(initial_w(ic, st, dtype, chart))     # once per chunk: op by op, it is not cheap
-            cuts = np.cumsum([0] + part_sizes)
-            bar_lock = threading.Lock()
-            done = np.zeros(len(part_sizes))
-
-            class _Sub:  # maps one part's progress onto the whole run
-                def __init__(self, i):
-                    self.i = i
-
-                def update(self, frac):
-                    done[self.i] = frac
-                    with bar_lock:
-                        bar.update((lo + float(done @ np.diff(cuts)) / cuts[-1] * (hi - lo)) / n)
-
-            # the adaptive engine's few stiff stragglers are gathered from the parts into one batch (below)
-            tails = summaries and save_every is None and adaptive and len(part_sizes) > 1
-
-            def part(i):
-                a0, a1 = cuts[i], cuts[i + 1]
-                with jax.enable_x64(cfg.x64):       # the dtype switch is per thread
-                    return _engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], _Sub(i), tails)
-
-            pieces = run_parts(part, range(len(part_sizes)), devs)
-            if not tails:
-                return lambda: {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
-            return _tail(pieces, [np.arange(cuts[i], cuts[i + 1]) for i in range(len(part_sizes))], y0w, st, rows, lo)
-
-        def _lanes_args(rows):
-            if lane_args is None:
-                return args
-            from ..model.lanes import take_lanes
-
-            return take_lanes(lane_args, rows)
-
-        def _engine_rows(y0w, st, rows, sub, tails=False):
-            """The engine's summaries (and trajectories) of one part, on the current default device; with
-            ``tails``, its final state with its last few still-active lanes not yet finished."""
-            a = _lanes_args(rows)
-            kw = dict(eps=eps, progress=sub, observers=observers)
-            if not summaries:
-                part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
-                                        y0w, st, a, horizon)
-            elif tails:
-                return drive_final(y0w, st, a, horizon, step, segment=segment, stop_at=TAIL_LANES, finish=False,
-                                   **kw)
-            elif save_every is None:
-                final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw)
-                part = _chunk_summaries(final, y0w, st, a, observers)
-            else:
-                final, ys = drive_saving(y0w, st, a, horizon, step, **kw)
-                part = _chunk_summaries(final, y0w, st, a, observers)
-                yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
-                yq = np.array(jax.vmap(lambda y: _to_q_batch(y, chart))(jnp.asarray(yw)), np.float64)
-                yq[st != Status.OK] = np.nan
-                part["q_traj"], part["p_traj"] = yq[..., :3], yq[..., 3:]
-            return part
-
-        def _tail(fulls, where, y0w, st, rows, lo):
-            """The parts' still-active lanes (a few stiff stragglers each) gathered into one batch and run to
-            the horizon on one device, in the background while the next chunks' parts run; returns a
-            function that waits for it and gives the chunk's summaries. The gathering does not depend on
-            the number of cores, so neither do the results."""
-            active = [active_lanes(f, horizon, step) for f in fulls]
-            sel = np.concatenate([w[a] for w, a in zip(where, active)])
-
-            def run():
-                merged = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
-                                                *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
-                # padded to a power of two with idle copies of its first lane, so few shapes compile
-                m = sel.size
-                fill = np.concatenate([np.arange(m), np.zeros(bucket(m) - m, int)])
-                merged = take_lanes_of(merged, fill)
-                idle = np.where(np.arange(fill.size) < m, merged.status, Status.INVALID_INPUT)
-                merged = merged._replace(status=idle.astype(merged.status.dtype))
-                with jax.default_device(devs[lo // chunk % len(devs)]), jax.enable_x64(cfg.x64):
-                    done = drive_final(None, None, _lanes_args(rows[sel[fill]]), horizon, step, eps=eps,
-                                       segment=segment, observers=observers, state=merged, finish=False)
-                return take_lanes_of(done, np.arange(m))
-
-            job = tail_pool.submit(run) if sel.size else None
-
-            def result():
-                done = job.result() if job is not None else None
-                out, k = [], 0
-                for f, w, a in zip(fulls, where, active):
-                    if a.any():
-                        m = int(a.sum())
-                        f = put_lanes(f, np.flatnonzero(a), take_lanes_of(done, np.arange(k, k + m)))
-                        k += m
-                    with jax.enable_x64(cfg.x64):
-                        out.append(_chunk_summaries(finish_state(f, horizon), y0w[w], st[w], _lanes_args(rows[w]),
-                                                    observers))
-                return {key: np.concatenate([p[key] for p in out]) for key in out[0]}
-
-            result.ready = lambda: job is None or job.done()
-            return result
-
-        pending: collections.deque = collections.deque()
-
-        def done_chunk(ci, lo, hi, result, new):
-            part = {k: v[:hi - lo] for k, v in result().items()}
-            if store is not None and new:
-                store.save(ci, part, lo=lo, starts=ics5[lo:hi])
-            if shard is None:
-                parts.append(part)
-            bar.update(hi / n)
-
         t_start = time.perf_counter()
         # the store's lock on the folder is held until the last chunk is written or read
         with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
                 concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
-            starts = list(range(0, n, chunk))
-            try:
-                for ci, lo in enumerate(starts):
-                    hi = min(lo + chunk, n)
-                    if shard is not None and ci % shard[1] != shard[0]:
-                        continue
-                    if store is not None and resume:
-                        part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
-                        if part is not None:                 # in order, behind any chunk still finishing
-                            pending.append((ci, lo, hi, lambda part=part: part, False))
-                            reused += 1
-                            continue
-                    if sampled:
-                        part = sampled_part(lo, hi)
-                        pending.append((ci, lo, hi, lambda part=part: part, True))
-                    else:
-                        pending.append((ci, lo, hi, engine_part(lo, hi), True))
-                    # chunks end in order; the tails of up to one chunk per device run behind the next chunk's parts
-                    while pending and (len(pending) > len(devs) or getattr(pending[0][3], "ready", lambda: True)()):
-                        done_chunk(*pending.popleft())
-            except BaseException:
-                # interrupted: a chunk whose tail is running still ends and is written (nothing finished is lost)
-                while pending:
-                    try:
-                        done_chunk(*pending.popleft())
-                    except BaseException:
-                        break
-                raise
-            while pending:
-                done_chunk(*pending.popleft())
+            chunks = _Chunks(cfg, step=step, observers=observers, summaries=summaries, save_every=save_every,
+                             segment=segment, chart=chart, dtype=dtype, devs=devs, args=args, lane_args=lane_args,
+                             ics5=ics5, status0=status0, chunk=chunk, part_sizes=part_sizes, bar=bar,
+                             tail_pool=tail_pool)
+            parts, reused = _run_chunks(chunks, store, resume=resume, shard=shard, fields=fields, sampled=sampled)
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
     run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
-    traj = {}
-    if save_every is not None:
-        traj = {"t": horizon.t(), "q": out.pop("q_traj"), "p": out.pop("p_traj")}
-    if lane_args is not None:
-        from ..model.lanes import lane_table
-
-        traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
-    observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
-    return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,
-                          observed=observed or None, run_info=run_info)
+    return _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
+                            lane_args=lane_args, run_info=run_info)
 
 
 #: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.
