@@ -123,6 +123,12 @@ def test_the_key_names_shape_dtype_and_static_arguments():
         assert k != key({}, [np.ones((2, 5), np.float32)])
     with jax.disable_jit():
         assert key({}, [np.ones((2, 5), np.float32)]) is None      # op by op, as asked
+    # the remembered key of a call's signature is the key itself, settings and dtypes included
+    for args in ([np.ones((2, 5), np.float64)], [jnp.ones((2, 5))], [1.0], [np.float32(1.0)], [1]):
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        for x64 in (False, True):
+            with jax.enable_x64(x64):
+                assert engine._to_w_batch._key_of({}, leaves, tree) == engine._to_w_batch._key({}, leaves, tree)
     assert key({}, [PD()]) is None                        # a user's node type in the arguments
     obs = js.observers.DEFAULT_OBSERVERS
     assert cache._describe_static(obs) != cache._describe_static(obs[:2])
