@@ -403,11 +403,11 @@ def run_plain(y, args: ClosedLoop, dt, *, n_steps: int, unroll: int = 1, block: 
     ``jaxsleigh/studies/c_reference/rk4_w.c``): each block takes all ``n_steps`` steps while its state
     stays in L1, then the next block (``lax.map`` over blocks, ``lax.scan`` over steps). Every
     lane takes the same operations as with ``block=None`` (one scan over the whole batch, the
-    earlier form); on XLA:CPU the final states came out bitwise equal for blocks of 128 to 448 and
-    batches whose size is a multiple of 8 (``tests/test_fast_path.py``). A whole batch of another
-    size is compiled with slightly different rounding (~1e-7); blocks always have the same shape,
-    so a start's result no longer depends on the batch it is in. A last partial block is padded
-    with a harmless state and dropped again.
+    earlier form), and the final states agree with it to float32 rounding (``tests/test_fast_path.py``;
+    bit for bit on XLA:CPU for batches of a multiple of 8 until the specialised kernel let LLVM
+    contract and reassociate, `jaxsleigh.integrate.engine.PLAIN_CPU_OPTIONS`). Blocks always have the
+    same shape, so a start's result does not depend on the batch it is in. A last partial block is
+    padded with a harmless state and dropped again.
     """
     n = y.shape[-1]
     if block is None or n <= block:
