@@ -103,8 +103,6 @@ def test_the_sampling_period_matters_in_the_studies():
 
 
 def test_what_cannot_take_a_sampled_law_says_so(tmp_path):
-    from jaxsleigh.tuning import tune_law
-
     with pytest.raises(ValueError, match="save_every"):
         js.run_ensemble(ICS, controller=LAW, t_final=1.0, save_every=10)
     with pytest.raises(ValueError, match="period cannot vary per trajectory"):

@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import math
 from fractions import Fraction
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Optional, Sequence
 
