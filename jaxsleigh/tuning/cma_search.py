@@ -264,6 +264,27 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Control energy spent after settling
     needs a tighter absolute tolerance than the float32 default to be resolved (``atol=1e-8``:
     docs/evidence/settled-phase.md); a search on the defaults can reward gains for energy that float32 does not see."""
+    pcts = _checked_search_inputs(config, energy_budget)
+    space = _search_space(gains0, tune, d_floor)
+    ics = draw_starts(starts, config.batch, config.seed)
+    ev = _Evaluator(ics, plant, config.t_final, config.eps, x64, stepsize, pcts)
+    guard = guard_starts()
+    settings, key = _search_settings(config, space, ev, reference, energy_budget, starts)
+    ckpt = None if checkpoint is None else Path(checkpoint)
+    # the reference and the start in one ensemble; the start is candidate "generation -1"
+    ref = ev.evaluate([reference, space.g0])
+    budget = _budget(ref, energy_budget, config, pcts)
+    run = _start(space, ref, budget, config, ckpt if resume else None, key)
+    try:
+        _generations(run, space, ev, budget, config, ckpt, key, progress)
+    except KeyboardInterrupt:
+        raise TuningInterrupted(_partial(run, space, budget, settings), ckpt) from None
+    return _verified(run, space, ev, guard, budget, settings)
+
+
+def _checked_search_inputs(config: SearchConfig, energy_budget: Optional[float]) -> tuple:
+    """Refuse a bad ``config`` or ``energy_budget`` (ValueError, in a fixed order); returns the energy
+    percentiles as floats."""
     from ..validate import check_count, check_memory
 
     for name in ("generations", "population", "batch", "verify"):
@@ -295,99 +316,175 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     if energy_budget is not None and tuple(pcts) != (50.0,):
         raise ValueError("search: energy_budget is a budget on the median; with other energy_percentiles the budgets "
                          "are energy_margin x the reference's")
-    pcts = tuple(float(q) for q in pcts)
+    return tuple(float(q) for q in pcts)
+
+
+class _Space(NamedTuple):
+    """What a search moves: the flat parameters ``full0`` of the starting gains ``g0``, of which those at
+    ``free`` (the gains in ``names``) are the candidate vector."""
+
+    full0: np.ndarray
+    free: np.ndarray
+    d_floor: float
+    g0: Gains
+    names: tuple
+
+    def gains(self, x) -> Gains:
+        """The gains of candidate vector ``x`` (the untuned ones are ``g0``'s, bit for bit)."""
+        v = self.full0.copy()
+        v[self.free] = x
+        return _to_gains(v, self.d_floor, self.g0, self.names)
+
+
+def _search_space(gains0, tune, d_floor: float) -> _Space:
+    """The starting gains and the coordinates of the gains named in ``tune`` (`_Space`)."""
     names = parse_tune(tune)
     g0 = load_gains(gains0)
     full0 = np.concatenate([np.ravel(p) for p in params_from_gains(g0, d_floor=d_floor)])
     free = np.concatenate([np.arange(7)[_SLICES[n]] for n in names])
-    ics = draw_starts(starts, config.batch, config.seed)
-    guard = guard_starts()
-    settings = {"config": config._asdict(), "gains0": gains_to_dict(g0), "reference": gains_to_dict(load_gains(reference)),
-                "energy_budget": energy_budget, "tuned": list(names), "x64": bool(x64), "d_floor": float(d_floor),
+    return _Space(full0, free, d_floor, g0, names)
+
+
+class _Evaluator(NamedTuple):
+    """The training starts and the engine's settings that every candidate of a search is run with."""
+
+    ics: np.ndarray
+    plant: Optional[PlantParams]
+    t_final: float
+    eps: float
+    x64: bool
+    stepsize: Any
+    pcts: tuple
+
+    def evaluate(self, gains_list) -> PopulationFigures:
+        """`evaluate_population` of ``gains_list`` on the training starts."""
+        return evaluate_population(gains_list, self.ics, plant=self.plant, t_final=self.t_final, eps=self.eps,
+                                   x64=self.x64, stepsize=self.stepsize, percentiles=self.pcts)
+
+
+def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, reference, energy_budget: Optional[float],
+                     starts) -> tuple[dict, str]:
+    """The run's settings (as recorded in its result) and the fingerprint a checkpoint must match."""
+    settings = {"config": config._asdict(), "gains0": gains_to_dict(space.g0),
+                "reference": gains_to_dict(load_gains(reference)), "energy_budget": energy_budget,
+                "tuned": list(space.names), "x64": bool(ev.x64), "d_floor": float(space.d_floor),
                 "starts": repr(starts) if callable(starts) else "array",
-                "plant": None if plant is None else repr(plant), "method": "CMA-ES on the accurate engine"}
-    if stepsize is not None:                 # (left out otherwise: the fingerprints of earlier runs hold)
-        settings["stepsize"] = stepsize._asdict()
+                "plant": None if ev.plant is None else repr(ev.plant), "method": "CMA-ES on the accurate engine"}
+    if ev.stepsize is not None:            # (left out otherwise: the fingerprints of earlier runs hold)
+        settings["stepsize"] = ev.stepsize._asdict()
     # the generation count is left out: a finished or interrupted run can be resumed for more generations
     # (a generation does not depend on how many follow it)
     # (the percentiles are left out at their default: the fingerprints of earlier runs hold)
     key = _fingerprint({**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"
-                                               and not (k == "energy_percentiles" and pcts == (50.0,))}}, ics)
-    ckpt = None if checkpoint is None else Path(checkpoint)
+                                               and not (k == "energy_percentiles" and ev.pcts == (50.0,))}},
+                       ev.ics)
+    return settings, key
 
-    def full(x):
-        v = full0.copy()
-        v[free] = x
-        return v
 
-    # the reference and the start in one ensemble; the start is candidate "generation -1"
-    ref = evaluate_population([reference, g0], ics, plant=plant, t_final=config.t_final, eps=config.eps, x64=x64,
-                              stepsize=stepsize, percentiles=pcts)
+class _Budget(NamedTuple):
+    """The constraints of a search: the energy budget at each percentile (``e_max``), the floor of the
+    converged fraction (``f_min``), and the reference's figures with both (``reference``)."""
+
+    e_max: np.ndarray
+    f_min: float
+    reference: dict
+
+
+def _budget(ref: PopulationFigures, energy_budget: Optional[float], config: SearchConfig, pcts: tuple) -> _Budget:
+    """The budgets and the floor from the reference's figures (candidate 0 of ``ref``)."""
     e_max = (np.array([float(energy_budget)]) if energy_budget is not None
              else config.energy_margin * np.asarray(ref.energy_at[0], np.float64))
     f_min = min(1.0, float(ref.frac_converged[0]) + config.converged_margin)
     reference_figs = {"median_T": float(ref.median_T[0]), "median_energy": float(ref.median_energy[0]),
-                      "frac_converged": float(ref.frac_converged[0]), "n_bad": int(ref.n_bad[0]), "mean_steps": float(ref.mean_steps[0]),
+                      "frac_converged": float(ref.frac_converged[0]), "n_bad": int(ref.n_bad[0]),
+                      "mean_steps": float(ref.mean_steps[0]),
                       "energy_budget": float(e_max[pcts.index(50.0)]) if 50.0 in pcts else math.nan,
                       "converged_floor": f_min}
     if pcts != (50.0,):
         reference_figs["energy_budgets"] = {f"p{q:g}": float(b) for q, b in zip(pcts, e_max)}
+    return _Budget(e_max, f_min, reference_figs)
+
+
+class _SearchState:
+    """A search under way: the strategy's ``state``, the generator ``rng``, the ``hist`` rows, the best
+    feasible candidates ``top`` ((score, generation, x, figures), best first) and the clock's origin ``t0``."""
+
+    def __init__(self, state: CMAState, rng, hist: list, top: list, t0: float):
+        self.state, self.rng, self.hist, self.top, self.t0 = state, rng, hist, top, t0
+
+
+def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: SearchConfig,
+           resume_from: Optional[Path], key: str) -> _SearchState:
+    """A fresh run from the starting gains (candidate 1 of ``ref``, kept if feasible), or the one
+    checkpointed at ``resume_from`` if that file exists."""
     rng = np.random.default_rng(config.seed)
-    state, hist, top = cma_init(full0[free], config.sigma0), [], []
-    s0, feasible0 = _score(ref, 1, e_max, f_min, config)
+    state, hist, top = cma_init(space.full0[space.free], config.sigma0), [], []
+    s0, feasible0 = _score(ref, 1, budget.e_max, budget.f_min, config)
     if feasible0:
-        top.append((float(s0), -1, full0[free].copy(), _scalars(ref, 1)))
-    if resume and ckpt is not None and ckpt.exists():
-        state, hist, top = _load(ckpt, key, rng)
-    t0 = time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0)
+        top.append((float(s0), -1, space.full0[space.free].copy(), _scalars(ref, 1)))
+    if resume_from is not None and resume_from.exists():
+        state, hist, top = _load(resume_from, key, rng)
+    return _SearchState(state, rng, hist, top, time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0))
 
-    def partial():
-        if not top:
-            return None
-        s, gen, x, f = top[0]
-        return _result(_to_gains(full(x), d_floor, g0, names), g0, f, reference_figs, hist, gen, settings)
 
-    try:
-        with Progress(progress, desc="search (CMA-ES)") as bar:
-            while int(state.generation) < config.generations:
-                gen = int(state.generation)
-                xs, ys = cma_ask(state, rng, config.population)
-                figs = evaluate_population([_to_gains(full(x), d_floor, g0, names) for x in xs], ics, plant=plant,
-                                           t_final=config.t_final, eps=config.eps, x64=x64, stepsize=stepsize,
-                                           percentiles=pcts)
-                scored = [_score(figs, i, e_max, f_min, config) for i in range(len(xs))]
-                scores = np.array([s for s, _ in scored])
-                state = cma_tell(state, ys, scores)
-                for i, (s, feas) in enumerate(scored):
-                    if feas:
-                        top.append((float(s), gen, np.asarray(xs[i]), _scalars(figs, i)))
-                top = sorted(top, key=lambda t: (t[0], t[1]))[:max(1, int(config.verify))]
-                b = int(np.argmin(scores))
-                hist.append({"generation": gen, "score": float(scores[b]), "median_T": float(figs.median_T[b]),
-                             "median_energy": float(figs.median_energy[b]), "frac_converged": float(figs.frac_converged[b]),
-                             "n_bad": int(figs.n_bad[b]), "feasible": bool(scored[b][1]), "sigma": float(state.sigma),
-                             "best_score": top[0][0] if top else math.inf, "wall_s": time.perf_counter() - t0})
-                if ckpt is not None:
-                    _save(ckpt, key, state, rng, hist, top)
-                bar.update((gen + 1) / config.generations)
-                bar.postfix(median_T=f"{top[0][3][0]:.2f}" if top else "-", sigma=f"{float(state.sigma):.3f}")
-    except KeyboardInterrupt:
-        raise TuningInterrupted(partial(), ckpt) from None
+def _generations(run: _SearchState, space: _Space, ev: _Evaluator, budget: _Budget, config: SearchConfig,
+                 ckpt: Optional[Path], key: str, progress: Any) -> None:
+    """The remaining generations of ``run`` (updated in place), each checkpointed and reported."""
+    with Progress(progress, desc="search (CMA-ES)") as bar:
+        while int(run.state.generation) < config.generations:
+            gen = int(run.state.generation)
+            _generation(run, gen, space, ev, budget, config)
+            if ckpt is not None:
+                _save(ckpt, key, run.state, run.rng, run.hist, run.top)
+            bar.update((gen + 1) / config.generations)
+            bar.postfix(median_T=f"{run.top[0][3][0]:.2f}" if run.top else "-", sigma=f"{float(run.state.sigma):.3f}")
+
+
+def _generation(run: _SearchState, gen: int, space: _Space, ev: _Evaluator, budget: _Budget,
+                config: SearchConfig) -> None:
+    """One generation: ask, evaluate the candidates in one ensemble, tell, keep the best feasible ones and
+    append the generation's row to the history."""
+    xs, ys = cma_ask(run.state, run.rng, config.population)
+    figs = ev.evaluate([space.gains(x) for x in xs])
+    scored = [_score(figs, i, budget.e_max, budget.f_min, config) for i in range(len(xs))]
+    scores = np.array([s for s, _ in scored])
+    run.state = cma_tell(run.state, ys, scores)
+    for i, (s, feas) in enumerate(scored):
+        if feas:
+            run.top.append((float(s), gen, np.asarray(xs[i]), _scalars(figs, i)))
+    run.top = sorted(run.top, key=lambda t: (t[0], t[1]))[:max(1, int(config.verify))]
+    b = int(np.argmin(scores))
+    run.hist.append({"generation": gen, "score": float(scores[b]), "median_T": float(figs.median_T[b]),
+                     "median_energy": float(figs.median_energy[b]), "frac_converged": float(figs.frac_converged[b]),
+                     "n_bad": int(figs.n_bad[b]), "feasible": bool(scored[b][1]), "sigma": float(run.state.sigma),
+                     "best_score": run.top[0][0] if run.top else math.inf, "wall_s": time.perf_counter() - run.t0})
+
+
+def _partial(run: _SearchState, space: _Space, budget: _Budget, settings: dict) -> Optional[SearchResult]:
+    """The best feasible candidate so far, unchecked (what Ctrl-C carries), or ``None``."""
+    if not run.top:
+        return None
+    s, gen, x, f = run.top[0]
+    return _result(space.gains(x), space.g0, f, budget.reference, run.hist, gen, settings)
+
+
+def _verified(run: _SearchState, space: _Space, ev: _Evaluator, guard, budget: _Budget, settings: dict) -> SearchResult:
+    """The best of the kept candidates that passes the guard starts; raises `NoFeasibleCandidate` if none does."""
     why = []
-    for s, gen, x, f in top:
-        g = _to_gains(full(x), d_floor, g0, names)
-        bad = _guard_failure(g, guard, plant, config.t_final, x64, stepsize)
+    for s, gen, x, f in run.top:
+        g = space.gains(x)
+        bad = _guard_failure(g, guard, ev.plant, ev.t_final, ev.x64, ev.stepsize)
         if not bad:
-            return _result(g, g0, f, reference_figs, hist, gen, settings)
+            return _result(g, space.g0, f, budget.reference, run.hist, gen, settings)
         why.append(f"generation {gen}: guard starts {bad}")
     # the history is kept on the error: a caller (the command line) writes it, so the run is not lost
-    history = {k: np.asarray([h[k] for h in hist]) for k in _HISTORY}
-    budgets = ", ".join(f"{b:.4g} at the {q:g}th percentile" for q, b in zip(pcts, e_max))
+    history = {k: np.asarray([h[k] for h in run.hist]) for k in _HISTORY}
+    budgets = ", ".join(f"{b:.4g} at the {q:g}th percentile" for q, b in zip(ev.pcts, budget.e_max))
     raise NoFeasibleCandidate(
         "search: no feasible candidate" + (" passed the guard starts (" + "; ".join(why) + ")" if why
-                                           else f" (energy <= {budgets} with converged >= {f_min:.3f}); raise "
+                                           else f" (energy <= {budgets} with converged >= {budget.f_min:.3f}); raise "
                                                 "the budget (energy_margin / energy_budget) or the generations"),
-        history=history, reference=reference_figs, settings={**settings, "generations_run": len(hist)},
+        history=history, reference=budget.reference, settings={**settings, "generations_run": len(run.hist)},
         reason="guard" if why else "infeasible")
 
 

@@ -377,6 +377,34 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
       TuningInterrupted: Ctrl-C during the loop; its ``partial`` is a `TuneResult` with the
         best valid gains so far (not re-checked with the accurate engine) and the history.
     """
+    names, steps, batch = _checked_tune_inputs(tune, config, loss)
+    g0 = load_gains(gains0)
+    ics = draw_starts(starts, batch, config.seed)
+    theta0 = params_from_gains(g0, d_floor=d_floor)
+    t_start = time.perf_counter()
+    with jax.enable_x64(bool(x64)):
+        run, trainable, opt_state = _prepare(g0, theta0, names, ics, steps, config, loss, plant, robust, guard, x64,
+                                             d_floor)
+        ctx = run.ctx
+        track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
+        store = None if checkpoint is None else TunerCheckpoint(
+            checkpoint, tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics),
+            TuneHistory._fields)
+        it0, trainable, opt_state = _resume(store, resume, track, trainable, opt_state, ctx.groups)
+        try:
+            _iterate(run, track, trainable, opt_state, it0, steps, store, progress, callback, t_start)
+        except KeyboardInterrupt:
+            raise TuningInterrupted(_interrupted(track, ctx), None if store is None else store.path) from None
+        history = track.history()
+        best = track.best
+        best_gains = gains_numpy(best[2], ctx.frozen, d_floor, g0, names)
+    best, best_gains, verified, probe_at_result = _final_check(track, ctx, guard, best, best_gains)
+    settings = _tune_settings(run, track, robust, starts, t_start, verified, probe_at_result)
+    return TuneResult(best_gains, g0, float(best[0]), float(track.rows[0]["loss"]), int(best[1]), history, settings)
+
+
+def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig) -> tuple:
+    """The gains to tune, the steps and the batch; refuses bad settings (ValueError, in a fixed order)."""
     names = parse_tune(tune)
     steps = _validate_number("steps", config.steps, integer=True)
     batch = _validate_number("batch", config.batch, integer=True)
@@ -385,105 +413,139 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
     _validate_number("dt", loss.dt)
     if config.mode not in GRADIENT_MODES:
         raise ValueError(f"mode must be one of {GRADIENT_MODES}, got {config.mode!r}")
-    g0 = load_gains(gains0)
-    ics = draw_starts(starts, batch, config.seed)
-    theta0 = params_from_gains(g0, d_floor=d_floor)
-    t_start = time.perf_counter()
-    with jax.enable_x64(bool(x64)):
-        dtype = jnp.zeros(()).dtype
-        data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
-        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
-        theta = GainParams(*(jnp.asarray(x, dtype) for x in theta0))
-        trainable, frozen = split_params(theta, names)
-        vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
-                                 d_floor=d_floor)
-        opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
-                                        float(config.final_lr))
-        opt_state = opt.init(trainable)
-        groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
-        ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
-        track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
-        it0 = 0
-        store = None
-        if checkpoint is not None:
-            store = TunerCheckpoint(checkpoint, tune_fingerprint(g0, names, config, loss, plant, robust, guard,
-                                                                 x64, d_floor, starts, ics), TuneHistory._fields)
-            if resume:
-                st = store.load(trainable, opt_state, groups)
-                if st is not None:
-                    it0, trainable, opt_state, track.best, track.valid_points, track.rows, scalars, track.probes = st
-                    track.rejections, track.n_accepted = int(scalars["rejections"]), int(scalars["n_accepted"])
-                    track.lam = float(scalars["multiplier"])
-            elif store.path.exists():
-                raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
-                                 "resume=True (--resume) to continue it, or delete it to start afresh")
-        if checkpoint is None and resume:
-            raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
-        try:
-            with _Bar(progress, steps) as bar:
-                bar.skip(it0)
-                for it in range(it0, steps):
-                    cfg = cfg._replace(multiplier=jnp.asarray(track.lam, dtype))
-                    (value, aux), grad = vg(trainable, frozen, data, cfg)
-                    value = float(value)
-                    gnorm = float(optax.tree.norm(grad))
-                    valid = track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
-                                         float(opt_state.scale), ctx, time.perf_counter() - t_start,
-                                         lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
-                    row = track.rows[-1]
-                    trainable, opt_state = step(opt, trainable, opt_state, grad, jnp.asarray(valid))
-                    stop = (track.rejections >= config.max_rejections
-                            or float(opt_state.scale) < config.min_scale)
-                    if store is not None:
-                        store.save(it + 1 if not stop else steps, trainable, opt_state, track.best, track.valid_points,
-                                   track.rows, {"rejections": track.rejections, "n_accepted": track.n_accepted,
-                                                "multiplier": track.lam}, track.probes)
-                    bar.update(it, row)
-                    if callback is not None:
-                        callback(it, row)
-                    if stop:
-                        break
-        except KeyboardInterrupt:
-            partial = None
-            if track.best is not None:
-                partial = TuneResult(gains_numpy(track.best[2], frozen, d_floor, g0, names), g0, float(track.best[0]),
-                                     float(track.rows[0]["loss"]), int(track.best[1]), track.history(),
-                                     {"interrupted": True, "verified_iteration": None, "iterations_run": len(track.rows),
-                                      "dtype": "float64" if x64 else "float32", "tuned": list(names),
-                                      "loss": {k: float(v) for k, v in loss._asdict().items()},
-                                      "method": "interrupted; best valid candidate so far, not re-checked"})
-            raise TuningInterrupted(partial, None if store is None else store.path) from None
-        history = track.history()
-        best = track.best
-        best_gains = gains_numpy(best[2], frozen, d_floor, g0, names)
-    verified, probe_at_result = None, None
+    return names, steps, batch
+
+
+class _Run(NamedTuple):
+    """The fixed parts of one tuning run, built in its precision: the training set, the objective's
+    settings, the value-and-gradient function, the optimiser and its jitted step, and the `_Context`."""
+
+    data: Any
+    cfg: LossConfig
+    dtype: Any
+    vg: Callable
+    opt: Any
+    step: Callable
+    ctx: _Context
+
+
+def _prepare(g0, theta0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64,
+             d_floor) -> tuple:
+    """Build the run (`_Run`, in the current precision) and the starting ``(trainable, opt_state)``."""
+    dtype = jnp.zeros(()).dtype
+    data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
+    cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
+    theta = GainParams(*(jnp.asarray(x, dtype) for x in theta0))
+    trainable, frozen = split_params(theta, names)
+    vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
+                             d_floor=d_floor)
+    opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
+                                    float(config.final_lr))
+    opt_state = opt.init(trainable)
+    groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
+    ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
+    return _Run(data, cfg, dtype, vg, opt, step, ctx), trainable, opt_state
+
+
+def _resume(store, resume: bool, track: CandidateTrack, trainable, opt_state, groups) -> tuple:
+    """``(first iteration, trainable, opt_state)``: the checkpoint's (restoring ``track``) when resuming one
+    that exists, else a fresh start; refuses to overwrite a checkpoint or to resume without one."""
+    it0 = 0
+    if store is not None:
+        if resume:
+            st = store.load(trainable, opt_state, groups)
+            if st is not None:
+                it0, trainable, opt_state, track.best, track.valid_points, track.rows, scalars, track.probes = st
+                track.rejections, track.n_accepted = int(scalars["rejections"]), int(scalars["n_accepted"])
+                track.lam = float(scalars["multiplier"])
+        elif store.path.exists():
+            raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
+                             "resume=True (--resume) to continue it, or delete it to start afresh")
+    if store is None and resume:
+        raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
+    return it0, trainable, opt_state
+
+
+def _iterate(run: _Run, track: CandidateTrack, trainable, opt_state, it0: int, steps: int, store, progress: Any,
+             callback: Optional[Callable], t_start: float) -> None:
+    """Iterations ``it0`` to ``steps`` (or until backtracking gives up), each checkpointed, reported and
+    passed to ``callback``; ``track`` records them."""
+    config, cfg = run.ctx.config, run.cfg
+    with _Bar(progress, steps) as bar:
+        bar.skip(it0)
+        for it in range(it0, steps):
+            cfg = cfg._replace(multiplier=jnp.asarray(track.lam, run.dtype))
+            (value, aux), grad = run.vg(trainable, run.ctx.frozen, run.data, cfg)
+            value = float(value)
+            gnorm = float(optax.tree.norm(grad))
+            valid = track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
+                                 float(opt_state.scale), run.ctx, time.perf_counter() - t_start,
+                                 lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
+            row = track.rows[-1]
+            trainable, opt_state = run.step(run.opt, trainable, opt_state, grad, jnp.asarray(valid))
+            stop = (track.rejections >= config.max_rejections
+                    or float(opt_state.scale) < config.min_scale)
+            if store is not None:
+                store.save(it + 1 if not stop else steps, trainable, opt_state, track.best, track.valid_points,
+                           track.rows, {"rejections": track.rejections, "n_accepted": track.n_accepted,
+                                        "multiplier": track.lam}, track.probes)
+            bar.update(it, row)
+            if callback is not None:
+                callback(it, row)
+            if stop:
+                break
+
+
+def _interrupted(track: CandidateTrack, ctx: _Context) -> Optional[TuneResult]:
+    """The `TuneResult` a Ctrl-C carries: the best valid candidate so far, not re-checked (``None``: none yet)."""
+    if track.best is None:
+        return None
+    return TuneResult(gains_numpy(track.best[2], ctx.frozen, ctx.d_floor, ctx.g0, ctx.names), ctx.g0,
+                      float(track.best[0]), float(track.rows[0]["loss"]), int(track.best[1]), track.history(),
+                      {"interrupted": True, "verified_iteration": None, "iterations_run": len(track.rows),
+                       "dtype": "float64" if ctx.x64 else "float32", "tuned": list(ctx.names),
+                       "loss": {k: float(v) for k, v in ctx.loss._asdict().items()},
+                       "method": "interrupted; best valid candidate so far, not re-checked"})
+
+
+def _final_check(track: CandidateTrack, ctx: _Context, guard, best, best_gains) -> tuple:
+    """``(best, best_gains, verified_iteration, probe_at_result)``: with ``config.verify``, the best candidate
+    that passes the accurate engine on the training and guard starts (RuntimeError if none does)."""
+    config, verified, probe_at_result = ctx.config, None, None
     if config.verify:
         guard_ics = guard_starts() if guard is None else np.asarray(guard, dtype=np.float64)
-        checks = [(ics[idx], p0) for idx, _, p0 in groups]
+        checks = [(ctx.ics[idx], p0) for idx, _, p0 in ctx.groups]
         if guard_ics.size:
-            checks.append((guard_ics, groups[0][2]))
+            checks.append((guard_ics, ctx.groups[0][2]))
         cand, g, probe_at_result, why = track.verify(ctx, checks, int(config.verify))
         if cand is None:
             raise RuntimeError(f"none of the {min(len(track.valid_points), int(config.verify))} best valid candidates "
-                               f"passed the check with the accurate engine over {float(loss.probe_t_final):g} s on "
-                               f"the training and guard starts (last: {why}); tune with a smaller learning rate, "
+                               f"passed the check with the accurate engine over {float(ctx.loss.probe_t_final):g} s "
+                               f"on the training and guard starts (last: {why}); tune with a smaller learning rate, "
                                f"fewer steps or a smaller probe_budget")
         best, best_gains, verified = cand, g, cand[1]
+    return best, best_gains, verified, probe_at_result
+
+
+def _tune_settings(run: _Run, track: CandidateTrack, robust, starts, t_start: float, verified,
+                   probe_at_result) -> dict:
+    """Everything that produced the result (`TuneResult.settings`)."""
+    ctx = run.ctx
+    config, loss, x64 = ctx.config, ctx.loss, ctx.x64
     rows, lam, budgeted = track.rows, track.lam, track.budgeted
-    settings = {
+    return {
         "method": "gradient descent (optax Adam, clipped, warm-up + cosine, backtracking) on the soft convergence "
                   "time" + (f" subject to a geometric-mean control energy <= {float(loss.energy_budget):.4g} "
                             "(augmented Lagrangian)" if budgeted else "") +
                   ", adaptive RK4 in the w chart, gradients through the integrator",
-        "tuned": list(names), "initial_gains": gains_to_dict(g0), "config": config._asdict(),
+        "tuned": list(ctx.names), "initial_gains": gains_to_dict(ctx.g0), "config": config._asdict(),
         "loss": {k: float(v) for k, v in loss._asdict().items()}, "x64": bool(x64),
         "dtype": "float64" if x64 else "float32", "robust": None if robust is None else robust._asdict(),
-        "starts": repr(starts) if callable(starts) else "fixed array", "n_guard": int(data.guard.shape[0]),
-        "iterations_run": len(rows), "wall_s": time.perf_counter() - t_start, "d_floor": d_floor,
+        "starts": repr(starts) if callable(starts) else "fixed array", "n_guard": int(run.data.guard.shape[0]),
+        "iterations_run": len(rows), "wall_s": time.perf_counter() - t_start, "d_floor": ctx.d_floor,
         "verified_iteration": verified, "probe_at_result": probe_at_result,
         "energy_budget": float(loss.energy_budget), "final_multiplier": lam,
     }
-    return TuneResult(best_gains, g0, float(best[0]), float(rows[0]["loss"]), int(best[1]), history, settings)
 
 
 def _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, wall) -> dict:
