@@ -471,7 +471,7 @@ def _args_key(args: ClosedLoop):
 #: blocks run on one core anyway), 512-bit vectors where the CPU has them, and LLVM allowed to contract
 #: ``a * b + c`` into one fused multiply-add and to reassociate (``xla_cpu_enable_fast_math``), as gcc does for
 #: the C reference. NaN and inf keep their meaning, divisions stay IEEE and the library functions exact (the
-#: four ``honor`` options), so a start that blows up still ends NONFINITE. Measured: 0.49 -> 0.57 of the C
+#: four ``honor`` options), so a start that blows up still ends NONFINITE. Measured: 0.52 -> 0.59 of the C
 #: limit in wall time (docs/performance_fastpath.md); final states move by float32 rounding.
 PLAIN_CPU_OPTIONS = {
     "xla_cpu_multi_thread_eigen": False,
@@ -569,10 +569,10 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     XLA's default (256).
 
     ``specialise`` (default, CPU, one device) compiles the kernel for this run's plant and gains
-    (`_plain_specialised`): their values become constants of the program and LLVM may fuse
-    multiply-adds (`PLAIN_CPU_OPTIONS`), ~1.6x less CPU time on the test machine
-    (experiments/bench_c_limit.py), final states within float32 rounding of the generic kernel; a new
-    plant or new gains compile again (a second or two).
+    (`_plain_specialised`): their values become constants of the program (~1.4x less CPU time than
+    the generic kernel on the test machine) and LLVM may fuse multiply-adds (`PLAIN_CPU_OPTIONS`,
+    another ~1.13x; experiments/bench_c_limit.py), final states within float32 rounding of the generic
+    kernel; a new plant or new gains compile again (a second or two).
 
     ``kernel`` (``"auto"``: on a GPU, where `jaxsleigh.integrate.gpu_plain.supported`) runs the steps
     as one Pallas kernel in which every lane keeps its state in registers
