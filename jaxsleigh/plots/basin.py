@@ -117,6 +117,113 @@ def _legend_handles(present, singular_line: bool):
     return handles
 
 
+def _check_map(res: BasinResult, field: str) -> None:
+    """Refuse starts that are not a grid with two varying coordinates, and an unknown ``field``."""
+    st = res.starts
+    if st.kind != "grid" or len(st.axes) != 2:
+        raise ValueError(f"a map needs a grid with two varying coordinates (e.g. --x -3:3:64 --y -3:3:64); "
+                         f"these starts are a {st.kind} varying {list(st.axes) or 'no grid axis'}: use "
+                         f"plot_t_eps_scatter or plot_fraction_vs_theta")
+    if field not in _FIELDS and not hasattr(res, field):
+        raise ValueError(f"unknown field {field!r}; choose one of {sorted(_FIELDS)}")
+
+
+def _map_values(res: BasinResult, field: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(values, categories)`` on the grid: the values drawn on the log scale (NaN where a flat colour is) and
+    the `_categories` drawn flat (0 where a value is; for fields other than ``T_eps`` unsettled starts have one)."""
+    data = np.asarray(res.map(field), dtype=float)
+    cat = res.starts.reshape(_categories(res))
+    if field == "T_eps":
+        show = cat == 0
+        floor = max(float(res.settings.get("dt", 0.01)), 1e-6)
+        values = np.where(show, np.maximum(data, floor), np.nan)
+    else:
+        show = (cat == 0) | (cat == 1)
+        values = np.where(show & np.isfinite(data) & (data > 0), data, np.nan)
+        cat = np.where(cat == 1, 0, cat)
+    return values, cat
+
+
+def _draw_values(ax, he: np.ndarray, ve: np.ndarray, values: np.ndarray, res: BasinResult, field: str, cmap: str):
+    """Draw the finite ``values`` on a log colour scale (up to the horizon for ``T_eps``); the mesh, or None when
+    there is none."""
+    from matplotlib.colors import LogNorm
+
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return None
+    lo, hi = float(finite.min()), float(finite.max())
+    if field == "T_eps":
+        hi = max(hi, float(res.settings.get("t_final", hi)))
+    if hi <= lo:
+        hi = lo * 10.0
+    return ax.pcolormesh(he, ve, np.ma.masked_invalid(values), cmap=cmap, norm=LogNorm(lo, hi),
+                         shading="flat", rasterized=True)
+
+
+def _draw_categories(ax, he: np.ndarray, ve: np.ndarray, cat: np.ndarray) -> np.ma.MaskedArray:
+    """Draw the starts of categories 1-3 in their flat `CATEGORY_COLOURS`; the categories, masked where 0."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    colours = [CATEGORY_COLOURS[k] for k in ("not converged", "failed", "singular start")]
+    cat_m = np.ma.masked_equal(cat, 0)
+    if cat_m.count():
+        ax.pcolormesh(he, ve, cat_m, cmap=ListedColormap(colours), norm=BoundaryNorm([0.5, 1.5, 2.5, 3.5], 3),
+                      shading="flat", rasterized=True)
+    return cat_m
+
+
+def _frame_map(ax, st, he: np.ndarray, ve: np.ndarray) -> bool:
+    """The singular set ``theta = 0`` as a dashed line (when ``theta`` is an axis), the labels, limits and aspect;
+    whether the line was drawn."""
+    h_name, v_name = st.axes
+    line = "theta" in st.axes
+    if line:
+        draw = ax.axhline if v_name == "theta" else ax.axvline
+        draw(0.0, color=_SINGULAR_LINE, linestyle="--", linewidth=1.4)
+    ax.set_xlabel(_LABELS[h_name])
+    ax.set_ylabel(_LABELS[v_name])
+    ax.set_xlim(he[0], he[-1])
+    ax.set_ylim(ve[0], ve[-1])
+    if {h_name, v_name} == {"x", "y"}:
+        ax.set_aspect("equal")
+    return line
+
+
+def _map_title(st, field: str) -> str:
+    """The map's title: what is drawn and at which fixed coordinate (saying when the slice misses ``theta = 0``)."""
+    fixed = [c for c in ("x", "y", "theta") if c not in st.axes]
+    at = ", ".join(f"{'θ₀' if c == 'theta' else c + '₀'} = {st.axis(c).lo:.4g}" for c in fixed)
+    if "theta" in fixed:
+        at += " (the singular set θ = 0 is not in this slice)"
+    # T_eps maps show which starts settled within the horizon (grey: not by T), not a basin of
+    # attraction in the control sense
+    name = f"Convergence time {T_EPS} of the starts settled within the horizon" if field == "T_eps" \
+        else _FIELDS.get(field, field)
+    return f"{name} at {at}" if at else name
+
+
+def _title_map(fig, ax, own: bool, title: str, res: BasinResult, stamp: bool) -> None:
+    """On its own figure ``title`` with the provenance and the fraction as the suptitle, and the stamp; on a
+    caller's axes ``title`` with the fraction as the axes' title."""
+    if own:
+        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
+        _stamp(fig, res, stamp)
+    else:
+        ax.set_title(f"{title}\n({_fraction_text(res)})", fontsize=9)
+
+
+def _map_legend(fig, ax, own: bool, cat_m: np.ma.MaskedArray, line: bool) -> None:
+    """The legend of the flat colours present (and of the singular line): under its own figure, or in the axes."""
+    handles = _legend_handles(set(np.unique(cat_m.compressed()).tolist()), line)
+    if handles:
+        if own:
+            fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)), fontsize=8,
+                       frameon=False)
+        else:
+            ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
+
+
 def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str = "viridis",
                    legend: bool = True, colorbar: bool = True, stamp: bool = True):
     """Heat map of ``field`` (default ``T_eps``) over a grid with two varying coordinates.
@@ -132,78 +239,21 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
     Returns:
       The `matplotlib.figure.Figure`.
     """
-    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
-
+    _check_map(res, field)
     st = res.starts
-    if st.kind != "grid" or len(st.axes) != 2:
-        raise ValueError(f"a map needs a grid with two varying coordinates (e.g. --x -3:3:64 --y -3:3:64); "
-                         f"these starts are a {st.kind} varying {list(st.axes) or 'no grid axis'}: use "
-                         f"plot_t_eps_scatter or plot_fraction_vs_theta")
-    if field not in _FIELDS and not hasattr(res, field):
-        raise ValueError(f"unknown field {field!r}; choose one of {sorted(_FIELDS)}")
     h_name, v_name = st.axes
     hv, vv = st.axis(h_name).values(), st.axis(v_name).values()
     fig, ax, own = figure_and_axes(ax, (7.2, 6.4))
-    data = np.asarray(res.map(field), dtype=float)
-    cat = st.reshape(_categories(res))
-    if field == "T_eps":
-        show = cat == 0
-        floor = max(float(res.settings.get("dt", 0.01)), 1e-6)
-        values = np.where(show, np.maximum(data, floor), np.nan)
-    else:
-        show = (cat == 0) | (cat == 1)
-        values = np.where(show & np.isfinite(data) & (data > 0), data, np.nan)
-        cat = np.where(cat == 1, 0, cat)
-    finite = values[np.isfinite(values)]
+    values, cat = _map_values(res, field)
     he, ve = _edges(hv), _edges(vv)
-    mesh = None
-    if finite.size:
-        lo, hi = float(finite.min()), float(finite.max())
-        if field == "T_eps":
-            hi = max(hi, float(res.settings.get("t_final", hi)))
-        if hi <= lo:
-            hi = lo * 10.0
-        mesh = ax.pcolormesh(he, ve, np.ma.masked_invalid(values), cmap=cmap, norm=LogNorm(lo, hi),
-                             shading="flat", rasterized=True)
-    colours = [CATEGORY_COLOURS[k] for k in ("not converged", "failed", "singular start")]
-    cat_m = np.ma.masked_equal(cat, 0)
-    if cat_m.count():
-        ax.pcolormesh(he, ve, cat_m, cmap=ListedColormap(colours), norm=BoundaryNorm([0.5, 1.5, 2.5, 3.5], 3),
-                      shading="flat", rasterized=True)
-    line = "theta" in st.axes
-    if line:
-        draw = ax.axhline if v_name == "theta" else ax.axvline
-        draw(0.0, color=_SINGULAR_LINE, linestyle="--", linewidth=1.4)
-    ax.set_xlabel(_LABELS[h_name])
-    ax.set_ylabel(_LABELS[v_name])
-    ax.set_xlim(he[0], he[-1])
-    ax.set_ylim(ve[0], ve[-1])
-    if {h_name, v_name} == {"x", "y"}:
-        ax.set_aspect("equal")
-    fixed = [c for c in ("x", "y", "theta") if c not in st.axes]
-    at = ", ".join(f"{'θ₀' if c == 'theta' else c + '₀'} = {st.axis(c).lo:.4g}" for c in fixed)
-    if "theta" in fixed:
-        at += " (the singular set θ = 0 is not in this slice)"
-    # T_eps maps show which starts settled within the horizon (grey: not by T), not a basin of
-    # attraction in the control sense
-    name = f"Convergence time {T_EPS} of the starts settled within the horizon" if field == "T_eps" \
-        else _FIELDS.get(field, field)
-    title = f"{name} at {at}" if at else name
-    if own:
-        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res, stamp)
-    else:
-        ax.set_title(f"{title}\n({_fraction_text(res)})", fontsize=9)
+    mesh = _draw_values(ax, he, ve, values, res, field, cmap)
+    cat_m = _draw_categories(ax, he, ve, cat)
+    line = _frame_map(ax, st, he, ve)
+    _title_map(fig, ax, own, _map_title(st, field), res, stamp)
     if colorbar and mesh is not None:
         fig.colorbar(mesh, ax=ax, label=_FIELDS.get(field, field) + " (log scale)", shrink=0.9)
     if legend:
-        handles = _legend_handles(set(np.unique(cat_m.compressed()).tolist()), line)
-        if handles:
-            if own:
-                fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)), fontsize=8,
-                           frameon=False)
-            else:
-                ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
+        _map_legend(fig, ax, own, cat_m, line)
     return fig
 
 

@@ -412,6 +412,85 @@ def _as_starts(starts) -> BasinStarts:
     return starts if isinstance(starts, BasinStarts) else array_starts(starts)
 
 
+def _resolve_controller(controller, gains) -> tuple[Any, tuple]:
+    """A user's law as a controller and the names of its scalar parameters (``(None, ())`` for the paper's law);
+    refuses ``gains`` and ``controller`` together."""
+    if controller is None:
+        return None, ()
+    from ..model.controller import as_controller
+
+    if gains is not None:
+        raise ValueError("give either gains (the paper's law) or controller (any law u = law(q, v)), not both")
+    controller = as_controller(controller)
+    return controller, _law_scalar_names(controller)
+
+
+def _value_sets(params, n_starts: int, law_names: Sequence[str], labels: Optional[Mapping[str, str]]) -> tuple:
+    """``(names, values (P, n_params), grid_shape, axes, labels)`` of ``params`` (explicit value sets or one or two
+    ranges), refusing more rows than host memory holds; ranges add their ``--param`` to ``labels``."""
+    if isinstance(params, Mapping):
+        names = tuple(params)
+        cols = [np.atleast_1d(np.asarray(params[n], np.float64)) for n in names]
+        if not names or len({c.shape for c in cols}) != 1 or cols[0].ndim != 1:
+            raise ValueError("explicit value sets must be a non-empty mapping of equal-length 1-D arrays")
+        check_rows(cols[0].size, n_starts)
+        return names, np.stack(cols, axis=1), (cols[0].size,), (), labels
+    if isinstance(params, (str, ParamAxis)):
+        params = [params]
+    axes = tuple(parse_param(a, law_names=law_names) for a in params)
+    if len(axes) > 2:
+        raise ValueError("a sweep grid takes one or two parameters; pass explicit value sets for more")
+    check_rows(math.prod(a.n for a in axes), n_starts)
+    names, values, shape = param_grid(axes, law_names)
+    labels = {a.name: f"--param {a.spec()}" for a in axes} | dict(labels or {})
+    return names, values, shape, axes, labels
+
+
+def _row_lanes(names, values: np.ndarray, plant, gains, controller, labels, n_starts: int) -> tuple:
+    """``(base_plant, base_gains, plant, law)``: the base values and the per-row lanes of the plant and of the gains
+    (or the user's law), row ``p * N + i`` under value set ``p``."""
+    from ..model.lanes import broadcast_lanes, take_lanes
+    from ..model.params import as_gains, as_plant
+
+    base_plant, base_gains = as_plant(plant), (as_gains(gains) if controller is None else None)
+    lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels, controller=controller)
+    P = values.shape[0]
+    rows = np.repeat(np.arange(P), n_starts)               # row p * N + i: start i, value set p
+    lp, lg = take_lanes(broadcast_lanes(lane_plant, lane_gains, P), rows)
+    return base_plant, base_gains, lp, lg
+
+
+def _sweep_settings(run_settings: Mapping, controller, base_plant, base_gains, st: BasinStarts, names, axes,
+                    P: int, N: int) -> dict:
+    """The sweep's settings: the run's (less its per-lane plant and gains), the controller, the base plant and
+    gains, the starts and what was swept."""
+    from .config import plant_to_dict
+    from ..model.params import gains_to_dict
+
+    settings = {k: v for k, v in run_settings.items() if k not in ("save_every", "plant", "gains")}
+    if controller is not None:
+        from ..model.controller import controller_record
+
+        settings["controller"] = controller_record(controller)
+    settings.update(plant=plant_to_dict(base_plant),
+                    gains=gains_to_dict(base_gains) if controller is None else None, starts=st.spec,
+                    sweep={"names": list(names), "axes": [a.spec() for a in axes], "n_values": P, "n_starts": N})
+    return settings
+
+
+def _sweep_result(res, names, values: np.ndarray, shape, axes, st: BasinStarts, settings: dict) -> SweepResult:
+    """The `SweepResult` of the ensemble ``res`` of ``P * N`` rows: its per-row results reshaped to ``(P, N)``."""
+    P, N = values.shape[0], st.ics.shape[0]
+    run_info = dict(res.run_info)
+    per = lambda a: np.asarray(a).reshape((P, N) + np.shape(a)[1:])  # noqa: E731
+    effort = {k: per(getattr(res, k)) for k in ("u_energy", "u_abs_int", "u_norm_peak")
+              if getattr(res, k, None) is not None}
+    return SweepResult(names=names, values=values, grid_shape=tuple(shape), axes=axes, starts=st,
+                       ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
+                       min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), **effort, settings=settings,
+                       run_info=run_info)
+
+
 def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, eps: float = 0.05,
           t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive", x64: bool = False,
           rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
@@ -445,45 +524,14 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
       `SweepResult` (``None`` with ``shard``).
     """
     reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    from .config import plant_to_dict
     from .ensemble import _run_ensemble
     from ..cores import default_chunk_size
-    from ..model.lanes import take_lanes
-    from ..model.params import gains_to_dict
-    from ..model.params import as_gains, as_plant
 
     st = _as_starts(starts)
-    law_names = ()
-    if controller is not None:
-        from ..model.controller import as_controller
-
-        if gains is not None:
-            raise ValueError("give either gains (the paper's law) or controller (any law u = law(q, v)), not both")
-        controller = as_controller(controller)
-        law_names = _law_scalar_names(controller)
-    if isinstance(params, Mapping):
-        names = tuple(params)
-        cols = [np.atleast_1d(np.asarray(params[n], np.float64)) for n in names]
-        if not names or len({c.shape for c in cols}) != 1 or cols[0].ndim != 1:
-            raise ValueError("explicit value sets must be a non-empty mapping of equal-length 1-D arrays")
-        check_rows(cols[0].size, st.ics.shape[0])
-        values, shape, axes = np.stack(cols, axis=1), (cols[0].size,), ()
-    else:
-        if isinstance(params, (str, ParamAxis)):
-            params = [params]
-        axes = tuple(parse_param(a, law_names=law_names) for a in params)
-        if len(axes) > 2:
-            raise ValueError("a sweep grid takes one or two parameters; pass explicit value sets for more")
-        check_rows(math.prod(a.n for a in axes), st.ics.shape[0])
-        names, values, shape = param_grid(axes, law_names)
-        labels = {a.name: f"--param {a.spec()}" for a in axes} | dict(labels or {})
-    base_plant, base_gains = as_plant(plant), (as_gains(gains) if controller is None else None)
-    lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels, controller=controller)
+    controller, law_names = _resolve_controller(controller, gains)
+    names, values, shape, axes, labels = _value_sets(params, st.ics.shape[0], law_names, labels)
+    base_plant, base_gains, lp, lg = _row_lanes(names, values, plant, gains, controller, labels, st.ics.shape[0])
     P, N = values.shape[0], st.ics.shape[0]
-    rows = np.repeat(np.arange(P), N)                     # row p * N + i: start i, value set p
-    from ..model.lanes import broadcast_lanes
-
-    lp, lg = take_lanes(broadcast_lanes(lane_plant, lane_gains, P), rows)
     if chunk_size is None:
         chunk_size = default_chunk_size(16384, devices)
     law = {"gains": lg} if controller is None else {"controller": lg}
@@ -493,22 +541,8 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
                         checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, shard=shard, policy=policy)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
-    settings = {k: v for k, v in res.settings.items() if k not in ("save_every", "plant", "gains")}
-    if controller is not None:
-        from ..model.controller import controller_record
-
-        settings["controller"] = controller_record(controller)
-    settings.update(plant=plant_to_dict(base_plant),
-                    gains=gains_to_dict(base_gains) if controller is None else None, starts=st.spec,
-                    sweep={"names": list(names), "axes": [a.spec() for a in axes], "n_values": P, "n_starts": N})
-    run_info = dict(res.run_info)
-    per = lambda a: np.asarray(a).reshape((P, N) + np.shape(a)[1:])  # noqa: E731
-    effort = {k: per(getattr(res, k)) for k in ("u_energy", "u_abs_int", "u_norm_peak")
-              if getattr(res, k, None) is not None}
-    return SweepResult(names=names, values=values, grid_shape=tuple(shape), axes=axes, starts=st,
-                       ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
-                       min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), **effort, settings=settings,
-                       run_info=run_info)
+    settings = _sweep_settings(res.settings, controller, base_plant, base_gains, st, names, axes, P, N)
+    return _sweep_result(res, names, values, shape, axes, st, settings)
 
 
 #: The keywords of jaxsleigh 0.1 that `sweep` maps onto its option objects.
