@@ -293,6 +293,57 @@ def _draw_sleigh(ax, x, y, theta, *, size, color, alpha, zorder):
     ax.plot(*g["contact"], "o", color="k", alpha=alpha, markersize=2.5, zorder=zorder + 0.2)
 
 
+def _default_glyph_size(q, l_val: float) -> float:
+    """Glyph length: to scale (CoM at ``l``) but at most 7 % of the extent of the paths."""
+    # to scale (CoM at l) unless the sleigh would cover the paths: then at most 7 % of the extent
+    finite = q[..., :2][np.all(np.isfinite(q[..., :2]), axis=-1)]
+    extent = float(np.ptp(np.vstack([finite, [[0.0, 0.0]]]), axis=0).max()) if finite.size else 1.0
+    return min(l_val if l_val > 0 else 0.5, 0.07 * max(extent, 1e-3))
+
+
+def _draw_paths(ax, q, status, names, starts, glyph_size):
+    """One path per run, its ghosted sleigh at the start, and a cross where a failed run stopped."""
+    for i in range(q.shape[0]):
+        st = int(status[i])
+        style = _style(i, st)
+        ax.plot(q[i, :, 0], q[i, :, 1], label=names[i], zorder=2, **style)
+        s0 = starts[i]
+        if np.all(np.isfinite(s0[:3])):
+            _draw_sleigh(ax, s0[0], s0[1], s0[2], size=glyph_size, color=style["color"], alpha=0.3, zorder=3)
+        fin = q[i, :, :]
+        ok = np.flatnonzero(np.all(np.isfinite(fin), axis=1))
+        if st != 0 and ok.size:      # where a failed run stopped
+            ax.plot(*fin[ok[-1], :2], "x", color=style["color"], markersize=8, zorder=4)
+
+
+def _glyph_scale_text(glyph_size: float, l_val: float) -> str:
+    """How the sleigh glyph is scaled, for the legend (``to scale``, ``drawn at 0.5× scale``, ...)."""
+    return "to scale" if l_val > 0 and abs(glyph_size - l_val) < 1e-12 else \
+        f"drawn at {glyph_size / l_val:.2g}× scale" if l_val > 0 else f"CoM drawn {glyph_size:g} m ahead"
+
+
+def _paths_legend(fig, ax, own, status, glyph_size, l_val):
+    """Legend of the paths figure: runs, ghosted start sleigh, target and the status note."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    handles, labs = ax.get_legend_handles_labels()
+    scale = _glyph_scale_text(glyph_size, l_val)
+    handles += [Patch(facecolor="0.5", alpha=0.3, edgecolor="0.5"), Patch(facecolor="0.25")]
+    labs += [f"sleigh at start (ghosted, {scale})",
+             "target (0, 0, 0); red dot: centre of mass"]
+    note = _status_note(status)
+    if note:
+        handles.append(Line2D([], [], color="0.4", linestyle="--", marker="x"))
+        labs.append(note + "; ×: where it stopped")
+    kw = dict(fontsize=7.5, title="start (x₀ [m], y₀ [m], θ₀ [rad])", title_fontsize=7.5)
+    if own:
+        fig.legend(handles, labs, loc="outside lower center", ncol=min(2, _ncol(labs, 115)),
+                   frameon=False, **kw)
+    else:
+        ax.legend(handles, labs, loc="best", framealpha=0.85, **kw)
+
+
 def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_size: Optional[float] = None,
                legend: bool = True, stamp: bool = True):
     """Paths of the contact point ``(x, y)`` (paper Fig. 2).
@@ -317,29 +368,9 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     t, q, status = _arrays(sol)
     l_val = float(_settings(sol).get("plant", {}).get("l", 1.0) or 0.0)
     if glyph_size is None:
-        # to scale (CoM at l) unless the sleigh would cover the paths: then at most 7 % of the extent
-        finite = q[..., :2][np.all(np.isfinite(q[..., :2]), axis=-1)]
-        extent = float(np.ptp(np.vstack([finite, [[0.0, 0.0]]]), axis=0).max()) if finite.size else 1.0
-        glyph_size = min(l_val if l_val > 0 else 0.5, 0.07 * max(extent, 1e-3))
-    own = ax is None
-    if own:
-        fig = new_figure((6.6, 7.6))
-        ax = fig.add_subplot(1, 1, 1)
-    else:
-        fig = ax.figure
-    names = _labels(sol, q, status, labels)
-    starts = _starts(sol, q)
-    for i in range(q.shape[0]):
-        st = int(status[i])
-        style = _style(i, st)
-        ax.plot(q[i, :, 0], q[i, :, 1], label=names[i], zorder=2, **style)
-        s0 = starts[i]
-        if np.all(np.isfinite(s0[:3])):
-            _draw_sleigh(ax, s0[0], s0[1], s0[2], size=glyph_size, color=style["color"], alpha=0.3, zorder=3)
-        fin = q[i, :, :]
-        ok = np.flatnonzero(np.all(np.isfinite(fin), axis=1))
-        if st != 0 and ok.size:      # where a failed run stopped
-            ax.plot(*fin[ok[-1], :2], "x", color=style["color"], markersize=8, zorder=4)
+        glyph_size = _default_glyph_size(q, l_val)
+    fig, ax, own = _pb.figure_and_axes(ax, (6.6, 7.6))
+    _draw_paths(ax, q, status, _labels(sol, q, status, labels), _starts(sol, q), glyph_size)
     # the target sits under the paths so that their final approach stays visible
     _draw_sleigh(ax, 0.0, 0.0, 0.0, size=glyph_size, color="0.25", alpha=1.0, zorder=1)
     ax.set_aspect("equal", adjustable="datalim")
@@ -355,25 +386,7 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     else:
         ax.set_title(f"{title} ({_provenance(sol)})", fontsize=10)
     if legend:
-        from matplotlib.lines import Line2D
-        from matplotlib.patches import Patch
-
-        handles, labs = ax.get_legend_handles_labels()
-        scale = "to scale" if l_val > 0 and abs(glyph_size - l_val) < 1e-12 else \
-            f"drawn at {glyph_size / l_val:.2g}× scale" if l_val > 0 else f"CoM drawn {glyph_size:g} m ahead"
-        handles += [Patch(facecolor="0.5", alpha=0.3, edgecolor="0.5"), Patch(facecolor="0.25")]
-        labs += [f"sleigh at start (ghosted, {scale})",
-                 "target (0, 0, 0); red dot: centre of mass"]
-        note = _status_note(status)
-        if note:
-            handles.append(Line2D([], [], color="0.4", linestyle="--", marker="x"))
-            labs.append(note + "; ×: where it stopped")
-        kw = dict(fontsize=7.5, title="start (x₀ [m], y₀ [m], θ₀ [rad])", title_fontsize=7.5)
-        if own:
-            fig.legend(handles, labs, loc="outside lower center", ncol=min(2, _ncol(labs, 115)),
-                       frameon=False, **kw)
-        else:
-            ax.legend(handles, labs, loc="best", framealpha=0.85, **kw)
+        _paths_legend(fig, ax, own, status, glyph_size, l_val)
     return fig
 
 
