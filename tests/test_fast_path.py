@@ -129,6 +129,27 @@ def test_near_the_singular_set_the_specialised_kernel_flags_what_blows_up():
     assert np.max(_rel(y_sp[:13], y_gen[:13])) < 1e-5
 
 
+def test_specialised_kernel_in_float64_keeps_float64_accuracy(x64):
+    """`PLAIN_CPU_OPTIONS` (contraction and reassociation) apply to float64 runs as well: the
+    specialised kernel stays a float64 computation, agreeing with the generic float64 kernel to
+    float64 rounding (far below float32's ~1e-7 per step, so a kernel that quietly ran in float32
+    or lost digits to reassociation would fail), and flags a near-singular start as in float32."""
+    ics = np.vstack([_tame(40, seed=5), [[1.0, 1.0, 1e-12]]])
+    a, st = check_ics(ics)
+    y0 = np.asarray(initial_w(a, st, jnp.float64))
+    assert y0.dtype == np.float64
+    hz = make_horizon(10.0, 0.01)
+    y_sp, s_sp = drive_plain(y0, st, ARGS, hz)
+    y_gen, s_gen = drive_plain(y0, st, ARGS, hz, specialise=False)
+    assert y_sp.dtype == np.float64
+    np.testing.assert_array_equal(s_sp, s_gen)
+    assert np.all(s_sp[:40] == Status.OK) and s_sp[40] != Status.OK
+    rel = _rel(y_sp[:40], y_gen[:40])
+    assert np.max(rel) < 1e-11, np.max(rel)
+    y32, _ = drive_plain(np.asarray(y0, np.float32), st, ARGS, hz)
+    assert np.median(_rel(y32[:40], y_gen[:40])) > 100 * np.max(rel)     # float32 really is coarser
+
+
 def test_fast_path_matches_the_per_step_path():
     """The issue's call against the stepper's fixed-step path (per-step checks and summaries):
     the same RK4, so the same final states to float32 rounding, and the same status."""
