@@ -193,6 +193,100 @@ def is_active(s: StepState, target, ctl: Controls):
     return (s.status == Status.OK) & (s.t < target) & (s.n_accept + s.n_reject < ctl.max_steps)
 
 
+class _Trial(NamedTuple):
+    """A trial step of `attempt`, not yet judged (every array broadcasts over a trailing batch axis)."""
+
+    h: jax.Array          # its size (0 where a lane idles)
+    hit: jax.Array        # bool: it lands on the target
+    k1: jax.Array         # (5,) f(t, y)
+    dy: jax.Array         # (5,) the increment, y_new - y
+    k4: jax.Array         # (5,) the last stage's slope
+    dq: jax.Array         # (m,) the observers' quadrature rows over the step
+    error: object         # the exponential RK4's error estimate, a function of (y_new, k5); None: the classical one
+    y_new: jax.Array      # (5,) the state at its end
+    k5: jax.Array         # (5,) f(t + h, y_new) (FSAL); without FSAL the carried k1, unchanged
+    u_new: tuple          # the control at y_new; None without FSAL
+
+
+def _step_towards(s: StepState, target, active):
+    """``(h, hit)``: the step to try towards ``target`` (the proposed ``s.h``, or the rest of the way when that is
+    at most `_STRETCH` times it) and whether it lands there."""
+    remaining = (target - s.t) - s.t_lo
+    hit = remaining <= _STRETCH * s.h
+    h = jnp.where(hit, remaining, s.h)
+    # an idle lane still computes (the whole batch steps together); give it a harmless step
+    return jnp.where(active, h, jnp.zeros_like(h)), hit
+
+
+def _trial_step(chart, s: StepState, target, active, args, observers, *, adaptive: bool, fsal: bool) -> _Trial:
+    """The step from ``s`` towards ``target``. With ``fsal`` (static) ``k1`` is the carried f(y) and f(y_new) is
+    evaluated at the end (the next step's ``k1``); without it ``k1`` is recomputed and f(y_new) is not."""
+    h, hit = _step_towards(s, target, active)
+    k1 = s.k1 if fsal else chart.field(s.t, s.y, args)
+    dy, k4, dq, error = _increment(chart, s, h, args, k1, observers, adaptive)
+    y_new = s.y + dy
+    k5, u_new = chart.field_and_control(s.t + h, y_new, args) if fsal else (s.k1, None)
+    return _Trial(h, hit, k1, dy, k4, dq, error, y_new, k5, u_new)
+
+
+def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor: bool):
+    """``(finite, crossed, rose, Hd_new)`` of a trial step: its end (adaptive: and f there) finite, ``w_1``
+    carried across zero, H_d increased (never with the monitor off or in a chart without H_d), H_d at its end."""
+    finite = _all_finite(trial.y_new, trial.k5) if adaptive else _all_finite(trial.y_new)
+    crossed = chart.crossed(s.y, trial.y_new)
+    # Passivity monitor: the exact flow never increases H_d (eq. 18); a step that does (beyond
+    # rounding and a 1e-6 relative slack) is wrong, typically unstable RK4 near theta = 0.
+    Hd_new = chart.energy(trial.y_new, args)
+    rose = Hd_new > s.Hd * (1.0 + 1e-6 + 64.0 * jnp.finfo(s.y.dtype).eps)
+    if not (monitor and chart.has_energy):
+        rose = jnp.zeros_like(rose)
+    return finite, crossed, rose, Hd_new
+
+
+def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose, ctl: Controls):
+    """``(ok, h_next, status, err)`` of an adaptive step: good and within tolerance (error ratio ``err``), the next
+    step to try, and ``STEP_UNDERFLOW`` where a rejected step leaves a vanishing next step."""
+    h, y_new, k5 = trial.h, trial.y_new, trial.k5
+    # the error measure and the step-size policy: jaxsleigh.integrate.stepsize
+    err = error_ratio(h, s.y, y_new, trial.k4, k5, ctl, e=None if trial.error is None else trial.error(y_new, k5))
+    good = finite & ~crossed & ~rose
+    err = jnp.where(good, err, jnp.inf)
+    ok = good & (err <= 1.0)
+    h_next = next_step(h, err, ctl, err_prev=s.err_prev)
+    h_next = jnp.where(ok & trial.hit, jnp.maximum(h_next, s.h), h_next)
+    h_next = jnp.minimum(h_next, ctl.max_step)
+    # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
+    # need h ~ 1e-8 s at first from theta0 = 1e-2 (|dp/dt| ~ 1e12) and
+    # need h ~ 1e-12 s at first from theta0 = 1e-3 (Jacobian eigenvalues ~ 1e10 i)
+    status = jnp.where(active & ~ok & (h_next < 1e-18 * ctl.dt), Status.STEP_UNDERFLOW, s.status)
+    return ok, h_next, status, err
+
+
+def _fixed_outcome(s: StepState, active, finite, crossed, rose):
+    """``(ok, h_next, status, None)`` of a fixed step: the step stays ``s.h``, and a bad step ends the run with
+    the status of its first failed check."""
+    ok = finite & ~crossed & ~rose
+    status = jnp.where(active & ~finite, Status.NONFINITE,
+                       jnp.where(active & crossed, Status.CROSSED_SINGULAR,
+                                 jnp.where(active & rose, Status.UNRELIABLE, s.status)))
+    return ok, s.h, status, None
+
+
+def _advance_time(s: StepState, trial: _Trial, target):
+    """``(t_new, t_lo_new)`` at the step's end: the compensated (two-sum) ``t + h``, exactly ``target`` on a hit."""
+    t_hi, t_err = _two_sum(s.t, trial.h)
+    t_new = jnp.where(trial.hit, target, t_hi)
+    return t_new, jnp.where(trial.hit, jnp.zeros_like(s.t_lo), s.t_lo + t_err)
+
+
+def _quadrature_after(observers, s: StepState, trial: _Trial, acc):
+    """``(quad, g1)``: the observers' quadrature rows and integrands, advanced where the step was accepted."""
+    if not s.quad.shape[0]:
+        return s.quad, s.g1
+    g_new = _integrands(observers, trial.y_new, trial.u_new, s.y.dtype)
+    return jnp.where(acc, s.quad + trial.dq, s.quad), jnp.where(acc, g_new, s.g1)
+
+
 def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
             monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
     """One attempted step towards the time ``target`` (a no-op once there, failed or out of
@@ -204,78 +298,29 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
     trailing batch axis, so it also steps a batch-last batch (``y`` (5, N), scalars (N,))."""
     chart = chart_for(args.controller)
-    f = chart.field
     dtype = s.y.dtype
     target = jnp.asarray(target, dtype)
     active = is_active(s, target, ctl)
-    remaining = (target - s.t) - s.t_lo
-    hit = remaining <= _STRETCH * s.h
-    h = jnp.where(hit, remaining, s.h)
-    # an idle lane still computes (the whole batch steps together); give it a harmless step
-    h = jnp.where(active, h, jnp.zeros_like(h))
-
     # Without observers of the control or of the dense output, fixed steps recompute k1 = f(y)
     # (no FSAL): carrying f(y_new) across steps ran ~2x slower on XLA:CPU there, and fixed RK4
     # needs no fifth evaluation for an error estimate. Those observers need f(y_new) anyway.
     fsal = adaptive or _needs_fsal(observers)
-    k1 = s.k1 if fsal else f(s.t, s.y, args)
-    dy, k4, dq, error = _increment(chart, s, h, args, k1, observers, adaptive)
-    y_new = s.y + dy
-    if fsal:
-        k5, u_new = chart.field_and_control(s.t + h, y_new, args)
-        finite = _all_finite(y_new, k5) if adaptive else _all_finite(y_new)
-    else:
-        k5, u_new = s.k1, None
-        finite = _all_finite(y_new)
-    crossed = chart.crossed(s.y, y_new)
-    # Passivity monitor: the exact flow never increases H_d (eq. 18); a step that does (beyond
-    # rounding and a 1e-6 relative slack) is wrong, typically unstable RK4 near theta = 0.
-    Hd_new = chart.energy(y_new, args)
-    rose = Hd_new > s.Hd * (1.0 + 1e-6 + 64.0 * jnp.finfo(dtype).eps)
-    if not (monitor and chart.has_energy):
-        rose = jnp.zeros_like(rose)
-    status = s.status
+    trial = _trial_step(chart, s, target, active, args, observers, adaptive=adaptive, fsal=fsal)
+    finite, crossed, rose, Hd_new = _judge(chart, s, trial, args, adaptive=adaptive, monitor=monitor)
     if adaptive:
-        # the error measure and the step-size policy: jaxsleigh.integrate.stepsize
-        err = error_ratio(h, s.y, y_new, k4, k5, ctl, e=None if error is None else error(y_new, k5))
-        good = finite & ~crossed & ~rose
-        err = jnp.where(good, err, jnp.inf)
-        ok = good & (err <= 1.0)
-        h_next = next_step(h, err, ctl, err_prev=s.err_prev)
-        h_next = jnp.where(ok & hit, jnp.maximum(h_next, s.h), h_next)
-        h_next = jnp.minimum(h_next, ctl.max_step)
-        # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
-        # need h ~ 1e-8 s at first from theta0 = 1e-2 (|dp/dt| ~ 1e12) and
-        # need h ~ 1e-12 s at first from theta0 = 1e-3 (Jacobian eigenvalues ~ 1e10 i)
-        status = jnp.where(active & ~ok & (h_next < 1e-18 * ctl.dt), Status.STEP_UNDERFLOW, status)
+        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl)
     else:
-        ok = finite & ~crossed & ~rose
-        h_next = s.h
-        status = jnp.where(active & ~finite, Status.NONFINITE,
-                           jnp.where(active & crossed, Status.CROSSED_SINGULAR,
-                                     jnp.where(active & rose, Status.UNRELIABLE, status)))
-    acc = active & ok
-    rej = active & ~ok
-
-    t_hi, t_err = _two_sum(s.t, h)
-    t_new = jnp.where(hit, target, t_hi)
-    t_lo_new = jnp.where(hit, jnp.zeros_like(s.t_lo), s.t_lo + t_err)
-    info = StepInfo(t=s.t, h=h, t_new=t_new + t_lo_new, y=s.y, y_new=y_new, k1=k1, k5=k5 if fsal else None,
-                    u_new=u_new, acc=acc, chart=chart)
-    if s.quad.shape[0]:
-        g_new = _integrands(observers, y_new, u_new, dtype)
-        quad, g1 = jnp.where(acc, s.quad + dq, s.quad), jnp.where(acc, g_new, s.g1)
-    else:
-        quad, g1 = s.quad, s.g1
+        ok, h_next, status, err = _fixed_outcome(s, active, finite, crossed, rose)
+    acc, rej = active & ok, active & ~ok
+    t_new, t_lo_new = _advance_time(s, trial, target)
+    info = StepInfo(t=s.t, h=trial.h, t_new=t_new + t_lo_new, y=s.y, y_new=trial.y_new, k1=trial.k1,
+                    k5=trial.k5 if fsal else None, u_new=trial.u_new, acc=acc, chart=chart)
+    quad, g1 = _quadrature_after(observers, s, trial, acc)
     return StepState(
-        t=jnp.where(acc, t_new, s.t),
-        t_lo=jnp.where(acc, t_lo_new, s.t_lo),
-        y=s.y + jnp.where(acc, dy, jnp.zeros_like(dy)),
-        k1=jnp.where(acc, k5, s.k1),
-        h=jnp.where(active, h_next, s.h).astype(dtype),
-        status=status.astype(jnp.int32),
-        n_accept=s.n_accept + acc.astype(jnp.int32),
-        n_reject=s.n_reject + rej.astype(jnp.int32),
+        t=jnp.where(acc, t_new, s.t), t_lo=jnp.where(acc, t_lo_new, s.t_lo),
+        y=s.y + jnp.where(acc, trial.dy, jnp.zeros_like(trial.dy)), k1=jnp.where(acc, trial.k5, s.k1),
+        h=jnp.where(active, h_next, s.h).astype(dtype), status=status.astype(jnp.int32),
+        n_accept=s.n_accept + acc.astype(jnp.int32), n_reject=s.n_reject + rej.astype(jnp.int32),
         Hd=jnp.where(acc, Hd_new, s.Hd),
         obs=tuple(o.update(st, info, ctl) for o, st in zip(observers, s.obs)),
         quad=quad, g1=g1,
