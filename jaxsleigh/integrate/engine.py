@@ -334,8 +334,6 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     batches hand their few stiff stragglers to one batch (`active_lanes`, `take_lanes_of`), which costs a
     fraction of each batch finishing its own in batches of `MIN_BATCH` lanes.
     """
-    from ..model.lanes import broadcast_lanes, has_lanes, take_lanes
-
     dtype = y0w.dtype if state is None else state.y.dtype
     n = y0w.shape[0] if state is None else state.t.shape[-1]
     min_batch = MIN_BATCH.get(np.dtype(dtype).name, 32)
@@ -344,51 +342,82 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     ctl = step_controls(horizon, dtype, step, eps)
     adaptive, monitor, max_steps = step.method == "adaptive", step.check_passivity, step.max_steps
     target = np.asarray(horizon.t_final, np.dtype(dtype))
-    lanes = has_lanes(args.plant, args.gains)
-    if lanes:                                # per-lane parameters: one lane per trajectory of the batch
+    b = _first_batch(y0w, status0, state, args, ctl, observers, mesh, n, dtype)
+    for _ in range(-(-max_steps // segment) + 1):
+        act = np.asarray(_active(b.state, target, ctl))
+        if progress is not None:
+            frac = np.where(act, np.asarray(b.state.t, np.float64) / horizon.t_final, 1.0)
+            progress.update((n - b.idx.size + frac.sum()) / n)
+        if not act.any() or act.sum() <= stop_at:
+            break
+        if compact and b.idx.size > min_batch and act.sum() <= b.idx.size // 4:
+            b = _compacted(b, act, min_batch, mesh, dtype)
+        b = b._replace(state=_segment_batch(b.state, target, b.args, ctl, segment, adaptive, monitor, observers))
+    full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
+    return _finish(full, horizon.t_final) if finish else full
+
+
+class _Batch(NamedTuple):
+    """The batch `drive_final` steps: its ``state`` and ``args``, ``lane_host`` (the per-lane parameters on the
+    host, None without), ``idx`` (the rows of the full batch it holds, -1 for padding) and ``full`` (the full
+    batch as lanes are compacted away; None until the first compaction)."""
+    state: StepState
+    args: ClosedLoop
+    lane_host: Optional[ClosedLoop]
+    idx: np.ndarray
+    full: Optional[StepState]
+
+
+def _placed(state, args, lane_host, mesh):
+    """``state`` (and per-lane ``args``) sharded over ``mesh``'s devices; as they are without a mesh."""
+    if mesh is None:
+        return state, args
+    return shard_batch(state, mesh), (args if lane_host is None else shard_batch(args, mesh))
+
+
+def _first_batch(y0w, status0, state, args: ClosedLoop, ctl, observers, mesh, n: int, dtype) -> _Batch:
+    """The whole batch of `drive_final`, from ``y0w`` and ``status0`` or a host ``state`` to continue."""
+    from ..model.lanes import broadcast_lanes, has_lanes
+
+    lane_host = None
+    if has_lanes(args.plant, args.gains):    # per-lane parameters: one lane per trajectory of the batch
         lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
     if state is not None:
         state = jax.tree_util.tree_map(jnp.asarray, state)
-    elif lanes:
+    elif lane_host is not None:
         state = init_batch_lanes(y0w, np.asarray(status0, np.int32), args, ctl, observers)
     else:
         state = _init_batch(y0w, np.asarray(status0, np.int32), args, ctl, observers)
+    return _Batch(*_placed(state, args, lane_host, mesh), lane_host, np.arange(n), None)
+
+
+def _merged(full, idx: np.ndarray, host: StepState) -> StepState:
+    """The full batch with the rows ``idx`` of the host batch ``host`` written back (``host`` itself before the
+    first compaction, ``full`` None)."""
+    return host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
+
+
+def _compacted(b: _Batch, act: np.ndarray, min_batch: int, mesh, dtype) -> _Batch:
+    """``b``'s active lanes (``act``) gathered into a smaller batch: a power of two >= ``min_batch`` (a multiple
+    of the mesh's devices), padded with copies of one active lane; the rows left behind go to ``full``."""
+    from ..model.lanes import take_lanes
+
+    keep = np.flatnonzero(act)
+    size = bucket(max(keep.size, min_batch))
     if mesh is not None:
-        state = shard_batch(state, mesh)
-        if lanes:
-            args = shard_batch(args, mesh)
-    idx = np.arange(n)                       # rows of the full batch held by the current batch
-    full = None                              # the full batch, as lanes are compacted away
-    for _ in range(-(-max_steps // segment) + 1):
-        act = np.asarray(_active(state, target, ctl))
-        if progress is not None:
-            frac = np.where(act, np.asarray(state.t, np.float64) / horizon.t_final, 1.0)
-            progress.update((n - idx.size + frac.sum()) / n)
-        if not act.any() or act.sum() <= stop_at:
-            break
-        if compact and idx.size > min_batch and act.sum() <= idx.size // 4:
-            keep = np.flatnonzero(act)
-            size = bucket(max(keep.size, min_batch))
-            if mesh is not None:
-                size = -(-size // mesh.size) * mesh.size
-            host = jax.tree_util.tree_map(np.asarray, state)
-            full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
-            # pad with copies of one active lane; only real lanes are written back
-            pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
-            state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
-            if lanes:                        # the parameters follow their trajectories
-                lane_host = take_lanes(lane_host, pad)
-                args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
-            if mesh is not None:
-                state = shard_batch(state, mesh)
-                if lanes:
-                    args = shard_batch(args, mesh)
-            idx = np.concatenate([idx[keep], np.full(size - keep.size, -1)])
-        state = _segment_batch(state, target, args, ctl, segment, adaptive, monitor, observers)
-    host = jax.tree_util.tree_map(np.asarray, state)
-    full = host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
-    return _finish(full, horizon.t_final) if finish else full
+        size = -(-size // mesh.size) * mesh.size
+    host = jax.tree_util.tree_map(np.asarray, b.state)
+    full = _merged(b.full, b.idx, host)
+    # pad with copies of one active lane; only real lanes are written back
+    pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
+    state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
+    args, lane_host = b.args, b.lane_host
+    if lane_host is not None:                # the parameters follow their trajectories
+        lane_host = take_lanes(lane_host, pad)
+        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
+    idx = np.concatenate([b.idx[keep], np.full(size - keep.size, -1)])
+    return _Batch(*_placed(state, args, lane_host, mesh), lane_host, idx, full)
 
 
 def active_lanes(full: StepState, horizon: Horizon, step: StepSizeController) -> np.ndarray:
