@@ -206,17 +206,45 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     compared either)."""
     import jax.numpy as jnp
 
-    from ..model.closed_loop import ClosedLoop
-    from ..integrate.engine import check_ics, initial_w, make_horizon
-    from ..model.params import paper_gains, paper_plant
-
     log = log or (lambda *a: None)
     if jnp.zeros(()).dtype != jnp.float32:
         return {"available": False, "reason": "the C reference is float32; run without x64"}
+    lib, c_libs, reason = _load_c_programs(lib, build_dir, c_variants)
+    if lib is None:
+        return {"available": False, "reason": reason}
+    ics = np.asarray(ics, np.float64)
+    n = ics.shape[0]
+    horizon, args, status0, y0w = _w_chart_starts(ics, t_final, dt)
+    steps = horizon.n_steps
+    kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
+    cores, c_threads = _c_limit_threads(c_threads)
+
+    def run_c(c_lib=lib, n_threads=c_threads):
+        return c_reference_run(c_lib, y0w, args, dt, steps, n_threads)
+
+    variants = dict(variants or {})
+    if whole_batch:
+        variants["jax_whole_batch"] = {"block": None}
+    rec = _rotation(_contestants(run_c, c_libs, ics, kw, variants), repeats, log)
+    out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
+           "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": c_threads, "jax_cores": cores,
+           "c_divider_ops_per_evaluation": _divider_ops(lib),
+           "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
+                         f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
+    out.update(_throughputs(rec, n * steps))
+    out.update(_ratios(rec, c_libs, variants))
+    out["agreement"] = _agreement(run_c(), {cv: run_c(vl, 1) for cv, vl in c_libs.items()},
+                                  y0w, status0, args, horizon)
+    return out
+
+
+def _load_c_programs(lib, build_dir, c_variants):
+    """The C reference (``lib``, else built in ``build_dir``) and the builds ``c_variants`` beside it, loaded:
+    ``(CDLL, {name: CDLL}, None)``, or ``(None, {}, reason)`` when the reference cannot be built."""
     if lib is None:
         lib, reason = build_c_reference(build_dir)
         if lib is None:
-            return {"available": False, "reason": reason}
+            return None, {}, reason
     lib_path = Path(str(lib))
     lib = ctypes.CDLL(str(lib))
     c_libs = {}
@@ -225,59 +253,70 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
         if vlib is None:
             raise RuntimeError(f"C variant {cv}: {vreason}")
         c_libs[cv] = ctypes.CDLL(str(vlib))
-    ics = np.asarray(ics, np.float64)
-    n = ics.shape[0]
+    return lib, c_libs, None
+
+
+def _w_chart_starts(ics, t_final, dt):
+    """``(horizon, closed loop, status0, float32 w-chart starts)`` of the paper's loop from ``ics`` (N, 3)."""
+    import jax.numpy as jnp
+
+    from ..model.closed_loop import ClosedLoop
+    from ..integrate.engine import check_ics, initial_w, make_horizon
+    from ..model.params import paper_gains, paper_plant
+
     horizon = make_horizon(t_final, dt)
-    steps = horizon.n_steps
     args = ClosedLoop(paper_plant(), paper_gains())
     ics5, status0 = check_ics(ics)
     y0w = initial_w(ics5, status0, jnp.float32)
-    kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
+    return horizon, args, status0, y0w
 
+
+def _c_limit_threads(c_threads):
+    """``(cores of the JAX call, threads of the C program)``; ``c_threads`` None: as many as those cores on
+    CPU, every core of the host on an accelerator."""
     from ..cores import available_cores, workers
 
     cores = len(workers())
     if c_threads is None:       # on an accelerator the C program gets every core of the host
         c_threads = cores if jax.default_backend() == "cpu" else available_cores()
-    c_threads = int(c_threads)
+    return cores, int(c_threads)
 
-    def run_c():
-        return c_reference_run(lib, y0w, args, dt, steps, c_threads)
 
-    def run_jax():
-        return run_ensemble(ics, **kw)
-
-    contestants = [("c", run_c), ("jax", run_jax)]
+def _contestants(run_c, c_libs: dict, ics, kw, variants: dict) -> list:
+    """``[(name, fn)]`` timed by `c_limit`: the C reference, the JAX call, the C builds ``c_libs``
+    (``run_c(lib)``) and the kernel variants ``{name: drive_plain keywords}``."""
+    contestants = [("c", run_c), ("jax", lambda: run_ensemble(ics, **kw))]
     for cv, vl in c_libs.items():
-        contestants.append((f"c_{cv}", lambda vl=vl: c_reference_run(vl, y0w, args, dt, steps, c_threads)))
-    variants = dict(variants or {})
-    if whole_batch:
-        variants["jax_whole_batch"] = {"block": None}
+        contestants.append((f"c_{cv}", functools.partial(run_c, vl)))
     for vname, vkw in variants.items():
         contestants.append((vname, functools.partial(_run_variant, ics, kw, vkw)))
-    rec = _rotation(contestants, repeats, log)
-    work = n * steps
-    out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
-           "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": c_threads, "jax_cores": cores,
-           "c_divider_ops_per_evaluation": _divider_ops(lib),
-           "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
-                         f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
+    return contestants
+
+
+def _throughputs(rec: dict, work: int) -> dict:
+    """Trajectory-steps (``work``) per CPU and per wall second of each contestant in ``rec``."""
+    out = {}
     for name in rec:
         out[f"{name}_traj_steps_per_cpu_s"] = _summary([work / c for c in rec[name]["cpu"]])
         out[f"{name}_traj_steps_per_wall_s"] = _summary([work / w for w in rec[name]["wall"]])
-    out["ratio_cpu"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec["jax"]["cpu"])])
-    out["ratio_wall"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec["jax"]["wall"])])
+    return out
+
+
+def _ratios(rec: dict, c_libs: dict, variants: dict) -> dict:
+    """Per-repetition throughput ratios (a C program's time over a JAX call's): JAX / C, JAX / each C build
+    in ``c_libs`` (with its divider ops), and each kernel variant / C."""
+    def ratio(c_name, jax_name, kind):
+        return _summary([c / j for c, j in zip(rec[c_name][kind], rec[jax_name][kind])])
+
+    out = {"ratio_cpu": ratio("c", "jax", "cpu"), "ratio_wall": ratio("c", "jax", "wall")}
     for cv, vl in c_libs.items():
         out[f"c_{cv}_divider_ops_per_evaluation"] = _divider_ops(vl)
-        out[f"ratio_cpu_vs_c_{cv}"] = _summary([c / j for c, j in zip(rec[f"c_{cv}"]["cpu"], rec["jax"]["cpu"])])
-        out[f"ratio_wall_vs_c_{cv}"] = _summary([c / j for c, j in zip(rec[f"c_{cv}"]["wall"], rec["jax"]["wall"])])
+        out[f"ratio_cpu_vs_c_{cv}"] = ratio(f"c_{cv}", "jax", "cpu")
+        out[f"ratio_wall_vs_c_{cv}"] = ratio(f"c_{cv}", "jax", "wall")
     for vname in variants:
         suffix = vname[len("jax_"):] if vname.startswith("jax_") else vname
-        out[f"ratio_cpu_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["cpu"], rec[vname]["cpu"])])
-        out[f"ratio_wall_{suffix}"] = _summary([c / j for c, j in zip(rec["c"]["wall"], rec[vname]["wall"])])
-
-    out["agreement"] = _agreement(run_c(), {cv: c_reference_run(vl, y0w, args, dt, steps) for cv, vl in c_libs.items()},
-                                  y0w, status0, args, horizon)
+        out[f"ratio_cpu_{suffix}"] = ratio("c", vname, "cpu")
+        out[f"ratio_wall_{suffix}"] = ratio("c", vname, "wall")
     return out
 
 
@@ -353,25 +392,11 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
     ref = reference_final(ics, t_final=t_final, cache_dir=cache_dir)
     chunk = max(n_ics, 1)
     common = dict(t_final=t_final, dt=dt, x64=x64, chunk_size=chunk, progress=False)
-
-    def fixed(check, summaries=True):
-        return lambda: run_ensemble(ics, method="rk4", check_passivity=check, summaries=summaries, **common)
-
-    wall_rk4, r_rk4 = _timed(fixed(False, summaries=False), repeats)      # plain RK4, final state only
-    wall_rk4s, r_rk4s = _timed(fixed(False), repeats)                     # + per-step summaries
-    wall_rk4m, r_rk4m = _timed(fixed(True), repeats)                      # + passivity monitor
-    wall_acc, r_acc = _timed(lambda: run_ensemble(ics, **common), repeats)
-    err_acc = final_state_error(r_acc.q_final, r_acc.p_final, ref)
-    correct = (r_acc.status == Status.OK) & (err_acc <= CORRECT_TOL)
-    err_rk4 = final_state_error(r_rk4.q_final, r_rk4.p_final, ref)
-    # the plain fixed-step path against the C reference, one interleaved run (float32 only)
-    if x64:
-        lim = {"available": False, "reason": "the C reference is float32; run without --x64"}
-    else:
-        try:
-            lim = c_limit(ics, t_final=t_final, dt=dt, repeats=max(3, repeats))
-        except Exception as e:                      # a broken toolchain must not lose the other figures
-            lim = {"available": False, "reason": f"{type(e).__name__}: {e}"}
+    runs = _timed_runs(ics, common, repeats)
+    r_acc = runs["accurate"][1]
+    fixed_step = _fixed_step_figures(runs, ref, n_ics * steps)
+    accurate = _accurate_figures(runs["accurate"], ref)
+    lim = _bench_c_limit(ics, t_final=t_final, dt=dt, x64=x64, repeats=repeats)
     ok_lim = lim.get("available", False)
     return {
         "n_ics": n_ics, "steps": steps, "t_final": t_final, "dt": dt,
@@ -379,20 +404,75 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
         # the cores the runs used (jaxsleigh.cores) and the C reference's threads in the same comparison
         "cores": len(r_acc.run_info["devices"]), "c_threads": lim.get("c_threads") if ok_lim else None,
         "load_average": [round(x, 2) for x in os.getloadavg()],
-        "traj_steps_per_s": n_ics * steps / wall_rk4,
-        "traj_steps_per_s_with_summaries": n_ics * steps / wall_rk4s,
-        "traj_steps_per_s_with_passivity_check": n_ics * steps / wall_rk4m,
+        **fixed_step,
+        **accurate,
+        "rk4_wall_s": runs["rk4"][0],
+        "peak_rss_mb": peak_rss_mb(),
+        **_c_limit_figures(lim),
+        "c_limit": lim,
+        "machine": machine(),
+    }
+
+
+def _timed_runs(ics, common: dict, repeats: int) -> dict:
+    """The calls `bench` times, each warm and best of ``repeats``: ``{name: (wall s, result)}``."""
+    def fixed(check, summaries=True):
+        return lambda: run_ensemble(ics, method="rk4", check_passivity=check, summaries=summaries, **common)
+
+    return {
+        "rk4": _timed(fixed(False, summaries=False), repeats),      # plain RK4, final state only
+        "rk4_summaries": _timed(fixed(False), repeats),             # + per-step summaries
+        "rk4_checked": _timed(fixed(True), repeats),                # + passivity monitor
+        "accurate": _timed(lambda: run_ensemble(ics, **common), repeats),
+    }
+
+
+def _fixed_step_figures(runs: dict, ref, work: int) -> dict:
+    """Throughput (``work`` trajectory-steps over the best wall time) and wrong counts of the fixed-step runs."""
+    (wall_rk4, r_rk4), (wall_rk4s, _), (wall_rk4m, r_rk4m) = runs["rk4"], runs["rk4_summaries"], runs["rk4_checked"]
+    err_rk4 = final_state_error(r_rk4.q_final, r_rk4.p_final, ref)
+    return {
+        "traj_steps_per_s": work / wall_rk4,
+        "traj_steps_per_s_with_summaries": work / wall_rk4s,
+        "traj_steps_per_s_with_passivity_check": work / wall_rk4m,
         "rk4_wrong_or_nonfinite": int(np.sum(err_rk4 > CORRECT_TOL)),
         "rk4_checked_wrong_or_nonfinite": int(np.sum(final_state_error(r_rk4m.q_final, r_rk4m.p_final, ref) > CORRECT_TOL)),
         "rk4_checked_flagged": int(np.sum(r_rk4m.status != Status.OK)),
         "rk4_checked_wall_s": wall_rk4m,
+    }
+
+
+def _accurate_figures(timed_acc, ref) -> dict:
+    """Correct trajectories per second (status OK, final-state error <= `CORRECT_TOL`) and the error and
+    step counts of the adaptive run ``timed_acc = (wall s, result)``."""
+    wall_acc, r_acc = timed_acc
+    err_acc = final_state_error(r_acc.q_final, r_acc.p_final, ref)
+    correct = (r_acc.status == Status.OK) & (err_acc <= CORRECT_TOL)
+    return {
         "correct_traj_per_s": float(correct.sum() / wall_acc),
         "wrong_or_nonfinite": int(np.sum(~correct)),
         "accurate_max_error": float(err_acc.max()),
         "accurate_mean_steps": float(r_acc.n_steps.mean()),
         "accurate_max_steps": int(r_acc.n_steps.max()),
-        "accurate_wall_s": wall_acc, "rk4_wall_s": wall_rk4,
-        "peak_rss_mb": peak_rss_mb(),
+        "accurate_wall_s": wall_acc,
+    }
+
+
+def _bench_c_limit(ics, *, t_final, dt, x64, repeats) -> dict:
+    """`c_limit` for `bench`; ``available`` False with a reason under x64 or when it fails."""
+    # the plain fixed-step path against the C reference, one interleaved run (float32 only)
+    if x64:
+        return {"available": False, "reason": "the C reference is float32; run without --x64"}
+    try:
+        return c_limit(ics, t_final=t_final, dt=dt, repeats=max(3, repeats))
+    except Exception as e:                      # a broken toolchain must not lose the other figures
+        return {"available": False, "reason": f"{type(e).__name__}: {e}"}
+
+
+def _c_limit_figures(lim: dict) -> dict:
+    """`bench`'s summary of the `c_limit` result ``lim`` (all None when it is not available)."""
+    ok_lim = lim.get("available", False)
+    return {
         # JAX / C trajectory-steps per CPU second (median over interleaved repetitions), or None
         "c_limit_ratio": lim["ratio_cpu"]["median"] if ok_lim else None,
         "c_limit_ratio_range": [lim["ratio_cpu"]["min"], lim["ratio_cpu"]["max"]] if ok_lim else None,
@@ -401,6 +481,4 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
         "c_limit_traj_steps_per_cpu_s": lim["c_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
         "traj_steps_per_cpu_s": lim["jax_traj_steps_per_cpu_s"]["median"] if ok_lim else None,
         "c_limit_reason": None if ok_lim else lim.get("reason"),
-        "c_limit": lim,
-        "machine": machine(),
     }
