@@ -230,70 +230,122 @@ def _hold(step, y, u, t_enter, min_th, tk, h, eps, substeps: int, chart):
     return jax.lax.scan(sub, (y, t_enter, min_th, fin0, _qnorm(y, chart)), jnp.arange(substeps))[0]
 
 
-@partial(jax.jit, static_argnames=("K", "substeps", "delay", "save"))
-def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save=True):
+class _Carry(NamedTuple):
+    """What the loop carries from sample to sample, per row: the state, the ring buffer of delayed controls, the
+    status, and the running summaries."""
+
+    y: Any
+    buf: Any
+    status: Any
+    t_enter: Any
+    min_th: Any
+    energy: Any
+    peak: Any
+    peak_c: Any
+    abs_int: Any
+    max_q: Any
+
+
+def _start(y0, eps, chart, delay: int):
+    """The first carry and the mask of valid starts: a non-finite start is ``INVALID_INPUT`` and replaced by zeros
+    (never step a bad start); ``T_eps`` is 0 for a start already in the ball. Returns ``(valid, carry0)``."""
     dtype = y0.dtype
     N = y0.shape[0]
-    h = period / substeps
-    eps_ = eps.astype(dtype)
-    key0 = jax.random.PRNGKey(seed)
-    chart = physical_chart_for(law)
-
     valid = jnp.all(jnp.isfinite(y0), axis=1)
     y0 = jnp.where(valid[:, None], y0, jnp.zeros_like(y0))     # never step a bad start
     status0 = jnp.where(valid, int(Status.OK), int(Status.INVALID_INPUT)).astype(jnp.int32)
-    t_enter0 = jnp.where(_qnorm(y0, chart) <= eps_, jnp.zeros((), dtype), jnp.inf).astype(dtype)
+    t_enter0 = jnp.where(_qnorm(y0, chart) <= eps, jnp.zeros((), dtype), jnp.inf).astype(dtype)
+    buf0 = jnp.zeros((max(delay, 1), N, 2), dtype)
+    zeros = jnp.zeros((N,), dtype)
+    return valid, _Carry(y0, buf0, status0, t_enter0, chart.abs_theta(y0.T), zeros, zeros, jnp.zeros((N, 2), dtype),
+                         zeros, _qnorm(y0, chart))
+
+
+def _rk4_rows(plant, h):
+    """``step(y, u)``: one RK4 step of ``h`` of every row of ``y`` (N, 5) with its held input ``u`` (N, 2) (a plant
+    leaf with one value per start mapped with the rows)."""
     rows = jax.vmap(lambda y, u, pl: rk4_step(lambda t, yy, a: _field(yy, a, pl), 0.0, y, h, u),
                     in_axes=(0, 0, _row_axes(plant)))
 
     def step(y, u):
         return rows(y, u, plant)
 
-    def sample(carry, k):
-        y, buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry
-        u, buf = _control(law, plant, y, buf, status, k, key0, noise, period, delay)
-        y_new, t_new, mth_new, fin, mq_new = _hold(step, y, u, t_enter, min_th, k.astype(dtype) * period, h, eps_,
-                                                   substeps, chart)
-        ok = status == int(Status.OK)
-        good = ok & fin
-        status = jnp.where(ok & ~fin, int(Status.NONFINITE), status).astype(jnp.int32)
-        # a failed row is frozen at its last good state (no inf/NaN carried on)
-        y = jnp.where(good[:, None], y_new, y)
-        t_enter = jnp.where(good, t_new, t_enter)
-        min_th = jnp.where(good, mth_new, min_th)
-        un2 = jnp.sum(u * u, axis=1)
-        energy = jnp.where(good, energy + un2 * period, energy)
-        peak = jnp.where(good, jnp.maximum(peak, jnp.sqrt(un2)), peak)
-        peak_c = jnp.where(good[:, None], jnp.maximum(peak_c, jnp.abs(u)), peak_c)
-        abs_int = jnp.where(good, abs_int + jnp.sqrt(un2) * period, abs_int)
-        max_q = jnp.where(good, jnp.maximum(max_q, mq_new), max_q)
-        carry = (y, buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q)
-        if not save:
-            return carry, None
-        y_out = jnp.where(good[:, None], y, jnp.full_like(y, jnp.nan))
-        u_out = jnp.where(good[:, None], u, jnp.full_like(u, jnp.nan))
-        return carry, (y_out, u_out)
+    return step
 
-    buf0 = jnp.zeros((max(delay, 1), N, 2), dtype)
-    zeros = jnp.zeros((N,), dtype)
-    carry0 = (y0, buf0, status0, t_enter0, chart.abs_theta(y0.T), zeros, zeros, jnp.zeros((N, 2), dtype), zeros,
-              _qnorm(y0, chart))
-    carry, saved = jax.lax.scan(sample, carry0, jnp.arange(K))
-    y, _, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q = carry
 
-    ok = status == int(Status.OK)
-    nanN = jnp.full((N,), jnp.nan, dtype)
-    y_fin = jnp.where(ok[:, None], y, jnp.full_like(y, jnp.nan))
+def _advance(carry: _Carry, u, held, period):
+    """Take one period into the carry: ``held`` is `_hold`'s ``(y_new, t_enter, min_th, finite, max_q)`` with ``u``
+    held. A row that was OK and stayed finite moves on and adds the period's effort (\\(\\|u\\|^2 T_s\\),
+    \\(\\|u\\| T_s\\), the peaks); one that became non-finite is ``NONFINITE``. Returns ``(carry, good)``."""
+    y_new, t_new, mth_new, fin, mq_new = held
+    ok = carry.status == int(Status.OK)
+    good = ok & fin
+    status = jnp.where(ok & ~fin, int(Status.NONFINITE), carry.status).astype(jnp.int32)
+    # a failed row is frozen at its last good state (no inf/NaN carried on)
+    y = jnp.where(good[:, None], y_new, carry.y)
+    t_enter = jnp.where(good, t_new, carry.t_enter)
+    min_th = jnp.where(good, mth_new, carry.min_th)
+    un2 = jnp.sum(u * u, axis=1)
+    energy = jnp.where(good, carry.energy + un2 * period, carry.energy)
+    peak = jnp.where(good, jnp.maximum(carry.peak, jnp.sqrt(un2)), carry.peak)
+    peak_c = jnp.where(good[:, None], jnp.maximum(carry.peak_c, jnp.abs(u)), carry.peak_c)
+    abs_int = jnp.where(good, carry.abs_int + jnp.sqrt(un2) * period, carry.abs_int)
+    max_q = jnp.where(good, jnp.maximum(carry.max_q, mq_new), carry.max_q)
+    return _Carry(y, carry.buf, status, t_enter, min_th, energy, peak, peak_c, abs_int, max_q), good
+
+
+def _nan_unless(mask, x):
+    """``x`` where ``mask``, NaN elsewhere."""
+    return jnp.where(mask, x, jnp.full_like(x, jnp.nan))
+
+
+def _samples(saved, valid, y0, period, K: int):
+    """``(t, q, p, u)`` of a saved run: the instants, the state at them (the start first, NaN for an invalid one)
+    and the held inputs, the start on the first axis."""
+    ys, us = saved
+    y_first = _nan_unless(valid[:, None], y0)
+    traj = jnp.concatenate([y_first[:, None], jnp.swapaxes(ys, 0, 1)], axis=1)       # (N, K+1, 5)
+    return jnp.arange(K + 1, dtype=y0.dtype) * period, traj[:, :, :3], traj[:, :, 3:], jnp.swapaxes(us, 0, 1)
+
+
+def _finish(carry: _Carry, valid, y0, saved, period, K: int, save: bool) -> SampledRun:
+    """The `SampledRun` of the final carry: a row that is not OK has NaN summaries and final state."""
+    y = carry.y
+    ok = carry.status == int(Status.OK)
+    nanN = jnp.full((y.shape[0],), jnp.nan, y.dtype)
+    y_fin = _nan_unless(ok[:, None], y)
     t = q = p = u = None
     if save:
-        ys, us = saved
-        y_first = jnp.where(valid[:, None], y0, jnp.full_like(y0, jnp.nan))
-        traj = jnp.concatenate([y_first[:, None], jnp.swapaxes(ys, 0, 1)], axis=1)       # (N, K+1, 5)
-        t, q, p, u = jnp.arange(K + 1, dtype=dtype) * period, traj[:, :, :3], traj[:, :, 3:], jnp.swapaxes(us, 0, 1)
+        t, q, p, u = _samples(saved, valid, y0, period, K)
     return SampledRun(
         t=t, q=q, p=p, u=u,
         q_final=y_fin[:, :3], p_final=y_fin[:, 3:],
-        T_eps=jnp.where(ok, t_enter, nanN), u_energy=jnp.where(ok, energy, nanN),
-        u_norm_peak=jnp.where(ok, peak, nanN), min_abs_theta=jnp.where(ok, min_th, nanN),
-        status=status, u_peak=jnp.where(ok[:, None], peak_c, jnp.full_like(peak_c, jnp.nan)),
-        u_abs_int=jnp.where(ok, abs_int, nanN), max_excursion=jnp.where(ok, max_q, nanN))
+        T_eps=jnp.where(ok, carry.t_enter, nanN), u_energy=jnp.where(ok, carry.energy, nanN),
+        u_norm_peak=jnp.where(ok, carry.peak, nanN), min_abs_theta=jnp.where(ok, carry.min_th, nanN),
+        status=carry.status, u_peak=_nan_unless(ok[:, None], carry.peak_c),
+        u_abs_int=jnp.where(ok, carry.abs_int, nanN), max_excursion=jnp.where(ok, carry.max_q, nanN))
+
+
+@partial(jax.jit, static_argnames=("K", "substeps", "delay", "save"))
+def _solve(law, plant, y0, period, noise, seed, eps, *, K, substeps, delay, save=True):
+    """`solve_sampled` on checked inputs: one ``lax.scan`` over the ``K`` samples (measure and hold, `_control`;
+    the plant over the period, `_hold`; the carry moved on, `_advance`), then the run (`_finish`)."""
+    dtype = y0.dtype
+    h = period / substeps
+    eps_ = eps.astype(dtype)
+    key0 = jax.random.PRNGKey(seed)
+    chart = physical_chart_for(law)
+    valid, carry0 = _start(y0, eps_, chart, delay)
+    step = _rk4_rows(plant, h)
+
+    def sample(carry, k):
+        u, buf = _control(law, plant, carry.y, carry.buf, carry.status, k, key0, noise, period, delay)
+        held = _hold(step, carry.y, u, carry.t_enter, carry.min_th, k.astype(dtype) * period, h, eps_, substeps,
+                     chart)
+        carry, good = _advance(carry._replace(buf=buf), u, held, period)
+        if not save:
+            return carry, None
+        return carry, (_nan_unless(good[:, None], carry.y), _nan_unless(good[:, None], u))
+
+    carry, saved = jax.lax.scan(sample, carry0, jnp.arange(K))
+    return _finish(carry, valid, carry0.y, saved, period, K, save)

@@ -131,38 +131,30 @@ def _flag(name: str, flags: Optional[dict]) -> str:
     return (flags or {}).get(name, name)
 
 
-def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None, t_final: Any = 100.0,
-                 dt: Any = 0.01, save_every: Any = None, eps: Any = 0.05, x64: Any = False,
-                 stepsize: Optional[StepSizeController] = None, flags: Optional[dict] = None,
-                 **step) -> SolveConfig:
-    """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
-
-    Args mean the same as in `jaxsleigh.simulate`. ``stepsize`` is a `jaxsleigh.StepSizeController` (its
-    ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here);
-    those six may also come as keywords (``**step``), as the command line passes them. ``gains`` may be a `Gains`, a preset
-    name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
-    `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
-    (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
-    flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
-    """
-    f = lambda n: _flag(n, flags)  # noqa: E731
+def _step_options(stepsize: Optional[StepSizeController], step: dict) -> StepSizeController:
+    """``stepsize`` (default: `StepSizeController()`) with the step-size keywords given one by one put in;
+    ``TypeError`` for a keyword that is not one of them."""
     unknown = sorted(set(step) - set(_STEP_KEYWORDS))
     if unknown:
         raise TypeError(f"solve_config() got an unexpected keyword argument {unknown[0]!r}")
-    stepsize = (stepsize or StepSizeController())._replace(**step)
-    method, rtol, atol = stepsize.method, stepsize.rtol, stepsize.atol
-    max_step, max_steps, check_passivity = stepsize.max_step, stepsize.max_steps, stepsize.check_passivity
-    reject_traced("solve_config", plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every,
-                  rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, eps=eps)
+    return (stepsize or StepSizeController())._replace(**step)
+
+
+def _check_switches(method, x64, check_passivity, f) -> bool:
+    """Check ``method`` and the two switches; returns ``x64`` as a bool (``f``: an option's name in messages)."""
     if method not in METHODS:
         raise ValueError(f"{f('method')} must be one of {', '.join(METHODS)}, got {method!r}")
     if not isinstance(x64, (bool, np.bool_)) and x64 not in (0, 1):
         raise ValueError(f"{f('x64')} must be True or False, got {x64!r}")
-    x64 = bool(x64)
-    dtype = "float64" if x64 else "float32"
     for name, v in (("check_passivity", check_passivity),):
         if not isinstance(v, (bool, np.bool_)) and v not in (0, 1):
             raise ValueError(f"{f(name)} must be True or False, got {v!r}")
+    return bool(x64)
+
+
+def _resolve_law(plant, gains, controller, f, flags):
+    """The plant and the law, checked: either ``gains`` (the paper's law) or ``controller`` (a `Gains` there is
+    the paper's law too), with or without per-trajectory lanes. Returns ``(plant, gains, controller, lanes)``."""
     from ..model.lanes import check_lanes, lane_count
 
     if controller is not None:
@@ -182,13 +174,24 @@ def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None
         plant, gains = check_lanes(plant, gains, flags=flags)
     else:
         plant, controller = check_lanes(plant, controller, flags=flags)
+    return plant, gains, controller, lanes
+
+
+def _resolve_horizon(t_final, dt, save_every, f, flags) -> Horizon:
+    """The checked `Horizon` of ``t_final``, ``dt`` and ``save_every``."""
     t_final = real(f("t_final"), t_final, positive=True, example=100, maximum=1e30)
     dt = real(f("dt"), dt, positive=True, example=0.01)
     if save_every is not None:
         save_every = whole(f("save_every"), save_every, example=10)
-    horizon = make_horizon(t_final, dt, save_every, flags=flags)
-    eps = real(f("eps"), eps, positive=True, example=0.05)
-    adaptive = method == "adaptive"
+    return make_horizon(t_final, dt, save_every, flags=flags)
+
+
+def _resolve_steps(stepsize: StepSizeController, horizon: Horizon, dtype: str, f):
+    """The step-size numbers with their defaults filled in (tolerances for ``dtype``, ``max_step`` and
+    ``max_steps`` from the horizon); fixed-step RK4 needs a budget of at least the horizon's base steps.
+    Returns ``(rtol, atol, max_step, max_steps)``."""
+    adaptive = stepsize.method == "adaptive"
+    rtol, atol, max_step, max_steps = stepsize.rtol, stepsize.atol, stepsize.max_step, stepsize.max_steps
     rtol = DEFAULT_RTOL[dtype] if rtol is None else real(f("rtol"), rtol, positive=True, example=1e-6)
     atol = DEFAULT_ATOL[dtype] if atol is None else real(f("atol"), atol, positive=True, example=1e-6)
     if max_step is None:
@@ -203,7 +206,35 @@ def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None
             raise ValueError(f"{f('max_steps')} {max_steps} is below the {horizon.n_steps} base steps of the "
                              f"horizon (t_final / dt) that fixed-step RK4 takes; raise it to at least "
                              f"{horizon.n_steps}")
+    return rtol, atol, max_step, max_steps
+
+
+def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None, t_final: Any = 100.0,
+                 dt: Any = 0.01, save_every: Any = None, eps: Any = 0.05, x64: Any = False,
+                 stepsize: Optional[StepSizeController] = None, flags: Optional[dict] = None,
+                 **step) -> SolveConfig:
+    """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
+
+    Args mean the same as in `jaxsleigh.simulate`. ``stepsize`` is a `jaxsleigh.StepSizeController` (its
+    ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here);
+    those six may also come as keywords (``**step``), as the command line passes them. ``gains`` may be a `Gains`, a preset
+    name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
+    `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
+    (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
+    flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
+    """
+    f = lambda n: _flag(n, flags)  # noqa: E731
+    stepsize = _step_options(stepsize, step)
+    reject_traced("solve_config", plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every,
+                  rtol=stepsize.rtol, atol=stepsize.atol, max_step=stepsize.max_step, max_steps=stepsize.max_steps,
+                  eps=eps)
+    x64 = _check_switches(stepsize.method, x64, stepsize.check_passivity, f)
+    dtype = "float64" if x64 else "float32"
+    plant, gains, controller, lanes = _resolve_law(plant, gains, controller, f, flags)
+    horizon = _resolve_horizon(t_final, dt, save_every, f, flags)
+    eps = real(f("eps"), eps, positive=True, example=0.05)
+    rtol, atol, max_step, max_steps = _resolve_steps(stepsize, horizon, dtype, f)
     if controller is not None:
         gains = None
-    return SolveConfig(plant, gains, horizon, method, rtol, atol, max_step, max_steps, eps, x64,
-                       bool(check_passivity), lanes, controller)
+    return SolveConfig(plant, gains, horizon, stepsize.method, rtol, atol, max_step, max_steps, eps, x64,
+                       bool(stepsize.check_passivity), lanes, controller)
