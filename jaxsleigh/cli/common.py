@@ -620,18 +620,15 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     share, process 0 assembles and writes, and every process returns process 0's exit code. The
     options (except the three above and ``--progress``) must be equal in every process.
     """
-    from ..files.distributed import ClusterError, run_shared, start
+    from ..files.distributed import ClusterError
     from ..errors import CheckpointError, DiskFullError
 
     try:
-        cluster = start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
-                        getattr(args, "process_id", None),
-                        timeout_s=getattr(args, "cluster_timeout", None) or CLUSTER_TIMEOUT_S)
+        cluster = _start_cluster(args)
     except ClusterError as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+        _say_error(e)
         return EXIT_CLUSTER
-    options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
-    options = json.loads(json.dumps(options, default=str))
+    options = _shared_options(args)
     if cluster is not None:
         args._run_id = _cluster_run_id(args, cluster)
     held = {}
@@ -640,38 +637,83 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
         held["state"] = state = check()
         return state
 
-    def prepared(state):
-        if prepare is not None:
-            prepare(state)
-        _record_options(state, args)
-
     try:
         if cluster is None:
-            state = checked()
-            _record_options(state, args)
-            return int(assemble(state, False))
-        try:
-            code = run_shared(cluster, check=checked, compute=compute,
-                              assemble=lambda state: assemble(state, True), prepare=prepared,
-                              shared_dirs=shared_dirs or (lambda state: []), options=options)
-        except ClusterError as e:
-            print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
-            code = EXIT_CLUSTER
-        except ValueError as e:
-            if not cluster.synced:
-                raise                               # a refusal before any work: JAX shuts down as usual
-            print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
-            code = EXIT_USAGE
+            return _run_single(args, checked, assemble)
+        code = _run_processes(cluster, args, options, checked=checked, compute=compute, assemble=assemble,
+                              prepare=prepare, shared_dirs=shared_dirs)
     except (DiskFullError, CheckpointError) as e:
         better = _explained(e, held.get("state"), args)
         if better is None:
             raise
         raise better from None
     finally:
-        state = held.get("state")
-        lock = state.get("lock") if isinstance(state, dict) else None
-        if lock is not None:
-            lock.release()
+        _release_lock(held.get("state"))
+    return _leave(cluster, code)
+
+
+def _shared_options(args) -> dict:
+    """The options that must be equal in every process (as JSON: what the processes compare)."""
+    options = {k: v for k, v in sorted(vars(args).items()) if k not in _PER_PROCESS and not callable(v)}
+    return json.loads(json.dumps(options, default=str))
+
+
+def _run_single(args, checked, assemble) -> int:
+    """A single-process run: check, record the options, do all the work in ``assemble``."""
+    state = checked()
+    _record_options(state, args)
+    return int(assemble(state, False))
+
+
+def _say_error(e) -> None:
+    """The error line of a run that stops (``jaxsleigh: error: ...``), on stderr at once."""
+    print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+
+
+def _start_cluster(args):
+    """`jaxsleigh.files.distributed.start` with the options of `add_distributed_options`: the
+    `Cluster` of a multi-process run, ``None`` for a single process."""
+    from ..files.distributed import start
+
+    return start(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
+                 getattr(args, "process_id", None),
+                 timeout_s=getattr(args, "cluster_timeout", None) or CLUSTER_TIMEOUT_S)
+
+
+def _run_processes(cluster, args, options, *, checked, compute, assemble, prepare, shared_dirs) -> int:
+    """`jaxsleigh.files.distributed.run_shared` for a subcommand: process 0 records the options
+    after ``prepare``; a failed cluster is exit code 6, a refusal after every process has read the
+    result exit code 2 (a refusal before any work is raised: JAX shuts down as usual)."""
+    from ..files.distributed import ClusterError, run_shared
+
+    def prepared(state):
+        if prepare is not None:
+            prepare(state)
+        _record_options(state, args)
+
+    try:
+        return run_shared(cluster, check=checked, compute=compute, assemble=lambda state: assemble(state, True),
+                          prepare=prepared, shared_dirs=shared_dirs or (lambda state: []), options=options)
+    except ClusterError as e:
+        _say_error(e)
+        return EXIT_CLUSTER
+    except ValueError as e:
+        if not cluster.synced:
+            raise                               # a refusal before any work: JAX shuts down as usual
+        _say_error(e)
+        return EXIT_USAGE
+
+
+def _release_lock(state) -> None:
+    """Release the output's lock that ``check`` took (`own_output`), if it got that far."""
+    lock = state.get("lock") if isinstance(state, dict) else None
+    if lock is not None:
+        lock.release()
+
+
+def _leave(cluster, code: int) -> int:
+    """Stop this process's heartbeat and return ``code``; a process whose cluster failed, or that has
+    process 0's result, exits here at once instead."""
     if code == EXIT_CLUSTER or cluster.synced:
         # JAX's shutdown would wait at its shutdown barrier for a process that died, then abort: leave
         # now (every file is written, atomically, already; every survivor has process 0's result)

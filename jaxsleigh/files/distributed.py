@@ -392,6 +392,33 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
     waits for.
     """
     given = [v is not None for v in (coordinator, num_processes, process_id)]
+    _check_start_options(given, timeout_s)
+    import jax
+
+    # JAX's own heartbeat would abort every process when one dies: make it never fire and watch
+    # the signs of life ourselves (Cluster._dead), which can name the process and keep the others.
+    kw = dict(heartbeat_timeout_seconds=WORK_TIMEOUT_S)
+    if all(given):
+        coordinator, n, i, given_kw = _given_cluster(coordinator, num_processes, process_id)
+        kw.update(given_kw)
+    elif cluster_env() is not None:
+        n, i = None, None
+    else:
+        return None
+    from jax._src import distributed as _dist
+
+    if _dist.global_state.client is None:
+        _initialize(coordinator, n, i, timeout_s, kw)
+    client = _dist.global_state.client
+    if client is None or not hasattr(client, "key_value_dir_get"):  # pragma: no cover - other JAX versions
+        raise RuntimeError("this JAX version's distributed runtime has no key-value store (client.key_value_dir_get); "
+                           "jaxsleigh was tested with jax 0.10")
+    return _joined(Cluster(client, jax.process_index(), jax.process_count(), silent_s=timeout_s), timeout_s)
+
+
+def _check_start_options(given: list, timeout_s) -> None:
+    """``ValueError`` unless the three cluster options are all given or none (``given``: which are),
+    and ``timeout_s`` is a number of seconds in range."""
     if any(given) and not all(given):
         missing = [f for f, g in zip(("--coordinator", "--num-processes", "--process-id"), given) if not g]
         raise ValueError(f"--coordinator, --num-processes and --process-id go together: give all three (e.g. "
@@ -400,51 +427,51 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
     if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s <= CHECK_TIMEOUT_S * 100):
         raise ValueError(f"--cluster-timeout must be a number of seconds in (0, {CHECK_TIMEOUT_S * 100}], "
                          f"got {timeout_s!r}")
+
+
+def _given_cluster(coordinator: str, num_processes, process_id) -> tuple:
+    """The cluster the user named: ``(coordinator, count, index, keywords of jax.distributed.initialize)``,
+    checked (``ValueError``)."""
+    coordinator = parse_coordinator(coordinator)
+    n, i = int(num_processes), int(process_id)
+    if n < 1:
+        raise ValueError(f"--num-processes must be >= 1, got {n}")
+    if not 0 <= i < n:
+        raise ValueError(f"--process-id must be 0..{n - 1} (one per process, 0 runs the coordinator), got {i}")
+    kw = {"coordinator_address": coordinator, "num_processes": n, "process_id": i}
+    if _is_address(_host_port(coordinator)[0]):
+        kw["coordinator_bind_address"] = coordinator      # not JAX's default [::]:PORT
+    return coordinator, n, i, kw
+
+
+def _initialize(coordinator: Optional[str], n: Optional[int], i: Optional[int], timeout_s: float, kw: dict) -> None:
+    """Start JAX's distributed runtime for process ``i`` of ``n`` (``None``: detected by JAX), saying
+    on stderr what it waits for, with the abort handler in place; `ClusterError` if it fails."""
     import jax
 
-    # JAX's own heartbeat would abort every process when one dies: make it never fire and watch
-    # the signs of life ourselves (Cluster._dead), which can name the process and keep the others.
-    kw = dict(heartbeat_timeout_seconds=WORK_TIMEOUT_S)
-    if all(given):
-        coordinator = parse_coordinator(coordinator)
-        n, i = int(num_processes), int(process_id)
-        if n < 1:
-            raise ValueError(f"--num-processes must be >= 1, got {n}")
-        if not 0 <= i < n:
-            raise ValueError(f"--process-id must be 0..{n - 1} (one per process, 0 runs the coordinator), got {i}")
-        kw.update(coordinator_address=coordinator, num_processes=n, process_id=i)
-        if _is_address(_host_port(coordinator)[0]):
-            kw["coordinator_bind_address"] = coordinator      # not JAX's default [::]:PORT
-    elif cluster_env() is not None:
-        n, i = None, None
+    info = {"index": "?" if i is None else i, "count": "?" if n is None else n, "phase": ""}
+    if coordinator is not None and i == 0:
+        _check_port(coordinator)
+        info["phase"] = f"waiting for the other {n - 1} process(es) to join (up to {timeout_s:g} s)"
+        _say(i, n, f"starting the coordinator at {coordinator}; {info['phase']}")
+    elif coordinator is not None:
+        _say(i, n, f"waiting for the coordinator at {coordinator} (up to {timeout_s:g} s)")
+        _wait_for_coordinator(coordinator, i, n, timeout_s)
+        info["phase"] = f"waiting for all {n} processes to join (up to {timeout_s:g} s)"
     else:
-        return None
-    from jax._src import distributed as _dist
+        info["phase"] = f"joining the cluster detected by JAX (up to {timeout_s:g} s)"
+    _install_abort_handler(info)
+    try:
+        jax.distributed.initialize(initialization_timeout=max(1, int(timeout_s)), **kw)
+    except RuntimeError as e:
+        raise ClusterError(f"could not join the other processes ({str(e).splitlines()[0]}); start every "
+                           f"process with the same --coordinator and --num-processes within "
+                           f"{timeout_s:g} s of each other (--cluster-timeout)") from None
 
-    if _dist.global_state.client is None:
-        info = {"index": "?" if i is None else i, "count": "?" if n is None else n, "phase": ""}
-        if coordinator is not None and i == 0:
-            _check_port(coordinator)
-            info["phase"] = f"waiting for the other {n - 1} process(es) to join (up to {timeout_s:g} s)"
-            _say(i, n, f"starting the coordinator at {coordinator}; {info['phase']}")
-        elif coordinator is not None:
-            _say(i, n, f"waiting for the coordinator at {coordinator} (up to {timeout_s:g} s)")
-            _wait_for_coordinator(coordinator, i, n, timeout_s)
-            info["phase"] = f"waiting for all {n} processes to join (up to {timeout_s:g} s)"
-        else:
-            info["phase"] = f"joining the cluster detected by JAX (up to {timeout_s:g} s)"
-        _install_abort_handler(info)
-        try:
-            jax.distributed.initialize(initialization_timeout=max(1, int(timeout_s)), **kw)
-        except RuntimeError as e:
-            raise ClusterError(f"could not join the other processes ({str(e).splitlines()[0]}); start every "
-                               f"process with the same --coordinator and --num-processes within "
-                               f"{timeout_s:g} s of each other (--cluster-timeout)") from None
-    client = _dist.global_state.client
-    if client is None or not hasattr(client, "key_value_dir_get"):  # pragma: no cover - other JAX versions
-        raise RuntimeError("this JAX version's distributed runtime has no key-value store (client.key_value_dir_get); "
-                           "jaxsleigh was tested with jax 0.10")
-    cluster = Cluster(client, jax.process_index(), jax.process_count(), silent_s=timeout_s)
+
+def _joined(cluster: Cluster, timeout_s: float) -> Cluster:
+    """``cluster`` is this process's now: the abort handler names its phase, its heartbeat starts,
+    and it says so."""
     _ABORT["cluster"] = cluster
     cluster.phase = "starting the run"
     cluster.start_heartbeat()
@@ -492,6 +519,22 @@ def run_shared(cluster: Cluster, *, check: Callable[[], Any], compute: Callable[
     while computing is named; process 0 computes its missing chunks in ``assemble`` (the dead
     processes are in ``cluster.lost`` in every survivor).
     """
+    state = _check_everywhere(cluster, check, options)
+    cluster.phase = "preparing the run"
+    if cluster.main and prepare is not None:
+        prepare(state)
+    cluster.barrier("prepared")
+    error = _compute_share(cluster, state, compute, shared_dirs)
+    cluster.phase = "telling process 0 that its share is done"
+    got = cluster.report("computed", {"error": error})
+    if cluster.main:
+        return _write_output(cluster, state, got, assemble, shared_dirs)
+    return _read_result(cluster)
+
+
+def _check_everywhere(cluster: Cluster, check: Callable[[], Any], options: Any) -> Any:
+    """Step 1 of `run_shared`: ``check()`` here, then the verdicts, options and devices of every
+    process exchanged (`Cluster.agree`); returns this process's state."""
     import jax
 
     state, error = None, None
@@ -505,11 +548,13 @@ def run_shared(cluster: Cluster, *, check: Callable[[], Any], compute: Callable[
         raise ClusterError(f"process {cluster.index} of {cluster.count}: the processes could not exchange their "
                            f"devices ({str(e).splitlines()[0]}); nothing was computed") from None
     cluster.agree("checked", error, options=options, local_devices=devices)
-    cluster.phase = "preparing the run"
-    if cluster.main and prepare is not None:
-        prepare(state)
-    cluster.barrier("prepared")
-    error = None
+    return state
+
+
+def _compute_share(cluster: Cluster, state: Any, compute: Callable[[Any, tuple], None],
+                   shared_dirs: Callable[[Any], list]) -> Optional[str]:
+    """Step 2 of `run_shared`: leave this process's marker in the shared folders and compute its share
+    of the chunks; returns what failed (``None`` if nothing), for process 0."""
     cluster.phase = "computing its share of the chunks"
     try:
         for d in shared_dirs(state):
@@ -517,37 +562,52 @@ def run_shared(cluster: Cluster, *, check: Callable[[], Any], compute: Callable[
             _marker(d, cluster.index).write_text(f"{os.uname().nodename} {os.getpid()}\n")
         compute(state, (cluster.index, cluster.count))
     except (ValueError, OSError) as e:
-        error = f"{type(e).__name__}: {e}" if isinstance(e, OSError) else str(e)
-    cluster.phase = "telling process 0 that its share is done"
-    got = cluster.report("computed", {"error": error})
-    code = None
-    if cluster.main:
-        try:
-            _refuse([g or {} for g in got], cluster.index, cluster.count, {})
-            if cluster.lost:
-                names = ", ".join(map(str, cluster.lost))
-                print(f"jaxsleigh: warning: process {names} of {cluster.count} stopped answering (no sign of life "
-                      f"for {cluster.silent_s:g} s: killed, crashed or its host is down); process 0 computes its "
-                      f"missing chunks and writes the output", file=sys.stderr, flush=True)
-            cluster.phase = "writing the output"
-            for d in shared_dirs(state):
-                missing = [i for i in range(cluster.count) if not _marker(d, i).exists() and i not in cluster.lost]
-                if missing:
-                    print(f"jaxsleigh: warning: {str(d)!r} is not shared with process(es) "
-                          f"{', '.join(map(str, missing))} (their marker is missing): process 0 computes their "
-                          f"chunks itself; put the checkpoint folder on a filesystem every process sees",
-                          file=sys.stderr)
-                for i in range(cluster.count):
-                    _marker(d, i).unlink(missing_ok=True)
-            code = int(assemble(state))
-        except (ValueError, OSError) as e:
-            _publish(cluster, {"code": None, "error": str(e)})
-            raise
-        except BaseException:
-            _publish(cluster, {"code": 1, "error": "process 0 failed while writing the output"})
-            raise
-        _publish(cluster, {"code": code, "error": None})
-        return code
+        return f"{type(e).__name__}: {e}" if isinstance(e, OSError) else str(e)
+    return None
+
+
+def _write_output(cluster: Cluster, state: Any, got: list, assemble: Callable[[Any], int],
+                  shared_dirs: Callable[[Any], list]) -> int:
+    """Step 3 of `run_shared`, process 0: refuse if a share failed (``got``: the reports of every
+    process), else assemble and write the output; the result (or the failure) is published to the
+    others either way. Returns the exit code."""
+    try:
+        _refuse([g or {} for g in got], cluster.index, cluster.count, {})
+        if cluster.lost:
+            names = ", ".join(map(str, cluster.lost))
+            print(f"jaxsleigh: warning: process {names} of {cluster.count} stopped answering (no sign of life "
+                  f"for {cluster.silent_s:g} s: killed, crashed or its host is down); process 0 computes its "
+                  f"missing chunks and writes the output", file=sys.stderr, flush=True)
+        cluster.phase = "writing the output"
+        for d in shared_dirs(state):
+            _collect_markers(cluster, d)
+        code = int(assemble(state))
+    except (ValueError, OSError) as e:
+        _publish(cluster, {"code": None, "error": str(e)})
+        raise
+    except BaseException:
+        _publish(cluster, {"code": 1, "error": "process 0 failed while writing the output"})
+        raise
+    _publish(cluster, {"code": code, "error": None})
+    return code
+
+
+def _collect_markers(cluster: Cluster, folder) -> None:
+    """Process 0: warn when a live process's marker is missing from ``folder`` (not shared with it:
+    process 0 computes its chunks itself), then remove every marker."""
+    missing = [i for i in range(cluster.count) if not _marker(folder, i).exists() and i not in cluster.lost]
+    if missing:
+        print(f"jaxsleigh: warning: {str(folder)!r} is not shared with process(es) "
+              f"{', '.join(map(str, missing))} (their marker is missing): process 0 computes their "
+              f"chunks itself; put the checkpoint folder on a filesystem every process sees",
+              file=sys.stderr)
+    for i in range(cluster.count):
+        _marker(folder, i).unlink(missing_ok=True)
+
+
+def _read_result(cluster: Cluster) -> int:
+    """Step 4 of `run_shared`, processes other than 0: wait for process 0's result and return its exit
+    code (its ``ValueError`` raised here too); say which dead peers process 0 stood in for."""
     got = cluster.share("result")
     cluster.lost = list(got.get("lost") or [])
     cluster.report("read", True)
