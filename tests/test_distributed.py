@@ -17,6 +17,7 @@ import signal
 import socket
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -355,6 +356,75 @@ def test_dead_process_0_stops_the_others_with_exit_6_and_resume_finishes(tmp_pat
     assert "Traceback" not in err and not out.exists()
     _run(2, out, ["--resume"])
     assert out.read_bytes() == reference
+
+
+_WRITE_FAILS = textwrap.dedent("""
+    # process 0 finds the disk full (or is interrupted) while it writes the output; the others are fine
+    import errno, sys
+    import jaxsleigh.studies.basin as sb
+    from jaxsleigh.errors import DiskFullError
+    mode, argv = sys.argv[1], sys.argv[2:]
+    if argv[argv.index("--process-id") + 1] == "0":
+        def save(path, res):
+            if mode == "kbd":
+                raise KeyboardInterrupt
+            raise DiskFullError(errno.ENOSPC, f"the disk is full: could not write {path}", path=path)
+        sb.save_basin = save
+    sys.argv = ["jaxsleigh", *argv]
+    from jaxsleigh.cli import run
+    run()
+""")
+
+
+@pytest.mark.parametrize("failure, code_0, code_1", [("full", 4, 4), ("kbd", 130, 2)])
+def test_process_0_failing_while_it_writes_exits_with_its_code_not_a_jax_abort(tmp_path, failure, code_0, code_1):
+    """After every process has done its share, process 0 hits a full disk (or Ctrl-C) while writing:
+    it says so and exits with the single-process code (4, 130), not JAX's shutdown abort (which waited
+    for peers that had left: exit 6 and a C++ trace); the others say process 0's error with its code;
+    the chunks stay for --resume."""
+    out = tmp_path / "w.npz"
+    port = _port()
+    procs = [subprocess.Popen([sys.executable, "-c", _WRITE_FAILS, failure, "basin", *WORK, "--out", str(out),
+                               "--keep-chunks", "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
+                               "--process-id", str(i)], env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for i in range(2)]
+    (rc0, _, err0), (rc1, _, err1) = _wait(procs)
+    assert (rc0, rc1) == (code_0, code_1), (err0[-3000:], err1[-3000:])
+    for err in (err0, err1):
+        assert "Traceback" not in err and "Check failed" not in err and "terminate" not in err, err[-3000:]
+    if failure == "full":
+        assert "jaxsleigh: error: the disk is full: could not write" in err0
+        assert "jaxsleigh: error: process 0 of 2: the disk is full: could not write" in err1, err1[-2000:]
+    else:
+        assert err0.rstrip().endswith("jaxsleigh: interrupted"), err0[-2000:]
+        assert "process 0 failed while writing the output" in err1
+    assert not out.exists() and len(list((tmp_path / "w.npz.chunks").glob("chunk_*.npz"))) == N_CHUNKS
+
+
+_HOLDER = textwrap.dedent("""
+    import sys, time
+    from jaxsleigh.files.runlock import RunLock
+    RunLock(sys.argv[1], "another-run").acquire()
+    print("ready", flush=True)
+    time.sleep(120)
+""")
+
+
+def test_an_output_in_use_is_exit_5_in_every_process(tmp_path):
+    """Another live run holds the output: every process of a 2-process run refuses with the single-process
+    code 5 (it was 2: the verdicts crossed the cluster as text and lost the code)."""
+    out = tmp_path / "l.npz"
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(out)], env=_env(), stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "ready"
+        res = _wait(_launch(2, out))
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+        holder.stdout.close()
+    assert [rc for rc, _, _ in res] == [5, 5], [e[-2000:] for _, _, e in res]
+    assert all(f"pid {holder.pid}" in e and "Traceback" not in e for _, _, e in res)
+    assert not out.exists()
 
 
 def test_different_options_are_named_with_both_values():

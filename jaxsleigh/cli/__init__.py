@@ -27,7 +27,7 @@ from . import clock  # first: its fallback origin is the earliest moment of the 
 from .basin import add_basin
 from .bench import add_bench
 from .compare import add_compare, add_controllers
-from .common import EXIT_INTERRUPTED, EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic
+from .common import EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic, say_failure
 from .paper import add_paper
 from .simulate import add_simulate
 from .sweep import add_sweep
@@ -136,9 +136,5 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return rc
     except SystemExit as e:              # --help, --version
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    except (ValueError, OSError) as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return int(getattr(e, "exit_code", EXIT_USAGE))     # typed errors carry their own (EXIT_CODES)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except (ValueError, OSError, KeyboardInterrupt) as e:
+        return say_failure(e)

@@ -27,7 +27,7 @@ from ..files.distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from ..files.npz import load_ics
 from ..files.npz import parse_number as _number
 
-__all__ = ["PROG", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
+__all__ = ["PROG", "say_failure", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED", "EXIT_CLUSTER",
            "EXIT_INTERRUPTED", "EXIT_CODES", "UsageError", "own_output",
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags", "add_progress_option", "FLAGS", "check_outputs",
@@ -616,9 +616,10 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     * ``shared_dirs(state)`` (optional): the checkpoint folders, checked to be shared.
 
     In a multi-process run every process checks, the verdicts are exchanged (a refusal anywhere is
-    reported by every process, exit code 2, before any chunk is written), every process computes its
-    share, process 0 assembles and writes, and every process returns process 0's exit code. The
-    options (except the three above and ``--progress``) must be equal in every process.
+    reported by every process, before any chunk is written, with its exit code: 2, or 5 for an output in
+    use), every process computes its share, process 0 assembles and writes, and every process returns
+    process 0's exit code (a full disk while it writes: 4 in every process; Ctrl-C there: 130 in process
+    0). The options (except the three above and ``--progress``) must be equal in every process.
     """
     from ..files.distributed import ClusterError
     from ..errors import CheckpointError, DiskFullError
@@ -638,17 +639,24 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
         return state
 
     try:
-        if cluster is None:
-            return _run_single(args, checked, assemble)
-        code = _run_processes(cluster, args, options, checked=checked, compute=compute, assemble=assemble,
-                              prepare=prepare, shared_dirs=shared_dirs)
-    except (DiskFullError, CheckpointError) as e:
-        better = _explained(e, held.get("state"), args)
-        if better is None:
-            raise
-        raise better from None
-    finally:
-        _release_lock(held.get("state"))
+        try:
+            if cluster is None:
+                return _run_single(args, checked, assemble)
+            code = _run_processes(cluster, args, options, checked=checked, compute=compute, assemble=assemble,
+                                  prepare=prepare, shared_dirs=shared_dirs)
+        except (DiskFullError, CheckpointError) as e:
+            better = _explained(e, held.get("state"), args)
+            if better is None:
+                raise
+            raise better from None
+        finally:
+            _release_lock(held.get("state"))
+    except (ValueError, OSError, KeyboardInterrupt) as e:
+        if cluster is None or not cluster.synced:
+            raise                                   # one process, or a refusal before any work: as usual
+        # process 0 failed while writing (a full disk, Ctrl-C): the others have left already, so JAX's
+        # shutdown would wait for them and abort; say it as a single process would, and leave
+        code = say_failure(e)
     return _leave(cluster, code)
 
 
@@ -663,6 +671,17 @@ def _run_single(args, checked, assemble) -> int:
     state = checked()
     _record_options(state, args)
     return int(assemble(state, False))
+
+
+def say_failure(e: BaseException) -> int:
+    """Say on stderr why a command stopped (a typed error: ``jaxsleigh: error: ...``; Ctrl-C:
+    ``jaxsleigh: interrupted``) and return its exit code: the error's own ``exit_code`` (`EXIT_CODES`),
+    else 2 (bad input), 130 for Ctrl-C."""
+    if isinstance(e, KeyboardInterrupt):
+        print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
+    return int(getattr(e, "exit_code", EXIT_USAGE))       # typed errors carry their own (EXIT_CODES)
 
 
 def _say_error(e) -> None:
@@ -683,7 +702,8 @@ def _start_cluster(args):
 def _run_processes(cluster, args, options, *, checked, compute, assemble, prepare, shared_dirs) -> int:
     """`jaxsleigh.files.distributed.run_shared` for a subcommand: process 0 records the options
     after ``prepare``; a failed cluster is exit code 6, a refusal after every process has read the
-    result exit code 2 (a refusal before any work is raised: JAX shuts down as usual)."""
+    result the refusal's exit code (process 0's: 4 for a full disk; else 2). A refusal before any work
+    is raised: JAX shuts down as usual."""
     from ..files.distributed import ClusterError, run_shared
 
     def prepared(state):
@@ -701,7 +721,7 @@ def _run_processes(cluster, args, options, *, checked, compute, assemble, prepar
         if not cluster.synced:
             raise                               # a refusal before any work: JAX shuts down as usual
         _say_error(e)
-        return EXIT_USAGE
+        return int(getattr(e, "exit_code", EXIT_USAGE))     # process 0's, e.g. 4 for a full disk
 
 
 def _release_lock(state) -> None:

@@ -222,11 +222,12 @@ class Cluster:
         got = self._collect(name, range(self.count))
         return [json.loads(got[i]) for i in range(self.count)]
 
-    def agree(self, what: str, error: Optional[str], **facts) -> None:
-        """Exchange verdicts: raise ``ValueError`` in *every* process if any process had an
-        ``error`` or if the processes' ``facts`` (e.g. their options) differ; a difference is named
-        (``--seed 0`` vs ``--seed 7``), not printed as whole dictionaries."""
-        _refuse(self.gather(what, {"error": error, **facts}), self.index, self.count, facts)
+    def agree(self, what: str, error: Optional[str], *, exit_code: Optional[int] = None, **facts) -> None:
+        """Exchange verdicts: raise `Refused` (a ``ValueError``) in *every* process if any process had an
+        ``error`` (with its ``exit_code``, e.g. 5 for an output in use) or if the processes' ``facts`` (e.g.
+        their options) differ; a difference is named (``--seed 0`` vs ``--seed 7``), not printed as whole
+        dictionaries."""
+        _refuse(self.gather(what, {"error": error, "exit_code": exit_code, **facts}), self.index, self.count, facts)
 
     def report(self, what: str, value: Any) -> Optional[list]:
         """Every process posts ``value``; process 0 waits for them and returns them in process order,
@@ -250,13 +251,23 @@ class Cluster:
         return json.loads(self._collect(name, [0])[0])
 
 
+class Refused(ValueError):
+    """A run refused in every process (`Cluster.agree`); ``exit_code``: that of the first failing process's error
+    where it had one (`jaxsleigh.cli.common.EXIT_CODES`: 5 for an output in use), else the usual 2."""
+
+    def __init__(self, message: str, exit_code: Optional[int] = None):
+        super().__init__(message)
+        if exit_code is not None:
+            self.exit_code = int(exit_code)
+
+
 def _refuse(got: list, index: int, count: int, facts) -> None:
-    """Raise the ``ValueError`` of `Cluster.agree` for the verdicts ``got`` (one dict per process)."""
-    bad = [(i, g["error"]) for i, g in enumerate(got) if g and g.get("error")]
+    """Raise the `Refused` of `Cluster.agree` for the verdicts ``got`` (one dict per process)."""
+    bad = [(i, g["error"], g.get("exit_code")) for i, g in enumerate(got) if g and g.get("error")]
     if bad:
-        i, msg = bad[0]
+        i, msg, code = bad[0]
         more = f" (and {len(bad) - 1} more process(es))" if len(bad) > 1 else ""
-        raise ValueError(msg if i == index else f"process {i} of {count}{more}: {msg}")
+        raise Refused(msg if i == index else f"process {i} of {count}{more}: {msg}", code)
     def same(x, y):  # as JSON: True and 1 differ
         return json.dumps(x, sort_keys=True) == json.dumps(y, sort_keys=True)
 
@@ -537,17 +548,17 @@ def _check_everywhere(cluster: Cluster, check: Callable[[], Any], options: Any) 
     process exchanged (`Cluster.agree`); returns this process's state."""
     import jax
 
-    state, error = None, None
+    state, error, code = None, None, None
     try:
         state = check()
     except (ValueError, OSError) as e:
-        error = str(e)
+        error, code = str(e), getattr(e, "exit_code", None)
     try:  # the first use of the backend: it exchanges the processes' devices
         devices = f"{jax.default_backend()} x {len(jax.local_devices())}"
     except RuntimeError as e:
         raise ClusterError(f"process {cluster.index} of {cluster.count}: the processes could not exchange their "
                            f"devices ({str(e).splitlines()[0]}); nothing was computed") from None
-    cluster.agree("checked", error, options=options, local_devices=devices)
+    cluster.agree("checked", error, exit_code=code, options=options, local_devices=devices)
     return state
 
 
@@ -582,11 +593,11 @@ def _write_output(cluster: Cluster, state: Any, got: list, assemble: Callable[[A
         for d in shared_dirs(state):
             _collect_markers(cluster, d)
         code = int(assemble(state))
-    except (ValueError, OSError) as e:
-        _publish(cluster, {"code": None, "error": str(e)})
+    except (ValueError, OSError) as e:         # the others say it too, with its exit code (4: disk full)
+        _publish(cluster, {"code": getattr(e, "exit_code", None), "error": str(e)})
         raise
     except BaseException:
-        _publish(cluster, {"code": 1, "error": "process 0 failed while writing the output"})
+        _publish(cluster, {"code": None, "error": "process 0 failed while writing the output"})
         raise
     _publish(cluster, {"code": code, "error": None})
     return code
@@ -607,7 +618,8 @@ def _collect_markers(cluster: Cluster, folder) -> None:
 
 def _read_result(cluster: Cluster) -> int:
     """Step 4 of `run_shared`, processes other than 0: wait for process 0's result and return its exit
-    code (its ``ValueError`` raised here too); say which dead peers process 0 stood in for."""
+    code (its error raised here too, as `Refused` with its exit code); say which dead peers process 0 stood in
+    for."""
     got = cluster.share("result")
     cluster.lost = list(got.get("lost") or [])
     cluster.report("read", True)
@@ -616,5 +628,5 @@ def _read_result(cluster: Cluster) -> int:
         _say(cluster.index, cluster.count, f"process {', '.join(map(str, cluster.lost))} stopped answering; "
                                            f"process 0 computed its missing chunks")
     if got["error"]:
-        raise ValueError(f"process 0 of {cluster.count}: {got['error']}")
+        raise Refused(f"process 0 of {cluster.count}: {got['error']}", got.get("code"))
     return int(got["code"])
