@@ -15,6 +15,7 @@ The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -280,26 +281,18 @@ def _cmd_tune(args) -> int:
 def _cmd_gradient(args) -> int:
     """Gradient descent on the surrogate (`jaxsleigh.tuning.tune`), or `_cmd_tune_law` for another law."""
     from .. import tuning
-    from ..model.params import gains_to_dict, save_gains
+    from ..model.params import Gains, save_gains
 
     names = tuning.parse_tune(args.tune)
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
     plant, gains0 = model_from_args(args)
-    from ..model.params import Gains
-
     if not isinstance(gains0, Gains):
-        if args.rtol is not None or args.atol is not None:
-            raise ValueError("--rtol / --atol set the tolerance of the held-out check, which tune --controller "
-                             "does not run: drop them")
-        return _cmd_tune_law(args, plant, gains0)
+        return _tune_other_law(args, plant, gains0)
     ckpt = _checked_checkpoint(args, "tuning run")
-    config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
-                               n_attempts=args.n_attempts, probe_budget=args.probe_budget)
-    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
-                             energy_budget=math.inf if args.energy_budget is None else args.energy_budget)
+    config, loss = _tune_config(args), _loss_config(args)
     robust = tuning.PlantDistribution() if args.robust else None
-    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
+    command = _command(args)
     t0 = time.perf_counter()
     try:
         res = tuning.tune(gains0, config=config, loss=loss, tune=names, plant=None if args.robust else plant,
@@ -309,7 +302,82 @@ def _cmd_gradient(args) -> int:
     except tuning.TuningInterrupted as stop:
         return _gradient_interrupted(args, stop.partial, command)
     wall = time.perf_counter() - t0
-    meta = {
+    meta = _gradient_record(args, res, names, command, plant, wall)
+    print(f"{PROG} tune: loss {res.initial_loss:.4f} -> {res.best_loss:.4f} (iteration {res.best_iteration} of "
+          f"{res.settings['iterations_run']}), {wall:.1f} s wall ({res.settings['dtype']}, {args.mode} mode)")
+    save_gains(res.gains, args.out, **meta)   # written before the validation, so it cannot be lost
+    _save_tuned_history(args, res.history)
+    ckpt.unlink(missing_ok=True)
+    if args.validate:
+        _validate_tuned(args, res, plant, meta)
+    _print_written_gains(args, res.gains)
+    return 0
+
+
+def _save_tuned_history(args, history) -> None:
+    """``--history FILE.npz`` after gradient descent: write it and say where."""
+    if args.history:
+        from .. import tuning
+
+        print(f"{PROG} tune: wrote history {tuning.save_history(history, args.history)}")
+
+
+def _tune_other_law(args, plant, law) -> int:
+    """``tune --controller NAME``: `_cmd_tune_law`, after refusing --rtol / --atol (it runs no held-out check)."""
+    if args.rtol is not None or args.atol is not None:
+        raise ValueError("--rtol / --atol set the tolerance of the held-out check, which tune --controller "
+                         "does not run: drop them")
+    return _cmd_tune_law(args, plant, law)
+
+
+def _tune_config(args):
+    """The gradient optimiser's settings from the flags (`jaxsleigh.tuning.TuneConfig`)."""
+    from .. import tuning
+
+    return tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
+                             n_attempts=args.n_attempts, probe_budget=args.probe_budget)
+
+
+def _loss_config(args):
+    """The surrogate's settings from the flags (`jaxsleigh.tuning.LossConfig`); no --energy-budget: none (inf)."""
+    from .. import tuning
+
+    return tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
+                             energy_budget=math.inf if args.energy_budget is None else args.energy_budget)
+
+
+def _command(args) -> list:
+    """The command line recorded in the written files: the caller's argv, else `_canonical_argv`."""
+    return [PROG, *getattr(args, "_argv", _canonical_argv(args))]
+
+
+def _held_out_starts(args) -> np.ndarray:
+    """The ``--validate`` held-out starts (seed ``--seed + 1000``)."""
+    from .. import tuning
+
+    return tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
+
+
+def _held_out_rows(args, res, plant, stepsize, label) -> dict:
+    """The initial and the found gains of ``res`` measured on the held-out starts with the accurate engine."""
+    from .. import tuning
+
+    ics = _held_out_starts(args)
+    return {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, stepsize=stepsize),
+            label: tuning.validate(res.gains, ics, plant=plant, x64=args.x64, stepsize=stepsize)}
+
+
+def _print_written_gains(args, g) -> None:
+    """The closing line of a run that wrote one set of gains."""
+    print(f"{PROG} tune: wrote {args.out}: L = {np.round(g.L, 4).tolist()}, k = {float(g.k):.4g}, "
+          f"D_hat = {np.round(g.D_hat, 4).tolist()}")
+
+
+def _gradient_record(args, res, names, command, plant, wall) -> dict:
+    """What a gradient-tuned gains file records beside the gains: how and from what they were found."""
+    from ..model.params import gains_to_dict
+
+    return {
         "how": f"jaxsleigh tune: {res.settings['method']}",
         "command": command, "tuned": list(names), "initial_gains": gains_to_dict(res.initial),
         "initial_loss": res.initial_loss, "best_loss": res.best_loss, "best_iteration": res.best_iteration,
@@ -318,29 +386,21 @@ def _cmd_gradient(args) -> int:
         {"m": float(plant.m), "J": float(plant.J), "l": float(plant.l), "damping": args.damping},
         "objective": res.settings["loss"], "wall_s": wall,
     }
-    print(f"{PROG} tune: loss {res.initial_loss:.4f} -> {res.best_loss:.4f} (iteration {res.best_iteration} of "
-          f"{res.settings['iterations_run']}), {wall:.1f} s wall ({res.settings['dtype']}, {args.mode} mode)")
-    save_gains(res.gains, args.out, **meta)   # written before the validation, so it cannot be lost
-    if args.history:
-        path = tuning.save_history(res.history, args.history)
-        print(f"{PROG} tune: wrote history {path}")
-    ckpt.unlink(missing_ok=True)
-    if args.validate:
-        ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        ss = {"stepsize": _check_stepsize(args)}
-        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, **ss),
-                "tuned": tuning.validate(res.gains, ics, plant=plant, x64=args.x64, **ss)}
-        meta["validation"] = {k: {"n": v.n, "seed": args.seed + 1000, "rtol": args.rtol, "atol": args.atol,
-                                  "median_T_0.05": _num(v.median),
-                                  "median_se": _num(v.median_se), "frac_converged_100s": v.frac_converged,
-                                  "frac_se": v.frac_se, "n_failed": v.n_failed}
-                              for k, v in rows.items()}
-        print(tuning.markdown_table(rows))
-        save_gains(res.gains, args.out, **meta)
-    g = res.gains
-    print(f"{PROG} tune: wrote {args.out}: L = {np.round(g.L, 4).tolist()}, k = {float(g.k):.4g}, "
-          f"D_hat = {np.round(g.D_hat, 4).tolist()}")
-    return 0
+
+
+def _validate_tuned(args, res, plant, meta) -> None:
+    """``--validate N`` after gradient descent: print the held-out table and rewrite the file with it in ``meta``."""
+    from .. import tuning
+    from ..model.params import save_gains
+
+    rows = _held_out_rows(args, res, plant, _check_stepsize(args), "tuned")
+    meta["validation"] = {k: {"n": v.n, "seed": args.seed + 1000, "rtol": args.rtol, "atol": args.atol,
+                              "median_T_0.05": _num(v.median),
+                              "median_se": _num(v.median_se), "frac_converged_100s": v.frac_converged,
+                              "frac_se": v.frac_se, "n_failed": v.n_failed}
+                          for k, v in rows.items()}
+    print(tuning.markdown_table(rows))
+    save_gains(res.gains, args.out, **meta)
 
 
 def _gradient_interrupted(args, part, command) -> int:
@@ -440,24 +500,16 @@ def _write_search_history(args, history):
 def _cmd_search(args) -> int:
     """``jaxsleigh tune --search``: CMA-ES on the held-out figures themselves (`jaxsleigh.tuning.search`)."""
     from .. import tuning
-    from ..model.params import save_gains
     from ..tuning.cma_search import NoFeasibleCandidate
 
     _check_search(args)
     plant, gains0 = model_from_args(args)
     ckpt = _checked_checkpoint(args, "search")
-    names = tuning.parse_tune(args.tune)
-    config = tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
-                                 seed=args.seed, energy_margin=args.energy_margin,
-                                 energy_percentiles=args.energy_percentiles)
+    names, config = tuning.parse_tune(args.tune), _search_config(args)
     stepsize = _check_stepsize(args)
-    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
+    command = _command(args)
     t0 = time.perf_counter()
-
-    def write(res, **extra):
-        save_gains(res.gains, args.out, **_search_record(args, res, names, command, plant, **extra))
-        _write_search_history(args, res.history)
-
+    write = functools.partial(_write_search, args, names, command, plant)   # write(res, **extra)
     try:
         res = tuning.search(gains0, config=config, reference=gains0,
                             energy_budget=args.energy_budget, tune=names, plant=plant, x64=args.x64,
@@ -469,34 +521,63 @@ def _cmd_search(args) -> int:
     except RuntimeError as e:
         raise ValueError(str(e)) from None
     except tuning.TuningInterrupted as stop:
-        if stop.partial is None:
-            print(f"{PROG} tune: interrupted before any feasible candidate; nothing written. Continue with the "
-                  f"same command and --resume", file=sys.stderr)
-            return EXIT_INTERRUPTED
-        write(stop.partial, interrupted=True)
-        print(f"{PROG} tune: interrupted after {stop.partial.settings['generations_run']} generations; wrote the "
-              f"best feasible gains so far (not checked on the guard starts) to {args.out}; continue with the same "
-              f"command and --resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _search_interrupted(args, stop.partial, write)
     wall = time.perf_counter() - t0
+    _print_search_summary(args, res, wall)
+    write(res, wall_s=wall)
+    ckpt.unlink(missing_ok=True)
+    if args.validate:
+        _validate_searched(args, res, plant, stepsize, write, wall)
+    _print_written_gains(args, res.gains)
+    return 0
+
+
+def _search_config(args):
+    """The search's settings from the flags (`jaxsleigh.tuning.SearchConfig`)."""
+    from .. import tuning
+
+    return tuning.SearchConfig(generations=args.steps, population=args.population, batch=args.batch,
+                               seed=args.seed, energy_margin=args.energy_margin,
+                               energy_percentiles=args.energy_percentiles)
+
+
+def _validate_searched(args, res, plant, stepsize, write, wall) -> None:
+    """``--validate N`` after the search: print the held-out table and rewrite the file (``write``) with it."""
+    from .. import tuning
+
+    rows = _held_out_rows(args, res, plant, stepsize, "searched")
+    print(tuning.markdown_table(rows))
+    write(res, wall_s=wall, validation={k: tuning.validation_dict(v, seed=args.seed + 1000) for k, v in rows.items()})
+
+
+def _write_search(args, names, command, plant, res, **extra) -> None:
+    """Write the search's gains file (with `_search_record`) and its ``--history``."""
+    from ..model.params import save_gains
+
+    save_gains(res.gains, args.out, **_search_record(args, res, names, command, plant, **extra))
+    _write_search_history(args, res.history)
+
+
+def _search_interrupted(args, partial, write) -> int:
+    """Ctrl-C during the search: write the best feasible gains so far (if any) and say how to continue."""
+    if partial is None:
+        print(f"{PROG} tune: interrupted before any feasible candidate; nothing written. Continue with the "
+              f"same command and --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    write(partial, interrupted=True)
+    print(f"{PROG} tune: interrupted after {partial.settings['generations_run']} generations; wrote the "
+          f"best feasible gains so far (not checked on the guard starts) to {args.out}; continue with the same "
+          f"command and --resume", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _print_search_summary(args, res, wall) -> None:
+    """The search's training figures, reference -> found."""
     f, r = res.figures, res.reference
     print(f"{PROG} tune --search: median T_0.05 {r['median_T']:.2f} s -> {f['median_T']:.2f} s on the {args.batch} "
           f"training starts, median energy {r['median_energy']:.4g} -> {f['median_energy']:.4g} (budget "
           f"{r['energy_budget']:.4g}), converged {r['frac_converged']:.3f} -> {f['frac_converged']:.3f}; "
           f"generation {res.best_generation} of {res.settings['generations_run']}, {wall:.1f} s wall")
-    write(res, wall_s=wall)
-    ckpt.unlink(missing_ok=True)
-    if args.validate:
-        ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
-        rows = {"initial": tuning.validate(res.initial, ics, plant=plant, x64=args.x64, stepsize=stepsize),
-                "searched": tuning.validate(res.gains, ics, plant=plant, x64=args.x64, stepsize=stepsize)}
-        print(tuning.markdown_table(rows))
-        write(res, wall_s=wall, validation={k: tuning.validation_dict(v, seed=args.seed + 1000)
-                                            for k, v in rows.items()})
-    g = res.gains
-    print(f"{PROG} tune: wrote {args.out}: L = {np.round(g.L, 4).tolist()}, k = {float(g.k):.4g}, "
-          f"D_hat = {np.round(g.D_hat, 4).tolist()}")
-    return 0
 
 
 def _earlier_front(args):
@@ -554,7 +635,7 @@ def _validated_front(args, front, budgets, kw):
 
     if not args.validate:
         return front, {}, None
-    ics = tuning.UniformStarts()(np.random.default_rng(args.seed + 1000), args.validate)
+    ics = _held_out_starts(args)
     ss = {"plant": kw["plant"], "x64": args.x64, "stepsize": _check_stepsize(args)}
     front = tuning.evaluate_front(front, ics, **ss)
     refs = {"paper": tuning.validate("paper", ics, **ss), "tuned": tuning.validate("tuned", ics, **ss)}
@@ -570,22 +651,15 @@ def _cmd_pareto(args) -> int:
     """``jaxsleigh tune --pareto N``: the time-effort front, kept after every point, checked on held-out starts."""
     from .. import tuning
     from ..model.params import gains_to_dict, load_gains
-    from ..tuning.pareto import _front_settings, finished_points
 
     earlier = _earlier_front(args)
     plant, gains0 = model_from_args(args)
     names = tuning.parse_tune(args.tune)
-    config = tuning.TuneConfig(steps=args.steps, batch=args.batch, seed=args.seed, lr=args.lr, mode=args.mode,
-                               n_attempts=args.n_attempts, probe_budget=args.probe_budget)
-    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction)
+    config, loss = _tune_config(args), _loss_config(args)   # --pareto refused --energy-budget: none here
     kw = dict(config=config, loss=loss, plant=plant, x64=args.x64)
     budgets = _front_budgets(args, kw)
-    command = [PROG, *getattr(args, "_argv", _canonical_argv(args))]
-    done = None
-    if earlier is not None:
-        warm = max(1, config.steps // 2) if args.warm_steps is None else int(args.warm_steps)
-        done = finished_points(earlier, _front_settings("warm", np.sort(budgets), config, loss, warm, args.x64,
-                                                        gains0, names, tuning.UniformStarts()))
+    command = _command(args)
+    done = None if earlier is None else _resumed_points(args, earlier, budgets, kw, gains0, names)
     initial = {"initial_gains": gains_to_dict(load_gains(gains0))}
 
     def keep(part):
@@ -596,18 +670,43 @@ def _cmd_pareto(args) -> int:
         front = tuning.pareto_front(budgets, method=args.front_method, gains0=gains0, warm_steps=args.warm_steps,
                                     tune_names=names, progress=args.progress, on_point=keep, done=done, **kw)
     except tuning.TuningInterrupted as stop:
-        if stop.partial is None:
-            print(f"{PROG} tune: interrupted before the first point of the front was finished; nothing written",
-                  file=sys.stderr)
-        else:
-            keep(stop.partial)
-            print(f"{PROG} tune: interrupted after {len(stop.partial.points)} of {len(budgets)} points; wrote them "
-                  f"to {args.out} (\"interrupted\": true, not evaluated on held-out starts); continue with the same "
-                  f"command and --resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _front_interrupted(args, stop.partial, len(budgets), keep)
     print(f"{PROG} tune: {len(front.points)} points ({args.front_method}) in {front.wall_s:.1f} s, "
           f"{front.evaluations} objective evaluations")
     front, refs, baseline = _validated_front(args, front, budgets, kw)
+    _save_front(args, front, refs, baseline, command, initial)
+    print(f"{PROG} tune: wrote {args.out}" + (f" and {args.plot}" if args.plot and args.validate else ""))
+    return 0
+
+
+def _resumed_points(args, earlier, budgets, kw, gains0, names):
+    """The points of the interrupted front ``earlier`` that ``--resume`` keeps (those computed as this run would)."""
+    from .. import tuning
+    from ..tuning.pareto import _front_settings, finished_points
+
+    config = kw["config"]
+    warm = max(1, config.steps // 2) if args.warm_steps is None else int(args.warm_steps)
+    return finished_points(earlier, _front_settings("warm", np.sort(budgets), config, kw["loss"], warm, args.x64,
+                                                    gains0, names, tuning.UniformStarts()))
+
+
+def _front_interrupted(args, partial, n_budgets, keep) -> int:
+    """Ctrl-C during the front: keep the finished points (if any) and say how to continue."""
+    if partial is None:
+        print(f"{PROG} tune: interrupted before the first point of the front was finished; nothing written",
+              file=sys.stderr)
+    else:
+        keep(partial)
+        print(f"{PROG} tune: interrupted after {len(partial.points)} of {n_budgets} points; wrote them "
+              f"to {args.out} (\"interrupted\": true, not evaluated on held-out starts); continue with the same "
+              f"command and --resume", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _save_front(args, front, refs, baseline, command, initial) -> None:
+    """Write the finished front (references, held-out settings, baseline) and, with ``--plot``, its figure."""
+    from .. import tuning
+
     meta = {"command": command, "held_out": {"n": args.validate, "seed": args.seed + 1000, "rtol": args.rtol,
                                              "atol": args.atol, "starts": repr(tuning.UniformStarts())}, **initial}
     if baseline is not None:
@@ -618,8 +717,6 @@ def _cmd_pareto(args) -> int:
 
         doc = tuning.load_front(args.out)
         tp.save_figure(tp.plot_front(doc, baseline=doc.get("baseline")), args.plot)
-    print(f"{PROG} tune: wrote {args.out}" + (f" and {args.plot}" if args.plot and args.validate else ""))
-    return 0
 
 
 def _canonical_argv(args) -> list:
