@@ -45,6 +45,25 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     Returns:
       The `matplotlib.figure.Figure`.
     """
+    loss, valid, best, gnorm, L, k, D, probe = _history_arrays(history)
+    it = np.arange(loss.size)
+    fig, axes, own = _four_axes(axes)
+    _draw_loss(axes[0], it, loss, valid, best)
+    ax = axes[1]
+    ax.semilogy(it, gnorm, color="C1", linewidth=1)
+    ax.set_ylabel("‖∇ loss‖ (log-gains)")
+    ax.grid(True, alpha=0.3, which="both")
+    _draw_probe(axes[2], it, probe, valid, probe_budget)
+    _draw_gains(axes[3], it, L, k, D)
+    axes[0].set_xlim(0, max(1, loss.size - 1))
+    if own:
+        fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def _history_arrays(history):
+    """``(loss, valid, best, grad_norm, L, k, D_hat, probe_attempts)`` of ``history`` as arrays (the probe all NaN
+    when the history has none)."""
     loss = np.asarray(_field(history, "loss"), float)
     valid = np.asarray(_field(history, "valid"), bool)
     best = np.asarray(_field(history, "best"), float)
@@ -56,18 +75,23 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
         probe = np.asarray(_field(history, "probe_attempts"), float)
     except (KeyError, AttributeError):
         probe = np.full(loss.size, np.nan)
-    it = np.arange(loss.size)
+    return loss, valid, best, gnorm, L, k, D, probe
+
+
+def _four_axes(axes):
+    """``(fig, axes, own)``: four stacked axes of a new figure (``own=True``) when ``axes`` is ``None``, else the
+    four given and their figure."""
     if axes is None:
         fig = new_figure((7.0, 9.5))
-        axes = fig.subplots(4, 1, sharex=True)
-        own = True
-    else:
-        axes = list(axes)
-        if len(axes) != 4:
-            raise ValueError(f"need 4 axes, got {len(axes)}")
-        fig = axes[0].figure
-        own = False
-    ax = axes[0]
+        return fig, fig.subplots(4, 1, sharex=True), True
+    axes = list(axes)
+    if len(axes) != 4:
+        raise ValueError(f"need 4 axes, got {len(axes)}")
+    return axes[0].figure, axes, False
+
+
+def _draw_loss(ax, it, loss, valid, best):
+    """The candidates' loss (valid, and rejected ones at their loss or the largest valid one) and the running best."""
     ax.plot(it[valid], loss[valid], ".-", color="C0", markersize=3, linewidth=1, label="candidate (valid)")
     if np.any(~valid):
         ax.plot(it[~valid], np.where(np.isfinite(loss[~valid]), loss[~valid], np.nanmax(loss[valid])), "x",
@@ -76,11 +100,10 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     ax.set_ylabel("loss (soft time outside\n|q| ≤ ε, ÷ horizon)")
     ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
-    ax = axes[1]
-    ax.semilogy(it, gnorm, color="C1", linewidth=1)
-    ax.set_ylabel("‖∇ loss‖ (log-gains)")
-    ax.grid(True, alpha=0.3, which="both")
-    ax = axes[2]
+
+
+def _draw_probe(ax, it, probe, valid, probe_budget):
+    """The probe's most attempted steps per iteration (valid and rejected candidates), and its budget if given."""
     shown = np.isfinite(probe)
     ax.semilogy(it[shown & valid], probe[shown & valid], ".", color="C2", markersize=3, label="probe (valid)")
     if np.any(shown & ~valid):
@@ -90,7 +113,10 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     ax.set_ylabel("most attempted steps\nof a probe per 100 s")
     ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3, which="both")
-    ax = axes[3]
+
+
+def _draw_gains(ax, it, L, k, D):
+    """The gains per iteration: L1..L3, k and the extreme eigenvalues of D_hat's symmetric part."""
     for i in range(3):
         ax.semilogy(it, L[:, i], color=f"C{i}", label=f"L{i + 1}")
     ax.semilogy(it, k, color="C3", label="k")
@@ -101,10 +127,6 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     ax.set_xlabel("iteration")
     ax.legend(fontsize=8, ncol=3)
     ax.grid(True, alpha=0.3, which="both")
-    axes[0].set_xlim(0, max(1, loss.size - 1))
-    if own:
-        fig.suptitle(title, fontsize=11)
-    return fig
 
 
 def plot_paths_before_after(before, after, *, names: Sequence[str] = ("paper gains", "tuned gains"),

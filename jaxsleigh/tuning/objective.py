@@ -148,8 +148,29 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
     infinities turn the gradient into NaN. The adaptive controller grows the step back within a
     few steps.
     """
-    dtype = y0w.dtype
-    n = y0w.shape[0]
+    n, dtype = y0w.shape[0], y0w.dtype
+    args, ctl, terms = _soft_setup(gains, plant, cfg, t_final, n_attempts, dtype)
+    s0 = _initial_states(y0w, args, ctl, adaptive)
+    s, soft, bar, (energy, _, peak2) = _integrate_soft(s0, n, dtype, args, ctl, terms, n_attempts=n_attempts,
+                                                       segment=segment, adaptive=adaptive)
+    return _lane_summary(s, soft, bar, energy, peak2, terms)
+
+
+class _SoftTerms(NamedTuple):
+    """The constants of the soft-time integrand, in the batch's dtype: the chart of the gains, the horizon
+    ``T``, the ball radius ``eps``, the temperature ``tau``, the barrier angle ``theta_b`` and the squared
+    stopping radius ``r_stop2``."""
+
+    chart: Any
+    T: jax.Array
+    eps: jax.Array
+    tau: jax.Array
+    theta_b: jax.Array
+    r_stop2: jax.Array
+
+
+def _soft_setup(gains, plant, cfg: LossConfig, t_final, n_attempts, dtype):
+    """The closed loop, the stepper's controls and the integrand's `_SoftTerms` of `soft_convergence`."""
     plant = _cast_plant(plant, dtype)
     chart = chart_for(gains)
     gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
@@ -160,32 +181,56 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
     eps, tau = jnp.asarray(cfg.eps, dtype), jnp.asarray(cfg.temperature, dtype)
     theta_b = jnp.asarray(cfg.theta_barrier, dtype)
     r_stop2 = jnp.square(jnp.asarray(cfg.stop_fraction, dtype) * eps)
-    in_axes = (0, 0, ClosedLoop(_plant_axes(plant), None), None)
+    return args, ctl, _SoftTerms(chart, T, eps, tau, theta_b, r_stop2)
+
+
+def _initial_states(y0w, args: ClosedLoop, ctl: Controls, adaptive: bool) -> StepState:
+    """The batch's stepper states (batch-last) at the starts ``y0w``, with the starting step when adaptive."""
+    n = y0w.shape[0]
+    in_axes = (0, 0, ClosedLoop(_plant_axes(args.plant), None), None)
     s0 = jax.vmap(functools.partial(init_state, observers=_OBSERVERS), in_axes=in_axes,
                   out_axes=-1)(y0w, jnp.zeros(n, jnp.int32), args, ctl)
     if adaptive:
         s0 = starting_step(s0, ctl)
+    return s0
 
-    def target_of(s: StepState):
-        # a lane in the stopping ball idles: its target is where it is
-        stop = jax.lax.stop_gradient(chart.q_norm2(s.y) <= r_stop2)
-        return jnp.where(stop, s.t, T)
 
+def _target_of(s: StepState, terms: _SoftTerms):
+    # a lane in the stopping ball idles: its target is where it is
+    stop = jax.lax.stop_gradient(terms.chart.q_norm2(s.y) <= terms.r_stop2)
+    return jnp.where(stop, s.t, terms.T)
+
+
+def _soft_and_barrier(soft, bar, h, y0, y1, terms: _SoftTerms):
+    """``S`` and ``B`` advanced by the trapezoid over a step of length ``h`` from ``y0`` to ``y1``."""
+    eps, tau, theta_b, chart = terms.eps, terms.tau, terms.theta_b, terms.chart
+    phi0, phi1 = soft_indicator(y0, eps, tau, chart), soft_indicator(y1, eps, tau, chart)
+    soft = soft + h * 0.5 * (phi0 + phi1)
+    bar = bar + h * 0.5 * (phi0 * _near_singular(y0, theta_b, chart) + phi1 * _near_singular(y1, theta_b, chart))
+    return soft, bar
+
+
+def _effort(effort, h, y1, args: ClosedLoop, chart):
+    """``(energy, e0, peak2)`` advanced over a step of length ``h`` ending at ``y1``."""
+    energy, e0, peak2 = effort
+    # control energy, trapezoid on the accepted step like S (u is carried: one evaluation per attempt)
+    e1 = _effort_rate(y1, args, chart)
+    energy = energy + h * 0.5 * (e0 + e1)
+    accepted = jax.lax.stop_gradient(h > 0)
+    e0 = jnp.where(accepted, e1, e0)
+    peak2 = jnp.where(accepted, jnp.maximum(peak2, e1), peak2)
+    return energy, e0, peak2
+
+
+def _integrate_soft(s0, n, dtype, args: ClosedLoop, ctl: Controls, terms: _SoftTerms, *, n_attempts: int,
+                    segment: int, adaptive: bool):
+    """The checkpointed segments of `soft_convergence`: ``(state, S, B, (energy, last |u|^2, peak |u|^2))``."""
     def body(carry, _):
-        s, soft, bar, (energy, e0, peak2) = carry
-        s_new = attempt(s, target_of(s), args, ctl, adaptive=adaptive, observers=_OBSERVERS)
+        s, soft, bar, effort = carry
+        s_new = attempt(s, _target_of(s, terms), args, ctl, adaptive=adaptive, observers=_OBSERVERS)
         h = (s_new.t - s.t) + (s_new.t_lo - s.t_lo)       # 0 unless accepted; no gradient (times are fixed)
-        phi0, phi1 = soft_indicator(s.y, eps, tau, chart), soft_indicator(s_new.y, eps, tau, chart)
-        soft = soft + h * 0.5 * (phi0 + phi1)
-        bar = bar + h * 0.5 * (phi0 * _near_singular(s.y, theta_b, chart) + phi1 * _near_singular(s_new.y, theta_b,
-                                                                                                    chart))
-        # control energy, trapezoid on the accepted step like S (u is carried: one evaluation per attempt)
-        e1 = _effort_rate(s_new.y, args, chart)
-        energy = energy + h * 0.5 * (e0 + e1)
-        accepted = jax.lax.stop_gradient(h > 0)
-        e0 = jnp.where(accepted, e1, e0)
-        peak2 = jnp.where(accepted, jnp.maximum(peak2, e1), peak2)
-        return (s_new, soft, bar, (energy, e0, peak2)), None
+        soft, bar = _soft_and_barrier(soft, bar, h, s.y, s_new.y, terms)
+        return (s_new, soft, bar, _effort(effort, h, s_new.y, args, terms.chart)), None
 
     @functools.partial(jax.checkpoint, prevent_cse=False)
     def run_segment(carry):
@@ -193,20 +238,25 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
 
     def outer(carry, _):
         s = carry[0]
-        busy = jnp.any(is_active(s, target_of(s), ctl))
+        busy = jnp.any(is_active(s, _target_of(s, terms), ctl))
         return jax.lax.cond(busy, run_segment, lambda c: c, carry), None
 
     zeros = jnp.zeros(n, dtype)
-    e_start = _effort_rate(s0.y, args, chart)
-    (s, soft, bar, (energy, _, peak2)), _ = jax.lax.scan(outer, (s0, zeros, zeros, (zeros, e_start, e_start)), None,
-                                                         length=-(-int(n_attempts) // segment))
-    stopped = chart.q_norm2(s.y) <= r_stop2
+    e_start = _effort_rate(s0.y, args, terms.chart)
+    return jax.lax.scan(outer, (s0, zeros, zeros, (zeros, e_start, e_start)), None,
+                        length=-(-int(n_attempts) // segment))[0]
+
+
+def _lane_summary(s: StepState, soft, bar, energy, peak2, terms: _SoftTerms) -> LaneSummary:
+    """The `LaneSummary` of the final states ``s`` and the accumulated integrals."""
+    T = terms.T
+    stopped = terms.chart.q_norm2(s.y) <= terms.r_stop2
     ok = (s.status == Status.OK) & (stopped | (s.t >= T))
     # a failed lane counts as never converging for the rest of the horizon (value only)
     soft = soft + jax.lax.stop_gradient(jnp.where(ok, 0.0, jnp.maximum(T - s.t, 0.0)))
     (min_abs_theta,), (max_q2,) = s.obs
     lanes = LaneSummary(soft, bar, ok, stopped, s.t, s.status, s.n_accept + s.n_reject, min_abs_theta,
-                       jnp.sqrt(max_q2))
+                        jnp.sqrt(max_q2))
     return lanes._replace(u_energy=energy, u_norm_peak=jnp.sqrt(peak2))
 
 

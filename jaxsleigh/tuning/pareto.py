@@ -135,6 +135,22 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     Raises:
       TuningInterrupted: Ctrl-C; its ``partial`` is the `Front` of the finished points (``None`` if none).
     """
+    budgets = _checked_budgets(method, budgets)
+    t0 = time.perf_counter()
+    if method == "warm":
+        warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
+        points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, gains0=gains0, starts=starts,
+                                    config=config, loss=loss, tune_names=tune_names, plant=plant, x64=x64,
+                                    d_floor=d_floor, progress=progress)
+    else:
+        points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress)
+    wall = time.perf_counter() - t0
+    settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+    return Front(points, method, wall, evals, settings)
+
+
+def _checked_budgets(method, budgets) -> np.ndarray:
+    """``budgets`` sorted increasing as float64, after checking ``method``, their values and their number."""
     if method not in FRONT_METHODS:
         raise ValueError(f"method must be one of {FRONT_METHODS}, got {method!r}")
     budgets = np.sort(np.asarray(budgets, np.float64).ravel())
@@ -145,44 +161,48 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     check_count("pareto_front: the number of budgets", budgets.size, maximum=MAX_FRONT_POINTS,
                 reason="every point is a whole tuning run (seconds to minutes each)",
                 fix="compute fewer points, or several fronts over narrower budget ranges")
-    t0 = time.perf_counter()
-    if method == "warm":
-        warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
-        # the chain starts at the budget nearest the starting gains' own energy (gains0 is feasible
-        # there, nothing to undo), goes up the front, then down from its first point
-        e0 = training_energy(gains0, starts=starts, config=config, loss=loss, plant=plant, x64=x64,
-                             d_floor=d_floor)["energy"]
-        j0 = int(np.argmin(np.abs(np.log(budgets) - math.log(e0))))
-        order = list(range(j0, budgets.size)) + list(range(j0 - 1, -1, -1))
-        found = dict(done or {})
-        evals = 1 + sum(int(p.train.get("iterations_run", 0)) for p in found.values())
-        settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+    return budgets
 
-        def so_far():
-            return Front([found[j] for j in sorted(found)], method, time.perf_counter() - t0, evals, settings)
 
-        try:
-            for j in order:
-                if j in found:                     # finished by the interrupted run this one resumes
-                    continue
-                src = found.get(j - 1 if j > j0 else j + 1)
-                g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
-                cfg_j = config if src is None else config._replace(steps=warm_steps, warmup=1)
-                res = tune(g, starts=starts, config=cfg_j,
-                           loss=loss._replace(energy_budget=float(budgets[j]), multiplier=lam),
-                           tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
-                evals += res.settings["iterations_run"]
-                found[j] = _point(budgets[j], res.gains, res.history, res.best_iteration, res.settings)
-                if on_point is not None:
-                    on_point(so_far())
-        except KeyboardInterrupt:
-            raise TuningInterrupted(so_far() if found else None, None) from None
-        points = [found[j] for j in range(budgets.size)]
-    else:
-        points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress)
-    wall = time.perf_counter() - t0
-    settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
-    return Front(points, method, wall, evals, settings)
+def _front_warm(budgets, t0, warm_steps, on_point, done, *, gains0, starts, config, loss, tune_names, plant, x64,
+                d_floor, progress):
+    """``(points, evaluations)`` of the ``"warm"`` chain (`pareto_front`); ``t0``: the front's start time."""
+    # the chain starts at the budget nearest the starting gains' own energy (gains0 is feasible
+    # there, nothing to undo), goes up the front, then down from its first point
+    e0 = training_energy(gains0, starts=starts, config=config, loss=loss, plant=plant, x64=x64,
+                         d_floor=d_floor)["energy"]
+    j0 = int(np.argmin(np.abs(np.log(budgets) - math.log(e0))))
+    order = list(range(j0, budgets.size)) + list(range(j0 - 1, -1, -1))
+    found = dict(done or {})
+    evals = 1 + sum(int(p.train.get("iterations_run", 0)) for p in found.values())
+    settings = _front_settings("warm", budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+
+    def so_far():
+        return Front([found[j] for j in sorted(found)], "warm", time.perf_counter() - t0, evals, settings)
+
+    try:
+        for j in order:
+            if j in found:                     # finished by the interrupted run this one resumes
+                continue
+            res = _warm_tune(budgets[j], found.get(j - 1 if j > j0 else j + 1), warm_steps, gains0=gains0,
+                             starts=starts, config=config, loss=loss, tune_names=tune_names, plant=plant, x64=x64,
+                             d_floor=d_floor, progress=progress)
+            evals += res.settings["iterations_run"]
+            found[j] = _point(budgets[j], res.gains, res.history, res.best_iteration, res.settings)
+            if on_point is not None:
+                on_point(so_far())
+    except KeyboardInterrupt:
+        raise TuningInterrupted(so_far() if found else None, None) from None
+    return [found[j] for j in range(budgets.size)], evals
+
+
+def _warm_tune(budget, src, warm_steps, *, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress):
+    """`tune` for ``budget`` started from the neighbouring point ``src`` (its gains and multiplier,
+    ``warm_steps`` iterations), or from ``gains0`` with ``config.steps`` iterations when there is none."""
+    g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
+    cfg_j = config if src is None else config._replace(steps=warm_steps, warmup=1)
+    return tune(g, starts=starts, config=cfg_j, loss=loss._replace(energy_budget=float(budget), multiplier=lam),
+                tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
 
 
 def _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts) -> dict:
@@ -234,55 +254,87 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
         trainable, frozen = split_params(theta, names)
         trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (nb,) + jnp.shape(x)), trainable)
-        vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
-                                 d_floor=d_floor)
-        cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
-        vgb = jax.jit(jax.vmap(vg, in_axes=(0, None, None, cfg_axes)))
-        opt = make_optimizer(config.lr, config.steps, clip=config.clip, warmup=config.warmup,
-                             final_lr=config.final_lr)
-        opt_state = jax.vmap(opt.init)(trainable)
-        stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: _step(opt, tr, st, gr, v)))
+        vgb, opt_state, stepb = _vmapped_optimiser(config, d_floor, trainable)
         groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
         ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
-        alive = np.ones(nb, bool)
-        t_start = time.perf_counter()
-        evals = 0
-        with Progress(progress, desc=f"front (vmap x{nb})") as bar:
-            for it in range(config.steps):
-                lam = np.array([t.lam for t in tracks])
-                c = cfg._replace(energy_budget=jnp.asarray(budgets, dtype), multiplier=jnp.asarray(lam, dtype))
-                (values, aux), grads = vgb(trainable, frozen, data, c)
-                evals += int(alive.sum())
-                gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
-                ok = np.asarray(aux["valid"]) & np.isfinite(gn)
-                scales = np.asarray(opt_state.scale)
-                for b, track in enumerate(tracks):
-                    if not alive[b]:
-                        ok[b] = False
-                        continue
-                    tr_b = jax.tree_util.tree_map(lambda x: x[b], trainable)
-                    aux_b = jax.tree_util.tree_map(lambda x: x[b], aux)
-                    ok[b] = track.assess(it, float(values[b]), float(gn[b]), bool(ok[b]), tr_b, aux_b, float(scales[b]),
-                                         ctx, time.perf_counter() - t_start,
-                                         lambda *_, b=b: f"the starting gains are not a valid candidate for budget "
-                                                         f"{budgets[b]:.4g}")
-                trainable, opt_state = stepb(trainable, opt_state, grads, jnp.asarray(ok))
-                rej = np.array([t.rejections for t in tracks])
-                alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
-                bar.update((it + 1) / config.steps)
-                bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in tracks if t.rows)))
-                if not alive.any():
-                    break
+        evals = _vmap_iterations(budgets, tracks, ctx, vgb, stepb, trainable, opt_state, frozen, data, cfg, dtype,
+                                 progress)
+    return _verified_points(budgets, tracks, ctx, ics, groups), evals
+
+
+def _vmapped_optimiser(config, d_floor, trainable):
+    """``(vgb, opt_state, stepb)``: the objective's value and gradient, jitted and vmapped over the budgets (the
+    energy budget and the multiplier of the `LossConfig` mapped), the optimiser's state for the budgets'
+    ``trainable``, and its step, jitted and vmapped."""
+    vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
+                             d_floor=d_floor)
+    cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
+    vgb = jax.jit(jax.vmap(vg, in_axes=(0, None, None, cfg_axes)))
+    opt = make_optimizer(config.lr, config.steps, clip=config.clip, warmup=config.warmup,
+                         final_lr=config.final_lr)
+    opt_state = jax.vmap(opt.init)(trainable)
+    stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: _step(opt, tr, st, gr, v)))
+    return vgb, opt_state, stepb
+
+
+def _vmap_iterations(budgets, tracks, ctx, vgb, stepb, trainable, opt_state, frozen, data, cfg, dtype,
+                     progress) -> int:
+    """Run the vmapped optimiser until ``config.steps`` iterations or every budget's track stops; the tracks
+    record each candidate. Returns the number of objective evaluations (of budgets still alive)."""
+    config = ctx.config
+    nb = budgets.size
+    alive = np.ones(nb, bool)
+    t_start = time.perf_counter()
+    evals = 0
+    with Progress(progress, desc=f"front (vmap x{nb})") as bar:
+        for it in range(config.steps):
+            lam = np.array([t.lam for t in tracks])
+            c = cfg._replace(energy_budget=jnp.asarray(budgets, dtype), multiplier=jnp.asarray(lam, dtype))
+            (values, aux), grads = vgb(trainable, frozen, data, c)
+            evals += int(alive.sum())
+            gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
+            ok = np.asarray(aux["valid"]) & np.isfinite(gn)
+            ok = _assess_candidates(it, budgets, tracks, alive, ok, values, gn, trainable, aux, opt_state, ctx, t_start)
+            trainable, opt_state = stepb(trainable, opt_state, grads, jnp.asarray(ok))
+            rej = np.array([t.rejections for t in tracks])
+            alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
+            bar.update((it + 1) / config.steps)
+            bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in tracks if t.rows)))
+            if not alive.any():
+                break
+    return evals
+
+
+def _assess_candidates(it, budgets, tracks, alive, ok, values, gn, trainable, aux, opt_state, ctx, t_start):
+    """``ok`` (per budget) after each alive budget's track has assessed its candidate of iteration ``it``; a
+    stopped budget's is ``False``."""
+    scales = np.asarray(opt_state.scale)
+    for b, track in enumerate(tracks):
+        if not alive[b]:
+            ok[b] = False
+            continue
+        tr_b = jax.tree_util.tree_map(lambda x: x[b], trainable)
+        aux_b = jax.tree_util.tree_map(lambda x: x[b], aux)
+        ok[b] = track.assess(it, float(values[b]), float(gn[b]), bool(ok[b]), tr_b, aux_b, float(scales[b]),
+                             ctx, time.perf_counter() - t_start,
+                             lambda *_, b=b: f"the starting gains are not a valid candidate for budget "
+                                             f"{budgets[b]:.4g}")
+    return ok
+
+
+def _verified_points(budgets, tracks, ctx, ics, groups) -> list:
+    """Each budget's `FrontPoint`: its best candidate that passes the final check on the training and guard
+    starts (``RuntimeError`` if none does)."""
     points = []
     guard_ics = guard_starts()
     checks = [(ics[idx], p0) for idx, _, p0 in groups] + [(guard_ics, groups[0][2])]
     for b, track in enumerate(tracks):
-        cand, g, pa, _ = track.verify(ctx, checks, int(config.verify))
+        cand, g, pa, _ = track.verify(ctx, checks, int(ctx.config.verify))
         if cand is None:
             raise RuntimeError(f"no candidate for budget {budgets[b]:.4g} passed the final check")
         points.append(_point(budgets[b], g, track.history(), cand[1], {"probe_at_result": pa}))
-    return points, evals
+    return points
 
 
 def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: TuneConfig = TuneConfig(),
