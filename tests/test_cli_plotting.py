@@ -452,3 +452,32 @@ def test_reported_wall_time_includes_start_up_and_imports(tmp_path):
 
     secs, origin = process_elapsed()
     assert origin == "since the process started" and secs > 0
+
+
+def _history(valid, loss):
+    n = len(valid)
+    return {"loss": np.asarray(loss, float), "valid": np.asarray(valid, bool),
+            "best": np.minimum.accumulate(np.where(valid, loss, np.inf)), "grad_norm": np.linspace(1.0, 0.1, n),
+            "L": np.tile([1.0, 2.0, 3.0], (n, 1)), "k": np.full(n, 0.5), "D_hat": np.tile(np.eye(2), (n, 1, 1)),
+            "probe_attempts": np.linspace(100.0, 200.0, n)}
+
+
+@pytest.mark.parametrize("valid, loss, top", [
+    ([True, False, True, False], [0.8, np.nan, 0.5, 0.9], 0.8),      # non-finite rejected: at the largest valid loss
+    ([False, False, False], [np.nan, 2.0, np.inf], 2.0),            # none valid: at the largest finite loss
+    ([False, False], [np.nan, np.nan], 1.0),                        # none finite: at 1
+])
+def test_plot_history_draws_rejected_candidates_even_when_none_is_valid(valid, loss, top):
+    """A tuning run whose every candidate was rejected is what one most wants to look at: `plot_history` draws
+    it (it failed on numpy's empty reduction before) with the rejected marks at finite heights."""
+    from jaxsleigh.plots.tuning import plot_history
+
+    fig = plot_history(_history(valid, loss), probe_budget=150.0)
+    ax = fig.axes[0]
+    rejected = [ln for ln in ax.get_lines() if ln.get_label().startswith("rejected")]
+    assert len(rejected) == 1 and len(fig.axes) == 4
+    y = np.asarray(rejected[0].get_ydata(), float)
+    expect = np.where(np.isfinite(np.asarray(loss)[~np.asarray(valid)]), np.asarray(loss)[~np.asarray(valid)], top)
+    np.testing.assert_array_equal(y, expect)
+    assert np.all(np.isfinite(y))
+    assert fig._suptitle.get_text() == "Gain tuning"

@@ -91,10 +91,13 @@ def _four_axes(axes):
 
 
 def _draw_loss(ax, it, loss, valid, best):
-    """The candidates' loss (valid, and rejected ones at their loss or the largest valid one) and the running best."""
+    """The candidates' loss (valid, and rejected ones at their loss or, non-finite, at the largest valid one: the
+    largest finite one, or 1, when no candidate was valid) and the running best."""
     ax.plot(it[valid], loss[valid], ".-", color="C0", markersize=3, linewidth=1, label="candidate (valid)")
     if np.any(~valid):
-        ax.plot(it[~valid], np.where(np.isfinite(loss[~valid]), loss[~valid], np.nanmax(loss[valid])), "x",
+        finite = loss[np.isfinite(loss)]
+        top = np.nanmax(loss[valid]) if valid.any() else (finite.max() if finite.size else 1.0)
+        ax.plot(it[~valid], np.where(np.isfinite(loss[~valid]), loss[~valid], top), "x",
                 color="C3", label="rejected (failed lane, probe over budget or non-finite)")
     ax.plot(it, best, color="k", linewidth=1.2, label="best valid")
     ax.set_ylabel("loss (soft time outside\n|q| ≤ ε, ÷ horizon)")
