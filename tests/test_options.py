@@ -15,6 +15,25 @@ def test_every_front_takes_at_most_13_parameters(front):
     assert len(inspect.signature(front).parameters) <= 13, inspect.signature(front)
 
 
+#: the keywords of jaxsleigh 0.1: each lives in one of the three objects, and only the fronts take them loose
+OLD_KEYWORDS = {"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "save_every", "summaries",
+                "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume", "progress", "shard", "policy"}
+
+
+@pytest.mark.parametrize("engine", ["ensemble._run_ensemble", "basin._run_basin", "sweep._sweep",
+                                    "simulate._simulate"])
+def test_the_engine_behind_each_front_takes_the_option_objects_whole(engine):
+    """The objects go down as they are: the engine behind a front takes ``stepsize`` and ``run`` (not their
+    fields one by one, as it did with 15-26 parameters) and at most 13 parameters in all."""
+    import importlib
+
+    module, name = engine.split(".")
+    params = inspect.signature(getattr(importlib.import_module(f"jaxsleigh.studies.{module}"), name)).parameters
+    assert {"stepsize", "run"} <= set(params), engine
+    assert not OLD_KEYWORDS & set(params), sorted(OLD_KEYWORDS & set(params))
+    assert len(params) <= 13, list(params)
+
+
 def test_objects_and_old_keywords_give_the_same_numbers():
     a = js.run_ensemble(STARTS, t_final=5.0, stepsize=js.StepSizeController(rtol=1e-7, atol=1e-7, max_step=0.5),
                         saveat=js.SaveAt(every=100), run=js.RunOptions(chunk_size=2, segment=200))

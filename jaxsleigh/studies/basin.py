@@ -41,7 +41,7 @@ import numpy as np
 from .config import reject_traced
 from ..cores import default_chunk_size
 from .ensemble import _run_ensemble
-from .options import RunOptions, front_options
+from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
 from ..files.npz import parse_number as _number
@@ -455,45 +455,20 @@ class BasinResult(NamedTuple):
                 f"p75 {p['p75']:.3g}, p90 {p['p90']:.3g}")
 
 
-def _run_basin(starts, *, eps: float = 0.05, t_final: float = 100.0, dt: float = 0.01,
-              method: str = "adaptive", plant: Optional[PlantParams] = None, gains: Optional[Gains] = None,
-              x64: bool = False, rtol: Optional[float] = None, atol: Optional[float] = None,
-              max_steps: Optional[int] = None, check_passivity: bool = True,
-              chunk_size: Optional[int] = None, devices: Any = None, cores: Optional[int] = None, checkpoint_dir=None,
-              resume: bool = False, progress: Any = None, shard: Optional[tuple] = None,
-              controller: Any = None, max_step=None, policy=(0.9, 0.1, 5.0)) -> Optional[BasinResult]:
-    r"""Integrate the closed loop from every start and summarise convergence.
-
-    Args:
-      starts: a `BasinStarts` (`grid_starts`, `sample_starts`) or an
-        ``(N, 3)`` / ``(N, 5)`` array.
-      eps: radius of the ball \(|q| \le \epsilon\) of ``T_eps``.
-      t_final, dt, method, plant, gains, x64, rtol, atol, max_steps, check_passivity: as in
-        `jaxsleigh.studies.ensemble.run_ensemble` (defaults: the paper's plant and gains, 100 s,
-        adaptive RK4, float32).
-      chunk_size: starts integrated at once and written per checkpoint (default 16384 on CPU,
-        2^22 per device on accelerators, `jaxsleigh.cores.default_chunk_size`).
-      devices, cores: the devices each chunk is split over and at most how many (default: every core;
-        `jaxsleigh.cores`); neither changes a result.
-      checkpoint_dir: write every finished chunk there; ``resume=True`` reuses the finished chunks
-        of an interrupted run with the same settings and starts.
-      progress: progress bar with ETA (``None``: on a terminal).
-      shard: ``(index, count)``: compute only this process's share of the chunks into
-        ``checkpoint_dir`` and return ``None`` (see `jaxsleigh.studies.ensemble.run_ensemble`).
-      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`).
-
-    Returns:
-      `BasinResult` (``None`` with ``shard``).
-    """
+def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], controller: Any, t_final: float,
+               dt: float, eps: float, x64: bool, stepsize: StepSizeController,
+               run: RunOptions) -> Optional[BasinResult]:
+    r"""`run_basin` (see there) with its options resolved into the objects (`front_options`): integrate the
+    closed loop from every start (``starts``: a `BasinStarts` or an ``(N, 3)`` / ``(N, 5)`` array) and summarise
+    convergence. ``run.chunk_size`` defaults to 16384 on CPU (2^22 per device on accelerators,
+    `jaxsleigh.cores.default_chunk_size`). Returns a `BasinResult` (``None`` with ``run.shard``)."""
     reject_traced("run_basin", **locals())    # first: a NumPy front, neither jittable nor differentiable
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
-    if chunk_size is None:
-        chunk_size = default_chunk_size(16384, devices)
-    res = _run_ensemble(starts.ics, plant=plant, gains=gains, t_final=t_final, dt=dt, eps=eps, method=method,
-                        rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64, chunk_size=chunk_size,
-                        check_passivity=check_passivity, devices=devices, cores=cores, checkpoint_dir=checkpoint_dir,
-                        resume=resume, progress=progress, shard=shard, controller=controller, policy=policy)
+    if run.chunk_size is None:
+        run = run._replace(chunk_size=default_chunk_size(16384, run.devices))
+    res = _run_ensemble(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
+                        x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
     settings = {k: v for k, v in res.settings.items() if k not in ("save_every",)}
@@ -532,9 +507,9 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
     Returns:
       `BasinResult` (``None`` for one share of a multi-process run).
     """
-    kw = front_options("run_basin", BASIN_KEYWORDS, stepsize, None, run, options)
+    stepsize, _, run = front_options("run_basin", BASIN_KEYWORDS, stepsize, None, run, options)
     return _run_basin(starts, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                      x64=x64, **kw)
+                      x64=x64, stepsize=stepsize, run=run)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -47,12 +47,13 @@ class SolveConfig(NamedTuple):
         """The controller the engine runs: ``controller``, or the paper's law with ``gains``."""
         return self.gains if self.controller is None else self.controller
 
-    def step_controller(self, policy=(0.9, 0.1, 5.0)) -> StepSizeController:
-        """The resolved `jaxsleigh.StepSizeController` (every number set) with the policy ``(safety,
-        factor_min, factor_max)``: what the engine's drivers take."""
-        return StepSizeController(rtol=self.rtol, atol=self.atol, safety=policy[0], factor_min=policy[1],
-                                  factor_max=policy[2], max_step=self.max_step, max_steps=self.max_steps,
-                                  method=self.method, check_passivity=self.check_passivity)
+    def step_controller(self, policy: StepSizeController = StepSizeController()) -> StepSizeController:
+        """The resolved `jaxsleigh.StepSizeController` (every number set) with the policy (``safety``,
+        ``factor_min``, ``factor_max``) of ``policy``: what the engine's drivers take."""
+        return StepSizeController(rtol=self.rtol, atol=self.atol, safety=policy.safety,
+                                  factor_min=policy.factor_min, factor_max=policy.factor_max,
+                                  max_step=self.max_step, max_steps=self.max_steps, method=self.method,
+                                  check_passivity=self.check_passivity)
 
     @property
     def adaptive(self) -> bool:

@@ -268,23 +268,24 @@ def _settings_key(settings: dict, ics: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def _checked_options(*, summaries, method, check_passivity, save_every, chunk_size, devices, shard, checkpoint_dir,
-                     segment, resume) -> tuple:
+def _checked_options(stepsize: StepSizeController, saveat: SaveAt, run: RunOptions) -> tuple:
     """The run options checked in turn (the first wrong one is refused): ``(chunk_size, shard, segment)``
     resolved (the default chunk size; whole numbers)."""
+    summaries, method, save_every = saveat.summaries, stepsize.method, saveat.every
+    chunk_size, shard, checkpoint_dir, resume = run.chunk_size, run.shard, run.checkpoint_dir, run.resume
     if not isinstance(summaries, (bool, np.bool_)):
         raise ValueError(f"summaries must be True or False, got {summaries!r}")
-    if not summaries and (method != "rk4" or check_passivity or save_every is not None):
+    if not summaries and (method != "rk4" or stepsize.check_passivity or save_every is not None):
         raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
                          "check_passivity=False and no save_every")
-    chunk_size = default_chunk_size(65536, devices) if chunk_size is None else \
+    chunk_size = default_chunk_size(65536, run.devices) if chunk_size is None else \
         whole("chunk_size", chunk_size, example=65536)
     if shard is not None:
         if checkpoint_dir is None:
             raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")
         count = whole("shard count", shard[1])
         shard = (whole("shard index", shard[0], minimum=0, maximum=count - 1), count)
-    segment = whole("segment", segment, example=1000)
+    segment = whole("segment", run.segment, example=1000)
     if not isinstance(resume, (bool, np.bool_)):
         raise ValueError(f"resume must be True or False, got {resume!r}")
     if resume and checkpoint_dir is None:
@@ -543,70 +544,28 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
                           observed=observed or None, run_info=run_info)
 
 
-def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
-                 t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, method: str = "adaptive",
-                 rtol: Optional[float] = None, atol: Optional[float] = None, max_step: Optional[float] = None,
-                 max_steps: Optional[int] = None, x64: bool = False, save_every: Optional[int] = None,
-                 chunk_size: Optional[int] = None, segment: int = 1000, check_passivity: bool = True,
-                 summaries: bool = True,
-                 devices: Any = None, cores: Optional[int] = None, checkpoint_dir=None, resume: bool = False,
-                 progress: Any = None, shard: Optional[tuple] = None,
-                 observers: Optional[tuple] = None, controller: Any = None,
-                  policy=(0.9, 0.1, 5.0)) -> Optional[EnsembleResult]:
-    """Integrate the closed loop from many initial conditions; keep final states and summaries.
+def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
+                  eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController, saveat: SaveAt,
+                  run: RunOptions) -> Optional[EnsembleResult]:
+    """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
-    Args:
-      ics: ``(N, 3)`` or ``(N, 5)`` initial conditions (see `jaxsleigh.simulate`). Invalid
-        rows (theta = 0, non-finite) are flagged in ``status`` and the rest are computed.
-      plant, gains: as in `jaxsleigh.simulate`; their leaves may also vary per trajectory,
-        with a trailing axis of size N (or 1): ``m``, ``J``, ``l``, ``k`` and the damping's numbers
-        ``(N,)``, ``L`` ``(3, N)``, ``D_hat`` ``(2, 2, N)`` (`jaxsleigh.model.lanes`; build them with
-        ``stack_plants`` / ``stack_gains``). Changing the values does not recompile; the rows'
-        values come back in ``params``.
-      eps: radius of the ball ``|q| <= eps`` defining ``T_eps``.
-      method, dt, rtol, atol, max_step, max_steps, x64: as in `jaxsleigh.simulate`.
-      save_every: also keep decimated trajectories every ``save_every`` base steps (memory
-        ``N * T * 5`` numbers); default: summaries and final states only.
-      chunk_size: trajectories integrated at once (bounds memory). Each chunk is also the unit
-        of checkpointing and of the progress bar. Default 65536 on CPU, 2^22 per device on an
-        accelerator (`jaxsleigh.cores.default_chunk_size`).
-      check_passivity: reject (adaptive) or flag (``rk4``: status ``UNRELIABLE``) steps that
-        increase H_d. Off, fixed-step RK4 runs faster on CPU.
-      summaries: ``False`` (only with ``method="rk4"``, ``check_passivity=False``, no
-        ``save_every``) runs plain RK4 for the final state only: no per-step checks or summaries
-        (``T_eps``, ``min_abs_theta``, ``max_excursion`` come back NaN); the status is judged at
-        the end (non-finite, or theta ended with the other sign). The fastest mode.
-      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`),
-        integrated in the physical chart; ``gains`` then stays ``None``. ``Hd0``/``Hd_final`` are NaN.
-      observers: the on-line summaries (`jaxsleigh.integrate.observers`; default
-        `DEFAULT_OBSERVERS`). The standard fields of the result that no
-        given observer provides are NaN; other observers' results are in ``result.observed``.
-      devices, cores: the devices each chunk is split over, one thread per device (default: every core
-        on CPU, every local device elsewhere; `jaxsleigh.cores`), and at most how many of them. The
-        results are byte-identical whatever the count.
-      checkpoint_dir: write every finished chunk there (atomically: a file is either complete or
-        absent); with ``resume=True`` reuse the finished chunks of an earlier run with the same
-        settings and initial conditions. Every chunk carries the fingerprint of the run that wrote
-        it and is checked on reuse: a chunk of another run stops the run with a
-        `CheckpointError` (results are never mixed), a damaged one is named
-        in a `DamagedCheckpointWarning` and recomputed.
-      progress: ``True``/``False``/``None`` (auto: on a terminal).
-      shard: ``(index, count)``: compute only the chunks ``i`` with ``i % count == index`` (those not
-        already in ``checkpoint_dir`` when resuming), write them there and return ``None``. This is
-        how several processes share one run (`jaxsleigh.files.distributed`); a later call without
-        ``shard`` assembles the result from the chunks.
+    The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
+    ``saveat.summaries=False`` (with ``StepSizeController(method="rk4", check_passivity=False)``, no
+    ``saveat.every``) runs plain RK4 for the final state only (``T_eps``, ``min_abs_theta``,
+    ``max_excursion`` NaN; status judged at the end). ``run.chunk_size``: trajectories integrated, checkpointed
+    and shown by the progress bar at once (default 65536 on CPU, 2^22 per device on an accelerator,
+    `jaxsleigh.cores.default_chunk_size`). ``run.shard = (index, count)``: compute only the chunks
+    ``i % count == index`` not already in ``run.checkpoint_dir``, write them there and return ``None``
+    (`jaxsleigh.files.distributed`); a later call without it assembles the result.
 
     Returns:
-      `EnsembleResult` (``None`` with ``shard``).
+      `EnsembleResult` (``None`` with ``run.shard``).
     """
     reject_traced("run_ensemble", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
-                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, eps=eps,
-                       check_passivity=check_passivity, controller=controller)
-    chunk_size, shard, segment = _checked_options(
-        summaries=summaries, method=method, check_passivity=check_passivity, save_every=save_every,
-        chunk_size=chunk_size, devices=devices, shard=shard, checkpoint_dir=checkpoint_dir, segment=segment,
-        resume=resume)
+    save_every, summaries = saveat
+    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, x64=x64, eps=eps,
+                       stepsize=stepsize, controller=controller)
+    chunk_size, shard, segment = _checked_options(stepsize, saveat, run)
     n_rows = int(np.shape(ics)[0]) if np.ndim(ics) == 2 else 1
     check_memory(n_rows, "run_ensemble")
     sampled = is_sampled(cfg.controller)
@@ -615,10 +574,9 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     lane_args = _lane_args(cfg, ics5, summaries)
-    step = cfg.step_controller(policy)
-    if cores is not None:
-        cores = whole("cores", cores, example=2)
-    devs = workers(devices, cores)
+    step = cfg.step_controller(stepsize)
+    cores = None if run.cores is None else whole("cores", run.cores, example=2)
+    devs = workers(run.devices, cores)
     with jax.enable_x64(cfg.x64):
         dtype = working_dtype()
         settings = _ensemble_settings(cfg, sampled, save_every, chunk_size, summaries, observers)
@@ -626,20 +584,20 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
         part_sizes = _part_sizes(chunk, devs)
-        store = _open_store(checkpoint_dir, resume, settings, ics5, chunk)
+        store = _open_store(run.checkpoint_dir, run.resume, settings, ics5, chunk)
         args = ClosedLoop(cfg.plant, cfg.law)
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
         # the store's lock on the folder is held until the last chunk is written or read
-        with Progress(progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
+        with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
                 concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
             chunks = _Chunks(cfg, step=step, observers=observers, summaries=summaries, save_every=save_every,
                              segment=segment, chart=chart, dtype=dtype, devs=devs, args=args, lane_args=lane_args,
                              ics5=ics5, status0=status0, chunk=chunk, part_sizes=part_sizes, bar=bar,
                              tail_pool=tail_pool)
-            parts, reused = _run_chunks(chunks, store, resume=resume, shard=shard, fields=fields, sampled=sampled)
+            parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields, sampled=sampled)
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
@@ -684,6 +642,6 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     Returns:
       `EnsembleResult` (``None`` for one share of a multi-process run).
     """
-    kw = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
+    stepsize, saveat, run = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
     return _run_ensemble(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                         x64=x64, observers=observers, **kw)
+                         x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)

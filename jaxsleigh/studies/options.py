@@ -7,9 +7,9 @@
 * `RunOptions`: how to run (chunks, segments, devices, checkpoint, resume, progress, the share of a
   multi-process run).
 
-`front_options` maps them, and the keywords of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...), onto the one
-set of keywords the studies resolve (`jaxsleigh.studies.config.solve_config`), so that a front takes at most
-a dozen parameters and every earlier call keeps working.
+`front_options` folds the keywords of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...) into the three objects
+(`StudyOptions`), which the studies then pass down whole: a front takes at most a dozen parameters, the
+engine behind it as many, and every earlier call keeps working.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from typing import Any, NamedTuple, Optional
 
 from ..integrate.stepsize import StepSizeController
 
-__all__ = ["SaveAt", "RunOptions", "front_options"]
+__all__ = ["SaveAt", "RunOptions", "StudyOptions", "front_options"]
 
 
 class SaveAt(NamedTuple):
@@ -73,13 +73,43 @@ def _check_policy(ss: StepSizeController) -> None:
         raise ValueError(f"stepsize.method must be 'adaptive' or 'rk4', got {ss.method!r}")
 
 
-def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, run=None, options=None) -> dict:
-    """The keywords a study resolves, from its option objects and the 0.1 keywords in ``options``.
+class StudyOptions(NamedTuple):
+    """The three option objects of a study, every 0.1 keyword folded in (what `front_options` returns)."""
+
+    stepsize: StepSizeController
+    saveat: SaveAt
+    run: RunOptions
+
+
+#: Where each keyword of jaxsleigh 0.1 lives: ``(object, field)``.
+_KEYWORD_HOME = {**{k: ("stepsize", k) for k in ("rtol", "atol", "max_step", "max_steps", "method",
+                                                  "check_passivity")},
+                 "save_every": ("saveat", "every"), "summaries": ("saveat", "summaries"),
+                 **{k: ("run", k) for k in RunOptions._fields}}
+
+
+def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, run=None, options=None, *,
+                  saveat_default: SaveAt = SaveAt()) -> StudyOptions:
+    """The option objects of a study, with the 0.1 keywords in ``options`` folded in.
 
     An unknown keyword is a ``TypeError`` naming the valid ones; a keyword given both as an object's field
     and by itself (with another value) is a ``ValueError``; an object's field the front has no use for
-    (a chunk size for `jaxsleigh.simulate`) is a ``ValueError`` naming it.
+    (a chunk size for `jaxsleigh.simulate`) is a ``ValueError`` naming it. ``saveat_default``: what an
+    unset ``SaveAt`` field means for this front (`jaxsleigh.simulate` keeps every 10th step).
     """
+    out = _merged_keywords(front, allowed, stepsize, saveat, run, options)
+    ss = stepsize if stepsize is not None else StepSizeController()
+    fields = {"stepsize": {"safety": float(ss.safety), "factor_min": float(ss.factor_min),
+                           "factor_max": float(ss.factor_max)}, "saveat": {}, "run": {}}
+    for key, value in out.items():
+        home, field = _KEYWORD_HOME[key]
+        fields[home][field] = value
+    return StudyOptions(StepSizeController(**fields["stepsize"]), saveat_default._replace(**fields["saveat"]),
+                        RunOptions(**fields["run"]))
+
+
+def _merged_keywords(front: str, allowed: frozenset, stepsize, saveat, run, options) -> dict:
+    """The 0.1 keywords given, with the objects' fields that differ from their defaults put in (checked)."""
     options = dict(options or {})
     unknown = sorted(set(options) - allowed)
     if unknown:
@@ -107,7 +137,6 @@ def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, ru
                 put(key, getattr(stepsize, key), "stepsize")
         put("method", stepsize.method, "stepsize", "adaptive")
         put("check_passivity", stepsize.check_passivity, "stepsize", True)
-        out["policy"] = (float(stepsize.safety), float(stepsize.factor_min), float(stepsize.factor_max))
     if saveat is not None:
         if not isinstance(saveat, SaveAt):
             raise ValueError(f"saveat must be a jaxsleigh.SaveAt, got {type(saveat).__name__}")

@@ -125,37 +125,10 @@ def _outputs_lanes(yw, t, args: ClosedLoop, chart=WChart()):
     return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], t, a, chart), in_axes=(0, axes))(yw, args)
 
 
-def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
-             t_final: float = 100.0, dt: float = 0.01, save_every: int = 10,
-             method: str = "adaptive", rtol: Optional[float] = None, atol: Optional[float] = None,
-             max_step: Optional[float] = None, max_steps: Optional[int] = None, x64: bool = False,
-             progress: Any = None, controller: Any = None, policy=(0.9, 0.1, 5.0)) -> Solution:
-    """Simulate the closed loop (plant eq. 1 + control law eq. 13).
-
-    Args:
-      ics: ``(3,)``, ``(5,)``, ``(N, 3)`` or ``(N, 5)``: ``(x, y, theta[, p1, p2])``.
-      plant, gains: defaults are the paper's (m = 2, J = 1, l = 1, Coulomb; L = diag(2, .5, .8),
-        k = 0.1, D_hat = diag(4, 8)). ``gains`` may also be a preset name (``"tuned"``) or a
-        gains-file path. Both are validated eagerly (``ValueError`` saying what to change).
-        Leaves may vary per trajectory (a trailing axis of size N or 1, see
-        `jaxsleigh.run_ensemble` and `jaxsleigh.model.lanes`); ``settings["params"]`` then
-        holds the values each trajectory used.
-      t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``).
-      save_every: keep every ``save_every``-th base step (the saved grid is uniform in time).
-      method: ``"adaptive"`` (default: RK4 with per-trajectory error control, starting at ``dt``;
-        accurate near theta = 0) or ``"rk4"`` (classical fixed-step RK4 at ``dt``).
-      rtol, atol: tolerances of ``"adaptive"`` (defaults per dtype, see ``DEFAULT_RTOL``).
-      max_step: largest adaptive step (default ``100 * dt``; steps also never pass a save time).
-      max_steps: budget of attempted steps per trajectory (default: 20x (float32) or 30x (float64) the base steps when
-        adaptive); a trajectory that runs out gets status ``BUDGET_EXHAUSTED``.
-      x64: compute in float64 (default float32).
-      progress: ``True`` for a progress bar, ``False``/``None`` for none (auto on a terminal).
-      controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`:
-        a callable pytree whose numbers are traced); it is integrated in the physical chart, and
-        ``Hd`` is NaN (the paper's H_d belongs to the paper's law).
-
-    Returns:
-      `Solution`, as NumPy arrays.
+def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
+              x64: bool, stepsize: StepSizeController, saveat: SaveAt, run: RunOptions) -> Solution:
+    """`simulate` (see there) with its options resolved into the objects (`front_options`; ``saveat.every``
+    already defaulted to 10): simulate the closed loop (plant eq. 1 + control law eq. 13, or any law).
 
     Raises:
       ValueError: any bad option, or a single start (or every start of a batch) that cannot be
@@ -163,8 +136,9 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         a `FlaggedStartsWarning`; the other rows are computed.
     """
     reject_traced("simulate", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, method=method,
-                       rtol=rtol, atol=atol, max_step=max_step, max_steps=max_steps, x64=x64, controller=controller)
+    cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=saveat.every, x64=x64,
+                       stepsize=stepsize, controller=controller)
+    progress = run.progress
     if is_sampled(cfg.controller):
         if cfg.lanes is not None:
             raise ValueError("per-trajectory parameters are not available for a sampled law yet; drop them")
@@ -185,7 +159,7 @@ def _simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
-            final, ys = drive_saving(y0w, status0, args, horizon, cfg.step_controller(policy), eps=cfg.eps,
+            final, ys = drive_saving(y0w, status0, args, horizon, cfg.step_controller(stepsize), eps=cfg.eps,
                                      progress=bar)
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
@@ -246,5 +220,7 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, con
         bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in a
         `FlaggedStartsWarning`; the other rows are computed.
     """
-    kw = front_options("simulate", SIMULATE_KEYWORDS, stepsize, saveat, run, options)
-    return _simulate(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, x64=x64, **kw)
+    stepsize, saveat, run = front_options("simulate", SIMULATE_KEYWORDS, stepsize, saveat, run, options,
+                                          saveat_default=SaveAt(every=10))
+    return _simulate(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, x64=x64,
+                     stepsize=stepsize, saveat=saveat, run=run)

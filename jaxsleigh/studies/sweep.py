@@ -40,7 +40,7 @@ from ..model.params import Gains, PlantParams
 from ..status import CONVERGED, VALID, Status, describe
 from ..validate import check_memory
 from .config import reject_traced
-from .options import RunOptions, front_options
+from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 
 __all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
@@ -491,38 +491,13 @@ def _sweep_result(res, names, values: np.ndarray, shape, axes, st: BasinStarts, 
                        run_info=run_info)
 
 
-def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, eps: float = 0.05,
-          t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive", x64: bool = False,
-          rtol: Optional[float] = None, atol: Optional[float] = None, max_steps: Optional[int] = None,
-          check_passivity: bool = True, chunk_size: Optional[int] = None, devices: Any = None,
-          cores: Optional[int] = None, checkpoint_dir=None, resume: bool = False, progress: Any = None,
-          labels: Optional[Mapping[str, str]] = None, shard: Optional[tuple] = None,
-          controller: Any = None, max_step=None, policy=(0.9, 0.1, 5.0)) -> Optional[SweepResult]:
-    r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
-
-    Args:
-      starts: a `BasinStarts` (`grid_starts`,
-        `sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.
-      params: a sequence of one or two ranges (``"NAME=LO:HI:P[:log]"`` strings or
-        `ParamAxis`; two make a grid), or a mapping ``{name: values}`` of explicit value sets
-        (equal lengths ``P``; zipped, not crossed). Names: `PARAM_NAMES`.
-      plant, gains: the base values of everything not swept (default: the paper's). ``gains`` may
-        be a preset name or file, as in `jaxsleigh.simulate`.
-      eps, t_final, dt, method, x64, rtol, atol, max_steps, check_passivity: as in
-        `run_basin`.
-      chunk_size: rows (start x value set) integrated and checkpointed at once (default as
-        `run_basin`): memory is bounded by the chunk, not by ``P * N``.
-      checkpoint_dir, resume, progress, devices: as in `run_ensemble`.
-      labels: parameter name -> text naming it in error messages (the CLI passes its ``--param``).
-      shard: ``(index, count)``: compute only this process's share of the chunks into
-        ``checkpoint_dir`` and return ``None`` (a multi-process run, `jaxsleigh.files.distributed`);
-        a later call without ``shard`` and with ``resume=True`` assembles the result from them.
-      controller: a law of your own (`jaxsleigh.model.controller`) instead of the paper's; ``params`` may
-        then name its scalar parameters (e.g. ``"kp=0.5:4:8:log"``) as well as the plant's.
-
-    Returns:
-      `SweepResult` (``None`` with ``shard``).
-    """
+def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
+           dt: float, eps: float, x64: bool, labels: Optional[Mapping[str, str]], stepsize: StepSizeController,
+           run: RunOptions) -> Optional[SweepResult]:
+    r"""`sweep` (see there) with its options resolved into the objects (`front_options`): run every start under
+    every parameter value set, as one ensemble of ``P * N`` rows, and summarise per value set. ``labels``:
+    parameter name -> text naming it in error messages (the CLI passes its ``--param``). ``run.chunk_size``
+    counts rows (default as `run_basin`). Returns a `SweepResult` (``None`` with ``run.shard``)."""
     reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
     from .ensemble import _run_ensemble
     from ..cores import default_chunk_size
@@ -532,13 +507,11 @@ def _sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = 
     names, values, shape, axes, labels = _value_sets(params, st.ics.shape[0], law_names, labels)
     base_plant, base_gains, lp, lg = _row_lanes(names, values, plant, gains, controller, labels, st.ics.shape[0])
     P, N = values.shape[0], st.ics.shape[0]
-    if chunk_size is None:
-        chunk_size = default_chunk_size(16384, devices)
-    law = {"gains": lg} if controller is None else {"controller": lg}
-    res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps,
-                        method=method, rtol=rtol, atol=atol, max_steps=max_steps, max_step=max_step, x64=x64,
-                        chunk_size=chunk_size, check_passivity=check_passivity, devices=devices, cores=cores,
-                        checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, shard=shard, policy=policy)
+    if run.chunk_size is None:
+        run = run._replace(chunk_size=default_chunk_size(16384, run.devices))
+    law = {"gains": lg, "controller": None} if controller is None else {"gains": None, "controller": lg}
+    res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps, x64=x64,
+                        observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
     settings = _sweep_settings(res.settings, controller, base_plant, base_gains, st, names, axes, P, N)
@@ -571,9 +544,10 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     Returns:
       `SweepResult` (``None`` for one share of a multi-process run).
     """
-    kw = front_options("sweep", SWEEP_KEYWORDS, stepsize, None, run, options)
+    labels = options.pop("labels", None)
+    stepsize, _, run = front_options("sweep", SWEEP_KEYWORDS, stepsize, None, run, options)
     return _sweep(starts, params, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                  x64=x64, **kw)
+                  x64=x64, labels=labels, stepsize=stepsize, run=run)
 
 
 # ---------------------------------------------------------------------------------------------
