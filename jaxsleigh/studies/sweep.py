@@ -196,12 +196,8 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     from ..model.lanes import check_lanes
     from ..model.params import as_gains, as_plant
 
-    values = np.asarray(values, np.float64)
-    if values.ndim == 1:
-        values = values[:, None]
     names = tuple(names)
-    if values.ndim != 2 or values.shape[1] != len(names) or values.shape[0] == 0:
-        raise ValueError(f"values must have shape (P, {len(names)}) for the parameters {names}, got {values.shape}")
+    values = _value_table(names, values)
     labels = dict(labels or {})
     lab = lambda n: labels.get(n, f"parameter {n}")  # noqa: E731
     law_names = _law_scalar_names(controller) if controller is not None else ()
@@ -215,11 +211,29 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     col = {n: values[:, j] for j, n in enumerate(names)}
     rep = lambda x: np.repeat(np.asarray(x, np.float64)[..., None], P, axis=-1)  # noqa: E731
     m, J, l = (col.get(f, rep(getattr(plant, f))) for f in ("m", "J", "l"))
-    d = plant.damping
+    flags = {"plant.m": lab("m"), "plant.J": lab("J") if "J" in col else lab("l") if "l" in col else "plant.J",
+             "gains.D_hat": " / ".join(lab(n) for n in ("d11", "d22", "d12") if n in col) or "gains.D_hat"}
+    return check_lanes(PlantParams(m, J, l, _lane_damping(plant.damping, col, rep, lab)),
+                       _lane_gains(gains, col, rep), flags=flags)
+
+
+def _value_table(names: tuple, values) -> np.ndarray:
+    """``values`` as a float64 ``(P, len(names))`` table (one column for a 1-D ``values``), checked."""
+    values = np.asarray(values, np.float64)
+    if values.ndim == 1:
+        values = values[:, None]
+    if values.ndim != 2 or values.shape[1] != len(names) or values.shape[0] == 0:
+        raise ValueError(f"values must have shape (P, {len(names)}) for the parameters {names}, got {values.shape}")
+    return values
+
+
+def _lane_damping(d, col: dict, rep, lab):
+    """The plant's damping model with the swept columns ``col`` of its numbers put in (the rest repeated per
+    lane by ``rep``); a number of the other damping family is refused, naming the flag that switches."""
     if isinstance(d, str):
         d = damping_from_name(d)
-    for n, kind, field in (("coulomb_eps", CoulombDamping, "eps"), ("coulomb_scale", CoulombDamping, "scale"),
-                           ("c1", ViscousDamping, "c1"), ("c2", ViscousDamping, "c2")):
+    for n, kind in (("coulomb_eps", CoulombDamping), ("coulomb_scale", CoulombDamping),
+                    ("c1", ViscousDamping), ("c2", ViscousDamping)):
         if n in col and not isinstance(d, kind):
             fam = "coulomb" if kind is CoulombDamping else "viscous"
             raise ValueError(f"{lab(n)}: {n} is a parameter of {fam} damping, but the plant's damping is "
@@ -227,6 +241,12 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     if hasattr(d, "_fields"):
         names_d = {"eps": "coulomb_eps", "scale": "coulomb_scale", "c1": "c1", "c2": "c2"}
         d = type(d)(*(col.get(names_d[f], rep(getattr(d, f))) for f in d._fields))
+    return d
+
+
+def _lane_gains(gains: Gains, col: dict, rep) -> Gains:
+    """The paper's gains with the swept columns ``col`` put in (``l1..l3``: L's diagonal; ``d11``, ``d22``,
+    ``d12``: D_hat's entries, ``d12`` on both sides), the rest repeated per lane by ``rep``."""
     L = rep(gains.L)
     for i, n in enumerate(("l1", "l2", "l3")):
         if n in col:
@@ -238,10 +258,7 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
         D[1, 1] = col["d22"]
     if "d12" in col:
         D[0, 1] = D[1, 0] = col["d12"]
-    k = col.get("k", rep(gains.k))
-    flags = {"plant.m": lab("m"), "plant.J": lab("J") if "J" in col else lab("l") if "l" in col else "plant.J",
-             "gains.D_hat": " / ".join(lab(n) for n in ("d11", "d22", "d12") if n in col) or "gains.D_hat"}
-    return check_lanes(PlantParams(m, J, l, d), Gains(L, k, D), flags=flags)
+    return Gains(L, col.get("k", rep(gains.k)), D)
 
 
 def _law_scalar_names(law) -> tuple:
