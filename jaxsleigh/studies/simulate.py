@@ -148,14 +148,7 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     with jax.enable_x64(cfg.x64):
         dtype = working_dtype()
-        args = ClosedLoop(cfg.plant, cfg.law)
-        if cfg.lanes is not None:
-            from ..model.lanes import broadcast_lanes
-
-            if cfg.lanes not in (1, ics5.shape[0]):
-                raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
-                                 f"{ics5.shape[0]} initial conditions; give one value per initial condition")
-            args = ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
+        args = _loop_args(cfg, ics5.shape[0])
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
@@ -164,19 +157,9 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
-        if cfg.lanes is None:
-            q, u, Hd = (np.array(a) for a in _outputs(yw, np.asarray(horizon.t(), yw.dtype), args, chart))
-        else:
-            q, u, Hd = (np.array(o[:, 0]) for o in _outputs_lanes(yw, np.asarray(horizon.t(), yw.dtype), args, chart))
-    settings = {**cfg.settings(), "save_every": horizon.save_every}
+        q, u, Hd = _trajectory_outputs(yw, horizon, args, chart, lanes=cfg.lanes is not None)
     # where it ran (named on every figure of it) and how long it took: they vary between runs
     run_info = {"wall_s": time.perf_counter() - t_start, "devices": [str(jax.devices()[0])]}
-    if cfg.lanes is not None:
-        from ..model.lanes import lane_table
-
-        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, ics5.shape[0]).items()}
-    settings.pop("check_passivity")
-    settings.pop("eps")
     # restore the exact initial state (the w chart round trip rounds it in float32)
     q[:, 0] = np.where(bad[:, None], np.nan, ics5[:, :3])
     effort = collect(DEFAULT_OBSERVERS, final.obs, final.quad)
@@ -185,7 +168,42 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     effort["T_eps"] = np.where(np.asarray(final.status) == 0, effort["T_eps"], np.nan)
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
                     n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),
-                    settings=settings, run_info=run_info, **{k: effort[k] for k in SUMMARY_NAMES if k in effort})
+                    settings=_solution_settings(cfg, args, ics5.shape[0]), run_info=run_info,
+                    **{k: effort[k] for k in SUMMARY_NAMES if k in effort})
+
+
+def _loop_args(cfg, n: int) -> ClosedLoop:
+    """The closed loop of ``cfg``; with per-trajectory parameters, broadcast to one lane per start (``n``)."""
+    if cfg.lanes is None:
+        return ClosedLoop(cfg.plant, cfg.law)
+    from ..model.lanes import broadcast_lanes
+
+    if cfg.lanes not in (1, n):
+        raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
+                         f"{n} initial conditions; give one value per initial condition")
+    return ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, n))
+
+
+def _trajectory_outputs(yw: np.ndarray, horizon, args: ClosedLoop, chart, *, lanes: bool):
+    """``(q, u, Hd)`` along the saved w-chart states ``yw`` (N, T, 5), as NumPy arrays (``lanes``: one
+    closed loop per trajectory)."""
+    t = np.asarray(horizon.t(), yw.dtype)
+    if not lanes:
+        return tuple(np.array(a) for a in _outputs(yw, t, args, chart))
+    return tuple(np.array(o[:, 0]) for o in _outputs_lanes(yw, t, args, chart))
+
+
+def _solution_settings(cfg, args: ClosedLoop, n: int) -> dict:
+    """The settings a `Solution` records: the run's, with its save interval and, with per-trajectory
+    parameters, the values each trajectory used; without the ensemble-only ``check_passivity`` and ``eps``."""
+    settings = {**cfg.settings(), "save_every": cfg.horizon.save_every}
+    if cfg.lanes is not None:
+        from ..model.lanes import lane_table
+
+        settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, n).items()}
+    settings.pop("check_passivity")
+    settings.pop("eps")
+    return settings
 
 
 #: The keywords of jaxsleigh 0.1 that `simulate` maps onto its option objects.
