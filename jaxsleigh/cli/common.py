@@ -627,7 +627,7 @@ def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs
     try:
         cluster = _start_cluster(args)
     except ClusterError as e:
-        _say_error(e)
+        say_failure(e)
         return EXIT_CLUSTER
     options = _shared_options(args)
     if cluster is not None:
@@ -684,11 +684,6 @@ def say_failure(e: BaseException) -> int:
     return int(getattr(e, "exit_code", EXIT_USAGE))       # typed errors carry their own (EXIT_CODES)
 
 
-def _say_error(e) -> None:
-    """The error line of a run that stops (``jaxsleigh: error: ...``), on stderr at once."""
-    print(f"{PROG}: error: {e}", file=sys.stderr, flush=True)
-
-
 def _start_cluster(args):
     """`jaxsleigh.files.distributed.start` with the options of `add_distributed_options`: the
     `Cluster` of a multi-process run, ``None`` for a single process."""
@@ -715,13 +710,12 @@ def _run_processes(cluster, args, options, *, checked, compute, assemble, prepar
         return run_shared(cluster, check=checked, compute=compute, assemble=lambda state: assemble(state, True),
                           prepare=prepared, shared_dirs=shared_dirs or (lambda state: []), options=options)
     except ClusterError as e:
-        _say_error(e)
+        say_failure(e)
         return EXIT_CLUSTER
     except ValueError as e:
         if not cluster.synced:
             raise                               # a refusal before any work: JAX shuts down as usual
-        _say_error(e)
-        return int(getattr(e, "exit_code", EXIT_USAGE))     # process 0's, e.g. 4 for a full disk
+        return say_failure(e)                   # process 0's exit code, e.g. 4 for a full disk
 
 
 def _release_lock(state) -> None:
