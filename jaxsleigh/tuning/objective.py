@@ -196,7 +196,7 @@ def _initial_states(y0w, args: ClosedLoop, ctl: Controls, adaptive: bool) -> Ste
 
 
 def _target_of(s: StepState, terms: _SoftTerms):
-    # a lane in the stopping ball idles: its target is where it is
+    """Each lane's target time: ``T``, or its own time once in the stopping ball (a stopped lane idles)."""
     stop = jax.lax.stop_gradient(terms.chart.q_norm2(s.y) <= terms.r_stop2)
     return jnp.where(stop, s.t, terms.T)
 

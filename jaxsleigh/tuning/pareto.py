@@ -258,8 +258,8 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
         ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
-        evals = _vmap_iterations(budgets, tracks, ctx, vgb, stepb, trainable, opt_state, frozen, data, cfg, dtype,
-                                 progress)
+        run = _VmapRun(budgets, tracks, ctx, vgb, stepb, frozen, data, cfg, dtype, np.ones(nb, bool))
+        evals = _vmap_iterations(run, trainable, opt_state, progress)
     return _verified_points(budgets, tracks, ctx, ics, groups), evals
 
 
@@ -278,48 +278,65 @@ def _vmapped_optimiser(config, d_floor, trainable):
     return vgb, opt_state, stepb
 
 
-def _vmap_iterations(budgets, tracks, ctx, vgb, stepb, trainable, opt_state, frozen, data, cfg, dtype,
-                     progress) -> int:
+class _VmapRun(NamedTuple):
+    """One vmapped front run (`_front_vmap`): the budgets and each one's `CandidateTrack`, the candidates'
+    `_Context`, the jitted vmapped objective and step (`_vmapped_optimiser`), the objective's fixed inputs
+    (frozen parameters, training set, `LossConfig`, dtype), and which budgets are still alive (updated in place)."""
+
+    budgets: np.ndarray
+    tracks: list
+    ctx: _Context
+    vgb: Any
+    stepb: Any
+    frozen: Any
+    data: Any
+    cfg: LossConfig
+    dtype: Any
+    alive: np.ndarray
+
+
+def _vmap_iterations(run: _VmapRun, trainable, opt_state, progress) -> int:
     """Run the vmapped optimiser until ``config.steps`` iterations or every budget's track stops; the tracks
     record each candidate. Returns the number of objective evaluations (of budgets still alive)."""
-    config = ctx.config
-    nb = budgets.size
-    alive = np.ones(nb, bool)
+    config = run.ctx.config
+    alive = run.alive
     t_start = time.perf_counter()
     evals = 0
-    with Progress(progress, desc=f"front (vmap x{nb})") as bar:
+    with Progress(progress, desc=f"front (vmap x{run.budgets.size})") as bar:
         for it in range(config.steps):
-            lam = np.array([t.lam for t in tracks])
-            c = cfg._replace(energy_budget=jnp.asarray(budgets, dtype), multiplier=jnp.asarray(lam, dtype))
-            (values, aux), grads = vgb(trainable, frozen, data, c)
+            lam = np.array([t.lam for t in run.tracks])
+            c = run.cfg._replace(energy_budget=jnp.asarray(run.budgets, run.dtype),
+                                 multiplier=jnp.asarray(lam, run.dtype))
+            out = run.vgb(trainable, run.frozen, run.data, c)            # ((values, aux), grads)
             evals += int(alive.sum())
-            gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
-            ok = np.asarray(aux["valid"]) & np.isfinite(gn)
-            ok = _assess_candidates(it, budgets, tracks, alive, ok, values, gn, trainable, aux, opt_state, ctx, t_start)
-            trainable, opt_state = stepb(trainable, opt_state, grads, jnp.asarray(ok))
-            rej = np.array([t.rejections for t in tracks])
+            ok = _assess_candidates(run, it, out, trainable, opt_state, t_start)
+            trainable, opt_state = run.stepb(trainable, opt_state, out[1], jnp.asarray(ok))
+            rej = np.array([t.rejections for t in run.tracks])
             alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
             bar.update((it + 1) / config.steps)
-            bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in tracks if t.rows)))
+            bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in run.tracks if t.rows)))
             if not alive.any():
                 break
     return evals
 
 
-def _assess_candidates(it, budgets, tracks, alive, ok, values, gn, trainable, aux, opt_state, ctx, t_start):
-    """``ok`` (per budget) after each alive budget's track has assessed its candidate of iteration ``it``; a
-    stopped budget's is ``False``."""
+def _assess_candidates(run: _VmapRun, it, out, trainable, opt_state, t_start):
+    """``ok`` (per budget) after each alive budget's track has assessed its candidate of iteration ``it``
+    (``out``: the budgets' ``((values, aux), grads)`` from ``run.vgb``); a stopped budget's is ``False``."""
+    (values, aux), grads = out
+    gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
+    ok = np.asarray(aux["valid"]) & np.isfinite(gn)
     scales = np.asarray(opt_state.scale)
-    for b, track in enumerate(tracks):
-        if not alive[b]:
+    for b, track in enumerate(run.tracks):
+        if not run.alive[b]:
             ok[b] = False
             continue
         tr_b = jax.tree_util.tree_map(lambda x: x[b], trainable)
         aux_b = jax.tree_util.tree_map(lambda x: x[b], aux)
         ok[b] = track.assess(it, float(values[b]), float(gn[b]), bool(ok[b]), tr_b, aux_b, float(scales[b]),
-                             ctx, time.perf_counter() - t_start,
+                             run.ctx, time.perf_counter() - t_start,
                              lambda *_, b=b: f"the starting gains are not a valid candidate for budget "
-                                             f"{budgets[b]:.4g}")
+                                             f"{run.budgets[b]:.4g}")
     return ok
 
 
