@@ -133,6 +133,25 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     ``"gains.D_hat"``, ...) to names used in messages (e.g. ``"--param m=..."``).
     """
     n = lane_count(plant, gains)
+    plant, gains, law = _resolved(plant, gains)
+    d = _damping_model(plant)
+    m, J, l = (_real(f"plant.{f}", getattr(plant, f), flags) for f in ("m", "J", "l"))
+    for path, v, cond, need in (("plant.m", m, m > 0, "> 0"), ("plant.J", J, J >= 0, ">= 0"),
+                                ("plant.l", l, l >= 0, ">= 0 (l = 0 is the knife edge)")):
+        _bad(path, np.atleast_1d(cond), np.atleast_1d(v), need, flags)
+    d = _checked_damping(d, flags)
+    gains = Gains(_checked_L(gains.L, flags), _checked_k(gains.k, flags), _checked_D_hat(gains.D_hat, flags))
+    plant = PlantParams(m, J, l, d)
+    if n is not None:
+        mass = np.atleast_1d(J + m * l * l)
+        _bad("plant.J", mass > 0, np.atleast_1d(J) + 0 * mass, "such that J + m l^2 > 0", flags)
+    return plant, (gains if law is None else law)
+
+
+def _resolved(plant: Any, gains: Any) -> tuple[Any, Any, Any]:
+    """``(plant, gains, law)`` for `check_lanes`: a plant or gains without lanes (or ``None``, a preset name,
+    file or dict) checked and made whole by `as_plant` / `as_gains`; a user's law checked by
+    `as_controller` and returned as ``law`` (then ``gains`` are the paper's, unused)."""
     if plant is None or (isinstance(plant, PlantParams) and lane_count(plant, None) is None):
         plant = as_plant(plant)
     law = None
@@ -142,6 +161,11 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
         gains = as_gains(gains)
     if not isinstance(plant, PlantParams):
         raise ValueError(f"plant must be a PlantParams, got {type(plant).__name__}")
+    return plant, gains, law
+
+
+def _damping_model(plant: PlantParams):
+    """The plant's damping as a damping model (a name resolved, a plain callable wrapped in `CustomDamping`)."""
     d = plant.damping
     if isinstance(d, str):
         d = damping_from_name(d)
@@ -149,10 +173,12 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
         d = CustomDamping(d)
     if not isinstance(d, (CoulombDamping, ViscousDamping, NoDamping, CustomDamping)):
         raise ValueError(f"damping must be a damping model, a name or a callable, got {d!r}")
-    m, J, l = (_real(f"plant.{f}", getattr(plant, f), flags) for f in ("m", "J", "l"))
-    for path, v, cond, need in (("plant.m", m, m > 0, "> 0"), ("plant.J", J, J >= 0, ">= 0"),
-                                ("plant.l", l, l >= 0, ">= 0 (l = 0 is the knife edge)")):
-        _bad(path, np.atleast_1d(cond), np.atleast_1d(v), need, flags)
+    return d
+
+
+def _checked_damping(d, flags):
+    """A damping model with its numbers checked per lane (Coulomb ``eps > 0``, ``scale >= 0``; viscous
+    ``c1, c2 >= 0``) as float64 NumPy leaves; models without numbers as they are."""
     if isinstance(d, CoulombDamping):
         eps_, scale = _real("plant.damping.eps", d.eps, flags), _real("plant.damping.scale", d.scale, flags)
         _bad("plant.damping.eps", np.atleast_1d(eps_ > 0), np.atleast_1d(eps_), "> 0", flags)
@@ -163,13 +189,29 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
         _bad("plant.damping.c1", np.atleast_1d(c1 >= 0), np.atleast_1d(c1), ">= 0", flags)
         _bad("plant.damping.c2", np.atleast_1d(c2 >= 0), np.atleast_1d(c2), ">= 0", flags)
         d = ViscousDamping(c1, c2)
-    L = _real("gains.L", gains.L, flags)
+    return d
+
+
+def _checked_L(leaf, flags) -> np.ndarray:
+    """``gains.L`` as float64, checked: shape ``(3,)`` or ``(3, N)``, every entry of every lane ``> 0``."""
+    L = _real("gains.L", leaf, flags)
     if L.shape[0] != 3:
         raise ValueError(f"gains.L must have shape (3,) or (3, N), got {L.shape}")
     _bad("gains.L", np.all((L > 0).reshape(3, -1), axis=0), L.reshape(3, -1), "> 0 in every entry", flags)
-    k = _real("gains.k", gains.k, flags)
+    return L
+
+
+def _checked_k(leaf, flags) -> np.ndarray:
+    """``gains.k`` as float64, checked ``> 0`` in every lane."""
+    k = _real("gains.k", leaf, flags)
     _bad("gains.k", np.atleast_1d(k > 0), np.atleast_1d(k), "> 0", flags)
-    D = _real("gains.D_hat", gains.D_hat, flags)
+    return k
+
+
+def _checked_D_hat(leaf, flags) -> np.ndarray:
+    """``gains.D_hat`` as float64 ``(2, 2)`` or ``(2, 2, N)`` (a length-2 diagonal made a matrix), checked
+    symmetric positive definite in every lane."""
+    D = _real("gains.D_hat", leaf, flags)
     if D.ndim == 1:
         D = np.diag(D)
     if D.shape[:2] != (2, 2):
@@ -179,12 +221,7 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     det = D3[0, 0] * D3[1, 1] - D3[0, 1] * D3[1, 0]
     _bad("gains.D_hat", (D3[0, 0] > 0) & (det > 0), D3, "positive definite (d11 > 0, d11 d22 - d12^2 > 0)",
          flags)
-    plant = PlantParams(m, J, l, d)
-    gains = Gains(L, k, D)
-    if n is not None:
-        mass = np.atleast_1d(J + m * l * l)
-        _bad("plant.J", mass > 0, np.atleast_1d(J) + 0 * mass, "such that J + m l^2 > 0", flags)
-    return plant, (gains if law is None else law)
+    return D
 
 
 def broadcast_lanes(plant: PlantParams, gains: Gains, n: int) -> tuple[PlantParams, Gains]:

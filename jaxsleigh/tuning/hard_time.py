@@ -120,12 +120,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     gains in logarithm)."""
     from ..model.params import paper_gains
 
-    if is_sampled(law):
-        raise ValueError("hard_time_problem tunes a law the adaptive engine integrates; a sampled law "
-                         "(jaxsleigh.controllers.actuators.Sampled) is tuned by jaxsleigh.tuning.tune_law")
-    ics5, status0 = check_ics(starts, name="training start")
-    if np.any(status0 != Status.OK):
-        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
+    ics5, status0 = _checked_inputs(law, starts)
     plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), as_plant(plant))
     coords = law_coordinates(law, dtype=dtype)
     ref = paper_gains() if reference is None else reference
@@ -135,28 +130,8 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
         return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps, max_steps=cfg.max_steps, reverse=True,
                         segment=cfg.segment)
 
-    ref_run = jax.jit(lambda c: _figures(run(c, y0_ref), cfg))
-    _, eq_ref, s_ref, _ = ref_run(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), ref))
-    budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
-    floor = float(s_ref) - cfg.settled_margin
-    lb = jnp.log(jnp.asarray(budgets, dtype))
-    weights = jnp.asarray(cfg.time_weights, dtype)
-
-    mu = _mu(cfg)
-
-    def objective(x, lam):
-        r = run(coords.law_of(x), y0_law)
-        tq, eq, settled, n_bad = _figures(r, cfg)
-        c = jnp.concatenate([jnp.log(eq) - lb, (floor - settled)[None]])
-        lam = jnp.asarray(lam, dtype)
-        psi = jnp.where(lam + mu * c >= 0, lam * c + 0.5 * mu * c * c, -lam * lam / (2.0 * mu))
-        time_term = jnp.sum(weights * tq) / cfg.t_final
-        f = time_term + jnp.sum(psi)
-        feasible = (n_bad == 0) & jnp.all(c[:-1] <= 1e-6) & (c[-1] <= 0)      # within rounding of the budgets
-        aux = {"T_quantiles": tq, "energy_quantiles": eq, "settled": settled, "n_bad": n_bad, "feasible": feasible,
-               "mean_steps": jnp.mean(r.n_steps.astype(dtype)), "time_term": time_term, "constraints": c}
-        return f, aux
-
+    budgets, floor = _reference_budgets(lambda c: run(c, y0_ref), ref, cfg, dtype)
+    objective = _objective(lambda x: run(coords.law_of(x), y0_law), budgets, floor, cfg, dtype)
     lam0 = _no_multipliers(cfg)
     value_lam = jax.jit(objective)
     vg_lam = jax.jit(jax.value_and_grad(objective, has_aux=True))
@@ -168,6 +143,53 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
         return vg_lam(x, lam)
 
     return HardTimeProblem(coords.x0, coords.law_of, value, value_and_grad, budgets, floor, int(ics5.shape[0]), cfg)
+
+
+def _checked_inputs(law, starts):
+    """``(ics5, status0)`` of the training ``starts`` (`check_ics`), after refusing a sampled ``law`` and refusing
+    starts that are not all valid."""
+    if is_sampled(law):
+        raise ValueError("hard_time_problem tunes a law the adaptive engine integrates; a sampled law "
+                         "(jaxsleigh.controllers.actuators.Sampled) is tuned by jaxsleigh.tuning.tune_law")
+    ics5, status0 = check_ics(starts, name="training start")
+    if np.any(status0 != Status.OK):
+        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
+    return ics5, status0
+
+
+def _reference_budgets(run_ref, ref, cfg: HardTimeConfig, dtype):
+    """``(budgets, settled floor)`` from the reference law ``ref`` (``run_ref(law)``: its settling run on the
+    starts): its energy quantiles times ``energy_margin``, its settled fraction minus ``settled_margin``."""
+    ref_run = jax.jit(lambda c: _figures(run_ref(c), cfg))
+    _, eq_ref, s_ref, _ = ref_run(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), ref))
+    budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
+    floor = float(s_ref) - cfg.settled_margin
+    return budgets, floor
+
+
+def _objective(run_law, budgets, floor: float, cfg: HardTimeConfig, dtype):
+    """The objective ``(x, lam) -> (f, aux)`` of the module docstring (``run_law(x)``: the settling run of the law
+    at ``x``): the weighted time quantiles plus the augmented-Lagrangian terms \\(\\psi(c, \\lambda)\\) of the
+    energy budgets and the settled floor."""
+    lb = jnp.log(jnp.asarray(budgets, dtype))
+    weights = jnp.asarray(cfg.time_weights, dtype)
+
+    mu = _mu(cfg)
+
+    def objective(x, lam):
+        r = run_law(x)
+        tq, eq, settled, n_bad = _figures(r, cfg)
+        c = jnp.concatenate([jnp.log(eq) - lb, (floor - settled)[None]])
+        lam = jnp.asarray(lam, dtype)
+        psi = jnp.where(lam + mu * c >= 0, lam * c + 0.5 * mu * c * c, -lam * lam / (2.0 * mu))
+        time_term = jnp.sum(weights * tq) / cfg.t_final
+        f = time_term + jnp.sum(psi)
+        feasible = (n_bad == 0) & jnp.all(c[:-1] <= 1e-6) & (c[-1] <= 0)      # within rounding of the budgets
+        aux = {"T_quantiles": tq, "energy_quantiles": eq, "settled": settled, "n_bad": n_bad, "feasible": feasible,
+               "mean_steps": jnp.mean(r.n_steps.astype(dtype)), "time_term": time_term, "constraints": c}
+        return f, aux
+
+    return objective
 
 
 class TuneRun(NamedTuple):
