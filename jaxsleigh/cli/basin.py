@@ -78,14 +78,34 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
                     "fraction converged (+- its standard error) and the distribution of T_eps. Chunks are "
                     "checkpointed next to --out; --resume continues an interrupted run.",
         epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_study_options(p, theta_help="theta range or fixed theta [rad] (e.g. -pi:pi:128)", samples_example="100000",
+                      samples_help="N Monte-Carlo starts, uniform in the --x/--y/--theta box",
+                      chunk_help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
+                                 "2^22 per accelerator)",
+                      keep_help="keep FILE.npz.chunks/ after the .npz is written (default: delete it)")
+    o = p.add_argument_group("output")
+    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
+    o.add_argument("--plot", metavar="FILE.png",
+                   help="also draw the convergence-time map, the fraction against theta0 and the T_eps distribution")
+    add_distributed_options(p)
+    # "--x -3:3:64", "--theta -pi/2:pi/2:64": values, not options (argparse would read them as flags)
+    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
+    p.set_defaults(func=run_basin_command)
+    return p
+
+
+def add_study_options(p, *, theta_help: str, samples_example: str, samples_help: str, chunk_help: str,
+                      keep_help: str) -> None:
+    """The option groups `jaxsleigh basin` and `jaxsleigh sweep` share: the starts (a grid, samples or a file;
+    the seed), the ball of T_eps, the horizon, the model and the sampler, and the run (chunks, resume,
+    progress); the help texts that differ between the two are given."""
     g = p.add_argument_group("starts")
     g.add_argument("--x", metavar="LO:HI:N|X", help="x range or fixed x [m]")
     g.add_argument("--y", metavar="LO:HI:N|Y", help="y range or fixed y [m]")
-    g.add_argument("--theta", metavar="LO:HI:N|THETA", help="theta range or fixed theta [rad] (e.g. -pi:pi:128)")
+    g.add_argument("--theta", metavar="LO:HI:N|THETA", help=theta_help)
     src = g.add_mutually_exclusive_group()
     src.add_argument("--ics", metavar="FILE.npy", help="starts from a file, shape (N, 3) or (N, 5)")
-    src.add_argument("--samples", type=_whole("--samples", "100000", 1), metavar="N",
-                     help="N Monte-Carlo starts, uniform in the --x/--y/--theta box")
+    src.add_argument("--samples", type=_whole("--samples", samples_example, 1), metavar="N", help=samples_help)
     g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
                    help="seed of --samples and of --noise (default 0)")
     c = p.add_argument_group("convergence")
@@ -96,23 +116,12 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
     add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
     r = p.add_argument_group("run")
     r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None, metavar="N",
-                   help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
-                        "2^22 per accelerator)")
+                   help=chunk_help)
     r.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
-    r.add_argument("--keep-chunks", action="store_true",
-                   help="keep FILE.npz.chunks/ after the .npz is written (default: delete it)")
+    r.add_argument("--keep-chunks", action="store_true", help=keep_help)
     r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                    help="progress bar with ETA on stderr (default: only on a terminal)")
-    o = p.add_argument_group("output")
-    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
-    o.add_argument("--plot", metavar="FILE.png",
-                   help="also draw the convergence-time map, the fraction against theta0 and the T_eps distribution")
-    add_distributed_options(p)
-    # "--x -3:3:64", "--theta -pi/2:pi/2:64": values, not options (argparse would read them as flags)
-    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
-    p.set_defaults(func=run_basin_command)
-    return p
 
 
 def _chunk_dir(out: Path) -> Path:

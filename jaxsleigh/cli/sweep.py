@@ -21,12 +21,10 @@ import re
 import sys
 import time
 
-from .basin import _chunk_dir, _sidecar, _starts_from_args, _whole
-from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     add_sampler_options, check_outputs, check_tolerance_flags, compute_share, exit_code,
-                     finish_chunked, law_kwargs, load_average, model_from_args, run_chunked, run_distributed,
-                     status_epilog)
-from .common import number as _positive_float
+from .basin import _chunk_dir, _sidecar, _starts_from_args, add_study_options
+from .common import (FLAGS, PROG, add_distributed_options, own_output, check_outputs, check_tolerance_flags,
+                     compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args, run_chunked,
+                     run_distributed, status_epilog)
 
 __all__ = ["add_sweep", "run_sweep_command"]
 
@@ -77,32 +75,12 @@ def add_sweep(subparsers) -> argparse.ArgumentParser:
         epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--param", action="append", required=True, metavar="NAME=LO:HI:P[:log]",
                    help="parameter and its values (repeat once for a 2-D grid)")
-    g = p.add_argument_group("starts")
-    g.add_argument("--x", metavar="LO:HI:N|X", help="x range or fixed x [m]")
-    g.add_argument("--y", metavar="LO:HI:N|Y", help="y range or fixed y [m]")
-    g.add_argument("--theta", metavar="LO:HI:N|THETA", help="theta range or fixed theta [rad]")
-    src = g.add_mutually_exclusive_group()
-    src.add_argument("--ics", metavar="FILE.npy", help="starts from a file, shape (N, 3) or (N, 5)")
-    src.add_argument("--samples", type=_whole("--samples", "256", 1), metavar="N",
-                     help=f"N Monte-Carlo starts, uniform in the --x/--y/--theta box (default {DEFAULT_SAMPLES} "
-                          "when no starts are given)")
-    g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
-                   help="seed of --samples and of --noise (default 0)")
-    c = p.add_argument_group("convergence")
-    c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
-                   help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
-    add_horizon_options(p, save_every=None)
-    add_model_options(p)
-    add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
-    r = p.add_argument_group("run")
-    r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None,
-                   metavar="N", help="rows (start x value) integrated and checkpointed at once (default 16384 "
-                                     "per CPU device, 2^22 per accelerator); bounds the memory")
-    r.add_argument("--resume", action="store_true",
-                   help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
-    r.add_argument("--keep-chunks", action="store_true", help="keep FILE.npz.chunks/ after the .npz is written")
-    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bar with ETA on stderr (default: only on a terminal)")
+    add_study_options(p, theta_help="theta range or fixed theta [rad]", samples_example="256",
+                      samples_help=f"N Monte-Carlo starts, uniform in the --x/--y/--theta box (default {DEFAULT_SAMPLES} "
+                                   "when no starts are given)",
+                      chunk_help="rows (start x value) integrated and checkpointed at once (default 16384 "
+                                 "per CPU device, 2^22 per accelerator); bounds the memory",
+                      keep_help="keep FILE.npz.chunks/ after the .npz is written")
     o = p.add_argument_group("output")
     o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
     o.add_argument("--plot", metavar="FILE.png",
