@@ -630,11 +630,12 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       stepsize: `jaxsleigh.StepSizeController` (method, tolerances, policy, step cap and budget, passivity
         monitor; defaults per dtype).
       saveat: `jaxsleigh.SaveAt` (default: final states and summaries; ``every=k``: also the trajectories every
-        ``k`` base steps; ``summaries=False``: the plain fixed-step path).
+        ``k`` base steps, ``N * T * 5`` numbers; ``summaries=False``: the plain fixed-step path).
       run: `jaxsleigh.RunOptions` (chunks, devices, checkpoint and resume, progress, a process's share).
         Every finished chunk is written atomically and carries the fingerprint of its run; a chunk of another
         run stops the run with a `CheckpointError`, a damaged one is recomputed.
-      observers: the on-line summaries (`jaxsleigh.integrate.observers`; default `DEFAULT_OBSERVERS`).
+      observers: the on-line summaries (`jaxsleigh.integrate.observers`; default `DEFAULT_OBSERVERS`); the
+        standard fields that no given observer provides are NaN, other observers' results are in ``observed``.
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``save_every``, ``summaries``, ``chunk_size``, ``segment``, ``devices``,
         ``checkpoint_dir``, ``resume``, ``progress``, ``shard``), mapped onto the objects.
