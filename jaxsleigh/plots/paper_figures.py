@@ -206,19 +206,30 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
                  labels=None, legend=True, stamp=True):
     """Stacked time histories: ``series`` is a list of (N, T) arrays, one axis each."""
     t, q, status = _arrays(sol)
-    n_ax = len(series)
+    fig, axes, own = _stacked_axes(axes, len(series), figsize)
+    names = _labels(sol, q, status, labels)
+    _draw_series(axes, t, series, names, status, ylabels, yscales)
+    _time_title(fig, axes, own, sol, title, stamp)
+    if legend:
+        _time_legend(fig, axes, own, status)
+    return fig
+
+
+def _stacked_axes(axes, n_ax, figsize):
+    """``(fig, axes, own)``: ``n_ax`` stacked axes sharing x on a new figure (``own=True``) when ``axes`` is
+    ``None``, else the ``n_ax`` given axes and their figure."""
     if axes is None:
         fig = new_figure(figsize or (7.0, 1.9 * n_ax + 1.2))
         axes = fig.subplots(n_ax, 1, sharex=True)
-        axes = np.atleast_1d(axes)
-        own = True
-    else:
-        axes = list(axes)
-        if len(axes) != n_ax:
-            raise ValueError(f"need {n_ax} axes, got {len(axes)}")
-        fig = axes[0].figure
-        own = False
-    names = _labels(sol, q, status, labels)
+        return fig, np.atleast_1d(axes), True
+    axes = list(axes)
+    if len(axes) != n_ax:
+        raise ValueError(f"need {n_ax} axes, got {len(axes)}")
+    return axes[0].figure, axes, False
+
+
+def _draw_series(axes, t, series, names, status, ylabels, yscales):
+    """One line per run on each axis (dashed where its status is not OK), its y-label and y-scale."""
     for k, (ax, data) in enumerate(zip(axes, series)):
         for i in range(data.shape[0]):
             ax.plot(t, data[i], label=names[i], **_style(i, int(status[i])))
@@ -228,27 +239,33 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
             yscales[k](ax, data)
     axes[-1].set_xlabel("time t [s]")
     axes[0].set_xlim(t[0], t[-1])
+
+
+def _time_title(fig, axes, own, sol, title, with_stamp):
+    """The title with the provenance: the figure's (and the stamp) when it is ``own``, else the top axis's."""
     if own:
         fig.suptitle(f"{title}\n({_provenance(sol)})", fontsize=11)
-        if _pb.check_stamp(stamp):
+        if _pb.check_stamp(with_stamp):
             _pb.stamp(fig, _settings(sol), _run_info(sol))
     else:
         axes[0].set_title(f"{title} ({_provenance(sol)})", fontsize=10)
-    if legend:
-        handles, labs = axes[0].get_legend_handles_labels()
-        note = _status_note(status)
-        if note:
-            from matplotlib.lines import Line2D
 
-            handles = handles + [Line2D([], [], color="0.4", linestyle="--")]
-            labs = labs + [note]
-        title_text = "start (x₀ [m], y₀ [m], θ₀ [rad])"
-        if own:
-            fig.legend(handles, labs, loc="outside lower center", ncol=min(_ncol(labs), len(labs)),
-                       fontsize=8, title=title_text, title_fontsize=8, frameon=False)
-        else:
-            axes[0].legend(handles, labs, fontsize=7, title=title_text, title_fontsize=7)
-    return fig
+
+def _time_legend(fig, axes, own, status):
+    """The runs' legend with the status note: below the figure when it is ``own``, else on the top axis."""
+    handles, labs = axes[0].get_legend_handles_labels()
+    note = _status_note(status)
+    if note:
+        from matplotlib.lines import Line2D
+
+        handles = handles + [Line2D([], [], color="0.4", linestyle="--")]
+        labs = labs + [note]
+    title_text = "start (x₀ [m], y₀ [m], θ₀ [rad])"
+    if own:
+        fig.legend(handles, labs, loc="outside lower center", ncol=min(_ncol(labs), len(labs)),
+                   fontsize=8, title=title_text, title_fontsize=8, frameon=False)
+    else:
+        axes[0].legend(handles, labs, fontsize=7, title=title_text, title_fontsize=7)
 
 
 # ---------------------------------------------------------------------------------------------

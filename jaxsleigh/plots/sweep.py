@@ -46,31 +46,11 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
     S, se = (a[order] for a in res.fractions())
     pct = res.percentiles()[order]
     if len(axes) > 2:
-        eff = res.effort_medians()
-        ax_e = axes[2]
-        e = eff.get("u_energy_median", np.full(x.size, np.nan))[order]
-        pk = eff.get("u_norm_peak_median", np.full(x.size, np.nan))[order]
-        ax_e.plot(x, e, "o-", ms=4, color="C2", label=r"median $\int_0^T \|u\|^2 dt$")
-        ax_e.set_ylabel("median control energy", color="C2")
-        ax_p = ax_e.twinx()
-        ax_p.plot(x, pk, "s--", ms=4, color="C4", label=r"median peak $\|u\|$")
-        ax_p.set_ylabel(r"median peak $\|u\|$", color="C4")
-        ax_e.set_title("control effort of the converged starts", fontsize=10)
-        fin = e[np.isfinite(e)]
-        if fin.size > 1 and fin.min() > 0 and fin.max() / fin.min() > 20:
-            ax_e.set_yscale("log")
-        ax_e.legend(handles=ax_e.get_lines() + ax_p.get_lines(), fontsize=8)
-    ax_f.errorbar(x, S, yerr=se, marker="o", ms=4, capsize=3, color="C0")
-    ax_f.set_ylim(-0.03, 1.03)
-    ax_f.set_ylabel("fraction converged")
-    ax_t.fill_between(x, pct[:, 1], pct[:, 3], color="C1", alpha=0.25, lw=0, label="p25-p75")
-    for j, (q, ls) in enumerate(((10, ":"), (50, "-"), (90, "--"))):
-        ax_t.plot(x, pct[:, [0, 2, 4][j]], ls, color="C1", marker="o" if q == 50 else None, ms=4, label=f"p{q}")
-    ax_t.set_ylabel(f"{T_EPS} of the converged [s]")
-    ax_t.legend(fontsize=8)
+        _draw_effort_medians(axes[2], x, order, res.effort_medians())
+    _draw_fraction(ax_f, x, S, se)
+    _draw_t_eps_percentiles(ax_t, x, pct)
     axes = list(axes)
-    log = any(a.log for a in res.axes if a.name == res.names[column]) or (
-        not res.axes and np.all(x > 0) and x.max() / x.min() > 20)
+    log = _log_x(res, column, x)
     for ax in axes:
         ax.set_xlabel(_LABELS.get(res.names[column], res.names[column]))
         if log:
@@ -78,6 +58,46 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
         ax.grid(alpha=0.3)
     fig.suptitle(_subtitle(res), fontsize=9)
     return fig
+
+
+def _draw_effort_medians(ax_e, x, order, eff):
+    """The median control energy (log axis where it spans more than a factor 20) and, on a twin axis, the median
+    peak ``||u||`` of the converged starts (``eff``: `SweepResult.effort_medians`, whose rows ``order`` sorts by ``x``)."""
+    e = eff.get("u_energy_median", np.full(x.size, np.nan))[order]
+    pk = eff.get("u_norm_peak_median", np.full(x.size, np.nan))[order]
+    ax_e.plot(x, e, "o-", ms=4, color="C2", label=r"median $\int_0^T \|u\|^2 dt$")
+    ax_e.set_ylabel("median control energy", color="C2")
+    ax_p = ax_e.twinx()
+    ax_p.plot(x, pk, "s--", ms=4, color="C4", label=r"median peak $\|u\|$")
+    ax_p.set_ylabel(r"median peak $\|u\|$", color="C4")
+    ax_e.set_title("control effort of the converged starts", fontsize=10)
+    fin = e[np.isfinite(e)]
+    if fin.size > 1 and fin.min() > 0 and fin.max() / fin.min() > 20:
+        ax_e.set_yscale("log")
+    ax_e.legend(handles=ax_e.get_lines() + ax_p.get_lines(), fontsize=8)
+
+
+def _draw_fraction(ax_f, x, S, se):
+    """The fraction converged with its standard error."""
+    ax_f.errorbar(x, S, yerr=se, marker="o", ms=4, capsize=3, color="C0")
+    ax_f.set_ylim(-0.03, 1.03)
+    ax_f.set_ylabel("fraction converged")
+
+
+def _draw_t_eps_percentiles(ax_t, x, pct):
+    """The ``T_eps`` percentiles 10/50/90 of the converged starts (``pct``'s columns 0, 2, 4), 25-75 shaded."""
+    ax_t.fill_between(x, pct[:, 1], pct[:, 3], color="C1", alpha=0.25, lw=0, label="p25-p75")
+    for j, (q, ls) in enumerate(((10, ":"), (50, "-"), (90, "--"))):
+        ax_t.plot(x, pct[:, [0, 2, 4][j]], ls, color="C1", marker="o" if q == 50 else None, ms=4, label=f"p{q}")
+    ax_t.set_ylabel(f"{T_EPS} of the converged [s]")
+    ax_t.legend(fontsize=8)
+
+
+def _log_x(res: SweepResult, column: int, x) -> bool:
+    """A log x-axis: the grid axis of the parameter is log-spaced or, for explicit value sets, the values are
+    positive and span more than a factor 20."""
+    return any(a.log for a in res.axes if a.name == res.names[column]) or (
+        not res.axes and np.all(x > 0) and x.max() / x.min() > 20)
 
 
 def plot_sweep_grid(res: SweepResult, axes=None):

@@ -33,6 +33,22 @@ def _field(obj, name):
     return obj[name] if isinstance(obj, Mapping) or hasattr(obj, "files") else getattr(obj, name)
 
 
+def _field_arrays(obj, **dtypes):
+    """The fields ``name=dtype`` of ``obj`` (a mapping, ``.npz`` or object) as arrays of that dtype, in the order
+    given (the first one missing raises)."""
+    return [np.asarray(_field(obj, name), dtype) for name, dtype in dtypes.items()]
+
+
+def _side_by_side(axes, figsize, **subplots_kw):
+    """``(fig, axes)``: two axes side by side on a new figure of ``figsize`` when ``axes`` is ``None``, else the
+    given axes (as a list) and their figure."""
+    if axes is None:
+        fig = new_figure(figsize)
+        return fig, fig.subplots(1, 2, **subplots_kw)
+    axes = list(axes)
+    return axes[0].figure, axes
+
+
 def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget: Optional[float] = None):
     """Loss, gradient norm, integration cost (the probe's attempted steps) and gains per iteration.
 
@@ -64,13 +80,8 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
 def _history_arrays(history):
     """``(loss, valid, best, grad_norm, L, k, D_hat, probe_attempts)`` of ``history`` as arrays (the probe all NaN
     when the history has none)."""
-    loss = np.asarray(_field(history, "loss"), float)
-    valid = np.asarray(_field(history, "valid"), bool)
-    best = np.asarray(_field(history, "best"), float)
-    gnorm = np.asarray(_field(history, "grad_norm"), float)
-    L = np.asarray(_field(history, "L"), float)
-    k = np.asarray(_field(history, "k"), float)
-    D = np.asarray(_field(history, "D_hat"), float)
+    loss, valid, best, gnorm, L, k, D = _field_arrays(history, loss=float, valid=bool, best=float, grad_norm=float,
+                                                      L=float, k=float, D_hat=float)
     try:
         probe = np.asarray(_field(history, "probe_attempts"), float)
     except (KeyError, AttributeError):
@@ -136,12 +147,7 @@ def plot_paths_before_after(before, after, *, names: Sequence[str] = ("paper gai
                             axes=None, share: bool = True):
     """Paths of the contact point under two sets of gains (two `Solution`
     objects from the same starts), side by side; with ``share`` both panels get the same limits."""
-    if axes is None:
-        fig = new_figure((12.0, 6.6))
-        axes = fig.subplots(1, 2)
-    else:
-        axes = list(axes)
-        fig = axes[0].figure
+    fig, axes = _side_by_side(axes, (12.0, 6.6))
     for ax, sol, name in zip(axes, (before, after), names):
         plot_paths(sol, ax=ax, legend=ax is axes[-1])
         ax.set_title(f"{name}: {ax.get_title()}", fontsize=9)
@@ -168,12 +174,7 @@ def plot_convergence_times(times: Mapping[str, np.ndarray], *, horizon: float = 
     counted as not settled). Left: the fraction settled by time t (empirical CDF), medians marked;
     right: histograms on a log time axis.
     """
-    if axes is None:
-        fig = new_figure((11.0, 4.2))
-        axes = fig.subplots(1, 2)
-    else:
-        axes = list(axes)
-        fig = axes[0].figure
+    fig, axes = _side_by_side(axes, (11.0, 4.2))
     finite_all = np.concatenate([np.asarray(T, float)[np.isfinite(T)] for T in times.values()] + [[horizon]])
     lo = max(min(finite_all.min(), horizon) * 0.8, 1e-2)
     bins = np.geomspace(lo, horizon, 40)
@@ -212,12 +213,7 @@ def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, hori
     """
     plants = list(table)
     labels = list(next(iter(table.values())))
-    if axes is None:
-        fig = new_figure((11.0, 4.4))
-        axes = fig.subplots(1, 2, sharey=True)
-    else:
-        axes = list(axes)
-        fig = axes[0].figure
+    fig, axes = _side_by_side(axes, (11.0, 4.4), sharey=True)
     y = np.arange(len(plants))
     h = 0.8 / len(labels)
     for j, lab in enumerate(labels):
@@ -252,12 +248,8 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
     against ``probe_budget`` (rejections by the probe marked). ``returned``: the iteration whose gains
     were returned, marked on every panel (where the probe's steps sit far below its budget, the
     integrator did not shape the answer)."""
-    energy = np.asarray(_field(history, "energy"), float)
-    soft = np.asarray(_field(history, "soft_loss"), float)
-    lam = np.asarray(_field(history, "multiplier"), float)
-    probe = np.asarray(_field(history, "probe_attempts"), float)
-    active = np.asarray(_field(history, "probe_active"), bool)
-    valid = np.asarray(_field(history, "valid"), bool)
+    energy, soft, lam, probe, active, valid = _field_arrays(
+        history, energy=float, soft_loss=float, multiplier=float, probe_attempts=float, probe_active=bool, valid=bool)
     it = np.arange(energy.size)
     if axes is None:
         fig = new_figure((7.0, 7.5))
@@ -266,25 +258,9 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
     else:
         axes = list(axes)
         fig, own = axes[0].figure, False
-    ax = axes[0]
-    ax.semilogy(it[valid], energy[valid], ".-", color="C0", markersize=3, linewidth=1, label="candidate")
-    ax.axhline(budget, color="k", linestyle="--", linewidth=1, label="energy budget")
-    ax.set_ylabel("geometric-mean\n∫|u|² dt (training)")
-    ax = axes[1]
-    ax.plot(it[valid], soft[valid], ".-", color="C1", markersize=3, linewidth=1, label="soft time f")
-    ax.set_ylabel("f (soft time ÷ horizon)")
-    ax2 = ax.twinx()
-    ax2.plot(it, lam, color="C4", linewidth=1, label="multiplier λ")
-    ax2.set_ylabel("λ", color="C4")
-    ax = axes[2]
-    shown = np.isfinite(probe)
-    ax.semilogy(it[shown & ~active], probe[shown & ~active], ".", color="C2", markersize=3, label="probe within budget")
-    if np.any(active):
-        ax.semilogy(it[active], probe[active], "x", color="C3", markersize=5, label="probe active (rejected)")
-    if probe_budget is not None:
-        ax.axhline(probe_budget, color="k", linestyle="--", linewidth=1, label="probe budget")
-    ax.set_ylabel("most attempted steps\nof a probe per 100 s")
-    ax.set_xlabel("iteration")
+    _draw_energy(axes[0], it, energy, valid, budget)
+    _draw_soft_time(axes[1], it, soft, lam, valid)
+    _draw_probe_activity(axes[2], it, probe, active, probe_budget)
     for a in axes:
         if returned is not None:
             a.axvline(returned, color="C3", linewidth=1, alpha=0.6, label="returned gains" if a is axes[0] else None)
@@ -293,6 +269,34 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
     if own:
         fig.suptitle(title, fontsize=11)
     return fig
+
+
+def _draw_energy(ax, it, energy, valid, budget):
+    """The valid candidates' training energy against its budget."""
+    ax.semilogy(it[valid], energy[valid], ".-", color="C0", markersize=3, linewidth=1, label="candidate")
+    ax.axhline(budget, color="k", linestyle="--", linewidth=1, label="energy budget")
+    ax.set_ylabel("geometric-mean\n∫|u|² dt (training)")
+
+
+def _draw_soft_time(ax, it, soft, lam, valid):
+    """The valid candidates' soft time f and, on a twin axis, the multiplier of every iteration."""
+    ax.plot(it[valid], soft[valid], ".-", color="C1", markersize=3, linewidth=1, label="soft time f")
+    ax.set_ylabel("f (soft time ÷ horizon)")
+    ax2 = ax.twinx()
+    ax2.plot(it, lam, color="C4", linewidth=1, label="multiplier λ")
+    ax2.set_ylabel("λ", color="C4")
+
+
+def _draw_probe_activity(ax, it, probe, active, probe_budget):
+    """The probe's most attempted steps per iteration (within its budget, and active: rejected) and the budget."""
+    shown = np.isfinite(probe)
+    ax.semilogy(it[shown & ~active], probe[shown & ~active], ".", color="C2", markersize=3, label="probe within budget")
+    if np.any(active):
+        ax.semilogy(it[active], probe[active], "x", color="C3", markersize=5, label="probe active (rejected)")
+    if probe_budget is not None:
+        ax.axhline(probe_budget, color="k", linestyle="--", linewidth=1, label="probe budget")
+    ax.set_ylabel("most attempted steps\nof a probe per 100 s")
+    ax.set_xlabel("iteration")
 
 
 def plot_search_history(history, *, reference: Mapping, returned: Optional[int] = None, axes=None,
