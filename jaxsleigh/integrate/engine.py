@@ -161,6 +161,17 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
     """
     from ..errors import FlaggedStartsWarning
 
+    arr = _ics_rows(ics, name)
+    status = _start_status(arr, dtype, singular)
+    bad = np.flatnonzero(status)
+    if bad.size:
+        warnings.warn(FlaggedStartsWarning(_flagged_message(arr, status, bad, name), rows=bad, status=status[bad]),
+                      stacklevel=3)
+    return arr, status
+
+
+def _ics_rows(ics, name: str) -> np.ndarray:
+    """``ics`` as ``(N, 5)`` float64 rows (zero momentum appended to ``(x, y, theta)``), or a ``ValueError``."""
     try:
         raw = np.asarray(ics)
     except (TypeError, ValueError):
@@ -176,6 +187,11 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
                          f"[(x, y, theta) or (x, y, theta, p1, p2)], got {np.shape(ics)}")
     if arr.shape[1] == 3:
         arr = np.concatenate([arr, np.zeros((arr.shape[0], 2))], axis=1)
+    return arr
+
+
+def _start_status(arr: np.ndarray, dtype, singular: bool) -> np.ndarray:
+    """Each row's starting status: ``INVALID_INPUT``, ``SINGULAR_START``, ``OUT_OF_RANGE`` or ``OK``."""
     status = np.zeros(arr.shape[0], np.int32)
     finite = np.all(np.isfinite(arr), axis=1)
     status[~finite] = Status.INVALID_INPUT
@@ -185,23 +201,24 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
         cand = np.flatnonzero(status == Status.OK)
         rep = _representable(arr[cand], dtype)
         status[cand[~rep]] = Status.OUT_OF_RANGE
-    bad = np.flatnonzero(status)
-    if bad.size:
-        first = int(bad[0])
-        msg = f"{name} {first} {arr[first].tolist()} is invalid: {_WHY[Status(int(status[first]))]}"
-        if bad.size == arr.shape[0]:
-            if arr.shape[0] == 1:
-                raise ValueError(msg)
-            raise ValueError(f"all {arr.shape[0]} {name}s are invalid; first: {msg}")
-        parts = []
-        for code in np.unique(status[bad]):
-            idx = np.flatnonzero(status == code)
-            parts.append(f"{_rows(idx)} (status {int(code)} {Status(int(code)).name.lower()}: "
-                         f"{_WHY[Status(int(code))]})")
-        warnings.warn(FlaggedStartsWarning(
-            f"{bad.size} of {arr.shape[0]} {name}s flagged and not integrated (outputs NaN, the rest are "
-            f"computed): " + "; ".join(parts), rows=bad, status=status[bad]), stacklevel=3)
-    return arr, status
+    return status
+
+
+def _flagged_message(arr: np.ndarray, status: np.ndarray, bad: np.ndarray, name: str) -> str:
+    """The warning text naming the flagged rows ``bad`` by status; a ``ValueError`` if no row is left."""
+    first = int(bad[0])
+    msg = f"{name} {first} {arr[first].tolist()} is invalid: {_WHY[Status(int(status[first]))]}"
+    if bad.size == arr.shape[0]:
+        if arr.shape[0] == 1:
+            raise ValueError(msg)
+        raise ValueError(f"all {arr.shape[0]} {name}s are invalid; first: {msg}")
+    parts = []
+    for code in np.unique(status[bad]):
+        idx = np.flatnonzero(status == code)
+        parts.append(f"{_rows(idx)} (status {int(code)} {Status(int(code)).name.lower()}: "
+                     f"{_WHY[Status(int(code))]})")
+    return (f"{bad.size} of {arr.shape[0]} {name}s flagged and not integrated (outputs NaN, the rest are "
+            f"computed): " + "; ".join(parts))
 
 
 #: the starts' chart change, compiled (op by op it was ~10 programs per process, each a cache load)

@@ -113,23 +113,31 @@ def parse_axis(spec, name: str = "x") -> Axis:
     Numbers may be written with ``pi`` (``"-pi:pi:64"``, ``"pi/8"``). ``name`` is used in the
     error messages (e.g. ``"--theta"``), which say what to write instead.
     """
+    hint = _axis_hint(name)
+    lo, hi, n = _axis_fields(spec, name, hint)
+    lo, hi = float(lo), float(hi)
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} {spec!r} has a non-finite bound; {hint}")
+    if float(n) != int(n):
+        raise ValueError(f"{name} {spec!r}: N = {n} must be a whole number of points; {hint}")
+    n = int(n)
+    if n != 1 or lo != hi:
+        _check_axis_range(spec, name, lo, hi, n)
+    return Axis(lo, hi, n)
+
+
+def _axis_hint(name: str) -> str:
+    """The "what to write instead" tail of `parse_axis`'s messages, with an example for ``name``."""
     example = {"x": "-3:3:64", "y": "-3:3:64", "theta": "-pi:pi:64"}.get(name.lstrip("-"), "-3:3:64")
-    hint = f"write LO:HI:N (e.g. {name} {example}) or a single value to hold it fixed (e.g. {name} 0.5)"
+    return f"write LO:HI:N (e.g. {name} {example}) or a single value to hold it fixed (e.g. {name} 0.5)"
+
+
+def _axis_fields(spec, name: str, hint: str):
+    """``(lo, hi, n)`` as given by any form `parse_axis` accepts, not yet checked."""
     if isinstance(spec, Axis):
         lo, hi, n = spec
     elif isinstance(spec, str):
-        parts = spec.split(":")
-        try:
-            vals = [_number(s) for s in parts]
-        except ValueError as e:
-            raise ValueError(f"could not parse {name} {spec!r}: {e}; {hint}") from None
-        if len(parts) == 1:
-            lo = hi = vals[0]
-            n = 1
-        elif len(parts) == 3:
-            lo, hi, n = vals
-        else:
-            raise ValueError(f"could not parse {name} {spec!r}: got {len(parts)} field(s) separated by ':'; {hint}")
+        lo, hi, n = _axis_fields_from_text(spec, name, hint)
     elif np.ndim(spec) == 0:
         try:
             lo = hi = float(spec)
@@ -140,23 +148,34 @@ def parse_axis(spec, name: str = "x") -> Axis:
         if len(spec) != 3:
             raise ValueError(f"{name} as a sequence must be (lo, hi, n), got {spec!r}; {hint}")
         lo, hi, n = (float(v) for v in spec)
-    lo, hi = float(lo), float(hi)
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"{name} {spec!r} has a non-finite bound; {hint}")
-    if float(n) != int(n):
-        raise ValueError(f"{name} {spec!r}: N = {n} must be a whole number of points; {hint}")
-    n = int(n)
-    if n != 1 or lo != hi:
-        if n < 2:
-            raise ValueError(f"{name} {spec!r}: a range needs N >= 2 points; to hold {name} fixed write one value "
-                             f"(e.g. {name} {_fmt(lo)})")
-        if lo == hi:
-            raise ValueError(f"{name} {spec!r}: LO and HI are equal; to hold {name} fixed write one value "
-                             f"(e.g. {name} {_fmt(lo)}), for a range write e.g. {name} {_fmt(lo)}:{_fmt(lo + 1)}:{n}")
-        if not lo < hi:
-            raise ValueError(f"{name} {spec!r}: LO must be below HI; write e.g. {name} "
-                             f"{_fmt(min(lo, hi))}:{_fmt(max(lo, hi))}:{n}")
-    return Axis(lo, hi, n)
+    return lo, hi, n
+
+
+def _axis_fields_from_text(spec: str, name: str, hint: str):
+    """``(lo, hi, n)`` from ``"LO:HI:N"`` or ``"VALUE"`` (numbers may use ``pi``)."""
+    parts = spec.split(":")
+    try:
+        vals = [_number(s) for s in parts]
+    except ValueError as e:
+        raise ValueError(f"could not parse {name} {spec!r}: {e}; {hint}") from None
+    if len(parts) == 1:
+        return vals[0], vals[0], 1
+    if len(parts) == 3:
+        return tuple(vals)
+    raise ValueError(f"could not parse {name} {spec!r}: got {len(parts)} field(s) separated by ':'; {hint}")
+
+
+def _check_axis_range(spec, name: str, lo: float, hi: float, n: int) -> None:
+    """Refuse a range (not a fixed value) with too few points or with ``LO >= HI``."""
+    if n < 2:
+        raise ValueError(f"{name} {spec!r}: a range needs N >= 2 points; to hold {name} fixed write one value "
+                         f"(e.g. {name} {_fmt(lo)})")
+    if lo == hi:
+        raise ValueError(f"{name} {spec!r}: LO and HI are equal; to hold {name} fixed write one value "
+                         f"(e.g. {name} {_fmt(lo)}), for a range write e.g. {name} {_fmt(lo)}:{_fmt(lo + 1)}:{n}")
+    if not lo < hi:
+        raise ValueError(f"{name} {spec!r}: LO must be below HI; write e.g. {name} "
+                         f"{_fmt(min(lo, hi))}:{_fmt(max(lo, hi))}:{n}")
 
 
 def _fmt(v: float) -> str:

@@ -189,10 +189,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     if is_paper_law(law):
         raise ValueError("the paper's law has its own tuner with admissible gains: jaxsleigh.tuning.tune")
     law = as_controller(law)
-    for name, v, ok in (("steps", steps, isinstance(steps, int) and steps >= 1),
-                        ("lr", lr, isinstance(lr, (int, float)) and np.isfinite(lr) and lr > 0)):
-        if not ok:
-            raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
+    _check_steps_lr(steps, lr)
     chart = chart_for(law)
     ics5, status0 = check_ics(starts, singular=chart.singular, name="training start")
     if np.any(status0 != Status.OK):
@@ -208,24 +205,41 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         def f(x):
             return law_loss(coords.law_of(x), y0, plant, loss, n_attempts=n_attempts)
 
-        step_fn = jax.jit(jax.value_and_grad(f, has_aux=True))
-        opt = optax.adam(lr)
-        state = opt.init(params)
-        best, hist = None, {"loss": [], "energy": [], "valid": []}
-        for _ in range(steps):
-            (value, aux), grads = step_fn(params)
-            valid = bool(aux["valid"]) and bool(jnp.all(jnp.isfinite(grads)))
-            hist["loss"].append(float(value))
-            hist["energy"].append(float(aux["energy"]))
-            hist["valid"].append(valid)
-            if valid and (best is None or float(value) < best[1]):
-                best = (params, float(value), float(aux["energy"]))
-            if not valid:
-                break
-            updates, state = opt.update(grads, state, params)
-            params = optax.apply_updates(params, updates)
+        best, hist = _adam_descent(jax.jit(jax.value_and_grad(f, has_aux=True)), optax.adam(lr), params, steps)
         if best is None:
             raise ValueError("the starting law is not a valid candidate (a training start failed or the loss is not "
                              "finite); check it with jaxsleigh.run_ensemble(starts, controller=law)")
         tuned = _host_law(law, coords.law_of(best[0]), tune)
     return LawTuneResult(tuned, best[1], best[2], {k: np.asarray(v) for k, v in hist.items()})
+
+
+def _check_steps_lr(steps, lr) -> None:
+    """Refuse a number of Adam steps that is not a positive whole number, or a learning rate that is not positive."""
+    for name, v, ok in (("steps", steps, isinstance(steps, int) and steps >= 1),
+                        ("lr", lr, isinstance(lr, (int, float)) and np.isfinite(lr) and lr > 0)):
+        if not ok:
+            raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
+
+
+def _adam_descent(step_fn, opt, params, steps: int):
+    """At most ``steps`` steps of ``opt`` from ``params``, stopping at the first invalid candidate.
+
+    ``step_fn(params) -> ((loss, aux), grads)``. Returns ``(best, hist)``: ``best`` is ``(params, loss,
+    energy)`` of the lowest-loss valid candidate (``None`` if none was valid), ``hist`` the per-step lists
+    ``loss``, ``energy``, ``valid``.
+    """
+    state = opt.init(params)
+    best, hist = None, {"loss": [], "energy": [], "valid": []}
+    for _ in range(steps):
+        (value, aux), grads = step_fn(params)
+        valid = bool(aux["valid"]) and bool(jnp.all(jnp.isfinite(grads)))
+        hist["loss"].append(float(value))
+        hist["energy"].append(float(aux["energy"]))
+        hist["valid"].append(valid)
+        if valid and (best is None or float(value) < best[1]):
+            best = (params, float(value), float(aux["energy"]))
+        if not valid:
+            break
+        updates, state = opt.update(grads, state, params)
+        params = optax.apply_updates(params, updates)
+    return best, hist
