@@ -179,7 +179,9 @@ def test_parse_axis_ranges_values_and_errors():
     np.testing.assert_allclose(parse_axis("0:1:5").values(), [0, 0.25, 0.5, 0.75, 1])
     assert parse_axis("-pi:pi:5", "theta").values()[2] == 0.0        # snapped onto the singular set
     bad = {"-3:3": "LO:HI:N", "3:-3:8": "write e.g. --x -3:3:8", "a:1:4": "'a' is not a number",
-           "0:1:2.5": "whole number", "0:1:1": "N >= 2", "1:2:3:4": "LO:HI:N", "nan:1:3": "non-finite"}
+           "0:1:2.5": "whole number", "0:1:1": "N >= 2", "1:2:3:4": "LO:HI:N", "nan:1:3": "non-finite",
+           "1:2:nan": "N = nan must be a whole number", "1:2:inf": "N = inf must be a whole number",
+           (0, 1, "a"): "three numbers (lo, hi, n)"}
     for spec, fix in bad.items():
         with pytest.raises(ValueError, match="--x") as e:
             parse_axis(spec, "--x")

@@ -118,7 +118,7 @@ def parse_axis(spec, name: str = "x") -> Axis:
     lo, hi = float(lo), float(hi)
     if not (math.isfinite(lo) and math.isfinite(hi)):
         raise ValueError(f"{name} {spec!r} has a non-finite bound; {hint}")
-    if float(n) != int(n):
+    if not (math.isfinite(float(n)) and float(n) == int(n)):     # N = nan or inf: not a count either
         raise ValueError(f"{name} {spec!r}: N = {n} must be a whole number of points; {hint}")
     n = int(n)
     if n != 1 or lo != hi:
@@ -147,7 +147,10 @@ def _axis_fields(spec, name: str, hint: str):
     else:
         if len(spec) != 3:
             raise ValueError(f"{name} as a sequence must be (lo, hi, n), got {spec!r}; {hint}")
-        lo, hi, n = (float(v) for v in spec)
+        try:
+            lo, hi, n = (float(v) for v in spec)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} as a sequence must be three numbers (lo, hi, n), got {spec!r}; {hint}") from None
     return lo, hi, n
 
 
