@@ -111,3 +111,21 @@ def test_the_command_line_never_shows_a_traceback(tmp_path, capsys, monkeypatch,
 def test_scalar_options_refuse_what_is_not_a_number(value):
     with pytest.raises(ValueError, match="t_final"):
         solve_config(t_final=value)
+
+
+@pytest.mark.parametrize("argv", [
+    ["simulate", "--ic", "1,1,0.5", "--t-final", "1", "--sample-period", "1e-320"],     # t_final / period = inf
+    ["simulate", "--ic", "1,1,0.5", "--t-final", "1", "--sample-period", "1e-12"],      # 1e12 samples
+    ["basin", "--x", "-1:1:2", "--y", "1", "--theta", "0.5", "--t-final", "1", "--sample-period", "1e-320"],
+    ["paper", "--dt", "1e-320"],
+    ["basin", "--x", "1:2:inf", "--y", "1", "--theta", "0.5"],
+    ["basin", "--x", "1:2:nan", "--y", "1", "--theta", "0.5"],
+])
+def test_overflowing_numbers_on_the_command_line_are_refused_with_a_message(tmp_path, capsys, argv):
+    """Found by running every numeric flag of every command with nan, inf, 1e999, 1e-320, ...: these ended in an
+    OverflowError traceback (a count of steps, samples or points that is not finite or does not fit)."""
+    out = ["--out", str(tmp_path / ("p" if argv[0] == "paper" else "x.npz"))]
+    rc = cli.main(argv + out)
+    _, err = capsys.readouterr()
+    assert rc == 2 and err.startswith("jaxsleigh: error: ") and "Traceback" not in err, err
+    assert any(w in err for w in ("more than one run can take", "whole number of points")), err

@@ -49,6 +49,7 @@ from ..model.controller import FunctionLaw, apply_law, is_paper_law
 from ..model.params import PlantParams, plant_params
 from ..model.plant import open_loop, velocity
 from ..status import Status
+from .engine import MAX_BASE_STEPS
 from .rk4 import rk4_step
 
 __all__ = ["SampledRun", "solve_sampled", "sample_count"]
@@ -94,7 +95,11 @@ def sample_count(t_final, period) -> int:
         raise ValueError(f"t_final must be a number of seconds, got {t_final!r}") from None
     if not (math.isfinite(t_final) and t_final > 0):
         raise ValueError(f"t_final must be > 0 and finite, got {t_final!r}")
-    K = int(round(t_final / period))
+    ratio = t_final / period
+    if not ratio <= MAX_BASE_STEPS + 0.5:             # inf for a subnormal period: refused, not an OverflowError
+        raise ValueError(f"t_final / period = {ratio:.3g} samples is more than one run can take "
+                         f"({MAX_BASE_STEPS:.0e}); use a longer sampling period or a shorter t_final")
+    K = int(round(ratio))
     if K < 1 or abs(K * period - t_final) > 1e-6 * max(1.0, t_final):     # float32's rounding of a period allowed
         raise ValueError(f"t_final = {t_final} must be a whole number of sampling periods "
                          f"(period = {period}): t_final / period = {t_final / period:.6g}")

@@ -14,6 +14,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from ..integrate.engine import MAX_BASE_STEPS
 from ..model.params import paper_gains, paper_plant
 from ..studies.simulate import simulate
 
@@ -43,7 +44,10 @@ FIGURES = {
 
 
 def _save_every(t_final: float, dt: float, spacing: float = 0.05) -> int:
-    """Largest K <= spacing/dt dividing the number of steps (outputs about every ``spacing`` s)."""
+    """Largest K <= spacing/dt dividing the number of steps (outputs about every ``spacing`` s); 1 for a horizon
+    `simulate` will refuse (more base steps than a run can take, say a subnormal ``dt``: its message names it)."""
+    if not t_final / dt <= MAX_BASE_STEPS:
+        return 1
     n_steps = max(1, int(round(t_final / dt)))
     k = max(1, int(round(spacing / dt)))
     while n_steps % k:
