@@ -129,3 +129,55 @@ def test_overflowing_numbers_on_the_command_line_are_refused_with_a_message(tmp_
     _, err = capsys.readouterr()
     assert rc == 2 and err.startswith("jaxsleigh: error: ") and "Traceback" not in err, err
     assert any(w in err for w in ("more than one run can take", "whole number of points")), err
+
+
+class _Work(BaseException):
+    """Raised by the stubs in place of the work: the command got past every check."""
+
+
+def _no_work(*a, **k):
+    raise _Work
+
+
+#: where each command's work begins (stubbed: the test is about the checks before it)
+WORK = [("jaxsleigh.studies.ensemble", "_run_chunks"), ("jaxsleigh.studies.simulate", "drive_saving"),
+        ("jaxsleigh.studies.simulate", "sampled_solution"), ("jaxsleigh.tuning.optimizer", "_iterate"),
+        ("jaxsleigh.tuning.pareto", "_front_vmap"), ("jaxsleigh.tuning.pareto", "_front_warm"),
+        ("jaxsleigh.tuning.pareto", "random_search"), ("jaxsleigh.tuning.cma_search", "search"),
+        ("jaxsleigh.tuning.law", "_adam_descent"), ("jaxsleigh.studies.bench", "c_limit"),
+        ("jaxsleigh.studies.bench", "bench")]
+
+
+def test_no_numeric_flag_of_any_command_shows_a_traceback(tmp_path, capsys, monkeypatch):
+    """Every option of every command that takes a value, given a subnormal (1e-320) and inf: a message and exit
+    code 2, or the command's work reached; never a traceback (two of these were OverflowErrors)."""
+    import argparse
+
+    for mod, name in WORK:
+        monkeypatch.setattr(importlib.import_module(mod), name, _no_work)
+    base = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"], "basin": ["--x", "-1:1:2", "--y", "1", "--theta", "0.5",
+            "--t-final", "1"], "sweep": ["--param", "k=0.1:1:2", "--samples", "2", "--t-final", "1"],
+            "compare": ["--t-final", "1"], "tune": [], "bench": [], "paper": [], "controllers": []}
+    outputs = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json",
+               "paper": "p"}
+    paths = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--json", "--help"}
+    commands = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert set(commands) == set(base), sorted(commands)          # a new command: add it here
+    failures, ran = [], 0
+    for command, parser in commands.items():
+        out = ["--out", str(tmp_path / outputs[command])] if command in outputs else []
+        flags = [a.option_strings[-1] for a in parser._actions if a.option_strings and a.nargs != 0
+                 and not isinstance(a, argparse.BooleanOptionalAction) and a.option_strings[-1] not in paths]
+        for flag in flags:
+            for token in ("1e-320", "inf"):
+                argv = [command, *base[command], *out, flag, token]
+                ran += 1
+                capsys.readouterr()                         # what an earlier command said
+                try:
+                    rc = cli.main(argv)
+                except _Work:
+                    continue
+                err = capsys.readouterr().err
+                if rc not in (0, 2) or "Traceback" in err or (rc == 2 and not err.startswith("jaxsleigh: error: ")):
+                    failures.append((argv, rc, err[-300:]))
+    assert ran > 150 and not failures, failures
