@@ -81,11 +81,13 @@ class StudyOptions(NamedTuple):
     run: RunOptions
 
 
-#: Where each keyword of jaxsleigh 0.1 lives: ``(object, field)``.
+#: Where each keyword of jaxsleigh 0.1 lives: ``(object, field)``; the one table both ways (`front_options`).
 _KEYWORD_HOME = {**{k: ("stepsize", k) for k in ("rtol", "atol", "max_step", "max_steps", "method",
                                                   "check_passivity")},
                  "save_every": ("saveat", "every"), "summaries": ("saveat", "summaries"),
                  **{k: ("run", k) for k in RunOptions._fields}}
+#: fields put even at their default: an object's ``method="adaptive"`` clashes with ``method="rk4"`` given by itself
+_ALWAYS_PUT = frozenset({"method", "check_passivity", "summaries"})
 
 
 def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, run=None, options=None, *,
@@ -128,26 +130,17 @@ def _merged_keywords(front: str, allowed: frozenset, stepsize, saveat, run, opti
                              f"give it once")
         out[key] = value
 
-    if stepsize is not None:
-        if not isinstance(stepsize, StepSizeController):
-            raise ValueError(f"stepsize must be a jaxsleigh.StepSizeController, got {type(stepsize).__name__}")
-        _check_policy(stepsize)
-        for key in ("rtol", "atol", "max_step", "max_steps"):
-            if getattr(stepsize, key) is not None:
-                put(key, getattr(stepsize, key), "stepsize")
-        put("method", stepsize.method, "stepsize", "adaptive")
-        put("check_passivity", stepsize.check_passivity, "stepsize", True)
-    if saveat is not None:
-        if not isinstance(saveat, SaveAt):
-            raise ValueError(f"saveat must be a jaxsleigh.SaveAt, got {type(saveat).__name__}")
-        if saveat.every is not None:
-            put("save_every", saveat.every, "saveat")
-        put("summaries", saveat.summaries, "saveat", True)
-    if run is not None:
-        if not isinstance(run, RunOptions):
-            raise ValueError(f"run must be a jaxsleigh.RunOptions, got {type(run).__name__}")
-        for key, default in zip(RunOptions._fields, RunOptions()):
-            value = getattr(run, key)
-            if value != default:
-                put(key, value, "run", default)
+    given = {"stepsize": stepsize, "saveat": saveat, "run": run}
+    for home, cls in (("stepsize", StepSizeController), ("saveat", SaveAt), ("run", RunOptions)):
+        obj = given[home]
+        if obj is None:
+            continue
+        if not isinstance(obj, cls):
+            raise ValueError(f"{home} must be a jaxsleigh.{cls.__name__}, got {type(obj).__name__}")
+        if cls is StepSizeController:
+            _check_policy(obj)
+        for key, field in ((k, f) for k, (h, f) in _KEYWORD_HOME.items() if h == home):
+            value, default = getattr(obj, field), cls._field_defaults[field]
+            if value != default or key in _ALWAYS_PUT:
+                put(key, value, home, default)
     return out
