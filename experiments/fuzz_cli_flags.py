@@ -48,18 +48,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     os.environ.setdefault("JAXSLEIGH_NO_COMPILE_CACHE", "1")
     from jaxsleigh import cli
-    from test_fuzz_inputs import WORK            # where each command's work begins
+    from test_fuzz_inputs import COMMAND_ARGS, OUTPUTS, PATH_OPTIONS, WORK   # the test's commands and stubs
 
     for mod, name in WORK:
         setattr(importlib.import_module(mod), name, _stub)
     signal.signal(signal.SIGALRM, _alarm)
     tmp = tempfile.mkdtemp()
-    base = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"], "basin": ["--x", "-1:1:2", "--y", "1", "--theta", "0.5",
-            "--t-final", "1"], "sweep": ["--param", "k=0.1:1:2", "--samples", "2", "--t-final", "1"],
-            "compare": ["--t-final", "1"], "tune": [], "bench": [], "paper": [], "controllers": []}
-    outputs = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json",
-               "paper": "p"}
-    paths = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--json", "--help"}
+    base, outputs, paths = COMMAND_ARGS, OUTPUTS, PATH_OPTIONS
     commands = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     kinds, bad = collections.Counter(), []
     for command, parser in commands.items():

@@ -148,6 +148,16 @@ WORK = [("jaxsleigh.studies.ensemble", "_run_chunks"), ("jaxsleigh.studies.simul
         ("jaxsleigh.studies.bench", "bench")]
 
 
+#: what each command needs besides the option under test, its output file, and the options that name paths
+#: (not numbers; left out); experiments/fuzz_cli_flags.py uses them too
+COMMAND_ARGS = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"],
+                "basin": ["--x", "-1:1:2", "--y", "1", "--theta", "0.5", "--t-final", "1"],
+                "sweep": ["--param", "k=0.1:1:2", "--samples", "2", "--t-final", "1"],
+                "compare": ["--t-final", "1"], "tune": [], "bench": [], "paper": [], "controllers": []}
+OUTPUTS = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json", "paper": "p"}
+PATH_OPTIONS = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--json", "--help"}
+
+
 def test_no_numeric_flag_of_any_command_shows_a_traceback(tmp_path, capsys, monkeypatch):
     """Every option of every command that takes a value, given a subnormal (1e-320) and inf: a message and exit
     code 2, or the command's work reached; never a traceback (two of these were OverflowErrors)."""
@@ -155,12 +165,7 @@ def test_no_numeric_flag_of_any_command_shows_a_traceback(tmp_path, capsys, monk
 
     for mod, name in WORK:
         monkeypatch.setattr(importlib.import_module(mod), name, _no_work)
-    base = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"], "basin": ["--x", "-1:1:2", "--y", "1", "--theta", "0.5",
-            "--t-final", "1"], "sweep": ["--param", "k=0.1:1:2", "--samples", "2", "--t-final", "1"],
-            "compare": ["--t-final", "1"], "tune": [], "bench": [], "paper": [], "controllers": []}
-    outputs = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json",
-               "paper": "p"}
-    paths = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--json", "--help"}
+    base, outputs, paths = COMMAND_ARGS, OUTPUTS, PATH_OPTIONS
     commands = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     assert set(commands) == set(base), sorted(commands)          # a new command: add it here
     failures, ran = [], 0
