@@ -361,13 +361,13 @@ class _Chunks:
     sampled-data loop (`sampled_part`) or by the engine (`engine_part`: parts run concurrently on the devices,
     their stiff stragglers finished in one tail batch in the background)."""
 
-    def __init__(self, cfg, *, step, observers, summaries, save_every, segment, chart, dtype, devs, args, lane_args,
-                 ics5, status0, chunk, part_sizes, bar, tail_pool):
+    def __init__(self, cfg, *, step, observers, saveat: SaveAt, segment, dtype, devs, lane_args, ics5, status0, chunk,
+                 bar, tail_pool):
         self.cfg, self.horizon, self.eps, self.adaptive = cfg, cfg.horizon, cfg.eps, cfg.adaptive
-        self.step, self.observers, self.summaries, self.save_every = step, observers, summaries, save_every
-        self.segment, self.chart, self.dtype, self.devs = segment, chart, dtype, devs
-        self.args, self.lane_args, self.ics5, self.status0 = args, lane_args, ics5, status0
-        self.n, self.chunk, self.part_sizes = ics5.shape[0], chunk, part_sizes
+        self.step, self.observers, (self.save_every, self.summaries) = step, observers, saveat
+        self.segment, self.chart, self.dtype, self.devs = segment, chart_for(cfg.law), dtype, devs
+        self.args, self.lane_args, self.ics5, self.status0 = ClosedLoop(cfg.plant, cfg.law), lane_args, ics5, status0
+        self.n, self.chunk, self.part_sizes = ics5.shape[0], chunk, _part_sizes(chunk, devs)
         self.bar, self.tail_pool = bar, tail_pool
 
     def sampled_part(self, lo, hi):
@@ -583,9 +583,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
         devices_used = [str(d) for d in devs]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
-        part_sizes = _part_sizes(chunk, devs)
         store = _open_store(run.checkpoint_dir, run.resume, settings, ics5, chunk)
-        args = ClosedLoop(cfg.plant, cfg.law)
         observers = DEFAULT_OBSERVERS if observers is None else tuple(observers)
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
@@ -593,9 +591,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
         # the store's lock on the folder is held until the last chunk is written or read
         with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
                 concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
-            chunks = _Chunks(cfg, step=step, observers=observers, summaries=summaries, save_every=save_every,
-                             segment=segment, chart=chart, dtype=dtype, devs=devs, args=args, lane_args=lane_args,
-                             ics5=ics5, status0=status0, chunk=chunk, part_sizes=part_sizes, bar=bar,
+            chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
+                             devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
                              tail_pool=tail_pool)
             parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields, sampled=sampled)
         if shard is not None:
