@@ -17,17 +17,21 @@
 #   tests     tests.log: the tests of the one-kernel path, on the GPU (the kernel compiled by Triton, not
 #             Pallas' interpreter)
 #   studies   studies.json: experiments/gpu_studies.py, a default basin of 10^6 starts and a sweep of
-#             8 x 131072 against a basin of the same rows
+#             8 x 131072 against a basin of the same rows (10 s, median of 2; STUDY_ARGS to change)
+#   tail      gpu_tail.json: experiments/gpu_tail.py, the cost of one loop iteration on the 1024 starts nearest
+#             theta = 0, with and without CUDA graphs for loops, and on the host's cores
 #   f64       f64.json: bench_scaling at N = 10^6 in float64, the plain path and the adaptive default
 #   startup   startup.txt: two fresh processes of the README's `jaxsleigh simulate` with a new cache folder
-# and all.log, everything the steps printed. `all` (the default) is about 10 minutes on one H100/H200-class GPU;
-# the steps of issue 20's item 6 (`device tests bench kernel scaling studies f64 startup`, SIZES=10^6,10^7,
-# MODES=plain,adaptive) about 7.
+# and all.log, everything the steps printed. Every step (the default) takes about 15 minutes on one H100: more than
+# a session's device time. What fits one call of ~8 minutes (issue 20, item 6; 7 minutes on one H100):
+#     OUT=... SIZES=1000000,10000000 MODES=plain,adaptive bash experiments/bench_accelerator.sh \
+#         device tests bench kernel scaling studies f64 startup
+# and `tests tail` about 2 more.
 # Run from the repository's root, with jaxsleigh importable (installed, or this folder on PYTHONPATH).
 set -u
 OUT=${OUT:-out/accelerator}
 PY=${PYTHON:-python3}
-STEPS=${*:-device kernel scaling bench chunks tests studies f64 startup}
+STEPS=${*:-device kernel scaling bench chunks tests studies f64 startup tail}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
@@ -68,7 +72,12 @@ for s in $STEPS; do
         echo "exit $?" >>"$OUT/tests.log"; tail -n 5 "$OUT/tests.log" | tee -a "$LOG" ;;
     studies)
         step "basins and sweeps"
-        timeout 150 $PY experiments/gpu_studies.py ${STUDY_ARGS:-} --out "$OUT/studies.json" 2>&1 | tee -a "$LOG" ;;
+        timeout 200 $PY experiments/gpu_studies.py ${STUDY_ARGS:---sweep-t 10 --repeats 2} --out "$OUT/studies.json" 2>&1 \
+            | tee -a "$LOG" ;;
+    tail)
+        step "the stragglers' loop iteration"
+        timeout 170 $PY experiments/gpu_tail.py --n 1024 --t-final 10 --timeout 60 --out "$OUT/gpu_tail.json" 2>&1 \
+            | tee -a "$LOG" ;;
     f64)
         step "float64, N = 10^6"
         timeout 120 $PY experiments/bench_scaling.py --sizes 1000000 --modes plain,adaptive --horizons '' --x64 \
@@ -84,7 +93,7 @@ for s in $STEPS; do
         done | tee "$OUT/startup.txt" | tee -a "$LOG"
         $PY -c "import sys, numpy as np; a, b = (np.load(f) for f in sys.argv[1:]); d = [k for k in a.files if k != 'settings_json' and not np.array_equal(a[k], b[k])]; print('arrays that differ between the two processes:', d or 'none')" \
             "$cache/run1.npz" "$cache/run2.npz" 2>&1 | tee -a "$OUT/startup.txt" | tee -a "$LOG" ;;
-    *) echo "unknown step $s (device, kernel, scaling, bench, chunks, tests, studies, f64, startup)" >&2; exit 2 ;;
+    *) echo "unknown step $s (device, kernel, scaling, bench, chunks, tests, studies, f64, startup, tail)" >&2; exit 2 ;;
     esac
 done
 step done
