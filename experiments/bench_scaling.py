@@ -91,7 +91,7 @@ def worker(spec: dict) -> dict:
         raise ValueError(f"unknown mode {mode!r}")
     from jaxsleigh.cores import default_chunk_size
 
-    chunk = spec["chunk_size"] or default_chunk_size(65536)
+    chunk = spec["chunk_size"] or default_chunk_size()
     warm_n = {"chunk": min(n, chunk), "full": n, "none": 0}[spec["warmup"]]
     t0 = time.perf_counter()
     if warm_n:

@@ -28,7 +28,7 @@ import threading
 import warnings
 from typing import Callable, Optional, Sequence
 
-__all__ = ["available_cores", "configure", "workers", "run_parts", "default_chunk_size", "PART_SIZE",
+__all__ = ["available_cores", "configure", "workers", "run_parts", "default_chunk_size", "PART_SIZE", "CPU_CHUNK",
            "ACCELERATOR_CHUNK"]
 
 #: lanes per part: every chunk is cut into parts of this many starts (the last padded), whatever the
@@ -36,6 +36,12 @@ __all__ = ["available_cores", "configure", "workers", "run_parts", "default_chun
 #: large ones over its threads), and the rounding can follow; with one part size, every start meets the
 #: same compiled program on any number of cores (tests/test_cores.py).
 PART_SIZE = 1024
+
+#: starts per chunk on CPU, for `run_ensemble`, basins and sweeps alike. Measured on the default basin of 10^5
+#: starts (2 cores, float32, `experiments/basin_tails.py`): 51-53 s with chunks of 16384 against 66-78 s with
+#: 4096-8192 and 59-84 s with 65536-131072 (each chunk's tail batch finishes its few stiff stragglers on one core
+#: behind the next chunk's parts); on the benchmark's tame starts 65536 and 16384 ran alike.
+CPU_CHUNK = 16384
 
 #: starts per chunk and device on an accelerator. Measured on one NVIDIA H200 (jax 0.11.2, float32,
 #: 10^6 starts of the benchmark workload over 100 s, `experiments/bench_accelerator.sh`): the adaptive
@@ -123,7 +129,7 @@ def workers(devices: Optional[Sequence] = None, cores: Optional[int] = None) -> 
     return devs[:max(1, limit)]
 
 
-def default_chunk_size(cpu: int, devices: Optional[Sequence] = None) -> int:
+def default_chunk_size(cpu: int = CPU_CHUNK, devices: Optional[Sequence] = None) -> int:
     """Starts per chunk when the caller gives none: ``cpu`` on CPU (the cores split each chunk, so the
     chunks, and a checkpoint's files, do not depend on how many there are); on an accelerator
     `ACCELERATOR_CHUNK` per device (``devices``, default every local device)."""

@@ -188,3 +188,15 @@ def test_interrupted_while_a_tail_runs_loses_nothing_and_resumes_to_the_same_byt
     for f in ("q_final", "T_eps", "n_steps", "status", "u_energy"):
         np.testing.assert_array_equal(getattr(resumed, f), getattr(whole, f), err_msg=f)
     assert np.any(whole.n_steps > 20 * np.median(whole.n_steps))    # the stragglers were there
+
+
+def test_the_three_fronts_take_one_cpu_chunk_size():
+    """`run_ensemble`, `run_basin` and `sweep` resolve an unset chunk size to the same CPU default
+    (`jaxsleigh.cores.CPU_CHUNK`), recorded in their settings; a chunk size given is kept."""
+    ics = np.array([[1.0, -1.0, 0.5], [-2.0, 1.0, 2.0]])
+    kw = dict(t_final=0.5, progress=False)
+    got = {"run_ensemble": js.run_ensemble(ics, **kw).settings["chunk_size"],
+           "run_basin": js.run_basin(ics, **kw).settings["chunk_size"],
+           "sweep": js.sweep(ics, {"k": [0.1, 0.2]}, **kw).settings["chunk_size"]}
+    assert got == dict.fromkeys(got, cores.CPU_CHUNK)
+    assert js.run_ensemble(ics, chunk_size=4, **kw).settings["chunk_size"] == 4

@@ -39,7 +39,6 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .config import reject_traced
-from ..cores import default_chunk_size
 from .ensemble import _run_ensemble
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
@@ -487,8 +486,6 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
     reject_traced("run_basin", **locals())    # first: a NumPy front, neither jittable nor differentiable
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
-    if run.chunk_size is None:
-        run = run._replace(chunk_size=default_chunk_size(16384, run.devices))
     res = _run_ensemble(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
                         x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
     if res is None:                               # a shard of a multi-process run: chunks written

@@ -278,8 +278,8 @@ def _checked_options(stepsize: StepSizeController, saveat: SaveAt, run: RunOptio
     if not summaries and (method != "rk4" or stepsize.check_passivity or save_every is not None):
         raise ValueError("summaries=False is the plain fixed-step path: it needs method='rk4', "
                          "check_passivity=False and no save_every")
-    chunk_size = default_chunk_size(65536, run.devices) if chunk_size is None else \
-        whole("chunk_size", chunk_size, example=65536)
+    chunk_size = default_chunk_size(devices=run.devices) if chunk_size is None else \
+        whole("chunk_size", chunk_size, example=16384)
     if shard is not None:
         if checkpoint_dir is None:
             raise ValueError("shard=(index, count) writes its chunks to checkpoint_dir; give one")
@@ -553,7 +553,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
     ``saveat.summaries=False`` (with ``StepSizeController(method="rk4", check_passivity=False)``, no
     ``saveat.every``) runs plain RK4 for the final state only (``T_eps``, ``min_abs_theta``,
     ``max_excursion`` NaN; status judged at the end). ``run.chunk_size``: trajectories integrated, checkpointed
-    and shown by the progress bar at once (default 65536 on CPU, 2^22 per device on an accelerator,
+    and shown by the progress bar at once (default 16384 on CPU, 2^22 per device on an accelerator,
     `jaxsleigh.cores.default_chunk_size`). ``run.shard = (index, count)``: compute only the chunks
     ``i % count == index`` not already in ``run.checkpoint_dir``, write them there and return ``None``
     (`jaxsleigh.files.distributed`); a later call without it assembles the result.

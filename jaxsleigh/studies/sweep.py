@@ -517,15 +517,12 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     counts rows (default as `run_basin`). Returns a `SweepResult` (``None`` with ``run.shard``)."""
     reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
     from .ensemble import _run_ensemble
-    from ..cores import default_chunk_size
 
     st = _as_starts(starts)
     controller, law_names = _resolve_controller(controller, gains)
     names, values, shape, axes, labels = _value_sets(params, st.ics.shape[0], law_names, labels)
     base_plant, base_gains, lp, lg = _row_lanes(names, values, plant, gains, controller, labels, st.ics.shape[0])
     P, N = values.shape[0], st.ics.shape[0]
-    if run.chunk_size is None:
-        run = run._replace(chunk_size=default_chunk_size(16384, run.devices))
     law = {"gains": lg, "controller": None} if controller is None else {"gains": None, "controller": lg}
     res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps, x64=x64,
                         observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
