@@ -40,7 +40,7 @@ PART_SIZE = 1024
 #: starts per chunk on CPU, for `run_ensemble`, basins and sweeps alike. Measured on the default basin of 10^5
 #: starts (2 cores, float32, `experiments/basin_tails.py`): 51-53 s with chunks of 16384 against 66-78 s with
 #: 4096-8192 and 59-84 s with 65536-131072 (each chunk's tail batch finishes its few stiff stragglers on one core
-#: behind the next chunk's parts); on the benchmark's tame starts 65536 and 16384 ran alike.
+#: behind the next chunk's parts); on the benchmark's tame starts 65536 and 16384 ran alike (scratch).
 CPU_CHUNK = 16384
 
 #: starts per chunk and device on an accelerator. Measured on one NVIDIA H200 (jax 0.11.2, float32,
