@@ -59,11 +59,10 @@ def add_compare(subparsers) -> None:
     p.set_defaults(func=_cmd_compare)
 
 
-def _cmd_compare(args) -> int:
-    from ..controllers.registry import controller_names, make_controller
-    from ..files.npz import atomic_write_text
-    from ..integrate.stepsize import StepSizeController
-    from ..studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts
+def _names(args):
+    """The ``--controllers`` and ``--starts`` lists, each checked against what it may name."""
+    from ..controllers.registry import controller_names
+    from ..studies.compare import START_DISTRIBUTIONS
 
     names = [n.strip() for n in args.controllers.split(",") if n.strip()]
     dists = [n.strip() for n in args.starts.split(",") if n.strip()]
@@ -71,6 +70,31 @@ def _cmd_compare(args) -> int:
         bad = [n for n in got if n not in known]
         if bad or not got:
             raise ValueError(f"{flag}: unknown {bad or got!r}; choose from {', '.join(known)}")
+    return names, dists
+
+
+def _record(args, rows, names, dists, wall_s) -> dict:
+    """What `jaxsleigh compare --out` writes: the rows, the command and every setting that made them."""
+    import jax
+
+    from ..studies.compare import START_DISTRIBUTIONS
+
+    return {"rows": rows, "command": [PROG, *getattr(args, "_argv", [])],
+            "settings": {"controllers": names, "starts": {d: START_DISTRIBUTIONS[d] for d in dists},
+                         "samples": args.samples, "seed": args.seed, "t_final": args.t_final, "eps": args.eps,
+                         "dtype": "float64" if args.x64 else "float32", "saturation": args.saturation,
+                         "sample_period": args.sample_period, "delay": args.delay, "noise": args.noise,
+                         "rtol": args.rtol, "atol": args.atol},
+            "run_info": {"wall_s": wall_s, "devices": [str(d) for d in jax.devices()]}}
+
+
+def _cmd_compare(args) -> int:
+    from ..controllers.registry import make_controller
+    from ..files.npz import atomic_write_text
+    from ..integrate.stepsize import StepSizeController
+    from ..studies.compare import compare, draw_compare_starts
+
+    names, dists = _names(args)
     sampler = sampler_from_args(args)
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
@@ -80,15 +104,7 @@ def _cmd_compare(args) -> int:
     stepsize = StepSizeController(rtol=args.rtol, atol=args.atol)
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
                    x64=args.x64, stepsize=stepsize)
-    import jax
-
-    record = {"rows": rows, "command": [PROG, *getattr(args, "_argv", [])],
-              "settings": {"controllers": names, "starts": {d: START_DISTRIBUTIONS[d] for d in dists},
-                           "samples": args.samples, "seed": args.seed, "t_final": args.t_final, "eps": args.eps,
-                           "dtype": "float64" if args.x64 else "float32", "saturation": args.saturation,
-                           "sample_period": args.sample_period, "delay": args.delay, "noise": args.noise,
-                           "rtol": args.rtol, "atol": args.atol},
-              "run_info": {"wall_s": time.perf_counter() - t0, "devices": [str(d) for d in jax.devices()]}}
+    record = _record(args, rows, names, dists, time.perf_counter() - t0)
     atomic_write_text(args.out, json.dumps(record, indent=1, default=float))
     if args.plot:
         from ..plots.compare import plot_compare_table

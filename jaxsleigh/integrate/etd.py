@@ -120,6 +120,15 @@ def rotation_alphas(theta2, upto: int):
 OSCILLATION_PHASE_IN = 20.0
 
 
+def _rate_coefficients(z):
+    """Cox & Matthews' coefficients for the rate on p2 over a step, ``z = lam h``: ``(phi1(z / 2), e^(z / 2),
+    e^z, f1, f2, f3)`` with ``f1 = phi1 - 3 phi2 + 4 phi3``, ``f2 = phi2 - 2 phi3``, ``f3 = -phi2 + 4 phi3`` at ``z``."""
+    (p1h,) = phis(0.5 * z, upto=1)
+    p1, p2, p3 = phis(z)
+    e2, e1 = jnp.exp(0.5 * z), jnp.exp(z)
+    return p1h, e2, e1, p1 - 3.0 * p2 + 4.0 * p3, p2 - 2.0 * p3, -p2 + 4.0 * p3
+
+
 def etd_stages(field_and_control, t, y, h, args, k1, lam, osc=None):
     """One exponential RK4 step from ``k1 = f(t, y)`` with the frozen rate ``lam`` on ``p2`` and, when ``osc``
     is given, the frozen oscillation ``osc = (a, b)`` on ``(w2, p1)`` (module docstring).
@@ -129,11 +138,7 @@ def etd_stages(field_and_control, t, y, h, args, k1, lam, osc=None):
     slope ``k5 = f(y + dy)`` (the module docstring's), and the stage states and controls
     ``((A, uA), (B, uB), (C, uC))`` (for the observers' quadrature)."""
     dtype = y.dtype
-    z = lam * h
-    (p1h,) = phis(0.5 * z, upto=1)
-    p1, p2, p3 = phis(z)
-    e2, e1 = jnp.exp(0.5 * z), jnp.exp(z)
-    f1, f2, f3 = p1 - 3.0 * p2 + 4.0 * p3, p2 - 2.0 * p3, -p2 + 4.0 * p3
+    p1h, e2, e1, f1, f2, f3 = _rate_coefficients(lam * h)
     half = 0.5 * h
     rot = None if osc is None else _Rotation(h, *osc)
 

@@ -482,6 +482,20 @@ class _Chunks:
         return {key: np.concatenate([p[key] for p in out]) for key in out[0]}
 
 
+def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, fields, sampled) -> tuple:
+    """``(result, new)`` for chunk ``ci`` (rows ``lo:hi``): ``result()`` gives its summaries, read back from
+    ``store`` when it holds them (``new`` False), else computed (sampled-data loops at once; the engine's parts
+    started, their tails maybe still running: ``result.ready()`` says)."""
+    if store is not None:
+        part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=chunks.ics5[lo:hi])
+        if part is not None:
+            return (lambda: part), False
+    if sampled:
+        part = chunks.sampled_part(lo, hi)
+        return (lambda: part), True
+    return chunks.engine_part(lo, hi), True
+
+
 def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
     """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
     returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
@@ -503,17 +517,9 @@ def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, 
             hi = min(lo + chunk, n)
             if shard is not None and ci % shard[1] != shard[0]:
                 continue
-            if store is not None and resume:
-                part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=ics5[lo:hi])
-                if part is not None:                 # in order, behind any chunk still finishing
-                    pending.append((ci, lo, hi, lambda part=part: part, False))
-                    reused += 1
-                    continue
-            if sampled:
-                part = chunks.sampled_part(lo, hi)
-                pending.append((ci, lo, hi, lambda part=part: part, True))
-            else:
-                pending.append((ci, lo, hi, chunks.engine_part(lo, hi), True))
+            result, new = _chunk_result(chunks, store if resume else None, ci, lo, hi, fields=fields, sampled=sampled)
+            reused += not new
+            pending.append((ci, lo, hi, result, new))    # in order, behind any chunk still finishing
             # chunks end in order; the tails of up to one chunk per device run behind the next chunk's parts
             while pending and (len(pending) > len(devs) or getattr(pending[0][3], "ready", lambda: True)()):
                 done_chunk(*pending.popleft())

@@ -110,14 +110,31 @@ def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, ru
                         RunOptions(**fields["run"]))
 
 
-def _merged_keywords(front: str, allowed: frozenset, stepsize, saveat, run, options) -> dict:
-    """The 0.1 keywords given, with the objects' fields that differ from their defaults put in (checked)."""
-    options = dict(options or {})
+def _refuse_unknown(front: str, allowed: frozenset, options: dict) -> None:
     unknown = sorted(set(options) - allowed)
     if unknown:
         raise TypeError(f"{front}() got unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
                         f"{', '.join(repr(k) for k in unknown)}; its keywords beyond the objects are "
                         f"{', '.join(sorted(allowed))}")
+
+
+def _fields_put(home: str, cls, obj):
+    """``(keyword, value, default)`` for each field of the option object ``obj`` (given as ``home``, checked to be
+    a ``cls``) that goes into the keywords: those that differ from their defaults, and `_ALWAYS_PUT`."""
+    if not isinstance(obj, cls):
+        raise ValueError(f"{home} must be a jaxsleigh.{cls.__name__}, got {type(obj).__name__}")
+    if cls is StepSizeController:
+        _check_policy(obj)
+    for key, field in ((k, f) for k, (h, f) in _KEYWORD_HOME.items() if h == home):
+        value, default = getattr(obj, field), cls._field_defaults[field]
+        if value != default or key in _ALWAYS_PUT:
+            yield key, value, default
+
+
+def _merged_keywords(front: str, allowed: frozenset, stepsize, saveat, run, options) -> dict:
+    """The 0.1 keywords given, with the objects' fields that differ from their defaults put in (checked)."""
+    options = dict(options or {})
+    _refuse_unknown(front, allowed, options)
     out = dict(options)
 
     def put(key, value, source, default=None):
@@ -132,15 +149,7 @@ def _merged_keywords(front: str, allowed: frozenset, stepsize, saveat, run, opti
 
     given = {"stepsize": stepsize, "saveat": saveat, "run": run}
     for home, cls in (("stepsize", StepSizeController), ("saveat", SaveAt), ("run", RunOptions)):
-        obj = given[home]
-        if obj is None:
-            continue
-        if not isinstance(obj, cls):
-            raise ValueError(f"{home} must be a jaxsleigh.{cls.__name__}, got {type(obj).__name__}")
-        if cls is StepSizeController:
-            _check_policy(obj)
-        for key, field in ((k, f) for k, (h, f) in _KEYWORD_HOME.items() if h == home):
-            value, default = getattr(obj, field), cls._field_defaults[field]
-            if value != default or key in _ALWAYS_PUT:
+        if given[home] is not None:
+            for key, value, default in _fields_put(home, cls, given[home]):
                 put(key, value, home, default)
     return out
