@@ -7,7 +7,9 @@ Runs the default adaptive method (float32, 100 s, eps = 0.05) of this tree and o
 ``git worktree`` of the commit before the exponential step, classical RK4 with the I controller) on the
 benchmark workload (`jaxsleigh.studies.bench.workload`, seed 0): ``--n`` starts under the paper's gains and
 ``--n-fast`` under the ``balanced`` and ``tuned`` presets (``balanced``: the gains it had until 2026-11,
-``OLD_BALANCED`` of tests/laws.py, the same in every tree, as when these figures were measured). Each is compared with a float64 reference
+``OLD_BALANCED`` of tests/laws.py, the same in every tree, as when these figures were measured; ``balanced_now``:
+the present preset's gains, jaxsleigh/presets/balanced.json, also given to every tree as a gains file, so the
+stepper is compared on the same gains). Each is compared with a float64 reference
 computed by the *baseline* (classical RK4, rtol = atol = 1e-11, T_eps on the dense output with 8 samples and
 30 bisections), so the reference does not share the new scheme. Reports the mean accepted steps and attempts,
 the wrong final states (max-norm error > 1e-3, as ``jaxsleigh bench``), the final-state error quantiles and
@@ -83,11 +85,14 @@ def main(argv=None) -> int:
     out = {"command": "python experiments/settled_phase_adopted.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "baseline": a.baseline, "also": a.also, "dtype": "float32", "t_final": 100.0, "load_before": load(),
            "gains": {}}
-    old = Path(tempfile.mkdtemp()) / "old_balanced.json"                # a gains file every tree reads
-    old.write_text(json.dumps(OLD_BALANCED))
+    files = Path(tempfile.mkdtemp())                                     # gains files every tree reads
+    (files / "old_balanced.json").write_text(json.dumps(OLD_BALANCED))
+    present = json.loads((ROOT / "jaxsleigh" / "presets" / "balanced.json").read_text())
+    (files / "balanced_now.json").write_text(json.dumps({k: present[k] for k in ("L", "k", "D_hat")}))
+    specs = {"balanced": str(files / "old_balanced.json"), "balanced_now": str(files / "balanced_now.json")}
     try:
-        for gains, n in (("paper", a.n), ("balanced", a.n_fast), ("tuned", a.n_fast)):
-            spec = str(old) if gains == "balanced" else gains
+        for gains, n in (("paper", a.n), ("balanced", a.n_fast), ("balanced_now", a.n_fast), ("tuned", a.n_fast)):
+            spec = specs.get(gains, gains)
             ref = run_py(RUN, [spec, n, "ref"], env={"PYTHONPATH": str(base)})
             row = {}
             for name, tree in trees:
