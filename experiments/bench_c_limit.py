@@ -11,7 +11,8 @@ in ONE interleaved timing run (C and JAX repetitions alternate, their order flip
 compile and warm-up excluded) on the workload of :func:`jaxsleigh.studies.bench.workload` (x, y ~ U(-3, 3),
 |theta0| ~ U(0.3, pi) with random sign, zero momentum; float32, final state only) it reports
 trajectory-steps/s of both per CPU second (``time.process_time``: every thread of the process) and
-per wall second, the ratio JAX / C, and the agreement of the final states (w chart).
+per wall second, the ratio JAX / C, and the agreement of the final states (w chart); the JSON records the
+load average before and after.
 
 The C program runs on as many OpenMP threads as the JAX call uses cores (``--c-threads`` to choose). The JAX call timed is
 ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, t_final, dt, progress=False)``.
@@ -63,6 +64,7 @@ def main(argv=None) -> int:
     mach["os_cpu_count"] = os.cpu_count()
     mach["xla_flags"] = os.environ.get("XLA_FLAGS", "")
     mach["jaxsleigh_cores"] = os.environ.get("JAXSLEIGH_CORES", "")
+    mach["load_average_before"] = [round(x, 2) for x in os.getloadavg()]
     if lib is None:
         print(f"C limit skipped: {reason}")
         res = {"available": False, "reason": reason}
@@ -109,6 +111,7 @@ def main(argv=None) -> int:
               f"float32 vs float64 (same scheme) median {ag['float32_vs_float64_rel_median_tame']:.2e}, "
               f"max {ag['float32_vs_float64_rel_max_tame']:.2e}; finiteness mismatches "
               f"{ag['finiteness_mismatch']}, bitwise-equal rows {ag['bitwise_equal_rows']}")
+    mach["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     res["machine"] = mach
     res["command"] = "python experiments/bench_c_limit.py " + " ".join(sys.argv[1:] if argv is None else argv)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
