@@ -27,6 +27,9 @@ import os
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_cores import load  # noqa: E402
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -64,7 +67,7 @@ def main(argv=None) -> int:
     mach["os_cpu_count"] = os.cpu_count()
     mach["xla_flags"] = os.environ.get("XLA_FLAGS", "")
     mach["jaxsleigh_cores"] = os.environ.get("JAXSLEIGH_CORES", "")
-    mach["load_average_before"] = [round(x, 2) for x in os.getloadavg()]
+    mach["load_average_before"] = load()
     if lib is None:
         print(f"C limit skipped: {reason}")
         res = {"available": False, "reason": reason}
@@ -111,7 +114,7 @@ def main(argv=None) -> int:
               f"float32 vs float64 (same scheme) median {ag['float32_vs_float64_rel_median_tame']:.2e}, "
               f"max {ag['float32_vs_float64_rel_max_tame']:.2e}; finiteness mismatches "
               f"{ag['finiteness_mismatch']}, bitwise-equal rows {ag['bitwise_equal_rows']}")
-    mach["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    mach["load_average_after"] = load()
     res["machine"] = mach
     res["command"] = "python experiments/bench_c_limit.py " + " ".join(sys.argv[1:] if argv is None else argv)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)

@@ -25,6 +25,9 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_cores import load  # noqa: E402
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -73,7 +76,7 @@ def main(argv=None) -> int:
         row["of_library_step"] = ratio
         print(f"{name:13s} {row['us_per_lane']:8.3f} us per lane  ({ratio:.2f} x the library's whole step)")
     out = {"command": "python experiments/block3_cost.py " + " ".join(sys.argv[1:] if argv is None else argv),
-           "machine": machine(), "load_average": [round(x, 2) for x in os.getloadavg()], "dtype": "float32",
+           "machine": machine(), "load_average": load(), "dtype": "float32",
            "cores": 1, "n": a.n, "repeats": a.repeats, "rows": rows}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1) + "\n")

@@ -35,6 +35,9 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_cores import load  # noqa: E402
+
 
 def _inner_body(hlo: str) -> str:
     """The text of the innermost while body of an optimised HLO module (the one that calls no while)."""
@@ -124,29 +127,29 @@ def main(argv=None) -> int:
         D = gains.D_hat
         return (D[0, 0] * v[0] + D[0, 1] * v[1], D[1, 0] * v[0] + (D[1, 1] + (gains.k * inv) * inv) * v[1])
 
-    kernels = {"library": lambda y: engine._plain_specialised(key, a.steps, 256, "float32")(y, dt),
-               "block_128": lambda y: engine._plain_specialised(key, a.steps, 128, "float32")(y, dt),
-               "block_512": lambda y: engine._plain_specialised(key, a.steps, 512, "float32")(y, dt)}
-    compiled = {"library": engine._plain_specialised(key, a.steps, 256, "float32"),
-                "block_128": engine._plain_specialised(key, a.steps, 128, "float32"),
-                "block_512": engine._plain_specialised(key, a.steps, 512, "float32")}
+    y0j = jnp.asarray(y0)
+    kernels, structure = {}, {}
+
+    def add(name, jitted, *extra):
+        """Compile ``jitted`` once (now: the shared-reciprocal variant is traced while its law is patched); the
+        timed program and the counted one are that executable. ``extra``: the library's kernel also takes dt."""
+        exe = jitted.lower(y0j, *extra).compile()
+        kernels[name] = lambda y: exe(y, *extra)
+        structure[name] = _structure(exe.as_text())
+
+    for name, block in (("library", 256), ("block_128", 128), ("block_512", 512)):
+        add(name, engine._plain_specialised(key, a.steps, block, "float32"), dt)
+    add("rebuilt", builder(rk4(whole)))
     original = paper_law.damping_injection_components
-    paper_law.damping_injection_components = shared_reciprocal          # traced now, restored below
+    paper_law.damping_injection_components = shared_reciprocal
     try:
-        compiled["shared_reciprocal"] = builder(rk4(whole))
-        compiled["shared_reciprocal"].lower(jnp.asarray(y0)).compile()
+        add("shared_reciprocal", builder(rk4(whole)))
     finally:
         paper_law.damping_injection_components = original
-    compiled["rebuilt"] = builder(rk4(whole))
-    compiled["inline_step"] = builder(rk4(by_row))
-    compiled["stage_in_field"] = builder(rk4(by_row, jax.lax.optimization_barrier))
-    compiled["rows_carry"] = builder(rows_step, rows=True)
-    for name in ("rebuilt", "shared_reciprocal", "inline_step", "stage_in_field", "rows_carry"):
-        kernels[name] = compiled[name]
-    structure = {}
-    for name, fn in compiled.items():
-        lowered = fn.lower(jnp.asarray(y0), dt) if name in ("library", "block_128", "block_512") else fn.lower(jnp.asarray(y0))
-        structure[name] = _structure(lowered.compile().as_text())
+    add("inline_step", builder(rk4(by_row)))
+    add("stage_in_field", builder(rk4(by_row, jax.lax.optimization_barrier)))
+    add("rows_carry", builder(rows_step, rows=True))
+    compiled = set(kernels)
     kernels["run_ensemble"] = lambda y: jaxsleigh.run_ensemble(ics, method="rk4", summaries=False, check_passivity=False,
                                                                t_final=t_final, dt=0.01, progress=False)
     kernels["drive_plain"] = lambda y: engine.drive_plain(y0w, status0, args0, horizon)
@@ -187,7 +190,7 @@ def main(argv=None) -> int:
         kps = f", {rows[name]['kernels_per_step']} kernels per step" if name in structure else ""
         print(f"{name:18s} {rate:.3e} traj-steps per CPU s{of_c}{kps}")
     out = {"command": "python experiments/xla_kernel_structure.py " + " ".join(sys.argv[1:] if argv is None else argv),
-           "machine": machine(), "load_average": [round(x, 2) for x in os.getloadavg()], "dtype": "float32",
+           "machine": machine(), "load_average": load(), "dtype": "float32",
            "cores": 1, "n_ics": a.n_ics, "steps": a.steps, "repeats": a.repeats, "c_reason": reason, "rows": rows}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
