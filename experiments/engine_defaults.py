@@ -1,6 +1,7 @@
-r"""The smaller figures behind issue 20's choices, each measured here (float32 unless stated).
+r"""The measurements behind the engine's defaults: every core, the step-size controller's exponents, the step
+budget near theta = 0, and how many straggling lanes a part hands over (float32 unless stated).
 
-    python experiments/issue20_details.py [--out docs/figures/issue20_details.json]
+    python experiments/engine_defaults.py [--out docs/figures/engine_defaults.json]
 
 * ``plain_cores``: the plain fixed-step path (4096 starts, 100 s) on one core and on every core, best of 3.
 * ``controllers``: mean steps and T_eps / final-state errors on 512 benchmark starts (paper gains, 100 s) for
@@ -40,10 +41,10 @@ def best(fn, n=3):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="docs/figures/issue20_details.json")
+    ap.add_argument("--out", default="docs/figures/engine_defaults.json")
     a = ap.parse_args(argv)
     log = lambda *m: print(*m, file=sys.stderr, flush=True)  # noqa: E731
-    out = {"command": "python experiments/issue20_details.py", "cores": js.cores.available_cores(),
+    out = {"command": "python experiments/engine_defaults.py", "cores": js.cores.available_cores(),
            "load_before": [round(x, 2) for x in os.getloadavg()]}
     ics = workload(4096, 0)
     kw = dict(method="rk4", summaries=False, check_passivity=False, progress=False)
