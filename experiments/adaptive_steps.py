@@ -1,5 +1,5 @@
 """Steps set by accuracy: the adaptive default before and after T_eps is located on the step's
-dense output, for several caps on the step (issue 12, part 2).
+dense output, for several caps on the step.
 
     python experiments/adaptive_steps.py [--n 4096] [--n-tuned 512] [--caps 10,30,100,1000]
 

@@ -1,4 +1,4 @@
-"""The ``balanced`` preset: the fastest gains at no more control energy than the paper's (issue 9).
+"""The ``balanced`` preset: the fastest gains at no more control energy than the paper's.
 
     python experiments/balanced_search.py [--write-preset] [--resume]
         [--generations 200] [--population 16] [--batch 256] [--seed 0] [--sigma0 0.5]

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The accelerator's figures (issue 11's GPU targets): on a machine where JAX sees a GPU,
+# The accelerator's figures (throughput on one GPU): on a machine where JAX sees a GPU,
 #
 #     OUT=out/accelerator bash experiments/bench_accelerator.sh [STEP ...]
 #
@@ -22,8 +22,8 @@
 #             theta = 0, with and without CUDA graphs for loops, and on the host's cores
 #   f64       f64.json: bench_scaling at N = 10^6 in float64, the plain path and the adaptive default
 #   startup   startup.txt: two fresh processes of the README's `jaxsleigh simulate` with a new cache folder
-# and all.log, everything the steps printed. Every step (the default) takes about 15 minutes on one H100: more than
-# a session's device time. What fits one call of ~8 minutes (issue 20, item 6; 7 minutes on one H100):
+# and all.log, everything the steps printed. Every step (the default) takes about 15 minutes on one H100. A
+# shorter run of ~8 minutes (7 minutes on one H100):
 #     OUT=... SIZES=1000000,10000000 MODES=plain,adaptive bash experiments/bench_accelerator.sh \
 #         device tests bench kernel scaling studies f64 startup
 # and `tests tail` about 2 more.

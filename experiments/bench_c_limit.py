@@ -1,4 +1,4 @@
-r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the same closed loop (issue 12).
+r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the same closed loop.
 
     python experiments/bench_c_limit.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--seed 0]
                                         [--repeats 7] [--cores N] [--c-threads N] [--whole-batch] [--vector-width 512]

@@ -1,4 +1,4 @@
-r"""Issue 20's figures, side by side in one session: every core, start-up, sweeps against basins.
+r"""Every core, start-up, sweeps against basins: the figures side by side in one run.
 
     python experiments/bench_cores.py [--basin-n 100000] [--baseline 2fa58a2] [--repeats 2]
                                       [--skip c,basin,startup,sweep] [--out docs/figures/bench_cores.json]

@@ -1,4 +1,4 @@
-"""Cost of a parameter sweep against one ensemble of the same size (issue 10).
+"""Cost of a parameter sweep against one ensemble of the same size.
 
 A sweep of P values x N starts runs as P * N rows of one ``run_ensemble`` call whose gains / plant
 leaves carry a per-row axis. This benchmark compares, on the same machine, interleaved:

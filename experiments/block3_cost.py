@@ -1,4 +1,4 @@
-r"""What a 3x3 exponential block on (w2, p1, p2) would cost per step (issue 20, item 2), against the step it would replace.
+r"""What a 3x3 exponential block on (w2, p1, p2) would cost per step, against the step it would replace.
 
     python experiments/block3_cost.py [--n 4096] [--repeats 5] [--out docs/figures/block3_cost.json]
 

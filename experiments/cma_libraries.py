@@ -1,4 +1,4 @@
-r"""The hand-written CMA-ES against well-kept libraries, at an equal budget of evaluations (issue 21, item 7).
+r"""The hand-written CMA-ES against well-kept libraries, at an equal budget of evaluations.
 
     python experiments/cma_libraries.py [--seeds 10] [--out docs/figures/cma_libraries.json] [--quick]
 

@@ -1,4 +1,4 @@
-r"""Basins and sweeps on one accelerator (issue 20, item 6): what `jaxsleigh.run_basin` and `jaxsleigh.sweep` do
+r"""Basins and sweeps on one accelerator: what `jaxsleigh.run_basin` and `jaxsleigh.sweep` do
 with their defaults on a GPU, warm, in one process.
 
     python experiments/gpu_studies.py [--basin-n 1000000] [--sweep-n 131072] [--sweep-t 30] [--repeats 3]
@@ -8,7 +8,7 @@ with their defaults on a GPU, warm, in one process.
   wall time, starts per second, the equivalent trajectory-steps per second (N x 10^4 base steps over the wall
   time, as in the scaling benchmark), mean / max steps, the fraction settled and the statuses.
 * ``sweep_vs_basin``: a sweep of 8 values of ``k`` x ``--sweep-n`` starts against `run_basin` of the same rows'
-  starts (paper gains), ``--sweep-t`` seconds, median of ``--repeats``, interleaved: the sweep's overhead (issue 20, item 4: at most 1.2x).
+  starts (paper gains), ``--sweep-t`` seconds, median of ``--repeats``, interleaved: the sweep's overhead (at most 1.2x on CPU).
 
 A warm-up of each shape compiles first (not timed). Off a GPU it runs too (on the CPU's devices), slowly:
 ``--basin-n 4096 --sweep-n 512`` for a check of the script.

@@ -1,5 +1,4 @@
-"""Where the starts of a literature law that winds end, and what the heading modulo 2 pi changes: Aicardi et al.'s law
-(issue 21, item 6).
+"""Where the starts of a literature law that winds end, and what the heading modulo 2 pi changes: Aicardi et al.'s law.
 
     python experiments/heading_wrap.py [--n 2048] [--out docs/figures/heading_wrap.json]
 

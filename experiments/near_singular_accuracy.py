@@ -1,4 +1,4 @@
-"""Accuracy near the singular set against an independent stiff reference (issue 3 targets).
+"""Accuracy near the singular set against an independent stiff reference.
 
 For starts with |x|, |y| <= 5 and |theta0| from 1e-1 down to 1e-3, integrate with jaxsleigh's
 default (adaptive) method and with scipy's Radau (rtol = atol = 1e-10, float64, physical chart,

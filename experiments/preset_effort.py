@@ -1,4 +1,4 @@
-"""What the gain presets cost in control effort beyond the median (issue 17, H5).
+"""What the gain presets cost in control effort beyond the median.
 
     python experiments/preset_effort.py [--n 2048] [--x64] [--atol A] [--out docs/figures/preset_effort.json]
 

@@ -1,4 +1,4 @@
-r"""The settled phase (issue 12, part 3): can an exponential RK4 remove the step limit set by the
+r"""The settled phase: can an exponential RK4 remove the step limit set by the
 stiff injected damping k / theta^2 once the sleigh sits next to theta = 0?
 
     python experiments/settled_phase.py [--t-final 300] [--gains paper tuned] [--n-starts 6]

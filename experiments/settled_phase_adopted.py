@@ -1,4 +1,4 @@
-r"""The settled-phase step adopted (issue 20, part 2): steps and accuracy before and after, side by side.
+r"""The settled-phase step adopted: steps and accuracy before and after, side by side.
 
     python experiments/settled_phase_adopted.py [--baseline af0756c] [--also 72f4f8f] [--n 4096] [--n-fast 256]
                                                 [--out docs/figures/settled_phase_adopted.json]

@@ -1,4 +1,4 @@
-"""A law family tuned by gradient and by CMA-ES on the same objective (issue 21): the shaped-energy family, the
+"""A law family tuned by gradient and by CMA-ES on the same objective: the shaped-energy family, the
 paper's own 7 gains, or a literature law.
 
     python experiments/shaped_study.py [--family shaped|paper|aicardi] [--n 1024] [--steps 40] [--cma-factor 3]

@@ -1,5 +1,5 @@
 r"""XLA:CPU compile options on top of `PLAIN_CPU_OPTIONS`, on the specialised plain kernel, against the C reference
-(issue 20, item 1: is there an option that makes XLA write a faster kernel?).
+(is there an option that makes XLA write a faster kernel?).
 
     python experiments/xla_cpu_options.py [--n-ics 4096] [--steps 2000] [--repeats 5] [--out out/xla_cpu_options.json]
 

@@ -1,4 +1,4 @@
-r"""Why the plain fixed-step kernel stays near 0.6-0.7 of the C program per core (issue 20, item 1).
+r"""Why the plain fixed-step kernel stays near 0.6-0.7 of the C program per core.
 
     python experiments/xla_kernel_structure.py [--n-ics 4096] [--steps 10000] [--repeats 7]
                                                [--out docs/figures/xla_kernel_structure.json]

@@ -1,4 +1,4 @@
-/* Throughput of the divide / square-root unit on one core (issue 12: what bounds the C reference).
+/* Throughput of the divide / square-root unit on one core (what bounds the C reference).
  *
  * Build and run:  gcc -O2 -march=native experiments/c_reference/divsqrt_micro.c -o divsqrt_micro && ./divsqrt_micro
  *
