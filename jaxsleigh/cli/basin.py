@@ -26,7 +26,7 @@ from ..files.npz import load_ics
 from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
                      add_sampler_options, check_outputs, check_tolerance_flags, compute_share, exit_code,
                      finish_chunked, law_kwargs, load_average, model_from_args, run_chunked, run_distributed,
-                     status_epilog)
+                     status_epilog, status_line)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 
@@ -252,5 +252,6 @@ def _assemble(st: dict, multi: bool) -> int:
     written, how = finish_chunked("basin", st, res, multi=multi, wall=wall, path=path,
                                   extra={"summary": res.summary()}, plot=plot_basin)
     print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
-    print(f"{PROG} basin: {wall:.1f} s wall ({how}); wrote {', '.join(written)}")
-    return exit_code(res.status)
+    print(f"{PROG} basin: {status_line(res.status, res.T_eps, args.eps)}; {wall:.1f} s wall ({how}); "
+          f"wrote {', '.join(written)}")
+    return exit_code(res.status, res.T_eps, args.eps)

@@ -32,7 +32,7 @@ __all__ = ["PROG", "say_failure", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT
            "Parser", "number", "whole", "parse_ic", "parse_triple", "ics_from_args", "add_model_options",
            "model_from_args", "law_kwargs", "add_sampler_options", "sampler_from_args", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags", "add_progress_option", "FLAGS", "check_outputs",
            "check_figure", "figure_formats",
-           "report_warnings", "status_line", "exit_code", "status_epilog", "enable_compilation_cache",
+           "report_warnings", "status_line", "settled_text", "exit_code", "status_epilog", "enable_compilation_cache",
            "add_distributed_options", "run_distributed"]
 
 PROG = "jaxsleigh"
@@ -228,10 +228,20 @@ def sampler_from_args(args):
     from ..integrate.sampled import sample_count
 
     try:
-        sample_count(args.t_final, args.sample_period)
+        samples = sample_count(args.t_final, args.sample_period)
     except ValueError as e:
         raise ValueError(f"--t-final / --sample-period: {e}") from None
+    check_delay(args.delay, samples, args.t_final, args.sample_period)
     return sampler(args.sample_period, args.delay, args.noise, args.seed or 0)
+
+
+def check_delay(delay: int, samples: int, t_final: float, period: float) -> None:
+    """Refuse a ``--delay`` of as many samples as the horizon holds, or more: the held input would be zero
+    from start to end (and a huge delay would only fill the memory before saying so)."""
+    if delay >= samples:
+        raise ValueError(f"--delay {delay} is not shorter than the horizon: --t-final {t_final:g} at --sample-period "
+                         f"{period:g} holds {samples} samples, so the plant would get zero control throughout; give "
+                         f"--delay below {samples} (or a longer --t-final)")
 
 
 def law_kwargs(law) -> dict:
@@ -348,22 +358,47 @@ def report_warnings(caught, *, skip=()) -> None:
         print(f"{PROG}: warning: {w.message}", file=sys.stderr)
 
 
-def status_line(status) -> str:
-    """``'3 trajectories: 2 ok, 1 singular_start'`` (statuses by name)."""
+def status_line(status, T_eps=None, eps: Optional[float] = None) -> str:
+    """``'3 trajectories: 2 integrated, 1 singular_start; 1 settled (median T_0.05 = 4.2 s)'``.
+
+    "integrated" counts the trajectories that reached the horizon (status OK), the other statuses are named;
+    with ``T_eps`` (and the run's ``eps``) the line also says how many settled in the ball within the horizon:
+    for one trajectory its ``T_eps`` (``inf``: it did not settle), for several the median over the settled ones.
+    """
     from ..status import counts_in_words
 
     n = int(np.size(status))
-    return f"{n} trajector{'y' if n == 1 else 'ies'}: {counts_in_words(status)}"
+    counts = counts_in_words(status).replace(" ok", " integrated")
+    line = f"{n} trajector{'y' if n == 1 else 'ies'}: {counts}"
+    if T_eps is None:
+        return line
+    return f"{line}; {settled_text(status, T_eps, eps)}"
 
 
-def exit_code(status) -> int:
+def settled_text(status, T_eps, eps: Optional[float] = None) -> str:
+    """``'0 settled (T_0.05 = inf)'``, ``'5 settled (median T_0.05 = 3.1 s)'``: how many trajectories settled in
+    the ball ``|q| <= eps`` within the horizon (`jaxsleigh.status.converged`) and how fast."""
+    from ..status import converged
+
+    T = np.asarray(T_eps, np.float64).ravel()
+    ok = np.asarray(converged(np.asarray(status).ravel(), T))
+    sym = f"T_{eps:g}" if eps is not None else "T_eps"
+    if T.size == 1:
+        value = f"{T[0]:.3g} s" if ok[0] else ("inf" if not np.isnan(T[0]) else "nan")
+        return f"{int(ok.sum())} settled ({sym} = {value})"
+    if not ok.any():
+        return f"0 settled ({sym} = inf for all)"
+    return f"{int(ok.sum())} settled (median {sym} = {float(np.median(T[ok])):.3g} s)"
+
+
+def exit_code(status, T_eps=None, eps: Optional[float] = None) -> int:
     """`EXIT_OK` if any trajectory ended OK, else `EXIT_NONE_OK` (with a message)."""
     from ..status import Status
 
     if np.any(np.asarray(status) == Status.OK):
         return EXIT_OK
-    print(f"{PROG}: error: no trajectory ended OK ({status_line(status)}); see the status codes in --help "
-          f"(exit code {EXIT_NONE_OK})", file=sys.stderr)
+    print(f"{PROG}: error: no trajectory ended OK ({status_line(status, T_eps, eps)}); see the status "
+          f"codes in --help (exit code {EXIT_NONE_OK})", file=sys.stderr)
     return EXIT_NONE_OK
 
 

@@ -13,11 +13,15 @@ from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_pr
 
 __all__ = ["add_simulate"]
 
+#: ``--save-every`` when not given.
+DEFAULT_SAVE_EVERY = 10
+
 
 def _epilog() -> str:
     return (status_epilog()
             + "\n\noutput .npz keys: t (T,), q (N,T,3), p (N,T,2), u (N,T,2), Hd (N,T), status (N,),\n"
-              "  n_steps (N,), n_rejected (N,), ics (N,5), settings_json, dt, t_final, save_every,\n"
+              "  n_steps (N,), n_rejected (N,), ics (N,5), settings_json, dt, t_final, save_every\n"
+              "  (base steps per saved point; 1 with --sample-period: every sample instant),\n"
               "  method, dtype, gains_L, gains_k, gains_D_hat, params (m,J,l), damping\n\n"
               "examples:\n"
               "  jaxsleigh simulate --ic=-3,-2,pi/8 --ic 3,2,-pi/2 --out run.npz\n"
@@ -41,12 +45,25 @@ def add_simulate(subparsers) -> None:
     src.add_argument("--ic", action="append", metavar="X,Y,THETA[,P1,P2]",
                      help="one start (repeatable); entries may use pi, e.g. --ic=-3,-2,pi/8; "
                           "momentum is zero unless P1,P2 are given")
-    add_horizon_options(p)
+    add_horizon_options(p, save_every=DEFAULT_SAVE_EVERY)
+    p.set_defaults(save_every=None)         # given or not: a sampled run refuses an explicit --save-every
     add_model_options(p)
     add_sampler_options(p)
     add_progress_option(p)
     p.add_argument("--out", required=True, metavar="FILE.npz", help="output file")
     p.set_defaults(func=_cmd_simulate)
+
+
+def _save_every(args) -> int:
+    """``--save-every`` (default 10). A sampled run saves the state at every sample instant: an explicit
+    ``--save-every`` with ``--sample-period`` is refused rather than ignored."""
+    if args.save_every is None:
+        return DEFAULT_SAVE_EVERY
+    if args.sample_period is not None:
+        raise ValueError(f"--save-every {args.save_every} does not apply with --sample-period: a sampled run saves "
+                         f"the state at every sample instant (every {args.sample_period:g} s); drop --save-every, "
+                         f"or choose a longer --sample-period for fewer saved points")
+    return args.save_every
 
 
 def _cmd_simulate(args) -> int:
@@ -56,22 +73,23 @@ def _cmd_simulate(args) -> int:
 
     plant, law = model_from_args(args)
     check_tolerance_flags(args)
-    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=args.save_every,
-                 method=args.method, max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64,
-                 flags=FLAGS)
+    save_every = _save_every(args)
+    cfg = solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=save_every,
+                       method=args.method, max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64,
+                       flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": npz_path(args.out)})
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
-                       save_every=args.save_every, method=args.method, max_steps=args.max_steps,
+                       save_every=save_every, method=args.method, max_steps=args.max_steps,
                        rtol=args.rtol, atol=args.atol, x64=args.x64, progress=args.progress)
     wall = time.perf_counter() - t0
     report_warnings(caught)
     out = write_npz(args.out, sol, ics=ics, command=[PROG, *args._argv])
     n_flag = sum(len(w.message.rows) for w in caught if isinstance(w.message, FlaggedStartsWarning))
-    print(f"{PROG} simulate: {status_line(sol.status)}"
+    print(f"{PROG} simulate: {status_line(sol.status, sol.T_eps, cfg.eps)}"
           f"{f' ({n_flag} flagged, not integrated)' if n_flag else ''}; "
           f"{wall:.2f} s wall ({sol.settings['dtype']}, {sol.settings['method']}); wrote {out}")
-    return exit_code(sol.status)
+    return exit_code(sol.status, sol.T_eps, cfg.eps)

@@ -24,7 +24,7 @@ import time
 from .basin import _chunk_dir, _sidecar, _starts_from_args, add_study_options
 from .common import (FLAGS, PROG, add_distributed_options, own_output, check_outputs, check_tolerance_flags,
                      compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args, run_chunked,
-                     run_distributed, status_epilog)
+                     run_distributed, status_epilog, status_line)
 
 __all__ = ["add_sweep", "run_sweep_command"]
 
@@ -172,6 +172,6 @@ def _assemble(st: dict, multi: bool) -> int:
     written, how = finish_chunked("sweep", st, res, multi=multi, wall=wall, path=path,
                                   extra={"fraction": S.tolist(), "fraction_se": se.tolist()}, plot=plot_sweep)
     print(res.table())
-    print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts in {wall:.1f} s wall ({how}); "
-          f"wrote {', '.join(written)}")
-    return exit_code(res.status)
+    print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts, "
+          f"{status_line(res.status, res.T_eps, args.eps)}; {wall:.1f} s wall ({how}); wrote {', '.join(written)}")
+    return exit_code(res.status, res.T_eps, args.eps)

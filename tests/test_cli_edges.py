@@ -1,0 +1,72 @@
+"""The command line's rough edges: summary lines that say what settled, refusals that name the flag, result
+files checked field by field, figures written atomically, messages in the command line's own terms."""
+from __future__ import annotations
+
+import errno
+import json
+
+import numpy as np
+import pytest
+
+from jaxsleigh import cli
+
+
+def run_cli(argv, capsys):
+    rc = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return rc, out, err
+
+
+# a short sampled run of a literature law that does not settle in 2 s, and a paper-law run that does not either
+SAMPLED = ["simulate", "--ic", "1,1,0.5", "--controller", "astolfi", "--saturation", "2", "--sample-period", "0.05",
+           "--t-final", "2"]
+BASIN = ["basin", "--x", "1", "--y", "0.5:1:2", "--theta", "0.5", "--t-final", "2", "--dt", "0.05", "--method", "rk4",
+         "--no-progress"]
+
+
+# ---------------------------------------------------------------------------------------------
+# summary lines: integrated is not settled
+# ---------------------------------------------------------------------------------------------
+
+def test_simulate_says_a_run_integrated_to_the_horizon_did_not_settle(tmp_path, capsys):
+    rc, out, err = run_cli(SAMPLED + ["--out", tmp_path / "r.npz"], capsys)
+    assert rc == 0, err
+    assert "1 trajectory: 1 integrated; 0 settled (T_0.05 = inf)" in out, out
+    assert " ok" not in out
+
+
+def test_status_line_gives_the_median_settling_time_of_the_settled():
+    from jaxsleigh.cli.common import status_line
+
+    status = np.array([0, 0, 0, 1])
+    T = np.array([1.0, 3.0, np.inf, np.nan])
+    assert status_line(status, T, 0.1) == ("4 trajectories: 3 integrated, 1 singular_start; "
+                                           "2 settled (median T_0.1 = 2 s)")
+    assert status_line(status[:1], T[:1], 0.05).endswith("1 settled (T_0.05 = 1 s)")
+    assert status_line(status[2:3], T[2:3], 0.05).endswith("0 settled (T_0.05 = inf)")
+
+
+def test_basin_and_sweep_summaries_count_the_settled(tmp_path, capsys):
+    rc, out, err = run_cli(BASIN + ["--eps", "0.3", "--out", tmp_path / "b.npz"], capsys)
+    assert rc == 0, err
+    assert "jaxsleigh basin: 2 trajectories: 2 integrated; 0 settled (T_0.3 = inf for all)" in out, out
+    rc, out, err = run_cli(["sweep", "--param", "k=0.1:0.2:2"] + BASIN[1:] + ["--out", tmp_path / "s.npz"], capsys)
+    assert rc == 0, err
+    assert "2 values x 2 starts, 4 trajectories: 4 integrated; " in out and "settled" in out, out
+
+
+# ---------------------------------------------------------------------------------------------
+# the digital controller's options against the horizon
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("delay", ["40", "1000000000"])
+def test_a_delay_as_long_as_the_horizon_is_refused_up_front(tmp_path, capsys, delay):
+    rc, out, err = run_cli(SAMPLED + ["--delay", delay, "--out", tmp_path / "r.npz"], capsys)
+    assert rc == 2 and f"--delay {delay} " in err and "holds 40 samples" in err and "below 40" in err, err
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_save_every_with_a_sample_period_is_refused_not_ignored(tmp_path, capsys):
+    rc, out, err = run_cli(SAMPLED + ["--save-every", "5", "--out", tmp_path / "r.npz"], capsys)
+    assert rc == 2 and "--save-every 5" in err and "every sample instant" in err, err
