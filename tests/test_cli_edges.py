@@ -70,3 +70,50 @@ def test_a_delay_as_long_as_the_horizon_is_refused_up_front(tmp_path, capsys, de
 def test_save_every_with_a_sample_period_is_refused_not_ignored(tmp_path, capsys):
     rc, out, err = run_cli(SAMPLED + ["--save-every", "5", "--out", tmp_path / "r.npz"], capsys)
     assert rc == 2 and "--save-every 5" in err and "every sample instant" in err, err
+
+
+# ---------------------------------------------------------------------------------------------
+# result files: every field checked, the file and the field named
+# ---------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def basin_file(tmp_path_factory):
+    """A tiny basin result written by the library (no command line): its arrays, to be damaged one at a time."""
+    import jaxsleigh as js
+
+    res = js.run_basin(np.array([[1.0, 1.0, 0.5], [1.0, 0.5, 0.5]]), t_final=0.5, dt=0.05, method="rk4",
+                       progress=False)
+    path = js.save_basin(tmp_path_factory.mktemp("basin") / "b.npz", res)
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _damaged(tmp_path, arrays, **changes):
+    path = tmp_path / "damaged.npz"
+    np.savez(path, **{**arrays, **changes})
+    return path
+
+
+@pytest.mark.parametrize("change, field, words", [
+    ({"T_eps": np.array(["1.0", "inf"])}, "T_eps", "real numbers"),
+    ({"status": np.array([0.0, 0.0])}, "status", "whole numbers"),
+    ({"T_eps": np.array([1.0])}, "T_eps", "shape (1,)"),
+    ({"q_final": np.zeros((2, 2))}, "q_final", "expected (N, 3)"),
+    ({"format_version": np.array("two")}, "format_version", "whole number"),
+    ({"format_version": np.float64(2.0)}, "format_version", "whole number"),
+])
+def test_load_basin_names_the_file_and_the_damaged_field(tmp_path, basin_file, change, field, words):
+    import jaxsleigh as js
+
+    path = _damaged(tmp_path, basin_file, **change)
+    with pytest.raises(ValueError) as e:
+        js.load_basin(path)
+    msg = str(e.value)
+    assert str(path) in msg and f"field {field}" in msg and words in msg, msg
+
+
+def test_an_undamaged_basin_file_still_loads(tmp_path, basin_file):
+    import jaxsleigh as js
+
+    back = js.load_basin(_damaged(tmp_path, basin_file))
+    np.testing.assert_array_equal(back.T_eps, basin_file["T_eps"])

@@ -14,7 +14,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
-           "settings_arrays", "write_npz_deterministic", "read_npz", "npz_kind", "NPZ_KINDS"]
+           "settings_arrays", "write_npz_deterministic", "read_npz", "npz_kind", "NPZ_KINDS", "FIELDS",
+           "check_fields"]
 
 
 def npz_path(path) -> Path:
@@ -163,7 +164,7 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"cannot read {str(p)!r} ({type(e).__name__}: {e}); the path must be a .npz written by "
                          f"jaxsleigh: give the {what}") from None
-    version = int(data["format_version"]) if "format_version" in data else 1
+    version = _format_version(p, data)
     if version > FORMAT_VERSION:
         raise ValueError(f"{str(p)!r} was written by a newer jaxsleigh (result format {version}); this one reads "
                          f"formats up to {FORMAT_VERSION}: upgrade jaxsleigh to read it")
@@ -175,7 +176,84 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
     if missing:
         keys = ", ".join(sorted(data)[:12]) + (", ..." if len(data) > 12 else "")
         raise ValueError(f"{str(p)!r} is not a {what}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
+    if kind is not None:
+        check_fields(p, data, kind)
     return data
+
+
+def _format_version(p: Path, data: dict) -> int:
+    """The file's ``format_version`` (1 when absent: a file of jaxsleigh 0.1); ``ValueError`` naming the file and
+    the field when it is not a whole number >= 1."""
+    if "format_version" not in data:
+        return 1
+    v = data["format_version"]
+    if v.ndim != 0 or not np.issubdtype(v.dtype, np.integer) or int(v) < 1:
+        shown = v.tolist() if v.size <= 4 else f"an array of shape {v.shape}"
+        raise ValueError(f"{str(p)!r}: field format_version must be a whole number >= 1 (the result format; this "
+                         f"jaxsleigh writes {FORMAT_VERSION}), got {shown!r} ({v.dtype}); the file is damaged or was "
+                         f"not written by jaxsleigh: write it again")
+    return int(v)
+
+
+# what each field of a result file holds: (kind of number, shape). Kinds: "int" whole numbers, "real" real
+# numbers (whole ones too), "text" strings. A shape names its axes (the same name, the same length across the
+# file's fields) or fixes them (3; (3, 5): one of these).
+_N, _P, _T = "N", "P", "T"
+_START = {"T_eps": ("real", (_N,)), "status": ("int", (_N,)), "Hd0": ("real", (_N,)), "Hd_final": ("real", (_N,)),
+          "min_abs_theta": ("real", (_N,)), "max_excursion": ("real", (_N,)), "n_steps": ("int", (_N,)),
+          "n_rejected": ("int", (_N,)), "q_final": ("real", (_N, 3)), "p_final": ("real", (_N, 2)),
+          "ics": ("real", (_N, (3, 5))), "u_peak": ("real", (_N, 2)), "u_norm_peak": ("real", (_N,)),
+          "u_energy": ("real", (_N,)), "u_abs_int": ("real", (_N,)), "settings_json": ("text", ())}
+FIELDS = {
+    "basin": _START,
+    "sweep": {"names": ("text", ("n",)), "values": ("real", (_P, "n")), "grid_shape": ("int", ("g",)),
+              "ics": ("real", (_N, (3, 5))), "T_eps": ("real", (_P, _N)), "status": ("int", (_P, _N)),
+              "n_steps": ("int", (_P, _N)), "min_abs_theta": ("real", (_P, _N)), "Hd0": ("real", (_P, _N)),
+              "u_energy": ("real", (_P, _N)), "u_abs_int": ("real", (_P, _N)), "u_norm_peak": ("real", (_P, _N)),
+              "settings_json": ("text", ())},
+    "simulation": {"t": ("real", (_T,)), "q": ("real", (_N, _T, 3)), "p": ("real", (_N, _T, 2)),
+                   "u": ("real", (_N, _T, 2)), "Hd": ("real", (_N, _T)), "status": ("int", (_N,)),
+                   "n_steps": ("int", (_N,)), "n_rejected": ("int", (_N,)), "ics": ("real", (_N, (3, 5))),
+                   "T_eps": ("real", (_N,)), "settings_json": ("text", ())},
+}
+_KIND_TEST = {"int": lambda d: np.issubdtype(d, np.integer),
+              "real": lambda d: np.issubdtype(d, np.integer) or np.issubdtype(d, np.floating),
+              "text": lambda d: np.issubdtype(d, np.str_)}
+_KIND_WORDS = {"int": "whole numbers", "real": "real numbers", "text": "text"}
+
+
+def check_fields(p, data: dict, kind: str) -> None:
+    """Every field of `FIELDS` [kind] that ``data`` holds has its kind of number and its shape, and fields that
+    share an axis agree on its length; else a ``ValueError`` naming the file and the field."""
+    sizes: dict = {}
+    for name, (num, shape) in FIELDS.get(kind, {}).items():
+        if name not in data:
+            continue
+        a = data[name]
+        if not _KIND_TEST[num](a.dtype):
+            raise ValueError(f"{str(p)!r}: field {name} must hold {_KIND_WORDS[num]}, but it holds {a.dtype}; the "
+                             f"file is damaged or was not written by jaxsleigh: write it again")
+        _check_shape(p, name, a.shape, shape, sizes)
+
+
+def _check_shape(p, name: str, got: tuple, want: tuple, sizes: dict) -> None:
+    """``got`` against the named / fixed axes ``want``; ``sizes`` holds each named axis's length (and the field
+    that set it) across the file."""
+    def wanted() -> str:
+        return "(" + ", ".join(str(w) if not isinstance(w, tuple) else " or ".join(map(str, w)) for w in want) \
+            + ("," if len(want) == 1 else "") + ")"
+
+    bad = f"{str(p)!r}: field {name} has shape {tuple(got)}, expected {wanted()}"
+    if len(got) != len(want):
+        raise ValueError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again")
+    for n, w in zip(got, want):
+        if isinstance(w, int) and n != w or isinstance(w, tuple) and n not in w:
+            raise ValueError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again")
+        if isinstance(w, str):
+            if w in sizes and sizes[w][0] != n:
+                raise ValueError(f"{bad} with {w} = {sizes[w][0]} as in field {sizes[w][1]} (shape "
+                                 f"{sizes[w][2]}); the file is truncated or damaged: write it again")
+            sizes.setdefault(w, (n, name, tuple(got)))
 
 
 def damping_name(class_name: str) -> str:
