@@ -117,3 +117,26 @@ def test_an_undamaged_basin_file_still_loads(tmp_path, basin_file):
 
     back = js.load_basin(_damaged(tmp_path, basin_file))
     np.testing.assert_array_equal(back.T_eps, basin_file["T_eps"])
+
+
+# ---------------------------------------------------------------------------------------------
+# figures are written as the data files are
+# ---------------------------------------------------------------------------------------------
+
+def test_a_full_disk_while_drawing_leaves_no_truncated_figure_and_names_it(tmp_path, capsys, monkeypatch):
+    from matplotlib.figure import Figure
+
+    def full(self, f, **kw):
+        f.write(b"\x89PNG\r\n\x1a\n half a figure")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Figure, "savefig", full)
+    png = tmp_path / "map.png"
+    rc, out, err = run_cli(BASIN + ["--out", tmp_path / "b.npz", "--plot", png], capsys)
+    assert rc == 4 and str(png) in err and "no space left" in err, err
+    assert not png.exists() and not list(tmp_path.glob(".map.png*"))
+    # the chunks stay for --resume, which draws the figure once there is space
+    assert "--resume" in err and (tmp_path / "b.npz.chunks").is_dir()
+    monkeypatch.undo()
+    rc, out, err = run_cli(BASIN + ["--out", tmp_path / "b.npz", "--plot", png, "--resume"], capsys)
+    assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG", err

@@ -477,13 +477,13 @@ def finish_chunked(command: str, st: dict, res, *, multi: bool, wall: float, pat
 
         info["processes"] = jax.process_count()
     atomic_write_text(st["side"], json.dumps(info, indent=1, default=str) + "\n")
-    if not args.keep_chunks:
-        shutil.rmtree(st["chunks"], ignore_errors=True)
     written = [str(path), str(st["side"])]
-    if args.plot and plot is not None:
+    if args.plot and plot is not None:          # before the chunks go: a full disk here leaves --resume to finish
         from ..plots.base import save_figure
 
         written.append(str(save_figure(plot(res), args.plot)))
+    if not args.keep_chunks:
+        shutil.rmtree(st["chunks"], ignore_errors=True)
     how = (f"{res.settings['dtype']}, {res.settings['method']}"
            + (f", {info['processes']} processes" if multi else "")
            + (f", {n_reused} chunk(s) resumed" if n_reused else ""))

@@ -10,7 +10,7 @@
   title, small grey type): dtype, method, step, tolerances, ``eps``, horizon and the device the data
   was computed on (from the result's settings or run information; ``device not recorded`` when
   neither holds it, e.g. a file from an older version).
-* `save_figure`: PNG/PDF/SVG by suffix, parent folders created.
+* `save_figure`: PNG/PDF/SVG by suffix, parent folders created, written atomically.
 
 Used by `jaxsleigh.plots.paper_figures`, `jaxsleigh.plots.basin` and the other ``*_plots`` modules.
 Numerics modules never import this (nor any plotting module).
@@ -50,11 +50,17 @@ def figure_and_axes(ax, figsize):
 
 
 def save_figure(fig, path, *, dpi: int = 150) -> Path:
-    """Save ``fig`` (format from the suffix), creating parent folders; returns the path."""
+    """Save ``fig`` (format from the suffix), creating parent folders; returns the path.
+
+    Written as the result files are (`jaxsleigh.files.npz.atomic_write`): into a temporary file in the same
+    folder, then renamed into place, so that a failed write (a full disk) leaves no truncated figure; a full
+    disk or quota raises `jaxsleigh.errors.DiskFullError` naming the file."""
+    from ..files.npz import atomic_write
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    return path
+    fmt = path.suffix.lower().lstrip(".") or None
+    return atomic_write(path, lambda f: fig.savefig(f, format=fmt, dpi=dpi))
 
 
 def _method(settings: Mapping) -> str:
