@@ -337,6 +337,31 @@ def test_cli_refusals_name_the_option_and_never_suggest_what_is_refused(tmp_path
     assert not out.exists()
 
 
+def test_a_refused_resume_of_a_controller_names_the_flag_first_without_dictionaries(tmp_path, capsys):
+    out = tmp_path / "b.npz"
+    law = ["--controller", "astolfi", "--sample-period", "0.1"]
+    assert run_cli(["basin", *BASIN, *law, "--saturation", "2", "--out", out, "--keep-chunks"], capsys)[0] == 0
+    out.unlink()
+    rc, _, err = run_cli(["basin", *BASIN, *law, "--saturation", "3", "--out", out, "--resume"], capsys)
+    line = err.strip().splitlines()
+    assert rc == 2 and len(line) == 1, err
+    assert line[0].startswith("jaxsleigh: error: --saturation 2.0 in the checkpoint vs --saturation 3.0 now: "), err
+    assert "{" not in err and "'type'" not in err and "delete or move" in err
+
+
+def test_a_refused_resume_from_python_names_the_leaf_of_a_law_that_differs(tmp_path):
+    from jaxsleigh.controllers.actuators import saturate
+    from jaxsleigh.controllers.registry import make_controller
+
+    ics = js.sample_starts(4, seed=1).ics
+    d = tmp_path / "ck"
+    js.run_ensemble(ics, chunk_size=2, checkpoint_dir=d, controller=saturate(make_controller("astolfi"), 2.0), **KW)
+    with pytest.raises(CheckpointError, match=r"controller\.u_max 2\.0 in the checkpoint vs 3\.0 now") as info:
+        js.run_ensemble(ics, chunk_size=2, checkpoint_dir=d, resume=True,
+                        controller=saturate(make_controller("astolfi"), 3.0), **KW)
+    assert "{" not in str(info.value)
+
+
 def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
     from jaxsleigh import tuning as tu
     from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint

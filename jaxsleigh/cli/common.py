@@ -628,7 +628,10 @@ def _explained(e, state, args):
     why = _options_differ(chunks, args) if chunks is not None else ""
     if not why or isinstance(e, RunLockedError):
         return None
-    return CheckpointError(f"{e} (options that differ: {why})")
+    # the flags first, in the user's terms: the library's own account of the settings is left out
+    return CheckpointError(f"{why}: {str(chunks)!r} holds the chunks of a run with other options; to continue it, "
+                           f"give its options with --resume, or delete or move {str(chunks)!r} (or choose another "
+                           f"--out) to start afresh")
 
 
 def run_distributed(args, *, check, compute, assemble, prepare=None, shared_dirs=None) -> int:

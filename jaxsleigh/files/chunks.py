@@ -212,6 +212,27 @@ class ChunkStore:
             f"checkpoint chunk {str(path)!r} is damaged ({why}); recomputing it"), stacklevel=4)
 
 
+def _leaves(value, prefix: str = "") -> dict:
+    """``{path: value}`` of the numbers and texts in nested dicts (a controller's record: its type and params)."""
+    if not isinstance(value, dict):
+        return {prefix: value}
+    out = {}
+    for k, v in value.items():
+        key = str(k) if k != "params" else ""
+        out.update(_leaves(v, f"{prefix}.{key}".strip(".").replace("..", ".") if key else prefix))
+    return out
+
+
+def _value_differences(name: str, old, new) -> list:
+    """``['controller.u_max 2.0 in the checkpoint vs 3.0 now']``: a setting that differs, leaf by leaf when it
+    is a record (never a whole dict)."""
+    if not (isinstance(old, dict) and isinstance(new, dict)):
+        return [f"{name} {old!r} in the checkpoint vs {new!r} now"]
+    a, b = _leaves(old), _leaves(new)
+    return [f"{name}{'.' + k.lstrip('.') if k else ''} {a.get(k, '(unset)')!r} in the checkpoint vs "
+            f"{b.get(k, '(unset)')!r} now" for k in sorted(set(a) | set(b), key=str) if a.get(k) != b.get(k)]
+
+
 def _differences(old, new: dict, limit: int = 6) -> str:
     """The settings in which two manifests differ, by name with both values (checkpoint vs this run)."""
     if not isinstance(old, dict):
@@ -222,7 +243,7 @@ def _differences(old, new: dict, limit: int = 6) -> str:
         for k in sorted(set(o_set) | set(n_set)):
             if k in _VOLATILE or o_set.get(k) == n_set.get(k):
                 continue
-            diffs.append(f"{k} {o_set.get(k, '(unset)')!r} in the checkpoint vs {n_set.get(k, '(unset)')!r} now")
+            diffs.extend(_value_differences(k, o_set.get(k, "(unset)"), n_set.get(k, "(unset)")))
     if old.get("n") != new.get("n"):
         diffs.append(f"{old.get('n')} starts in the checkpoint vs {new.get('n')} now")
     elif "starts" in old and old.get("starts") != new.get("starts"):
