@@ -140,3 +140,29 @@ def test_a_full_disk_while_drawing_leaves_no_truncated_figure_and_names_it(tmp_p
     monkeypatch.undo()
     rc, out, err = run_cli(BASIN + ["--out", tmp_path / "b.npz", "--plot", png, "--resume"], capsys)
     assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG", err
+
+
+# ---------------------------------------------------------------------------------------------
+# sweeping a literature law's own parameters
+# ---------------------------------------------------------------------------------------------
+
+SWEEP_LAW = ["sweep", "--controller", "astolfi", "--x", "1", "--y", "1", "--theta", "0.5", "--t-final", "1", "--dt",
+             "0.05", "--method", "rk4", "--no-progress"]
+
+
+def test_sweep_sets_a_parameter_of_a_literature_law(tmp_path, capsys):
+    rc, out, err = run_cli(SWEEP_LAW + ["--param", "K=1:8:2", "--out", tmp_path / "K.npz"], capsys)
+    assert rc == 0, err
+    with np.load(tmp_path / "K.npz") as z:
+        assert z["names"].tolist() == ["K"] and z["values"][:, 0].tolist() == [1.0, 8.0]
+        energy = z["u_energy"][:, 0]
+    assert np.all(np.isfinite(energy)) and energy[0] != energy[1]       # the law ran with each value
+
+
+@pytest.mark.parametrize("param", ["l1=1:2:2", "gain=1:2:2"])
+def test_sweep_lists_what_the_controller_really_lets_one_sweep(tmp_path, capsys, param):
+    rc, out, err = run_cli(SWEEP_LAW + ["--param", param, "--out", tmp_path / "x.npz"], capsys)
+    assert rc == 2 and f"--param {param}" in err and "under --controller astolfi" in err, err
+    allowed = err.split("choose one of ", 1)[1].split(" (e.g.")[0].split(", ")
+    assert {"K", "p2", "p3", "m", "J", "l", "coulomb_eps"} <= set(allowed), err
+    assert not {"l1", "d11", "d22"} & set(allowed), err

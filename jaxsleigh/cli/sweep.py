@@ -110,15 +110,18 @@ def _check(args) -> dict:
 
     if len(args.param) > 2:
         raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
-    axes = [parse_param(s) for s in args.param]          # eager: a bad range names its --param
+    plant, law = model_from_args(args)
+    law_names = law_parameter_names(law)
+    for s in args.param:
+        check_param_name(s, args, law_names)
+    axes = [parse_param(s, law_names=law_names) for s in args.param]          # eager: a bad range names its --param
     labels = {a.name: f"--param {s}" for a, s in zip(axes, args.param)}
     if args.ics is None and args.samples is None and args.x is None and args.y is None and args.theta is None:
         args.samples = DEFAULT_SAMPLES
     starts = _starts_from_args(args)
     # values x starts, from the counts alone: refused before any value set or row is built
     check_rows(math.prod(a.n for a in axes), starts.ics.shape[0], "jaxsleigh sweep")
-    names, values, _ = param_grid(axes)
-    plant, law = model_from_args(args)
+    names, values, _ = param_grid(axes, law_names)
     apply_params(names, values, plant, labels=labels, **law_kwargs(law))
     check_tolerance_flags(args)
     solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
@@ -130,6 +133,43 @@ def _check(args) -> dict:
     return {"args": args, "axes": axes, "labels": labels, "plant": plant, "law": law, "starts": starts,
             "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": load_average(),
             "t0": time.perf_counter(), "lock": lock}
+
+
+def law_parameter_names(law) -> tuple:
+    """The scalar parameters of a ``--controller`` law other than the paper's (its numeric leaves, as
+    `jaxsleigh.model.controller.law_leaf_names` names them: ``K``, ``p2``, ``model.m``, ...), which ``--param``
+    may sweep; ``()`` for the paper's law, whose gains are `jaxsleigh.studies.sweep.PARAM_NAMES`."""
+    import numpy as np
+
+    from ..model.controller import law_leaf_names
+    from ..model.params import Gains
+
+    if isinstance(law, Gains):
+        return ()
+    return tuple(n for n, v in law_leaf_names(law).items() if np.ndim(v) == 0)
+
+
+def sweepable_names(args, law_names: tuple) -> list:
+    """What ``--param`` may name with these options: the paper's gains and the plant's parameters under the
+    paper's law; the plant's parameters and the law's own under another ``--controller``."""
+    from ..studies.sweep import PARAM_NAMES
+
+    ok = [n for n, (where, _, _) in PARAM_NAMES.items() if where.startswith("plant.") or not law_names]
+    return ok + [n for n in law_names if n not in ok]
+
+
+def check_param_name(spec: str, args, law_names: tuple) -> None:
+    """Refuse a ``--param NAME=...`` whose NAME these options cannot sweep, listing the names they can."""
+    name = spec.split("=", 1)[0].strip() if "=" in spec else None
+    if name is None:
+        return                                   # parse_param says what is missing
+    allowed = sweepable_names(args, law_names)
+    if name in allowed:
+        return
+    law = getattr(args, "controller", "paper")
+    whose = f"under --controller {law}" if law_names else "under the paper's law"
+    raise ValueError(f"--param {spec}: {name!r} cannot be swept {whose}; choose one of {', '.join(allowed)} "
+                     f"(e.g. --param {law_names[0] if law_names else 'k'}=LO:HI:P)")
 
 
 def _prepare(st: dict) -> None:
