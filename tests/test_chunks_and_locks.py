@@ -295,6 +295,7 @@ def test_a_full_disk_exits_4_naming_the_file_and_resume_continues(tmp_path, caps
     assert rc == EXIT_DISK_FULL, err
     named = "chunk_000001.npz" if part.startswith("chunk") else "b.npz"
     assert named in err and "no space left" in err and "--resume" in err and "Errno" not in err, err
+    assert "resume=True" not in err, err                 # the command line's words, not Python's
     assert not out.exists() and (tmp_path / "b.npz.chunks" / "chunk_000000.npz").exists()
     rc, _, err = run_cli(["basin", *BASIN, "--out", out, "--resume"], capsys)
     assert rc == 0, err

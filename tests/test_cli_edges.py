@@ -166,3 +166,42 @@ def test_sweep_lists_what_the_controller_really_lets_one_sweep(tmp_path, capsys,
     allowed = err.split("choose one of ", 1)[1].split(" (e.g.")[0].split(", ")
     assert {"K", "p2", "p3", "m", "J", "l", "coulomb_eps"} <= set(allowed), err
     assert not {"l1", "d11", "d22"} & set(allowed), err
+
+
+# ---------------------------------------------------------------------------------------------
+# bounds that do not fit, the controllers' list, the help's cache folder
+# ---------------------------------------------------------------------------------------------
+
+def test_a_saturation_bound_beyond_float32_is_refused_with_the_way_on(tmp_path, capsys):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                  # no "overflow encountered in cast" on the way
+        rc, out, err = run_cli(["simulate", "--ic", "1,1,0.5", "--saturation", "1e300", "--out", tmp_path / "r.npz"],
+                               capsys)
+    assert rc == 2 and "--saturation 1e+300" in err and "float32" in err and "3.4e+38" in err and "--x64" in err, err
+    assert "overflow" not in err and not (tmp_path / "r.npz").exists()
+
+
+def test_the_controllers_list_says_in_words_what_a_law_knows_of_the_plant(capsys):
+    from jaxsleigh.controllers.registry import CONTROLLERS, controller_class
+
+    rc, out, err = run_cli(["controllers"], capsys)
+    lines = out.strip().splitlines()
+    assert rc == 0 and len(lines) == len(CONTROLLERS) and "needs nothing" not in out
+    for name, line in zip(CONTROLLERS, lines):
+        if controller_class(name).needs:
+            assert "needs a model of the plant (m, J, l, damping)" in line, line
+        else:
+            assert "reads only q and v" in line, line
+    assert out.endswith("\n") and err.startswith("jaxsleigh controllers: ")     # the wall line on its own
+
+
+def test_the_help_names_the_cache_folder_this_environment_uses(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("JAXSLEIGH_CACHE_DIR", raising=False)
+    monkeypatch.delenv("JAXSLEIGH_NO_COMPILE_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    help_text = cli.build_parser().format_help()
+    assert f"cached in {tmp_path / 'xdg' / 'jaxsleigh' / 'jax'}" in help_text and "~/.cache" not in help_text
+    monkeypatch.setenv("JAXSLEIGH_NO_COMPILE_CACHE", "1")
+    assert "not cached" in cli.build_parser().format_help()

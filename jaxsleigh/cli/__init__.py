@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 from typing import Optional, Sequence
 
 from . import clock  # first: its fallback origin is the earliest moment of the command line
@@ -47,8 +48,7 @@ def build_parser() -> Parser:
 
     parser = Parser(prog=PROG, description="Chaplygin sleigh under discontinuous energy-shaping control (JAX).",
                     epilog="exit codes:\n" + "\n".join(f"  {c} = {t}" for c, t in EXIT_CODES.items())
-                    + "\n\nCompiled programs are cached in ~/.cache/jaxsleigh/jax (JAXSLEIGH_CACHE_DIR to move "
-                      "it,\nJAXSLEIGH_NO_COMPILE_CACHE=1 or --no-compile-cache to turn it off).",
+                    + "\n\n" + _cache_help(),
                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("--no-compile-cache", action="store_true",
@@ -60,6 +60,21 @@ def build_parser() -> Parser:
     for add in SUBCOMMANDS:
         add(sub)
     return parser
+
+
+def _cache_help() -> str:
+    """Where compiled programs are kept, as this process's environment has it (`jaxsleigh.cache.compilation_cache_dir`:
+    JAXSLEIGH_CACHE_DIR, XDG_CACHE_HOME or ~/.cache)."""
+    from ..cache import compilation_cache_dir
+
+    where = compilation_cache_dir()
+    if where is None:
+        return ("Compiled programs are not cached: JAXSLEIGH_NO_COMPILE_CACHE is set (unset it to keep them in\n"
+                "JAXSLEIGH_CACHE_DIR or $XDG_CACHE_HOME/jaxsleigh/jax).")
+    home = str(Path.home())
+    shown = "~" + str(where)[len(home):] if str(where).startswith(home + os.sep) else str(where)
+    return (f"Compiled programs are cached in {shown} (JAXSLEIGH_CACHE_DIR to move it,\n"
+            f"JAXSLEIGH_NO_COMPILE_CACHE=1 or --no-compile-cache to turn it off).")
 
 
 def _cores(text: str) -> int:
@@ -132,6 +147,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         rc = int(args.func(args) or 0)
         # the commands' own "... s wall" leave out start-up and imports; the whole wait goes to stderr
         # (stdout may be machine-read, e.g. bench --json)
+        sys.stdout.flush()           # the command's own output first, whole, where both go to one stream
         print(clock.whole_wall_line(PROG, args.command), file=sys.stderr)
         return rc
     except SystemExit as e:              # --help, --version

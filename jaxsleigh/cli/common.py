@@ -188,6 +188,7 @@ def model_from_args(args):
     if u_max is not None:
         from ..controllers.actuators import saturate
 
+        check_bound_fits(u_max, args.x64)
         try:
             law = saturate(law, u_max)
         except ValueError as e:
@@ -198,6 +199,16 @@ def model_from_args(args):
 
         law = sampled(law, *smp)
     return plant, law
+
+
+def check_bound_fits(u_max: float, x64: bool) -> None:
+    """Refuse a ``--saturation`` bound that the working dtype cannot hold (it would overflow to inf when cast)."""
+    dtype = np.float64 if x64 else np.float32
+    top = float(np.finfo(dtype).max)
+    if u_max > top:
+        more = "" if x64 else ", or add --x64 (float64 holds bounds up to 1.8e+308)"
+        raise ValueError(f"--saturation {u_max:g} does not fit {np.dtype(dtype).name} (largest {top:.3g}): give a "
+                         f"bound of at most {top:.3g}{more}")
 
 
 def add_sampler_options(parser, *, seed: bool = True) -> None:
@@ -621,6 +632,8 @@ def _explained(e, state, args):
 
     chunks = state.get("chunks") if isinstance(state, dict) else None
     if isinstance(e, DiskFullError):
+        if "(resume=True)" in str(e):           # the library's words for Python; the command line's alone
+            return DiskFullError(e.errno, str(e).replace(" (resume=True)", ""), path=e.path)
         if chunks is None or "--resume" in str(e):
             return None
         return DiskFullError(e.errno, f"{e}; the finished chunks are kept in {str(chunks)!r}: once there is space, "

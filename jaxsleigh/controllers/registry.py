@@ -48,11 +48,13 @@ def make_controller(name: str, gains=None):
 
 
 def describe_controllers() -> list[str]:
-    """One line per law: name, what of the plant it must know, citation."""
+    """One line per law: name, what of the plant it must know (its model's parameters, or nothing: it reads only
+    the measured q and v), citation."""
     lines = []
     for name in CONTROLLERS:
         cls = controller_class(name)
-        needs = ", ".join(cls.needs) if cls.needs else "nothing"
+        needs = (f"needs a model of the plant ({', '.join(cls.needs)})" if cls.needs
+                 else "knows nothing of the plant: reads only q and v")
         tv = "; time-varying" if getattr(cls, "time_varying", False) is True else ""
-        lines.append(f"{name:8s} needs {needs}{tv}. {cls.citation}")
+        lines.append(f"{name:8s} {needs}{tv}. {cls.citation}")
     return lines
