@@ -166,39 +166,48 @@ def test_getting_started_counts_the_notebooks_and_offers_the_cache(site):
     assert 'id="jaxsleigh.enable_compilation_cache"' in (site / "api" / "index.html").read_text()
 
 
-def test_readme_preset_numbers_are_the_committed_measurements():
-    """The README's preset table quotes `experiments/preset_effort.py`'s JSON: for every preset and both start
-    distributions, the median T_0.05 and the control energy's 25/50/75/90th percentiles as ratios to the paper's."""
+def test_preset_numbers_are_the_committed_measurements():
+    """The README's preset table and the full one of the tuning guide quote `experiments/preset_effort.py`'s JSON.
+
+    README: per preset, the median T_0.05 on the README's starts and the lowest and highest of the control energy's
+    25/50/75/90th percentiles as ratios to the paper's. Tuning guide: for every preset and both start distributions,
+    the median and all four ratios, the float64 check and the mean steps."""
     import json
 
     d = json.loads((DOCS / "figures" / "preset_effort.json").read_text())
     assert d["dtype"] == "float32" and d["command"] == "python experiments/preset_effort.py --atol 1e-8"
     assert d["atol"] == 1e-8
     readme = " ".join((ROOT / "README.md").read_text().split())
-    assert "`python experiments/preset_effort.py --atol 1e-8`" in readme
+    tuning = " ".join((DOCS / "how-to" / "tuning.md").read_text().split())
+    for text in (readme, tuning):
+        assert "`python experiments/preset_effort.py --atol 1e-8`" in text
+    quantiles = ("p25", "p50", "p75", "p90")
+    for name, f in d["distributions"]["readme"]["presets"].items():
+        r = [f["energy_ratio_to_paper"][q] for q in quantiles]
+        energy = "1" if name == "paper" else f"{min(r):.2f}–{max(r):.2f}x"
+        row = f"| `{name}` |"
+        assert row in readme and f"| {f['T_median']:.1f} s | {energy} |" in readme, (name, energy)
     for dist in ("readme", "wide"):
         rows = d["distributions"][dist]
         assert rows["n"] == 2048
         for name, f in rows["presets"].items():
-            ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in ("p25", "p50", "p75", "p90"))
+            ratios = " / ".join(f"{f['energy_ratio_to_paper'][q]:.2f}" for q in quantiles)
             if name == "paper":
                 ratios = "1 / 1 / 1 / 1"
-            assert f"{f['T_median']:.1f} s | {ratios}" in readme, (dist, name, f"{f['T_median']:.1f} s | {ratios}")
+            assert f"{f['T_median']:.1f} s | {ratios}" in tuning, (dist, name, f"{f['T_median']:.1f} s | {ratios}")
     sh, pa = (d["distributions"]["readme"]["presets"][k] for k in ("shaped", "paper"))
-    assert f"{sh['mean_steps']:,.0f} mean steps (the paper's {pa['mean_steps']:,.0f})" in readme
+    assert f"{sh['mean_steps']:,.0f} mean steps (the paper's {pa['mean_steps']:,.0f})" in tuning
     d64 = json.loads((DOCS / "figures" / "preset_effort_x64.json").read_text())
     assert d64["dtype"] == "float64" and d64["command"] == "python experiments/preset_effort.py --x64"
     bal64 = d64["distributions"]["readme"]["presets"]["balanced"]["energy_ratio_to_paper"]["p50"]
-    assert f"float64 (`--x64`) agrees (median {bal64:.2f}x the paper's)" in readme
+    assert f"float64 (`--x64`) agrees (median {bal64:.2f}x the paper's)" in tuning
     for dist in ("readme", "wide"):                 # float64 at its defaults and float32 at atol 1e-8 agree
         for name, f in d64["distributions"][dist]["presets"].items():
             f32 = d["distributions"][dist]["presets"][name]
             for q, v in f["energy_ratio_to_paper"].items():
                 assert abs(v - f32["energy_ratio_to_paper"][q]) < 0.01, (dist, name, q)
     bal = d["distributions"]["readme"]["presets"]["balanced"]
-    tuning = (DOCS / "how-to" / "tuning.md").read_text()
     assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning
-
 
 
 def test_family_study_tables_quote_their_json():
@@ -280,8 +289,8 @@ def test_start_up_figures_are_the_committed_measurement():
     assert new["ratio"] >= 3.0
 
 
-def test_issue20_limits_quote_their_json():
-    """Where the performance and settled-phase pages say why issue 20's last targets are out of reach, they quote the
+def test_kernel_and_step_limits_quote_their_json():
+    """Where the performance and settled-phase pages say why the kernel and the step go no faster, they quote the
     scripts' JSON: the kernel table of `experiments/xla_kernel_structure.py` (kernels per step, rate, share of C), the
     per-lane costs of `experiments/block3_cost.py`, and every step count of `experiments/settled_phase_adopted.py`."""
     import json
@@ -325,3 +334,116 @@ def test_issue20_limits_quote_their_json():
         steps = " → ".join(f"{g[c]['mean_steps']:,.0f}" for c in ("before", "also"))
         row = f"| {label} ({g['n']}) | {steps} → **{g['after']['mean_steps']:,.0f}** | **{g['steps_ratio']:.2f}x** / "
         assert row in settled, row
+
+
+# --- The pages speak to users: what was measured and why, not how the work was organised -----------------------
+
+# Files a user reads: the README, the changelog, every page, the notebooks (their cells and printed outputs), the
+# experiment scripts the pages cite, and the site's configuration. (CITATION.cff is left out: its "issue" is the
+# paper's journal issue.)
+_USER_FILES = sorted({ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "mkdocs.yml",
+                      *DOCS.rglob("*.md"), *(ROOT / "notebooks").glob("*.ipynb"),
+                      *(p for ext in ("py", "sh", "c") for p in (ROOT / "experiments").rglob(f"*.{ext}"))})
+
+# Patterns of the project's own process (case-insensitive, except the acronym). A "session" inside an identifier (a
+# test named `test_python_session_...`) does not match; SLURM's tasks ("one task per GPU") do not match either.
+_PROCESS_WORDS = [
+    ("an issue number", r"\bissues?\s*#?\s*\d", re.I),
+    ("an issue in a name", r"issue\d|issue_|#issue", re.I),
+    ("an issue", r"\bissues?\b", re.I),
+    ("a session", r"\bsessions?\b", re.I),
+    ("a task in the work's sense", r"\b(?:this|the) task\b|\btasks? \d", re.I),
+    ("the people or the plan", r"\bengineers?\b|\bthe brief\b|\bwork items?\b|\bdevice time\b|\blent\b|\btickets?\b",
+     re.I),
+    ("the CEO", r"\bCEO\b", 0),
+]
+
+
+def _user_text(path: Path) -> str:
+    """The words a reader sees: a notebook's cells and its printed outputs (not its images), a file's text."""
+    if path.suffix == ".ipynb":
+        import json
+
+        nb = json.loads(path.read_text())
+        parts = []
+        for cell in nb["cells"]:
+            parts.append("".join(cell["source"]))
+            for out in cell.get("outputs", []):
+                parts.append("".join(out.get("text", "")))
+                parts.append("".join(out.get("data", {}).get("text/plain", "")))
+        return "\n".join(parts)
+    return re.sub(r"https?://\S+", "", path.read_text())       # a link's address is not prose
+
+
+def test_file_names_speak_of_what_they_hold():
+    for folder in (DOCS, ROOT / "experiments", ROOT / "notebooks"):
+        for path in folder.rglob("*"):
+            assert "issue" not in path.name.lower(), f"{path.relative_to(ROOT)}: name it after what it holds"
+
+
+@pytest.mark.parametrize("path", _USER_FILES, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_pages_speak_of_the_software_not_of_its_making(path):
+    """README, docs, notebooks and experiments say what was measured and why it matters; a reader has no issue
+    tracker, session or plan to look up."""
+    text = _user_text(path)
+    found = []
+    for what, pattern, flags in _PROCESS_WORDS:
+        for m in re.finditer(pattern, text, flags):
+            line = text.count("\n", 0, m.start()) + 1
+            found.append(f"line {line}: {what}: {text[max(0, m.start() - 40):m.end() + 40]!r}")
+    assert not found, f"{path.relative_to(ROOT)} speaks of the project's process:\n" + "\n".join(found)
+
+
+def test_process_patterns_catch_what_they_should():
+    """The patterns above on sentences of the kind they exist for, and on ones they must leave alone."""
+    def hits(text):
+        return [what for what, pattern, flags in _PROCESS_WORDS if re.search(pattern, text, flags)]
+
+    for bad in ("Issue 9's 2x target is not met", "## Adopted (issue 20)", "measured in this session",
+                "a session's device time", "experiments/issue20_details.py", "the issue's 4.1e8", "see #issue",
+                "the CEO asked", "other engineers' jobs", "on a lent machine"):
+        assert hits(bad), bad
+    for good in ("`test_python_session_fills_the_same_folder_as_the_command_line`", "one task per GPU",
+                 "#SBATCH --ntasks-per-node=4", "--stop-fraction 0.001", "tissue", "ceo_of_mass"):
+        assert not hits(good), (good, hits(good))
+
+
+def _version_of_pyproject():
+    project = (ROOT / "pyproject.toml").read_text().split("[project]", 1)[1].split("\n[", 1)[0]
+    return re.search(r'^version = "([^"]+)"$', project, re.M).group(1)
+
+
+def test_one_version_in_pyproject_citation_changelog_and_bibtex():
+    """pyproject's version is the citation's, the BibTeX entry's and the changelog's newest entry; the changelog
+    lists its versions newest first, and the README and the site link it."""
+    version = _version_of_pyproject()
+    cff = re.search(r"^version: *([^\s]+)$", (ROOT / "CITATION.cff").read_text(), re.M).group(1)
+    assert cff == version, (cff, version)
+    assert f"version = {{{version}}}," in (DOCS / "citing.md").read_text()
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    versions = re.findall(r"^## \[(\d+)\.(\d+)\.(\d+)\]", changelog, re.M)
+    assert versions and ".".join(versions[0]) == version, (versions[:1], version)
+    as_numbers = [tuple(map(int, v)) for v in versions]
+    assert as_numbers == sorted(as_numbers, reverse=True), "the changelog lists its versions newest first"
+    assert "](CHANGELOG.md)" in (ROOT / "README.md").read_text()
+
+
+@pytest.mark.slow
+def test_concepts_page_global_trap_and_fields_hold():
+    """What the concepts page says of a law's numbers holds: the page's two blocks, run as written (on a shorter
+    horizon): a law that reads a global keeps the value of its first run; a law whose number is a field gives a
+    new run for a new value."""
+    import numpy as np
+
+    text = (DOCS / "concepts.md").read_text()
+    section = text.split("**A law's numbers are its fields, never Python globals.**", 1)[1].split("\n**", 1)[0]
+    blocks = [b.replace("t_final=20.0", "t_final=2.0") for b in re.findall(r"```python\n(.*?)```", section, re.S)]
+    assert len(blocks) == 2
+    head = ("from typing import NamedTuple\nimport jax.numpy as jnp\nimport numpy as np\nimport jaxsleigh as js\n"
+            "ics = np.array([[-3.0, -2.0, np.pi / 8], [1.0, 1.0, 0.0]])\n")
+    trap, fields = {}, {}
+    exec(compile(head + blocks[0], "concepts.md", "exec"), trap)
+    assert np.array_equal(trap["a"].q_final, trap["b"].q_final)          # K = 5.0 changed nothing
+    exec(compile(head + blocks[1], "concepts.md", "exec"), fields)
+    assert not np.allclose(fields["a"].q_final, fields["b"].q_final)     # k = 5.0 is a new run
+    assert np.allclose(fields["a"].q_final, trap["a"].q_final)           # the same law at k = 1
