@@ -205,3 +205,27 @@ def test_the_help_names_the_cache_folder_this_environment_uses(tmp_path, capsys,
     assert f"cached in {tmp_path / 'xdg' / 'jaxsleigh' / 'jax'}" in help_text and "~/.cache" not in help_text
     monkeypatch.setenv("JAXSLEIGH_NO_COMPILE_CACHE", "1")
     assert "not cached" in cli.build_parser().format_help()
+
+
+# ---------------------------------------------------------------------------------------------
+# tables of starts with a header line
+# ---------------------------------------------------------------------------------------------
+
+def test_a_csv_of_starts_may_begin_with_a_header_line(tmp_path, capsys):
+    csv = tmp_path / "starts.csv"
+    csv.write_text("x,y,theta\n1,1,0.5\n-1,2,1\n")
+    rc, out, err = run_cli(["simulate", "--ics", csv, "--t-final", "1", "--method", "rk4", "--out",
+                            tmp_path / "r.npz"], capsys)
+    assert rc == 0 and "2 trajectories: 2 integrated" in out, err
+    with np.load(tmp_path / "r.npz") as z:
+        np.testing.assert_array_equal(z["ics"][:, :3], [[1, 1, 0.5], [-1, 2, 1]])
+
+
+def test_a_table_that_is_not_numbers_gets_advice_about_tables_not_numpy(tmp_path):
+    from jaxsleigh.files.npz import load_ics
+
+    csv = tmp_path / "starts.csv"
+    csv.write_text("x,y,theta\n1,1,0.5\nfoo,2,1\n")
+    with pytest.raises(ValueError) as e:
+        load_ics(csv)
+    assert str(csv) in str(e.value) and "header line" in str(e.value) and "numpy" not in str(e.value)

@@ -306,9 +306,12 @@ def load_ics(path, *, hint: str = "") -> np.ndarray:
         raise ValueError(f"initial-conditions file {str(path)!r} {what}; give an existing .npy file of "
                          f"shape (N, 3) or (N, 5)" + (f", or {hint}" if hint else ""))
     text = p.suffix.lower() in (".txt", ".csv")
+    if text:
+        fix = ("write one start per line as 3 or 5 numbers (x, y, theta[, p1, p2]), after at most one header line "
+               "of names")
     try:
         if text:
-            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
+            arr = _load_table(p)
         else:
             with open(p, "rb") as f:
                 magic = f.read(6)
@@ -334,6 +337,31 @@ def load_ics(path, *, hint: str = "") -> np.ndarray:
         raise ValueError(f"{str(path)!r} holds an array of shape {arr.shape}; initial conditions must have "
                          f"shape (N, 3) [x, y, theta] or (N, 5) [x, y, theta, p1, p2] with N >= 1")
     return arr.astype(np.float64)
+
+
+def _load_table(p: Path) -> np.ndarray:
+    """A ``.csv`` (commas) or ``.txt`` (blanks) table of numbers, ``ndmin=2``; a first line that is not numbers
+    (a header of names, ``x,y,theta``) is skipped."""
+    delimiter = "," if p.suffix.lower() == ".csv" else None
+    with open(p, encoding="utf-8", errors="replace") as f:
+        first = next((line for line in f if line.strip() and not line.lstrip().startswith("#")), "")
+    skip = 0
+    if first:
+        try:
+            [float(x) for x in first.split(delimiter) if x.strip()]
+        except ValueError:
+            skip = _header_lines(p)
+    return np.loadtxt(p, delimiter=delimiter, ndmin=2, skiprows=skip)
+
+
+def _header_lines(p: Path) -> int:
+    """How many lines ``np.loadtxt(skiprows=...)`` skips to pass the header line (and blank or comment lines
+    before it)."""
+    with open(p, encoding="utf-8", errors="replace") as f:
+        for i, line in enumerate(f, 1):
+            if line.strip() and not line.lstrip().startswith("#"):
+                return i
+    return 0
 
 
 def _check_npy_header(p: Path, name: str, fix: str) -> None:
