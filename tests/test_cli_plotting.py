@@ -268,20 +268,36 @@ def test_provenance_stamp_names_dtype_method_and_device():
     for fn in (plotting.plot_paths, plotting.plot_configuration):
         fig = fn(sol)
         (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
-        assert text.startswith("float64  ·  fixed-step RK4  ·  dt = 0.01 s")
-        assert "device not recorded" in text            # the synthetic solution does not say where it ran
+        # the title names dtype, method and step; the stamp adds what it does not say
+        assert "float64, fixed-step RK4, dt = 0.01 s" in fig.get_suptitle()
+        assert text.startswith("device not recorded")   # the synthetic solution does not say where it ran
+        assert "float64" not in text and "dt = " not in text
     settings = {**sol.settings, "dtype": "float32", "method": "adaptive", "rtol": 1e-6, "atol": 1e-9,
                 "devices": ["cuda:0"]}
     fig = plotting.plot_momentum(sol._replace(settings=settings))
     (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
-    assert "float32" in text and "float64" not in text and "adaptive RK4" in text
+    assert "float32, adaptive RK4" in fig.get_suptitle() and "float" not in text and "adaptive RK4" not in text
     assert "rtol = 1e-06, atol = 1e-09" in text and "device cuda:0" in text
-    assert "float32" in fig.get_suptitle()
     # a real run records its device, and the figure drawn from its file names it
     real = jaxsleigh.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01, method="rk4")
     fig = plotting.plot_hamiltonian(real)
     (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
-    assert text.startswith("float32") and f"device {device_text(None, real.run_info)}" in text
+    assert "float32" in fig.get_suptitle() and f"device {device_text(None, real.run_info)}" in text
+
+
+def test_the_stamp_names_each_setting_once_with_the_title():
+    from matplotlib.figure import Figure
+
+    from jaxsleigh.plots.base import provenance_line, stamp
+
+    settings = {"dtype": "float32", "method": "adaptive", "dt": 0.01, "rtol": 1e-6, "atol": 1e-6, "eps": 0.35,
+                "t_final": 2.0, "devices": ["cpu:0"]}
+    fig = Figure()
+    fig.suptitle("Basin (float32, adaptive RK4, dt = 0.01 s, ε = 0.3)")
+    text = stamp(fig, settings).get_text()
+    assert text.startswith("rtol = 1e-06, atol = 1e-06  ·  ε = 0.35  ·  T = 2 s  ·  device cpu:0"), text
+    # alone (no title), it names everything
+    assert provenance_line(settings).startswith("float32  ·  adaptive RK4  ·  dt = 0.01 s  ·  rtol")
 
 
 def test_save_figure_writes_the_format_of_the_suffix(tmp_path):

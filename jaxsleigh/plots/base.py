@@ -8,7 +8,7 @@
   0.01 s'``), used in titles.
 * `stamp`: the provenance line at the top of every figure a plotting function owns (above the
   title, small grey type): dtype, method, step, tolerances, ``eps``, horizon and the device the data
-  was computed on (from the result's settings or run information; ``device not recorded`` when
+  was computed on, less what the title already says (from the result's settings or run information; ``device not recorded`` when
   neither holds it, e.g. a file from an older version).
 * `save_figure`: PNG/PDF/SVG by suffix, parent folders created, written atomically.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 __all__ = ["METHOD_NAMES", "STAMP_GID", "T_EPS", "check_stamp", "new_figure", "figure_and_axes", "save_figure", "provenance",
-           "device_text", "provenance_line", "stamp"]
+           "device_text", "provenance_line", "provenance_parts", "stamp"]
 
 #: Display names of the integration methods.
 METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4", "sampled": "zero-order hold, RK4 substeps"}
@@ -103,8 +103,22 @@ def device_text(settings: Optional[Mapping], run_info: Optional[Mapping] = None)
     return "device not recorded"
 
 
-def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = None) -> str:
-    """One line naming the dtype, method, step, tolerances (adaptive), ``eps``, horizon and device."""
+def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = None, *, said: str = "") -> str:
+    """One line naming the dtype, method, step, tolerances (adaptive), ``eps``, horizon and device; the parts that
+    ``said`` (a figure's title) already names are left out."""
+    return "  ·  ".join(p for p in provenance_parts(settings, run_info) if not _names(said, p))
+
+
+def _names(text: str, part: str) -> bool:
+    """Whether ``text`` names ``part`` as a whole (``'ε = 0.3'`` is not named by ``'ε = 0.35'``)."""
+    import re
+
+    return bool(text) and re.search(rf"(?<![\w.]){re.escape(part)}(?![\w.])", text) is not None
+
+
+def provenance_parts(settings: Optional[Mapping], run_info: Optional[Mapping] = None) -> list:
+    """The items of `provenance_line`: dtype, method, step, tolerances (adaptive), ``eps``, horizon, device and
+    the jaxsleigh version."""
     s = settings or {}
     parts = [str(s.get("dtype", "dtype unknown")), _method(s)]
     if "dt" in s:
@@ -120,7 +134,7 @@ def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = N
     from .. import __version__
 
     parts.append(f"jaxsleigh {__version__}")
-    return "  ·  ".join(parts)
+    return parts
 
 
 def check_stamp(stamp) -> bool:
@@ -137,7 +151,8 @@ def stamp(fig, settings: Optional[Mapping], run_info: Optional[Mapping] = None):
     for a publication.)
 
     The line sits in a blank first line added to the suptitle, so the constrained layout keeps room
-    for it (call this after ``suptitle``; a figure without one gets a blank one).
+    for it (call this after ``suptitle``; a figure without one gets a blank one). What the suptitle already says
+    (the dtype, the method, dt, ...) is not repeated.
     """
     for t in list(fig.texts):
         if t.get_gid() == STAMP_GID:
@@ -145,5 +160,5 @@ def stamp(fig, settings: Optional[Mapping], run_info: Optional[Mapping] = None):
     title = fig.get_suptitle()
     size = fig._suptitle.get_fontsize() if fig._suptitle is not None else 10   # suptitle() would reset it
     fig.suptitle("\n" + title.lstrip("\n"), fontsize=size)
-    return fig.text(0.005, 0.995, provenance_line(settings, run_info), ha="left", va="top", fontsize=6.5,
-                    color="0.4", gid=STAMP_GID)
+    return fig.text(0.005, 0.995, provenance_line(settings, run_info, said=title), ha="left", va="top",
+                    fontsize=6.5, color="0.4", gid=STAMP_GID)
