@@ -1,5 +1,7 @@
-"""Checkpoint and resume of the tuner: the optimiser's whole state in one fingerprinted ``.npz``, written
-atomically after every iteration, and `TuningInterrupted` (Ctrl-C keeps the best gains so far)."""
+"""Checkpoint and resume of the tuners: the optimiser's whole state in one fingerprinted ``.npz``, written
+atomically after every iteration (`TunerCheckpoint` for the paper's gains, `LawCheckpoint` for any law), and
+`TuningInterrupted` (Ctrl-C keeps the best so far). A checkpoint may also carry the options of the command that
+wrote it (`checkpoint_options`), so that a refused resume can name the option first."""
 from __future__ import annotations
 
 import hashlib
@@ -13,7 +15,8 @@ import numpy as np
 
 from ..model.params import gains_to_dict
 
-__all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint"]
+__all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
+           "checkpoint_options"]
 
 
 class TuningInterrupted(KeyboardInterrupt):
@@ -163,3 +166,90 @@ def _scalar(x):
     if x.dtype == bool:
         return bool(x)
     return x.item()
+
+
+def checkpoint_options(path) -> dict | None:
+    """The options (``{flag: value}``) a checkpoint was written with, as its writer passed them (``options=``);
+    ``None`` for a file without them or one that cannot be read (its loader then says what is wrong)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            text = str(z["options"]) if "options" in z.files else None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError):
+        return None
+    try:
+        doc = None if text is None else json.loads(text)
+    except ValueError:
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def law_fingerprint(law, names, plant, loss, lr, x64, n_attempts, starts) -> tuple:
+    """``(key, settings)``: a hash of everything that determines a `jaxsleigh.tuning.tune_law` run but its number of
+    steps (a resumed run may go on for more), and those settings as JSON, for naming what differs."""
+    from ..model.controller import law_leaf_names
+    from ..studies.config import plant_to_dict
+
+    leaves = {n: np.asarray(v, np.float64).tolist() for n, v in law_leaf_names(law).items()}
+    doc = {"law": str(jax.tree_util.tree_structure(law)), "leaves": leaves, "tuned": list(names),
+           "plant": plant_to_dict(plant), "loss": {k: float(v) for k, v in loss._asdict().items()}, "lr": float(lr),
+           "x64": bool(x64), "n_attempts": int(n_attempts)}
+    a = np.ascontiguousarray(starts, np.float64)
+    h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
+    h.update(a.tobytes())
+    return h.hexdigest(), {**doc, "starts": hashlib.sha256(a.tobytes()).hexdigest()[:16]}
+
+
+class LawCheckpoint:
+    """The state of `jaxsleigh.tuning.tune_law`'s Adam descent in one ``.npz``, written atomically after every
+    step: the next step, the parameters and optimiser state, the best valid candidate, the history and whether
+    the descent stopped (at an invalid candidate)."""
+
+    def __init__(self, path, key: str, settings: dict, options: dict | None = None):
+        self.path, self.key, self.settings, self.options = Path(path), key, settings, options
+
+    def save(self, it: int, params, opt_state, best, hist: dict, stopped: bool) -> None:
+        from ..files.npz import atomic_write
+
+        arrays = {"key": np.array(self.key), "it": np.int64(it), "stopped": np.bool_(stopped),
+                  "settings": np.array(json.dumps(self.settings, sort_keys=True, default=str)),
+                  "params": np.asarray(params)}
+        if self.options is not None:
+            arrays["options"] = np.array(json.dumps(self.options, sort_keys=True, default=str))
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(opt_state)):
+            arrays[f"opt_state/{i}"] = np.asarray(leaf)
+        if best is not None:
+            arrays["best/params"] = np.asarray(best[0])
+            arrays["best/loss"], arrays["best/energy"] = np.float64(best[1]), np.float64(best[2])
+        for k, v in hist.items():
+            arrays[f"hist/{k}"] = np.asarray(v, bool if k == "valid" else np.float64)
+        atomic_write(self.path, lambda fh: np.savez(fh, **arrays))
+
+    def load(self, params, opt_state):
+        """``(it, params, opt_state, best, hist, stopped)`` shaped like ``params`` / ``opt_state``; ``None`` if there is
+        no file. Refuses a damaged file or one written with other settings (naming what differs)."""
+        if not self.path.exists():
+            return None
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                a = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} is damaged ({type(e).__name__}: {e}); delete it "
+                             "and start afresh (without --resume)") from None
+        if str(a.get("key")) != self.key:
+            try:
+                old = json.loads(str(a["settings"])) if "settings" in a else {}
+            except ValueError:
+                old = {}
+            why = _differences(old, self.settings)
+            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings"
+                             + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
+                             "or move the checkpoint (or choose another --out) to start afresh")
+        dtype = jnp.asarray(params).dtype
+        leaves, tdef = jax.tree_util.tree_flatten(opt_state)
+        state = jax.tree_util.tree_unflatten(
+            tdef, [jnp.asarray(a[f"opt_state/{i}"], jnp.asarray(leaf).dtype) for i, leaf in enumerate(leaves)])
+        best = None
+        if "best/params" in a:
+            best = (jnp.asarray(a["best/params"], dtype), float(a["best/loss"]), float(a["best/energy"]))
+        hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
+        return int(a["it"]), jnp.asarray(a["params"], dtype), state, best, hist, bool(a["stopped"])

@@ -23,10 +23,12 @@ from ..model.controller import as_controller, is_paper_law, law_leaf_names, posi
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import PlantParams, as_plant
 from ..status import Status
-from .params import GainParams, gains_from_params, params_from_gains
+from .checkpoint import LawCheckpoint, TuningInterrupted, law_fingerprint
+from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
 
-__all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names", "LawCoordinates", "law_coordinates"]
+__all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names", "LawCoordinates", "law_coordinates",
+           "InvalidStartingLaw"]
 
 
 class LawTuneResult(NamedTuple):
@@ -81,6 +83,8 @@ def law_coordinates(law, tune: Optional[Sequence[str]] = None, *, dtype=jnp.floa
 
     * the paper's law (`jaxsleigh.Gains`): `jaxsleigh.tuning.params.GainParams` flattened, \(x = (\log L,
       \log k, c_0, c_1, c_2)\), 7 numbers, \(\hat D = C C^\top + \delta I\) (``tune`` must be ``None``);
+    * the paper's law behind actuators (`jaxsleigh.saturate`, `jaxsleigh.controllers.actuators.sampled`): the same
+      coordinates of the gains named in ``tune`` (``law.gains.k``, ...; default all three);
     * any other law: the leaves named in ``tune`` (default `gain_names`), each leaf the law declares ``positive``
       as its logarithm (it stays positive), the others as they are.
 
@@ -98,6 +102,9 @@ def law_coordinates(law, tune: Optional[Sequence[str]] = None, *, dtype=jnp.floa
         names = ("log L1", "log L2", "log L3", "log k", "d_chol[0]", "d_chol[1]", "d_chol[2]")
         return LawCoordinates(x0, gains_of, names)
     leaves, tree, names, idx = _split(law, tune)
+    prefix = _paper_prefix(law)
+    if prefix is not None and all(names[i].startswith(prefix) for i in idx):
+        return _wrapped_paper_coordinates(leaves, tree, names, idx, prefix, dtype)
     positive = positive_names(law)
     logs = [names[i] in positive for i in idx]             # declared positive: optimised as a logarithm
     parts, labels = [], []
@@ -120,6 +127,52 @@ def law_coordinates(law, tune: Optional[Sequence[str]] = None, *, dtype=jnp.floa
             n = int(np.prod(shape, dtype=int))
             p = x[o:o + n].reshape(shape)
             full[i], o = (jnp.exp(p) if lg else p), o + n
+        return jax.tree_util.tree_unflatten(tree, full)
+
+    return LawCoordinates(np.concatenate(parts), law_of, tuple(labels))
+
+
+def _paper_prefix(law) -> Optional[str]:
+    """The path (``"law.gains."``) of the paper's gains inside actuators (saturation, digital controller) around the
+    paper's law; ``None`` for any other law."""
+    from ..controllers.actuators import NormSaturation, Sampled, Saturation
+    from ..controllers.paper import PaperLaw
+
+    prefix = ""
+    while isinstance(law, (Saturation, NormSaturation, Sampled)):
+        law, prefix = law.law, prefix + "law."
+    return prefix + "gains." if isinstance(law, PaperLaw) else None
+
+
+def _wrapped_paper_coordinates(leaves, tree, names, idx, prefix: str, dtype) -> LawCoordinates:
+    """The paper's gains behind an actuator in the paper's admissible coordinates (`GainParams`: log L, log k and
+    the Cholesky factor of D_hat - floor), so that every candidate has L, k > 0 and D_hat symmetric positive
+    definite; only the gains in ``idx`` move."""
+    from ..model.params import Gains
+
+    fields = ("L", "k", "D_hat")
+    at = {f: names.index(prefix + f) for f in fields}
+    p0 = params_from_gains(Gains(*(np.asarray(leaves[at[f]], np.float64) for f in fields)))
+    chosen = [f for f in fields if at[f] in idx]
+    parts, labels = [], []
+    for f in chosen:
+        v = np.asarray(getattr(p0, TUNABLE[f]))
+        parts.append(np.ravel(v))
+        labels += [TUNABLE[f] + (f"[{j}]" if v.ndim else "") for j in range(v.size)]
+
+    def law_of(x):
+        x = jnp.asarray(x, dtype)
+        vals, o = {}, 0
+        for f in fields:
+            start = np.asarray(getattr(p0, TUNABLE[f]))
+            if f in chosen:
+                vals[TUNABLE[f]], o = x[o:o + start.size].reshape(start.shape), o + start.size
+            else:
+                vals[TUNABLE[f]] = jnp.asarray(start, dtype)
+        g = gains_from_params(GainParams(**vals))
+        full = list(leaves)
+        for f in chosen:
+            full[at[f]] = getattr(g, f)
         return jax.tree_util.tree_unflatten(tree, full)
 
     return LawCoordinates(np.concatenate(parts), law_of, tuple(labels))
@@ -174,7 +227,8 @@ def law_loss(law, y0, plant: PlantParams, cfg: LossConfig, *, n_attempts: int, a
 
 def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Optional[PlantParams] = None,
              loss: LossConfig = LossConfig(), steps: int = 50, lr: float = 0.05, x64: bool = False,
-             n_attempts: Optional[int] = None) -> LawTuneResult:
+             n_attempts: Optional[int] = None, checkpoint=None, resume: bool = False,
+             callback: Optional[Callable] = None, options: Optional[dict] = None) -> LawTuneResult:
     """Tune the numeric leaves of ``law`` (all, or those named in ``tune``) by Adam on the tuner's objective.
 
     Args:
@@ -185,6 +239,16 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
       plant: the plant (default: the paper's); loss: `LossConfig` (horizon, tolerances, energy budget).
       steps, lr: Adam iterations and learning rate; x64: float64.
       n_attempts: attempted steps per start (default 4x the base steps of ``loss.t_final``).
+      checkpoint: a file (``.npz``) where the descent's whole state is written, atomically, after every step;
+        ``resume=True`` continues from it (the settings must be the same, they are fingerprinted; a larger ``steps``
+        goes on where the run stopped) and ends with the result an uninterrupted run would have given.
+      callback: ``callback(i, row)`` after step ``i`` (``row``: its ``loss``, ``energy``, ``valid``).
+      options: recorded in the checkpoint as they are (the command line's options, `checkpoint_options`).
+
+    Raises:
+      `InvalidStartingLaw` (a ``ValueError``): the starting law is not a valid candidate.
+      `TuningInterrupted`: Ctrl-C during the descent; its ``partial`` is a `LawTuneResult` with the best valid
+        law so far (``None`` if there is none yet).
     """
     if is_paper_law(law):
         raise ValueError("the paper's law has its own tuner with admissible gains: jaxsleigh.tuning.tune")
@@ -194,23 +258,43 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     ics5, status0 = check_ics(starts, singular=chart.singular, name="training start")
     if np.any(status0 != Status.OK):
         raise ValueError("training starts must all be valid (finite; theta0 != 0 for a law with that singular set)")
+    if resume and checkpoint is None:
+        raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
     plant = as_plant(plant)
     n_attempts = int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64
         coords = law_coordinates(law, tune, dtype=dtype)
-        params = jnp.asarray(coords.x0, dtype)
+        store = None
+        if checkpoint is not None:
+            key, settings = law_fingerprint(law, coords.names, plant, loss, lr, x64, n_attempts, ics5)
+            store = LawCheckpoint(checkpoint, key, settings, options)
+            if store.path.exists() and not resume:
+                raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
+                                 "resume=True (--resume) to continue it, or delete it to start afresh")
 
         def f(x):
             return law_loss(coords.law_of(x), y0, plant, loss, n_attempts=n_attempts)
 
-        best, hist = _adam_descent(jax.jit(jax.value_and_grad(f, has_aux=True)), optax.adam(lr), params, steps)
-        if best is None:
-            raise ValueError("the starting law is not a valid candidate (a training start failed or the loss is not "
-                             "finite); check it with jaxsleigh.run_ensemble(starts, controller=law)")
-        tuned = _host_law(law, coords.law_of(best[0]), tune)
-    return LawTuneResult(tuned, best[1], best[2], {k: np.asarray(v) for k, v in hist.items()})
+        def result(best, hist):
+            tuned = _host_law(law, coords.law_of(best[0]), tune)
+            return LawTuneResult(tuned, best[1], best[2], {k: np.asarray(v) for k, v in hist.items()})
+
+        descent = _Descent(optax.adam(lr), jnp.asarray(coords.x0, dtype), store, callback)
+        try:
+            _adam_descent(descent, jax.jit(jax.value_and_grad(f, has_aux=True)), steps)
+        except KeyboardInterrupt:
+            partial = None if descent.best is None else result(descent.best, descent.hist)
+            raise TuningInterrupted(partial, None if store is None else store.path) from None
+        if descent.best is None:
+            raise InvalidStartingLaw("the starting law is not a valid candidate (a training start failed or the loss "
+                                     "is not finite); check it with jaxsleigh.run_ensemble(starts, controller=law)")
+        return result(descent.best, descent.hist)
+
+
+class InvalidStartingLaw(ValueError):
+    """`tune_law`'s starting law is not a valid candidate (a training start failed or the loss is not finite)."""
 
 
 def _check_steps_lr(steps, lr) -> None:
@@ -221,25 +305,47 @@ def _check_steps_lr(steps, lr) -> None:
             raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
 
 
-def _adam_descent(step_fn, opt, params, steps: int):
-    """At most ``steps`` steps of ``opt`` from ``params``, stopping at the first invalid candidate.
+def _adam_descent(descent: "_Descent", step_fn, steps: int) -> None:
+    """The work of `tune_law`: ``descent``'s remaining steps (`_Descent.run`)."""
+    descent.run(step_fn, steps)
 
-    ``step_fn(params) -> ((loss, aux), grads)``. Returns ``(best, hist)``: ``best`` is ``(params, loss,
-    energy)`` of the lowest-loss valid candidate (``None`` if none was valid), ``hist`` the per-step lists
-    ``loss``, ``energy``, ``valid``.
+
+class _Descent:
+    """Adam from ``params``, stopping at the first invalid candidate, checkpointed after every step (``store``).
+
+    ``best`` is ``(params, loss, energy)`` of the lowest-loss valid candidate (``None`` while none was valid),
+    ``hist`` the per-step lists ``loss``, ``energy``, ``valid``. With a ``store`` holding an earlier run's state
+    the descent continues from it, so that an interrupted and resumed run ends where an uninterrupted one does.
     """
-    state = opt.init(params)
-    best, hist = None, {"loss": [], "energy": [], "valid": []}
-    for _ in range(steps):
-        (value, aux), grads = step_fn(params)
+
+    def __init__(self, opt, params, store: Optional[LawCheckpoint], callback: Optional[Callable]):
+        self.opt, self.store, self.callback = opt, store, callback
+        self.params, self.state = params, opt.init(params)
+        self.best, self.hist, self.it, self.stopped = None, {"loss": [], "energy": [], "valid": []}, 0, False
+        saved = None if store is None else store.load(self.params, self.state)
+        if saved is not None:
+            self.it, self.params, self.state, self.best, self.hist, self.stopped = saved
+
+    def run(self, step_fn, steps: int) -> None:
+        """Steps ``self.it`` to ``steps`` (none once stopped); ``step_fn(params) -> ((loss, aux), grads)``."""
+        for it in range(self.it, steps):
+            if self.stopped:
+                break
+            self._step(step_fn, it)
+
+    def _step(self, step_fn, it: int) -> None:
+        (value, aux), grads = step_fn(self.params)
         valid = bool(aux["valid"]) and bool(jnp.all(jnp.isfinite(grads)))
-        hist["loss"].append(float(value))
-        hist["energy"].append(float(aux["energy"]))
-        hist["valid"].append(valid)
-        if valid and (best is None or float(value) < best[1]):
-            best = (params, float(value), float(aux["energy"]))
-        if not valid:
-            break
-        updates, state = opt.update(grads, state, params)
-        params = optax.apply_updates(params, updates)
-    return best, hist
+        row = {"loss": float(value), "energy": float(aux["energy"]), "valid": valid}
+        for k, v in row.items():
+            self.hist[k].append(v)
+        if valid and (self.best is None or row["loss"] < self.best[1]):
+            self.best = (self.params, row["loss"], row["energy"])
+        if valid:
+            updates, self.state = self.opt.update(grads, self.state, self.params)
+            self.params = optax.apply_updates(self.params, updates)
+        self.it, self.stopped = it + 1, not valid
+        if self.store is not None:
+            self.store.save(self.it, self.params, self.state, self.best, self.hist, self.stopped)
+        if self.callback is not None:
+            self.callback(it, row)
