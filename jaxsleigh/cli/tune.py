@@ -209,28 +209,140 @@ def _checked_checkpoint(args, what: str) -> Path:
 
 
 def _cmd_tune_law(args, plant, law) -> int:
-    """``jaxsleigh tune --controller NAME``: Adam on the tuner's objective over the law's gains
-    (`jaxsleigh.tuning.tune_law`), under ``--energy-budget``; writes the law's record as JSON."""
+    """``jaxsleigh tune --controller NAME`` (or the paper's law behind ``--saturation`` / ``--sample-period``): Adam on
+    the tuner's objective over the law's gains (`jaxsleigh.tuning.tune_law`), under ``--energy-budget``, checkpointed
+    after every step; writes the tuned law as a controller file (`jaxsleigh.tuning.law_file`)."""
     from .. import tuning
-    from ..files.npz import atomic_write_text
-    from ..model.controller import controller_record
+    from ..tuning.law import InvalidStartingLaw
 
-    check_outputs(args.out, args.history)
+    ckpt = _checked_checkpoint(args, "tuning run")
+    options = _law_options(args)
+    if args.resume:
+        _check_resumed_options(ckpt, options, _LAW_FLAGS)
     names = tuning.gain_names(law) if args.tune == "L,k,D_hat" else [n.strip() for n in args.tune.split(",")]
     starts = tuning.draw_starts(tuning.UniformStarts(), args.batch, args.seed)
-    loss = tuning.LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
-                             energy_budget=math.inf if args.energy_budget is None else args.energy_budget)
     t0 = time.perf_counter()
-    res = tuning.tune_law(law, starts, tune=names, plant=plant, loss=loss, steps=args.steps, lr=args.lr,
-                          x64=args.x64, n_attempts=args.n_attempts)
-    out = {"controller": args.controller, "saturation": args.saturation, "tuned": names,
-           "law": controller_record(res.law), "training_loss": res.loss, "training_energy": res.energy,
-           "history": {k: np.asarray(v).tolist() for k, v in res.history.items()},
-           "command": [PROG, *getattr(args, "_argv", [])], "wall_s": time.perf_counter() - t0}
-    atomic_write_text(args.out, json.dumps(out, indent=1))
+    try:
+        res = tuning.tune_law(law, starts, tune=names, plant=plant, loss=_loss_config(args), steps=args.steps,
+                              lr=args.lr, x64=args.x64, n_attempts=args.n_attempts, checkpoint=ckpt,
+                              resume=args.resume, options=options)
+    except InvalidStartingLaw:
+        raise ValueError(_invalid_law_message(args)) from None
+    except tuning.TuningInterrupted as stop:
+        return _law_interrupted(args, stop.partial, names)
+    wall = time.perf_counter() - t0
+    met = _budget_met(args, res.energy)
+    _write_law(args, res, names, wall_s=wall, **({} if met is None else {"energy_budget_met": met}))
+    ckpt.unlink(missing_ok=True)
     print(f"{PROG} tune --controller {args.controller}: tuned {', '.join(names)} in {len(res.history['loss'])} "
-          f"steps; training loss {res.loss:.4g}, energy {res.energy:.4g}; wrote {args.out}")
-    return 0
+          f"steps; training loss {res.loss:.4g}, energy {res.energy:.4g}; wrote {args.out}"
+          + (f" and {args.history}" if args.history else ""))
+    return _budget_exit(args, res.energy, met)
+
+
+#: The flags that determine a ``tune --controller`` run, in the order a refused ``--resume`` names them
+#: (``--steps`` is left out: a resumed run may go on for more steps).
+_LAW_FLAGS = ("controller", "gains", "saturation", "sample_period", "delay", "noise", "params", "damping", "tune",
+              "seed", "batch", "lr", "t_final", "dt", "stop_fraction", "energy_budget", "n_attempts", "x64")
+
+
+def _law_options(args) -> dict:
+    """``{flag: value}`` of `_LAW_FLAGS`, recorded in the checkpoint."""
+    return {"--" + k.replace("_", "-"): getattr(args, k, None) for k in _LAW_FLAGS}
+
+
+def _check_resumed_options(ckpt, options: dict, order) -> None:
+    """Refuse ``--resume`` when a flag differs from the one the checkpoint was written with, naming the first that
+    differs (in ``order``) with both values. A checkpoint that records no flags is left to the tuner's own check."""
+    from ..tuning.checkpoint import checkpoint_options
+
+    old = checkpoint_options(ckpt)
+    if old is None:
+        return
+    for flag in ("--" + k.replace("_", "-") for k in order):
+        a, b = old.get(flag), _jsonable(options.get(flag))
+        if a != b:
+            raise ValueError(f"{flag} differs from the checkpoint's ({_shown(a)} in the checkpoint vs {_shown(b)} "
+                             f"now): rerun with the same flags and --resume to continue it, or choose another --out "
+                             f"to start afresh")
+
+
+def _jsonable(v):
+    """``v`` as it reads back from the checkpoint's JSON (tuples as lists)."""
+    return json.loads(json.dumps(v, default=str))
+
+
+def _shown(v) -> str:
+    """A flag's value in a message: ``none`` when unset, ``on`` / ``off`` for a switch."""
+    if v is None:
+        return "none"
+    if isinstance(v, bool):
+        return "on" if v else "off"
+    return ",".join(map(str, v)) if isinstance(v, list) else str(v)
+
+
+def _invalid_law_message(args) -> str:
+    """What to do when the starting law is not a valid candidate, in command-line terms."""
+    actuator = " ".join(f"--{k.replace('_', '-')} {getattr(args, k)}" for k in ("saturation", "sample_period")
+                        if getattr(args, k, None) is not None)
+    return (f"the starting law ({args.controller}{', ' + actuator if actuator else ''}) is not a valid candidate: a "
+            f"training start failed or ran out of its step budget, or the loss is not finite; see which with "
+            f"{PROG} simulate --controller {args.controller}{' ' + actuator if actuator else ''} --ic X,Y,THETA "
+            f"--t-final {args.t_final:g} --out run.npz, then raise --n-attempts, shorten --t-final or choose "
+            f"another --controller")
+
+
+def _budget_met(args, energy: float):
+    """Whether the training energy is within ``--energy-budget`` (``None`` without one)."""
+    if args.energy_budget is None:
+        return None
+    return bool(math.isfinite(energy) and energy <= args.energy_budget)
+
+
+def _budget_exit(args, energy: float, met) -> int:
+    """The exit code of a finished run: 0, or `EXIT_NONE_OK` with a line on stderr when ``--energy-budget`` was not
+    met (the file is written all the same, with ``"energy_budget_met": false``)."""
+    if met is None or met:
+        return 0
+    print(f"{PROG} tune: the tuned gains do not meet --energy-budget {args.energy_budget:g}: their training energy is "
+          f"{energy:.4g}; {args.out} is written with \"energy_budget_met\": false. Raise --energy-budget, or run "
+          f"more --steps (exit code {EXIT_NONE_OK})", file=sys.stderr)
+    return EXIT_NONE_OK
+
+
+def _write_law(args, res, names, **extra) -> None:
+    """Write the tuned law (`jaxsleigh.tuning.law_file.save_law`) with how it was found, and its ``--history``."""
+    from ..tuning.law_file import save_law
+
+    save_law(res.law, args.controller, args.out, how="jaxsleigh tune --controller: Adam on the soft convergence "
+             "time" + ("" if args.energy_budget is None else f" under a training energy budget {args.energy_budget:g}"),
+             command=_command(args), tuned=list(names), training_loss=res.loss, training_energy=res.energy,
+             energy_budget=args.energy_budget, seed=args.seed, batch=args.batch, x64=bool(args.x64),
+             plant={"params": args.params, "damping": args.damping},
+             history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **extra)
+    _write_law_history(args, res.history)
+
+
+def _write_law_history(args, history) -> None:
+    """``--history FILE.npz``: the loss, training energy and validity per step."""
+    if args.history:
+        from ..files.npz import atomic_write
+
+        hist = args.history if str(args.history).endswith(".npz") else str(args.history) + ".npz"
+        atomic_write(hist, lambda fh: np.savez(fh, **{k: np.asarray(v) for k, v in history.items()}))
+
+
+def _law_interrupted(args, partial, names) -> int:
+    """Ctrl-C during ``tune --controller``: write the best valid law so far (if any) and say how to continue."""
+    if partial is None:
+        print(f"{PROG} tune: interrupted before any valid candidate; nothing written. Continue with the same "
+              f"command and --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    _write_law(args, partial, names, interrupted=True)
+    print(f"{PROG} tune: interrupted after {len(partial.history['loss'])} steps; wrote the best valid law so far "
+          f"(training loss {partial.loss:.4g}) to {args.out}" + (f" and {args.history}" if args.history else "")
+          + "; continue with the same command and --resume", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 #: Options that only --search uses, with their defaults.
@@ -256,11 +368,10 @@ def _cmd_tune(args) -> int:
     search = args.search
     if (getattr(args, "controller", "paper") != "paper" or getattr(args, "saturation", None) is not None
             or getattr(args, "sample_period", None) is not None):
-        for flag, on in (("--search", search), ("--pareto", args.pareto is not None), ("--robust", args.robust),
-                         ("--resume", args.resume)):
+        for flag, on in (("--search", search), ("--pareto", args.pareto is not None), ("--robust", args.robust)):
             if on:
-                raise ValueError(f"{flag} tunes the paper's gains; with --controller / --saturation / --sample-period "
-                                 f"drop {flag}")
+                raise ValueError(f"{flag} tunes only the paper's law without an actuator: drop {flag}, or drop "
+                                 f"--controller / --saturation / --sample-period")
     if args.steps is None:
         args.steps = 100 if search else 150
     if args.batch is None:
@@ -283,12 +394,12 @@ def _cmd_gradient(args) -> int:
     from .. import tuning
     from ..model.params import Gains, save_gains
 
-    names = tuning.parse_tune(args.tune)
     if args.robust and (args.params != "2,1,1" or args.damping != "coulomb"):
         raise ValueError("--robust samples the plants itself; drop --params / --damping (or drop --robust)")
     plant, gains0 = model_from_args(args)
     if not isinstance(gains0, Gains):
         return _tune_other_law(args, plant, gains0)
+    names = tuning.parse_tune(args.tune)
     ckpt = _checked_checkpoint(args, "tuning run")
     config, loss = _tune_config(args), _loss_config(args)
     robust = tuning.PlantDistribution() if args.robust else None
@@ -303,6 +414,10 @@ def _cmd_gradient(args) -> int:
         return _gradient_interrupted(args, stop.partial, command)
     wall = time.perf_counter() - t0
     meta = _gradient_record(args, res, names, command, plant, wall)
+    energy = float(res.history.energy[res.best_iteration])
+    met = _budget_met(args, energy)
+    if met is not None:
+        meta.update(energy_budget=args.energy_budget, training_energy=energy, energy_budget_met=met)
     print(f"{PROG} tune: loss {res.initial_loss:.4f} -> {res.best_loss:.4f} (iteration {res.best_iteration} of "
           f"{res.settings['iterations_run']}), {wall:.1f} s wall ({res.settings['dtype']}, {args.mode} mode)")
     save_gains(res.gains, args.out, **meta)   # written before the validation, so it cannot be lost
@@ -311,7 +426,7 @@ def _cmd_gradient(args) -> int:
     if args.validate:
         _validate_tuned(args, res, plant, meta)
     _print_written_gains(args, res.gains)
-    return 0
+    return _budget_exit(args, energy, met)
 
 
 def _save_tuned_history(args, history) -> None:
