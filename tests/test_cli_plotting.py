@@ -36,7 +36,7 @@ def test_simulate_contract_and_settings_round_trip(tmp_path, capsys):
     # "--ic -3,..." (negative first entry, no '=') must work too
     rc, stdout, err = _run(["simulate", "--ic", "-3,-2,pi/8", "--ic=3,2,-1.5", *TINY, "--out", str(out)], capsys)
     assert rc == 0, err
-    assert "2 trajectories: 2 ok" in stdout and str(out) in stdout
+    assert "2 trajectories: 2 integrated; " in stdout and " settled" in stdout and str(out) in stdout
     with np.load(out, allow_pickle=False) as z:
         data = {k: z[k] for k in z.files}
     assert SIM_KEYS <= set(data)
