@@ -11,7 +11,15 @@ with the measures a reviewer asks for, judged on the whole distribution and not 
   that ran (not only the settled ones: a law that spends and fails is charged);
 * ``u_peak_p50``, ``u_peak_max``: median and largest \(\max_t \|u(t)\|\);
 * ``min_abs_theta``: the closest approach to \(\theta = 0\) over all starts; ``failed``: starts whose
-  integration did not reach the horizon.
+  integration did not reach the horizon;
+* ``per_start``: ``{"T_eps": [...], "energy": [...]}``, each start's \(T_\varepsilon\) (``inf``: did not settle
+  or failed) and energy (``nan``: failed), in the order of the starts (what the ECDF figure draws,
+  `jaxsleigh.plots.compare.plot_compare_ecdf`). `json_ready` writes ``inf`` and ``nan`` as ``null``.
+
+**Equal effort.** `tune_to_budget` tunes the literature's laws (`jaxsleigh.tuning.tune_law`) to one energy budget,
+by default the paper's training energy \(E_{paper} = \exp(\overline{\log E_i})\), \(E_i = \int_0^{30} \|u\|^2 dt\)
+on the tuner's training starts (`jaxsleigh.tuning.training_energy`), so that the laws are compared at equal
+effort; the paper's gains stay as published and a law that ships a tuned preset (``shaped``) keeps it.
 
 Actuators: ``saturation`` clips each component, \(|u_i| \le U\) (`jaxsleigh.controllers.actuators.Saturation`);
 ``sampler`` runs the sampled-data loop (zero-order hold, delay, noise:
@@ -20,14 +28,17 @@ evaluated from the measured q and v (`jaxsleigh.controllers.paper.PaperLaw`), as
 """
 from __future__ import annotations
 
-from typing import Any, Mapping, Optional
+import math
+import time
+from typing import Any, Callable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
 from ..controllers.actuators import sampled, saturate
 from ..status import Status, converged
 
-__all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS"]
+__all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS", "BASE_STEP", "base_step",
+           "check_horizon", "json_ready", "EqualEnergy", "tune_to_budget"]
 
 #: The held-out start distributions (name -> description): near the singular set, the training box, and
 #: a wider box with momentum.
@@ -68,14 +79,41 @@ def _row(T_eps, status, energy, u_peak, min_theta) -> dict:
     ran = status == Status.OK
     T = np.where(ran, np.asarray(T_eps, np.float64), np.inf)     # a failed start never settled
     ok = converged(status, np.asarray(T_eps, np.float64))
+    E = np.where(ran, np.asarray(energy, np.float64), np.nan)   # a failed start's energy is not defined
     return {"median_T": _pct(T, 50), "p90_T": _pct(T, 90), "settled": float(np.mean(ok)),
-            "energy_p50": _pct(np.where(ran, energy, np.nan), 50),
-            "energy_p75": _pct(np.where(ran, energy, np.nan), 75),
-            "energy_p90": _pct(np.where(ran, energy, np.nan), 90),
+            "energy_p50": _pct(E, 50), "energy_p75": _pct(E, 75), "energy_p90": _pct(E, 90),
             "u_peak_p50": _pct(np.where(ran, u_peak, np.nan), 50),
             "u_peak_max": float(np.nanmax(np.where(ran, u_peak, np.nan))) if ran.any() else float("nan"),
             "min_abs_theta": float(np.nanmin(min_theta)) if np.isfinite(min_theta).any() else float("nan"),
-            "failed": int(np.sum(~ran))}
+            "failed": int(np.sum(~ran)),
+            "per_start": {"T_eps": [float(t) if k else math.inf for t, k in zip(T, ok)],
+                          "energy": [float(e) for e in E]}}
+
+
+#: The base step [s] of `compare`'s continuous loop (the adaptive method starts with it and grows it).
+BASE_STEP = 0.01
+
+
+def base_step(sampler=None, substeps: int = 20) -> float:
+    """The base step [s] `compare` integrates with: `BASE_STEP`, or under ``sampler`` the RK4 substep
+    ``period / substeps``."""
+    return BASE_STEP if sampler is None else sampler.period / substeps
+
+
+def check_horizon(t_final: float, sampler=None, substeps: int = 20, *, flag: str = "t_final") -> float:
+    r"""The base step of `compare` (`base_step`) after checking that the horizon fits one run:
+    \(T / \Delta t \le\) `jaxsleigh.integrate.engine.MAX_BASE_STEPS`. Raises ``ValueError`` naming ``flag``
+    (the caller's name for the horizon) and the longest horizon allowed."""
+    from ..integrate.engine import MAX_BASE_STEPS
+
+    dt = base_step(sampler, substeps)
+    longest = MAX_BASE_STEPS * dt
+    if not float(t_final) <= longest * (1 + 1e-12):
+        where = (f"with the sample period {sampler.period:g} s and {substeps} RK4 substeps per period" if sampler
+                 else f"from a base step of {dt:g} s")
+        raise ValueError(f"{flag} {float(t_final):g} s is longer than one comparison can integrate: at most "
+                         f"{longest:g} s ({MAX_BASE_STEPS:.0e} steps {where}); use a shorter {flag}")
+    return dt
 
 
 def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=None, t_final: float = 100.0,
@@ -96,12 +134,12 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
     """
     from .ensemble import run_ensemble
 
+    dt = check_horizon(t_final, sampler, substeps)
     rows = []
     for name, law in laws.items():
         law = law if saturation is None else saturate(law, saturation)
-        dt = 0.01
         if sampler is not None:                    # the sampled-data loop: substeps of period / substeps
-            law, dt = sampled(law, *sampler), sampler.period / substeps
+            law = sampled(law, *sampler)
         for sname, ics in starts.items():
             ics = np.asarray(ics, np.float64)
             r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, dt=dt, eps=eps, x64=x64,
@@ -109,3 +147,103 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
             row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
             rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row})
     return rows
+
+
+def json_ready(obj):
+    """``obj`` with what strict JSON cannot hold replaced: ``inf`` and ``nan`` (did not settle, not defined)
+    become ``None`` (``null``), NumPy scalars and arrays become numbers and lists, tuples lists. Write it with
+    ``json.dumps(..., allow_nan=False)``."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+class EqualEnergy(NamedTuple):
+    r"""The laws of `tune_to_budget`, ready for `compare`, and what was done to each.
+
+    Attributes:
+      laws: name -> law, in the order asked for.
+      budget: the energy budget [N^2 s, (N m)^2 s]: geometric mean of \(\int_0^{30} \|u\|^2 dt\) over the
+        training starts.
+      laws_info: name -> ``{"as": "published" | "preset" | "tuned" | "untuned", "law": record, ...}``; a tuned
+        law adds its ``training_energy``, ``training_loss``, ``steps`` and ``wall_s``, an untuned one ``why``.
+      settings: the training starts' count and seed, the tuner's steps and learning rate, the horizon.
+    """
+
+    laws: dict
+    budget: float
+    laws_info: dict
+    settings: dict
+
+    def record(self) -> dict:
+        """JSON-ready: budget, settings and each law's record."""
+        return json_ready({"budget": self.budget, "settings": self.settings, "laws": self.laws_info})
+
+
+def _kept_as(name: str) -> Optional[str]:
+    """``"published"`` for the paper's gains, ``"preset"`` for a law that ships a tuned preset, else ``None``
+    (the law is tuned)."""
+    from ..controllers.registry import controller_class
+
+    if name == "paper":
+        return "published"
+    return "preset" if hasattr(controller_class(name), "preset") else None
+
+
+def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr: float = 0.1, seed: int = 0,
+                   t_train: float = 30.0, budget: Optional[float] = None,
+                   log: Optional[Callable[[str], None]] = None) -> EqualEnergy:
+    r"""The laws called ``names`` (`jaxsleigh.controllers.registry`) at one energy budget.
+
+    The budget is ``budget`` or the paper's training energy,
+    \(E_{paper} = \exp\big(\tfrac1N \sum_i \log \int_0^{T} \|u_i\|^2 dt\big)\) over the tuner's ``train``
+    training starts (``UniformStarts()``, ``seed``; \(T\) = ``t_train``), `jaxsleigh.tuning.training_energy`.
+    Each literature law is tuned on those starts by `jaxsleigh.tuning.tune_law` (Adam, ``steps`` iterations at
+    learning rate ``lr``, augmented Lagrangian on "energy \(\le\) budget"); the paper's gains stay as published
+    and a law with a tuned preset (``shaped``) keeps it. A law whose default is not a valid candidate on the
+    training starts is compared untuned (``laws_info[name]["as"] == "untuned"``, with the reason). ``log`` gets
+    one line per law.
+    """
+    from .. import tuning
+    from ..controllers.registry import make_controller
+    from ..model.controller import controller_record
+
+    say = log or (lambda msg: None)
+    loss = tuning.LossConfig(t_final=float(t_train))
+    starts = tuning.draw_starts(tuning.UniformStarts(), train, seed)
+    if budget is None:
+        budget = tuning.training_energy("paper", config=tuning.TuneConfig(batch=train, seed=seed),
+                                        loss=loss)["energy"]
+    budget = float(budget)
+    laws, info = {}, {}
+    for name in names:
+        law, kept = make_controller(name), _kept_as(name)
+        if kept is not None:
+            laws[name], info[name] = law, {"as": kept, "law": controller_record(law)}
+            continue
+        t0 = time.perf_counter()
+        try:
+            res = tuning.tune_law(law, starts, loss=loss._replace(energy_budget=budget), steps=steps, lr=lr)
+        except ValueError as e:                 # the default law is not a valid candidate there
+            laws[name], info[name] = law, {"as": "untuned", "why": str(e), "law": controller_record(law)}
+            say(f"{name}: compared untuned ({e})")
+            continue
+        laws[name] = res.law
+        info[name] = {"as": "tuned", "law": controller_record(res.law), "training_energy": res.energy,
+                      "training_loss": res.loss, "steps": len(res.history["loss"]),
+                      "wall_s": time.perf_counter() - t0}
+        say(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g} "
+            f"(budget {budget:.4g})")
+    settings = {"train": int(train), "seed": int(seed), "steps": int(steps), "lr": float(lr),
+                "t_train": float(t_train), "starts": "tuning.UniformStarts()"}
+    return EqualEnergy(laws, budget, info, settings)
