@@ -1,52 +1,125 @@
-"""Figures of controller comparisons (`jaxsleigh.studies.compare`): the table as a figure, and a measure
-against an actuator's number (sampling period, saturation level), one curve per controller."""
+r"""Figures of controller comparisons (`jaxsleigh.studies.compare`).
+
+* `plot_compare_ecdf`: the laws side by side, one row of panels per start distribution: the empirical
+  distribution (ECDF) of \(T_\varepsilon\) over the starts (the settled fraction against time; starts that
+  did not settle keep a law's curve below 1) and of the control energy \(\int_0^T \|u\|^2 dt\) (log axis;
+  starts whose integration failed keep it below 1).
+* `plot_against`: a measure against an actuator's number (sampling period, saturation level), one curve per
+  controller.
+"""
 from __future__ import annotations
+
+import textwrap
 
 import numpy as np
 
-from .base import new_figure, save_figure, stamp
+from .base import T_EPS, new_figure, save_figure, stamp
 
-__all__ = ["plot_compare_table", "plot_against"]
+__all__ = ["plot_compare_ecdf", "ecdf_steps", "plot_against", "ENERGY_LABEL"]
 
-_COLUMNS = (("settled", "settled", lambda v: f"{100 * v:.0f}%"),
-            ("median_T", "median T [s]", lambda v: f"{v:.3g}"),
-            ("p90_T", "p90 T [s]", lambda v: f"{v:.3g}"),
-            ("energy_p50", "energy p50", lambda v: f"{v:.3g}"),
-            ("energy_p90", "energy p90", lambda v: f"{v:.3g}"),
-            ("u_peak_max", "peak |u|", lambda v: f"{v:.3g}"),
-            ("min_abs_theta", "min |θ|", lambda v: f"{v:.2g}"))
+#: The control energy's axis label: \(\int_0^T \|u\|^2 dt\) with u = (force [N], torque [N m]).
+ENERGY_LABEL = r"control energy $E = \int_0^T \|u\|^2\,dt$  [N² s, (N m)² s]"
 
 
-def plot_compare_table(record: dict, path=None, *, title: str = "Controllers on the same plant and starts",
-                       show_stamp: bool = True):
-    """The rows of a comparison (``record["rows"]``, as ``jaxsleigh compare`` writes them) as a table figure,
-    the best value of each column per start set in bold (most settled, shortest times, least energy and
-    peak force). Saved to ``path`` when given; returns the figure."""
-    rows = record["rows"]
-    header = ["controller", "starts"] + [c[1] for c in _COLUMNS]
-    cells = [[r["controller"], r["starts"]] + [fmt(r[k]) for k, _, fmt in _COLUMNS] for r in rows]
-    fig = new_figure((1.25 * len(header) + 0.5, 0.32 * len(rows) + 1.4))
-    ax = fig.subplots()
-    ax.axis("off")
-    table = ax.table(cellText=cells, colLabels=header, loc="center", cellLoc="center")
-    table.auto_set_font_size(False)
-    table.set_fontsize(8)
-    table.scale(1.0, 1.25)
-    for j, (key, _, _) in enumerate(_COLUMNS):
-        for start in {r["starts"] for r in rows}:
-            idx = [i for i, r in enumerate(rows) if r["starts"] == start]
-            vals = np.array([rows[i][key] for i in idx], np.float64)
-            if not np.isfinite(vals).any() or key == "min_abs_theta":
-                continue
-            best = np.nanmax(vals) if key == "settled" else np.nanmin(vals)
-            for i, v in zip(idx, vals):
-                if v == best:
-                    table[i + 1, j + 2].set_text_props(fontweight="bold")
+def _values(xs) -> np.ndarray:
+    """A JSON list (``null``: did not settle, not defined) as float64, ``null`` as NaN."""
+    return np.array([np.nan if x is None else x for x in xs], np.float64)
+
+
+def ecdf_steps(values, n: int, *, start: float, end: float):
+    r"""The empirical distribution of the finite ``values`` over ``n`` starts as a step curve ``(x, y)`` from
+    ``(start, 0)`` to ``end``: \(F(x) = \#\{i : v_i \le x\} / n\). Non-finite values (a start that did not settle,
+    or failed) never count, so the curve ends at the finite share, below 1 when some are missing.
+    Draw with ``drawstyle="steps-post"``."""
+    v = np.asarray(values, np.float64)
+    v = np.sort(v[np.isfinite(v)])
+    y = np.arange(1, v.size + 1) / max(int(n), 1)
+    top = y[-1] if y.size else 0.0
+    return np.concatenate([[start], v, [end]]), np.concatenate([[0.0], y, [top]])
+
+
+def _settings_line(record: dict) -> str:
+    """``'256 starts per distribution · float32 · horizon 100 s · ε = 0.05'``, with the saturation, the sample
+    period and the equal-energy budget only when the run had them."""
     s = record.get("settings", {})
-    fig.suptitle(f"{title}\n{s.get('samples', '?')} starts per distribution, T = {s.get('t_final', 0):g} s, "
-                 f"saturation {s.get('saturation')}, sample period {s.get('sample_period')}", fontsize=9)
+    parts = [f"{s['samples']} starts per distribution" if "samples" in s else None, s.get("dtype"),
+             f"horizon {float(s['t_final']):g} s" if "t_final" in s else None,
+             f"ε = {float(s['eps']):g}" if "eps" in s else None]
+    if s.get("saturation") is not None:
+        parts.append(f"saturation |u_i| ≤ {float(s['saturation']):g}")
+    if s.get("sample_period") is not None:
+        parts.append(f"zero-order hold every {float(s['sample_period']):g} s"
+                     + (f", delay {s['delay']} samples" if s.get("delay") else "")
+                     + (f", noise σ = {float(s['noise']):g}" if s.get("noise") else ""))
+    eq = record.get("equal_energy")
+    if eq:
+        parts.append(f"literature laws tuned to the paper's training energy {float(eq['budget']):.3g} N² s")
+    return "  ·  ".join(p for p in parts if p)
+
+
+_DASHES = ("-", "--", "-.", ":", (0, (6, 2, 1, 2, 1, 2)))
+
+
+def _law_styles(names) -> dict:
+    """One colour and dash pattern per law, the same in every panel (laws with equal curves stay visible)."""
+    return {n: {"color": f"C{i % 10}", "linestyle": _DASHES[i % len(_DASHES)]} for i, n in enumerate(names)}
+
+
+def _draw_distribution(ax_t, ax_e, rows, styles, t_final: float) -> None:
+    """One start distribution: ECDFs of T_eps (left) and of the energy (right), one curve per law."""
+    energies = [e for r in rows for e in _values(r["per_start"]["energy"]) if np.isfinite(e) and e > 0]
+    lo, hi = (min(energies), max(energies)) if energies else (1e-3, 1.0)
+    for r in rows:
+        name, n = r["controller"], len(r["per_start"]["T_eps"])
+        T = _values(r["per_start"]["T_eps"])
+        x, y = ecdf_steps(T, n, start=0.0, end=t_final)
+        ax_t.plot(x, y, drawstyle="steps-post", lw=1.6, **styles[name],
+                  label=f"{name}: {np.sum(np.isfinite(T))}/{n} settled")
+        E = _values(r["per_start"]["energy"])
+        E = np.where(E > 0, E, np.nan)
+        x, y = ecdf_steps(E, n, start=lo, end=hi * 1.5)
+        ax_e.plot(x, y, drawstyle="steps-post", lw=1.6, label=name, **styles[name])
+    ax_t.set_xlim(0.0, t_final)
+    ax_t.set_xlabel(f"{T_EPS} [s]")
+    ax_t.set_ylabel(f"settled fraction ({T_EPS} ≤ t)")
+    ax_t.legend(fontsize=7, loc="best", framealpha=0.85)
+    ax_e.set_xscale("log")
+    ax_e.set_xlim(lo / 1.5, hi * 1.5)
+    ax_e.set_xlabel(ENERGY_LABEL)
+    ax_e.set_ylabel("fraction of starts with energy ≤ E")
+    for ax in (ax_t, ax_e):
+        ax.set_ylim(-0.02, 1.04)
+        ax.axhline(1.0, color="0.6", lw=0.6, ls=":")
+        ax.grid(alpha=0.3)
+
+
+def plot_compare_ecdf(record: dict, path=None, *, title: str = "Controllers on the same plant and starts",
+                      show_stamp: bool = True):
+    r"""The laws of a comparison side by side (``record`` as ``jaxsleigh compare`` writes it; its rows must carry
+    ``per_start``): one row of panels per start distribution, left the ECDF of \(T_\varepsilon\) (the settled
+    fraction against time, reaching the settled share at the horizon), right the ECDF of the control energy on
+    a log axis. The subtitle says how many starts, the dtype, the horizon, the actuator (when set) and the
+    command. Saved to ``path`` when given; returns the figure."""
+    rows = record["rows"]
+    if any("per_start" not in r for r in rows):
+        raise ValueError("the record's rows carry no per-start values (per_start): it was written by an older "
+                         "version; rerun jaxsleigh compare to get them")
+    dists = list(dict.fromkeys(r["starts"] for r in rows))
+    styles = _law_styles(dict.fromkeys(r["controller"] for r in rows))
+    s = record.get("settings", {})
+    t_final = float(s.get("t_final") or max((t for r in rows for t in r["per_start"]["T_eps"] if t is not None),
+                                            default=1.0))
+    described = s.get("starts") if isinstance(s.get("starts"), dict) else {}
+    fig = new_figure((11.0, 2.9 * len(dists) + 1.3))
+    axes = fig.subplots(len(dists), 2, squeeze=False)
+    for (ax_t, ax_e), d in zip(axes, dists):
+        _draw_distribution(ax_t, ax_e, [r for r in rows if r["starts"] == d], styles, t_final)
+        ax_t.set_title(f"{d} starts" + (f": {described[d]}" if d in described else ""), fontsize=9, loc="left")
+    command = " ".join(str(c) for c in record.get("command", []))
+    lines = [title, _settings_line(record)] + (textwrap.wrap(command, 150) if command else [])
+    fig.suptitle("\n".join(lines), fontsize=9)
     if show_stamp:
-        stamp(fig, {"dtype": s.get("dtype"), "t_final": s.get("t_final"), "eps": s.get("eps")},
+        stamp(fig, {k: s[k] for k in ("dtype", "method", "dt", "eps", "t_final") if s.get(k) is not None},
               record.get("run_info"))
     if path is not None:
         save_figure(fig, path)
