@@ -128,3 +128,34 @@ def test_an_invalid_starting_law_is_explained_in_command_line_terms(tmp_path, ca
                        "--n-attempts", "1", *TINY], capsys)
     assert rc == 2 and "--n-attempts" in err and "jaxsleigh simulate --controller astolfi" in err, err
     assert "jaxsleigh.run_ensemble" not in err
+
+
+#: a gradient tuning of the paper's k small enough to interrupt in seconds
+GRADIENT = ["tune", "--steps", "2", "--batch", "4", "--t-final", "5", "--n-attempts", "2000", "--tune", "k",
+            "--validate", "0", "--no-progress"]
+
+
+def test_a_refused_gradient_resume_names_the_flag_not_the_settings(tmp_path, capsys, monkeypatch):
+    from jaxsleigh import tuning as tu
+
+    real = tu._Bar.update
+
+    def interrupt(self, it, row):
+        real(self, it, row)
+        raise KeyboardInterrupt
+
+    out = tmp_path / "g.json"
+    with monkeypatch.context() as m:
+        m.setattr(tu._Bar, "update", interrupt)
+        rc, _, err = _run([*GRADIENT, "--out", out], capsys)
+    assert rc == EXIT_INTERRUPTED, err
+    rc, _, err = _run([*GRADIENT, "--out", out, "--lr", "0.1", "--resume"], capsys)
+    assert rc == 2 and err.startswith("jaxsleigh: error: --lr differs from the checkpoint's (0.05 in the checkpoint "
+                                      "vs 0.1 now)"), err
+    assert "config." not in err and "{" not in err
+
+
+def test_the_gradient_tuners_advice_names_flags(tmp_path, capsys):
+    rc, _, err = _run([*GRADIENT[:8], "1", *GRADIENT[9:], "--out", tmp_path / "g.json"], capsys)
+    assert rc == 2 and "not a valid candidate" in err and "raise --n-attempts, shorten --t-final" in err, err
+    assert "n_attempts" not in err and "t_final" not in err

@@ -43,7 +43,8 @@ ensemble engine on N held-out starts (seed --seed + 1000) for the initial and th
 --energy-budget E adds a budget on the batch's geometric-mean control energy int |u|^2 dt
 (augmented Lagrangian). With a budget, train over the validation horizon and let lanes run on after
 converging (--t-final 100 --stop-fraction 0.001), so the energy spent while settling counts; there
-the paper's gains spend about 19 on 32 starts (jaxsleigh.tuning.training_energy("paper", ...)).
+the paper's gains spend about 19 on 32 starts. Tuned gains that do not meet the budget are written
+all the same, with "energy_budget_met": false, and the command says so and exits 3.
 --pareto N computes N such tunings for budgets from a quarter of the paper's gains' training energy
 to twice the 'tuned' preset's (or --budgets LO:HI), re-evaluates each on --validate held-out starts
 (seed --seed + 1000) with the accurate engine over 100 s and writes front.json: per point the gains
@@ -51,7 +52,7 @@ to twice the 'tuned' preset's (or --budgets LO:HI), re-evaluates each on --valid
 mean adaptive steps; with the paper's and 'tuned' gains as references and, with --baseline, a
 random search spending the same number of objective evaluations.
 
---search replaces the gradient descent by a derivative-free search (CMA-ES, jaxsleigh.tuning.search)
+--search replaces the gradient descent by a derivative-free search (CMA-ES)
 on the figures the accurate engine reports over 100 s: the shortest median T_0.05 on --batch training
 starts subject to median control energy <= --energy-margin x the --gains' on the same starts (or
 --energy-budget E, an absolute median energy; --energy-percentiles 50,75,90: at each of those
@@ -60,6 +61,12 @@ percentiles), no fewer converged and no start failing or crossing theta = 0. Eac
 matters: float32's default 1e-6 does not resolve energy spent after settling. The 'balanced' preset
 is its result (experiments/balanced_search.py: two such searches in a row, at --atol 1e-8 with
 --energy-percentiles 50,75,90).
+
+--controller NAME (a law of jaxsleigh controllers), --saturation U and --sample-period TS tune that
+law's gains by Adam (--steps, --lr, --batch, --energy-budget as above; Ctrl-C keeps the best law so far
+and --resume continues) and write the tuned law: its every parameter and the actuator it was tuned
+behind, to give with --controller FILE.json; the paper's law behind an actuator is written as a gains
+file (--gains FILE.json; give --saturation / --sample-period again).
 
 examples:
   jaxsleigh tune --out gains.json
@@ -216,7 +223,7 @@ def _cmd_tune_law(args, plant, law) -> int:
     from ..tuning.law import InvalidStartingLaw
 
     ckpt = _checked_checkpoint(args, "tuning run")
-    options = _law_options(args)
+    options = _flag_values(args, _LAW_FLAGS)
     if args.resume:
         _check_resumed_options(ckpt, options, _LAW_FLAGS)
     names = tuning.gain_names(law) if args.tune == "L,k,D_hat" else [n.strip() for n in args.tune.split(",")]
@@ -240,15 +247,19 @@ def _cmd_tune_law(args, plant, law) -> int:
     return _budget_exit(args, res.energy, met)
 
 
-#: The flags that determine a ``tune --controller`` run, in the order a refused ``--resume`` names them
-#: (``--steps`` is left out: a resumed run may go on for more steps).
+#: The flags that determine a run of each mode, in the order a refused ``--resume`` names them (``--steps`` is
+#: left out where a resumed run may go on for more steps: a law's and a search's).
 _LAW_FLAGS = ("controller", "gains", "saturation", "sample_period", "delay", "noise", "params", "damping", "tune",
               "seed", "batch", "lr", "t_final", "dt", "stop_fraction", "energy_budget", "n_attempts", "x64")
+_GRADIENT_FLAGS = ("gains", "params", "damping", "robust", "tune", "seed", "batch", "steps", "lr", "mode", "t_final",
+                   "dt", "n_attempts", "probe_budget", "stop_fraction", "energy_budget", "x64")
+_SEARCH_FLAGS = ("gains", "params", "damping", "tune", "seed", "batch", "population", "energy_margin",
+                 "energy_budget", "energy_percentiles", "rtol", "atol", "x64")
 
 
-def _law_options(args) -> dict:
-    """``{flag: value}`` of `_LAW_FLAGS`, recorded in the checkpoint."""
-    return {"--" + k.replace("_", "-"): getattr(args, k, None) for k in _LAW_FLAGS}
+def _flag_values(args, names) -> dict:
+    """``{flag: value}`` of the options ``names``, recorded in the checkpoint."""
+    return {"--" + k.replace("_", "-"): _jsonable(getattr(args, k, None)) for k in names}
 
 
 def _check_resumed_options(ckpt, options: dict, order) -> None:
@@ -364,6 +375,35 @@ def _check_stepsize(args):
 
 
 def _cmd_tune(args) -> int:
+    """``jaxsleigh tune``: `_tune_mode`, its refusals in terms of the flags (`_in_flags`)."""
+    try:
+        return _tune_mode(args)
+    except ValueError as e:
+        if type(e) is not ValueError:          # a typed error keeps its own exit code and words
+            raise
+        raise ValueError(_in_flags(str(e))) from None
+
+
+#: The tuners' keywords and phrases as the command line's flags, in the order they are replaced.
+_KEYWORD_FLAGS = (("probe_budget = ", "--probe-budget "), ("probe_budget", "--probe-budget"),
+                  ("n_attempts", "--n-attempts"), ("t_final", "--t-final"), ("energy_budget", "--energy-budget"),
+                  ("energy_margin", "--energy-margin"), ("energy_percentiles", "--energy-percentiles"),
+                  ("resume=True", "--resume"), ("a smaller learning rate", "a smaller --lr"),
+                  ("fewer steps", "fewer --steps"), ("start from other gains", "start from other --gains"))
+
+
+def _in_flags(message: str) -> str:
+    """A tuner's message with its keywords (``n_attempts``) as the flags that set them (``--n-attempts``); words
+    inside paths and flags are left alone."""
+    import re
+
+    for word, flag in _KEYWORD_FLAGS:
+        tail = r"(?!\w)" if word[-1].isalnum() else ""
+        message = re.sub(r"(?<![\w/.\-])" + re.escape(word) + tail, flag, message)
+    return message
+
+
+def _tune_mode(args) -> int:
     """``jaxsleigh tune``: the search, the front, or gradient descent, as the flags say."""
     search = args.search
     if (getattr(args, "controller", "paper") != "paper" or getattr(args, "saturation", None) is not None
@@ -401,13 +441,17 @@ def _cmd_gradient(args) -> int:
         return _tune_other_law(args, plant, gains0)
     names = tuning.parse_tune(args.tune)
     ckpt = _checked_checkpoint(args, "tuning run")
+    options = _flag_values(args, _GRADIENT_FLAGS)
+    if args.resume:
+        _check_resumed_options(ckpt, options, _GRADIENT_FLAGS)
     config, loss = _tune_config(args), _loss_config(args)
     robust = tuning.PlantDistribution() if args.robust else None
     command = _command(args)
     t0 = time.perf_counter()
     try:
         res = tuning.tune(gains0, config=config, loss=loss, tune=names, plant=None if args.robust else plant,
-                          robust=robust, x64=args.x64, progress=args.progress, checkpoint=ckpt, resume=args.resume)
+                          robust=robust, x64=args.x64, progress=args.progress, checkpoint=ckpt, resume=args.resume,
+                          options=options)
     except RuntimeError as e:          # no candidate passed the final check: say what to change
         raise ValueError(str(e)) from None
     except tuning.TuningInterrupted as stop:
@@ -620,6 +664,9 @@ def _cmd_search(args) -> int:
     _check_search(args)
     plant, gains0 = model_from_args(args)
     ckpt = _checked_checkpoint(args, "search")
+    options = _flag_values(args, _SEARCH_FLAGS)
+    if args.resume:
+        _check_resumed_options(ckpt, options, _SEARCH_FLAGS)
     names, config = tuning.parse_tune(args.tune), _search_config(args)
     stepsize = _check_stepsize(args)
     command = _command(args)
@@ -628,7 +675,8 @@ def _cmd_search(args) -> int:
     try:
         res = tuning.search(gains0, config=config, reference=gains0,
                             energy_budget=args.energy_budget, tune=names, plant=plant, x64=args.x64,
-                            stepsize=stepsize, progress=args.progress, checkpoint=ckpt, resume=args.resume)
+                            stepsize=stepsize, progress=args.progress, checkpoint=ckpt, resume=args.resume,
+                            options=options)
     except NoFeasibleCandidate as e:
         # the run finished: keep its history and checkpoint (more generations resume it), name the flags
         print(_no_feasible_message(args, e, _write_search_history(args, e.history)), file=sys.stderr)

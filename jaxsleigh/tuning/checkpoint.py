@@ -85,16 +85,19 @@ class TunerCheckpoint:
     host counters and scalars (``scalars``: e.g. the augmented Lagrangian's multiplier) and the probe set.
     """
 
-    def __init__(self, path, key: str, row_fields):
+    def __init__(self, path, key: str, row_fields, options: dict | None = None):
         self.path = Path(path)
         self.key = key
         self._row_fields = tuple(row_fields)
+        self.options = options
 
     def save(self, it, trainable, opt_state, best, valid_points, rows, scalars: dict, probes) -> None:
         from ..files.npz import atomic_write
 
         arrays = {"key": np.array(self.key), "it": np.int64(it),
                   "settings": np.array(json.dumps(_SETTINGS.get(self.key) or {}, sort_keys=True))}
+        if self.options is not None:
+            arrays["options"] = np.array(json.dumps(self.options, sort_keys=True, default=str))
         for k, v in scalars.items():
             arrays[f"scalar/{k}"] = np.float64(v)
 

@@ -217,10 +217,12 @@ def _fingerprint(settings: dict, ics) -> str:
     return h.hexdigest()
 
 
-def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list) -> None:
+def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list, options: Optional[dict] = None) -> None:
     from ..files.npz import atomic_write
 
     arrays = {"key": np.array(key), "rng": np.array(json.dumps(rng.bit_generator.state))}
+    if options is not None:
+        arrays["options"] = np.array(json.dumps(options, sort_keys=True, default=str))
     arrays.update({f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()})
     for f in _HISTORY:
         arrays[f"hist/{f}"] = np.asarray([h[f] for h in hist], np.float64)
@@ -253,13 +255,14 @@ def _load(path: Path, key: str, rng):
 def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = SearchConfig(), reference="paper",
            energy_budget: Optional[float] = None, tune=None, plant: Optional[PlantParams] = None, x64: bool = False,
            d_floor: float = D_FLOOR, stepsize=None, progress: Any = None, checkpoint=None,
-           resume: bool = False) -> SearchResult:
+           resume: bool = False, options: Optional[dict] = None) -> SearchResult:
     """The fastest gains (median T_eps on ``config.batch`` training starts) whose median control energy
     is at most ``energy_budget`` (default: ``config.energy_margin`` x the ``reference`` gains' on the
     same starts), with no fewer converged than ``reference`` and no start failing or crossing
     theta = 0, by CMA-ES from ``gains0`` over the gains named in ``tune`` (default all; module
     docstring). ``checkpoint``: a ``.npz`` written after every generation; ``resume=True`` continues
-    from it (also with more ``generations`` than the run that wrote it: the first ones are identical). Raises `TuningInterrupted` on Ctrl-C (``partial``: the best so far, or ``None``) and
+    from it (also with more ``generations`` than the run that wrote it: the first ones are identical); ``options`` are
+    recorded in it as they are (the command line's, `jaxsleigh.tuning.checkpoint.checkpoint_options`). Raises `TuningInterrupted` on Ctrl-C (``partial``: the best so far, or ``None``) and
     ``RuntimeError`` if no feasible candidate passes the guard starts. ``stepsize``: the engine's
     `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Control energy spent after settling
     needs a tighter absolute tolerance than the float32 default to be resolved (``atol=1e-8``:
@@ -276,7 +279,7 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     budget = _budget(ref, energy_budget, config, pcts)
     run = _start(space, ref, budget, config, ckpt if resume else None, key)
     try:
-        _generations(run, space, ev, budget, config, ckpt, key, progress)
+        _generations(run, space, ev, budget, config, ckpt, key, progress, options)
     except KeyboardInterrupt:
         raise TuningInterrupted(_partial(run, space, budget, settings), ckpt) from None
     return _verified(run, space, ev, guard, budget, settings)
@@ -428,14 +431,14 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
 
 
 def _generations(run: _SearchState, space: _Space, ev: _Evaluator, budget: _Budget, config: SearchConfig,
-                 ckpt: Optional[Path], key: str, progress: Any) -> None:
+                 ckpt: Optional[Path], key: str, progress: Any, options: Optional[dict] = None) -> None:
     """The remaining generations of ``run`` (updated in place), each checkpointed and reported."""
     with Progress(progress, desc="search (CMA-ES)") as bar:
         while int(run.state.generation) < config.generations:
             gen = int(run.state.generation)
             _generation(run, gen, space, ev, budget, config)
             if ckpt is not None:
-                _save(ckpt, key, run.state, run.rng, run.hist, run.top)
+                _save(ckpt, key, run.state, run.rng, run.hist, run.top, options)
             bar.update((gen + 1) / config.generations)
             bar.postfix(median_T=f"{run.top[0][3][0]:.2f}" if run.top else "-", sigma=f"{float(run.state.sigma):.3f}")
 

@@ -345,7 +345,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
          loss: LossConfig = LossConfig(), tune=None, plant: Optional[PlantParams] = None,
          robust: Optional[PlantDistribution] = None, guard=None, x64: bool = False,
          d_floor: float = D_FLOOR, progress: Any = None, callback: Optional[Callable] = None,
-         checkpoint=None, resume: bool = False) -> TuneResult:
+         checkpoint=None, resume: bool = False, options: Optional[dict] = None) -> TuneResult:
     """Tune the gains by gradient descent on the soft convergence time.
 
     Args:
@@ -363,6 +363,8 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
       checkpoint: a file (``.npz``) where the optimiser's whole state is written, atomically, after
         every iteration; ``resume=True`` continues from it (the run's settings must be the same:
         they are fingerprinted) and ends with the result an uninterrupted run would have given.
+      options: recorded in the checkpoint as they are (the command line's options,
+        `jaxsleigh.tuning.checkpoint.checkpoint_options`).
 
     Returns:
       `TuneResult` whose ``gains`` are the best *valid* candidate (every training and guard
@@ -389,7 +391,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
         store = None if checkpoint is None else TunerCheckpoint(
             checkpoint, tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics),
-            TuneHistory._fields)
+            TuneHistory._fields, options)
         it0, trainable, opt_state = _resume(store, resume, track, trainable, opt_state, ctx.groups)
         try:
             _iterate(run, track, trainable, opt_state, it0, steps, store, progress, callback, t_start)
