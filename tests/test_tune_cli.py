@@ -159,3 +159,9 @@ def test_the_gradient_tuners_advice_names_flags(tmp_path, capsys):
     rc, _, err = _run([*GRADIENT[:8], "1", *GRADIENT[9:], "--out", tmp_path / "g.json"], capsys)
     assert rc == 2 and "not a valid candidate" in err and "raise --n-attempts, shorten --t-final" in err, err
     assert "n_attempts" not in err and "t_final" not in err
+
+
+def test_a_mode_that_cannot_resume_names_its_flag_first(tmp_path, capsys):
+    rc, _, err = _run(["tune", "--pareto", "2", "--front-method", "vmap", "--resume", "--out", tmp_path / "f.json",
+                       "--no-progress"], capsys)
+    assert rc == 2 and err.startswith("jaxsleigh: error: --front-method vmap computes every point at once"), err

@@ -9,7 +9,11 @@
                    [--energy-margin F | --energy-budget E] [--energy-percentiles 50,75,90] [--rtol R] [--atol A]
                    [--history FILE.npz] [--validate N]
 
-The file is accepted by ``jaxsleigh simulate --gains gains.json``. Register the subcommand with
+    jaxsleigh tune --controller NAME | --saturation U | --sample-period TS --out law.json [--steps N] [--batch B]
+                   [--lr LR] [--energy-budget E] [--history FILE.npz] [--resume]
+
+The file is accepted by ``jaxsleigh simulate --gains gains.json``; a tuned law's (`jaxsleigh.tuning.law_file`) by
+``--controller law.json``, the paper's law behind an actuator by ``--gains law.json``. Register the subcommand with
 `add_tune` (it is a thin layer over `jaxsleigh.tuning.tune`).
 """
 from __future__ import annotations
@@ -758,8 +762,8 @@ def _earlier_front(args):
                        "minutes), and a front is drawn well by a few dozen",
                 fix="give fewer points, or compute several fronts over narrower --budgets ranges")
     if args.front_method != "warm" and args.resume:
-        raise ValueError("--resume continues a --front-method warm front (vmap computes every point at once); "
-                         "drop --resume")
+        raise ValueError("--front-method vmap computes every point at once and keeps no finished points to resume: "
+                         "use --front-method warm to continue an interrupted front, or drop --resume")
     if args.plot and not args.validate:
         raise ValueError("--plot draws the front validated on the held-out starts; drop --validate 0 or drop --plot")
     check_outputs(args.out, figures={"--plot": args.plot})

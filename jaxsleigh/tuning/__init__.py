@@ -68,7 +68,7 @@ it wins from roughly a dozen of them.
 `starts` (samplers of starts and plants), `objective`
 (the objective and its scan), `gradients`, `optimizer`
 (the loop, backtracking as an optax wrapper), `probes` (safety guards),
-`checkpoint`, `history`,
+`checkpoint`, `history`, `law_file` (a tuned law on disk),
 `validation`, `pareto` (the time-effort front), `cmaes` (CMA-ES, ask / tell) and
 `cma_search` (derivative-free search of the gains on the accurate engine's median figures under an energy budget:
 where the ``balanced`` preset comes from).
@@ -85,6 +85,7 @@ from .optimizer import _Bar  # noqa: F401  (the tuner's progress bar; tests patc
 from .pareto import (FRONT_METHODS, Front, FrontPoint, budgets_between, default_budgets, evaluate_front, front_dict,
                      load_front, pareto_front, point_gains, random_search, save_front, training_energy)
 from .law import LawTuneResult, gain_names, tune_law
+from .law_file import load_controller_record, save_law
 from .cma_search import PopulationFigures, SearchConfig, SearchResult, evaluate_population, search
 from .params import (D_FLOOR, TUNABLE, GainParams, gains_from_params, merge_params, params_from_gains, parse_tune,
                      split_params)
@@ -105,5 +106,5 @@ __all__ = [
     "FRONT_METHODS", "Front", "FrontPoint", "training_energy", "default_budgets", "budgets_between", "pareto_front",
     "random_search", "evaluate_front", "front_dict", "save_front", "load_front", "point_gains",
     "SearchConfig", "SearchResult", "PopulationFigures", "evaluate_population", "search",
-    "LawTuneResult", "tune_law", "gain_names",
+    "LawTuneResult", "tune_law", "gain_names", "save_law", "load_controller_record",
 ]
