@@ -43,7 +43,7 @@ def _settings_line(record: dict) -> str:
     period and the equal-energy budget only when the run had them."""
     s = record.get("settings", {})
     parts = [f"{s['samples']} starts per distribution" if "samples" in s else None, s.get("dtype"),
-             f"horizon {float(s['t_final']):g} s" if "t_final" in s else None,
+             f"horizon T = {float(s['t_final']):g} s" if "t_final" in s else None,
              f"ε = {float(s['eps']):g}" if "eps" in s else None]
     if s.get("saturation") is not None:
         parts.append(f"saturation |u_i| ≤ {float(s['saturation']):g}")

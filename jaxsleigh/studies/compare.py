@@ -242,8 +242,9 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
         info[name] = {"as": "tuned", "law": controller_record(res.law), "training_energy": res.energy,
                       "training_loss": res.loss, "steps": len(res.history["loss"]),
                       "wall_s": time.perf_counter() - t0}
-        say(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g} "
-            f"(budget {budget:.4g})")
+        say(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g}, "
+            f"{res.energy / budget:.2f}x the budget {budget:.4g}"
+            + (" (more tuner steps bring it closer)" if res.energy > 1.05 * budget else ""))
     settings = {"train": int(train), "seed": int(seed), "steps": int(steps), "lr": float(lr),
                 "t_train": float(t_train), "starts": "tuning.UniformStarts()"}
     return EqualEnergy(laws, budget, info, settings)
