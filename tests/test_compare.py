@@ -128,6 +128,151 @@ def test_compare_command_writes_rows_and_a_figure(capsys, tmp_path):
     assert json.loads((tmp_path / "b.json").read_text())["rows"] == a["rows"]      # same seed, same numbers
 
 
+def _strict(text: str):
+    """``json.loads`` that refuses the non-standard constants ``Infinity``, ``-Infinity`` and ``NaN``."""
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """``jaxsleigh compare`` with its default laws, tiny: 4 starts per distribution, 5 s (the near starts do not
+    settle that soon), with the figure. Returns (exit code, stdout, JSON text, figure path)."""
+    import contextlib
+    import io
+
+    d = tmp_path_factory.mktemp("compare")
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["compare", "--starts", "near,uniform", "--samples", "4", "--t-final", "5", "--seed", "1",
+                     "--out", str(d / "c.json"), "--plot", str(d / "c.png")])
+    return code, out.getvalue(), (d / "c.json").read_text(), d / "c.png"
+
+
+def test_compare_defaults_to_every_listed_law(default_run):
+    from jaxsleigh.controllers.registry import controller_names
+
+    code, _, text, _ = default_run
+    rec = json.loads(text)
+    assert code == 0 and "shaped" in controller_names()
+    assert rec["settings"]["controllers"] == controller_names()
+    assert list(dict.fromkeys(r["controller"] for r in rec["rows"])) == controller_names()
+
+
+def test_compare_writes_strict_json_with_null_for_what_did_not_settle(default_run):
+    _, _, text, _ = default_run
+    rec = _strict(text)                                  # raises on Infinity / NaN
+    near = [r for r in rec["rows"] if r["starts"] == "near" and r["controller"] == "paper"]
+    assert near and near[0]["settled"] == 0.0 and near[0]["median_T"] is None and near[0]["p90_T"] is None
+    for r in rec["rows"]:
+        T, E = r["per_start"]["T_eps"], r["per_start"]["energy"]
+        assert len(T) == len(E) == r["n"] == 4
+        assert sum(t is not None for t in T) == round(r["settled"] * r["n"])       # null: did not settle
+        assert all(t is None or 0 <= t <= 5.0 for t in T) and all(e is None or e > 0 for e in E)
+
+
+def test_compare_rows_on_stdout_say_the_settled_share(default_run):
+    code, out, text, _ = default_run
+    rec = json.loads(text)
+    lines = [ln for ln in out.splitlines() if "settled" in ln]
+    assert code == 0 and len(lines) == len(rec["rows"])
+    for line, r in zip(lines, rec["rows"]):
+        k = round(r["settled"] * r["n"])
+        assert line.split()[:2] == [r["controller"], r["starts"]]
+        assert f"settled {k}/{r['n']} ({100 * r['settled']:.1f}%) by 5 s" in line
+        if r["median_T"] is None:
+            assert "median T_0.05 >5 s" in line
+        else:
+            assert f"median T_0.05 {r['median_T']:.3g} s" in line
+
+
+def test_compare_figure_shows_each_law_as_distributions(default_run):
+    """The default figure: per start distribution, the ECDF of T_eps (ending at the settled share) and of the
+    energy (log axis), every law in the legend, units on the axes, the settings and the command in the title."""
+    from jaxsleigh.plots.base import STAMP_GID
+    from jaxsleigh.plots.compare import plot_compare_ecdf
+
+    _, _, text, png = default_run
+    rec = json.loads(text)
+    assert png.stat().st_size > 0
+    fig = plot_compare_ecdf(rec)
+    laws = list(dict.fromkeys(r["controller"] for r in rec["rows"]))
+    axes = fig.axes
+    assert len(axes) == 2 * 2                              # two distributions, two panels each
+    for d, (ax_t, ax_e) in zip(["near", "uniform"], zip(axes[::2], axes[1::2])):
+        rows = {r["controller"]: r for r in rec["rows"] if r["starts"] == d}
+        assert ax_t.get_title(loc="left").startswith(f"{d} starts")
+        assert [ln.get_label().split(":")[0] for ln in ax_t.get_lines() if not ln.get_label().startswith("_")] == laws
+        assert [t.get_text().split(":")[0] for t in ax_t.get_legend().get_texts()] == laws
+        for ln in [ln for ln in ax_t.get_lines() if not ln.get_label().startswith("_")]:
+            r = rows[ln.get_label().split(":")[0]]
+            assert ln.get_ydata()[-1] == pytest.approx(r["settled"])      # unsettled starts never reach 1
+            assert ln.get_xdata()[-1] == 5.0
+        assert "[s]" in ax_t.get_xlabel() and "settled" in ax_t.get_ylabel()
+        assert ax_e.get_xscale() == "log" and "N² s" in ax_e.get_xlabel()
+    title = fig.get_suptitle()
+    assert "4 starts per distribution" in title and "float32" in title and "horizon T = 5 s" in title
+    assert "jaxsleigh compare --starts near,uniform" in title
+    assert "None" not in title and "saturation" not in title and "hold" not in title
+    stamp = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID][0]
+    assert "method unknown" not in stamp and "adaptive RK4" in stamp
+    rec["settings"].update(saturation=20.0, sample_period=0.05)
+    title = plot_compare_ecdf(rec).get_suptitle()
+    assert "saturation |u_i| ≤ 20" in title and "zero-order hold every 0.05 s" in title
+
+
+def test_compare_refuses_a_sample_count_beyond_its_bound_before_any_work(capsys, tmp_path, monkeypatch):
+    import jaxsleigh.studies.compare as study
+
+    def never(*a, **k):
+        raise AssertionError("the starts were drawn: the bound was not checked first")
+    monkeypatch.setattr(study, "draw_compare_starts", never)
+    code, _, err = _run(["compare", "--samples", "2000000000", "--out", str(tmp_path / "x.json")], capsys)
+    assert code == 2 and "--samples must be <= 100000" in err and not (tmp_path / "x.json").exists()
+
+
+def test_compare_refuses_a_horizon_too_long_naming_its_own_flag(capsys, tmp_path, monkeypatch):
+    import jaxsleigh.studies.compare as study
+
+    def never(*a, **k):
+        raise AssertionError("the starts were drawn: the horizon was not checked first")
+    monkeypatch.setattr(study, "draw_compare_starts", never)
+    code, _, err = _run(["compare", "--t-final", "1e9", "--out", str(tmp_path / "x.json")], capsys)
+    assert code == 2 and "--t-final 1e+09 s" in err and "at most 500000 s" in err and "shorter --t-final" in err
+    assert "--dt" not in err and "larger dt" not in err         # compare has no --dt to change
+    with pytest.raises(ValueError, match="t_final"):
+        compare({"paper": js.paper_gains()}, {"u": draw_compare_starts("uniform", 2, 0)}, t_final=1e9)
+
+
+def test_compare_equal_energy_tunes_the_literature_laws_to_the_papers_budget(capsys, tmp_path):
+    """--equal-energy: the budget is the paper's training energy on the tuner's training starts; the paper's
+    gains stay as published, shaped keeps its preset, Astolfi's law is tuned and compared tuned."""
+    from jaxsleigh import tuning
+    from jaxsleigh.model.controller import controller_record
+
+    code, out, _ = _run(["compare", "--equal-energy", "--train", "2", "--steps", "2", "--controllers",
+                         "paper,astolfi,shaped", "--starts", "uniform", "--samples", "2", "--t-final", "5",
+                         "--out", str(tmp_path / "e.json")], capsys)
+    rec = _strict((tmp_path / "e.json").read_text())
+    eq = rec["equal_energy"]
+    budget = tuning.training_energy("paper", config=tuning.TuneConfig(batch=2, seed=0),
+                                    loss=tuning.LossConfig(t_final=30.0))["energy"]
+    assert code == 0 and eq["budget"] == pytest.approx(budget, rel=1e-6) and f"budget {budget:.4g}" in out
+    assert eq["settings"]["train"] == 2 and eq["settings"]["steps"] == 2 and rec["settings"]["equal_energy"]
+    laws = eq["laws"]
+    assert laws["paper"] == {"as": "published", "law": controller_record(js.paper_gains())}
+    assert laws["shaped"] == {"as": "preset", "law": controller_record(make_controller("shaped"))}
+    assert laws["astolfi"]["as"] == "tuned" and laws["astolfi"]["steps"] == 2
+    default = controller_record(make_controller("astolfi"))["params"]
+    tuned = laws["astolfi"]["law"]["params"]
+    assert tuned[".k"] != default[".k"] and tuned[".model.m"] == default[".model.m"]     # gains move, the model stays
+    (row,) = [r for r in rec["rows"] if r["controller"] == "astolfi"]
+    (untuned,) = compare({"astolfi": make_controller("astolfi")}, {"uniform": draw_compare_starts("uniform", 2, 0)},
+                         t_final=5.0)
+    assert row["energy_p50"] != pytest.approx(untuned["energy_p50"], rel=1e-3)        # the tuned law was compared
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--controllers", "paper,lqr"], "--controllers"),
     (["--starts", "far"], "--starts"),
@@ -135,6 +280,7 @@ def test_compare_command_writes_rows_and_a_figure(capsys, tmp_path):
     (["--sample-period", "0.3"], "whole number"),
     (["--noise", "-1"], "--noise"),
     (["--atol", "0"], "--atol must be a finite number > 0"),
+    (["--train", "4"], "add --equal-energy"),
 ])
 def test_compare_refuses_bad_options_naming_them(capsys, tmp_path, extra, message):
     code, _, err = _run(["compare", "--samples", "2", "--t-final", "10", "--out", str(tmp_path / "x.json")] + extra,

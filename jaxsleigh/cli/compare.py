@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 
 from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs, number,
@@ -25,25 +26,36 @@ def _cmd_controllers(args) -> int:
     return 0
 
 
+#: Most starts per distribution: each start's T_eps and energy are kept in the JSON (about 40 bytes a start, law
+#: and distribution), and the starts of one distribution are integrated together.
+MAX_SAMPLES = 100_000
+
+
 def add_compare(subparsers) -> None:
+    from ..controllers.registry import controller_names
     from ..studies.compare import START_DISTRIBUTIONS
 
+    every = ",".join(controller_names())
     p = subparsers.add_parser(
         "compare", help="run several laws from the same starts and measure them the same way (one row each)",
         description="Each law runs from N held-out starts of each distribution ("
                     + "; ".join(f"{k}: {v}" for k, v in START_DISTRIBUTIONS.items())
-                    + ") on the same plant, and gets one row per distribution: median and 90th-percentile "
-                      "T_eps, fraction settled, energy percentiles (50, 75, 90), peak |u|, closest approach to "
-                      "theta = 0. Laws are compared as they are (their default gains); experiments/"
-                      "compare_controllers.py tunes them to one energy budget first.")
-    p.add_argument("--controllers", default="paper,aicardi,astolfi,samson", metavar="A,B,..",
-                   help="laws to compare (default: all; jaxsleigh controllers lists them)")
-    p.add_argument("--samples", type=whole("--samples", "256"), default=256, metavar="N",
-                   help="starts per distribution (default 256)")
+                    + ") on the same plant, and gets one row per distribution: the settled share (starts whose "
+                      "T_eps is within the horizon), median and 90th-percentile T_eps, energy percentiles (50, 75, "
+                      "90) of the integral of |u|^2 dt [N^2 s, (N m)^2 s], peak |u|, closest approach to theta = 0, "
+                      "and each start's T_eps and energy (per_start). The JSON is strict: null stands for a value "
+                      "that is not a number: a T_eps or percentile of starts that did not settle within the horizon, "
+                      "an energy of a start whose integration failed. Laws are compared at their default gains, or "
+                      "with --equal-energy at one energy budget.")
+    p.add_argument("--controllers", default=None, metavar="A,B,..",
+                   help=f"laws to compare (default: all that jaxsleigh controllers lists, {every})")
+    p.add_argument("--samples", type=whole("--samples", "256", maximum=MAX_SAMPLES), default=256, metavar="N",
+                   help=f"starts per distribution (default 256, at most {MAX_SAMPLES}: each start's numbers are "
+                        f"kept in the JSON; for more, run several --seed values)")
     p.add_argument("--starts", default="near,uniform,wide", metavar="D1,D2,..",
                    help="start distributions (default: near,uniform,wide)")
     p.add_argument("--seed", type=whole("--seed", "0", minimum=0, maximum=2**62), default=0, metavar="S",
-                   help="seed of the starts (and of --noise)")
+                   help="seed of the starts (and of --noise and of the training starts of --equal-energy)")
     p.add_argument("--t-final", type=number("--t-final", "100"), default=100.0, metavar="T",
                    help="horizon in seconds (default 100)")
     p.add_argument("--eps", type=number("--eps", "0.05"), default=0.05, metavar="EPS",
@@ -53,18 +65,35 @@ def add_compare(subparsers) -> None:
     p.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
                    help="actuator saturation: clip each component of u to |u_i| <= U")
     add_sampler_options(p, seed=False)
+    g = p.add_argument_group(
+        "equal energy", "tune each literature law to one energy budget before comparing: the paper's training "
+                        "energy (geometric mean of the integral of |u|^2 dt over 30 s on the tuner's training "
+                        "starts); the paper's gains stay as published and a law with a tuned preset (shaped) "
+                        "keeps it. The tuned laws and the budget are recorded in the JSON (equal_energy).")
+    g.add_argument("--equal-energy", action="store_true", help="tune the literature's laws to the budget first")
+    g.add_argument("--train", type=whole("--train", "16", maximum=4096), default=None, metavar="N",
+                   help=f"training starts (default {DEFAULT_TRAIN})")
+    g.add_argument("--steps", type=whole("--steps", "20", maximum=10_000), default=None, metavar="K",
+                   help=f"tuner iterations per law (default {DEFAULT_STEPS})")
     p.add_argument("--out", required=True, metavar="TABLE.json", help="the rows, with what made them")
-    p.add_argument("--plot", default=None, metavar="FIG.png", help="draw the table as a figure")
+    p.add_argument("--plot", default=None, metavar="FIG.png",
+                   help="draw the laws side by side: per start distribution, the distribution over the starts "
+                        "of T_eps (settled fraction against time) and of the control energy")
     add_progress_option(p)
     p.set_defaults(func=_cmd_compare)
 
 
+#: ``--equal-energy``'s default training starts and tuner iterations per law.
+DEFAULT_TRAIN, DEFAULT_STEPS = 16, 20
+
+
 def _names(args):
-    """The ``--controllers`` and ``--starts`` lists, each checked against what it may name."""
+    """The ``--controllers`` (default: every law) and ``--starts`` lists, each checked against what it may name."""
     from ..controllers.registry import controller_names
     from ..studies.compare import START_DISTRIBUTIONS
 
-    names = [n.strip() for n in args.controllers.split(",") if n.strip()]
+    given = ",".join(controller_names()) if args.controllers is None else args.controllers
+    names = [n.strip() for n in given.split(",") if n.strip()]
     dists = [n.strip() for n in args.starts.split(",") if n.strip()]
     for flag, got, known in (("--controllers", names, controller_names()), ("--starts", dists, list(START_DISTRIBUTIONS))):
         bad = [n for n in got if n not in known]
@@ -73,7 +102,17 @@ def _names(args):
     return names, dists
 
 
-def _record(args, rows, names, dists, wall_s) -> dict:
+def _tuning(args) -> tuple:
+    """``(train, steps)`` of ``--equal-energy``; ``--train`` / ``--steps`` without it are refused."""
+    if not args.equal_energy:
+        given = " and ".join(f for f, v in (("--train", args.train), ("--steps", args.steps)) if v is not None)
+        if given:
+            raise ValueError(f"{given} set the tuning of --equal-energy: add --equal-energy, or drop {given}")
+        return None, None
+    return (DEFAULT_TRAIN if args.train is None else args.train), (DEFAULT_STEPS if args.steps is None else args.steps)
+
+
+def _record(args, rows, names, dists, wall_s, *, dt, equal=None) -> dict:
     """What `jaxsleigh compare --out` writes: the rows, the command and every setting that made them."""
     import jax
 
@@ -82,38 +121,74 @@ def _record(args, rows, names, dists, wall_s) -> dict:
     return {"rows": rows, "command": [PROG, *getattr(args, "_argv", [])],
             "settings": {"controllers": names, "starts": {d: START_DISTRIBUTIONS[d] for d in dists},
                          "samples": args.samples, "seed": args.seed, "t_final": args.t_final, "eps": args.eps,
-                         "dtype": "float64" if args.x64 else "float32", "saturation": args.saturation,
-                         "sample_period": args.sample_period, "delay": args.delay, "noise": args.noise,
-                         "rtol": args.rtol, "atol": args.atol},
+                         "dtype": "float64" if args.x64 else "float32",
+                         "method": "adaptive" if args.sample_period is None else "sampled", "dt": dt,
+                         "saturation": args.saturation, "sample_period": args.sample_period, "delay": args.delay,
+                         "noise": args.noise, "rtol": args.rtol, "atol": args.atol,
+                         "equal_energy": bool(args.equal_energy)},
+            "equal_energy": None if equal is None else equal.record(),
             "run_info": {"wall_s": wall_s, "devices": [str(d) for d in jax.devices()]}}
+
+
+def _time(v: float, t_final: float) -> str:
+    """A percentile of T_eps in seconds; ``'>T s'`` when that share of the starts did not settle by the horizon."""
+    return f"{v:.3g} s" if math.isfinite(v) else f">{t_final:g} s"
+
+
+def _amount(v: float) -> str:
+    """A number, ``'n/a'`` when not defined (no start ran)."""
+    return f"{v:.3g}" if math.isfinite(v) else "n/a"
+
+
+def row_lines(rows, *, eps: float, t_final: float) -> list:
+    """One line per row: the law, the distribution, the settled share ('settled 241/256 (94.1%) by 100 s'),
+    median and 90th-percentile T_eps, energy percentiles and peak |u|."""
+    width = max(len(r["controller"]) for r in rows)
+    swidth = max(len(r["starts"]) for r in rows)
+    lines = []
+    for r in rows:
+        n = r["n"]
+        k = int(round(r["settled"] * n))
+        lines.append(f"{r['controller']:{width}s} {r['starts']:{swidth}s}  settled {k}/{n} ({100 * r['settled']:.1f}%) "
+                     f"by {t_final:g} s  median T_{eps:g} {_time(r['median_T'], t_final)}  p90 T_{eps:g} "
+                     f"{_time(r['p90_T'], t_final)}  energy p50/p90 {_amount(r['energy_p50'])} / "
+                     f"{_amount(r['energy_p90'])} N² s  peak |u| {_amount(r['u_peak_max'])}")
+    return lines
 
 
 def _cmd_compare(args) -> int:
     from ..controllers.registry import make_controller
     from ..files.npz import atomic_write_text
     from ..integrate.stepsize import StepSizeController
-    from ..studies.compare import compare, draw_compare_starts
+    from ..studies.compare import check_horizon, compare, draw_compare_starts, json_ready, tune_to_budget
 
     names, dists = _names(args)
+    train, steps = _tuning(args)
     sampler = sampler_from_args(args)
+    dt = check_horizon(args.t_final, sampler, flag="--t-final")
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
-    laws = {n: make_controller(n) for n in names}
-    starts = {d: draw_compare_starts(d, args.samples, args.seed) for d in dists}
     t0 = time.perf_counter()
+    equal = None
+    if args.equal_energy:
+        equal = tune_to_budget(names, train=train, steps=steps, seed=args.seed, log=print)
+        print(f"equal energy: budget {equal.budget:.4g} N² s, the paper's training energy (geometric mean over "
+              f"{train} training starts, 30 s)", flush=True)
+        laws = equal.laws
+    else:
+        laws = {n: make_controller(n) for n in names}
+    starts = {d: draw_compare_starts(d, args.samples, args.seed) for d in dists}
     stepsize = StepSizeController(rtol=args.rtol, atol=args.atol)
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
                    x64=args.x64, stepsize=stepsize)
-    record = _record(args, rows, names, dists, time.perf_counter() - t0)
-    atomic_write_text(args.out, json.dumps(record, indent=1, default=float))
+    record = _record(args, rows, names, dists, time.perf_counter() - t0, dt=dt, equal=equal)
+    atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
     if args.plot:
-        from ..plots.compare import plot_compare_table
+        from ..plots.compare import plot_compare_ecdf
 
-        plot_compare_table(record, args.plot)
-    width = max(len(n) for n in names)
-    for r in rows:
-        print(f"{r['controller']:{width}s} {r['starts']:8s} settled {100 * r['settled']:5.1f}%  median T "
-              f"{r['median_T']:8.3g} s  p90 T {r['p90_T']:8.3g} s  energy p50/p90 {r['energy_p50']:9.3g} / "
-              f"{r['energy_p90']:9.3g}  peak |u| {r['u_peak_max']:9.3g}")
+        plot_compare_ecdf(json_ready(record), args.plot,
+                          title="Controllers on the same plant and starts"
+                                + (", at the paper's training energy" if equal is not None else ""))
+    print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     print(f"{PROG} compare: wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
     return 0
