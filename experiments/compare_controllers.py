@@ -1,10 +1,11 @@
 """The literature's controllers against the paper's, at equal control energy, on held-out starts.
 
 1. **Equal effort.** Each literature law (`jaxsleigh controllers`) is tuned by the library's tuner
-   (`jaxsleigh.tuning.tune_law`: Adam on the soft convergence time, augmented Lagrangian on the
-   geometric-mean control energy) on the same training starts (``UniformStarts()``, seed ``--seed``), to the
-   energy budget of the paper's gains there. The paper's gains stay as published, and the preset ``shaped`` as
-   tuned (on the hard settling time, at the paper's energy percentiles).
+   (`jaxsleigh.studies.compare.tune_to_budget`, which runs `jaxsleigh.tuning.tune_law`: Adam on the soft
+   convergence time, augmented Lagrangian on the geometric-mean control energy) on the same training starts
+   (``UniformStarts()``, seed ``--seed``), to the energy budget of the paper's gains there
+   (``jaxsleigh compare --equal-energy`` does the same). The paper's gains stay as published, and the preset
+   ``shaped`` as tuned (on the hard settling time, at the paper's energy percentiles).
 2. **Held-out starts** from three distributions (`jaxsleigh.studies.compare.START_DISTRIBUTIONS`: near
    theta = 0, the training box, a wider box with momentum): median and 90th-percentile T_0.05, fraction
    settled within the horizon, energy percentiles (50, 75, 90), peak |u|, closest approach to theta = 0.
@@ -13,8 +14,10 @@
 4. **Actuators**: the fraction settled against the saturation level U (|u_i| <= U) and against the sampling
    period Ts of a zero-order hold, one curve per controller (uniform starts).
 
-Writes ``compare.json``, ``compare_table.png``, ``compare_saturation.png``, ``compare_sampling.png`` into
-``--out`` (default docs/figures). About 10 minutes on 2 cores with the defaults.
+Writes ``compare.json`` (strict JSON: ``null`` for a time or percentile of starts that did not settle and an
+energy of a start that failed), ``compare_ecdf.png`` (per start distribution, the distributions over the
+starts of T_0.05 and of the control energy, one curve per law), ``compare_saturation.png`` and
+``compare_sampling.png`` into ``--out`` (default docs/figures). About 10 minutes on 2 cores with the defaults.
 
 Usage: ``python experiments/compare_controllers.py [--n 128] [--train 32] [--steps 60] [--lr 0.1] [--seed 0]``
 """
@@ -31,12 +34,10 @@ import jax
 import numpy as np
 
 import jaxsleigh as js
-from jaxsleigh import tuning
 from jaxsleigh.controllers.actuators import sampler
-from jaxsleigh.controllers.registry import controller_names, make_controller
-from jaxsleigh.model.controller import controller_record
-from jaxsleigh.plots.compare import plot_against, plot_compare_table
-from jaxsleigh.studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts
+from jaxsleigh.controllers.registry import controller_names
+from jaxsleigh.plots.compare import plot_against, plot_compare_ecdf
+from jaxsleigh.studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts, json_ready, tune_to_budget
 
 
 def main() -> int:
@@ -55,29 +56,13 @@ def main() -> int:
     t_start = time.perf_counter()
     log = lambda *m: print(*m, flush=True)  # noqa: E731
 
-    # 1. equal effort: the budget is the paper's training energy (the tuner's measure)
-    train = tuning.draw_starts(tuning.UniformStarts(), a.train, a.seed)
-    loss = tuning.LossConfig(t_final=30.0)
-    e_paper = tuning.training_energy("paper", config=tuning.TuneConfig(batch=a.train, seed=a.seed), loss=loss)["energy"]
-    log(f"paper's training energy (geometric mean over {a.train} starts, 30 s): {e_paper:.4g}")
-    # the paper's gains stay as published and `shaped` as its preset (tuned on the hard settling time at the paper's
-    # energy percentiles, docs/evidence/shaped-energy.md); the literature's laws are tuned here
-    laws, tuned_info = {"paper": js.paper_gains(), "shaped": make_controller("shaped")}, {}
-    for name in [c for c in controller_names() if c not in laws]:
-        law = make_controller(name)
-        t0 = time.perf_counter()
-        try:
-            res = tuning.tune_law(law, train, loss=loss._replace(energy_budget=e_paper), steps=a.steps, lr=a.lr)
-            laws[name] = res.law
-            tuned_info[name] = {"law": controller_record(res.law), "training_energy": res.energy,
-                                "training_loss": res.loss, "steps": len(res.history["loss"]),
-                                "wall_s": time.perf_counter() - t0}
-            log(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g} "
-                f"(budget {e_paper:.4g})")
-        except ValueError as e:       # the default law is not a valid candidate there: compared untuned
-            laws[name] = law
-            tuned_info[name] = {"law": controller_record(law), "untuned": str(e)}
-            log(f"{name}: not tuned ({e})")
+    # 1. equal effort: the budget is the paper's training energy (the tuner's measure); the paper's gains stay as
+    # published and `shaped` as its preset (tuned on the hard settling time at the paper's energy percentiles,
+    # docs/evidence/shaped-energy.md); the literature's laws are tuned to the budget
+    names = ["paper", "shaped"] + [c for c in controller_names() if c not in ("paper", "shaped")]
+    equal = tune_to_budget(names, train=a.train, steps=a.steps, lr=a.lr, seed=a.seed, log=log)
+    log(f"paper's training energy (geometric mean over {a.train} starts, 30 s): {equal.budget:.4g}")
+    laws = equal.laws
 
     # 2. held-out starts
     starts = {d: draw_compare_starts(d, a.n, a.seed + 1000) for d in START_DISTRIBUTIONS}
@@ -108,17 +93,19 @@ def main() -> int:
     log("actuator curves done")
 
     command = [sys.executable.rsplit("/", 1)[-1], *sys.argv]
-    record = {"rows": rows + robust, "tuned": tuned_info, "energy_budget": e_paper,
+    record = {"rows": rows + robust, "tuned": equal.laws_info, "energy_budget": equal.budget,
+              "equal_energy": equal.record(),
               "saturation": {"u_max": u_levels, "settled": sat}, "sampling": {"period": periods, "settled": smp},
               "settings": {"samples": a.n, "train": a.train, "steps": a.steps, "seed": a.seed, "t_final": a.t_final,
-                           "eps": 0.05, "dtype": "float32", "saturation": None, "sample_period": None,
-                           "starts": START_DISTRIBUTIONS, "curve_n": a.curve_n},
+                           "eps": 0.05, "dtype": "float32", "method": "adaptive", "dt": 0.01, "saturation": None,
+                           "sample_period": None, "starts": START_DISTRIBUTIONS, "curve_n": a.curve_n},
               "command": command,
               "run_info": {"wall_s": time.perf_counter() - t_start, "devices": [str(d) for d in jax.devices()],
                            "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}"}}
-    (out / "compare.json").write_text(json.dumps(record, indent=1, default=float))
-    plot_compare_table(record, out / "compare_table.png",
-                       title=f"Controllers at the paper's training energy (tuned {a.steps} steps), held-out starts")
+    record = json_ready(record)
+    (out / "compare.json").write_text(json.dumps(record, indent=1, allow_nan=False))
+    plot_compare_ecdf(record, out / "compare_ecdf.png",
+                      title=f"Controllers at the paper's training energy (tuned {a.steps} steps), held-out starts")
     prov = f"float32, {a.curve_n} uniform starts, T = {a.t_final:g} s; {' '.join(command)}"
     plot_against({k: (u_levels, v) for k, v in sat.items()}, "saturation level U [N, N m]", path=out / "compare_saturation.png",
                  title="Fraction settled under saturation |u_i| <= U", provenance=prov)
