@@ -74,3 +74,38 @@ def test_solve_reports_an_exhausted_budget():
     with jax.enable_x64(True):
         out = solve(js.paper_gains(), jnp.asarray(Y0), t_final=10.0, max_attempts=10)
     assert int(out.status) == js.Status.BUDGET_EXHAUSTED and float(out.t_reached) < 10.0
+
+
+@pytest.mark.parametrize("kw, says", [({"t_final": -1.0}, "t_final must be finite and > 0"),
+                                      ({"t_final": float("nan")}, "t_final must be finite and > 0"),
+                                      ({"dt": 0.0}, "dt must be finite and > 0"),
+                                      ({"eps": -0.1}, "eps must be finite and > 0")])
+def test_solve_refuses_a_setting_that_cannot_run(kw, says):
+    """A negative horizon ran as status 0, ``dt = 0`` raised ZeroDivisionError: each is a ValueError naming it."""
+    with pytest.raises(ValueError, match=says):
+        solve(js.paper_gains(), Y0, **kw)
+
+
+def test_solve_refuses_no_controller():
+    with pytest.raises(ValueError, match="controller must be"):
+        solve(None, Y0, t_final=1.0)
+
+
+@pytest.mark.parametrize("y0, status", [([np.nan, 1.0, 0.5], js.Status.INVALID_INPUT),
+                                        ([1.0, 1.0, 0.0], js.Status.SINGULAR_START),
+                                        ([1.0, 1.0, 1e-30], js.Status.OUT_OF_RANGE)])
+def test_solve_reports_a_start_that_cannot_be_integrated(y0, status):
+    """Such starts got ``step_underflow``; now the status that says what is wrong, NaN outputs and summaries, also
+    traced (vmapped with a good start, whose result is unchanged) and with finite gradients for the good one."""
+    y0 = np.asarray(y0, np.float32)
+    out = solve(js.paper_gains(), y0, t_final=1.0)
+    assert int(out.status) == status
+    assert np.all(np.isnan(np.asarray(out.q_final))) and np.isnan(float(out.summaries["u_energy"]))
+    good = np.array([1.0, 1.0, 0.5], np.float32)
+    both = jax.vmap(lambda y: solve(js.paper_gains(), y, t_final=1.0))(jnp.asarray(np.stack([good, y0])))
+    assert np.asarray(both.status).tolist() == [js.Status.OK, status]
+    alone = solve(js.paper_gains(), good, t_final=1.0)
+    np.testing.assert_allclose(np.asarray(both.q_final[0]), np.asarray(alone.q_final), rtol=1e-5)  # batched code
+    g = jax.grad(lambda y: jnp.sum(jax.vmap(lambda z: solve(js.paper_gains(), z, t_final=1.0)
+                                            .summaries["u_energy"])(y)[:1]))(jnp.asarray(np.stack([good, y0])))
+    assert np.all(np.isfinite(np.asarray(g)))

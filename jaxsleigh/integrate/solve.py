@@ -75,14 +75,22 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       observers: the summaries to carry (static).
 
     Returns:
-      `SolveOutput`. No check of the inputs happens here (it is traced code): validate with
-      `jaxsleigh.gains` / `jaxsleigh.plant_params` first.
+      `SolveOutput`. Concrete settings are checked here (``t_final``, ``dt``, ``eps`` finite and positive, a
+      controller given); the gains and plant are not (they may be traced): validate them with `jaxsleigh.gains` /
+      `jaxsleigh.plant_params` first. A start that cannot be integrated is reported as data, as in every
+      front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
+      whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
     """
     if method not in ("adaptive", "rk4"):
         raise ValueError(f"method must be 'adaptive' or 'rk4', got {method!r}")
+    if controller is None or not (callable(controller) or hasattr(controller, "L")):
+        raise ValueError(f"controller must be jaxsleigh.Gains (the paper's law) or a law u = law(q, v), "
+                         f"got {type(controller).__name__}")
     if is_sampled(controller):
         raise ValueError("solve integrates the continuous loop; a sampled law (controller=sampled(...)) runs in "
                          "jaxsleigh.integrate.sampled.solve_sampled, which is differentiable too")
+    for name, value in (("t_final", t_final), ("dt", dt), ("eps", eps)):
+        _check_positive(name, value)
     y0 = jnp.asarray(y0)
     if not jnp.issubdtype(y0.dtype, jnp.floating):
         y0 = y0.astype(jnp.zeros(()).dtype)
@@ -106,11 +114,42 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
                    max_steps=jnp.asarray(max_attempts, jnp.int32),
                    safety=jnp.asarray(ss.safety, dtype), factor_min=jnp.asarray(ss.factor_min, dtype),
                    factor_max=jnp.asarray(ss.factor_max, dtype))
-    s = init_state(chart.to_chart(y0), jnp.int32(Status.OK), args, ctl, observers=tuple(observers))
+    yc, status0 = _start_in_chart(y0, chart)
+    s = init_state(yc, status0, args, ctl, observers=tuple(observers))
     s = run_segment(s, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), adaptive=adaptive,
                     observers=tuple(observers))
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
-    y = chart.from_chart(s.y)
+    y = jnp.where(status0 == Status.OK, chart.from_chart(s.y), jnp.nan)
+    summaries = jax.tree_util.tree_map(lambda v: jnp.where(status0 == Status.OK, v, jnp.nan),
+                                       collect_values(tuple(observers), s.obs, s.quad))
     return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
-                       n_rejected=s.n_reject, summaries=collect_values(tuple(observers), s.obs, s.quad))
+                       n_rejected=s.n_reject, summaries=summaries)
+
+
+def _check_positive(name: str, value) -> None:
+    """A ``ValueError`` naming ``name`` unless a concrete ``value`` is a finite positive number (a traced one
+    passes: it is checked where it is concrete)."""
+    try:
+        v = float(value)
+    except jax.errors.ConcretizationTypeError:
+        return
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not (v > 0.0 and v < float("inf")):
+        raise ValueError(f"{name} must be finite and > 0, got {v:g}")
+
+
+def _start_in_chart(y0: jax.Array, chart) -> tuple[jax.Array, jax.Array]:
+    """``y0`` in ``chart`` and its starting status, traced (``y0`` may be a tracer under ``grad``/``vmap``):
+    ``INVALID_INPUT`` for a non-finite start, ``SINGULAR_START`` for ``theta0 = 0`` in a chart singular there,
+    ``OUT_OF_RANGE`` where the chart's state overflows the dtype. Such a start is replaced by a harmless
+    placeholder, which is never stepped (its status is not OK), so no NaN reaches the step or its gradient."""
+    placeholder = jnp.asarray([1.0, 0.0, 1.0, 0.0, 0.0], y0.dtype)
+    finite = jnp.all(jnp.isfinite(y0))
+    singular = bool(chart.singular) & (y0[2] == 0)
+    status = jnp.where(~finite, Status.INVALID_INPUT, jnp.where(singular, Status.SINGULAR_START, Status.OK))
+    probe = chart.to_chart(jax.lax.stop_gradient(jnp.where(status == Status.OK, y0, placeholder)))
+    status = jnp.where((status == Status.OK) & ~jnp.all(jnp.isfinite(probe)), Status.OUT_OF_RANGE, status)
+    # mapped again from the start or the placeholder: an overflowing start's inf never meets the gradient
+    return chart.to_chart(jnp.where(status == Status.OK, y0, placeholder)), status.astype(jnp.int32)
