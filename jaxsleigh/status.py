@@ -29,8 +29,11 @@ DESCRIPTIONS = {
     Status.SINGULAR_START: ("starts on the singular set theta = 0 where the control law is undefined; "
                             "not integrated, outputs NaN"),
     Status.INVALID_INPUT: "non-finite initial condition; not integrated, outputs NaN",
-    Status.NONFINITE: ("fixed-step RK4 produced inf/NaN (unstable, usually near theta = 0); outputs NaN "
-                       "from then on; use the adaptive method or a smaller dt"),
+    Status.NONFINITE: ("the state or the law's output became inf/NaN; outputs NaN from then on. Under fixed-step "
+                       "RK4: a step too large, usually near theta = 0 (use the adaptive method or a smaller dt). "
+                       "In the sampled-data loop: usually a law whose output is unbounded on what it measures "
+                       "(Astolfi's divides by the measured theta, which noise makes cross 0): bound it with a "
+                       "saturation, or lower the noise; a smaller dt or float64 does not help there"),
     Status.BUDGET_EXHAUSTED: ("the adaptive stepper used its step budget before the horizon; outputs NaN "
                               "after the last time reached; raise max_steps"),
     Status.CROSSED_SINGULAR: ("a fixed RK4 step jumped across theta = 0, which the exact closed loop never "
