@@ -159,6 +159,17 @@ def test_sweep_sets_a_parameter_of_a_literature_law(tmp_path, capsys):
     assert np.all(np.isfinite(energy)) and energy[0] != energy[1]       # the law ran with each value
 
 
+def test_sweep_sets_a_literature_law_s_own_k_and_reads_the_file_back(tmp_path, capsys):
+    """Astolfi's heading rate is named k like the paper's gain: it was refused as "a gain of the paper's law"."""
+    import jaxsleigh as js
+
+    rc, out, err = run_cli(SWEEP_LAW + ["--param", "k=0.5:2:2", "--out", tmp_path / "k.npz"], capsys)
+    assert rc == 0, err
+    back = js.load_sweep(tmp_path / "k.npz")
+    assert back.names == ("k",) and back.values[:, 0].tolist() == [0.5, 2.0]
+    assert back.axes[0].name == "k" and back.u_energy[0, 0] != back.u_energy[1, 0]
+
+
 @pytest.mark.parametrize("param", ["l1=1:2:2", "gain=1:2:2"])
 def test_sweep_lists_what_the_controller_really_lets_one_sweep(tmp_path, capsys, param):
     rc, out, err = run_cli(SWEEP_LAW + ["--param", param, "--out", tmp_path / "x.npz"], capsys)

@@ -203,7 +203,7 @@ def test_one_unrepresentable_row_is_flagged_and_named(tmp_path, capsys):
     np.save(tmp_path / "s.npy", ics)
     rc, out, err = run_cli(["simulate", "--ics", tmp_path / "s.npy", "--t-final", "0.5", "--out",
                             tmp_path / "r.npz"], capsys)
-    assert rc == 0 and "row 1" in err and "2 ok, 1 out_of_range" in out, err
+    assert rc == 0 and "row 1" in err and "2 integrated, 1 out_of_range" in out, err
     rc, out, err = run_cli(["basin", "--ics", tmp_path / "s.npy", "--t-final", "0.5", "--out", tmp_path / "b.npz",
                             "--no-progress"], capsys)
     assert rc == 0 and "row 1" in err and "left out of the fraction" in err, err

@@ -114,6 +114,11 @@ def test_a_tuned_law_file_is_read_back_as_the_law(tmp_path, capsys):
     starts = np.array([[1.0, 1.0, 0.5]])
     r = js.run_ensemble(starts, controller=law, t_final=1.0)
     assert np.all(r.status == 0)
+    rc, _, err = _run(["simulate", "--controller", out, "--ic", "1,1,0.5", "--t-final", "1", "--out",
+                       tmp_path / "s.npz"], capsys)                      # the command line reads it too
+    assert rc == 0, err
+    with np.load(tmp_path / "s.npz") as z:
+        np.testing.assert_allclose(z["q"][0, -1], r.q_final[0], rtol=1e-5, atol=1e-6)
     bad = dict(doc, params={**doc["params"], "q": 1.0})
     (tmp_path / "bad.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="unknown q"):

@@ -46,7 +46,8 @@ EXIT_INTERRUPTED = 130
 EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
               EXIT_USAGE: "bad input; nothing was computed (the message says what to change)",
               EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts), or tune --search "
-                            "found no feasible gains (its history is written)",
+                            "found no feasible gains (its history is written), or tune's result does not meet "
+                            "--energy-budget (the file is written, flagged)",
               EXIT_DISK_FULL: "the disk or quota is full (the file is named; --resume continues a chunked run "
                               "once there is space)",
               EXIT_LOCKED: "another run is writing the same output or checkpoint folder (it is named); nothing "
@@ -165,8 +166,9 @@ def add_model_options(parser) -> None:
                         "D = diag(1/sqrt(0.1 + p_i^2)))")
     g.add_argument("--x64", action="store_true", help="compute in float64 (default: float32)")
     g.add_argument("--controller", default="paper", metavar="NAME",
-                   help="the feedback law: paper (default, with --gains) or a law from the literature "
-                        "(jaxsleigh controllers lists them, with what of the plant each must know)")
+                   help="the feedback law: paper (default, with --gains), a law from the literature "
+                        "(jaxsleigh controllers lists them, with what of the plant each must know), or FILE.json "
+                        "written by jaxsleigh tune --controller NAME (the law; give its actuator flags again)")
     g.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
                    help="actuator saturation: clip each component of u to |u_i| <= U (N, N m)")
 
@@ -183,7 +185,12 @@ def model_from_args(args):
     name = getattr(args, "controller", "paper")
     if name != "paper" and args.gains != "paper":
         raise ValueError(f"--gains sets the paper's law; it does not apply to --controller {name}")
-    law = make_controller(name, load_gains(args.gains)) if name == "paper" else make_controller(name)
+    if name.endswith(".json"):                   # a law written by `jaxsleigh tune --controller NAME --out F.json`
+        from ..tuning.law_file import load_controller_record
+
+        law = load_controller_record(name)
+    else:
+        law = make_controller(name, load_gains(args.gains)) if name == "paper" else make_controller(name)
     u_max = getattr(args, "saturation", None)
     if u_max is not None:
         from ..controllers.actuators import saturate

@@ -279,17 +279,18 @@ def _apply_law_params(names, values, plant: PlantParams, law, lab) -> tuple[Plan
     from ..model.controller import PerTrajectory, law_leaf_names
     from ..model.lanes import check_lanes
 
-    gain = [n for n in names if n in _GAIN_PARAMS]
+    law_names = _law_scalar_names(law)
+    gain = [n for n in names if n in _GAIN_PARAMS and n not in law_names]
     if gain:
         raise ValueError(f"{lab(gain[0])}: {gain[0]} is a gain of the paper's law; with a controller of your own a "
                          f"sweep sets the plant's parameters and the controller's "
                          f"({', '.join(_law_scalar_names(law))})")
     P = values.shape[0]
-    plant_idx = [j for j, n in enumerate(names) if n in PARAM_NAMES]
+    plant_idx = [j for j, n in enumerate(names) if n in PARAM_NAMES and n not in _GAIN_PARAMS]
     if plant_idx:                  # the plant's lanes exactly as under the paper's law
         plant, _ = apply_params([names[j] for j in plant_idx], values[:, plant_idx], plant, None,
                                 labels={names[j]: lab(names[j]) for j in plant_idx})
-    col = {n: values[:, j] for j, n in enumerate(names) if n not in PARAM_NAMES}
+    col = {n: values[:, j] for j, n in enumerate(names) if j not in plant_idx}
     leaves, tree = jax.tree_util.tree_flatten(law)
     lanes = [col[n] if n in col else np.repeat(np.asarray(x, np.float64)[..., None], P, axis=-1)
              for n, x in zip(law_leaf_names(law), leaves)]
@@ -622,7 +623,7 @@ def load_sweep(path) -> SweepResult:
                   "min_abs_theta", "Hd0"), kind="sweep")
     settings = json.loads(str(d["settings_json"]))
     settings.pop("status_codes", None)
-    axes = tuple(parse_param(a) for a in settings["sweep"]["axes"])
+    axes = tuple(parse_param(a, law_names=tuple(settings["sweep"]["names"])) for a in settings["sweep"]["axes"])
     effort = {k: d[k] for k in ("u_energy", "u_abs_int", "u_norm_peak") if k in d}
     return SweepResult(names=tuple(str(n) for n in d["names"]), values=d["values"],
                        grid_shape=tuple(int(x) for x in d["grid_shape"]), axes=axes,
