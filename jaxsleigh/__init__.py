@@ -6,7 +6,7 @@ cores.configure()            # one JAX CPU device per core, before anything star
 
 from .cache import enable_compilation_cache  # noqa: E402
 
-enable_compilation_cache()   # Python sessions share the command line's compiled programs (JAXSLEIGH_NO_COMPILE_CACHE=1: off)
+enable_compilation_cache()   # Python programs share the command line's compiled programs (JAXSLEIGH_NO_COMPILE_CACHE=1: off)
 from .studies.basin import BasinResult, BasinStarts, grid_starts, load_basin, run_basin, sample_starts, save_basin
 from .model.closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w, dissipation_w,
                           state_from_w, state_to_w, vector_field, vector_field_w)
@@ -26,4 +26,4 @@ from .model import charts, controller  # noqa: F401
 from . import errors  # noqa: F401
 from .integrate import observers  # noqa: F401
 
-__version__ = "0.1.0"
+__version__ = "0.3.0"

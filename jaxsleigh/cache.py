@@ -1,6 +1,6 @@
 """JAX's persistent compilation cache for jaxsleigh: compile once per machine, not once per process.
 
-``import jaxsleigh`` turns it on (the command line and Python sessions alike; ``JAXSLEIGH_NO_COMPILE_CACHE=1``
+``import jaxsleigh`` turns it on (the command line and Python programs alike; ``JAXSLEIGH_NO_COMPILE_CACHE=1``
 keeps it off); `enable_compilation_cache` moves it to another folder. Both use the same folder
 (`compilation_cache_dir`), so a program compiled by one is reused by the other.
 
@@ -43,7 +43,7 @@ def compilation_cache_dir() -> Optional[Path]:
 
 def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Optional[Path]:
     """Turn on JAX's persistent compilation cache for this process: a later process (a Python
-    session or the command line) compiles nothing that was compiled before.
+    program or the command line) compiles nothing that was compiled before.
 
     Call it once, before the first simulation (JAX reads the setting when it first compiles).
 

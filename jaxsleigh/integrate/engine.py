@@ -673,7 +673,7 @@ def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
 
 #: room of the adaptive budget, in base steps, per dtype: float64's 100x tighter tolerances need ~20% more
 #: attempts than 20x out of the stiffest starts (theta0 = 1e-2 took 25,387 attempts for a 10 s run's 1,008 base
-#: steps; python experiments/issue20_details.py)
+#: steps; python experiments/engine_defaults.py)
 BUDGET_FACTOR = {"float32": 20, "float64": 30}
 
 

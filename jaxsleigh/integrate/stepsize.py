@@ -84,7 +84,7 @@ def error_ratio(h, y, y_new, k4, k5, ctl, e=None):
 
 
 #: exponents of the PI controller (Gustafsson's form, err ~ h^4). On 512 benchmark starts (100 s, float32,
-#: python experiments/issue20_details.py): Hairer & Wanner's 0.7 / 4, 0.4 / 4 took 1,008 mean steps, T_eps
+#: python experiments/engine_defaults.py): Hairer & Wanner's 0.7 / 4, 0.4 / 4 took 1,008 mean steps, T_eps
 #: within 6.8e-4 s of float64; these 927 steps, 9.1e-4 s; the I controller (0.25, 0) 804 steps but 1.7e-3 s
 PI_ALPHA, PI_BETA = 0.15, 0.05
 

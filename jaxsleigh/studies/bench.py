@@ -94,7 +94,7 @@ def _timed(fn, repeats: int = 1):
 
 
 # ---------------------------------------------------------------------------------------------------
-# The C limit (issue 12): a hand-vectorised C RK4 of the same w-chart closed loop, timed against the
+# The C limit: a hand-vectorised C RK4 of the same w-chart closed loop, timed against the
 # plain fixed-step path in one interleaved run.
 
 #: the C reference (a repository checkout has it; an installed package may not)

@@ -36,18 +36,26 @@ __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 class Solution(NamedTuple):
     r"""Decimated closed-loop trajectories, and the per-trajectory summaries of the whole run.
 
-    Attributes (the library's one vocabulary, `docs/concepts.md`):
+    The fields use the library's one vocabulary (`docs/concepts.md`). The summaries (``T_eps`` to ``u_abs_int``)
+    are integrated to RK4 order along every step, not from the saved samples; `effort` gathers them in a dict.
+
+    Attributes:
       t: (T,) saved times (0 included).
-      q: (N, T, 3) configuration ``(x, y, theta)``; p: (N, T, 2) momentum (``q_final``, ``p_final``: the
-        last saved state).
-      u: (N, T, 2) control.
+      q: (N, T, 3) configuration ``(x, y, theta)`` at the saved times (``q_final``: the last).
+      p: (N, T, 2) momentum at the saved times (``p_final``: the last).
+      u: (N, T, 2) control at the saved times.
       Hd: (N, T) closed-loop Hamiltonian (NaN for a law without it).
       status: (N,) `Status` codes.
-      n_steps: (N,) accepted steps; ``n_rejected``: (N,) rejected attempts.
+      n_steps: (N,) accepted steps.
+      n_rejected: (N,) rejected attempts.
       settings: what produced it (plant, law, horizon, method, dtype, tolerances).
-      T_eps, min_abs_theta, max_excursion, u_peak (N, 2), u_norm_peak, u_energy = \(\int \|u\|^2 dt\),
-        u_abs_int: the on-line summaries, as in `jaxsleigh.EnsembleResult`, integrated to RK4 order along
-        every step (not from the saved samples); `effort` gathers them in a dict.
+      T_eps: (N,) the start of the last stay in the ball \(|q| \le \varepsilon\) (``inf``: not settled).
+      min_abs_theta: (N,) closest approach to \(\theta = 0\).
+      max_excursion: (N,) largest \(|q(t)|\).
+      u_peak: (N, 2) largest \(|u_1|\), \(|u_2|\).
+      u_norm_peak: (N,) largest \(\|u\|\).
+      u_energy: (N,) \(\int \|u\|^2 dt\).
+      u_abs_int: (N,) \(\int \|u\| dt\).
       run_info: what varies between runs (``wall_s``, ``devices``).
     """
 

@@ -1,4 +1,4 @@
-/* Hand-vectorised C reference of jaxsleigh's plain fixed-step path (issue 12, part 1).
+/* Hand-vectorised C reference of jaxsleigh's plain fixed-step path.
  *
  * Classical RK4 of the closed loop in the w chart, state (w1, w2, w3, p1, p2), float32, written
  * in the order of operations of jaxsleigh.closed_loop.vector_field_w and jaxsleigh.rk4, so that
