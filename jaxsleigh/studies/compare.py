@@ -37,7 +37,7 @@ import numpy as np
 from ..controllers.actuators import sampled, saturate
 from ..status import Status, converged
 
-__all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS", "BASE_STEP", "base_step",
+__all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS", "BASE_STEP", "SUBSTEPS", "base_step",
            "check_horizon", "json_ready", "EqualEnergy", "tune_to_budget"]
 
 #: The held-out start distributions (name -> description): near the singular set, the training box, and
@@ -93,14 +93,17 @@ def _row(T_eps, status, energy, u_peak, min_theta) -> dict:
 #: The base step [s] of `compare`'s continuous loop (the adaptive method starts with it and grows it).
 BASE_STEP = 0.01
 
+#: RK4 substeps per sample period in `compare`'s sampled-data loop (its default ``substeps``).
+SUBSTEPS = 20
 
-def base_step(sampler=None, substeps: int = 20) -> float:
+
+def base_step(sampler=None, substeps: int = SUBSTEPS) -> float:
     """The base step [s] `compare` integrates with: `BASE_STEP`, or under ``sampler`` the RK4 substep
     ``period / substeps``."""
     return BASE_STEP if sampler is None else sampler.period / substeps
 
 
-def check_horizon(t_final: float, sampler=None, substeps: int = 20, *, flag: str = "t_final") -> float:
+def check_horizon(t_final: float, sampler=None, substeps: int = SUBSTEPS, *, flag: str = "t_final") -> float:
     r"""The base step of `compare` (`base_step`) after checking that the horizon fits one run:
     \(T / \Delta t \le\) `jaxsleigh.integrate.engine.MAX_BASE_STEPS`. Raises ``ValueError`` naming ``flag``
     (the caller's name for the horizon) and the longest horizon allowed."""
@@ -118,7 +121,7 @@ def check_horizon(t_final: float, sampler=None, substeps: int = 20, *, flag: str
 
 def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=None, t_final: float = 100.0,
             eps: float = 0.05, saturation: Optional[float] = None, sampler=None, x64: bool = False,
-            substeps: int = 20, stepsize=None) -> list:
+            substeps: int = SUBSTEPS, stepsize=None) -> list:
     """One row per (law, start set): ``{"controller", "starts", "n", **METRICS}`` (module docstring).
 
     Args:
