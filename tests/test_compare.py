@@ -187,6 +187,19 @@ def test_compare_rows_on_stdout_say_the_settled_share(default_run):
             assert f"median T_0.05 {r['median_T']:.3g} s" in line
 
 
+def test_compare_row_lines_tell_unsettled_and_diverged_apart_from_undefined():
+    from jaxsleigh.cli.compare import row_lines
+
+    row = {"controller": "astolfi", "starts": "wide", "n": 4, "settled": 0.25, "median_T": np.inf, "p90_T": np.inf,
+           "energy_p50": 12.0, "energy_p90": np.inf, "u_peak_max": np.inf}
+    (line,) = row_lines([row], eps=0.05, t_final=100.0)
+    assert "settled 1/4 (25.0%) by 100 s" in line and "median T_0.05 >100 s" in line
+    assert "energy p50/p90 12 / inf N² s" in line and "peak |u| inf" in line
+    (line,) = row_lines([dict(row, energy_p50=np.nan, energy_p90=np.nan, u_peak_max=np.nan)], eps=0.05,
+                        t_final=100.0)
+    assert "energy p50/p90 n/a / n/a" in line and "peak |u| n/a" in line
+
+
 def test_compare_figure_shows_each_law_as_distributions(default_run):
     """The default figure: per start distribution, the ECDF of T_eps (ending at the settled share) and of the
     energy (log axis), every law in the legend, units on the axes, the settings and the command in the title."""

@@ -148,8 +148,8 @@ def _time(v: float, t_final: float) -> str:
 
 
 def _amount(v: float) -> str:
-    """A number, ``'n/a'`` when not defined (no start ran)."""
-    return f"{v:.3g}" if math.isfinite(v) else "n/a"
+    """A number (``'inf'`` for a start that diverged), ``'n/a'`` when not defined (no start ran)."""
+    return "n/a" if math.isnan(v) else f"{v:.3g}"
 
 
 def row_lines(rows, *, eps: float, t_final: float) -> list:

@@ -122,7 +122,7 @@ def check_horizon(t_final: float, sampler=None, substeps: int = SUBSTEPS, *, fla
 def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=None, t_final: float = 100.0,
             eps: float = 0.05, saturation: Optional[float] = None, sampler=None, x64: bool = False,
             substeps: int = SUBSTEPS, stepsize=None) -> list:
-    """One row per (law, start set): ``{"controller", "starts", "n", **METRICS}`` (module docstring).
+    """One row per (law, start set): ``{"controller", "starts", "n", **METRICS, "per_start"}`` (module docstring).
 
     Args:
       laws: name -> law (`jaxsleigh.Gains` for the paper's law, or any ``u = law(q, v)``).
