@@ -61,8 +61,13 @@ _DASHES = ("-", "--", "-.", ":", (0, (6, 2, 1, 2, 1, 2)))
 
 
 def _law_styles(names) -> dict:
-    """One colour and dash pattern per law, the same in every panel (laws with equal curves stay visible)."""
-    return {n: {"color": f"C{i % 10}", "linestyle": _DASHES[i % len(_DASHES)]} for i, n in enumerate(names)}
+    """One colour and dash pattern per law, the same in every panel (laws with equal curves stay visible) and in
+    every figure (a law of `jaxsleigh.controllers.registry` keeps its place in that list)."""
+    from ..controllers.registry import controller_names
+
+    order = controller_names() + [n for n in names if n not in controller_names()]
+    return {n: {"color": f"C{order.index(n) % 10}", "linestyle": _DASHES[order.index(n) % len(_DASHES)]}
+            for n in names}
 
 
 def _draw_distribution(ax_t, ax_e, rows, styles, t_final: float) -> None:
