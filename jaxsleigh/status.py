@@ -29,7 +29,8 @@ DESCRIPTIONS = {
     Status.SINGULAR_START: ("starts on the singular set theta = 0 where the control law is undefined; "
                             "not integrated, outputs NaN"),
     Status.INVALID_INPUT: "non-finite initial condition; not integrated, outputs NaN",
-    Status.NONFINITE: ("the state or the law's output became inf/NaN; outputs NaN from then on. Under fixed-step "
+    Status.NONFINITE: ("the state, the law's output or its effort integral became inf/NaN (a diverging run); "
+                       "outputs NaN from then on. Under fixed-step "
                        "RK4: a step too large, usually near theta = 0 (use the adaptive method or a smaller dt). "
                        "In the sampled-data loop: usually a law whose output is unbounded on what it measures "
                        "(Astolfi's divides by the measured theta, which noise makes cross 0): bound it with a "

@@ -308,3 +308,17 @@ def test_aicardi_settling_time_is_the_same_in_float32_and_float64():
     r64 = js.run_ensemble(starts, controller=law, t_final=100.0, progress=False, x64=True)
     assert np.all(np.isfinite(r64.T_eps)) and np.all(r64.T_eps > 20.0)
     np.testing.assert_allclose(r32.T_eps, r64.T_eps, rtol=0, atol=0.1)
+
+
+def test_a_diverging_astolfi_run_is_reported_not_ok():
+    """Astolfi's law with a slow velocity loop (K = 1.04 < the tuned k's needs) from starts with momentum drives theta
+    through 0, where its output ~ x3 / theta is unbounded: in float32 the state stayed finite (|q| ~ 1e20) while the
+    energy overflowed to inf, and the run ended status OK. It ends NONFINITE now, in both precisions."""
+    from jaxsleigh.studies.compare import draw_compare_starts
+
+    law = AstolfiLaw(k=0.211, p2=1.678, p3=-4.192, K=1.038)
+    ics = draw_compare_starts("wide", 256, 0)[[22, 100]]
+    for x64 in (False, True):
+        r = js.run_ensemble(ics, controller=law, t_final=100.0, x64=x64, progress=False)
+        assert r.status.tolist() == [js.Status.NONFINITE] * 2, (x64, r.status)
+        assert not np.any(r.converged)

@@ -316,6 +316,10 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     info = StepInfo(t=s.t, h=trial.h, t_new=t_new + t_lo_new, y=s.y, y_new=trial.y_new, k1=trial.k1,
                     k5=trial.k5 if fsal else None, u_new=trial.u_new, acc=acc, chart=chart)
     quad, g1 = _quadrature_after(observers, s, trial, acc)
+    if quad.shape[0]:
+        # a diverging law can keep the state finite while its effort integral overflows (|u| ~ 1e19 in float32):
+        # the run ends there, NONFINITE, instead of reporting OK with an infinite energy
+        status = jnp.where(acc & ~_all_finite(quad), Status.NONFINITE, status)
     return StepState(
         t=jnp.where(acc, t_new, s.t), t_lo=jnp.where(acc, t_lo_new, s.t_lo),
         y=s.y + jnp.where(acc, trial.dy, jnp.zeros_like(trial.dy)), k1=jnp.where(acc, trial.k5, s.k1),
