@@ -5,8 +5,15 @@
 * ``sample_q`` / ``sample_w`` / ``sample_states`` / ``sample_gains``: random points away from the
   singular set ``theta = w1 = 0`` and random admissible gains.
 * ``paper_args``: the paper's plant and gains (eq. 31-32) as a ``ClosedLoop``.
+
+Tiers: ``python -m pytest -q`` runs every test (what CI runs); ``python -m pytest -q -m "not slow"`` is the quick
+tier, for every change. A test is slow if it carries ``@pytest.mark.slow`` or is listed in ``tests/slow.txt``
+(measured: ``python tests/tiers.py DURATIONS.txt`` rewrites that list from the output of a full run with
+``--durations=0``).
 """
 from __future__ import annotations
+
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -15,6 +22,17 @@ import pytest
 import jaxsleigh as js
 
 SEED = 20240611
+
+#: tests measured slow (node ids without parameters: every case of a listed test is slow)
+SLOW = frozenset(line.split("#")[0].strip() for line in (Path(__file__).parent / "slow.txt").read_text().splitlines()
+                 if line.split("#")[0].strip())
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of `SLOW` slow, so that ``-m "not slow"`` leaves them out of the quick tier."""
+    for item in items:
+        if item.nodeid.split("[")[0] in SLOW:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture
