@@ -431,7 +431,7 @@ def test_resume_after_interruption_writes_identical_bytes(tmp_path, monkeypatch,
     rc, _, _ = basin_main(["basin", *CLI_FAST, "--out", str(tmp_path / "other.npz"), "--keep-chunks"])
     assert rc == 0
     rc, _, err = basin_main(["basin", *CLI_FAST, "--eps", "0.2", "--resume", "--out", str(tmp_path / "other.npz")])
-    assert rc == 2 and "other settings or initial conditions" in err and "--resume" in err
+    assert rc == 2 and "--eps 0.31 in the checkpoint vs --eps 0.2 now" in err and "--resume" in err, err
 
 
 def test_cli_outputs_plot_and_sidecar(tmp_path, basin_main):

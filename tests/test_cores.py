@@ -44,8 +44,8 @@ def test_results_are_byte_identical_on_one_two_and_three_cores():
     out = _python("""
         import hashlib, json, numpy as np, jaxsleigh as js
         rng = np.random.default_rng(4)
-        ics = np.column_stack([rng.uniform(-3, 3, (2600, 2)), rng.uniform(0.3, 3, 2600) * rng.choice([-1, 1], 2600)])
-        ics[:40, 2] = np.geomspace(1e-3, 0.1, 40)
+        ics = np.column_stack([rng.uniform(-3, 3, (1200, 2)), rng.uniform(0.3, 3, 1200) * rng.choice([-1, 1], 1200)])
+        ics[:20, 2] = np.geomspace(2e-3, 0.1, 20)
         def digest(r, *fields):
             h = hashlib.sha256()
             for f in fields:
@@ -53,12 +53,13 @@ def test_results_are_byte_identical_on_one_two_and_three_cores():
             return h.hexdigest()
         runs = {}
         for c in (1, 2, 3):
-            a = js.run_ensemble(ics, t_final=8.0, chunk_size=2600, cores=c, progress=False)
-            b = js.run_ensemble(ics[:300], t_final=4.0, x64=True, chunk_size=300, cores=c, progress=False)
+            a = js.run_ensemble(ics, t_final=8.0, chunk_size=1200, cores=c, progress=False)
+            b = js.run_ensemble(ics[:200], t_final=4.0, x64=True, chunk_size=200, cores=c, progress=False)
             p = js.run_ensemble(ics, t_final=8.0, method="rk4", summaries=False, check_passivity=False,
-                                chunk_size=2600, cores=c, progress=False)
-            s = js.run_ensemble(ics[:2100], t_final=3.0, save_every=50, chunk_size=2100, cores=c, progress=False)
-            g = js.sweep(ics[:1100], {"k": [0.5, 2.0]}, t_final=4.0, cores=c, progress=False)
+                                chunk_size=1200, cores=c, progress=False)
+            s = js.run_ensemble(ics[:900], t_final=3.0, save_every=50, chunk_size=900, cores=c, progress=False)
+            g = js.sweep(ics[:500], {"k": [0.5, 2.0]}, t_final=4.0, cores=c, progress=False)
+            assert a.n_steps.max() > 4 * np.median(a.n_steps)        # stragglers: some parts are compacted
             runs[c] = [digest(a, "q_final", "p_final", "T_eps", "n_steps", "n_rejected", "u_energy", "status"),
                        digest(b, "q_final", "T_eps", "n_steps"), digest(p, "q_final", "p_final", "status"),
                        digest(s, "q", "p", "T_eps"), hashlib.sha256(np.ascontiguousarray(g.T_eps).tobytes()).hexdigest(),
