@@ -8,6 +8,7 @@ import hashlib
 import json
 import zipfile
 from pathlib import Path
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -124,23 +125,9 @@ class TunerCheckpoint:
     def load(self, trainable, opt_state, groups):
         """``(it, trainable, opt_state, best, valid_points, rows, scalars, probes)`` restructured like
         ``trainable`` / ``opt_state``; ``None`` if there is no file."""
-        if not self.path.exists():
+        a = _read_checkpoint(self.path, self.key, _SETTINGS.get(self.key) or {})
+        if a is None:
             return None
-        try:
-            with np.load(self.path, allow_pickle=False) as z:
-                a = {k: z[k] for k in z.files}
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-            raise ValueError(f"tuner checkpoint {str(self.path)!r} is damaged ({type(e).__name__}: {e}); delete it "
-                             "and start afresh (without --resume)") from None
-        if str(a.get("key")) != self.key:
-            try:
-                old = json.loads(str(a["settings"])) if "settings" in a else {}
-            except ValueError:
-                old = {}
-            why = _differences(old, _SETTINGS.get(self.key) or {})
-            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings"
-                             + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
-                             "or move the checkpoint (or choose another --out) to start afresh")
 
         def get(prefix, like):
             leaves, tdef = jax.tree_util.tree_flatten(like)
@@ -230,23 +217,9 @@ class LawCheckpoint:
     def load(self, params, opt_state):
         """``(it, params, opt_state, best, hist, stopped)`` shaped like ``params`` / ``opt_state``; ``None`` if there is
         no file. Refuses a damaged file or one written with other settings (naming what differs)."""
-        if not self.path.exists():
+        a = _read_checkpoint(self.path, self.key, self.settings)
+        if a is None:
             return None
-        try:
-            with np.load(self.path, allow_pickle=False) as z:
-                a = {k: z[k] for k in z.files}
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-            raise ValueError(f"tuner checkpoint {str(self.path)!r} is damaged ({type(e).__name__}: {e}); delete it "
-                             "and start afresh (without --resume)") from None
-        if str(a.get("key")) != self.key:
-            try:
-                old = json.loads(str(a["settings"])) if "settings" in a else {}
-            except ValueError:
-                old = {}
-            why = _differences(old, self.settings)
-            raise ValueError(f"tuner checkpoint {str(self.path)!r} was written by a run with other settings"
-                             + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
-                             "or move the checkpoint (or choose another --out) to start afresh")
         dtype = jnp.asarray(params).dtype
         leaves, tdef = jax.tree_util.tree_flatten(opt_state)
         state = jax.tree_util.tree_unflatten(
@@ -256,3 +229,26 @@ class LawCheckpoint:
             best = (jnp.asarray(a["best/params"], dtype), float(a["best/loss"]), float(a["best/energy"]))
         hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
         return int(a["it"]), jnp.asarray(a["params"], dtype), state, best, hist, bool(a["stopped"])
+
+
+def _read_checkpoint(path: Path, key: str, settings: dict) -> Optional[dict]:
+    """A tuner checkpoint's arrays, ``None`` if there is no file; a ``ValueError`` for a damaged file or one written
+    by a run with other settings than ``settings`` (naming what differs)."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        raise ValueError(f"tuner checkpoint {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
+                         "and start afresh (without --resume)") from None
+    if str(a.get("key")) != key:
+        try:
+            old = json.loads(str(a["settings"])) if "settings" in a else {}
+        except ValueError:
+            old = {}
+        why = _differences(old, settings)
+        raise ValueError(f"tuner checkpoint {str(path)!r} was written by a run with other settings"
+                         + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
+                         "or move the checkpoint (or choose another --out) to start afresh")
+    return a
