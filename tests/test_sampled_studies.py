@@ -136,3 +136,19 @@ def test_command_line_basin_with_a_digital_controller_gives_the_same_bytes_twice
                                                                          "noise": 0.001, "seed": 2}
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()      # same command, same bytes
     capsys.readouterr()
+
+
+def test_noise_makes_astolfi_s_law_diverge_and_the_status_says_why():
+    """With Ts = 0.05 and a 0.001 measurement noise Astolfi's law divides by a measured heading that crosses 0
+    (theta decays like e^(-kt) to the noise): every start ends NONFINITE, with 20 or 80 substeps alike (the loop
+    is not at fault), while the noiseless law settles them; the status's description points at the law."""
+    from jaxsleigh.controllers.registry import make_controller
+
+    law, ics = make_controller("astolfi"), np.array([[1.0, 1.0, 0.5, 0.0, 0.0], [-2.0, 1.0, 1.0, 0.0, 0.0]])
+    for substeps in (20, 80):
+        noisy = solve_sampled(law, None, ics, t_final=20.0, sampler=Sampler(0.05, 0, 1e-3, 0), substeps=substeps,
+                              save=False)
+        assert np.asarray(noisy.status).tolist() == [js.Status.NONFINITE] * 2
+    clean = solve_sampled(law, None, ics, t_final=20.0, sampler=Sampler(0.05, 0, 0.0, 0), save=False)
+    assert np.asarray(clean.status).tolist() == [0, 0] and np.all(np.isfinite(np.asarray(clean.T_eps)))
+    assert "divides by the measured theta" in js.status.DESCRIPTIONS[js.Status.NONFINITE]
