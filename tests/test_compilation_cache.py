@@ -1,4 +1,4 @@
-"""A Python session can use the command line's compilation cache (`jaxsleigh.enable_compilation_cache`)."""
+"""A Python program can use the command line's compilation cache (`jaxsleigh.enable_compilation_cache`)."""
 from __future__ import annotations
 
 import os
@@ -15,7 +15,7 @@ from jaxsleigh.cache import compilation_cache_dir, enable_compilation_cache
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_python_session_fills_the_same_folder_as_the_command_line(tmp_path):
+def test_python_program_fills_the_same_folder_as_the_command_line(tmp_path):
     """With no argument, the folder is the command line's (``$JAXSLEIGH_CACHE_DIR`` here); a
     simulation then writes compiled programs there. In a fresh process: the setting is global."""
     cache = tmp_path / "cache"
@@ -59,7 +59,7 @@ def test_bad_path_is_a_value_error_naming_path(tmp_path, bad):
 
 @pytest.mark.parametrize("off", [False, True])
 def test_import_alone_turns_the_cache_on_unless_told_not_to(tmp_path, off):
-    """``import jaxsleigh`` is enough for a Python session to reuse (and fill) the command line's cache."""
+    """``import jaxsleigh`` is enough for a Python program to reuse (and fill) the command line's cache."""
     cache = tmp_path / "cache"
     code = "import jaxsleigh as js; js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)"
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXSLEIGH_CACHE_DIR": str(cache),
