@@ -115,3 +115,21 @@ def test_readme_links_resolve():
 def test_readme_fits_on_two_screens():
     assert len(TEXT.splitlines()) <= 100, len(TEXT.splitlines())
     assert len(TEXT.split()) <= 900, len(TEXT.split())
+
+
+def test_readme_comparison_quotes_the_equal_energy_command():
+    """The Findings' numbers are those of ``jaxsleigh compare --equal-energy`` as committed in
+    docs/figures/compare_equal_energy.json (the command the README names)."""
+    d = json.loads((ROOT / "docs" / "figures" / "compare_equal_energy.json").read_text())
+    assert d["command"][1:3] == ["compare", "--equal-energy"] and d["settings"]["samples"] == 256
+    assert d["settings"]["dtype"] == "float32" and "jaxsleigh compare --equal-energy --out" in TEXT
+    row = {(r["controller"], r["starts"]): r for r in d["rows"]}
+    ast, pap, aic = row["astolfi", "uniform"], row["paper", "uniform"], row["aicardi", "uniform"]
+    quoted = [f"median {ast['median_T']:.1f} s (paper: {pap['median_T']:.1f} s)",
+              f"at {ast['energy_p50'] / pap['energy_p50']:.1f}x the paper's median energy",
+              f"all near θ = 0 (paper: {100 * row['paper', 'near']['settled']:.0f}%)",
+              f"Aicardi's in {aic['median_T']:.1f} s at {aic['energy_p50'] / pap['energy_p50']:.1f}x"]
+    flat = " ".join(TEXT.split())
+    for text in quoted:
+        assert text in flat, text
+    assert row["astolfi", "near"]["settled"] == 1.0
