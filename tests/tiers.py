@@ -1,7 +1,7 @@
 """Rewrite ``tests/slow.txt``, the tests left out of the quick tier, from measured durations.
 
     python -m pytest -q --durations=0 > durations.txt      # a full run
-    python tests/tiers.py durations.txt [--budget 300]
+    python tests/tiers.py durations.txt [--budget 150]
 
 Each test (its node id without parameters: all its cases together) costs the sum of its cases' setup and call
 times. The most expensive tests are listed as slow until the rest, the quick tier, costs at most ``--budget``
@@ -43,7 +43,7 @@ def slow_tests(cost: dict, budget: float) -> list:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("durations", help="the output of a full run with --durations=0")
-    ap.add_argument("--budget", type=float, default=300.0, help="worker seconds of the quick tier (default 300)")
+    ap.add_argument("--budget", type=float, default=150.0, help="worker seconds of the quick tier (default 150)")
     a = ap.parse_args()
     cost = costs(Path(a.durations).read_text())
     slow = slow_tests(cost, a.budget)
