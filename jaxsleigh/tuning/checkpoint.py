@@ -125,7 +125,7 @@ class TunerCheckpoint:
     def load(self, trainable, opt_state, groups):
         """``(it, trainable, opt_state, best, valid_points, rows, scalars, probes)`` restructured like
         ``trainable`` / ``opt_state``; ``None`` if there is no file."""
-        a = _read_checkpoint(self.path, self.key, _SETTINGS.get(self.key) or {})
+        a = read_checkpoint(self.path, self.key, _SETTINGS.get(self.key) or {})
         if a is None:
             return None
 
@@ -217,7 +217,7 @@ class LawCheckpoint:
     def load(self, params, opt_state):
         """``(it, params, opt_state, best, hist, stopped)`` shaped like ``params`` / ``opt_state``; ``None`` if there is
         no file. Refuses a damaged file or one written with other settings (naming what differs)."""
-        a = _read_checkpoint(self.path, self.key, self.settings)
+        a = read_checkpoint(self.path, self.key, self.settings)
         if a is None:
             return None
         dtype = jnp.asarray(params).dtype
@@ -231,16 +231,16 @@ class LawCheckpoint:
         return int(a["it"]), jnp.asarray(a["params"], dtype), state, best, hist, bool(a["stopped"])
 
 
-def _read_checkpoint(path: Path, key: str, settings: dict) -> Optional[dict]:
-    """A tuner checkpoint's arrays, ``None`` if there is no file; a ``ValueError`` for a damaged file or one written
-    by a run with other settings than ``settings`` (naming what differs)."""
+def read_checkpoint(path: Path, key: str, settings: dict, what: str = "tuner checkpoint") -> Optional[dict]:
+    """A tuner's (or search's, ``what``) checkpoint arrays, ``None`` if there is no file; a ``ValueError`` for a
+    damaged file or one written by a run with other settings than ``settings`` (naming what differs)."""
     if not path.exists():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-        raise ValueError(f"tuner checkpoint {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
+        raise ValueError(f"{what} {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
                          "and start afresh (without --resume)") from None
     if str(a.get("key")) != key:
         try:
@@ -248,7 +248,7 @@ def _read_checkpoint(path: Path, key: str, settings: dict) -> Optional[dict]:
         except ValueError:
             old = {}
         why = _differences(old, settings)
-        raise ValueError(f"tuner checkpoint {str(path)!r} was written by a run with other settings"
+        raise ValueError(f"{what} {str(path)!r} was written by a run with other settings"
                          + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
                          "or move the checkpoint (or choose another --out) to start afresh")
     return a

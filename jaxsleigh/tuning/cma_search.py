@@ -44,7 +44,6 @@ import hashlib
 import json
 import math
 import time
-import zipfile
 from pathlib import Path
 from typing import Any, NamedTuple, Optional, Sequence
 
@@ -53,7 +52,7 @@ import numpy as np
 from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
 from ..status import Status
-from .checkpoint import TuningInterrupted
+from .checkpoint import TuningInterrupted, read_checkpoint
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
@@ -234,15 +233,7 @@ def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list, opt
 
 
 def _load(path: Path, key: str, rng):
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-        raise ValueError(f"search checkpoint {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it and start "
-                         "afresh (without --resume)") from None
-    if str(a.get("key")) != key:
-        raise ValueError(f"search checkpoint {str(path)!r} was written by a run with other settings; rerun that "
-                         "command with --resume, or delete the checkpoint to start afresh")
+    a = read_checkpoint(path, key, {}, what="search checkpoint")
     rng.bit_generator.state = json.loads(str(a["rng"]))
     state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
     n = len(a["hist/generation"])
