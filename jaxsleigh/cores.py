@@ -38,13 +38,13 @@ __all__ = ["available_cores", "configure", "workers", "run_parts", "default_chun
 PART_SIZE = 1024
 
 #: starts per chunk on CPU, for `run_ensemble`, basins and sweeps alike. Measured on the default basin of 10^5
-#: starts (2 cores, float32, `experiments/basin_tails.py`): 51-53 s with chunks of 16384 against 66-78 s with
+#: starts (2 cores, float32, `experiments/performance/basin_tails.py`): 51-53 s with chunks of 16384 against 66-78 s with
 #: 4096-8192 and 59-84 s with 65536-131072 (each chunk's tail batch finishes its few stiff stragglers on one core
 #: behind the next chunk's parts); on the benchmark's tame starts 65536 and 16384 ran alike (scratch).
 CPU_CHUNK = 16384
 
 #: starts per chunk and device on an accelerator. Measured on one NVIDIA H200 (jax 0.11.2, float32,
-#: 10^6 starts of the benchmark workload over 100 s, `experiments/bench_accelerator.sh`): the adaptive
+#: 10^6 starts of the benchmark workload over 100 s, `experiments/performance/bench_accelerator.sh`): the adaptive
 #: default ran at 0.95e9, 3.7e9 and 4.1e9 equivalent trajectory-steps/s with chunks of 2^18, 2^20 and
 #: 2^22 starts, and did not finish in 45 s with 2^16 (each chunk pays its stiff stragglers' few thousand
 #: steps, one loop iteration at a time, whatever its size); fixed-step RK4 was the same from 2^20 up.

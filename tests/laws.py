@@ -17,7 +17,7 @@ class PD(NamedTuple):
 
 #: The gains the ``balanced`` preset had until 2026-11: searched at float32's default tolerance on the median energy
 #: alone, its settled starts fall into a (w2, p1) oscillation that atol 1e-6 does not resolve
-#: (docs/evidence/settled-phase.md). The golden run, the settled-phase tests and experiments/settled_tolerance.py use them.
+#: (docs/evidence/settled-phase.md). The golden run, the settled-phase tests and experiments/studies/settled_tolerance.py use them.
 OLD_BALANCED = {"L": [2.152653933919823, 1.7424258224644875, 2.4920401566138226], "k": 0.0014669247735718393,
                 "D_hat": [[2.5652485388516872, -0.03276605028984544], [-0.03276605028984544, 10.823678151160923]]}
 #: Two README starts (rounded) that settle by 50 s under `OLD_BALANCED` and then oscillate.

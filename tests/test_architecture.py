@@ -1,10 +1,10 @@
-"""The house's rules, checked on the package's own imports (experiments/architecture_figure.py draws them):
+"""The house's rules, checked on the package's own imports (experiments/studies/architecture_figure.py draws them):
 every module belongs to a floor, no import runs up a floor, no two modules import each other in a circle."""
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "experiments"))
+sys.path.insert(0, str(ROOT / "experiments" / "studies"))
 from architecture_figure import FLOORS, ROOT as PKG, floor_of, imports  # noqa: E402
 
 

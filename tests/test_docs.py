@@ -167,7 +167,7 @@ def test_getting_started_counts_the_notebooks_and_offers_the_cache(site):
 
 
 def test_preset_numbers_are_the_committed_measurements():
-    """The README's preset table and the full one of the tuning guide quote `experiments/preset_effort.py`'s JSON.
+    """The README's preset table and the full one of the tuning guide quote `experiments/studies/preset_effort.py`'s JSON.
 
     README: per preset, the median T_0.05 on the README's starts and the lowest and highest of the control energy's
     25/50/75/90th percentiles as ratios to the paper's. Tuning guide: for every preset and both start distributions,
@@ -175,12 +175,12 @@ def test_preset_numbers_are_the_committed_measurements():
     import json
 
     d = json.loads((DOCS / "figures" / "preset_effort.json").read_text())
-    assert d["dtype"] == "float32" and d["command"] == "python experiments/preset_effort.py --atol 1e-8"
+    assert d["dtype"] == "float32" and d["command"] == "python experiments/studies/preset_effort.py --atol 1e-8"
     assert d["atol"] == 1e-8
     readme = " ".join((ROOT / "README.md").read_text().split())
     tuning = " ".join((DOCS / "how-to" / "tuning.md").read_text().split())
     for text in (readme, tuning):
-        assert "`python experiments/preset_effort.py --atol 1e-8`" in text
+        assert "`python experiments/studies/preset_effort.py --atol 1e-8`" in text
     quantiles = ("p25", "p50", "p75", "p90")
     for name, f in d["distributions"]["readme"]["presets"].items():
         r = [f["energy_ratio_to_paper"][q] for q in quantiles]
@@ -198,7 +198,7 @@ def test_preset_numbers_are_the_committed_measurements():
     sh, pa = (d["distributions"]["readme"]["presets"][k] for k in ("shaped", "paper"))
     assert f"{sh['mean_steps']:,.0f} mean steps (the paper's {pa['mean_steps']:,.0f})" in tuning
     d64 = json.loads((DOCS / "figures" / "preset_effort_x64.json").read_text())
-    assert d64["dtype"] == "float64" and d64["command"] == "python experiments/preset_effort.py --x64"
+    assert d64["dtype"] == "float64" and d64["command"] == "python experiments/studies/preset_effort.py --x64"
     bal64 = d64["distributions"]["readme"]["presets"]["balanced"]["energy_ratio_to_paper"]["p50"]
     assert f"float64 (`--x64`) agrees (median {bal64:.2f}x the paper's)" in tuning
     for dist in ("readme", "wide"):                 # float64 at its defaults and float32 at atol 1e-8 agree
@@ -211,7 +211,7 @@ def test_preset_numbers_are_the_committed_measurements():
 
 
 def test_family_study_tables_quote_their_json():
-    """The shaped-energy page's tables of the two tuner studies quote `experiments/shaped_study.py`'s JSON (shaped
+    """The shaped-energy page's tables of the two tuner studies quote `experiments/studies/shaped_study.py`'s JSON (shaped
     and paper families): each tuner's best training objective, and every held-out median T and energy ratio row."""
     import json
 
@@ -228,7 +228,7 @@ def test_family_study_tables_quote_their_json():
 
 
 def test_family_studies_judged_at_atol_1e_8_quote_their_json():
-    """The shaped-energy page's atol 1e-8 judgement (`experiments/shaped_held_out.py`) quotes the studies' JSON: the
+    """The shaped-energy page's atol 1e-8 judgement (`experiments/studies/shaped_held_out.py`) quotes the studies' JSON: the
     shaped family's held-out table (both tuners, both tolerances) and the paper family's gradient ratios."""
     import json
 
@@ -250,7 +250,7 @@ def test_family_studies_judged_at_atol_1e_8_quote_their_json():
 
 
 def test_aicardi_study_table_quotes_its_json():
-    """The shaped-energy page's held-out table of Aicardi's law quotes `experiments/shaped_study.py --family aicardi`'s
+    """The shaped-energy page's held-out table of Aicardi's law quotes `experiments/studies/shaped_study.py --family aicardi`'s
     JSON: CMA-ES's best training objective and each held-out row's median T and energy ratios."""
     import json
 
@@ -269,12 +269,12 @@ def test_aicardi_study_table_quotes_its_json():
 
 
 def test_start_up_figures_are_the_committed_measurement():
-    """The performance page and getting started quote `experiments/compile_cache.py`'s JSON: first and second fresh
+    """The performance page and getting started quote `experiments/performance/compile_cache.py`'s JSON: first and second fresh
     process of each README command, this tree against the baseline measured in the same run."""
     import json
 
     d = json.loads((DOCS / "figures" / "compile_cache.json").read_text())
-    assert d["command"].startswith("python experiments/compile_cache.py --repeats 5 --baseline f036c14")
+    assert d["command"].startswith("python experiments/performance/compile_cache.py --repeats 5 --baseline f036c14")
     perf = (DOCS / "evidence" / "performance.md").read_text()
     start = " ".join((DOCS / "getting-started.md").read_text().split())
     m = d["medians"]
@@ -291,8 +291,8 @@ def test_start_up_figures_are_the_committed_measurement():
 
 def test_kernel_and_step_limits_quote_their_json():
     """Where the performance and settled-phase pages say why the kernel and the step go no faster, they quote the
-    scripts' JSON: the kernel table of `experiments/xla_kernel_structure.py` (kernels per step, rate, share of C), the
-    per-lane costs of `experiments/block3_cost.py`, and every step count of `experiments/settled_phase_adopted.py`."""
+    scripts' JSON: the kernel table of `experiments/performance/xla_kernel_structure.py` (kernels per step, rate, share of C), the
+    per-lane costs of `experiments/performance/block3_cost.py`, and every step count of `experiments/studies/settled_phase_adopted.py`."""
     import json
 
     def rate(x):
@@ -304,7 +304,7 @@ def test_kernel_and_step_limits_quote_their_json():
 
     perf = (DOCS / "evidence" / "performance.md").read_text()
     k = json.loads((DOCS / "figures" / "xla_kernel_structure.json").read_text())
-    assert k["cores"] == 1 and k["dtype"] == "float32" and k["command"].startswith("python experiments/xla_kernel_structure.py")
+    assert k["cores"] == 1 and k["dtype"] == "float32" and k["command"].startswith("python experiments/performance/xla_kernel_structure.py")
     r = k["rows"]
     pairs = (("the library's (cache blocks of 256) / the same rebuilt by the script", ("library", "rebuilt")),
              ("blocks of 128 / 512", ("block_128", "block_512")),
@@ -327,7 +327,7 @@ def test_kernel_and_step_limits_quote_their_json():
     assert (f"e^M of a 3x3 matrix at {b['expm_3x3']['us_per_lane']:.2f} µs per lane" in settled
             and f"at {b['expm_12x12']['us_per_lane']:.1f} µs, against **{b['library_step']['us_per_lane']:.2f} µs" in settled)
     s = json.loads((DOCS / "figures" / "settled_phase_adopted.json").read_text())
-    assert s["command"] == "python experiments/settled_phase_adopted.py --also 72f4f8f"
+    assert s["command"] == "python experiments/studies/settled_phase_adopted.py --also 72f4f8f"
     for gains, label in (("paper", "paper"), ("balanced", "previous balanced"), ("balanced_now", "present balanced"),
                          ("tuned", "tuned")):
         g = s["gains"][gains]

@@ -196,7 +196,7 @@ def test_near_singular_matches_stiff_reference(ic):
 
 def test_tiny_theta0_budget_is_reported_then_raised():
     """theta0 = 1e-3: the default budget runs out and says so; a larger budget gets through and agrees
-    with a tighter run (float64). The Radau comparison at this theta0 is in experiments/near_singular.py."""
+    with a tighter run (float64). The Radau comparison at this theta0 is in experiments/studies/near_singular_accuracy.py."""
     ic = np.array([[3.0, 3.0, 1e-3]])
     short = run_ensemble(ic, t_final=2.0, x64=True)
     assert short.status[0] == Status.BUDGET_EXHAUSTED

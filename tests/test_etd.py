@@ -178,7 +178,7 @@ def test_near_theta_zero_nothing_non_finite_passes_as_ok():
 def test_energy_spent_after_settling_needs_atol_1e_8_in_float32():
     """Two of the README's held-out starts (rounded) under the gains `balanced` had until 2026-11 (k = 0.0015, searched
     at the default tolerance: it was chosen for this blindness): by 50 s they have settled, and from about
-    57 s float64 (default tolerances; SciPy's Radau at rtol 1e-10 agrees, experiments/settled_tolerance.py) has
+    57 s float64 (default tolerances; SciPy's Radau at rtol 1e-10 agrees, experiments/studies/settled_tolerance.py) has
     them oscillate in (w2, p1) and spend most of their 100 s energy. float32 at atol 1e-8 follows float64 to 1%;
     at its default atol (1e-6) the oscillation, seeded at amplitudes below 1e-6, is never resolved (the docs'
     settled-phase page and the README say so: when this changes, they must)."""

@@ -149,7 +149,7 @@ WORK = [("jaxsleigh.studies.ensemble", "_run_chunks"), ("jaxsleigh.studies.simul
 
 
 #: what each command needs besides the option under test, its output file, and the options that name paths
-#: (not numbers; left out); experiments/fuzz_cli_flags.py uses them too
+#: (not numbers; left out); experiments/studies/fuzz_cli_flags.py uses them too
 COMMAND_ARGS = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"],
                 "basin": ["--x", "-1:1:2", "--y", "1", "--theta", "0.5", "--t-final", "1"],
                 "sweep": ["--param", "k=0.1:1:2", "--samples", "2", "--t-final", "1"],

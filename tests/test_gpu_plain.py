@@ -3,7 +3,7 @@
 The kernel runs on a GPU only where one is present; here it runs through Pallas' interpreter, which
 traces the same kernel body (the same component field, the same RK4 order of operations), so its
 arithmetic is checked against XLA's `run_plain` on any machine. The speed is measured by
-`experiments/gpu_kernel.py` on a GPU, never here.
+`experiments/performance/gpu_kernel.py` on a GPU, never here.
 """
 from __future__ import annotations
 

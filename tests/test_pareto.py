@@ -200,7 +200,7 @@ def _energy_at(v, q=(50, 75, 90)):
 
 def test_balanced_preset_meets_its_criteria_on_starts_it_never_saw(balanced_vs_paper):
     """`balanced` on 2048 starts that neither its search nor its acceptance check saw
-    (experiments/balanced_search.py checked 2048 others): no start failing or crossing theta = 0, no fewer
+    (experiments/studies/balanced_search.py checked 2048 others): no start failing or crossing theta = 0, no fewer
     converged, and the control energy at the 50th, 75th and 90th percentiles within 2% of the paper's (the search
     held them at or below the paper's on its own starts: a percentile of 2048 moves by ~2% between samples)."""
     preset = __import__("pathlib").Path(js.__file__).parent / "presets" / "balanced.json"

@@ -16,7 +16,7 @@ def add_bench(subparsers) -> None:
                      "zero momentum): fixed-step RK4 throughput (final state only), correct trajectories per "
                      "second of the default adaptive method (final-state error <= 1e-3 against a float64 "
                      "reference), wrong or non-finite counts, peak memory. Compile time is excluded. "
-                     "Peers (plain vmap, NumPy, diffrax, scipy) are compared by experiments/bench_peers.py."))
+                     "Peers (plain vmap, NumPy, diffrax, scipy) are compared by experiments/performance/bench_peers.py."))
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a short table)")
     p.add_argument("--n-ics", type=whole("--n-ics", "4096"), default=4096,
                    help="number of initial conditions (default 4096)")

@@ -63,7 +63,7 @@ starts subject to median control energy <= --energy-margin x the --gains' on the
 percentiles), no fewer converged and no start failing or crossing theta = 0. Each generation's
 --population candidates run as one ensemble (gains per trajectory). Use --atol 1e-8 when effort
 matters: float32's default 1e-6 does not resolve energy spent after settling. The 'balanced' preset
-is its result (experiments/balanced_search.py: two such searches in a row, at --atol 1e-8 with
+is its result (experiments/studies/balanced_search.py: two such searches in a row, at --atol 1e-8 with
 --energy-percentiles 50,75,90).
 
 --controller NAME (a law of jaxsleigh controllers), --saturation U and --sample-period TS tune that

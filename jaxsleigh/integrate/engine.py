@@ -617,7 +617,7 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     ``specialise`` (default, CPU, one device) compiles the kernel for this run's plant and gains
     (`_plain_specialised`): their values become constants of the program (~1.4x less CPU time than
     the generic kernel on the test machine) and LLVM may fuse multiply-adds (`PLAIN_CPU_OPTIONS`,
-    another ~1.13x; experiments/bench_c_limit.py), final states within float32 rounding of the generic
+    another ~1.13x; experiments/performance/bench_c_limit.py), final states within float32 rounding of the generic
     kernel; a new plant or new gains compile again (a second or two).
 
     ``kernel`` (``"auto"``: on a GPU, where `jaxsleigh.integrate.gpu_plain.supported`) runs the steps
@@ -673,7 +673,7 @@ def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
 
 #: room of the adaptive budget, in base steps, per dtype: float64's 100x tighter tolerances need ~20% more
 #: attempts than 20x out of the stiffest starts (theta0 = 1e-2 took 25,387 attempts for a 10 s run's 1,008 base
-#: steps; python experiments/engine_defaults.py)
+#: steps; python experiments/performance/engine_defaults.py)
 BUDGET_FACTOR = {"float32": 20, "float64": 30}
 
 

@@ -3,7 +3,7 @@ r"""The plain fixed-step path as one GPU kernel: every lane takes all its RK4 st
 XLA compiles `jaxsleigh.integrate.stepper.run_plain` on a GPU as a loop of kernels, one loop
 iteration per step: every step reads and writes the whole batch's state in the GPU's memory and
 pays its kernel launches. On one H200 that ran at 8.7e9 trajectory-steps/s for 10^6 starts, this
-kernel at 6.1e10 (`experiments/gpu_kernel.py`, float32, 10^4 steps). Here the batch is cut into
+kernel at 6.1e10 (`experiments/performance/gpu_kernel.py`, float32, 10^4 steps). Here the batch is cut into
 blocks of ``block`` lanes, one program per block (`jax.experimental.pallas`, Triton on NVIDIA
 GPUs); a program loads its lanes' five components once, takes ``n_steps`` steps with
 ``lax.fori_loop`` and writes the final state once, the structure of a hand-written CUDA kernel.
@@ -33,7 +33,7 @@ from ..model.params import Gains
 __all__ = ["supported", "run_plain_kernel", "KERNEL_BLOCK"]
 
 #: lanes per program (a power of two, as Triton requires). One H200, 10^4 steps: 256 ran at 2.7e10
-#: trajectory-steps/s for 10^5 starts (128: 1.6e10), both at 6.1e10 for 10^6 (experiments/gpu_kernel.py)
+#: trajectory-steps/s for 10^5 starts (128: 1.6e10), both at 6.1e10 for 10^6 (experiments/performance/gpu_kernel.py)
 KERNEL_BLOCK = 256
 
 

@@ -40,7 +40,7 @@ DEFAULT_RTOL = {"float32": 1e-6, "float64": 1e-8}
 DEFAULT_ATOL = {"float32": 1e-6, "float64": 1e-8}
 #: Largest adaptive step, in base steps (1 s at dt = 0.01). Since T_eps is located on the step's
 #: dense output (jaxsleigh.integrate.observers.ConvergenceTime), the cap no longer sets T_eps's resolution and
-#: the error control decides the step: on the benchmark workload (experiments/adaptive_steps.py)
+#: the error control decides the step: on the benchmark workload (experiments/studies/adaptive_steps.py)
 #: 1,076 steps per 100 s on average against 1,363 with the 0.1 release's cap of 10 dt, T_eps within
 #: 2.1e-4 s of a float64 reference.
 MAX_STEP_FACTOR = 100
@@ -84,7 +84,7 @@ def error_ratio(h, y, y_new, k4, k5, ctl, e=None):
 
 
 #: exponents of the PI controller (Gustafsson's form, err ~ h^4). On 512 benchmark starts (100 s, float32,
-#: python experiments/engine_defaults.py): Hairer & Wanner's 0.7 / 4, 0.4 / 4 took 1,008 mean steps, T_eps
+#: python experiments/performance/engine_defaults.py): Hairer & Wanner's 0.7 / 4, 0.4 / 4 took 1,008 mean steps, T_eps
 #: within 6.8e-4 s of float64; these 927 steps, 9.1e-4 s; the I controller (0.25, 0) 804 steps but 1.7e-3 s
 PI_ALPHA, PI_BETA = 0.15, 0.05
 

@@ -168,7 +168,7 @@ _PRESETS = Path(__file__).resolve().parent.parent / "presets" / "controllers"
 
 def load_shaped(spec="shaped") -> ShapedGains:
     """A `ShapedGains` from a preset name (``"shaped"``: ``jaxsleigh/presets/controllers/shaped.json``, written by
-    ``experiments/shaped_study.py``) or a JSON file with the fields of `ShapedGains` (a ``"meta"`` entry is kept
+    ``experiments/studies/shaped_study.py``) or a JSON file with the fields of `ShapedGains` (a ``"meta"`` entry is kept
     out)."""
     path = _PRESETS / f"{spec}.json"
     if not path.is_file():

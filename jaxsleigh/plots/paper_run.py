@@ -1,7 +1,7 @@
 """The simulation of the paper's Section 5: six starts, the paper's plant and gains, 100 s.
 
 `run_paper` simulates and writes Figs. 2-5 of the paper (plus ``H_d(t)``) and the data; it
-backs ``jaxsleigh paper`` and ``experiments/paper_figures.py``.
+backs ``jaxsleigh paper`` and ``experiments/studies/paper_figures.py``.
 
 The paper's set of starts is not published except for the blue run at ``(-3, -2, pi/8)``; the
 others here are a well-spread assortment of positions and headings, all with zero momentum.

@@ -51,7 +51,7 @@ __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
 #: a part hands its still-active lanes to the chunk's tail batch once at most this many are left (of 1024); the
 #: default 10^5-start basin took 20.9 s with 128, 24.7 s with 16, 67.3 s with 0 (every part finishing its own
-#: stragglers; python experiments/engine_defaults.py)
+#: stragglers; python experiments/performance/engine_defaults.py)
 TAIL_LANES = 128
 
 SUMMARY_FIELDS = ("q_final", "p_final", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",

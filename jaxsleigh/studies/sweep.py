@@ -22,7 +22,7 @@ Parameters (``NAME`` of ``--param NAME=LO:HI:P[:log]``):
 
 One parameter gives a line of ``P`` values, two give a ``P1 x P2`` grid (the first one slowest).
 `sweep` also takes explicit value sets (``{"m": [...], "J": [...]}``, zipped, not
-crossed): sampled plants, as in ``experiments/robustness.py``.
+crossed): sampled plants, as in ``experiments/studies/robustness.py``.
 """
 from __future__ import annotations
 

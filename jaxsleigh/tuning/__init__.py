@@ -58,7 +58,7 @@ stepper, so this is the exact derivative of the discrete map with its step seque
 reverse mode with ``jax.checkpoint`` over segments of the scan (memory grows with the number of
 segments plus one segment's residuals, not with the number of steps) or forward mode
 (``jax.jacfwd``, one tangent per free parameter, memory independent of the number of steps).
-``experiments/bench_gradients.py`` measures both: for the 7 gain parameters, 10^4 steps and 256
+``experiments/performance/bench_gradients.py`` measures both: for the 7 gain parameters, 10^4 steps and 256
 starts (float32, 2 CPU cores), forward mode took 2.0 s and 0.4 MB of XLA temporaries against
 3.2 s and 20 MB for checkpointed reverse mode (5.3 s and 1.8 GB without checkpointing), so
 forward mode is the default. Reverse mode's cost does not grow with the number of parameters;

@@ -13,7 +13,7 @@ ways to compute the front (``method``):
   one XLA call evaluates every budget's candidate per iteration.
 
 `random_search` is the derivative-free baseline with the same number of objective evaluations.
-``experiments/pareto_front.py`` measures which method is faster (see the how-to for the numbers).
+``experiments/studies/pareto_front.py`` measures which method is faster (see the how-to for the numbers).
 """
 from __future__ import annotations
 

@@ -21,7 +21,7 @@
  * root is an IEEE (correctly rounded) instruction; -fno-math-errno only lets gcc vectorise sqrtf.
  *
  * Speed is bound by the divide/square-root unit (one per core, shared: ~10 cycles per zmm
- * division, ~12 per zmm square root on this machine, measured by experiments/c_reference/
+ * division, ~12 per zmm square root on this machine, measured by experiments/performance/c_reference/
  * divsqrt_micro.c), not by memory or by the ~50 other vector operations per evaluation. So the
  * default form uses as few of them as the arithmetic allows without leaving float32 rounding:
  *   - p1 / m and p2 / (J + m l^2) are multiplications by reciprocals computed once (XLA itself
