@@ -1,9 +1,9 @@
 r"""jaxsleigh's plain fixed-step path against a hand-vectorised C RK4 of the same closed loop.
 
     python experiments/performance/bench_c_limit.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--seed 0]
-                                        [--repeats 7] [--cores N] [--c-threads N] [--whole-batch] [--vector-width 512]
-                                        [--c-variants strict,shared_recip,rsqrt_nr]
-                                        [--out out/bench_c_limit.json]
+                                                    [--repeats 7] [--cores N] [--c-threads N] [--whole-batch] [--vector-width 512]
+                                                    [--c-variants strict,shared_recip,rsqrt_nr]
+                                                    [--out out/bench_c_limit.json]
 
 Builds ``jaxsleigh/studies/c_reference/rk4_w.c`` with ``gcc -O3 -march=native -fno-math-errno`` (no
 -ffast-math) if a compiler is present, else prints why and exits 0 with ``available: false``. Then,

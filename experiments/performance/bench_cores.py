@@ -1,7 +1,7 @@
 r"""Every core, start-up, sweeps against basins: the figures side by side in one run.
 
     python experiments/performance/bench_cores.py [--basin-n 100000] [--baseline 2fa58a2] [--repeats 2]
-                                      [--skip c,basin,startup,sweep] [--out docs/figures/bench_cores.json]
+                                                  [--skip c,basin,startup,sweep] [--out docs/figures/bench_cores.json]
 
 1. **The fixed-step path against C** (`jaxsleigh.studies.bench.c_limit`): ``run_ensemble(method="rk4",
    summaries=False, check_passivity=False)`` on the benchmark workload (4096 starts, 100 s, float32) against

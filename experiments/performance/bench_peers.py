@@ -1,8 +1,8 @@
 r"""jaxsleigh against its peers on the benchmark workload, in one run.
 
     python experiments/performance/bench_peers.py [--n-ics 4096] [--t-final 100] [--dt 0.01] [--x64] [--seed 0]
-                                      [--skip numpy,scipy,...] [--scipy-n 8] [--repeats 1]
-                                      [--cache out/bench_cache] [--out out/bench_peers.json]
+                                                  [--skip numpy,scipy,...] [--scipy-n 8] [--repeats 1]
+                                                  [--cache out/bench_cache] [--out out/bench_peers.json]
 
 Workload: :func:`jaxsleigh.studies.bench.workload` (``--n-ics`` starts, x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi),
 zero momentum), classical RK4 at ``--dt`` up to ``--t-final`` (``steps = t_final / dt``), final state

@@ -1,9 +1,9 @@
 r"""jaxsleigh's throughput and peak memory against the number of starts N and the horizon.
 
     python experiments/performance/bench_scaling.py [--sizes 1000,10000,100000,1000000] [--t-final 100] [--dt 0.01]
-                                        [--horizons 10,30,100] [--horizon-n 4096] [--modes rk4,plain,adaptive]
-                                        [--chunk-size 65536] [--x64] [--rk4-check] [--warmup chunk|full|none]
-                                        [--timeout S] [--out out/bench_scaling.json]
+                                                    [--horizons 10,30,100] [--horizon-n 4096] [--modes rk4,plain,adaptive]
+                                                    [--chunk-size 65536] [--x64] [--rk4-check] [--warmup chunk|full|none]
+                                                    [--timeout S] [--out out/bench_scaling.json]
 
 Three modes on the measured workload (:func:`jaxsleigh.studies.bench.workload`), all through
 :func:`jaxsleigh.run_ensemble` with its default ``chunk_size`` (65536 on CPU, 2^22 on an accelerator) and ``segment``:

@@ -1,7 +1,7 @@
 """Start-up: the first and the second fresh process of the README's commands, this tree against a baseline.
 
     python experiments/performance/compile_cache.py [--repeats 3] [--baseline f036c14] [--commands simulate,basin,x64]
-                                        [--out docs/figures/compile_cache.json]
+                                                    [--out docs/figures/compile_cache.json]
 
 Each run is a new process (`python -m jaxsleigh.cli ...`) with an empty cache folder for the first and the
 same, now warm, folder for the second (JAXSLEIGH_CACHE_DIR in a temporary folder: nothing of this machine's own

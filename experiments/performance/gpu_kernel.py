@@ -2,7 +2,7 @@ r"""The plain fixed-step path on a GPU: XLA's loop of kernels against the one-ke
 (`jaxsleigh.integrate.gpu_plain`), side by side in one process.
 
     python experiments/performance/gpu_kernel.py [--sizes 100000,1000000,10000000] [--t-final 100] [--dt 0.01]
-                                     [--blocks 128,256] [--out out/gpu_kernel.json]
+                                                 [--blocks 128,256] [--out out/gpu_kernel.json]
 
 For each N: `drive_plain` (final state only, the benchmark workload, float32) with ``kernel=False``
 and with ``kernel=True`` for each block size; each compiled and warmed on the same shapes first, then

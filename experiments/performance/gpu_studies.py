@@ -2,7 +2,7 @@ r"""Basins and sweeps on one accelerator: what `jaxsleigh.run_basin` and `jaxsle
 with their defaults on a GPU, warm, in one process.
 
     python experiments/performance/gpu_studies.py [--basin-n 1000000] [--sweep-n 131072] [--sweep-t 30] [--repeats 3]
-                                      [--skip-basin] [--x64] [--out out/gpu_studies.json]
+                                                  [--skip-basin] [--x64] [--out out/gpu_studies.json]
 
 * ``basin``: the default basin of ``--basin-n`` starts (`jaxsleigh.sample_starts`, seed 0, 100 s, adaptive):
   wall time, starts per second, the equivalent trajectory-steps per second (N x 10^4 base steps over the wall

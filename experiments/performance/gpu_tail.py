@@ -1,7 +1,7 @@
 r"""The stiff stragglers of a basin on a GPU: what one adaptive loop iteration costs when the batch is small.
 
     python experiments/performance/gpu_tail.py [--n 1024] [--t-final 10] [--variants default,no_graphs,graph_loops,cpu]
-                                   [--out out/gpu_tail.json]
+                                               [--out out/gpu_tail.json]
 
 A default basin of 10^6 starts (`jaxsleigh.sample_starts`, seed 0, 100 s) took 54 s on one H100, where its
 10^4-base-step work alone takes ~3 s: ~900 starts near theta = 0 use up their budget (20x the base steps) and

@@ -1,7 +1,7 @@
 """Basins of attraction at scale: two 2-D slices and a Monte-Carlo box, timed; the README figures.
 
     python experiments/studies/basin_study.py [--n 512] [--n-xy 256] [--samples 65536] [--t-final 100]
-                                      [--out out/basin] [--figures docs/figures]
+                                              [--out out/basin] [--figures docs/figures]
 
 1. x-theta slice at y0 = 1: x in [-3, 3], theta in [-pi, pi], n x n starts at rest (the timed run: it
    crosses the singular set theta = 0, where starts are the most expensive);

@@ -1,7 +1,7 @@
 """The time-effort Pareto front of the gains (gradient tuner), and which front method is faster.
 
     python experiments/studies/pareto_front.py [--points 3] [--steps 30] [--warm-steps 10] [--batch 32]
-                                       [--val-n 256] [--val-seed 20240611] [--atol A] [--compare]
+                                               [--val-n 256] [--val-seed 20240611] [--atol A] [--compare]
 
 1. Budgets: ``--points`` energy budgets (geometric-mean control energy of the training batch)
    from a quarter of the paper's gains' training energy to twice ``tuned``'s, plus the paper's own

@@ -2,7 +2,7 @@ r"""The settled phase: can an exponential RK4 remove the step limit set by the
 stiff injected damping k / theta^2 once the sleigh sits next to theta = 0?
 
     python experiments/studies/settled_phase.py [--t-final 300] [--gains paper tuned] [--n-starts 6]
-                                        [--max-step 0.1 10] [--out out/settled_phase.json]
+                                                [--max-step 0.1 10] [--out out/settled_phase.json]
 
 Near theta = w1 = 0 the p2 equation carries the linear damping term
 ``-(D22 + k / w1^2) p2 / (J + m l^2)`` whose rate ``lam = -(D22 + k / w1^2) / (J + m l^2)`` grows

@@ -1,7 +1,7 @@
 r"""The settled-phase step adopted: steps and accuracy before and after, side by side.
 
     python experiments/studies/settled_phase_adopted.py [--baseline af0756c] [--also 72f4f8f] [--n 4096] [--n-fast 256]
-                                                [--out docs/figures/settled_phase_adopted.json]
+                                                        [--out docs/figures/settled_phase_adopted.json]
 
 Runs the default adaptive method (float32, 100 s, eps = 0.05) of this tree and of ``--baseline`` (a
 ``git worktree`` of the commit before the exponential step, classical RK4 with the I controller) on the

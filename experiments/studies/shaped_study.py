@@ -2,8 +2,8 @@
 paper's own 7 gains, or a literature law.
 
     python experiments/studies/shaped_study.py [--family shaped|paper|aicardi] [--n 1024] [--steps 40] [--cma-factor 3]
-                                       [--multiplier-every 0] [--out docs/figures/<family>_study.json]
-                                       [--write-preset]
+                                               [--multiplier-every 0] [--out docs/figures/<family>_study.json]
+                                               [--write-preset]
 
 Objective (`jaxsleigh.tuning.hard_time`): median + 0.5 x 90th percentile of the hard settling time T_0.05 over
 100 s, with budgets of the paper's gains' control energy at the 25th, 50th, 75th and 90th percentiles on the

@@ -1,7 +1,7 @@
 """Tune the gains, validate them on held-out starts with the accurate engine, and draw the figures.
 
     python experiments/studies/tune_gains.py [--steps 200] [--batch 256] [--seed 0] [--val-n 4096]
-                                     [--val-seed 20240611] [--robust] [--write-preset] [--x64]
+                                             [--val-seed 20240611] [--robust] [--write-preset] [--x64]
 
 1. Tunes all gains from the paper's (``jaxsleigh.tuning.tune``: forward-mode gradients through the
    adaptive RK4, training horizon 30 s) on ``--batch`` starts with ``|x|, |y| <= 3``,
