@@ -3,8 +3,12 @@ r"""Where a default basin's time goes on CPU: its parts, its tails, and what a s
     python experiments/performance/basin_tails.py [--n 100000] [--chunks 16384,65536,131072] [--out docs/figures/basin_tails.json]
 
 1. ``timeline``: the default basin of ``--n`` starts (`jaxsleigh.sample_starts`, seed 0, 100 s, adaptive, float32),
-   warm, with the start and end of every chunk's parts (`_Chunks.engine_part`, the cores together) and of every
-   chunk's tail batch (`_Chunks._run_tail`, one core, in the background) in seconds from the call.
+   warm, with the start and end, in seconds from the call, of every call of the engine's
+   `jaxsleigh.integrate.engine.drive_final` that the ensemble makes: once per part of a chunk (``what: "part"``,
+   the parts of a chunk run at once, one per core, until at most ``TAIL_LANES`` of their lanes are still active)
+   and once per chunk's tail batch (``what: "tail"``: the parts' stiff stragglers gathered and run to the horizon
+   on one core, in the background while the next chunk's parts run). ``parts_s_sum`` is the time during which
+   some part ran (the chunks' parts, the cores together), ``tails_s_sum`` the tail batches' times summed.
 2. ``small_batches``: the 24 / 48 / 96 starts of that sample nearest theta = 0 (nearly all of them use their
    whole budget, status 4) as a basin of their own on one core (``JAXSLEIGH_CORES=1`` in a fresh process):
    microseconds per attempted step of the batch (wall over the largest step count).
@@ -49,37 +53,47 @@ def digest(r) -> str:
     return hashlib.sha256(b"".join(np.ascontiguousarray(np.asarray(a)).tobytes() for a in arrays)).hexdigest()[:16]
 
 
+def _covered(intervals) -> float:
+    """The length of the union of ``(from, to)`` intervals: the time during which at least one ran."""
+    total, end = 0.0, float("-inf")
+    for lo, hi in sorted(intervals):
+        if hi > end:
+            total += hi - max(lo, end)
+            end = hi
+    return total
+
+
 def timeline(js, starts) -> dict:
+    """The basin run with every engine call of the ensemble timed: `drive_final` as
+    `jaxsleigh.studies.ensemble` calls it, given ``y0w`` for a part of a chunk and ``state`` (the parts'
+    still-active lanes, idle padding lanes marked ``INVALID_INPUT``) for a chunk's tail batch."""
     import jaxsleigh.studies.ensemble as ens
 
     t0, events = [0.0], []
-    tail, part = ens._Chunks._run_tail, ens._Chunks.engine_part
+    drive = ens.drive_final
 
-    def run_tail(self, fulls, active, sel, rows, lo):
+    def timed(y0w, status0, *args, state=None, **kw):
         t = time.perf_counter()
-        out = tail(self, fulls, active, sel, rows, lo)
-        events.append({"what": "tail", "chunk_start": int(lo), "lanes": int(sel.size),
+        out = drive(y0w, status0, *args, state=state, **kw)
+        status = np.asarray(status0 if state is None else state.status)
+        events.append({"what": "part" if state is None else "tail",
+                       "lanes": int((status != js.Status.INVALID_INPUT).sum()),
                        "from_s": t - t0[0], "to_s": time.perf_counter() - t0[0]})
         return out
 
-    def engine_part(self, lo, hi):
-        t = time.perf_counter()
-        out = part(self, lo, hi)
-        events.append({"what": "parts", "chunk_start": int(lo), "lanes": int(hi - lo),
-                       "from_s": t - t0[0], "to_s": time.perf_counter() - t0[0]})
-        return out
-
-    ens._Chunks._run_tail, ens._Chunks.engine_part = run_tail, engine_part
+    ens.drive_final = timed
     try:
         t0[0] = time.perf_counter()
         r = js.run_basin(starts, progress=False)
         wall = time.perf_counter() - t0[0]
     finally:
-        ens._Chunks._run_tail, ens._Chunks.engine_part = tail, part
+        ens.drive_final = drive
     events.sort(key=lambda e: e["from_s"])
-    busy = {k: sum(e["to_s"] - e["from_s"] for e in events if e["what"] == k) for k in ("parts", "tail")}
+    parts = [(e["from_s"], e["to_s"]) for e in events if e["what"] == "part"]
+    tails = [e["to_s"] - e["from_s"] for e in events if e["what"] == "tail"]
     return {"wall_s": wall, "status4": int((r.status == 4).sum()), "mean_steps": float(r.n_steps.mean()),
-            "parts_s_sum": busy["parts"], "tails_s_sum": busy["tail"], "events": events}
+            "parts": len(parts), "tail_batches": len(tails), "parts_s_sum": _covered(parts),
+            "tails_s_sum": float(sum(tails)), "events": events}
 
 
 def main(argv=None) -> int:

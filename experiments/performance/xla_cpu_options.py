@@ -43,9 +43,13 @@ import numpy as np, jax, jax.numpy as jnp
 from jaxsleigh.studies import bench as B
 from jaxsleigh.integrate import engine as E
 from jaxsleigh.integrate.stepper import run_plain, PLAIN_BLOCK
+from jaxsleigh.model.closed_loop import ClosedLoop
+from jaxsleigh.model.params import paper_gains, paper_plant
 extra, n, steps, repeats, build = json.loads(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 dt = 0.01
-horizon, args, status0, y0w = B._w_chart_starts(B.workload(n, 0), steps * dt, dt)
+args = ClosedLoop(paper_plant(), paper_gains())
+ics5, status0 = E.check_ics(B.workload(n, 0))
+y0w = E.initial_w(ics5, status0, jnp.float32)
 lib, reason = B.build_c_reference(build)
 if lib is None:
     print(json.dumps({"error": reason})); sys.exit(0)

@@ -1,15 +1,17 @@
 r"""Why the plain fixed-step kernel stays near 0.6-0.7 of the C program per core.
 
     python experiments/performance/xla_kernel_structure.py [--n-ics 4096] [--steps 10000] [--repeats 7]
-                                               [--out docs/figures/xla_kernel_structure.json]
+                                                           [--out docs/figures/xla_kernel_structure.json]
 
 One core (``JAXSLEIGH_CORES=1`` is set before jaxsleigh is imported), float32, the benchmark workload
 (`jaxsleigh.studies.bench.workload`, seed 0), dt = 0.01, final state only. In one interleaved run (the order of the
 variants flips every repetition, compilation and warm-up excluded) it times, per CPU second:
 
 - ``c``: the C reference (`jaxsleigh/studies/c_reference/rk4_w.c`) on one thread, if a compiler is present;
-- ``library``: the library's specialised plain kernel (`jaxsleigh.integrate.engine._plain_specialised`, cache
-  blocks of 256), and the same kernel with blocks of 128 and 512 (``block_128``, ``block_512``);
+- ``library``: the library's specialised plain kernel, built as `drive_plain` builds it on CPU: the library's
+  `jaxsleigh.integrate.stepper.run_plain` with the run's plant and gains as constants of the program, compiled
+  with `PLAIN_CPU_OPTIONS` (cache blocks of 256), and the same kernel with blocks of 128 and 512 (``block_128``,
+  ``block_512``);
 - ``rebuilt``: the library's step built by this script (dt a constant of the program), the baseline of the
   three variants below;
 - ``shared_reciprocal``: the same step with the damping's ``k / w1**2`` written ``(k * (1 / w1)) * (1 / w1)``,
@@ -23,7 +25,8 @@ variants flips every repetition, compilation and warm-up excluded) it times, per
 
 For each kernel it records the fusions (kernels) per step in XLA's optimised program (the innermost while
 body), the division instructions in the HLO of that body, and the final states' largest relative difference
-from ``library``. The JSON records the machine, jax version, load average and command.
+from ``library`` (for ``drive_plain`` too: 0 when ``library`` is the very kernel the engine runs). The JSON
+records the machine, jax version, load average and command.
 """
 from __future__ import annotations
 
@@ -73,16 +76,20 @@ def main(argv=None) -> int:
     import jaxsleigh
     import jaxsleigh.model.paper_law as paper_law
     from jaxsleigh.integrate import engine
+    from jaxsleigh.integrate.stepper import run_plain
     from jaxsleigh.model.charts import chart_for
-    from jaxsleigh.studies.bench import _w_chart_starts, build_c_reference, c_reference_run, machine, workload
+    from jaxsleigh.model.closed_loop import ClosedLoop
+    from jaxsleigh.studies.bench import build_c_reference, c_reference_run, machine, workload
 
     log = lambda *m: print(*m, file=sys.stderr, flush=True)  # noqa: E731
     ics = workload(a.n_ics, 0)
     t_final = a.steps * 0.01
-    horizon, args0, status0, y0w = _w_chart_starts(ics, t_final, 0.01)
-    key = engine._args_key(args0)
-    tree, leaves = key
-    args = jax.tree_util.tree_unflatten(tree, [np.asarray(v, np.float32).reshape(s) for s, v in leaves])
+    horizon = engine.make_horizon(t_final, 0.01)
+    args0 = ClosedLoop(jaxsleigh.paper_plant(), jaxsleigh.paper_gains())
+    ics5, status0 = engine.check_ics(ics)
+    y0w = engine.initial_w(ics5, status0, jnp.float32)
+    leaves, tree = jax.tree_util.tree_flatten(args0)                    # the plant and gains in float32
+    args = jax.tree_util.tree_unflatten(tree, [np.asarray(v, np.float32) for v in leaves])
     dt = jnp.float32(0.01)
     y0 = np.asarray(y0w).T.copy()                                       # batch-last (5, N)
 
@@ -98,6 +105,12 @@ def main(argv=None) -> int:
             yb = y.reshape(5, n // block, block).transpose(1, 0, 2)
             return jax.lax.map(scan, yb).transpose(1, 0, 2).reshape(5, n)
         return jax.jit(run, compiler_options=engine.PLAIN_CPU_OPTIONS)
+
+    def specialised(block):
+        """The library's kernel as `drive_plain` compiles it on CPU: `run_plain` with ``args`` (this run's plant and
+        gains) as constants of the program, built with `PLAIN_CPU_OPTIONS`; dt is an argument."""
+        return jax.jit(lambda y, dt: run_plain(y, args, dt, n_steps=a.steps, block=block), donate_argnums=(0,),
+                       compiler_options=engine.PLAIN_CPU_OPTIONS)
 
     field = lambda y: chart_for(args.controller).field(0.0, y, args)  # noqa: E731
     h = 0.01
@@ -138,7 +151,7 @@ def main(argv=None) -> int:
         structure[name] = _structure(exe.as_text())
 
     for name, block in (("library", 256), ("block_128", 128), ("block_512", 512)):
-        add(name, engine._plain_specialised(key, a.steps, block, "float32"), dt)
+        add(name, specialised(block), dt)
     add("rebuilt", builder(rk4(whole)))
     original = paper_law.damping_injection_components
     paper_law.damping_injection_components = shared_reciprocal
@@ -164,6 +177,8 @@ def main(argv=None) -> int:
         out = fn(jnp.asarray(y0))
         if name in compiled:
             finals[name] = np.asarray(out)
+        elif name == "drive_plain":                 # the engine's own kernel, against ``library`` built as it builds it
+            finals[name] = np.asarray(out[0]).T
         log(f"warm: {name}")
     ref = finals["library"]
     scale = np.abs(ref).max(axis=0)
