@@ -18,15 +18,14 @@ import argparse
 import math
 import re
 import sys
-import time
-from pathlib import Path
 
 from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
-from .common import (FLAGS, PROG, add_distributed_options, own_output, add_horizon_options, add_model_options,
-                     add_sampler_options, check_outputs, check_tolerance_flags, compute_share, exit_code,
-                     finish_chunked, law_kwargs, load_average, model_from_args, run_chunked, run_distributed,
-                     status_epilog, status_line)
+from ..files.runner import chunk_dir, sidecar
+from .chunked import how_it_ran, run_chunked_command
+from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
+                     add_sampler_options, check_outputs, check_tolerance_flags, exit_code, law_kwargs,
+                     model_from_args, status_epilog, status_line)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 
@@ -124,14 +123,6 @@ def add_study_options(p, *, theta_help: str, samples_example: str, samples_help:
                    help="progress bar with ETA on stderr (default: only on a terminal)")
 
 
-def _chunk_dir(out: Path) -> Path:
-    return out.with_name(out.name + ".chunks")
-
-
-def _sidecar(out: Path) -> Path:
-    return out.with_name(out.stem + ".run.json")
-
-
 def _starts_from_args(args):
     from ..studies.basin import array_starts, grid_starts, parse_axis, sample_starts
 
@@ -176,82 +167,52 @@ def _check_box(text: str, flag: str) -> None:
                          f"{min(vals):g}:{max(vals):g}")
 
 
-
-
-
 def run_basin_command(args) -> int:
     """Handler of ``jaxsleigh basin`` (``args`` from the parser of `add_basin`); returns the exit code.
 
-    With ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process
-    computes its share of the chunks and process 0 writes the output (see
-    `run_distributed`).
+    The run is `jaxsleigh.files.runner.run_to_file` (`jaxsleigh.cli.chunked.run_chunked_command`): with
+    ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process computes its
+    share of the chunks and process 0 writes the output.
     """
-    return run_distributed(args, check=lambda: _check(args), compute=_compute, assemble=_assemble,
-                           prepare=_prepare, shared_dirs=lambda st: [st["chunks"]])
-
-
-def _check(args) -> dict:
-    """Validate everything before any work; nothing is written (folders are created)."""
-    from ..studies.config import solve_config
     from ..files.npz import npz_path
-
-    plant, law = model_from_args(args)
-    check_tolerance_flags(args)
-    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
-                 max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64, eps=args.eps, flags=FLAGS)
-    starts = _starts_from_args(args)
-    out = npz_path(args.out)
-    chunks = _chunk_dir(out)
-    side = _sidecar(out)
-    check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
-    lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
-    return {"args": args, "plant": plant, "law": law, "starts": starts, "out": out, "chunks": chunks,
-            "side": side, "had": len(have), "load_start": load_average(), "t0": time.perf_counter(), "lock": lock}
-
-
-def _prepare(st: dict) -> None:
-    """A fresh multi-process run (no --resume; the folder holds no chunks, as checked): drop the
-    manifest of an earlier run that ended before its first chunk, since every process opens the
-    folder with resume=True."""
-    if not st["args"].resume:
-        (st["chunks"] / "manifest.json").unlink(missing_ok=True)
-
-
-def _run_kw(st: dict) -> dict:
-    a = st["args"]
-    return dict(eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method, plant=st["plant"], **law_kwargs(st["law"]),
-                x64=a.x64, max_steps=a.max_steps, rtol=a.rtol, atol=a.atol, chunk_size=a.chunk_size,
-                checkpoint_dir=st["chunks"], progress=a.progress)
-
-
-def _compute(st: dict, shard: tuple) -> None:
-    """One process's share of the chunks of a multi-process run."""
-    from ..studies.basin import run_basin
-
-    compute_share("basin", st["chunks"], st["out"], shard, lambda shard: run_basin(st["starts"], resume=True, shard=shard, **_run_kw(st)))
-
-
-def _assemble(st: dict, multi: bool) -> int:
-    """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
     from ..studies.basin import run_basin, save_basin
 
-    args, out = st["args"], st["out"]
-    t0 = st["t0"]
-    res, caught = run_chunked("basin", st["chunks"],
-                              lambda: run_basin(st["starts"], resume=True if multi else args.resume, **_run_kw(st)))
-    wall = time.perf_counter() - t0
-    n_flag = int((~res.valid).sum())
-    if n_flag:
-        first = next((w.message for w in caught if isinstance(w.message, FlaggedStartsWarning)), None)
-        print(f"{PROG}: warning: {n_flag} of {res.status.size} starts flagged and not integrated; they are left out "
-              f"of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
-              file=sys.stderr)
-    path = save_basin(out, res)
-    from ..plots.basin import plot_basin
+    out = npz_path(args.out)
+    st = {}
 
-    written, how = finish_chunked("basin", st, res, multi=multi, wall=wall, path=path,
-                                  extra={"summary": res.summary()}, plot=plot_basin)
-    print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
-    print(f"{PROG} basin: {status_line(res.status, res.T_eps, args.eps)}; {wall:.1f} s wall ({how}); "
-          f"wrote {', '.join(written)}")
-    return exit_code(res.status, res.T_eps, args.eps)
+    def check() -> None:
+        """Validate everything before any work; nothing is written (folders are created)."""
+        from ..studies.config import solve_config
+
+        st["plant"], st["law"] = plant, law = model_from_args(args)
+        check_tolerance_flags(args)
+        solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
+                     max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64, eps=args.eps,
+                     flags=FLAGS)
+        st["starts"] = _starts_from_args(args)
+        check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
+
+    def study(**kw):
+        return run_basin(st["starts"], eps=args.eps, t_final=args.t_final, dt=args.dt, method=args.method,
+                         plant=st["plant"], **law_kwargs(st["law"]), x64=args.x64, max_steps=args.max_steps,
+                         rtol=args.rtol, atol=args.atol, chunk_size=args.chunk_size, progress=args.progress, **kw)
+
+    def finish(res, written, record, caught) -> int:
+        n_flag = int((~res.valid).sum())
+        if n_flag:
+            first = next((w.message for w in caught if isinstance(w.message, FlaggedStartsWarning)), None)
+            print(f"{PROG}: warning: {n_flag} of {res.status.size} starts flagged and not integrated; they are left "
+                  f"out of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
+                  file=sys.stderr)
+        if args.plot:
+            from ..plots.basin import plot_basin
+            from ..plots.base import save_figure
+
+            written.append(str(save_figure(plot_basin(res), args.plot)))
+        print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
+        print(f"{PROG} basin: {status_line(res.status, res.T_eps, args.eps)}; {record['wall_s']:.1f} s wall "
+              f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
+        return exit_code(res.status, res.T_eps, args.eps)
+
+    return run_chunked_command(args, "basin", out, check=check, study=study, save=save_basin,
+                               info=lambda res: {"summary": res.summary()}, finish=finish)

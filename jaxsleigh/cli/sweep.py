@@ -11,7 +11,7 @@ Every start runs under every value (set) as one chunked, checkpointed ensemble
 interrupted run, ending with the same ``.npz``, byte for byte. Wall time, devices and the command
 go to ``FILE.run.json``. With ``--coordinator/--num-processes/--process-id`` (or under SLURM /
 Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
-(`run_distributed`), and process 0 writes the same ``.npz``.
+(`jaxsleigh.files.runner.run_to_file`), and process 0 writes the same ``.npz``.
 """
 from __future__ import annotations
 
@@ -19,12 +19,12 @@ import argparse
 import math
 import re
 import sys
-import time
 
-from .basin import _chunk_dir, _sidecar, _starts_from_args, add_study_options
-from .common import (FLAGS, PROG, add_distributed_options, own_output, check_outputs, check_tolerance_flags,
-                     compute_share, exit_code, finish_chunked, law_kwargs, load_average, model_from_args, run_chunked,
-                     run_distributed, status_epilog, status_line)
+from ..files.runner import chunk_dir, sidecar
+from .basin import _starts_from_args, add_study_options
+from .chunked import how_it_ran, run_chunked_command
+from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
+                     law_kwargs, model_from_args, status_epilog, status_line)
 
 __all__ = ["add_sweep", "run_sweep_command"]
 
@@ -94,18 +94,49 @@ def add_sweep(subparsers) -> argparse.ArgumentParser:
 def run_sweep_command(args) -> int:
     """Handler of ``jaxsleigh sweep``; returns the exit code.
 
-    With ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process
-    computes its share of the chunks and process 0 writes the output, the same bytes as one process
-    (see `run_distributed`).
+    The run is `jaxsleigh.files.runner.run_to_file` (`jaxsleigh.cli.chunked.run_chunked_command`): with
+    ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process computes its
+    share of the chunks and process 0 writes the output, the same bytes as one process.
     """
-    return run_distributed(args, check=lambda: _check(args), compute=_compute, assemble=_assemble,
-                           prepare=_prepare, shared_dirs=lambda st: [st["chunks"]])
+    from ..files.npz import npz_path
+    from ..studies.sweep import save_sweep, sweep
+
+    out = npz_path(args.out)
+    st = {}
+
+    def study(**kw):
+        return sweep(st["starts"], st["axes"], plant=st["plant"], **law_kwargs(st["law"]), eps=args.eps,
+                     t_final=args.t_final, dt=args.dt, method=args.method, x64=args.x64, max_steps=args.max_steps,
+                     rtol=args.rtol, atol=args.atol, chunk_size=args.chunk_size, progress=args.progress,
+                     labels=st["labels"], **kw)
+
+    def finish(res, written, record, caught) -> int:
+        n_flag = int((~res.valid[0]).sum())
+        if n_flag:
+            print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 "
+                  f"or not finite); they are left out of the fractions", file=sys.stderr)
+        if args.plot:
+            from ..plots.base import save_figure
+            from ..plots.sweep import plot_sweep
+
+            written.append(str(save_figure(plot_sweep(res), args.plot)))
+        print(res.table())
+        print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts, "
+              f"{status_line(res.status, res.T_eps, args.eps)}; {record['wall_s']:.1f} s wall "
+              f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
+        return exit_code(res.status, res.T_eps, args.eps)
+
+    def info(res) -> dict:
+        S, se = res.fractions()
+        return {"fraction": S.tolist(), "fraction_se": se.tolist()}
+
+    return run_chunked_command(args, "sweep", out, check=lambda: st.update(_check(args, out)), study=study,
+                               save=save_sweep, info=info, finish=finish)
 
 
-def _check(args) -> dict:
+def _check(args, out) -> dict:
     """Validate everything before any work (a bad range names its --param); nothing is written."""
     from ..studies.config import solve_config
-    from ..files.npz import npz_path
     from ..studies.sweep import apply_params, check_rows, param_grid, parse_param
 
     if len(args.param) > 2:
@@ -126,13 +157,8 @@ def _check(args) -> dict:
     check_tolerance_flags(args)
     solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
                  max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64, eps=args.eps, flags=FLAGS)
-    out = npz_path(args.out)
-    chunks, side = _chunk_dir(out), _sidecar(out)
-    check_outputs(side, named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
-    lock, have = own_output(out, chunks, args)     # refuses a folder with chunks without --resume
-    return {"args": args, "axes": axes, "labels": labels, "plant": plant, "law": law, "starts": starts,
-            "out": out, "chunks": chunks, "side": side, "had": len(have), "load_start": load_average(),
-            "t0": time.perf_counter(), "lock": lock}
+    check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
+    return {"axes": axes, "labels": labels, "plant": plant, "law": law, "starts": starts}
 
 
 def law_parameter_names(law) -> tuple:
@@ -170,48 +196,3 @@ def check_param_name(spec: str, args, law_names: tuple) -> None:
     whose = f"under --controller {law}" if law_names else "under the paper's law"
     raise ValueError(f"--param {spec}: {name!r} cannot be swept {whose}; choose one of {', '.join(allowed)} "
                      f"(e.g. --param {law_names[0] if law_names else 'k'}=LO:HI:P)")
-
-
-def _prepare(st: dict) -> None:
-    """A fresh multi-process run: drop the manifest of an earlier run that ended before its first
-    chunk (every process opens the folder with resume=True)."""
-    if not st["args"].resume:
-        (st["chunks"] / "manifest.json").unlink(missing_ok=True)
-
-
-def _run_kw(st: dict) -> dict:
-    a = st["args"]
-    return dict(plant=st["plant"], **law_kwargs(st["law"]), eps=a.eps, t_final=a.t_final, dt=a.dt, method=a.method,
-                x64=a.x64, max_steps=a.max_steps, rtol=a.rtol, atol=a.atol, chunk_size=a.chunk_size,
-                checkpoint_dir=st["chunks"], progress=a.progress, labels=st["labels"])
-
-
-def _compute(st: dict, shard: tuple) -> None:
-    """One process's share of the chunks of a multi-process run."""
-    from ..studies.sweep import sweep
-
-    compute_share("sweep", st["chunks"], st["out"], shard, lambda shard: sweep(st["starts"], st["axes"], resume=True, shard=shard, **_run_kw(st)))
-
-
-def _assemble(st: dict, multi: bool) -> int:
-    """Process 0 (or the only process): the result from the chunks, the .npz, the sidecar, the plot."""
-    from ..studies.sweep import save_sweep, sweep
-
-    args, out = st["args"], st["out"]
-    res, caught = run_chunked("sweep", st["chunks"],
-                              lambda: sweep(st["starts"], st["axes"], resume=True if multi else args.resume, **_run_kw(st)))
-    wall = time.perf_counter() - st["t0"]
-    n_flag = int((~res.valid[0]).sum())
-    if n_flag:
-        print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 or "
-              f"not finite); they are left out of the fractions", file=sys.stderr)
-    path = save_sweep(out, res)
-    from ..plots.sweep import plot_sweep
-
-    S, se = res.fractions()
-    written, how = finish_chunked("sweep", st, res, multi=multi, wall=wall, path=path,
-                                  extra={"fraction": S.tolist(), "fraction_se": se.tolist()}, plot=plot_sweep)
-    print(res.table())
-    print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts, "
-          f"{status_line(res.status, res.T_eps, args.eps)}; {wall:.1f} s wall ({how}); wrote {', '.join(written)}")
-    return exit_code(res.status, res.T_eps, args.eps)

@@ -29,7 +29,7 @@ joined in time), a ``SIGABRT`` handler prints what this process was waiting for 
 
 `start` initialises the runtime (or returns ``None`` for a plain single-process run) and
 `run_shared` runs steps 1-4; the command line wraps both in
-`jaxsleigh.cli.common.run_distributed`.
+`jaxsleigh.files.runner.run_to_file`.
 """
 from __future__ import annotations
 

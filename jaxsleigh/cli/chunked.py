@@ -1,0 +1,101 @@
+"""The command line's chunked runs (``jaxsleigh basin``, ``jaxsleigh sweep``): the library's host runner
+(`jaxsleigh.files.runner.run_to_file`) with the command's options, words, warnings and exit codes.
+
+Exit codes: a refusal before any work 2 (5 for an output another run owns), a full disk 4, a failed cluster
+6, Ctrl-C 130 (the finished chunks are kept: ``--resume`` continues); otherwise the command's own.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+import warnings
+from typing import Any, Callable
+
+from ..files.runner import Finished, Words, chunk_dir, leave, run_to_file, start_processes
+from .common import EXIT_CLUSTER, PROG, report_warnings, say_failure
+from .options import processes_from_args
+
+__all__ = ["CLI_WORDS", "run_chunked_command", "shared_options", "how_it_ran"]
+
+#: How the runner's messages name the options on the command line.
+CLI_WORDS = Words(resume="--resume", out="--out", option=lambda k: "--" + k.replace("_", "-"),
+                  again="the same command")
+
+#: Options that may differ between the processes of one run (everything else must be equal).
+_PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout", "progress", "no_compile_cache",
+                "func"}
+
+
+def shared_options(args) -> dict:
+    """The options that must be equal in every process, as JSON (what the processes compare and a fresh run
+    records for a later ``--resume``)."""
+    options = {k: v for k, v in sorted(vars(args).items())
+               if k not in _PER_PROCESS and not k.startswith("_") and not callable(v)}
+    return json.loads(json.dumps(options, default=str))
+
+
+def run_chunked_command(args, command: str, out, *, check: Callable[[], None], study: Callable[..., Any], save,
+                        info: Callable[[Any], dict], finish: Callable[[Any, list, dict, list], int]) -> int:
+    """Run ``study(checkpoint_dir=, resume=, shard=)`` into ``out`` with the options of ``args`` (`run_to_file`);
+    returns the exit code, process 0's in every process.
+
+    ``check()`` validates before anything is written; ``finish(result, written, record, caught)`` (process 0)
+    draws and prints and returns the exit code (``caught``: the run's warnings, for the command to report its
+    own way). A Ctrl-C says where the finished chunks are and how to continue; the run's other warnings are
+    printed as ``jaxsleigh: warning: ...``.
+    """
+    from ..errors import FlaggedStartsWarning
+    from ..files.distributed import ClusterError
+
+    chunks, caught = chunk_dir(out), []
+
+    def observed(**kw):
+        t0 = time.perf_counter()
+        try:
+            with warnings.catch_warnings(record=True) as got:
+                warnings.simplefilter("always")
+                result = study(**kw)
+        except KeyboardInterrupt:
+            print(f"{PROG} {command}: interrupted; the finished chunks are in {chunks}/ - run the same command "
+                  f"with --resume to continue", file=sys.stderr)
+            raise
+        report_warnings(got, skip=(FlaggedStartsWarning,))
+        caught[:] = got
+        shard = kw.get("shard")
+        if shard is not None and shard[0] != 0:
+            print(f"{PROG} {command}: process {shard[0]} of {shard[1]}: share of the chunks done in "
+                  f"{time.perf_counter() - t0:.1f} s; process 0 writes {out}", file=sys.stderr)
+        return result
+
+    try:
+        cluster = start_processes(processes_from_args(args))
+    except ClusterError as e:
+        say_failure(e)
+        return EXIT_CLUSTER
+    argv = list(getattr(args, "_argv", None) or [])
+    try:
+        done = run_to_file(out, observed, save, options=shared_options(args), resume=args.resume,
+                           keep_chunks=args.keep_chunks, check=check, info=info, cluster=cluster,
+                           processes=processes_from_args(args),
+                           finish=lambda res, written, record: finish(res, written, record, caught),
+                           command=[PROG, *argv] if argv else None, words=CLI_WORDS)
+        code = done.code
+    except ClusterError as e:
+        say_failure(e)
+        code = EXIT_CLUSTER
+    except (ValueError, OSError, KeyboardInterrupt) as e:
+        if cluster is None or not cluster.synced:
+            raise                                   # one process, or a refusal before any work: as usual
+        # process 0 failed while writing (a full disk, Ctrl-C): the others have left already, so JAX's
+        # shutdown would wait for them and abort; say it as a single process would, and leave
+        code = say_failure(e)
+    return leave(Finished(None, code, (), cluster))
+
+
+def how_it_ran(res, record: dict) -> str:
+    """The run's description for the summary line: dtype, method, processes, chunks resumed."""
+    n = record.get("chunks_reused") or 0
+    return (f"{res.settings['dtype']}, {res.settings['method']}"
+            + (f", {record['processes']} processes" if "processes" in record else "")
+            + (f", {n} chunk(s) resumed" if n else ""))
