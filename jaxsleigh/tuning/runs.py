@@ -1,0 +1,501 @@
+"""A tuning run that owns its output: the life of a run of any tuner, from its first check to its last file.
+
+Every tuner writes a file that the other commands read back: `tune_run` (gradient descent on the paper's gains,
+`jaxsleigh.tuning.tune`) and `search_run` (CMA-ES on the accurate engine's figures, `jaxsleigh.tuning.search`) a gains
+file, `law_run` (any other law, or the paper's behind an actuator, `jaxsleigh.tuning.tune_law`) a tuned law's file,
+`front_run` (`jaxsleigh.tuning.pareto_front`) a front. The four share one lifecycle, `TuningRun`:
+
+1. **Before any work** the output, the history (if asked for) and the checkpoint ``OUT.ckpt.npz`` next to the output
+   can be written, and the output is claimed (`jaxsleigh.files.runlock.RunLock`): while another live run writes the
+   same file, this one is refused with `jaxsleigh.errors.RunLockedError` naming that run (host, pid, start), so two
+   runs never both write it. A checkpoint left by an interrupted run is refused without ``resume=True`` (nothing is
+   written over it), ``resume=True`` without one, and a resume whose options differ from those the checkpoint
+   records names the first that differs, with both values.
+2. **During the work** the tuner writes its checkpoint, atomically, after every step (a front: the output itself
+   after every point, marked ``"interrupted": true``).
+3. **Ctrl-C** writes the best result so far to the output (marked ``"interrupted": true``) with the history, keeps
+   the checkpoint, and returns a `RunOutcome` with ``interrupted=True``; the same call with ``resume=True`` continues
+   to the file an uninterrupted run writes (the same numbers, bit for bit).
+4. **At the end** the output records how the result was found, the history is written, the checkpoint removed, and
+   the held-out check (`HeldOut`: the initial and the found gains measured by the accurate engine on starts that the
+   tuner never saw) is written into the output. The claim is released however the run ends.
+
+Example::
+
+    from jaxsleigh.tuning import TuneConfig
+    from jaxsleigh.tuning.runs import TuningRun, tune_run
+
+    outcome = tune_run(TuningRun("gains.json", history="history.npz"), "paper", config=TuneConfig(steps=60))
+    if outcome.interrupted:           # Ctrl-C: gains.json holds the best so far; this continues the run
+        outcome = tune_run(TuningRun("gains.json", history="history.npz", resume=True), "paper",
+                           config=TuneConfig(steps=60))
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import time
+import uuid
+from pathlib import Path
+from typing import Any, NamedTuple, Optional
+
+import numpy as np
+
+from ..files.runlock import RunLock
+from ..model.params import gains_to_dict, load_gains, save_gains
+from ..validate import writable_path
+from .checkpoint import TuningInterrupted, checkpoint_options
+from .cma_search import NoFeasibleCandidate, SearchConfig
+from .objective import LossConfig
+from .optimizer import TuneConfig
+from .starts import UniformStarts, draw_starts
+
+__all__ = ["TuningRun", "RunOutcome", "HeldOut", "tune_run", "search_run", "law_run", "front_run"]
+
+
+class HeldOut(NamedTuple):
+    """The check after a run: ``n`` starts drawn by `UniformStarts` from ``seed`` (starts the tuner never saw), each
+    integrated over 100 s by the accurate engine with ``stepsize`` (a `jaxsleigh.StepSizeController`; ``None``: its
+    defaults). ``n = 0``: no check (a front still records the settings)."""
+
+    n: int = 256
+    seed: int = 1000
+    stepsize: Any = None
+
+    def starts(self) -> np.ndarray:
+        return UniformStarts()(np.random.default_rng(self.seed), self.n)
+
+    def tolerances(self) -> dict:
+        """``{"rtol": .., "atol": ..}`` as given (``None``: the engine's default for the dtype)."""
+        s = self.stepsize
+        return {"rtol": None if s is None else s.rtol, "atol": None if s is None else s.atol}
+
+
+class RunOutcome(NamedTuple):
+    """What a tuning run did.
+
+    Attributes:
+      result: the tuner's result (`TuneResult`, `SearchResult`, `LawTuneResult` or `Front`); after Ctrl-C the best so
+        far (``None``: nothing valid yet, and nothing was written).
+      written: the files written, the output first.
+      interrupted: Ctrl-C stopped the run; its checkpoint is kept and ``resume=True`` continues it.
+      wall_s: seconds the tuner ran (the held-out check not counted).
+      held_out: ``{label: Validation}`` of the held-out check (e.g. ``initial`` and ``tuned``; ``{}`` without one).
+      energy: the result's training energy where the run had an energy budget (else ``None``);
+      energy_budget_met: whether it is within that budget (``None`` without one).
+    """
+
+    result: Any
+    written: tuple
+    interrupted: bool
+    wall_s: float
+    held_out: dict
+    energy: Optional[float] = None
+    energy_budget_met: Optional[bool] = None
+
+
+class TuningRun:
+    """A tuning run's claim on its output ``out`` and the files beside it (module docstring).
+
+    Args:
+      out: the file the run writes (a gains file, a tuned law's file or a front).
+      history: also write the history there (``.npz`` is appended to a name without it); ``None``: none.
+      resume: continue the interrupted run whose checkpoint (`checkpoint`; a front: ``out`` itself) is there.
+      options: what determines the run, ``{name: value}`` in the order a refused resume names them: recorded in the
+        checkpoint, and a resume with another value of any of them is refused naming the first.
+      command: the command recorded in the files written (``None``: not known).
+      hint: what a refused run can do instead, at the end of the refusals.
+    """
+
+    def __init__(self, out, *, history=None, resume: bool = False, options: Optional[dict] = None,
+                 command: Optional[list] = None, hint: str = "choose another out path"):
+        self.out = Path(out)
+        self.history = None if history is None else _npz(history)
+        self.resume = bool(resume)
+        self.options = None if options is None else {str(k): _jsonable(v) for k, v in options.items()}
+        self.command = command
+        self.hint = hint
+        self.run_id = uuid.uuid4().hex            # one process's run: no other run shares its output
+
+    @property
+    def checkpoint(self) -> Path:
+        """``OUT.ckpt.npz``: where the tuner keeps its whole state while it runs."""
+        return self.out.with_name(self.out.name + ".ckpt.npz")
+
+    @contextlib.contextmanager
+    def owned(self, what: str, *, checkpointed: bool = True, also=()):
+        """Hold the output for the body of a ``with``: every output (and ``also``) writable, the output claimed, the
+        checkpoint matching ``resume`` (``what`` names the run in the refusals, e.g. ``"search"``); released however
+        the body ends."""
+        for p in (self.out, self.history, *(self.checkpoint,) * checkpointed, *also):
+            if p is not None:
+                writable_path(p)
+        lock = RunLock(self.out, self.run_id, what="output", hint=self.hint).acquire()
+        try:
+            if checkpointed:
+                self._check_checkpoint(what)
+            yield self
+        finally:
+            lock.release()
+
+    def finished(self) -> None:
+        """The run is complete: its checkpoint goes."""
+        self.checkpoint.unlink(missing_ok=True)
+
+    def _check_checkpoint(self, what: str) -> None:
+        ckpt = self.checkpoint
+        if ckpt.exists() and not self.resume:
+            raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted {what} for {str(self.out)!r}; "
+                             f"add resume=True (with the same options) to continue it, or delete it to start afresh")
+        if self.resume and not ckpt.exists():
+            raise ValueError(f"resume=True: no checkpoint {str(ckpt)!r} to continue from; run without resume=True")
+        if self.resume and self.options is not None:
+            self._check_options(checkpoint_options(ckpt))
+
+    def _check_options(self, old: Optional[dict]) -> None:
+        """Refuse a resume with another value of an option than the checkpoint's, naming the first that differs (a
+        checkpoint that records none is left to the tuner's own check of its settings)."""
+        if old is None:
+            return
+        for name, now in self.options.items():
+            then = old.get(name)
+            if then != now:
+                raise ValueError(f"{name} differs from the checkpoint's ({_shown(then)} in the checkpoint vs "
+                                 f"{_shown(now)} now): rerun with the same options and resume=True to continue it, "
+                                 f"or {self.hint} to start afresh")
+
+
+def as_run(run) -> TuningRun:
+    """A `TuningRun`, or one for the output path ``run``."""
+    return run if isinstance(run, TuningRun) else TuningRun(run)
+
+
+# ---------------------------------------------------------------------------------------------
+# the four tuners
+# ---------------------------------------------------------------------------------------------
+
+def tune_run(run, gains0="paper", *, config: TuneConfig = TuneConfig(), loss: LossConfig = LossConfig(), tune=None,
+             plant=None, robust=None, x64: bool = False, progress: Any = None,
+             held_out: Optional[HeldOut] = None) -> RunOutcome:
+    """`jaxsleigh.tuning.tune` (the arguments are its own) as a run that owns ``run.out`` (a `TuningRun` or a
+    path): a gains file that records how the gains were found (with ``loss.energy_budget``: the training energy and
+    whether it meets the budget), the `TuneHistory`, then the ``held_out`` check of the initial and the tuned gains
+    (``initial``, ``tuned``) written into it. After Ctrl-C the best valid gains so far, not re-checked by the accurate
+    engine. Raises what `tune` raises (``RuntimeError``: no candidate passed the final check)."""
+    from .. import tuning as tu
+
+    run, names = as_run(run), tu.parse_tune(tune)
+    with run.owned("tuning run"):
+        t0 = time.perf_counter()
+        try:
+            res = tu.tune(gains0, config=config, loss=loss, tune=names, plant=None if robust is not None else plant,
+                          robust=robust, x64=x64, progress=progress, checkpoint=run.checkpoint, resume=run.resume,
+                          options=run.options)
+        except TuningInterrupted as stop:
+            return _gradient_interrupted(run, stop.partial, time.perf_counter() - t0)
+        wall = time.perf_counter() - t0
+        energy = float(res.history.energy[res.best_iteration])
+        met = _budget_met(loss.energy_budget, energy)
+        meta = {"how": f"jaxsleigh tune: {res.settings['method']}", "command": run.command, "tuned": list(names),
+                "initial_gains": gains_to_dict(res.initial), "initial_loss": res.initial_loss,
+                "best_loss": res.best_loss, "best_iteration": res.best_iteration,
+                "iterations_run": res.settings["iterations_run"], "seed": config.seed, "batch": config.batch,
+                "dtype": res.settings["dtype"], "plant": "sampled (robust)" if robust is not None else
+                _plant_record(plant), "objective": res.settings["loss"], "wall_s": wall}
+        if met is not None:
+            meta.update(energy_budget=float(loss.energy_budget), training_energy=energy, energy_budget_met=met)
+        save_gains(res.gains, run.out, **meta)          # before the held-out check, so that it cannot lose them
+        written = [run.out, *_history(run, lambda p: tu.save_history(res.history, p))]
+        run.finished()
+        rows = _held_out_rows(res, plant, x64, held_out, "tuned")
+        if rows:
+            meta["validation"] = {k: {"n": v.n, "seed": held_out.seed, **held_out.tolerances(),
+                                      "median_T_0.05": _num(v.median), "median_se": _num(v.median_se),
+                                      "frac_converged_100s": v.frac_converged, "frac_se": v.frac_se,
+                                      "n_failed": v.n_failed} for k, v in rows.items()}
+            save_gains(res.gains, run.out, **meta)
+    return RunOutcome(res, tuple(written), False, wall, rows, None if met is None else energy, met)
+
+
+def _gradient_interrupted(run: TuningRun, part, wall: float) -> RunOutcome:
+    """Ctrl-C during gradient descent: the best valid gains so far (if any) and the history."""
+    from .. import tuning as tu
+
+    if part is None:
+        return RunOutcome(None, (), True, wall, {})
+    save_gains(part.gains, run.out, how="jaxsleigh tune, INTERRUPTED: the best valid candidate so far, not re-checked "
+               "with the accurate engine", command=run.command, interrupted=True, best_loss=part.best_loss,
+               best_iteration=part.best_iteration, iterations_run=part.settings["iterations_run"])
+    return RunOutcome(part, (run.out, *_history(run, lambda p: tu.save_history(part.history, p))), True, wall, {})
+
+
+def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), reference=None,
+               energy_budget: Optional[float] = None, tune=None, plant=None, x64: bool = False, stepsize=None,
+               progress: Any = None, held_out: Optional[HeldOut] = None) -> RunOutcome:
+    """`jaxsleigh.tuning.search` (the arguments are its own; ``reference`` defaults to ``gains0``) as a run that owns
+    ``run.out``: a gains file with the training figures of the gains found and of the reference, the history (one
+    row per generation), then the ``held_out`` check (``initial``, ``searched``) written into it. A finished or
+    interrupted search continues with ``resume=True`` and more ``config.generations``. After Ctrl-C the best
+    feasible gains so far (not checked on the guard starts). Raises `NoFeasibleCandidate` when no candidate was
+    feasible, after writing the history (the checkpoint is kept: more generations continue the run)."""
+    from .. import tuning as tu
+
+    run, names = as_run(run), tu.parse_tune(tune)
+    record = {"tuned": list(names), "tolerances": HeldOut(stepsize=stepsize).tolerances(), "config": config,
+              "plant": plant, "x64": x64}
+    with run.owned("search"):
+        t0 = time.perf_counter()
+        try:
+            res = tu.search(gains0, config=config, reference=gains0 if reference is None else reference,
+                            energy_budget=energy_budget, tune=names, plant=plant, x64=x64, stepsize=stepsize,
+                            progress=progress, checkpoint=run.checkpoint, resume=run.resume, options=run.options)
+        except NoFeasibleCandidate as e:          # finished: its history is kept, and its checkpoint
+            history = e.history
+            _history(run, lambda p: _save_arrays(p, history))
+            raise
+        except TuningInterrupted as stop:
+            wall = time.perf_counter() - t0
+            if stop.partial is None:
+                return RunOutcome(None, (), True, wall, {})
+            return RunOutcome(stop.partial, _write_search(run, stop.partial, record, interrupted=True), True, wall, {})
+        wall = time.perf_counter() - t0
+        written = _write_search(run, res, record, wall_s=wall)
+        run.finished()
+        rows = _held_out_rows(res, plant, x64, held_out, "searched")
+        if rows:
+            _write_search(run, res, record, wall_s=wall,
+                          validation={k: tu.validation_dict(v, seed=held_out.seed) for k, v in rows.items()})
+    return RunOutcome(res, written, False, wall, rows)
+
+
+def _write_search(run: TuningRun, res, record: dict, **extra) -> tuple:
+    """Write the searched gains, with their figures and how they were found, and the history; the paths written."""
+    cfg = record["config"]
+    save_gains(res.gains, run.out, how="jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under "
+               "a control-energy budget at the percentiles " + ", ".join(f"{q:g}" for q in cfg.energy_percentiles),
+               command=run.command, tuned=record["tuned"], **record["tolerances"],
+               initial_gains=gains_to_dict(res.initial), training_figures=res.figures, reference_figures=res.reference,
+               best_generation=res.best_generation, generations_run=res.settings["generations_run"], seed=cfg.seed,
+               batch=cfg.batch, population=cfg.population, plant=_plant_record(record["plant"]),
+               x64=bool(record["x64"]), **extra)
+    return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+
+
+def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, seed: int = 0, tune=None, plant=None,
+            loss: LossConfig = LossConfig(), steps: int = 150, lr: float = 0.05, x64: bool = False,
+            n_attempts: Optional[int] = None) -> RunOutcome:
+    """`jaxsleigh.tuning.tune_law` of ``law`` (registered as ``name``; ``tune``: the leaves to tune, default all of
+    `jaxsleigh.tuning.gain_names`) on ``batch`` starts drawn from ``starts`` with ``seed``, as a run that owns
+    ``run.out``: the tuned law's file (`jaxsleigh.tuning.law_file`: every parameter, the actuator, how it was found,
+    the history; with ``loss.energy_budget`` whether the training energy meets it) and the history. After Ctrl-C
+    the best valid law so far. Raises what `tune_law` raises (`InvalidStartingLaw`: the law is not a valid start)."""
+    from .. import tuning as tu
+
+    run = as_run(run)
+    names = tu.gain_names(law) if tune is None else list(tune)
+    record = {"name": name, "tuned": names, "loss": loss, "seed": seed, "batch": batch, "x64": x64, "plant": plant}
+    with run.owned("tuning run"):
+        t0 = time.perf_counter()
+        try:
+            res = tu.tune_law(law, draw_starts(starts, batch, seed), tune=names, plant=plant, loss=loss, steps=steps,
+                              lr=lr, x64=x64, n_attempts=n_attempts, checkpoint=run.checkpoint, resume=run.resume,
+                              options=run.options)
+        except TuningInterrupted as stop:
+            wall = time.perf_counter() - t0
+            if stop.partial is None:
+                return RunOutcome(None, (), True, wall, {})
+            return RunOutcome(stop.partial, _write_law(run, stop.partial, record, interrupted=True), True, wall, {})
+        wall = time.perf_counter() - t0
+        met = _budget_met(loss.energy_budget, res.energy)
+        written = _write_law(run, res, record, wall_s=wall, **({} if met is None else {"energy_budget_met": met}))
+        run.finished()
+    return RunOutcome(res, written, False, wall, {}, None if met is None else res.energy, met)
+
+
+def _write_law(run: TuningRun, res, record: dict, **extra) -> tuple:
+    """Write the tuned law (`jaxsleigh.tuning.law_file.save_law`) with how it was found, and its history."""
+    from .law_file import save_law
+
+    budget = _budget(record["loss"].energy_budget)
+    save_law(res.law, record["name"], run.out, how="jaxsleigh tune --controller: Adam on the soft convergence time"
+             + ("" if budget is None else f" under a training energy budget {budget:g}"), command=run.command,
+             tuned=list(record["tuned"]), training_loss=res.loss, training_energy=res.energy, energy_budget=budget,
+             seed=record["seed"], batch=record["batch"], x64=bool(record["x64"]), plant=_plant_record(record["plant"]),
+             history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **extra)
+    return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+
+
+def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: TuneConfig = TuneConfig(),
+              loss: LossConfig = LossConfig(), warm_steps: Optional[int] = None, tune=None, plant=None,
+              x64: bool = False, progress: Any = None, held_out: Optional[HeldOut] = None, baseline: bool = False,
+              plot=None) -> RunOutcome:
+    """`jaxsleigh.tuning.pareto_front` (the arguments are its own; ``budgets`` a whole number N: N budgets from a
+    quarter of the paper's gains' training energy to twice the ``tuned`` preset's) as a run that owns ``run.out``:
+    the front is written after every point (``"interrupted": true`` until the last; ``resume=True`` keeps the
+    finished points of the file and computes the others, ``method="warm"`` only), then every point and the paper's
+    and ``tuned`` gains (``references``) are measured on the ``held_out`` starts, with ``baseline`` a random search
+    that spends as many objective evaluations, and the front is drawn to ``plot`` (which needs the check)."""
+    from .. import tuning as tu
+    from .pareto import _front_settings, finished_points
+
+    run, names, held_out = as_run(run), tu.parse_tune(tune), held_out or HeldOut(n=0)
+    if run.resume and method != "warm":
+        raise ValueError(f"method={method!r} computes every point at once and keeps no finished points to resume: use "
+                         f"method='warm' to continue an interrupted front, or drop resume=True")
+    if plot is not None and not held_out.n:
+        raise ValueError("plot draws the front measured on the held-out starts: give held_out with n > 0")
+    kw = dict(config=config, loss=loss, plant=plant, x64=x64)
+    with run.owned("front", checkpointed=False, also=(plot,)):
+        earlier = _interrupted_front(run)
+        if isinstance(budgets, (int, np.integer)):
+            budgets = tu.default_budgets(int(budgets), **kw)
+        done = None
+        if earlier is not None:
+            warm = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
+            done = finished_points(earlier, _front_settings("warm", np.sort(np.asarray(budgets, np.float64)), config,
+                                                            loss, warm, x64, gains0, names, UniformStarts()))
+        initial = {"initial_gains": gains_to_dict(load_gains(gains0))}
+
+        def keep(part):            # after every point: Ctrl-C (or a crash) loses at most the current one
+            tu.save_front(part, run.out, command=run.command, interrupted=True, **initial)
+
+        t0 = time.perf_counter()
+        try:
+            front = tu.pareto_front(budgets, method=method, gains0=gains0, warm_steps=warm_steps, tune_names=names,
+                                    progress=progress, on_point=keep, done=done, **kw)
+        except TuningInterrupted as stop:
+            if stop.partial is not None:
+                keep(stop.partial)
+            return RunOutcome(stop.partial, () if stop.partial is None else (run.out,), True,
+                              time.perf_counter() - t0, {})
+        front, refs, rows, base = _measured_front(front, budgets, held_out, baseline, progress, kw)
+        meta = {"command": run.command, "held_out": {"n": held_out.n, "seed": held_out.seed, **held_out.tolerances(),
+                                                     "starts": repr(UniformStarts())}, **initial}
+        if base is not None:
+            meta["baseline"] = tu.front_dict(base)
+        tu.save_front(front, run.out, references=refs, **meta)
+        written = [run.out]
+        if plot is not None:
+            from ..plots import tuning as tp
+
+            doc = tu.load_front(run.out)
+            written.append(tp.save_figure(tp.plot_front(doc, baseline=doc.get("baseline")), plot))
+    return RunOutcome(front, tuple(written), False, front.wall_s, rows)
+
+
+def _interrupted_front(run: TuningRun) -> Optional[dict]:
+    """The interrupted front in ``run.out`` that ``resume=True`` continues (``None``: none); refuses one without
+    ``resume=True`` and ``resume=True`` without one."""
+    from .pareto import load_front
+
+    earlier = None
+    if run.out.is_file():
+        try:
+            earlier = load_front(run.out)
+        except ValueError:
+            earlier = None
+        earlier = earlier if isinstance(earlier, dict) and earlier.get("interrupted") else None
+    if earlier is not None and not run.resume:
+        raise ValueError(f"{str(run.out)!r} holds the finished points of an interrupted front; add resume=True (with "
+                         f"the same options) to continue it, or delete it to start afresh")
+    if run.resume and earlier is None:
+        raise ValueError(f"resume=True: {str(run.out)!r} is not an interrupted front to continue; run without "
+                         f"resume=True")
+    return earlier
+
+
+def _measured_front(front, budgets, held_out: HeldOut, baseline: bool, progress, kw) -> tuple:
+    """``(front, references, rows, baseline front)`` after the held-out check (nothing measured without one)."""
+    from .. import tuning as tu
+
+    if not held_out.n:
+        return front, {}, {}, None
+    ics = held_out.starts()
+    ss = {"plant": kw["plant"], "x64": kw["x64"], "stepsize": held_out.stepsize}
+    front = tu.evaluate_front(front, ics, **ss)
+    refs = {"paper": tu.validate("paper", ics, **ss), "tuned": tu.validate("tuned", ics, **ss)}
+    base = None
+    if baseline:
+        base = tu.random_search(budgets, front.evaluations, seed=kw["config"].seed, progress=progress, **kw)
+        base = tu.evaluate_front(base, ics, **ss)
+    rows = {**refs, **{f"budget {p.budget:.3g}": p.evaluation for p in front.points}}
+    return front, refs, rows, base
+
+
+# ---------------------------------------------------------------------------------------------
+# what the runs write
+# ---------------------------------------------------------------------------------------------
+
+def _held_out_rows(res, plant, x64: bool, held_out: Optional[HeldOut], label: str) -> dict:
+    """``{"initial": .., label: ..}``: the initial and the found gains of ``res`` on the held-out starts."""
+    from .. import tuning as tu
+
+    if held_out is None or not held_out.n:
+        return {}
+    ics = held_out.starts()
+    return {"initial": tu.validate(res.initial, ics, plant=plant, x64=x64, stepsize=held_out.stepsize),
+            label: tu.validate(res.gains, ics, plant=plant, x64=x64, stepsize=held_out.stepsize)}
+
+
+def _history(run: TuningRun, write) -> list:
+    """``[path]`` after ``write(run.history)``, or ``[]`` when the run writes no history."""
+    if run.history is None:
+        return []
+    return [Path(write(run.history) or run.history)]
+
+
+def _save_arrays(path: Path, arrays: dict) -> Path:
+    from ..files.npz import atomic_write
+
+    atomic_write(path, lambda fh: np.savez(fh, **{k: np.asarray(v) for k, v in arrays.items()}))
+    return path
+
+
+def _npz(path) -> Path:
+    p = Path(path)
+    return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+
+
+def _budget(energy_budget) -> Optional[float]:
+    """The energy budget as a number, ``None`` for none (``inf``)."""
+    b = float(energy_budget)
+    return b if math.isfinite(b) else None
+
+
+def _budget_met(energy_budget, energy: float) -> Optional[bool]:
+    """Whether ``energy`` is within the budget (``None`` without one)."""
+    b = _budget(energy_budget)
+    return None if b is None else bool(math.isfinite(energy) and energy <= b)
+
+
+def _plant_record(plant) -> dict:
+    """``{"m", "J", "l", "damping"}`` of ``plant`` (``None``: the paper's), the damping by its name where it has one."""
+    from ..model.damping import damping_from_name
+    from ..model.params import PlantParams, lane_record
+
+    plant = PlantParams() if plant is None else plant
+    num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))
+    d = plant.damping
+    named = [n for n in ("coulomb", "viscous", "none") if type(damping_from_name(n)) is type(d)
+             and all(np.array_equal(a, b) for a, b in zip(damping_from_name(n), d))]
+    return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
+            "damping": named[0] if named else type(d).__name__}
+
+
+def _jsonable(v):
+    """``v`` as it reads back from a checkpoint's JSON (tuples as lists)."""
+    return json.loads(json.dumps(v, default=str))
+
+
+def _shown(v) -> str:
+    """An option's value in a message: ``none`` when unset, ``on`` / ``off`` for a switch."""
+    if v is None:
+        return "none"
+    if isinstance(v, bool):
+        return "on" if v else "off"
+    return ",".join(map(str, v)) if isinstance(v, list) else str(v)
+
+
+def _num(x: float):
+    return x if math.isfinite(x) else str(x)
