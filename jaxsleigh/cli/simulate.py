@@ -1,12 +1,14 @@
-"""``jaxsleigh simulate``: decimated trajectories from a few starts, with the settings that made them."""
+"""``jaxsleigh simulate``: decimated trajectories from a few starts, with the settings that made them. The run owns
+its ``--out`` while it runs (`jaxsleigh.files.runlock.RunLock`): another run on the same file is refused, exit code 5."""
 from __future__ import annotations
 
 import argparse
 import time
+import uuid
 import warnings
 
-
 from ..errors import FlaggedStartsWarning
+from ..files.runlock import RunLock
 from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
                      check_outputs, check_tolerance_flags, exit_code, ics_from_args, law_kwargs, model_from_args,
                      report_warnings, status_epilog, status_line)
@@ -79,15 +81,17 @@ def _cmd_simulate(args) -> int:
                        flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": npz_path(args.out)})
-    t0 = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
-                       save_every=save_every, method=args.method, max_steps=args.max_steps,
-                       rtol=args.rtol, atol=args.atol, x64=args.x64, progress=args.progress)
-    wall = time.perf_counter() - t0
-    report_warnings(caught)
-    out = write_npz(args.out, sol, ics=ics, command=[PROG, *args._argv])
+    # the run owns its --out: while it runs, another run writing the same file is refused (exit code 5)
+    with RunLock(npz_path(args.out), uuid.uuid4().hex, what="output", hint="choose another --out"):
+        t0 = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
+                           save_every=save_every, method=args.method, max_steps=args.max_steps,
+                           rtol=args.rtol, atol=args.atol, x64=args.x64, progress=args.progress)
+        wall = time.perf_counter() - t0
+        report_warnings(caught)
+        out = write_npz(args.out, sol, ics=ics, command=[PROG, *args._argv])
     n_flag = sum(len(w.message.rows) for w in caught if isinstance(w.message, FlaggedStartsWarning))
     print(f"{PROG} simulate: {status_line(sol.status, sol.T_eps, cfg.eps)}"
           f"{f' ({n_flag} flagged, not integrated)' if n_flag else ''}; "
