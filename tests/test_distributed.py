@@ -464,3 +464,69 @@ def test_the_first_differing_option_is_named_with_both_values(opts, other, j):
     flag = "--" + key.replace("_", "-")
     assert f"process 0 has {_flag_value(key, opts[key])}, process {j} {_flag_value(key, other)}" in str(e.value)
     assert flag in _flag_value(key, other) and "{" not in str(e.value)
+
+
+#: a Python program that runs the basin of WORK over processes with the library's runner (no command line)
+PYTHON_BASIN = textwrap.dedent("""
+    import sys
+    from jaxsleigh import run_basin, sample_starts, save_basin
+    from jaxsleigh.files.runner import Processes, leave, run_to_file
+
+    out, coordinator, n, i = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+    starts = sample_starts(200, seed=3)
+    done = run_to_file(out, lambda **kw: run_basin(starts, t_final=2.0, chunk_size=16, progress=False, **kw),
+                       save_basin, options={"samples": 200, "seed": 3, "t_final": 2.0},
+                       processes=Processes(coordinator, n, i) if n > 1 else None)
+    if done.result is not None:
+        print("fraction", float(done.result.fraction))
+    leave(done)
+""")
+
+
+@pytest.mark.slow
+def test_a_python_program_runs_a_multi_process_basin_with_the_library_runner(tmp_path, reference):
+    script = tmp_path / "basin_run.py"
+    script.write_text(PYTHON_BASIN)
+    port = _port()
+    out = tmp_path / "py.npz"
+    procs = [subprocess.Popen([sys.executable, str(script), str(out), f"127.0.0.1:{port}", "2", str(i)], env=_env(),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    res = _wait(procs)
+    for i, (rc, o, e) in enumerate(res):
+        assert rc == 0, f"process {i}: exit {rc}\n{o}\n{e[-3000:]}"
+    assert "fraction" in res[0][1] and "fraction" not in res[1][1]     # process 0 holds the result
+    assert out.read_bytes() == reference                                # the command line's bytes, one process
+    info = json.loads((tmp_path / "py.run.json").read_text())
+    assert info["processes"] == 2 and info["command"] is None
+    assert not (tmp_path / "py.npz.chunks").exists()
+
+
+def test_the_library_runner_owns_its_output_and_resumes_with_python_words(tmp_path):
+    """One process: a second run on a file whose chunks an interrupted run left is refused in Python's words
+    (resume=True), continued with resume=True, and its options compared with the interrupted run's."""
+    from jaxsleigh import run_basin, sample_starts, save_basin
+    from jaxsleigh.errors import CheckpointError
+    from jaxsleigh.files.runner import chunk_dir, run_to_file
+
+    starts, out = sample_starts(40, seed=1), tmp_path / "b.npz"
+
+    def run(t_final, interrupt=False, **resume):
+        def study(**kw):
+            if interrupt:                      # the run is interrupted after its chunks are written
+                run_basin(starts, t_final=t_final, chunk_size=16, progress=False,
+                          checkpoint_dir=kw["checkpoint_dir"], resume=False)
+                raise KeyboardInterrupt
+            return run_basin(starts, t_final=t_final, chunk_size=16, progress=False, **kw)
+        return run_to_file(out, study, save_basin, options={"t_final": t_final}, **resume)
+
+    with pytest.raises(KeyboardInterrupt):
+        run(1.0, interrupt=True)
+    assert not out.exists() and any(chunk_dir(out).glob("chunk_*.npz"))
+    with pytest.raises(ValueError, match=r"add resume=True"):
+        run(1.0)
+    with pytest.raises(CheckpointError, match=r"t_final=1.0 in the checkpoint vs t_final=2.0 now"):
+        run(2.0, resume=True)
+    done = run(1.0, resume=True)
+    assert out.exists() and done.code == 0 and done.result.status.size == 40
+    assert json.loads((tmp_path / "b.run.json").read_text())["chunks_reused"] >= 1
+    assert not chunk_dir(out).exists()
