@@ -396,21 +396,36 @@ def starting_step(s: StepState, ctl: Controls) -> StepState:
 
 
 def run_checkpointed(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_attempts: int, segment: int = 200,
-                     adaptive: bool = True, monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
+                     adaptive: bool = True, monitor: bool = True, observers=DEFAULT_OBSERVERS, accumulate=None,
+                     acc=None):
     """`run_segment` of ``n_attempts`` attempts (static) as ``ceil(n_attempts / segment)`` checkpointed segments, a
     segment in which no trajectory is active skipped: differentiable in reverse mode (``jax.grad``) at a memory of
-    one segment's steps, where `run_to`'s ``while_loop`` has forward mode only."""
+    one segment's steps, where `run_to`'s ``while_loop`` has forward mode only.
+
+    ``target`` is a time (per lane or shared) or a function of the state giving each lane's target at each attempt
+    (e.g. its own time once it has stopped, so that it idles). With ``accumulate(acc, s, s_new) -> acc``, a pytree
+    ``acc`` is carried and advanced after every attempt from the states before and after it (integrals that need
+    both ends of a step, such as the tuner's soft convergence time); the result is then ``(s, acc)``."""
     step = _batched_attempt(adaptive, monitor, observers)
 
+    def target_of(c):
+        return target(c) if callable(target) else jnp.asarray(target, c.y.dtype)
+
+    def body(carry, _):
+        c, a = carry
+        c_new = step(c, target_of(c), args, ctl)
+        return (c_new, a if accumulate is None else accumulate(a, c, c_new)), None
+
     @functools.partial(jax.checkpoint, prevent_cse=False)
-    def run(c):
-        return jax.lax.scan(lambda c, _: (step(c, target, args, ctl), None), c, None, length=segment)[0]
+    def run(carry):
+        return jax.lax.scan(body, carry, None, length=segment)[0]
 
-    def outer(c, _):
-        busy = jnp.any(is_active(c, jnp.asarray(target, c.y.dtype), ctl))
-        return jax.lax.cond(busy, run, lambda c: c, c), None
+    def outer(carry, _):
+        busy = jnp.any(is_active(carry[0], target_of(carry[0]), ctl))
+        return jax.lax.cond(busy, run, lambda c: c, carry), None
 
-    return jax.lax.scan(outer, s, None, length=-(-int(n_attempts) // int(segment)))[0]
+    out, acc = jax.lax.scan(outer, (s, acc), None, length=-(-int(n_attempts) // int(segment)))[0]
+    return out if accumulate is None else (out, acc)
 
 
 def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,

@@ -18,7 +18,7 @@ from ..model.plant import velocity_components
 from ..status import Status
 from ..integrate.observers import ClosestApproach, Excursion
 from ..model.charts import WChart, chart_for
-from ..integrate.stepper import Controls, StepState, attempt, init_state, is_active, starting_step
+from ..integrate.stepper import Controls, StepState, init_state, run_checkpointed, starting_step
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups
@@ -224,27 +224,20 @@ def _effort(effort, h, y1, args: ClosedLoop, chart):
 
 def _integrate_soft(s0, n, dtype, args: ClosedLoop, ctl: Controls, terms: _SoftTerms, *, n_attempts: int,
                     segment: int, adaptive: bool):
-    """The checkpointed segments of `soft_convergence`: ``(state, S, B, (energy, last |u|^2, peak |u|^2))``."""
-    def body(carry, _):
-        s, soft, bar, effort = carry
-        s_new = attempt(s, _target_of(s, terms), args, ctl, adaptive=adaptive, observers=_OBSERVERS)
+    """The checkpointed segments of `soft_convergence` (`jaxsleigh.integrate.stepper.run_checkpointed`, a lane
+    idling once in the stopping ball): ``(state, S, B, (energy, last |u|^2, peak |u|^2))``."""
+    def accumulate(acc, s, s_new):
+        soft, bar, effort = acc
         h = (s_new.t - s.t) + (s_new.t_lo - s.t_lo)       # 0 unless accepted; no gradient (times are fixed)
         soft, bar = _soft_and_barrier(soft, bar, h, s.y, s_new.y, terms)
-        return (s_new, soft, bar, _effort(effort, h, s_new.y, args, terms.chart)), None
-
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def run_segment(carry):
-        return jax.lax.scan(body, carry, None, length=segment)[0]
-
-    def outer(carry, _):
-        s = carry[0]
-        busy = jnp.any(is_active(s, _target_of(s, terms), ctl))
-        return jax.lax.cond(busy, run_segment, lambda c: c, carry), None
+        return soft, bar, _effort(effort, h, s_new.y, args, terms.chart)
 
     zeros = jnp.zeros(n, dtype)
     e_start = _effort_rate(s0.y, args, terms.chart)
-    return jax.lax.scan(outer, (s0, zeros, zeros, (zeros, e_start, e_start)), None,
-                        length=-(-int(n_attempts) // segment))[0]
+    s, (soft, bar, effort) = run_checkpointed(s0, lambda s: _target_of(s, terms), args, ctl, n_attempts=n_attempts,
+                                              segment=segment, adaptive=adaptive, observers=_OBSERVERS,
+                                              accumulate=accumulate, acc=(zeros, zeros, (zeros, e_start, e_start)))
+    return s, soft, bar, effort
 
 
 def _lane_summary(s: StepState, soft, bar, energy, peak2, terms: _SoftTerms) -> LaneSummary:
