@@ -65,3 +65,23 @@ def test_no_import_circle_between_modules():
         if v not in index:
             visit(v)
     assert not sccs, f"import circles: {sccs}"
+
+
+def test_only_the_integrate_floor_loops_over_time():
+    """Time loops (``lax.scan``, ``while_loop``, ``fori_loop``, ``lax.map``) live in ``jaxsleigh/integrate/`` only:
+    every other module integrates through it, so a change of the stepper reaches every front."""
+    import ast
+
+    loops = {"scan", "while_loop", "fori_loop", "map"}
+    found = []
+    for path in sorted(PKG.rglob("*.py")):
+        rel = path.relative_to(PKG)
+        if rel.parts[0] == "integrate":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Attribute) and node.attr in loops and isinstance(node.value, ast.Attribute)
+                    and node.value.attr == "lax"):
+                found.append(f"{rel}:{node.lineno} lax.{node.attr}")
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").endswith("lax"):
+                found += [f"{rel}:{node.lineno} from lax import {a.name}" for a in node.names if a.name in loops]
+    assert not found, found
