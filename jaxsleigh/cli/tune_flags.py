@@ -32,10 +32,11 @@ def tuning_run(args, flags=None, *, history: bool = True):
     """The `TuningRun` that owns ``--out`` (``--history``, ``--resume``; the values of ``flags`` recorded in the
     checkpoint, so that a refused ``--resume`` names the flag; the command line recorded in the files)."""
     from ..tuning.runs import TuningRun
+    from .chunked import CLI_WORDS
 
-    options = None if flags is None else {"--" + k.replace("_", "-"): getattr(args, k, None) for k in flags}
+    options = None if flags is None else {k: getattr(args, k, None) for k in flags}
     return TuningRun(args.out, history=args.history if history else None, resume=args.resume, options=options,
-                     command=[PROG, *getattr(args, "_argv", _canonical_argv(args))], hint="choose another --out")
+                     command=[PROG, *getattr(args, "_argv", _canonical_argv(args))], words=CLI_WORDS)
 
 
 def tune_config(args):

@@ -43,6 +43,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 
 from ..files.runlock import RunLock
+from ..files.runner import PYTHON_WORDS, Words
 from ..model.params import gains_to_dict, load_gains, save_gains
 from ..validate import writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
@@ -105,17 +106,18 @@ class TuningRun:
       options: what determines the run, ``{name: value}`` in the order a refused resume names them: recorded in the
         checkpoint, and a resume with another value of any of them is refused naming the first.
       command: the command recorded in the files written (``None``: not known).
-      hint: what a refused run can do instead, at the end of the refusals.
+      words: how the refusals name ``resume``, ``out`` and the options (`jaxsleigh.files.runner.Words`: Python's
+        keywords by default; the command line gives its flags).
     """
 
     def __init__(self, out, *, history=None, resume: bool = False, options: Optional[dict] = None,
-                 command: Optional[list] = None, hint: str = "choose another out path"):
+                 command: Optional[list] = None, words: Words = PYTHON_WORDS):
         self.out = Path(out)
         self.history = None if history is None else _npz(history)
         self.resume = bool(resume)
         self.options = None if options is None else {str(k): _jsonable(v) for k, v in options.items()}
         self.command = command
-        self.hint = hint
+        self.words = words
         self.run_id = uuid.uuid4().hex            # one process's run: no other run shares its output
 
     @property
@@ -131,7 +133,7 @@ class TuningRun:
         for p in (self.out, self.history, *(self.checkpoint,) * checkpointed, *also):
             if p is not None:
                 writable_path(p)
-        lock = RunLock(self.out, self.run_id, what="output", hint=self.hint).acquire()
+        lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}").acquire()
         try:
             if checkpointed:
                 self._check_checkpoint(what)
@@ -144,12 +146,12 @@ class TuningRun:
         self.checkpoint.unlink(missing_ok=True)
 
     def _check_checkpoint(self, what: str) -> None:
-        ckpt = self.checkpoint
+        ckpt, resume = self.checkpoint, self.words.resume
         if ckpt.exists() and not self.resume:
             raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted {what} for {str(self.out)!r}; "
-                             f"add resume=True (with the same options) to continue it, or delete it to start afresh")
+                             f"add {resume} (with the same options) to continue it, or delete it to start afresh")
         if self.resume and not ckpt.exists():
-            raise ValueError(f"resume=True: no checkpoint {str(ckpt)!r} to continue from; run without resume=True")
+            raise ValueError(f"{resume}: no checkpoint {str(ckpt)!r} to continue from; run without {resume}")
         if self.resume and self.options is not None:
             self._check_options(checkpoint_options(ckpt))
 
@@ -158,12 +160,14 @@ class TuningRun:
         checkpoint that records none is left to the tuner's own check of its settings)."""
         if old is None:
             return
+        old = {k.lstrip("-").replace("-", "_"): v for k, v in old.items()}     # earlier versions recorded flags
         for name, now in self.options.items():
             then = old.get(name)
             if then != now:
-                raise ValueError(f"{name} differs from the checkpoint's ({_shown(then)} in the checkpoint vs "
-                                 f"{_shown(now)} now): rerun with the same options and resume=True to continue it, "
-                                 f"or {self.hint} to start afresh")
+                raise ValueError(f"{self.words.option(name).rstrip('=')} differs from the checkpoint's ({_shown(then)} "
+                                 f"in the checkpoint vs {_shown(now)} now): rerun with the same options and "
+                                 f"{self.words.resume} to continue it, or choose another {self.words.out} to start "
+                                 f"afresh")
 
 
 def as_run(run) -> TuningRun:
@@ -342,7 +346,7 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
     run, names, held_out = as_run(run), tu.parse_tune(tune), held_out or HeldOut(n=0)
     if run.resume and method != "warm":
         raise ValueError(f"method={method!r} computes every point at once and keeps no finished points to resume: use "
-                         f"method='warm' to continue an interrupted front, or drop resume=True")
+                         f"method='warm' to continue an interrupted front, or drop {run.words.resume}")
     if plot is not None and not held_out.n:
         raise ValueError("plot draws the front measured on the held-out starts: give held_out with n > 0")
     kw = dict(config=config, loss=loss, plant=plant, x64=x64)
@@ -396,12 +400,12 @@ def _interrupted_front(run: TuningRun) -> Optional[dict]:
         except ValueError:
             earlier = None
         earlier = earlier if isinstance(earlier, dict) and earlier.get("interrupted") else None
+    resume = run.words.resume
     if earlier is not None and not run.resume:
-        raise ValueError(f"{str(run.out)!r} holds the finished points of an interrupted front; add resume=True (with "
-                         f"the same options) to continue it, or delete it to start afresh")
+        raise ValueError(f"{str(run.out)!r} holds the finished points of an interrupted front; add {resume} (with the "
+                         f"same options) to continue it, or delete it to start afresh")
     if run.resume and earlier is None:
-        raise ValueError(f"resume=True: {str(run.out)!r} is not an interrupted front to continue; run without "
-                         f"resume=True")
+        raise ValueError(f"{resume}: {str(run.out)!r} is not an interrupted front to continue; run without {resume}")
     return earlier
 
 
