@@ -84,7 +84,9 @@ def _interrupt_and_resume(tmp_path, capsys, argv, interrupt, *, history=True):
 # ---------------------------------------------------------------------------------------------
 # 1. Ctrl-C keeps the progress of every mode, and --resume ends where an uninterrupted run ends
 # ---------------------------------------------------------------------------------------------
+# each runs its tuner three times (whole, interrupted, resumed): the full suite's, not the quick tier's
 
+@pytest.mark.slow
 def test_gradient_tuning_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, capsys):
     from jaxsleigh import tuning as tu
 
@@ -103,6 +105,7 @@ def test_gradient_tuning_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, 
     _same_arrays(_arrays(tmp_path / "whole.npz"), _arrays(tmp_path / "out.npz"))
 
 
+@pytest.mark.slow
 def test_search_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, capsys):
     from jaxsleigh.tuning import cma_search
 
@@ -125,6 +128,7 @@ def test_search_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, capsys):
     _same_arrays(_arrays(tmp_path / "whole.npz"), _arrays(tmp_path / "out.npz"))
 
 
+@pytest.mark.slow
 def test_a_front_resumes_to_the_front_of_an_uninterrupted_run(tmp_path, capsys):
     from jaxsleigh.tuning import pareto
 
@@ -146,6 +150,7 @@ def test_a_front_resumes_to_the_front_of_an_uninterrupted_run(tmp_path, capsys):
     assert a == b and len(b["points"]) == 2 and "interrupted" not in b
 
 
+@pytest.mark.slow
 def test_a_literature_law_resumes_to_the_law_of_an_uninterrupted_run(tmp_path, capsys):
     from jaxsleigh.tuning import law as law_mod
 
