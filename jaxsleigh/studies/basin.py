@@ -493,11 +493,9 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
     settings = {k: v for k, v in res.settings.items() if k not in ("save_every",)}
     settings["starts"] = starts.spec
     run_info = dict(res.run_info)
-    return BasinResult(
-        starts=starts, ics=res.ics, T_eps=res.T_eps, status=res.status, Hd0=res.Hd0, Hd_final=res.Hd_final,
-        min_abs_theta=res.min_abs_theta, max_excursion=res.max_excursion, n_steps=res.n_steps,
-        n_rejected=res.n_rejected, q_final=res.q_final, p_final=res.p_final, settings=settings, run_info=run_info,
-        u_peak=res.u_peak, u_norm_peak=res.u_norm_peak, u_energy=res.u_energy, u_abs_int=res.u_abs_int)
+    # every per-start field has the ensemble's name: taken over by name, not copied one by one
+    return BasinResult(starts=starts, settings=settings, run_info=run_info,
+                       **{k: getattr(res, k) for k in BasinResult._fields if k not in ("starts", "settings", "run_info")})
 
 
 #: The keywords of jaxsleigh 0.1 that `run_basin` maps onto its option objects.

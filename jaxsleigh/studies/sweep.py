@@ -310,6 +310,9 @@ class SweepResult(NamedTuple):
         ``(P,)`` for explicit value sets; axes: the `ParamAxis` of a grid (``()`` otherwise).
       starts: the `BasinStarts`; ics: ``(N, 5)``.
       T_eps, status, n_steps, min_abs_theta, Hd0: ``(P, N)`` per-row results.
+      q_final ``(P, N, 3)``, p_final ``(P, N, 2)``, Hd_final, n_rejected ``(P, N)``: each row's final state, its
+        closed-loop energy there and its rejected steps, as in `jaxsleigh.EnsembleResult` (``None`` in a file
+        written before they were saved).
       u_energy, u_abs_int, u_norm_peak: ``(P, N)`` control effort (as in `jaxsleigh.EnsembleResult`;
         ``None`` when not recorded); `effort` gathers them in a dict and `effort_medians` summarises
         them per value set.
@@ -333,6 +336,10 @@ class SweepResult(NamedTuple):
     u_energy: Optional[np.ndarray] = None
     u_abs_int: Optional[np.ndarray] = None
     u_norm_peak: Optional[np.ndarray] = None
+    q_final: Optional[np.ndarray] = None
+    p_final: Optional[np.ndarray] = None
+    Hd_final: Optional[np.ndarray] = None
+    n_rejected: Optional[np.ndarray] = None
 
     @property
     def effort(self) -> dict:
@@ -410,6 +417,9 @@ class SweepResult(NamedTuple):
                      "ran out (BUDGET_EXHAUSTED: raise max_steps / --max-steps); see the status counts")
         return "\n".join(lines)
 
+
+#: each row's end, saved with the sweep (absent from files written before they were)
+FINAL_FIELDS = ("q_final", "p_final", "Hd_final", "n_rejected")
 
 #: effort summaries whose per-value medians (over the converged starts) a sweep reports
 EFFORT_MEDIANS = ("u_energy", "u_norm_peak")
@@ -506,7 +516,8 @@ def _sweep_result(res, names, values: np.ndarray, shape, axes, st: BasinStarts, 
     return SweepResult(names=names, values=values, grid_shape=tuple(shape), axes=axes, starts=st,
                        ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
                        min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), **effort, settings=settings,
-                       run_info=run_info)
+                       run_info=run_info, q_final=per(res.q_final), p_final=per(res.p_final),
+                       Hd_final=per(res.Hd_final), n_rejected=per(res.n_rejected))
 
 
 def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
@@ -574,8 +585,9 @@ def save_sweep(path, result: SweepResult) -> Path:
     `save_basin`: equal inputs, equal bytes; nothing that varies between runs).
 
     Keys: ``names`` (n_params,), ``values`` (P, n_params), ``grid_shape``, ``ics`` (N, 5);
-    per value set and start ``T_eps``, ``status``, ``n_steps``, ``min_abs_theta``, ``Hd0`` (P, N)
-    (and the control-effort summaries when recorded); per value set ``fraction``, ``fraction_se``,
+    per value set and start ``T_eps``, ``status``, ``n_steps``, ``n_rejected``, ``min_abs_theta``, ``Hd0``,
+    ``Hd_final`` (P, N), ``q_final`` (P, N, 3), ``p_final`` (P, N, 2) (and the control-effort summaries when
+    recorded); per value set ``fraction``, ``fraction_se``,
     ``n_valid``, ``n_converged`` (P,), ``T_eps_percentiles`` (P, 5) at ``T_eps_percentile_levels``,
     ``status_counts`` (P, K) for the codes ``status_codes`` (K,), and with the effort recorded
     ``u_energy_median``, ``u_norm_peak_median`` (P,) over the converged starts; for grids ``axis_<name>`` (the
@@ -602,6 +614,8 @@ def save_sweep(path, result: SweepResult) -> Path:
         "status_codes": codes, "status_counts": counts,
     }
     arrays.update({k: np.asarray(v, np.float64) for k, v in sorted(r.effort.items())})
+    arrays.update({k: np.asarray(getattr(r, k), np.int64 if k == "n_rejected" else np.float64) for k in FINAL_FIELDS
+                   if getattr(r, k) is not None})
     arrays.update(r.effort_medians())
     for a in r.axes:
         arrays[f"axis_{a.name}"] = a.values()
@@ -624,9 +638,9 @@ def load_sweep(path) -> SweepResult:
     settings = json.loads(str(d["settings_json"]))
     settings.pop("status_codes", None)
     axes = tuple(parse_param(a, law_names=tuple(settings["sweep"]["names"])) for a in settings["sweep"]["axes"])
-    effort = {k: d[k] for k in ("u_energy", "u_abs_int", "u_norm_peak") if k in d}
+    recorded = {k: d[k] for k in ("u_energy", "u_abs_int", "u_norm_peak", *FINAL_FIELDS) if k in d}
     return SweepResult(names=tuple(str(n) for n in d["names"]), values=d["values"],
                        grid_shape=tuple(int(x) for x in d["grid_shape"]), axes=axes,
                        starts=_starts_from_spec(d["ics"], settings["starts"]), ics=d["ics"], T_eps=d["T_eps"],
                        status=d["status"], n_steps=d["n_steps"], min_abs_theta=d["min_abs_theta"], Hd0=d["Hd0"],
-                       **effort, settings=settings, run_info=None)
+                       **recorded, settings=settings, run_info=None)
