@@ -39,3 +39,19 @@ def test_every_listed_slow_test_exists():
         if node:
             path, name = node.split("::")
             assert f"def {name}(" in (here.parent / path).read_text(), node
+
+
+def test_adding_to_the_list_keeps_it_and_fits_the_rest(tmp_path, monkeypatch):
+    """``--add``: the listed tests stay, the most expensive of the others join until the rest fits the budget."""
+    import tiers
+
+    here = tmp_path / "tests"
+    here.mkdir()
+    (here / "slow.txt").write_text("# head\ntests/test_old.py::test_kept  # 3.0 s\n")
+    (tmp_path / "d.txt").write_text(REPORT)
+    monkeypatch.setattr(tiers, "__file__", str(here / "tiers.py"))
+    monkeypatch.setattr(sys, "argv", ["tiers.py", str(tmp_path / "d.txt"), "--add", "--budget", "5"])
+    assert tiers.main() == 0
+    listed = tiers.read_list(here / "slow.txt")
+    assert listed == pytest.approx({"tests/test_old.py::test_kept": 3.0, "tests/test_a.py::test_big": 15.0})
+    assert "test_big  # 15.0 s compiling" in (here / "slow.txt").read_text()
