@@ -1,8 +1,8 @@
 """JAX's persistent compilation cache for jaxsleigh: compile once per machine, not once per process.
 
-``import jaxsleigh`` turns it on (the command line and Python programs alike; ``JAXSLEIGH_NO_COMPILE_CACHE=1``
-keeps it off); `enable_compilation_cache` moves it to another folder. Both use the same folder
-(`compilation_cache_dir`), so a program compiled by one is reused by the other.
+The command line turns it on (``--no-compile-cache`` or ``JAXSLEIGH_NO_COMPILE_CACHE=1`` keeps it off); a Python
+program turns it on with one call, `enable_compilation_cache` (``import jaxsleigh`` changes no JAX setting). Both
+use the same folder (`compilation_cache_dir`), so a program compiled by one is reused by the other.
 
 JAX's cache keeps compiled programs, but a new process must still trace and lower every function to find
 its key: that was most of a second process after importing JAX. The engine's programs are therefore
@@ -45,7 +45,12 @@ def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Opti
     """Turn on JAX's persistent compilation cache for this process: a later process (a Python
     program or the command line) compiles nothing that was compiled before.
 
-    Call it once, before the first simulation (JAX reads the setting when it first compiles).
+    The command line calls it when it starts; a Python program calls it once, before its first
+    simulation (JAX reads the setting when it first compiles). It sets three of JAX's settings for
+    the whole process: ``jax_compilation_cache_dir`` (the folder), and
+    ``jax_persistent_cache_min_compile_time_secs`` and ``jax_persistent_cache_min_entry_size_bytes``
+    to 0 (every program is kept: the sleigh's are small and quick to compile, but many). With the
+    cache on, the engine's traced programs are kept as well (`KeptProgram`).
 
     Args:
       path: the cache folder. Default: the command line's (`compilation_cache_dir`:
@@ -291,8 +296,6 @@ class KeptProgram:
             _write(path, *kept)
         exported, out_tree = kept
         call = jax.jit(exported.call, donate_argnums=self._donated(static, treedef))
-        if b"lapack" not in exported.mlir_module_serialized:
-            call = _without_lapack(call)
         return call, out_tree, set()
 
     def _export(self, static: dict, leaves: list, treedef):
@@ -338,36 +341,6 @@ def _write(path: Path, exported, out_tree) -> None:
         os.replace(tmp, path)
     except Exception:
         pass
-
-
-_NO_LAPACK = threading.local()
-
-
-def _without_lapack(call):
-    """``call`` lowered without initialising LAPACK: JAX does that for every exported CPU program it calls, which
-    imports SciPy (~0.3 s of a second process), and the engine's programs use none of it."""
-    from jax._src.export import _export
-
-    original = getattr(_export, "_ensure_backends_initialized", None)
-    if original is None:                       # another JAX: lowered as JAX does it
-        return call
-    if not getattr(original, "_jaxsleigh", False):
-        def ensure(platforms):
-            if not getattr(_NO_LAPACK, "on", False):
-                original(platforms)
-
-        ensure._jaxsleigh = True
-        _export._ensure_backends_initialized = ensure
-
-    @functools.wraps(call)
-    def lapack_free(*args):
-        _NO_LAPACK.on = True
-        try:
-            return call(*args)
-        finally:
-            _NO_LAPACK.on = False
-
-    return lapack_free
 
 
 def _leaf_signature(x) -> tuple:
