@@ -1,12 +1,12 @@
 """jaxsleigh: differentiable simulation of the Chaplygin sleigh under the discontinuous
-energy-shaping controller of Ferguson, Donaire and Middleton."""
-from . import cores
+energy-shaping controller of Ferguson, Donaire and Middleton.
 
-cores.configure()            # one JAX CPU device per core, before anything starts JAX (jaxsleigh.cores)
-
-from .cache import enable_compilation_cache  # noqa: E402
-
-enable_compilation_cache()   # Python programs share the command line's compiled programs (JAXSLEIGH_NO_COMPILE_CACHE=1: off)
+Importing it changes no JAX setting and does not start JAX. The first run asks JAX for one CPU device
+per core, if JAX has not started by then (`jaxsleigh.cores`); `enable_compilation_cache` turns on the
+persistent compilation cache the command line uses, so that a later process compiles nothing again.
+"""
+from . import cores  # noqa: F401
+from .cache import enable_compilation_cache  # noqa: F401
 from .studies.basin import BasinResult, BasinStarts, grid_starts, load_basin, run_basin, sample_starts, save_basin
 from .model.closed_loop import (ClosedLoop, closed_loop_hamiltonian, closed_loop_hamiltonian_w, dissipation_w,
                           state_from_w, state_to_w, vector_field, vector_field_w)

@@ -1,14 +1,15 @@
 """Every core of the machine: one JAX CPU device per core, and batches split over them.
 
 XLA:CPU runs one program on one core (apart from the threads it splits a whole-batch loop over).
-jaxsleigh therefore asks JAX, when it is imported and before JAX has started, for one CPU device
-per core this process may use (``len(os.sched_getaffinity(0))``), and its studies cut every chunk
-of starts into parts that run concurrently, one thread per device, each part on its own device
-(`run_parts`). The parts are the same whatever the number of cores (`PART_SIZE` starts each), and
-a lane's arithmetic does not depend on the other lanes of its part; the parts' few stiff stragglers are
-gathered into one batch per chunk in the parts' order. Results are therefore **byte-identical whatever
-the number of cores**, a one-core run included. (On an accelerator each chunk is cut into one part per
-device instead: large batches are what a GPU is for.)
+jaxsleigh therefore asks JAX for one CPU device per core this process may use
+(``len(os.sched_getaffinity(0))``) when its first run begins (`configure`; ``import jaxsleigh`` changes
+no JAX setting), and only if JAX has not started yet; its studies cut every chunk of starts into parts that
+run concurrently, one thread per device, each part on its own device (`run_parts`). The parts are the same
+whatever the number of cores (`PART_SIZE` starts each), and a lane's arithmetic does not depend on the other
+lanes of its part; the parts' few stiff stragglers are gathered into one batch per chunk in the parts'
+order. Results are therefore **byte-identical whatever the number of cores**, a one-core run included.
+(On an accelerator each chunk is cut into one part per device instead: large batches are what a GPU is
+for.) A result's ``run_info["devices"]`` names the devices its run used.
 
 Settings, in order of precedence:
 
@@ -17,8 +18,8 @@ Settings, in order of precedence:
   ``XLA_FLAGS=--xla_force_host_platform_device_count``) is left as it is;
 * ``cores=`` in `jaxsleigh.RunOptions` (``--cores`` on the command line) limits one run.
 
-When JAX was started before jaxsleigh was imported (a JAX operation ran first), its CPU device
-count can no longer change; jaxsleigh then says so once, with how to get every core.
+When JAX had started before jaxsleigh's first run (a JAX operation of the program ran first), its CPU
+device count can no longer change; jaxsleigh then says so once, with how to get every core.
 """
 from __future__ import annotations
 
@@ -51,6 +52,7 @@ CPU_CHUNK = 16384
 ACCELERATOR_CHUNK = 1 << 22
 
 _state = {"configured": None, "warned": False}
+_configure_lock = threading.Lock()
 
 
 def available_cores() -> int:
@@ -88,29 +90,41 @@ def _user_chose() -> bool:
 
 def configure() -> Optional[int]:
     """Ask JAX for one CPU device per available core (at most ``JAXSLEIGH_CORES``), if JAX has not
-    started yet and the program did not choose a count itself. Called by ``import jaxsleigh``;
-    returns the count asked for (``None``: left as it was)."""
-    if _state["configured"] is not None:
-        return _state["configured"] or None
-    from jax._src import xla_bridge
+    started yet and the program did not choose a count itself; the first call decides, later ones
+    return its answer. Every run calls it before its first JAX operation, where it checks its starts
+    (`jaxsleigh.integrate.engine.check_ics`) or its law (`jaxsleigh.model.controller.as_controller`), in
+    `jaxsleigh.solve`, `workers` and `default_chunk_size`; the command line calls it when it starts;
+    ``import jaxsleigh`` does not. Returns the count asked for (``None``: left as it was).
+
+    JAX refuses the setting once it has started (``jax.config.update`` raises ``RuntimeError``): the
+    count is then left as it is, and `workers` says so once."""
+    with _configure_lock:
+        if _state["configured"] is None:
+            _state["configured"] = _ask_for_cores()
+    return _state["configured"] or None
+
+
+def _ask_for_cores() -> int:
+    """`configure`'s request: the count set, or 0 where the program chose one or JAX had started."""
+    if _user_chose():
+        return 0
+    import jax
 
     n = min(available_cores(), _env_limit() or available_cores())
-    asked = 0
-    if not _user_chose() and not xla_bridge.backends_are_initialized():
-        import jax
-
+    try:
         jax.config.update("jax_num_cpu_devices", n)
-        asked = n
-    _state["configured"] = asked
-    return asked or None
+    except RuntimeError:                       # JAX has started: its device count is fixed now
+        return 0
+    return n
 
 
 def workers(devices: Optional[Sequence] = None, cores: Optional[int] = None) -> list:
     """The devices a run splits its batches over: ``devices`` if given, else every local device of
     JAX's default backend (on CPU, one per core), limited to ``cores`` and ``JAXSLEIGH_CORES``.
-    On CPU with fewer devices than cores (JAX started before jaxsleigh was imported), warns once."""
+    On CPU with fewer devices than cores (JAX started before jaxsleigh's first run), warns once."""
     import jax
 
+    configure()                                # a run begins: before the first device is asked for
     if devices is not None:
         devs = list(devices)
         if not devs:
@@ -122,9 +136,11 @@ def workers(devices: Optional[Sequence] = None, cores: Optional[int] = None) -> 
             if len(devs) < have and not _state["warned"] and not _user_chose():
                 _state["warned"] = True
                 warnings.warn(
-                    f"JAX runs on {len(devs)} of this machine's {have} cores: it was started before jaxsleigh "
-                    f"was imported. Import jaxsleigh before running any JAX operation, or set "
-                    f"JAX_NUM_CPU_DEVICES={have} in the environment, to use every core.", stacklevel=3)
+                    f"JAX runs on {len(devs)} of this machine's {have} cores: it had started before jaxsleigh's "
+                    f"first run, and its CPU device count is fixed once it starts. Run jaxsleigh before any other "
+                    f"JAX operation, or set JAX_NUM_CPU_DEVICES={have} in the environment (or call "
+                    f"jax.config.update('jax_num_cpu_devices', {have}) before JAX starts), to use every core.",
+                    stacklevel=3)
     limit = min(x for x in (cores, _env_limit(), len(devs)) if x is not None)
     return devs[:max(1, limit)]
 
@@ -135,6 +151,7 @@ def default_chunk_size(cpu: int = CPU_CHUNK, devices: Optional[Sequence] = None)
     `ACCELERATOR_CHUNK` per device (``devices``, default every local device)."""
     import jax
 
+    configure()                                # a run begins: before JAX is asked for its backend
     if jax.default_backend() == "cpu":
         return int(cpu)
     n_dev = len(jax.local_devices()) if devices is None else len(list(devices))

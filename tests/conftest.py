@@ -6,6 +6,11 @@
   singular set ``theta = w1 = 0`` and random admissible gains.
 * ``paper_args``: the paper's plant and gains (eq. 31-32) as a ``ClosedLoop``.
 
+The suite sets JAX up as the command line does (``import jaxsleigh`` leaves that to the program): one CPU device
+per core, and the persistent compilation cache (`jaxsleigh.enable_compilation_cache`), so that the tests reuse
+what earlier runs compiled. The Python programs the tests start inherit the cache through JAX's own environment
+variables (a program that calls `jaxsleigh.enable_compilation_cache` itself, or the command line, sets its own).
+
 Tiers: ``python -m pytest -q`` runs every test (what CI runs); ``python -m pytest -q -m "not slow"`` is the quick
 tier, for every change. A test is slow if it carries ``@pytest.mark.slow`` or is listed in ``tests/slow.txt``
 (measured: ``python tests/tiers.py DURATIONS.txt`` rewrites that list from the output of a full run with
@@ -13,6 +18,7 @@ tier, for every change. A test is slow if it carries ``@pytest.mark.slow`` or is
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import jax
@@ -22,6 +28,13 @@ import pytest
 import jaxsleigh as js
 
 SEED = 20240611
+
+js.cores.configure()
+_CACHE = js.enable_compilation_cache()
+if _CACHE is not None:
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 
 #: tests measured slow (node ids without parameters: every case of a listed test is slow)
 SLOW = frozenset(line.split("#")[0].strip() for line in (Path(__file__).parent / "slow.txt").read_text().splitlines()

@@ -1,4 +1,5 @@
-"""A Python program can use the command line's compilation cache (`jaxsleigh.enable_compilation_cache`)."""
+"""A Python program can use the command line's compilation cache with one call (`jaxsleigh.enable_compilation_cache`);
+``import jaxsleigh`` alone leaves it off, and the command line turns it on unless told not to."""
 from __future__ import annotations
 
 import os
@@ -15,6 +16,16 @@ from jaxsleigh.cache import compilation_cache_dir, enable_compilation_cache
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _env(cache: Path, **extra) -> dict:
+    """A fresh process's environment: CPU, ``JAXSLEIGH_CACHE_DIR=cache``, and no cache setting of JAX's or
+    jaxsleigh's inherited (the test suite's own, `tests/conftest.py`, included)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE", "JAXSLEIGH_"))}
+    env.update(JAX_PLATFORMS="cpu", JAXSLEIGH_CACHE_DIR=str(cache),
+               PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]), **extra)
+    return env
+
+
 def test_python_program_fills_the_same_folder_as_the_command_line(tmp_path):
     """With no argument, the folder is the command line's (``$JAXSLEIGH_CACHE_DIR`` here); a
     simulation then writes compiled programs there. In a fresh process: the setting is global."""
@@ -28,10 +39,7 @@ def test_python_program_fills_the_same_folder_as_the_command_line(tmp_path):
         js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)
         print(d)
     """)
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXSLEIGH_CACHE_DIR": str(cache),
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    env.pop("JAXSLEIGH_NO_COMPILE_CACHE", None)
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", code], env=_env(cache), capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert Path(r.stdout.strip()) == cache
     assert len([p for p in cache.rglob("*") if p.is_file()]) >= 1
@@ -57,17 +65,36 @@ def test_bad_path_is_a_value_error_naming_path(tmp_path, bad):
         enable_compilation_cache(bad)
 
 
-@pytest.mark.parametrize("off", [False, True])
-def test_import_alone_turns_the_cache_on_unless_told_not_to(tmp_path, off):
-    """``import jaxsleigh`` is enough for a Python program to reuse (and fill) the command line's cache."""
+@pytest.mark.parametrize("call, off", [(False, False), (True, False), (True, True)])
+def test_import_alone_leaves_the_cache_off_and_one_call_turns_it_on(tmp_path, call, off):
+    """``import jaxsleigh`` turns nothing on: a program that does not call `jaxsleigh.enable_compilation_cache`
+    writes no compiled program and leaves JAX's cache setting unset; one that calls it fills the cache folder,
+    unless ``JAXSLEIGH_NO_COMPILE_CACHE=1``."""
     cache = tmp_path / "cache"
-    code = "import jaxsleigh as js; js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXSLEIGH_CACHE_DIR": str(cache),
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    env.pop("JAXSLEIGH_NO_COMPILE_CACHE", None)
-    if off:
-        env["JAXSLEIGH_NO_COMPILE_CACHE"] = "1"
+    code = textwrap.dedent(f"""
+        import jax, jaxsleigh as js
+        {"js.enable_compilation_cache()" if call else ""}
+        js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)
+        print(jax.config.jax_compilation_cache_dir)
+    """)
+    env = _env(cache, **({"JAXSLEIGH_NO_COMPILE_CACHE": "1"} if off else {}))
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     files = [p for p in cache.rglob("*") if p.is_file()] if cache.exists() else []
-    assert (len(files) == 0) if off else (len(files) >= 3)
+    on = call and not off
+    assert (len(files) >= 3) if on else (len(files) == 0)
+    assert r.stdout.strip().splitlines()[-1] == (str(cache) if on else "None")
+
+
+@pytest.mark.parametrize("off", ["--no-compile-cache", "JAXSLEIGH_NO_COMPILE_CACHE=1", None])
+def test_the_command_line_turns_the_cache_on_unless_told_not_to(tmp_path, off):
+    """The command line fills the cache folder; ``--no-compile-cache`` and ``JAXSLEIGH_NO_COMPILE_CACHE=1`` each
+    leave it empty (the flag did nothing while the import turned the cache on)."""
+    cache = tmp_path / "cache"
+    env = _env(cache, **({"JAXSLEIGH_NO_COMPILE_CACHE": "1"} if off and off.startswith("JAXSLEIGH") else {}))
+    flag = [off] if off == "--no-compile-cache" else []
+    r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", *flag, "simulate", "--ic", "1,1,0.5", "--t-final", "0.1",
+                        "--out", str(tmp_path / "r.npz")], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    files = [p for p in cache.rglob("*") if p.is_file()] if cache.exists() else []
+    assert (len(files) == 0) if off else (len(files) >= 3), files

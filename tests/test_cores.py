@@ -1,5 +1,5 @@
-"""Every core (`jaxsleigh.cores`): one JAX CPU device per core from ``import jaxsleigh``, chunks cut into
-parts that run concurrently, and results byte-identical whatever the number of cores."""
+"""Every core (`jaxsleigh.cores`): one JAX CPU device per core from the first run (``import jaxsleigh`` changes no
+JAX setting), chunks cut into parts that run concurrently, and results byte-identical whatever the number of cores."""
 import json
 import os
 import subprocess
@@ -25,16 +25,45 @@ def _python(code: str, **env) -> str:
     return r.stdout.strip().splitlines()[-1]
 
 
-def test_import_asks_for_one_device_per_core():
-    out = json.loads(_python("""
-        import json, jaxsleigh, jax
+ONE = "[[1.0, 1.0, 0.5]], t_final=0.1, progress=False"
+FIRST_RUNS = {
+    "run_ensemble": f"r = js.run_ensemble({ONE}); used = len(r.run_info['devices'])",
+    "ensemble_of_a_law": "from jaxsleigh.controllers.registry import make_controller; "
+                         f"r = js.run_ensemble({ONE}, controller=make_controller('astolfi')); "
+                         "used = len(r.run_info['devices'])",
+    "simulate": f"r = js.simulate({ONE}); used = len(r.run_info['devices'])",
+    "solve": "js.solve(js.paper_gains(), [1.0, 1.0, 0.5], t_final=0.1).q_final.block_until_ready(); used = None",
+}
+
+
+@pytest.mark.parametrize("first", list(FIRST_RUNS))
+def test_the_first_run_asks_for_one_device_per_core(first):
+    """The import leaves JAX's device count alone; the first run, whichever it is, asks for one CPU device per core
+    (JAX had not started; a law of one's own is evaluated once before the run), and its ``run_info`` names the
+    devices it used: every one for an ensemble, one for a simulation (it runs on one device)."""
+    out = json.loads(_python(f"""
+        import json, jax, jaxsleigh as js
         from jaxsleigh.cores import available_cores
-        print(json.dumps([len(jax.devices()), available_cores()]))
+        at_import = jax.config.jax_num_cpu_devices
+        {FIRST_RUNS[first]}
+        print(json.dumps([at_import, len(jax.devices()), available_cores(), used]))
     """))
-    assert out[0] == out[1] >= 1
-    assert _python("import jaxsleigh, jax; print(len(jax.devices()))", JAXSLEIGH_CORES="1") == "1"
-    # a count the program chose itself is kept
-    assert _python("import jaxsleigh, jax; print(len(jax.devices()))", JAX_NUM_CPU_DEVICES="3") == "3"
+    at_import, devices, have, used = out
+    assert at_import == -1 and devices == have >= 1
+    assert used == {"run_ensemble": have, "ensemble_of_a_law": have, "simulate": 1, "solve": None}[first]
+
+
+def test_the_first_runs_core_count_follows_the_settings():
+    """``JAXSLEIGH_CORES=1`` gives one device, and a count the program chose itself (``jax_num_cpu_devices`` here;
+    ``JAX_NUM_CPU_DEVICES`` in the test of three cores) is kept."""
+    code = """
+        import jax, jaxsleigh as js
+        r = js.run_ensemble([[1.0, 1.0, 0.5]], t_final=0.1, progress=False)
+        print(len(jax.devices()), len(r.run_info["devices"]))
+    """
+    assert _python(code, JAXSLEIGH_CORES="1") == "1 1"
+    assert _python(code.replace("import jax, jaxsleigh as js",
+                                "import jax, jaxsleigh as js; jax.config.update('jax_num_cpu_devices', 3)")) == "3 3"
 
 
 def test_results_are_byte_identical_on_one_two_and_three_cores():
@@ -77,16 +106,16 @@ def test_jax_started_first_is_said_once_with_the_way_out():
         pytest.skip("one core: nothing to say")
     out = _python("""
         import warnings, jax, jax.numpy as jnp
-        jnp.zeros(1).block_until_ready()          # JAX starts before jaxsleigh is imported
         import jaxsleigh as js
+        jnp.zeros(1).block_until_ready()          # JAX starts before jaxsleigh's first run
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
             for _ in range(2):
-                js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, progress=False)
+                r = js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, progress=False)
         said = [str(x.message) for x in w if "cores" in str(x.message)]
-        print(len(said), said[0] if said else "")
+        print(len(said), jax.config.jax_num_cpu_devices, len(r.run_info["devices"]), said[0] if said else "")
     """)
-    assert out.startswith("1 ") and "JAX_NUM_CPU_DEVICES=" in out and "Import jaxsleigh before" in out
+    assert out.startswith("1 -1 1 ") and "JAX_NUM_CPU_DEVICES=" in out and "Run jaxsleigh before" in out
 
 
 def test_bad_core_counts_are_refused_or_named():
@@ -98,9 +127,10 @@ def test_bad_core_counts_are_refused_or_named():
         cores.workers([])
     out = _python("""
         import warnings
+        import jax, jaxsleigh as js
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
-            import jaxsleigh, jax
+            js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, progress=False)
         print(len(jax.devices()) >= 1, any("JAXSLEIGH_CORES" in str(x.message) for x in w))
     """, JAXSLEIGH_CORES="many")
     assert out == "True True"

@@ -25,10 +25,12 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from . import clock  # first: its fallback origin is the earliest moment of the command line
+from .. import cores
+from ..cache import enable_compilation_cache
 from .basin import add_basin
 from .bench import add_bench
 from .compare import add_compare, add_controllers
-from .common import EXIT_USAGE, PROG, Parser, enable_compilation_cache, parse_ic, say_failure
+from .common import EXIT_USAGE, PROG, Parser, parse_ic, say_failure
 from .paper import add_paper
 from .simulate import add_simulate
 from .sweep import add_sweep
@@ -141,6 +143,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return EXIT_USAGE
         if args.cores is not None:
             os.environ["JAXSLEIGH_CORES"] = str(args.cores)     # read by every run (jaxsleigh.cores.workers)
+        # a program may set JAX up as it starts (the library leaves that to its first run, and to the user):
+        # one CPU device per core, and the compiled programs of earlier processes
+        cores.configure()
         if not args.no_compile_cache:
             enable_compilation_cache()
         args._argv = argv

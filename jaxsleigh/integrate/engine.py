@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..cache import kept_jit
+from ..cores import configure
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
 from ..model.charts import chart_for
 from ..status import Status
@@ -158,9 +159,13 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
     are computed. ``singular=False`` (a law without the singular set, integrated in the physical
     chart) flags non-finite rows only. A single start that is bad, or a batch whose every row is, raises ``ValueError``
     with a message that says what to change.
+
+    Every run checks its starts here first: it is where a run begins, so here jaxsleigh asks JAX for one CPU
+    device per core if JAX has not started yet (`jaxsleigh.cores.configure`).
     """
     from ..errors import FlaggedStartsWarning
 
+    configure()
     arr = _ics_rows(ics, name)
     status = _start_status(arr, dtype, singular)
     bad = np.flatnonzero(status)

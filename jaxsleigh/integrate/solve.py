@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from ..controllers.actuators import is_sampled
+from ..cores import configure
 from ..model.charts import chart_for
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
@@ -81,6 +82,7 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
       whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
     """
+    configure()              # a run begins: one JAX CPU device per core, if JAX has not started (jaxsleigh.cores)
     if method not in ("adaptive", "rk4"):
         raise ValueError(f"method must be 'adaptive' or 'rk4', got {method!r}")
     if controller is None or not (callable(controller) or hasattr(controller, "L")):

@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cores import configure
 from .params import Gains
 
 __all__ = ["FunctionLaw", "PerTrajectory", "as_controller", "apply_law", "is_paper_law", "is_time_varying",
@@ -169,6 +170,7 @@ def as_controller(law: Any, name: str = "controller"):
             bad = next(x for x in leaves if not _is_number_leaf(x))
             raise ValueError(f"every parameter of the {name} must be a real number or array (they are traced), "
                              f"got {bad!r}")
+    configure()              # the law's first evaluation starts JAX: one CPU device per core first (jaxsleigh.cores)
     q = jnp.array([1.0, 0.5, 0.3])
     v = jnp.array([0.1, -0.2])
     try:
