@@ -22,7 +22,7 @@ from ..model.charts import chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
 from .stepsize import StepSizeController
-from .stepper import (Controls, StepState, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
+from .stepper import (Controls, StepState, controls, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
                       run_segment)
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
@@ -271,22 +271,16 @@ def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observer
 
 def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
                   factor_min=0.1, factor_max=5.0) -> Controls:
-    """The stepper's traced numbers for a run (`jaxsleigh.integrate.stepper.Controls`; the policy's
-    ``safety``, ``factor_min``, ``factor_max`` as in `jaxsleigh.integrate.stepsize.StepSizeController`)."""
-    max_step = horizon.dt if max_step is None else max_step
-    # NumPy scalars: the compiled step takes them as arguments; made on the device, each cast was a program
-    dtype = np.dtype(dtype)
-    return Controls(*(np.asarray(v, dtype) for v in (horizon.dt, max_step, rtol, atol, eps)),
-                    max_steps=np.asarray(max_steps, np.int32),
-                    **{k: np.asarray(v, dtype) for k, v in (("safety", safety), ("factor_min", factor_min),
-                                                            ("factor_max", factor_max))})
+    """The stepper's traced numbers for a run from the numbers themselves (`jaxsleigh.integrate.stepper.controls`;
+    ``max_step`` defaults to the base step here)."""
+    policy = StepSizeController(rtol=rtol, atol=atol, safety=safety, factor_min=factor_min, factor_max=factor_max,
+                                max_step=horizon.dt if max_step is None else max_step)
+    return controls(policy, dtype, dt=horizon.dt, eps=eps, max_steps=max_steps, xp=np)
 
 
 def step_controls(horizon: Horizon, dtype, step: StepSizeController, eps) -> Controls:
-    """`make_controls` from a resolved `StepSizeController` and the ball's radius ``eps``."""
-    return make_controls(horizon, dtype, rtol=step.rtol, atol=step.atol, eps=eps, max_steps=step.max_steps,
-                         max_step=step.max_step, safety=step.safety, factor_min=step.factor_min,
-                         factor_max=step.factor_max)
+    """`jaxsleigh.integrate.stepper.controls` from a resolved `StepSizeController` and the ball's radius ``eps``."""
+    return controls(step, dtype, dt=horizon.dt, eps=eps, max_steps=step.max_steps, xp=np)
 
 
 def shard_batch(tree, mesh):

@@ -51,7 +51,7 @@ from .observers import DEFAULT_OBSERVERS, StepInfo
 from .etd import etd_stages
 from .rk4 import rk4_stages, rk4_step
 from ..status import Status
-from .stepsize import error_ratio, next_step
+from .stepsize import StepSizeController, error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment", "run_to",
            "run_saving", "run_plain", "q_norm2_w"]
@@ -82,6 +82,18 @@ class Controls(NamedTuple):
     safety: jax.Array = 0.9
     factor_min: jax.Array = 0.1
     factor_max: jax.Array = 5.0
+
+
+def controls(stepsize: StepSizeController, dtype, *, dt, eps, max_steps, xp=jnp) -> Controls:
+    """The stepper's traced numbers for a run: the policy ``stepsize`` (its defaults resolved for ``dtype`` and the
+    base step ``dt``, `StepSizeController.resolved`), the ball's radius ``eps`` and the budget ``max_steps``.
+    ``xp=np`` makes NumPy scalars (a host driver passes them to a compiled step as arguments; made on the device,
+    each cast was a program of its own). Every front builds its controls here."""
+    ss = stepsize.resolved(dtype, dt)
+    dtype = xp.dtype(dtype)
+    return Controls(*(xp.asarray(v, dtype) for v in (dt, ss.max_step, ss.rtol, ss.atol, eps)),
+                    max_steps=xp.asarray(max_steps, xp.int32),
+                    **{k: xp.asarray(getattr(ss, k), dtype) for k in ("safety", "factor_min", "factor_max")})
 
 
 class StepState(NamedTuple):

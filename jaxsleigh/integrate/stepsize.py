@@ -70,6 +70,15 @@ class StepSizeController(NamedTuple):
     method: str = "adaptive"
     check_passivity: bool = True
 
+    def resolved(self, dtype, dt) -> "StepSizeController":
+        """This policy with its defaults filled in for ``dtype`` and the base step ``dt``: ``rtol`` and ``atol`` per
+        dtype (`DEFAULT_RTOL`, `DEFAULT_ATOL`), ``max_step`` `MAX_STEP_FACTOR` base steps (``max_steps``, which
+        depends on the horizon, is left as given). The one place these defaults are applied."""
+        name = jnp.dtype(dtype).name
+        return self._replace(rtol=DEFAULT_RTOL.get(name, 1e-6) if self.rtol is None else self.rtol,
+                             atol=DEFAULT_ATOL.get(name, 1e-6) if self.atol is None else self.atol,
+                             max_step=MAX_STEP_FACTOR * dt if self.max_step is None else self.max_step)
+
 
 def error_ratio(h, y, y_new, k4, k5, ctl, e=None):
     """\\(\\max_i |e_i| / \\mathrm{scale}_i\\) per trajectory (axis 0 is the state), with the error estimate

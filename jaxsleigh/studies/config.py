@@ -192,13 +192,11 @@ def _resolve_steps(stepsize: StepSizeController, horizon: Horizon, dtype: str, f
     ``max_steps`` from the horizon); fixed-step RK4 needs a budget of at least the horizon's base steps.
     Returns ``(rtol, atol, max_step, max_steps)``."""
     adaptive = stepsize.method == "adaptive"
-    rtol, atol, max_step, max_steps = stepsize.rtol, stepsize.atol, stepsize.max_step, stepsize.max_steps
-    rtol = DEFAULT_RTOL[dtype] if rtol is None else real(f("rtol"), rtol, positive=True, example=1e-6)
-    atol = DEFAULT_ATOL[dtype] if atol is None else real(f("atol"), atol, positive=True, example=1e-6)
-    if max_step is None:
-        max_step = MAX_STEP_FACTOR * horizon.dt
-    else:
-        max_step = real(f("max_step"), max_step, positive=True, example=0.1)
+    checked = {k: real(f(k), v, positive=True, example=ex) for k, v, ex in
+               (("rtol", stepsize.rtol, 1e-6), ("atol", stepsize.atol, 1e-6), ("max_step", stepsize.max_step, 0.1))
+               if v is not None}
+    full = stepsize._replace(**checked).resolved(dtype, horizon.dt)     # the defaults, in one place
+    rtol, atol, max_step, max_steps = full.rtol, full.atol, full.max_step, full.max_steps
     if max_steps is None:
         max_steps = default_max_steps(horizon, adaptive, dtype)
     else:

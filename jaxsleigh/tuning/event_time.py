@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 
 from ..integrate.observers import ControlEffort, ConvergenceTime, hermite
-from ..integrate.stepper import Controls, init_state, run_checkpointed, run_to, starting_step
-from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR
+from ..integrate.stepper import controls, init_state, run_checkpointed, run_to, starting_step
+from ..integrate.stepsize import StepSizeController
 from ..model.closed_loop import ClosedLoop
 from ..status import Status
 
@@ -101,11 +101,7 @@ def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.0
     attempts (`jaxsleigh.integrate.stepper.run_checkpointed`): ``jax.grad`` too, whose cost does not grow with the
     number of parameters (``max_steps`` is then static)."""
     dtype = y0w.dtype
-    name = jnp.dtype(dtype).name
-    rtol = DEFAULT_RTOL.get(name, 1e-6) if rtol is None else rtol
-    atol = DEFAULT_ATOL.get(name, 1e-6) if atol is None else atol
-    ctl = Controls(*(jnp.asarray(v, dtype) for v in (dt, MAX_STEP_FACTOR * dt, rtol, atol, eps)),
-                   max_steps=jnp.asarray(max_steps, jnp.int32))
+    ctl = controls(StepSizeController(rtol=rtol, atol=atol), dtype, dt=dt, eps=eps, max_steps=max_steps)
     args = ClosedLoop(plant, controller)
     n = y0w.shape[0]
     s = jax.vmap(lambda y, st: init_state(y, st, args, ctl, observers=_OBSERVERS), out_axes=-1)(

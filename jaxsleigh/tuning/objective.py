@@ -18,7 +18,8 @@ from ..model.plant import velocity_components
 from ..status import Status
 from ..integrate.observers import ClosestApproach, Excursion
 from ..model.charts import WChart, chart_for
-from ..integrate.stepper import Controls, StepState, init_state, run_checkpointed, starting_step
+from ..integrate.stepper import Controls, StepState, controls, init_state, run_checkpointed, starting_step
+from ..integrate.stepsize import StepSizeController
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups
@@ -175,8 +176,8 @@ def _soft_setup(gains, plant, cfg: LossConfig, t_final, n_attempts, dtype):
     chart = chart_for(gains)
     gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
     args = ClosedLoop(plant, gains)
-    ctl = Controls(*(jnp.asarray(v, dtype) for v in (cfg.dt, cfg.max_step, cfg.rtol, cfg.atol, cfg.eps)),
-                   max_steps=jnp.asarray(n_attempts, jnp.int32))
+    ctl = controls(StepSizeController(rtol=cfg.rtol, atol=cfg.atol, max_step=cfg.max_step), dtype, dt=cfg.dt,
+                   eps=cfg.eps, max_steps=n_attempts)
     T = jnp.asarray(cfg.t_final if t_final is None else t_final, dtype)
     eps, tau = jnp.asarray(cfg.eps, dtype), jnp.asarray(cfg.temperature, dtype)
     theta_b = jnp.asarray(cfg.theta_barrier, dtype)
