@@ -52,7 +52,8 @@ def test_importing_every_module_changes_no_jax_setting_and_starts_nothing():
 def test_a_run_replaces_nothing_inside_jax(tmp_path):
     """Every function and class of every loaded module of JAX and jaxlib is the same object after a run as before it:
     a simulation with the compilation cache on, whose programs are kept exported and called through `jax.export`
-    (where JAX initialises LAPACK), and a `solve`."""
+    (where JAX initialises LAPACK), and a `solve`. The cache folder is the test suite's (`tests/conftest.py`), so
+    that nothing is compiled afresh."""
     out = _python("""
         import json, sys, types
         from pathlib import Path
@@ -78,7 +79,7 @@ def test_a_run_replaces_nothing_inside_jax(tmp_path):
         print(json.dumps({"replaced": replaced, "watched": len(before), "kept": len(kept),
                           "ensure": ("jax._src.export._export", "_ensure_backends_initialized") in before,
                           "status": s.status.tolist()}))
-    """, str(tmp_path / "cache"))
+    """, os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(tmp_path / "cache"))   # the suite's cache, if it has one
     assert out["status"] == [0] and out["kept"] >= 3        # the exported programs ran
     assert out["ensure"] and out["watched"] > 1000
     assert out["replaced"] == []
