@@ -96,7 +96,8 @@ def configure() -> Optional[int]:
     `jaxsleigh.solve`, `workers` and `default_chunk_size`; the command line calls it when it starts;
     ``import jaxsleigh`` does not. Returns the count asked for (``None``: left as it was).
 
-    JAX refuses the setting once it has started (``jax.config.update`` raises ``RuntimeError``): the
+    JAX refuses the setting once it has started (``jax.config.update`` raises ``RuntimeError``; no
+    private name of JAX is read to know it, and tests/test_cores.py fails if JAX ever accepts it): the
     count is then left as it is, and `workers` says so once."""
     with _configure_lock:
         if _state["configured"] is None:
