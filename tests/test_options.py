@@ -37,13 +37,18 @@ def test_the_engine_behind_each_front_takes_the_option_objects_whole(engine):
 def test_objects_and_old_keywords_give_the_same_numbers():
     a = js.run_ensemble(STARTS, t_final=5.0, stepsize=js.StepSizeController(rtol=1e-7, atol=1e-7, max_step=0.5),
                         saveat=js.SaveAt(every=100), run=js.RunOptions(chunk_size=2, segment=200))
-    b = js.run_ensemble(STARTS, t_final=5.0, rtol=1e-7, atol=1e-7, max_step=0.5, save_every=100, chunk_size=2,
-                        segment=200)
+    with pytest.warns(DeprecationWarning, match="run_ensemble.rtol=..., atol=..., max_step=..., save_every=..., "
+                                                 "chunk_size=..., segment=.... is deprecated: pass"):
+        b = js.run_ensemble(STARTS, t_final=5.0, rtol=1e-7, atol=1e-7, max_step=0.5, save_every=100, chunk_size=2,
+                            segment=200)
     for k in ("q_final", "T_eps", "u_energy", "n_steps", "status"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
     np.testing.assert_array_equal(a.q, b.q)
     s1 = js.simulate(STARTS, t_final=2.0, stepsize=js.StepSizeController(method="rk4"), saveat=js.SaveAt(every=50))
-    s2 = js.simulate(STARTS, t_final=2.0, method="rk4", save_every=50)
+    with pytest.warns(DeprecationWarning, match=r"simulate\(method=..., save_every=...\) is deprecated: pass "
+                                                 r"stepsize=jaxsleigh.StepSizeController\(method=...\), "
+                                                 r"saveat=jaxsleigh.SaveAt\(every=...\)"):
+        s2 = js.simulate(STARTS, t_final=2.0, method="rk4", save_every=50)
     np.testing.assert_array_equal(s1.q, s2.q)
 
 
@@ -56,8 +61,10 @@ def test_the_policy_reaches_the_stepper():
     np.testing.assert_array_equal(c.n_steps, b.n_steps)
 
 
+@pytest.mark.filterwarnings("ignore:.*is deprecated. pass:DeprecationWarning")     # rtol= below, on purpose
 @pytest.mark.parametrize("call, err, match", [
-    (lambda: js.run_ensemble(STARTS, rtoll=1e-6), TypeError, "unexpected keyword argument 'rtoll'"),
+    (lambda: js.run_ensemble(STARTS, rtoll=1e-6), TypeError, "unexpected keyword argument 'rtoll'; its options are "
+                                                              "stepsize=jaxsleigh.StepSizeController"),
     (lambda: js.run_ensemble(STARTS, rtol=1e-6, stepsize=js.StepSizeController(rtol=1e-7)), ValueError,
      "rtol given twice"),
     (lambda: js.simulate(STARTS, run=js.RunOptions(chunk_size=4)), ValueError, "no use for run.chunk_size"),

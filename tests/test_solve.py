@@ -17,6 +17,7 @@ from laws import PD  # noqa: E402
 
 
 Y0 = np.array([1.0, 1.0, 0.5, 0.1, -0.2])
+RK4 = js.StepSizeController(method="rk4")
 
 
 def _fd(f, x, h):
@@ -39,9 +40,8 @@ def test_gradient_wrt_paper_gain_k_matches_finite_differences(method, rtol):
     with jax.enable_x64(True):
         def energy(k):
             law = js.Gains(jnp.asarray(g.L), k, jnp.asarray(g.D_hat))
-            stepsize = js.StepSizeController(rtol=1e-11, atol=1e-11)
-            return solve(law, jnp.asarray(Y0), t_final=8.0, method=method, stepsize=stepsize,
-                         max_attempts=8000).summaries["u_energy"]
+            stepsize = js.StepSizeController(rtol=1e-11, atol=1e-11, method=method, max_steps=8000)
+            return solve(law, jnp.asarray(Y0), t_final=8.0, stepsize=stepsize).summaries["u_energy"]
         grad = jax.jit(jax.grad(energy))(0.1)
         fd = _fd(energy, 0.1, 1e-5)
     np.testing.assert_allclose(grad, fd, rtol=rtol)
@@ -52,7 +52,7 @@ def test_gradients_wrt_user_law_plant_and_start_match_finite_differences():
         def final_x(kp, m, x0):
             plant = js.PlantParams(m, 1.0, 1.0, js.CoulombDamping())
             y0 = jnp.asarray(Y0).at[0].set(x0)
-            return solve(PD(kp, 1.5), y0, plant=plant, t_final=5.0, method="rk4").q_final[0]
+            return solve(PD(kp, 1.5), y0, plant=plant, t_final=5.0, stepsize=RK4).q_final[0]
         grads = jax.jit(jax.grad(final_x, argnums=(0, 1, 2)))(2.0, 2.0, 1.0)
         fds = (_fd(lambda a: final_x(a, 2.0, 1.0), 2.0, 1e-5), _fd(lambda a: final_x(2.0, a, 1.0), 2.0, 1e-5),
                _fd(lambda a: final_x(2.0, 2.0, a), 1.0, 1e-5))
@@ -63,7 +63,7 @@ def test_forward_mode_and_vmap_over_starts():
     with jax.enable_x64(True):
         starts = jnp.asarray(np.random.default_rng(0).uniform([-2, -2, 0.3], [2, 2, 2], (4, 3)))
         def final_q(kp, y0):
-            return solve(PD(kp, 1.5), y0, t_final=3.0, method="rk4").q_final
+            return solve(PD(kp, 1.5), y0, t_final=3.0, stepsize=RK4).q_final
         jac = jax.vmap(jax.jacfwd(final_q), in_axes=(None, 0))(2.0, starts)
         fd = jax.vmap(lambda y: _fd(lambda a: final_q(a, y), 2.0, 1e-5))(starts)
     assert jac.shape == (4, 3)
@@ -72,7 +72,7 @@ def test_forward_mode_and_vmap_over_starts():
 
 def test_solve_reports_an_exhausted_budget():
     with jax.enable_x64(True):
-        out = solve(js.paper_gains(), jnp.asarray(Y0), t_final=10.0, max_attempts=10)
+        out = solve(js.paper_gains(), jnp.asarray(Y0), t_final=10.0, stepsize=js.StepSizeController(max_steps=10))
     assert int(out.status) == js.Status.BUDGET_EXHAUSTED and float(out.t_reached) < 10.0
 
 

@@ -19,6 +19,7 @@ not traced.
 """
 from __future__ import annotations
 
+import operator
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -26,6 +27,7 @@ import jax.numpy as jnp
 
 from ..controllers.actuators import is_sampled
 from ..cores import configure
+from ..deprecation import warn_deprecated
 from ..model.charts import chart_for
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
@@ -57,23 +59,30 @@ class SolveOutput(NamedTuple):
     summaries: dict
 
 
-def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01, method: str = "adaptive",
-          stepsize: Optional[StepSizeController] = None, eps: float = 0.05, max_attempts: Optional[int] = None,
-          observers: Any = DEFAULT_OBSERVERS) -> SolveOutput:
-    """Integrate one start ``y0`` ((3,) or (5,), physical state) to ``t_final`` under ``controller``.
+#: The keywords `solve` took before its options were a `jaxsleigh.StepSizeController`: ``(object, field)`` of each.
+SOLVE_KEYWORDS = {"method": ("stepsize", "method"), "max_attempts": ("stepsize", "max_steps")}
+
+
+def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01,
+          stepsize: Optional[StepSizeController] = None, eps: float = 0.05, observers: Any = DEFAULT_OBSERVERS,
+          **options) -> SolveOutput:
+    r"""Integrate one start ``y0`` ((3,) or (5,), physical state) to ``t_final`` under ``controller``.
 
     Args:
       controller: `jaxsleigh.Gains` (the paper's law) or any law ``u = law(q, v)`` (`jaxsleigh.model.controller`).
       y0: ``(x, y, theta)`` (zero momentum) or ``(x, y, theta, p1, p2)``; its dtype sets the precision.
       plant: `jaxsleigh.PlantParams` (default: the paper's).
       t_final, dt: horizon and base step (the fixed step of ``"rk4"``, the first step of ``"adaptive"``).
-      method: ``"adaptive"`` or ``"rk4"`` (static).
-      stepsize: the adaptive policy (`jaxsleigh.integrate.stepsize.StepSizeController`; defaults per dtype).
-      eps: radius of the ball of ``T_eps``.
-      max_attempts: attempted steps (static; default: the base steps + 8 for ``"rk4"``, 4x that for
+      stepsize: `jaxsleigh.StepSizeController`, static (a constant of the traced function, or a static
+        argument of ``jit``; its numbers may also be traced): ``method`` ``"adaptive"`` or ``"rk4"``, the
+        adaptive policy (tolerances per dtype by default), ``check_passivity``, and ``max_steps``, the attempted
+        steps \(n\) of the ``lax.scan`` (default: the base steps \(t_{final}/dt + 8\) for ``"rk4"``, 4x that for
         ``"adaptive"``); a start that needs more ends ``BUDGET_EXHAUSTED`` (its summaries are then up to
         ``t_reached``).
+      eps: radius of the ball of ``T_eps``.
       observers: the summaries to carry (static).
+      **options: ``method=`` and ``max_attempts=`` of jaxsleigh 0.2, deprecated: ``stepsize.method`` and
+        ``stepsize.max_steps``.
 
     Returns:
       `SolveOutput`. Concrete settings are checked here (``t_final``, ``dt``, ``eps`` finite and positive, a
@@ -82,9 +91,8 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
       whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
     """
+    ss = _stepsize(stepsize, options)
     configure()              # a run begins: one JAX CPU device per core, if JAX has not started (jaxsleigh.cores)
-    if method not in ("adaptive", "rk4"):
-        raise ValueError(f"method must be 'adaptive' or 'rk4', got {method!r}")
     if controller is None or not (callable(controller) or hasattr(controller, "L")):
         raise ValueError(f"controller must be jaxsleigh.Gains (the paper's law) or a law u = law(q, v), "
                          f"got {type(controller).__name__}")
@@ -101,12 +109,12 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     if y0.shape != (5,):
         raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
     dtype = y0.dtype
-    adaptive = method == "adaptive"
-    ss = StepSizeController() if stepsize is None else stepsize
+    adaptive = ss.method == "adaptive"
     name = jnp.dtype(dtype).name
     rtol = DEFAULT_RTOL.get(name, 1e-6) if ss.rtol is None else ss.rtol
     atol = DEFAULT_ATOL.get(name, 1e-6) if ss.atol is None else ss.atol
     max_step = MAX_STEP_FACTOR * dt if ss.max_step is None else ss.max_step
+    max_attempts = ss.max_steps
     if max_attempts is None:
         base = int(round(float(t_final) / float(dt))) + 8
         max_attempts = 4 * base if adaptive else base
@@ -119,7 +127,7 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     yc, status0 = _start_in_chart(y0, chart)
     s = init_state(yc, status0, args, ctl, observers=tuple(observers))
     s = run_segment(s, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), adaptive=adaptive,
-                    observers=tuple(observers))
+                    monitor=bool(ss.check_passivity), observers=tuple(observers))
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
     y = jnp.where(status0 == Status.OK, chart.from_chart(s.y), jnp.nan)
@@ -127,6 +135,39 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
                                        collect_values(tuple(observers), s.obs, s.quad))
     return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
                        n_rejected=s.n_reject, summaries=summaries)
+
+
+def _stepsize(stepsize, options: dict) -> StepSizeController:
+    """The `StepSizeController` of a `solve` call: ``stepsize`` (default `StepSizeController()`, checked) with the
+    deprecated ``method=`` / ``max_attempts=`` of ``options`` put in (one `DeprecationWarning` naming both, at the
+    caller of `solve`). An unknown keyword is a ``TypeError``; a keyword that contradicts a field the object sets
+    (not at its default) is a ``ValueError``."""
+    unknown = sorted(set(options) - set(SOLVE_KEYWORDS))
+    if unknown:
+        raise TypeError(f"solve() got an unexpected keyword argument {unknown[0]!r}; its options are "
+                        f"stepsize=jaxsleigh.StepSizeController(...)")
+    ss = StepSizeController() if stepsize is None else stepsize
+    if not isinstance(ss, StepSizeController):
+        raise ValueError(f"stepsize must be a jaxsleigh.StepSizeController, got {type(ss).__name__}")
+    warn_deprecated("solve", ((k,) + SOLVE_KEYWORDS[k] for k in options), stacklevel=3)
+    for key, value in options.items():
+        field = SOLVE_KEYWORDS[key][1]
+        mine, default = getattr(ss, field), StepSizeController._field_defaults[field]
+        if mine != default and mine != value:
+            raise ValueError(f"solve(): {key}={value!r} contradicts stepsize.{field} = {mine!r}; give it once, "
+                             f"as stepsize.{field}")
+        ss = ss._replace(**{field: value})
+    if ss.method not in ("adaptive", "rk4"):
+        raise ValueError(f"stepsize.method must be 'adaptive' or 'rk4', got {ss.method!r}")
+    if ss.max_steps is not None:
+        try:
+            n = operator.index(ss.max_steps)
+        except TypeError:
+            raise ValueError(f"stepsize.max_steps (the attempted steps of solve's scan) must be a whole number, "
+                             f"static (not traced), got {ss.max_steps!r}") from None
+        if n < 1:
+            raise ValueError(f"stepsize.max_steps must be >= 1, got {n}")
+    return ss
 
 
 def _check_positive(name: str, value) -> None:

@@ -7,15 +7,18 @@
 * `RunOptions`: how to run (chunks, segments, devices, checkpoint, resume, progress, the share of a
   multi-process run).
 
-`front_options` folds the keywords of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...) into the three objects
-(`StudyOptions`), which the studies then pass down whole: a front takes at most a dozen parameters, the
-engine behind it as many, and every earlier call keeps working.
+The fronts take their options as these objects. The keywords of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``,
+``save_every=``, ...) are deprecated: they work until 0.4, each call that gives any with one `DeprecationWarning`
+naming the object and field of each (`jaxsleigh.deprecation`). `front_options` folds them into the three
+objects (`StudyOptions`), which the studies then pass down whole: a front takes at most a dozen parameters, the
+engine behind it as many.
 """
 from __future__ import annotations
 
 import math
 from typing import Any, NamedTuple, Optional
 
+from ..deprecation import OBJECT_CLASS, warn_deprecated
 from ..integrate.stepsize import StepSizeController
 
 __all__ = ["SaveAt", "RunOptions", "StudyOptions", "front_options"]
@@ -91,14 +94,18 @@ _ALWAYS_PUT = frozenset({"method", "check_passivity", "summaries"})
 
 
 def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, run=None, options=None, *,
-                  saveat_default: SaveAt = SaveAt()) -> StudyOptions:
+                  saveat_default: SaveAt = SaveAt(), stacklevel: int = 3) -> StudyOptions:
     """The option objects of a study, with the 0.1 keywords in ``options`` folded in.
 
-    An unknown keyword is a ``TypeError`` naming the valid ones; a keyword given both as an object's field
-    and by itself (with another value) is a ``ValueError``; an object's field the front has no use for
-    (a chunk size for `jaxsleigh.simulate`) is a ``ValueError`` naming it. ``saveat_default``: what an
-    unset ``SaveAt`` field means for this front (`jaxsleigh.simulate` keeps every 10th step).
+    An unknown keyword is a ``TypeError`` naming the valid ones; the known ones are deprecated, and one
+    `DeprecationWarning` (`jaxsleigh.deprecation.warn_deprecated`) names them all, pointing at the frame ``stacklevel`` levels up
+    (3: the caller of the front that calls this). A keyword given both as an object's field and by itself
+    (with another value) is a ``ValueError``; an object's field the front has no use for (a chunk size for
+    `jaxsleigh.simulate`) is a ``ValueError`` naming it. ``saveat_default``: what an unset ``SaveAt`` field
+    means for this front (`jaxsleigh.simulate` keeps every 10th step).
     """
+    _refuse_unknown(front, allowed, dict(options or {}))
+    warn_deprecated(front, ((k,) + _KEYWORD_HOME[k] for k in options or {}), stacklevel=stacklevel)
     out = _merged_keywords(front, allowed, stepsize, saveat, run, options)
     ss = stepsize if stepsize is not None else StepSizeController()
     fields = {"stepsize": {"safety": float(ss.safety), "factor_min": float(ss.factor_min),
@@ -111,11 +118,13 @@ def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, ru
 
 
 def _refuse_unknown(front: str, allowed: frozenset, options: dict) -> None:
+    """A ``TypeError`` naming the keywords of ``options`` that ``front`` does not know, and the objects it takes."""
     unknown = sorted(set(options) - allowed)
     if unknown:
+        homes = [h for h in OBJECT_CLASS if any(_KEYWORD_HOME.get(k, ("",))[0] == h for k in allowed)]
         raise TypeError(f"{front}() got unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
-                        f"{', '.join(repr(k) for k in unknown)}; its keywords beyond the objects are "
-                        f"{', '.join(sorted(allowed))}")
+                        f"{', '.join(repr(k) for k in unknown)}; its options are "
+                        f"{', '.join(f'{h}=jaxsleigh.{OBJECT_CLASS[h]}(...)' for h in homes)}")
 
 
 def _fields_put(home: str, cls, obj):
