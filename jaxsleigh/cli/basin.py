@@ -22,12 +22,14 @@ import sys
 from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
 from ..files.runner import chunk_dir, sidecar
+from ..studies.options import RunOptions
 from .chunked import how_it_ran, run_chunked_command
 from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
                      add_sampler_options, check_outputs, check_tolerance_flags, exit_code, law_kwargs,
                      model_from_args, status_epilog, status_line)
 from .common import number as _positive_float
 from .common import whole as _whole_flag
+from .options import stepsize_from_args
 
 __all__ = ["add_basin", "run_basin_command"]
 
@@ -186,16 +188,16 @@ def run_basin_command(args) -> int:
 
         st["plant"], st["law"] = plant, law = model_from_args(args)
         check_tolerance_flags(args)
-        solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
-                     max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64, eps=args.eps,
-                     flags=FLAGS)
+        solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
+                     stepsize=stepsize_from_args(args), x64=args.x64, eps=args.eps, flags=FLAGS)
         st["starts"] = _starts_from_args(args)
         check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
 
-    def study(**kw):
-        return run_basin(st["starts"], eps=args.eps, t_final=args.t_final, dt=args.dt, method=args.method,
-                         plant=st["plant"], **law_kwargs(st["law"]), x64=args.x64, max_steps=args.max_steps,
-                         rtol=args.rtol, atol=args.atol, chunk_size=args.chunk_size, progress=args.progress, **kw)
+    def study(checkpoint_dir, resume, shard):
+        run = RunOptions(chunk_size=args.chunk_size, progress=args.progress, checkpoint_dir=checkpoint_dir,
+                         resume=resume, shard=shard)
+        return run_basin(st["starts"], eps=args.eps, t_final=args.t_final, dt=args.dt, plant=st["plant"],
+                         **law_kwargs(st["law"]), x64=args.x64, stepsize=stepsize_from_args(args), run=run)
 
     def finish(res, written, record, caught) -> int:
         n_flag = int((~res.valid).sum())

@@ -174,6 +174,14 @@ def add_tolerance_options(group) -> None:
                             "settled starts oscillate (the settled-phase page of the docs)")
 
 
+def stepsize_from_args(args):
+    """The `jaxsleigh.StepSizeController` of ``--method``, ``--max-steps``, ``--rtol`` and ``--atol`` (``None``: the
+    library's defaults)."""
+    from ..integrate.stepsize import StepSizeController
+
+    return StepSizeController(method=args.method, max_steps=args.max_steps, rtol=args.rtol, atol=args.atol)
+
+
 def check_tolerance_flags(args) -> None:
     """``--rtol`` / ``--atol`` belong to the adaptive method: refuse them with ``--method rk4`` (unused there)."""
     used = " and ".join(f for f, v in (("--rtol", args.rtol), ("--atol", args.atol)) if v is not None)

@@ -9,9 +9,11 @@ import warnings
 
 from ..errors import FlaggedStartsWarning
 from ..files.runlock import RunLock
+from ..studies.options import RunOptions, SaveAt
 from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
                      check_outputs, check_tolerance_flags, exit_code, ics_from_args, law_kwargs, model_from_args,
                      report_warnings, status_epilog, status_line)
+from .options import stepsize_from_args
 
 __all__ = ["add_simulate"]
 
@@ -76,9 +78,9 @@ def _cmd_simulate(args) -> int:
     plant, law = model_from_args(args)
     check_tolerance_flags(args)
     save_every = _save_every(args)
+    stepsize = stepsize_from_args(args)
     cfg = solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=save_every,
-                       method=args.method, max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64,
-                       flags=FLAGS)
+                       stepsize=stepsize, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": npz_path(args.out)})
     # the run owns its --out: while it runs, another run writing the same file is refused (exit code 5)
@@ -86,9 +88,8 @@ def _cmd_simulate(args) -> int:
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
-                           save_every=save_every, method=args.method, max_steps=args.max_steps,
-                           rtol=args.rtol, atol=args.atol, x64=args.x64, progress=args.progress)
+            sol = simulate(ics, plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, x64=args.x64,
+                           stepsize=stepsize, saveat=SaveAt(every=save_every), run=RunOptions(progress=args.progress))
         wall = time.perf_counter() - t0
         report_warnings(caught)
         out = write_npz(args.out, sol, ics=ics, command=[PROG, *args._argv])

@@ -21,10 +21,12 @@ import re
 import sys
 
 from ..files.runner import chunk_dir, sidecar
+from ..studies.options import RunOptions
 from .basin import _starts_from_args, add_study_options
 from .chunked import how_it_ran, run_chunked_command
 from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
                      law_kwargs, model_from_args, status_epilog, status_line)
+from .options import stepsize_from_args
 
 __all__ = ["add_sweep", "run_sweep_command"]
 
@@ -104,11 +106,12 @@ def run_sweep_command(args) -> int:
     out = npz_path(args.out)
     st = {}
 
-    def study(**kw):
+    def study(checkpoint_dir, resume, shard):
+        run = RunOptions(chunk_size=args.chunk_size, progress=args.progress, checkpoint_dir=checkpoint_dir,
+                         resume=resume, shard=shard)
         return sweep(st["starts"], st["axes"], plant=st["plant"], **law_kwargs(st["law"]), eps=args.eps,
-                     t_final=args.t_final, dt=args.dt, method=args.method, x64=args.x64, max_steps=args.max_steps,
-                     rtol=args.rtol, atol=args.atol, chunk_size=args.chunk_size, progress=args.progress,
-                     labels=st["labels"], **kw)
+                     t_final=args.t_final, dt=args.dt, x64=args.x64, stepsize=stepsize_from_args(args), run=run,
+                     labels=st["labels"])
 
     def finish(res, written, record, caught) -> int:
         n_flag = int((~res.valid[0]).sum())
@@ -155,8 +158,8 @@ def _check(args, out) -> dict:
     names, values, _ = param_grid(axes, law_names)
     apply_params(names, values, plant, labels=labels, **law_kwargs(law))
     check_tolerance_flags(args)
-    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, method=args.method,
-                 max_steps=args.max_steps, rtol=args.rtol, atol=args.atol, x64=args.x64, eps=args.eps, flags=FLAGS)
+    solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
+                 stepsize=stepsize_from_args(args), x64=args.x64, eps=args.eps, flags=FLAGS)
     check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
     return {"axes": axes, "labels": labels, "plant": plant, "law": law, "starts": starts}
 

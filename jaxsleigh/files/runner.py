@@ -23,11 +23,12 @@ with ``resume=True`` continues it and writes the same file, byte for byte, on an
 
 Example, a basin over four processes of one machine (start the same script four times, ``I`` = 0..3)::
 
-    from jaxsleigh import run_basin, sample_starts, save_basin
+    from jaxsleigh import RunOptions, run_basin, sample_starts, save_basin
     from jaxsleigh.files.runner import Processes, leave, run_to_file
 
     starts = sample_starts(10**6, seed=1)
-    done = run_to_file("mc.npz", lambda **kw: run_basin(starts, eps=0.05, **kw), save_basin,
+    # the runner passes checkpoint_dir, resume and shard: the study puts them into its RunOptions
+    done = run_to_file("mc.npz", lambda **kw: run_basin(starts, eps=0.05, run=RunOptions(**kw)), save_basin,
                        options={"samples": 10**6, "seed": 1, "eps": 0.05},
                        processes=Processes("127.0.0.1:12345", 4, I))
     leave(done)             # every process ends here with process 0's code

@@ -81,8 +81,8 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         ``t_reached``).
       eps: radius of the ball of ``T_eps``.
       observers: the summaries to carry (static).
-      **options: ``method=`` and ``max_attempts=`` of jaxsleigh 0.2, deprecated: ``stepsize.method`` and
-        ``stepsize.max_steps``.
+      **options: the deprecated ``method=`` and ``max_attempts=`` (one `DeprecationWarning`): now
+        ``stepsize.method`` and ``stepsize.max_steps``.
 
     Returns:
       `SolveOutput`. Concrete settings are checked here (``t_final``, ``dt``, ``eps`` finite and positive, a

@@ -16,6 +16,8 @@ import numpy as np
 
 from ..integrate.engine import MAX_BASE_STEPS
 from ..model.params import paper_gains, paper_plant
+from ..integrate.stepsize import StepSizeController
+from ..studies.options import RunOptions, SaveAt
 from ..studies.simulate import simulate
 
 __all__ = ["PAPER_ICS", "PAPER_T_FINAL", "FIGURES", "run_paper", "summary_table"]
@@ -82,8 +84,9 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ics = PAPER_ICS if ics is None else np.asarray(ics, dtype=np.float64)
-    sol = simulate(ics, plant=paper_plant(), gains=paper_gains(), t_final=t_final, dt=dt,
-                   save_every=_save_every(t_final, dt), method=method, x64=x64, progress=progress)
+    sol = simulate(ics, plant=paper_plant(), gains=paper_gains(), t_final=t_final, dt=dt, x64=x64,
+                   stepsize=StepSizeController(method=method), saveat=SaveAt(every=_save_every(t_final, dt)),
+                   run=RunOptions(progress=progress))
     paths = {"npz": write_npz(out / "paper.npz", sol, ics=ics,
                               command=list(command) if command is not None else ["run_paper", str(out)])}
     for stem, fn_name in FIGURES.items():

@@ -23,7 +23,9 @@ from typing import Optional
 import jax
 import numpy as np
 
+from ..integrate.stepsize import StepSizeController
 from .ensemble import run_ensemble
+from .options import RunOptions, SaveAt
 from ..status import Status
 
 __all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine",
@@ -51,8 +53,9 @@ def reference_final(ics, *, t_final: float = 100.0, cache_dir=None) -> np.ndarra
         path = Path(cache_dir) / f"reference_{key}.npy"
         if path.exists():
             return np.load(path)
-    r = run_ensemble(ics, t_final=t_final, x64=True, rtol=1e-11, atol=1e-11, max_steps=2_000_000,
-                     progress=False)
+    r = run_ensemble(ics, t_final=t_final, x64=True,
+                     stepsize=StepSizeController(rtol=1e-11, atol=1e-11, max_steps=2_000_000),
+                     run=RunOptions(progress=False))
     if np.any(r.status != Status.OK):
         raise RuntimeError(f"reference failed on {(r.status != 0).sum()} starts")
     out = np.concatenate([r.q_final, r.p_final], axis=1)
@@ -188,7 +191,8 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
 
     Each repetition times the C program (via ctypes, on ``c_threads`` OpenMP threads; default: as many
     as the cores the JAX call uses, `jaxsleigh.cores.workers`; on an accelerator, every core of the host) and
-    ``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, ...)`` back to back,
+    ``run_ensemble(ics, stepsize=StepSizeController(method="rk4", check_passivity=False),
+    saveat=SaveAt(summaries=False), ...)`` back to back,
     alternating which goes first; compile and warm-up runs are not timed. Throughput is
     trajectory-steps per second of wall time and per second of CPU time (``time.process_time``:
     all threads of this process, so a JAX run on two cores is charged for both). ``ratio_cpu`` is
@@ -216,7 +220,8 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     n = ics.shape[0]
     horizon, args, status0, y0w = _w_chart_starts(ics, t_final, dt)
     steps = horizon.n_steps
-    kw = dict(method="rk4", summaries=False, check_passivity=False, t_final=t_final, dt=dt, progress=False)
+    kw = dict(t_final=t_final, dt=dt, stepsize=StepSizeController(method="rk4", check_passivity=False),
+              saveat=SaveAt(summaries=False), run=RunOptions(progress=False))
     cores, c_threads = _c_limit_threads(c_threads)
 
     def run_c(c_lib=lib, n_threads=c_threads):
@@ -229,8 +234,9 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     out = {"available": True, "reason": None, "n_ics": n, "steps": steps, "dt": dt, "dtype": "float32",
            "repeats": repeats, "c_flags": " ".join(C_FLAGS), "c_threads": c_threads, "jax_cores": cores,
            "c_divider_ops_per_evaluation": _divider_ops(lib),
-           "timed_call": "run_ensemble(ics, method='rk4', summaries=False, check_passivity=False, "
-                         f"t_final={t_final:g}, dt={dt:g}, progress=False)"}
+           "timed_call": "run_ensemble(ics, stepsize=StepSizeController(method='rk4', check_passivity=False), "
+                         f"saveat=SaveAt(summaries=False), t_final={t_final:g}, dt={dt:g}, "
+                         "run=RunOptions(progress=False))"}
     out.update(_throughputs(rec, n * steps))
     out.update(_ratios(rec, c_libs, variants))
     out["agreement"] = _agreement(run_c(), {cv: run_c(vl, 1) for cv, vl in c_libs.items()},
@@ -391,7 +397,7 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
     steps = int(round(t_final / dt))
     ref = reference_final(ics, t_final=t_final, cache_dir=cache_dir)
     chunk = max(n_ics, 1)
-    common = dict(t_final=t_final, dt=dt, x64=x64, chunk_size=chunk, progress=False)
+    common = dict(t_final=t_final, dt=dt, x64=x64, run=RunOptions(chunk_size=chunk, progress=False))
     runs = _timed_runs(ics, common, repeats)
     r_acc = runs["accurate"][1]
     fixed_step = _fixed_step_figures(runs, ref, n_ics * steps)
@@ -417,7 +423,8 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
 def _timed_runs(ics, common: dict, repeats: int) -> dict:
     """The calls `bench` times, each warm and best of ``repeats``: ``{name: (wall s, result)}``."""
     def fixed(check, summaries=True):
-        return lambda: run_ensemble(ics, method="rk4", check_passivity=check, summaries=summaries, **common)
+        return lambda: run_ensemble(ics, stepsize=StepSizeController(method="rk4", check_passivity=check),
+                                    saveat=SaveAt(summaries=summaries), **common)
 
     return {
         "rk4": _timed(fixed(False, summaries=False), repeats),      # plain RK4, final state only

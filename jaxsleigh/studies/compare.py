@@ -136,6 +136,7 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         by the paper's law under small k needs ``atol=1e-8`` in float32 (docs/evidence/settled-phase.md).
     """
     from .ensemble import run_ensemble
+    from .options import RunOptions
 
     dt = check_horizon(t_final, sampler, substeps)
     rows = []
@@ -146,7 +147,7 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         for sname, ics in starts.items():
             ics = np.asarray(ics, np.float64)
             r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, dt=dt, eps=eps, x64=x64,
-                             stepsize=stepsize, progress=False)
+                             stepsize=stepsize, run=RunOptions(progress=False))
             row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
             rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row})
     return rows

@@ -52,6 +52,7 @@ import numpy as np
 from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
 from ..status import Status
+from ..studies.options import RunOptions
 from .checkpoint import TuningInterrupted, read_checkpoint
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
@@ -177,7 +178,7 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
     ics = np.asarray(ics, np.float64)
     P, N = len(glist), ics.shape[0]
     r = run_ensemble(np.tile(ics, (P, 1)), plant=plant, gains=stack_gains([g for g in glist for _ in range(N)]),
-                     t_final=t_final, eps=eps, x64=x64, stepsize=stepsize, progress=False)
+                     t_final=t_final, eps=eps, x64=x64, stepsize=stepsize, run=RunOptions(progress=False))
     ok = (r.status == Status.OK).reshape(P, N)
     T = np.where(ok, np.asarray(r.T_eps).reshape(P, N), np.inf)
     T = np.where(np.isnan(T), np.inf, T)
@@ -485,7 +486,8 @@ def _verified(run: _SearchState, space: _Space, ev: _Evaluator, guard, budget: _
 def _guard_failure(g: Gains, guard, plant, t_final, x64, stepsize=None) -> str:
     from ..studies.ensemble import run_ensemble
 
-    r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, stepsize=stepsize, progress=False)
+    r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, stepsize=stepsize,
+                     run=RunOptions(progress=False))
     bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q_final)[:, 2]) != np.sign(guard[:, 2]))
     return f"{int(bad.sum())} of {bad.size} failed or crossed theta = 0" if bad.any() else ""
 

@@ -12,8 +12,10 @@ import math
 
 import numpy as np
 
+from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains
 from ..status import Status
+from ..studies.options import RunOptions
 
 __all__ = ["probe", "hardest", "check"]
 
@@ -25,7 +27,8 @@ def probe(g: Gains, sets, horizon: float, budget: int, x64) -> tuple:
 
     ok, attempts = True, []
     for starts, plant in sets:
-        r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64, max_steps=budget, progress=False)
+        r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64,
+                         stepsize=StepSizeController(max_steps=budget), run=RunOptions(progress=False))
         attempts.append(np.asarray(r.n_steps + r.n_rejected))
         ok = ok and bool(np.all(r.status == Status.OK))
     return ok, attempts
@@ -49,7 +52,7 @@ def check(g: Gains, checks, horizon: float, x64, attempts: list | None = None) -
     from ..studies.ensemble import run_ensemble
 
     for starts, plant in checks:
-        r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64, progress=False)
+        r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64, run=RunOptions(progress=False))
         if attempts is not None:
             attempts.append(np.asarray(r.n_steps + r.n_rejected))
         bad = r.status != Status.OK

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..model.params import PlantParams, load_gains
 from ..status import Status
+from ..studies.options import RunOptions, SaveAt
 
 __all__ = ["Validation", "validate", "markdown_table", "validation_dict"]
 
@@ -55,12 +56,16 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     (`run_ensemble`, adaptive RK4, default tolerances), never with the
     training discretisation. The effort comes from the engine's on-line
     `ControlEffort` quadrature (RK4 order) when it reports one; otherwise
-    from a second run saving every base step (trapezoid on the saved samples)."""
+    from a second run saving every base step (trapezoid on the saved samples).
+    ``ensemble_kw`` go to `run_ensemble` (e.g. ``stepsize=jaxsleigh.StepSizeController(atol=1e-8)``);
+    ``progress`` sets the progress bar of ``run`` (`jaxsleigh.RunOptions`)."""
     from ..studies.ensemble import run_ensemble
 
     g = load_gains(gains)
+    kw = dict(ensemble_kw)
+    run = kw.pop("run", None) or RunOptions()
     r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64,
-                     progress=progress, **ensemble_kw)
+                     run=run if progress is None else run._replace(progress=progress), **kw)
     T = np.where(r.status == Status.OK, r.T_eps, np.nan)
     n = T.size
     conv = np.isfinite(T)
@@ -96,8 +101,10 @@ def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarra
     from ..model.plant import velocity_components
 
     p = paper_plant() if plant is None else plant
-    s = run_ensemble(ics, plant=p, gains=g, t_final=t_final, eps=eps, x64=x64, save_every=1, progress=False,
-                     **ensemble_kw)
+    kw = {k: v for k, v in ensemble_kw.items() if k not in ("saveat", "run")}
+    run = (ensemble_kw.get("run") or RunOptions())._replace(progress=False)
+    s = run_ensemble(ics, plant=p, gains=g, t_final=t_final, eps=eps, x64=x64, saveat=SaveAt(every=1), run=run,
+                     **kw)
     w = np.asarray(q_to_w(jnp.moveaxis(jnp.asarray(s.q), -1, 0)), np.float64)
     v = velocity_components(np.moveaxis(np.asarray(s.p, np.float64), -1, 0), p)
     u = np.stack([np.asarray(c, np.float64) for c in control_w_components(w, v, g)])
