@@ -83,3 +83,21 @@ def test_a_run_replaces_nothing_inside_jax(tmp_path):
     assert out["status"] == [0] and out["kept"] >= 3        # the exported programs ran
     assert out["ensure"] and out["watched"] > 1000
     assert out["replaced"] == []
+
+
+def test_the_private_jax_name_jaxsleigh_reads_is_where_it_expects():
+    """`jaxsleigh.jax_private` is the one module that reads a private JAX name (the distributed client): it fails
+    here, not in a multi-process run, when JAX moves it; and no other module reaches into ``jax._src``."""
+    import ast
+    from pathlib import Path
+
+    import jaxsleigh
+    from jaxsleigh.jax_private import distributed_client
+
+    assert distributed_client() is None                  # no jax.distributed.initialize in this process
+    root = Path(jaxsleigh.__file__).parent
+    reach = [f"{p.relative_to(root)}:{n.lineno}" for p in root.rglob("*.py") if p.name != "jax_private.py"
+             for n in ast.walk(ast.parse(p.read_text()))
+             if isinstance(n, (ast.Import, ast.ImportFrom)) and "_src" in (
+                 getattr(n, "module", None) or " ".join(a.name for a in n.names))]
+    assert not reach, reach

@@ -416,11 +416,11 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
         n, i = None, None
     else:
         return None
-    from jax._src import distributed as _dist
+    from ..jax_private import distributed_client
 
-    if _dist.global_state.client is None:
+    if distributed_client() is None:
         _initialize(coordinator, n, i, timeout_s, kw)
-    client = _dist.global_state.client
+    client = distributed_client()
     if client is None or not hasattr(client, "key_value_dir_get"):  # pragma: no cover - other JAX versions
         raise RuntimeError("this JAX version's distributed runtime has no key-value store (client.key_value_dir_get); "
                            "jaxsleigh was tested with jax 0.10")
