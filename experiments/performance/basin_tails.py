@@ -38,9 +38,9 @@ order = np.argsort(np.abs(s.ics[:, 2]), kind="stable")
 out = {}
 for n in map(int, sys.argv[2:]):
     ics = s.ics[order[:n]]
-    js.run_basin(ics, t_final=5.0, progress=False)                   # compile
+    js.run_basin(ics, t_final=5.0, run=js.RunOptions(progress=False))                   # compile
     t0 = time.perf_counter()
-    r = js.run_basin(ics, t_final=100.0, progress=False)
+    r = js.run_basin(ics, t_final=100.0, run=js.RunOptions(progress=False))
     w = time.perf_counter() - t0
     out[n] = {"wall_s": w, "max_steps": int(r.n_steps.max()), "status4": int((r.status == 4).sum()),
               "us_per_step": 1e6 * w / int(r.n_steps.max())}
@@ -84,7 +84,7 @@ def timeline(js, starts) -> dict:
     ens.drive_final = timed
     try:
         t0[0] = time.perf_counter()
-        r = js.run_basin(starts, progress=False)
+        r = js.run_basin(starts, run=js.RunOptions(progress=False))
         wall = time.perf_counter() - t0[0]
     finally:
         ens.drive_final = drive
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
 
     res = {"command": "python experiments/performance/basin_tails.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "cores": available_cores(), "dtype": "float32", "load_before": [round(x, 2) for x in os.getloadavg()]}
-    js.run_basin(js.sample_starts(2048, seed=1), progress=False)           # compile, not timed
+    js.run_basin(js.sample_starts(2048, seed=1), run=js.RunOptions(progress=False))   # compile, not timed
     starts = js.sample_starts(a.n, seed=0)
     res["timeline"] = timeline(js, starts)
     log(f"timeline: wall {res['timeline']['wall_s']:.1f} s, parts {res['timeline']['parts_s_sum']:.1f} s, "
@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     res["chunk_sizes"] = {}
     for c in map(int, a.chunks.split(",")):
         t0 = time.perf_counter()
-        r = js.run_basin(starts, chunk_size=c, progress=False)
+        r = js.run_basin(starts, run=js.RunOptions(chunk_size=c, progress=False))
         res["chunk_sizes"][c] = {"wall_s": time.perf_counter() - t0, "digest": digest(r),
                                  "mean_steps": float(r.n_steps.mean())}
         log(f"chunk_size {c}:", json.dumps(res["chunk_sizes"][c]))

@@ -15,7 +15,8 @@ per wall second, the ratio JAX / C, and the agreement of the final states (w cha
 load average before and after.
 
 The C program runs on as many OpenMP threads as the JAX call uses cores (``--c-threads`` to choose). The JAX call timed is
-``run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, t_final, dt, progress=False)``.
+``run_ensemble(ics, t_final, dt, stepsize=StepSizeController(method="rk4", check_passivity=False),
+saveat=SaveAt(summaries=False), run=RunOptions(progress=False))``.
 By default the JAX call uses every core (`jaxsleigh.cores`); ``--cores 1`` sets ``JAXSLEIGH_CORES=1``
 before jaxsleigh is imported (the one-core run); the JSON records the cores and threads.
 """

@@ -3,8 +3,8 @@ r"""Every core, start-up, sweeps against basins: the figures side by side in one
     python experiments/performance/bench_cores.py [--basin-n 100000] [--baseline 2fa58a2] [--repeats 2]
                                                   [--skip c,basin,startup,sweep] [--out docs/figures/bench_cores.json]
 
-1. **The fixed-step path against C** (`jaxsleigh.studies.bench.c_limit`): ``run_ensemble(method="rk4",
-   summaries=False, check_passivity=False)`` on the benchmark workload (4096 starts, 100 s, float32) against
+1. **The fixed-step path against C** (`jaxsleigh.studies.bench.c_limit`): ``run_ensemble(stepsize=StepSizeController(
+   method="rk4", check_passivity=False), saveat=SaveAt(summaries=False))`` on the benchmark workload (4096 starts, 100 s, float32) against
    the hand-vectorised C RK4 on as many OpenMP threads as JAX uses cores, interleaved; wall and CPU ratios.
 2. **A default basin run** of ``--basin-n`` starts (`jaxsleigh.sample_starts`, seed 0, 100 s, adaptive,
    float32) by this tree and by ``--baseline`` (a ``git worktree`` of that commit, imported through
@@ -38,10 +38,12 @@ import hashlib, json, sys, time
 import numpy as np, jax, jaxsleigh as js
 n = int(sys.argv[1])
 where = js.__file__
-js.run_basin(js.sample_starts(2048, seed=1), progress=False)            # compile, not timed
+# a baseline tree older than the option objects takes the keyword
+quiet = {"run": js.RunOptions(progress=False)} if hasattr(js, "RunOptions") else {"progress": False}
+js.run_basin(js.sample_starts(2048, seed=1), **quiet)                    # compile, not timed
 starts = js.sample_starts(n, seed=0)
 t0, c0 = time.perf_counter(), time.process_time()
-r = js.run_basin(starts, progress=False)
+r = js.run_basin(starts, **quiet)
 w, c = time.perf_counter() - t0, time.process_time() - c0
 print(json.dumps({"wall_s": w, "cpu_s": c, "starts_per_s": n / w, "devices": len(jax.devices()),
                   "settled": float(np.mean(r.converged)),
@@ -56,9 +58,9 @@ ks = [0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0]
 starts = js.sample_starts(2048, seed=0)
 rows = np.tile(starts.ics, (len(ks), 1))
 def sweep():
-    return js.sweep(starts, {"k": ks}, t_final=30.0, progress=False)
+    return js.sweep(starts, {"k": ks}, t_final=30.0, run=js.RunOptions(progress=False))
 def basin():
-    return js.run_basin(rows, t_final=30.0, progress=False)
+    return js.run_basin(rows, t_final=30.0, run=js.RunOptions(progress=False))
 sweep(); basin()                                                          # compile
 out = {"sweep_s": [], "basin_s": []}
 for _ in range(3):

@@ -75,18 +75,19 @@ def worker(spec: dict) -> dict:
 
     jax.monitoring.register_event_duration_secs_listener(listener)
     from jaxsleigh.studies.bench import machine, peak_rss_mb, workload
+    from jaxsleigh import RunOptions, SaveAt, StepSizeController
     from jaxsleigh.studies.ensemble import run_ensemble
     from jaxsleigh.status import Status
 
     rss_import = current_rss_mb()
     n, mode = spec["n"], spec["mode"]
     ics = workload(n, spec["seed"])
-    kw = dict(t_final=spec["t_final"], dt=spec["dt"], x64=spec["x64"], chunk_size=spec["chunk_size"],
-              progress=False)
+    kw = dict(t_final=spec["t_final"], dt=spec["dt"], x64=spec["x64"],
+              run=RunOptions(chunk_size=spec["chunk_size"], progress=False))
     if mode == "rk4":
-        kw.update(method="rk4", check_passivity=spec["rk4_check"])
+        kw.update(stepsize=StepSizeController(method="rk4", check_passivity=spec["rk4_check"]))
     elif mode == "plain":
-        kw.update(method="rk4", check_passivity=False, summaries=False)
+        kw.update(stepsize=StepSizeController(method="rk4", check_passivity=False), saveat=SaveAt(summaries=False))
     elif mode != "adaptive":
         raise ValueError(f"unknown mode {mode!r}")
     from jaxsleigh.cores import default_chunk_size

@@ -37,7 +37,7 @@ def main():
     a = ap.parse_args()
     st = sample_starts(a.N, seed=0, theta="0.2:3")
     ics = np.tile(st.ics, (a.P, 1))
-    kw = dict(t_final=a.t_final, chunk_size=a.chunk_size, progress=False)
+    kw = dict(t_final=a.t_final, run=js.RunOptions(chunk_size=a.chunk_size, progress=False))
     same = stack_plants([js.paper_plant()] * (a.P * a.N))
     m_axis = f"m=0.5:4:{a.P}:log"
 

@@ -62,11 +62,11 @@ def main(argv=None) -> int:
             ts.append(time.process_time() - t)
         rows[name] = {"us_per_lane": float(np.median(ts)) / a.n * 1e6, "cpu_s": ts}
     ics = workload(a.n, 0)
-    jaxsleigh.run_ensemble(ics, t_final=100.0, progress=False)
+    jaxsleigh.run_ensemble(ics, t_final=100.0, run=jaxsleigh.RunOptions(progress=False))
     ts, attempts = [], None
     for r in range(a.repeats):
         t = time.process_time()
-        res = jaxsleigh.run_ensemble(ics, t_final=100.0, progress=False)
+        res = jaxsleigh.run_ensemble(ics, t_final=100.0, run=jaxsleigh.RunOptions(progress=False))
         ts.append(time.process_time() - t)
         attempts = float(np.mean(res.n_steps + res.n_rejected))
     rows["library_step"] = {"us_per_lane": float(np.median(ts)) / (a.n * attempts) * 1e6, "cpu_s": ts,

@@ -47,19 +47,20 @@ def main(argv=None) -> int:
     out = {"command": "python experiments/performance/engine_defaults.py", "cores": js.cores.available_cores(),
            "load_before": [round(x, 2) for x in os.getloadavg()]}
     ics = workload(4096, 0)
-    kw = dict(method="rk4", summaries=False, check_passivity=False, progress=False)
-    one = best(lambda: js.run_ensemble(ics, cores=1, **kw))
-    every = best(lambda: js.run_ensemble(ics, **kw))
+    kw = dict(stepsize=js.StepSizeController(method="rk4", check_passivity=False), saveat=js.SaveAt(summaries=False))
+    one = best(lambda: js.run_ensemble(ics, run=js.RunOptions(cores=1, progress=False), **kw))
+    every = best(lambda: js.run_ensemble(ics, run=js.RunOptions(progress=False), **kw))
     out["plain_cores"] = {"one_core_s": one, "every_core_s": every, "speedup": one / every}
     log("plain path:", out["plain_cores"])
 
     small = ics[:512]
-    ref = js.run_ensemble(small, x64=True, rtol=1e-11, atol=1e-11, max_steps=5_000_000, progress=False)
+    ref = js.run_ensemble(small, x64=True, stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_steps=5_000_000),
+                          run=js.RunOptions(progress=False))
     out["controllers"] = {}
     for name, (al, be) in {"I": (0.25, 0.0), "PI Hairer-Wanner": (0.175, 0.1), "PI default": (0.15, 0.05)}.items():
         stepsize.PI_ALPHA, stepsize.PI_BETA = al, be
         jax.clear_caches()                       # the exponents are constants of the compiled step
-        r = js.run_ensemble(small, progress=False)
+        r = js.run_ensemble(small, run=js.RunOptions(progress=False))
         both = np.isfinite(r.T_eps) & np.isfinite(ref.T_eps)
         dT = r.T_eps[both] - ref.T_eps[both]
         err = np.max(np.abs(np.column_stack([r.q_final - ref.q_final, r.p_final - ref.p_final])), axis=1)
@@ -74,18 +75,19 @@ def main(argv=None) -> int:
 
     out["stiff_start"] = {}
     for x64 in (False, True):
-        s = js.simulate([3.0, 3.0, 1e-2], x64=x64, t_final=10.0, save_every=10, max_steps=10**6)
+        s = js.simulate([3.0, 3.0, 1e-2], x64=x64, t_final=10.0, saveat=js.SaveAt(every=10),
+                        stepsize=js.StepSizeController(max_steps=10**6))
         out["stiff_start"]["float64" if x64 else "float32"] = {"status": int(s.status[0]),
                                                                 "attempts": int(s.n_steps[0] + s.n_rejected[0])}
     log("stiff start:", out["stiff_start"])
 
     starts = js.sample_starts(100_000, seed=0)
-    js.run_basin(js.sample_starts(2048, seed=1), progress=False)
+    js.run_basin(js.sample_starts(2048, seed=1), run=js.RunOptions(progress=False))
     out["tail_lanes"] = {}
     for lanes in (0, 16, 128):
         ens.TAIL_LANES = lanes
         t0 = time.perf_counter()
-        js.run_basin(starts, progress=False)
+        js.run_basin(starts, run=js.RunOptions(progress=False))
         out["tail_lanes"][str(lanes)] = time.perf_counter() - t0
         log(f"TAIL_LANES {lanes}: {out['tail_lanes'][str(lanes)]:.1f} s")
     out["load_after"] = [round(x, 2) for x in os.getloadavg()]

@@ -55,7 +55,7 @@ def main(argv=None) -> int:
            "jax": jax.__version__, "machine": platform.platform(), "host_cores": os.cpu_count(),
            "dtype": "float64" if a.x64 else "float32", "load_before": list(os.getloadavg())}
 
-    kw = dict(x64=a.x64, progress=False)
+    kw = dict(x64=a.x64, run=js.RunOptions(progress=False))
     if not a.skip_basin:
         basin_study(js, a, kw, res, log)
     sweep_vs_basin(js, a, kw, res, log)

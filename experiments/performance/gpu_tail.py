@@ -50,9 +50,9 @@ if os.environ.get("EXP_PART_SIZE"):
 n, t_final = int(sys.argv[1]), float(sys.argv[2])
 s = js.sample_starts(10**6, seed=0)
 ics = s.ics[np.argsort(np.abs(s.ics[:, 2]), kind="stable")[:n]]
-js.run_basin(ics, t_final=t_final, progress=False)                  # compile
+js.run_basin(ics, t_final=t_final, run=js.RunOptions(progress=False))    # compile
 t0 = time.perf_counter()
-r = js.run_basin(ics, t_final=t_final, progress=False)
+r = js.run_basin(ics, t_final=t_final, run=js.RunOptions(progress=False))
 w = time.perf_counter() - t0
 print(json.dumps({"wall_s": w, "mean_steps": float(np.mean(r.n_steps)), "max_steps": int(np.max(r.n_steps)),
                   "us_per_iteration": 1e6 * w / max(1, int(np.max(r.n_steps))),

@@ -163,8 +163,9 @@ def main(argv=None) -> int:
     add("stage_in_field", builder(rk4(by_row, jax.lax.optimization_barrier)))
     add("rows_carry", builder(rows_step, rows=True))
     compiled = set(kernels)
-    kernels["run_ensemble"] = lambda y: jaxsleigh.run_ensemble(ics, method="rk4", summaries=False, check_passivity=False,
-                                                               t_final=t_final, dt=0.01, progress=False)
+    plain = dict(stepsize=jaxsleigh.StepSizeController(method="rk4", check_passivity=False),
+                 saveat=jaxsleigh.SaveAt(summaries=False), run=jaxsleigh.RunOptions(progress=False))
+    kernels["run_ensemble"] = lambda y: jaxsleigh.run_ensemble(ics, t_final=t_final, dt=0.01, **plain)
     kernels["drive_plain"] = lambda y: engine.drive_plain(y0w, status0, args0, horizon)
     lib, reason = build_c_reference("out/c_reference")
     if lib is not None:

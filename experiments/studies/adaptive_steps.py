@@ -27,9 +27,9 @@ REF = (ConvergenceTime(samples=8, bisections=30), ClosestApproach(), Excursion()
 
 
 def run(ics, gains, **kw):
-    js.run_ensemble(ics[:64], gains=gains, progress=False, **kw)            # compile
+    js.run_ensemble(ics[:64], gains=gains, run=js.RunOptions(progress=False), **kw)            # compile
     t0 = time.perf_counter()
-    r = js.run_ensemble(ics, gains=gains, progress=False, **kw)
+    r = js.run_ensemble(ics, gains=gains, run=js.RunOptions(progress=False), **kw)
     return r, time.perf_counter() - t0
 
 
@@ -47,13 +47,13 @@ def main() -> None:
     for name, n in (("paper", a.n), ("tuned", a.n_tuned)):
         gains = js.load_gains(name)
         ics = workload(n, a.seed)
-        ref, _ = run(ics, gains, x64=True, rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000,
-                     observers=REF)
+        ref, _ = run(ics, gains, x64=True, observers=REF,
+                     stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000))
         assert np.all(ref.status == 0), "the reference failed"
         yref = np.concatenate([ref.q_final, ref.p_final], axis=1)
         configs = [("before (0.1 release)", 10, OLD)] + [("dense T_eps", c, DEFAULT_OBSERVERS) for c in caps]
         for label, cap, obs in configs:
-            r, wall = run(ics, gains, max_step=cap * 0.01, observers=obs)
+            r, wall = run(ics, gains, stepsize=js.StepSizeController(max_step=cap * 0.01), observers=obs)
             err = np.max(np.abs(np.concatenate([r.q_final, r.p_final], axis=1) - yref), axis=1)
             err[~np.isfinite(err)] = np.inf
             wrong = (err > 1e-3) | (r.status != 0)

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import jax
 
+from jaxsleigh import RunOptions
 from jaxsleigh.studies.basin import grid_starts, run_basin, sample_starts, save_basin
 from jaxsleigh.plots.basin import plot_basin
 from jaxsleigh.plots.paper_figures import save_figure
@@ -53,7 +54,8 @@ def study(name, starts, out: Path, *, t_final, progress):
     load0 = _load()
     cpu0 = _cpu()
     t0 = time.perf_counter()
-    res = run_basin(starts, eps=0.05, t_final=t_final, checkpoint_dir=chunks, resume=True, progress=progress)
+    res = run_basin(starts, eps=0.05, t_final=t_final,
+                    run=RunOptions(checkpoint_dir=chunks, resume=True, progress=progress))
     wall = time.perf_counter() - t0
     cpu = _cpu() - cpu0
     save_basin(npz, res)

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
                                            "jax_backend": jax.default_backend(), "jax": jax.__version__},
            "n": int(ics.shape[0]), "t_final": 100.0, "eps": 0.05, "laws": {}}
     for name, kw in (("paper", {"gains": js.paper_gains()}), ("aicardi", {"controller": AicardiLaw()})):
-        r = js.run_ensemble(ics, t_final=100.0, eps=0.05, progress=False, **kw)
+        r = js.run_ensemble(ics, t_final=100.0, eps=0.05, run=js.RunOptions(progress=False), **kw)
         settled = np.isfinite(r.T_eps) & (r.status == 0)
         q = r.q_final
         turns = np.round(q[:, 2] / (2 * np.pi))

@@ -57,7 +57,8 @@ def main():
             ic = np.array([x, y, sgn * th])
             ref, nfev, wall_ref, st = radau(np.r_[ic, 0, 0], T)
             for x64 in (True, False):
-                r = run_ensemble(ic[None], t_final=T, x64=x64, max_steps=5_000_000, progress=False)
+                r = run_ensemble(ic[None], t_final=T, x64=x64, stepsize=js.StepSizeController(max_steps=5_000_000),
+                                 run=js.RunOptions(progress=False))
                 rel = float(np.abs(r.q_final[0] - ref[:3]).max() / r.max_excursion[0])
                 row = dict(theta0=float(sgn * th), x=float(x), y=float(y), t_final=T, dtype=r.settings["dtype"],
                            status=int(r.status[0]), steps=int(r.n_steps[0]), rel_error=rel,

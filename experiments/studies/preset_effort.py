@@ -96,7 +96,7 @@ def main(argv=None) -> None:
 
     import jax
 
-    from jaxsleigh import StepSizeController, load_shaped, run_ensemble
+    from jaxsleigh import RunOptions, StepSizeController, load_shaped, run_ensemble
 
     dists = {"readme": (readme_starts(args.n), "x, y ~ U(-3, 3), |theta0| ~ U(0.3, pi), random sign, "
                         "zero momentum; numpy default_rng(20240611)"),
@@ -117,7 +117,7 @@ def main(argv=None) -> None:
         for preset in PRESETS:
             t0 = time.perf_counter()
             law = {"controller": load_shaped(preset)} if preset == "shaped" else {"gains": preset}
-            r = run_ensemble(ics, t_final=100.0, eps=0.05, x64=args.x64, progress=False,
+            r = run_ensemble(ics, t_final=100.0, eps=0.05, x64=args.x64, run=RunOptions(progress=False),
                              stepsize=StepSizeController(atol=args.atol), **law)
             rows[preset] = figures(r)
             rows[preset]["wall_s"] = round(time.perf_counter() - t0, 1)

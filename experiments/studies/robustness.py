@@ -75,7 +75,8 @@ def main():
     for fam in families:
         plant, vals = sample_family(fam, a.plants, rng)
         t0 = time.perf_counter()
-        r = js.sweep(starts, vals, plant=plant, gains="paper", t_final=a.t_final, eps=a.eps, progress=False)
+        r = js.sweep(starts, vals, plant=plant, gains="paper", t_final=a.t_final, eps=a.eps,
+                     run=js.RunOptions(progress=False))
         wall = time.perf_counter() - t0
         results[fam] = r
         S, se = fraction_converged(r.converged, r.valid)
@@ -98,7 +99,7 @@ def main():
               f"{summary[fam]['knife_edge_fraction']:.3f}; T_eps p50 {summary[fam]['T_eps_percentiles']['p50']:.3g} s; "
               f"statuses {summary[fam]['status_counts']} ({wall:.0f} s)", flush=True)
     # the paper's plant on the same starts, for reference
-    ref = js.run_basin(starts, t_final=a.t_final, eps=a.eps, progress=False)
+    ref = js.run_basin(starts, t_final=a.t_final, eps=a.eps, run=js.RunOptions(progress=False))
     summary["paper plant"] = {"fraction": ref.fraction, "fraction_se": ref.fraction_se,
                               "T_eps_percentiles": ref.summary()["T_eps_percentiles"]}
     print(f"paper plant: S = {ref.fraction:.3f} +- {ref.fraction_se:.3f}")

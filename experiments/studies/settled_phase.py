@@ -220,11 +220,12 @@ def main(argv=None) -> int:
         args = ClosedLoop(plant, gains)
         log(f"[{gname}] float64 reference (rtol = atol = 1e-11), {len(ics)} starts, t_final {a.t_final:g} ...")
         t0 = time.perf_counter()
-        ref = js.run_ensemble(ics, gains=gains, t_final=a.t_final, x64=True, rtol=1e-11, atol=1e-11,
-                              max_steps=20_000_000, progress=False)
+        ref = js.run_ensemble(ics, gains=gains, t_final=a.t_final, x64=True, run=js.RunOptions(progress=False),
+                              stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_steps=20_000_000))
         log(f"  {time.perf_counter() - t0:.1f} s; status {ref.status.tolist()}, T_eps {np.round(ref.T_eps, 3).tolist()}")
         ref_state = np.concatenate([ref.q_final, ref.p_final], axis=1)
-        lib = js.run_ensemble(ics, gains=gains, t_final=a.t_final, progress=False, max_steps=a.max_steps)
+        lib = js.run_ensemble(ics, gains=gains, t_final=a.t_final, run=js.RunOptions(progress=False),
+                              stepsize=js.StepSizeController(max_steps=a.max_steps))
         lib_err = np.max(np.abs(np.concatenate([lib.q_final, lib.p_final], axis=1) - ref_state), axis=1)
         y0w = np.asarray(state_to_w(jnp.asarray(np.concatenate([ics, np.zeros((len(ics), 2))], axis=1).T)).T, np.float32)
         t_mark = np.where(np.isfinite(ref.T_eps), ref.T_eps, np.inf).astype(np.float32)
@@ -295,8 +296,8 @@ def eigenvalues(a) -> int:
         gains = js.load_gains(gname)
         args = ClosedLoop(plant, gains)
         for T in (a.t_final / 3, 2 * a.t_final / 3, a.t_final):
-            r = js.run_ensemble(ics, gains=gains, t_final=T, x64=True, rtol=1e-10, atol=1e-10,
-                                max_steps=20_000_000, progress=False)
+            r = js.run_ensemble(ics, gains=gains, t_final=T, x64=True, run=js.RunOptions(progress=False),
+                                stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=20_000_000))
             y = state_to_w(jnp.asarray(np.concatenate([r.q_final[0], r.p_final[0]])))
             jac = np.asarray(jax.jacfwd(lambda yy: js.vector_field_w(0.0, yy, args))(y))
             lam = float(-(gains.D_hat[1, 1] + gains.k / y[0] ** 2) / I)

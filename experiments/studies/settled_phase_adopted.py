@@ -39,12 +39,13 @@ from jaxsleigh.integrate.observers import ClosestApproach, ControlEffort, Conver
 gains, n, ref = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "ref"
 ics = workload(n, seed=0)
 g = None if gains == "paper" else gains
-kw = dict(x64=True, rtol=1e-11, atol=1e-11, max_steps=20_000_000,
+kw = dict(x64=True, stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_steps=20_000_000),
           observers=(ConvergenceTime(samples=8, bisections=30), ClosestApproach(), Excursion(), ControlEffort())) \
     if ref else {}
-js.run_ensemble(ics[:64], gains=g, progress=False, **kw)
+quiet = js.RunOptions(progress=False)
+js.run_ensemble(ics[:64], gains=g, run=quiet, **kw)
 t0 = time.perf_counter()
-r = js.run_ensemble(ics, gains=g, progress=False, **kw)
+r = js.run_ensemble(ics, gains=g, run=quiet, **kw)
 w = time.perf_counter() - t0
 print(json.dumps({"wall_s": w, "final": np.column_stack([r.q_final, r.p_final]).tolist(), "T_eps": r.T_eps.tolist(),
                   "n_steps": float(np.mean(r.n_steps)), "attempts": float(np.mean(r.n_steps + r.n_rejected)),

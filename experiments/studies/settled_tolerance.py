@@ -55,10 +55,11 @@ def radau_check(g) -> list:
     from numpy_field import numpy_field
 
     f, jac = numpy_field(ClosedLoop(js.paper_plant(), g))
-    at50 = js.run_ensemble(STARTS, gains=g, t_final=50.0, x64=True, progress=False)
+    at50 = js.run_ensemble(STARTS, gains=g, t_final=50.0, x64=True, run=js.RunOptions(progress=False))
     runs = {"float64": dict(x64=True), "float32 atol 1e-8": dict(stepsize=js.StepSizeController(atol=1e-8)),
             "float32 defaults": dict(), "float32 RK4 dt 1e-3": dict(dt=1e-3, stepsize=js.StepSizeController(method="rk4"))}
-    finals = {k: js.run_ensemble(STARTS, gains=g, t_final=65.0, progress=False, **kw) for k, kw in runs.items()}
+    finals = {k: js.run_ensemble(STARTS, gains=g, t_final=65.0, run=js.RunOptions(progress=False), **kw)
+              for k, kw in runs.items()}
     rows = []
     for i in range(len(STARTS)):
         y0 = np.concatenate([at50.q_final[i], at50.p_final[i]])
@@ -88,7 +89,7 @@ def draw(g, rows: list, path, command: str) -> None:
     fig = new_figure((11.0, 6.0))
     axes = fig.subplots(2, len(STARTS), sharex=True, squeeze=False)
     for (label, kw), style in zip(runs.items(), ("-", "--", ":")):
-        sol = js.simulate(STARTS, gains=g, t_final=100.0, dt=0.01, save_every=10, **kw)
+        sol = js.simulate(STARTS, gains=g, t_final=100.0, dt=0.01, saveat=js.SaveAt(every=10), **kw)
         u2 = np.sum(np.asarray(sol.u, np.float64) ** 2, axis=-1)
         e = np.concatenate([np.zeros((len(STARTS), 1)), np.cumsum(0.5 * (u2[:, 1:] + u2[:, :-1]) * np.diff(sol.t), axis=1)], 1)
         for i in range(len(STARTS)):
@@ -119,7 +120,7 @@ def quantiles(g, ics, runs=None, law_kw=None) -> dict:
                     *((f"float32 atol {a:g}", dict(stepsize=js.StepSizeController(atol=a))) for a in (1e-7, 1e-8, 1e-9)))
     for name, kw in runs:
         t0 = time.perf_counter()
-        r = js.run_ensemble(ics, t_final=100.0, progress=False, **(law_kw or {"gains": g}), **kw)
+        r = js.run_ensemble(ics, t_final=100.0, run=js.RunOptions(progress=False), **(law_kw or {"gains": g}), **kw)
         ok = r.status == 0
         e = np.asarray(r.u_energy, np.float64)
         ref = e if ref is None else ref                   # the first run (float64 where there is one)

@@ -67,7 +67,8 @@ def judge(laws: dict, **engine) -> dict:
     held = {}
     for dist, draw in (("readme", readme_starts), ("wide", wide_starts)):
         ics = draw(2048)
-        res = {name: figures(js.run_ensemble(ics, t_final=100.0, eps=0.05, progress=False, **kw, **engine))
+        res = {name: figures(js.run_ensemble(ics, t_final=100.0, eps=0.05, run=js.RunOptions(progress=False), **kw,
+                                             **engine))
                for name, kw in laws.items()}
         for name in res:
             res[name]["energy_ratio_to_paper"] = {q: res[name]["energy"][q] / res["paper"]["energy"][q]

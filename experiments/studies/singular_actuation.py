@@ -59,19 +59,20 @@ def main() -> int:
     n = len(ics) // len(thetas)
     frac = lambda r: r.converged.reshape(len(thetas), n).mean(axis=1)  # noqa: E731
 
-    free = js.run_ensemble(ics, t_final=a.t_final, progress=False)
+    quiet = js.RunOptions(progress=False)
+    free = js.run_ensemble(ics, t_final=a.t_final, run=quiet)
     reach = np.maximum(2 * np.linalg.norm(free.q_final, axis=1), 0.05)
     by_ts = {}
     for Ts in periods:
         dt = min(0.002, Ts)
-        r = js.run_ensemble(ics, controller=sampled(g, Ts), t_final=a.t_final, dt=dt, progress=False)
+        r = js.run_ensemble(ics, controller=sampled(g, Ts), t_final=a.t_final, dt=dt, run=quiet)
         tracks = (r.status == js.Status.OK) & (np.linalg.norm(r.q_final, axis=1) <= reach)
         by_ts[Ts] = tracks.reshape(len(thetas), n).mean(axis=1)
         print(f"Ts = {Ts:g}: tracking {np.round(by_ts[Ts], 2).tolist()}, settled {np.round(frac(r), 2).tolist()}",
               flush=True)
     by_u = {}
     for U in levels:
-        by_u[U] = frac(js.run_ensemble(ics, controller=saturate(g, U), t_final=a.t_final, progress=False))
+        by_u[U] = frac(js.run_ensemble(ics, controller=saturate(g, U), t_final=a.t_final, run=quiet))
         print(f"U = {U:g}: settled {np.round(by_u[U], 2).tolist()}", flush=True)
 
     def longest(d):      # the longest Ts below which every period tracks (a period that fails ends the run)

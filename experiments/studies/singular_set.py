@@ -67,7 +67,7 @@ def starts_at(pos, theta0):
 def summaries(theta0, *, x64, max_steps=None, t_final=T_WINDOW):
     """run_basin at every position: {label: BasinResult}."""
     return {lab: run_basin(array_starts(starts_at(pos, theta0)), eps=EPS, t_final=t_final, x64=x64,
-                           max_steps=max_steps, progress=False)
+                           stepsize=js.StepSizeController(max_steps=max_steps), run=js.RunOptions(progress=False))
             for lab, pos in POSITIONS.items()}
 
 
@@ -87,7 +87,7 @@ def t_eps_long(pos, theta0, horizons):
         if todo.size == 0:
             break
         r = run_basin(array_starts(starts_at(pos, th[todo])), eps=EPS, t_final=H, x64=True,
-                      max_steps=int(2000 * H), progress=False)
+                      stepsize=js.StepSizeController(max_steps=int(2000 * H)), run=js.RunOptions(progress=False))
         T[todo] = r.T_eps
         status[todo] = r.status
         steps[todo] = r.n_steps + r.n_rejected
@@ -147,15 +147,16 @@ def main(argv=None) -> int:
     print("paths ...", flush=True)
     paths = {}
     for lab, pos in POSITIONS.items():
-        sol = js.simulate(starts_at(pos, theta0), t_final=T_WINDOW, dt=0.01, save_every=1, x64=True,
-                          max_steps=raised_budget)
+        sol = js.simulate(starts_at(pos, theta0), t_final=T_WINDOW, dt=0.01, x64=True, saveat=js.SaveAt(every=1),
+                          stepsize=js.StepSizeController(max_steps=raised_budget))
         n20 = int(round(20.0 / 0.01))
         paths[lab] = {"L": path_length(sol.q), "L20": path_length(sol.q[:, :n20 + 1]), "status": sol.status}
     lab0, pos0 = "(1, 1)", POSITIONS["(1, 1)"]
-    fine = js.simulate(starts_at(pos0, theta0[:1]), t_final=20.0, dt=0.001, save_every=1, x64=True,
-                       max_steps=raised_budget)
-    coarse = js.simulate(starts_at(pos0, theta0[:1]), t_final=20.0, dt=0.01, save_every=1, x64=True,
-                         max_steps=raised_budget)
+    every_step, budget = js.SaveAt(every=1), js.StepSizeController(max_steps=raised_budget)
+    fine = js.simulate(starts_at(pos0, theta0[:1]), t_final=20.0, dt=0.001, x64=True, saveat=every_step,
+                       stepsize=budget)
+    coarse = js.simulate(starts_at(pos0, theta0[:1]), t_final=20.0, dt=0.01, x64=True, saveat=every_step,
+                         stepsize=budget)
     res["path_decimation_check"] = {
         "position": lab0, "theta0": float(theta0[0]), "L_save_0.01": float(path_length(coarse.q)[0]),
         "L_save_0.001": float(path_length(fine.q)[0])}
@@ -320,8 +321,8 @@ def _figure_paths(path, horizon=2000.0):
 
     pos = (-3.0, -2.0)
     thetas = [math.pi / 8, 0.2, 0.1, 0.03]
-    sol = js.simulate(starts_at(pos, thetas), t_final=horizon, dt=0.01, save_every=10, x64=True,
-                      max_steps=int(10_000 * horizon))
+    sol = js.simulate(starts_at(pos, thetas), t_final=horizon, dt=0.01, x64=True, saveat=js.SaveAt(every=10),
+                      stepsize=js.StepSizeController(max_steps=int(10_000 * horizon)))
     fig = Figure(figsize=(12, 10), layout="constrained")
     axes = fig.subplots(2, 2)
     L = path_length(sol.q)

@@ -115,8 +115,8 @@ def main(argv=None) -> int:
                                                       f"{res.settings['dtype']}, forward-mode gradients",
                                    probe_budget=config.probe_budget),
                    figs / "tuning_loss.png")
-    before = js.simulate(PAPER_ICS, gains=js.paper_gains(), t_final=100.0, save_every=10)
-    after = js.simulate(PAPER_ICS, gains=res.gains, t_final=100.0, save_every=10)
+    before = js.simulate(PAPER_ICS, gains=js.paper_gains(), t_final=100.0, saveat=js.SaveAt(every=10))
+    after = js.simulate(PAPER_ICS, gains=res.gains, t_final=100.0, saveat=js.SaveAt(every=10))
     tp.save_figure(tp.plot_paths_before_after(before, after), figs / "tuning_paths.png")
     tp.save_figure(tp.plot_convergence_times({"paper gains": p.T_eps, "tuned gains": t.T_eps}),
                    figs / "tuning_T_eps.png")
