@@ -33,21 +33,25 @@ from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
 from ..model.params import paper_plant
 from ..status import Status
-from .stepper import Controls, init_state, run_segment
-from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, StepSizeController
+from .stepper import controls, init_state, run_segment
+from .stepsize import StepSizeController
 
 __all__ = ["solve", "SolveOutput"]
 
 
 class SolveOutput(NamedTuple):
-    """What `solve` returns for one start (JAX arrays; vmap adds a leading batch axis).
+    r"""What `solve` returns for one start (JAX arrays; vmap adds a leading batch axis), under the names every
+    front's result uses.
 
     Attributes:
       q_final, p_final: final configuration (3,) and momentum (2,).
       status: `jaxsleigh.Status` code (``BUDGET_EXHAUSTED`` when the attempts ran out first).
       t_reached: time reached.
       n_steps, n_rejected: accepted and rejected attempts.
-      summaries: the observers' values (``T_eps``, ``u_energy``, ``u_peak``, ...).
+      summaries: the observers' values (``T_eps``, ``u_energy``, ``u_peak``, ...); the standard ones are also
+        attributes (`T_eps`, `u_energy`, ...).
+      Hd0, Hd_final: the paper's closed-loop energy \(H_d\) at the start and at the end (NaN for a law without
+        it, and at the end of a run that did not end OK).
     """
 
     q_final: jax.Array
@@ -57,6 +61,25 @@ class SolveOutput(NamedTuple):
     n_steps: jax.Array
     n_rejected: jax.Array
     summaries: dict
+    Hd0: Optional[jax.Array] = None
+    Hd_final: Optional[jax.Array] = None
+
+    def _summary(self, name: str):
+        return self.summaries.get(name)
+
+    T_eps = property(lambda self: self._summary("T_eps"), doc="Convergence time (the `ConvergenceTime` observer).")
+    u_energy = property(lambda self: self._summary("u_energy"), doc="Control energy \\(\\int \\|u\\|^2 dt\\).")
+    u_abs_int = property(lambda self: self._summary("u_abs_int"), doc="\\(\\int \\|u\\| dt\\).")
+    u_norm_peak = property(lambda self: self._summary("u_norm_peak"), doc="Largest \\(\\|u\\|\\).")
+    min_abs_theta = property(lambda self: self._summary("min_abs_theta"), doc="Closest approach to theta = 0.")
+    max_excursion = property(lambda self: self._summary("max_excursion"), doc="Largest \\(|q|\\).")
+    #: traced results carry no run record (wall time, devices): the host fronts' ``run_info`` is ``None`` here
+    run_info = None
+
+    @property
+    def converged(self) -> jax.Array:
+        """Ended OK and settled in the ball within the horizon (``T_eps`` finite), as `jaxsleigh.status.converged`."""
+        return (self.status == Status.OK) & jnp.isfinite(self.T_eps)
 
 
 #: The keywords `solve` took before its options were a `jaxsleigh.StepSizeController`: ``(object, field)`` of each.
@@ -110,31 +133,27 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
     dtype = y0.dtype
     adaptive = ss.method == "adaptive"
-    name = jnp.dtype(dtype).name
-    rtol = DEFAULT_RTOL.get(name, 1e-6) if ss.rtol is None else ss.rtol
-    atol = DEFAULT_ATOL.get(name, 1e-6) if ss.atol is None else ss.atol
-    max_step = MAX_STEP_FACTOR * dt if ss.max_step is None else ss.max_step
     max_attempts = ss.max_steps
     if max_attempts is None:
         base = int(round(float(t_final) / float(dt))) + 8
         max_attempts = 4 * base if adaptive else base
     args = ClosedLoop(paper_plant() if plant is None else plant, controller)
     chart = chart_for(controller)
-    ctl = Controls(*(jnp.asarray(v, dtype) for v in (dt, max_step, rtol, atol, eps)),
-                   max_steps=jnp.asarray(max_attempts, jnp.int32),
-                   safety=jnp.asarray(ss.safety, dtype), factor_min=jnp.asarray(ss.factor_min, dtype),
-                   factor_max=jnp.asarray(ss.factor_max, dtype))
+    ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
     yc, status0 = _start_in_chart(y0, chart)
-    s = init_state(yc, status0, args, ctl, observers=tuple(observers))
-    s = run_segment(s, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), adaptive=adaptive,
+    s0 = init_state(yc, status0, args, ctl, observers=tuple(observers))
+    s = run_segment(s0, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), adaptive=adaptive,
                     monitor=bool(ss.check_passivity), observers=tuple(observers))
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
     y = jnp.where(status0 == Status.OK, chart.from_chart(s.y), jnp.nan)
     summaries = jax.tree_util.tree_map(lambda v: jnp.where(status0 == Status.OK, v, jnp.nan),
                                        collect_values(tuple(observers), s.obs, s.quad))
+    valid, energy = status0 == Status.OK, chart.has_energy
     return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
-                       n_rejected=s.n_reject, summaries=summaries)
+                       n_rejected=s.n_reject, summaries=summaries,
+                       Hd0=jnp.where(valid & energy, s0.Hd, jnp.nan),
+                       Hd_final=jnp.where(valid & energy & (status == Status.OK), s.Hd, jnp.nan))
 
 
 def _stepsize(stepsize, options: dict) -> StepSizeController:

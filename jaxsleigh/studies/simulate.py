@@ -92,6 +92,25 @@ class Solution(NamedTuple):
         """(N, 2) the momentum at the last saved time."""
         return np.asarray(self.p)[:, -1]
 
+    @property
+    def Hd0(self) -> np.ndarray:
+        """(N,) the closed-loop energy \\(H_d\\) at the start (NaN for a law without it)."""
+        return np.asarray(self.Hd)[:, 0]
+
+    @property
+    def Hd_final(self) -> np.ndarray:
+        """(N,) \\(H_d\\) at the last saved time (NaN for a law without it, or where the run failed)."""
+        return np.asarray(self.Hd)[:, -1]
+
+    @property
+    def t_reached(self) -> np.ndarray:
+        """(N,) the last saved time each trajectory reached with a finite state (``t[-1]`` for a run that ended OK;
+        NaN for a start that was not integrated)."""
+        t = np.asarray(self.t, np.float64)
+        finite = np.isfinite(np.asarray(self.q)).all(axis=-1)
+        last = finite.shape[1] - 1 - np.argmax(finite[:, ::-1], axis=1)
+        return np.where(finite.any(axis=1), t[last], np.nan)
+
     converged = CONVERGED
     valid = VALID
 
