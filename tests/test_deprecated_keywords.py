@@ -1,0 +1,272 @@
+"""The fronts take their options as objects; the keywords of jaxsleigh 0.1 still work, each call with one
+`DeprecationWarning` that names the object and field of every keyword given, at the caller's line; and the library
+itself (its code, its experiments, the README, the pages and the notebooks) never passes one."""
+from __future__ import annotations
+
+import ast
+import contextlib
+import json
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxsleigh as js
+from jaxsleigh.deprecation import DEPRECATED_SAYS
+from jaxsleigh.integrate.solve import SOLVE_KEYWORDS, solve
+
+ROOT = Path(__file__).resolve().parents[1]
+START = np.array([[1.0, 1.0, 0.5]])
+#: the keywords of jaxsleigh 0.1 (every front's) and solve's own
+OLD_KEYWORDS = frozenset({"rtol", "atol", "method", "max_steps", "max_step", "check_passivity", "save_every",
+                          "summaries", "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume",
+                          "progress", "shard"})
+FRONTS = {"simulate": OLD_KEYWORDS, "run_ensemble": OLD_KEYWORDS, "run_basin": OLD_KEYWORDS,
+          "sweep": OLD_KEYWORDS, "solve": frozenset(SOLVE_KEYWORDS)}
+#: only jaxsleigh's own deprecations of keyword options (not JAX's, not NumPy's)
+OWN = f".*{DEPRECATED_SAYS}"
+
+
+def _front(name):
+    return {"simulate": js.simulate, "run_ensemble": js.run_ensemble, "run_basin": js.run_basin,
+            "sweep": lambda s, **kw: js.sweep(s, ["k=0.1:0.2:2"], **kw), "solve": lambda s, **kw: solve(
+                js.paper_gains(), s[0], **kw)}[name]
+
+
+def _deprecations(caught):
+    return [w for w in caught if issubclass(w.category, DeprecationWarning) and DEPRECATED_SAYS in str(w.message)]
+
+
+@pytest.mark.parametrize("name, keywords, says", [
+    ("simulate", {"save_every": 5, "rtol": 1e-7, "progress": False},
+     "simulate(save_every=..., rtol=..., progress=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController("
+     "rtol=...), saveat=jaxsleigh.SaveAt(every=...), run=jaxsleigh.RunOptions(progress=...)"),
+    ("run_ensemble", {"summaries": True, "method": "adaptive", "chunk_size": 4, "max_steps": 10**5},
+     "run_ensemble(summaries=..., method=..., chunk_size=..., max_steps=...) is deprecated: pass "
+     "stepsize=jaxsleigh.StepSizeController(method=..., max_steps=...), saveat=jaxsleigh.SaveAt(summaries=...), "
+     "run=jaxsleigh.RunOptions(chunk_size=...)"),
+    ("run_basin", {"rtol": 1e-7}, "run_basin(rtol=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(rtol=...)"),
+    ("sweep", {"checkpoint_dir": None, "atol": 1e-7},
+     "sweep(checkpoint_dir=..., atol=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(atol=...), "
+     "run=jaxsleigh.RunOptions(checkpoint_dir=...)"),
+    ("solve", {"method": "rk4", "max_attempts": 50},
+     "solve(method=..., max_attempts=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(method=..., "
+     "max_steps=...)"),
+])
+def test_one_warning_per_call_names_every_keyword_its_object_and_field_at_the_callers_line(name, keywords, says):
+    """Checked before anything runs: a horizon that cannot run is refused after the warning."""
+    with warnings.catch_warnings(record=True) as caught, pytest.raises(ValueError, match="t_final"):
+        warnings.simplefilter("always")
+        _front(name)(START, t_final=-1.0, **keywords)
+    got = _deprecations(caught)
+    assert len(got) == 1, [str(w.message) for w in got]
+    assert str(got[0].message).startswith(says), str(got[0].message)
+
+
+@pytest.mark.parametrize("name", sorted(FRONTS))
+def test_the_warning_points_at_the_users_call(name):
+    """``stacklevel``: the warning's file is the caller's (this one), not jaxsleigh's."""
+    keyword = {"solve": {"max_attempts": 10}}.get(name, {"rtol": 1e-7})
+    with pytest.warns(DeprecationWarning, match=OWN) as record, pytest.raises(ValueError):
+        _front(name)(START, dt=0.0, **keyword)
+    assert [w.filename for w in record if DEPRECATED_SAYS in str(w.message)] == [__file__]
+
+
+def test_the_warning_names_the_line_of_the_call():
+    import inspect
+
+    with pytest.warns(DeprecationWarning, match=OWN) as record, pytest.raises(ValueError):
+        line = inspect.currentframe().f_lineno + 1
+        js.run_basin(START, dt=0.0, chunk_size=4)
+    assert [(w.filename, w.lineno) for w in record if DEPRECATED_SAYS in str(w.message)] == [(__file__, line)]
+
+
+@pytest.mark.parametrize("name", sorted(FRONTS))
+def test_arguments_that_are_not_options_do_not_warn(name):
+    """``t_final``, ``dt``, ``eps``, ``x64``, ``plant``, ``gains``, ``labels`` and the objects themselves: no warning."""
+    physics = {"t_final": -1.0, "dt": 0.01, "plant": js.paper_plant(), "stepsize": js.StepSizeController(rtol=1e-7)}
+    if name != "simulate":
+        physics["eps"] = 0.05
+    if name != "solve":
+        physics.update(x64=False, gains=js.paper_gains())
+    if name == "sweep":
+        physics["labels"] = {"k": "--param k"}
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=OWN, category=DeprecationWarning)
+        with pytest.raises(ValueError, match="t_final"):
+            _front(name)(START, **physics)
+
+
+def test_solve_keywords_and_the_object_give_the_same_numbers():
+    import jax.numpy as jnp
+
+    y0 = jnp.asarray([1.0, 1.0, 0.5, 0.1, -0.2], jnp.float32)
+    new = solve(js.paper_gains(), y0, t_final=2.0, stepsize=js.StepSizeController(method="rk4", max_steps=150))
+    with pytest.warns(DeprecationWarning, match=OWN):
+        old = solve(js.paper_gains(), y0, t_final=2.0, method="rk4", max_attempts=150)
+    assert int(new.status) == int(old.status) == js.Status.BUDGET_EXHAUSTED    # 150 of the 200 base steps
+    np.testing.assert_array_equal(np.asarray(new.q_final), np.asarray(old.q_final))
+    assert int(new.n_steps) == int(old.n_steps) == 150
+
+
+@pytest.mark.parametrize("call, err, match", [
+    (lambda: solve(js.paper_gains(), START[0], rtol=1e-6), TypeError, "unexpected keyword argument 'rtol'"),
+    (lambda: solve(js.paper_gains(), START[0], method="rk4", stepsize=js.StepSizeController(method="adaptive",
+                                                                                            max_steps=5,
+                                                                                            rtol=1e-5)),
+     None, None),
+    (lambda: solve(js.paper_gains(), START[0], max_attempts=7, stepsize=js.StepSizeController(max_steps=9)),
+     ValueError, "max_attempts=7 contradicts stepsize.max_steps = 9"),
+    (lambda: solve(js.paper_gains(), START[0], stepsize={"method": "rk4"}), ValueError, "StepSizeController"),
+    (lambda: solve(js.paper_gains(), START[0], stepsize=js.StepSizeController(method="euler")), ValueError,
+     "stepsize.method must be 'adaptive' or 'rk4'"),
+    (lambda: solve(js.paper_gains(), START[0], stepsize=js.StepSizeController(max_steps=2.5)), ValueError,
+     "stepsize.max_steps .* must be a whole number"),
+])
+def test_solve_names_what_is_wrong(call, err, match):
+    """An unknown keyword, a keyword against the object's own field, an object of the wrong kind; a keyword
+    over a field the object leaves at its default (``method``) is taken, as ``solve`` took it before."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=OWN, category=DeprecationWarning)
+        if err is None:
+            out = call()
+            assert int(out.n_steps) + int(out.n_rejected) == 5          # rk4: its 5 attempts all accepted
+            assert int(out.n_rejected) == 0
+            return
+        with pytest.raises(err, match=match):
+            call()
+
+
+def test_solve_with_a_static_stepsize_jits_and_differentiates():
+    """The object is a static argument of ``jit`` (or a constant of the traced function); the gradient through
+    the steps matches central differences (float64)."""
+    import jax
+    import jax.numpy as jnp
+
+    ss = js.StepSizeController(method="rk4", max_steps=400)
+    with jax.enable_x64(True):
+        y0 = jnp.asarray([1.0, 1.0, 0.5])
+
+        def energy(k, stepsize):
+            return solve(js.paper_gains()._replace(k=k), y0, t_final=2.0, stepsize=stepsize).summaries["u_energy"]
+
+        value = jax.jit(energy, static_argnames=("stepsize",))
+        grad = jax.jit(jax.grad(energy), static_argnames=("stepsize",))(0.1, stepsize=ss)
+        h = 1e-5
+        fd = (value(0.1 + h, stepsize=ss) - value(0.1 - h, stepsize=ss)) / (2 * h)
+    assert float(grad) != 0.0
+    np.testing.assert_allclose(float(grad), float(fd), rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the library itself passes none
+# ------------------------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def own_deprecations_are_errors(capsys):
+    """jaxsleigh's own deprecations of keyword options raise inside; the command line, which catches the warnings
+    of a run to print them as ``jaxsleigh: warning: ...``, must not have printed one either."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=OWN, category=DeprecationWarning)
+        yield
+    out, err = capsys.readouterr()
+    assert DEPRECATED_SAYS not in out + err, err
+
+
+def _cli(argv) -> int:
+    from jaxsleigh.cli import main
+
+    return main([str(a) for a in argv])
+
+
+def test_the_command_line_passes_no_deprecated_keyword(tmp_path, capsys):
+    """simulate, basin (grid; a resumed run: the runner's checkpoint_dir, resume and shard become the study's
+    RunOptions), sweep and compare, each on a tiny input."""
+    small = ["--t-final", "2", "--no-progress"]
+    basin = ["basin", "--x", "-2:2:3", "--y", "1", "--theta", "0.9", "--atol", "1e-7", "--chunk-size", "2", *small,
+             "--keep-chunks"]
+    with own_deprecations_are_errors(capsys):
+        assert _cli(["simulate", "--ic", "1,1,0.5", "--method", "rk4", "--max-steps", "400", *small, "--out",
+                     tmp_path / "s.npz"]) == 0
+        assert _cli([*basin, "--out", tmp_path / "b.npz"]) == 0
+        assert _cli([*basin, "--resume", "--out", tmp_path / "b.npz"]) == 0
+        assert _cli(["sweep", "--param", "k=0.05:0.4:2", "--samples", "3", "--seed", "3", "--rtol", "1e-5",
+                     "--chunk-size", "4", *small, "--out", tmp_path / "w.npz"]) == 0
+        assert _cli(["compare", "--controllers", "paper", "--starts", "uniform", "--samples", "2", "--t-final", "2",
+                     "--seed", "1", "--out", tmp_path / "c.json"]) == 0
+
+
+def test_tuning_and_its_checks_pass_no_deprecated_keyword(tmp_path, capsys):
+    """A tiny gradient tuning (its integration-cost probe and final check run the ensemble), its held-out
+    validation, and `jaxsleigh.tuning.validate` from Python."""
+    from jaxsleigh import tuning as tu
+
+    with own_deprecations_are_errors(capsys):
+        assert _cli(["tune", "--steps", "1", "--batch", "4", "--t-final", "5", "--n-attempts", "2000", "--tune", "k",
+                     "--validate", "2", "--no-progress", "--out", tmp_path / "g.json"]) == 0
+        v = tu.validate("paper", START, t_final=2.0, progress=False, stepsize=js.StepSizeController(atol=1e-7))
+    assert v.n == 1
+
+
+def _calls_with_old_keywords(source: str, where: str) -> list:
+    """``where:line front(keyword=...)`` for each call of a front with a keyword of `FRONTS` in ``source``; a
+    ``**name`` whose dict (``name = dict(...)`` or ``{...}`` in the same source) holds one counts too."""
+    tree = ast.parse(source)
+    dicts = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+            v = node.value
+            if isinstance(v, ast.Call) and isinstance(v.func, ast.Name) and v.func.id == "dict":
+                dicts[node.targets[0].id] = {k.arg for k in v.keywords if k.arg}
+            elif isinstance(v, ast.Dict):
+                dicts[node.targets[0].id] = {k.value for k in v.keys if isinstance(k, ast.Constant)}
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        f = node.func
+        name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+        if name not in FRONTS:
+            continue
+        given = {k.arg for k in node.keywords if k.arg}
+        for k in node.keywords:
+            if k.arg is None and isinstance(k.value, ast.Name):
+                given |= dicts.get(k.value.id, set())
+        bad = sorted(given & FRONTS[name])
+        if bad:
+            found.append(f"{where}:{node.lineno} {name}({', '.join(b + '=' for b in bad)})")
+    return found
+
+
+def _sources():
+    """``(where, python source)``: every module of jaxsleigh and experiments, the README's and the pages'
+    python blocks, the notebooks' code cells (their IPython magics left out)."""
+    for path in sorted([*(ROOT / "jaxsleigh").rglob("*.py"), *(ROOT / "experiments").rglob("*.py")]):
+        yield str(path.relative_to(ROOT)), path.read_text()
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "experiments").rglob("*.md"))]:
+        for i, block in enumerate(re.findall(r"```python\n(.*?)```", path.read_text(), re.S)):
+            yield f"{path.relative_to(ROOT)} (python block {i + 1})", block
+    for path in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        for i, cell in enumerate(json.loads(path.read_text())["cells"]):
+            if cell["cell_type"] == "code":
+                lines = "".join(cell["source"]).splitlines()
+                yield f"{path.relative_to(ROOT)} (cell {i})", "\n".join(
+                    ln for ln in lines if not ln.lstrip().startswith(("%", "!")))
+
+
+def test_the_scan_finds_what_it_should():
+    code = ("RUN = dict(t_final=1.0, chunk_size=4)\nGOOD = dict(t_final=1.0)\n"
+            "js.sweep(s, p, **RUN)\njs.sweep(s, p, **GOOD)\nrun_basin(s, progress=False)\n"
+            "solve(g, y, method='rk4')\nsolve(g, y, stepsize=ss)\nsimulate(s, t_final=1.0, dt=0.01, x64=True)\n"
+            "m.run_ensemble(s, run=RunOptions(chunk_size=4), stepsize=StepSizeController(method='rk4'))\n")
+    assert _calls_with_old_keywords(code, "x") == ["x:3 sweep(chunk_size=)", "x:5 run_basin(progress=)",
+                                                   "x:6 solve(method=)"]
+
+
+def test_no_code_or_page_of_the_library_passes_a_deprecated_keyword():
+    sources = list(_sources())
+    assert any(w.startswith("notebooks") for w, _ in sources) and any("README" in w for w, _ in sources)
+    found = [hit for where, source in sources for hit in _calls_with_old_keywords(source, where)]
+    assert not found, "pass the option objects instead:\n" + "\n".join(found)
