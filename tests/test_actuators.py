@@ -219,13 +219,12 @@ def _scipy_sampled(law, ics, Ts, K):
     return np.stack(ys, axis=1), np.stack(us, axis=1)
 
 
-# substeps: h must resolve the fast transient of the smoothed Coulomb damping when |u| is large (the second
-# start asks for |u| ~ 1700, p crosses the damping's scale sqrt(0.1) in ~ 2e-4 s): h = 1e-3 and 5e-4 here
-@pytest.mark.parametrize("Ts, t_final, substeps", [(0.1, 5.0, 100), (0.01, 1.0, 20)])
-def test_sampled_matches_scipy(x64, Ts, t_final, substeps):
+# the adaptive steps resolve the fast transient of the smoothed Coulomb damping when |u| is large (the second start
+# asks for |u| ~ 1700, p crosses the damping's scale sqrt(0.1) in ~ 2e-4 s) at the float64 defaults
+@pytest.mark.parametrize("Ts, t_final", [(0.1, 5.0), (0.01, 1.0)])
+def test_sampled_matches_scipy(x64, Ts, t_final):
     K = int(round(t_final / Ts))
-    run = solve_sampled(PaperLaw(), None, STARTS, t_final=t_final, sampler=Sampler(Ts), substeps=substeps,
-                        dtype=jnp.float64)
+    run = solve_sampled(PaperLaw(), None, STARTS, t_final=t_final, sampler=Sampler(Ts), dtype=jnp.float64)
     assert run.q.dtype == jnp.float64
     assert np.all(np.asarray(run.status) == Status.OK)
     ys, us = _scipy_sampled(PaperLaw(), STARTS, Ts, K)
@@ -246,18 +245,23 @@ def test_sampled_matches_scipy(x64, Ts, t_final, substeps):
     assert np.all(np.asarray(run.min_abs_theta) > 0)
 
 
-def test_substeps_is_the_accuracy_knob(x64):
-    """Fewer RK4 substeps, larger error against scipy; the error falls like h^4 (a start with moderate u,
-    where h resolves the plant's time scales)."""
+def test_substeps_is_the_accuracy_knob_of_fixed_steps_only(x64):
+    """With fixed RK4 steps (``method="rk4"``) fewer substeps, larger error against scipy, falling like h^4 (a start
+    with moderate u, where h resolves the plant's time scales); the adaptive steps' error does not depend on them
+    (they only set the first step tried)."""
     Ts, K = 0.1, 20
     ys, _ = _scipy_sampled(PaperLaw(), STARTS[2:], Ts, K)
-    errs = []
-    for ss in (1, 2):
-        run = solve_sampled(PaperLaw(), None, STARTS[2:], t_final=Ts * K, sampler=Sampler(Ts), substeps=ss,
-                            dtype=jnp.float64)
-        errs.append(np.abs(np.asarray(run.q) - ys[:, :, :3]).max())
-    assert errs[0] > 1e-8
-    assert 10.0 < errs[0] / errs[1] < 25.0, errs
+
+    def error(substeps, **kw):
+        run = solve_sampled(PaperLaw(), None, STARTS[2:], t_final=Ts * K, sampler=Sampler(Ts), substeps=substeps,
+                            dtype=jnp.float64, **kw)
+        return np.abs(np.asarray(run.q) - ys[:, :, :3]).max()
+
+    fixed = [error(ss, stepsize=js.StepSizeController(method="rk4")) for ss in (1, 2)]
+    assert fixed[0] > 1e-8
+    assert 10.0 < fixed[0] / fixed[1] < 25.0, fixed
+    adaptive = [error(ss) for ss in (1, 2)]
+    assert max(adaptive) < 1e-8 and max(adaptive) < 0.1 * fixed[1], (adaptive, fixed)
 
 
 # ------------------------------------------------------------------------------- sampled vs continuous

@@ -1,15 +1,17 @@
 r"""The studies' path for a law behind a digital controller (`jaxsleigh.controllers.actuators.Sampled`).
 
 `jaxsleigh.simulate` and `jaxsleigh.run_ensemble` (hence `jaxsleigh.run_basin`) hand a sampled law here: it runs
-through `jaxsleigh.integrate.sampled.solve_sampled` (the law once per sample, held; the plant by fixed RK4
-substeps of at most ``dt`` in between, at least 4 per period) and comes back in the library's vocabulary
-(`jaxsleigh.Solution`, `jaxsleigh.EnsembleResult`). What an adaptive run has and a sampled one has not is NaN:
-``Hd`` (the closed loop is no longer port-Hamiltonian), ``t_reached`` of a failed row; ``n_rejected`` is 0.
+through `jaxsleigh.integrate.sampled.solve_sampled` (the law once per sample, held; the plant integrated in between
+by the library's adaptive RK4 to the run's ``rtol`` and ``atol``, landing on every sample instant, its first step
+``period / substeps`` with `substeps_for`; with ``method="rk4"``, ``substeps`` fixed RK4 steps per period) and comes
+back in the library's vocabulary (`jaxsleigh.Solution`, `jaxsleigh.EnsembleResult`). What an adaptive run has and a
+sampled one has not is NaN: ``Hd`` (the closed loop is no longer port-Hamiltonian).
 """
 from __future__ import annotations
 
 import math
 import time
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -17,16 +19,17 @@ import numpy as np
 
 from ..controllers.actuators import Sampler
 from ..integrate.engine import check_ics
+from ..integrate.stepsize import StepSizeController
 from ..model.controller import PerTrajectory
 from ..integrate.sampled import solve_sampled
 from ..progress import Progress
-from ..status import Status
 
 __all__ = ["substeps_for", "split_sampled", "sampled_settings", "sampled_solution", "sampled_summaries"]
 
 
 def substeps_for(period: float, dt: float) -> int:
-    """RK4 substeps per sampling period: steps of at most ``dt``, and at least 4."""
+    """``substeps`` of a sampling period for a base step ``dt``: the first step tried is ``period / substeps``, at
+    most ``dt`` and at most a quarter period (the fixed RK4 steps per period with ``method="rk4"``)."""
     return max(4, math.ceil(period / dt - 1e-9))
 
 
@@ -53,24 +56,34 @@ def split_sampled(law):
 
 
 def sampled_settings(cfg) -> dict:
-    """The settings of a sampled run: the configuration's, with the adaptive numbers replaced by the sampler's."""
+    """The settings of a sampled run: the configuration's, with the method ``"sampled"`` (its steps ``step_method``:
+    adaptive to ``rtol`` and ``atol``, or fixed RK4), the sampler, and ``substeps`` (`substeps_for`)."""
     _, smp = split_sampled(cfg.controller)
     s = cfg.settings()
-    for k in ("rtol", "atol", "max_step", "check_passivity"):
-        s.pop(k, None)
+    s.pop("check_passivity", None)               # the held loop has no H_d
     substeps = substeps_for(smp.period, cfg.horizon.dt)
-    s.update(method="sampled", sampler=dict(smp._asdict()), substeps=substeps,
-             max_steps=round(cfg.horizon.t_final / smp.period) * substeps)    # the RK4 steps it takes
+    s.update(method="sampled", step_method=cfg.method, sampler=dict(smp._asdict()), substeps=substeps)
+    if not cfg.adaptive:                         # fixed RK4: its steps, no tolerances
+        for k in ("rtol", "atol", "max_step"):
+            s.pop(k, None)
+        s["max_steps"] = round(cfg.horizon.t_final / smp.period) * substeps
     return s
 
 
-def _run(cfg, ics5, *, save: bool, args=None):
+def _stepsize(cfg, policy: Optional[StepSizeController] = None) -> StepSizeController:
+    """The step options of a sampled run: the configuration's method, tolerances, largest step and (adaptive) budget,
+    with ``policy``'s safety and factor limits."""
+    ss = cfg.step_controller(policy or StepSizeController())
+    return ss if cfg.adaptive else ss._replace(max_steps=None)
+
+
+def _run(cfg, ics5, *, save: bool, args=None, policy: Optional[StepSizeController] = None):
     plant, law = (cfg.plant, cfg.controller) if args is None else (args.plant, args.controller)
     held, smp = split_sampled(law)
     with jax.enable_x64(cfg.x64):
         r = solve_sampled(held, plant, ics5, t_final=cfg.horizon.t_final, sampler=smp,
                           substeps=substeps_for(smp.period, cfg.horizon.dt), eps=cfg.eps,
-                          dtype=jnp.float64 if cfg.x64 else jnp.float32, save=save)
+                          dtype=jnp.float64 if cfg.x64 else jnp.float32, save=save, stepsize=_stepsize(cfg, policy))
         return jax.tree_util.tree_map(lambda a: None if a is None else np.asarray(a), r)
 
 
@@ -78,35 +91,31 @@ def sampled_summaries(cfg, ics5, args=None) -> dict:
     """The per-start fields of an `jaxsleigh.EnsembleResult` (``SUMMARY_FIELDS``) for ``ics5`` (N, 5); ``args``: the
     rows' `jaxsleigh.ClosedLoop` when the plant or the law vary per trajectory (a sweep)."""
     r = _run(cfg, ics5, save=False, args=args)
-    ok = r.status == Status.OK
     n = ics5.shape[0]
     nan = np.full(n, np.nan)
-    period = split_sampled(cfg.controller)[1].period
-    steps = round(cfg.horizon.t_final / period) * substeps_for(period, cfg.horizon.dt)
     f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
     return {"q_final": f64(r.q_final), "p_final": f64(r.p_final), "T_eps": f64(r.T_eps),
             "min_abs_theta": f64(r.min_abs_theta), "max_excursion": f64(r.max_excursion), "Hd0": nan, "Hd_final": nan,
-            "t_reached": np.where(ok, cfg.horizon.t_final, np.nan), "n_steps": np.where(ok, steps, 0).astype(np.int64),
-            "n_rejected": np.zeros(n, np.int64), "status": r.status.astype(np.int32), "u_peak": f64(r.u_peak),
+            "t_reached": f64(r.t_reached), "n_steps": r.n_steps.astype(np.int64),
+            "n_rejected": r.n_rejected.astype(np.int64), "status": r.status.astype(np.int32), "u_peak": f64(r.u_peak),
             "u_norm_peak": f64(r.u_norm_peak), "u_energy": f64(r.u_energy), "u_abs_int": f64(r.u_abs_int)}
 
 
-def sampled_solution(cfg, ics, progress=None) -> dict:
+def sampled_solution(cfg, ics, progress=None, stepsize: Optional[StepSizeController] = None) -> dict:
     """The fields of the `jaxsleigh.Solution` of a sampled law: the state and the held input at every sample
-    instant (``save_every`` = 1 sample; the last input is the one held up to the horizon)."""
+    instant (``save_every`` = 1 sample; the last input is the one held up to the horizon). ``stepsize``: the step-size
+    policy whose safety and factor limits the run uses (its tolerances are the configuration's)."""
     ics5, _ = check_ics(ics, cfg.dtype, singular=False)
     t0 = time.perf_counter()
     with Progress(progress, desc="simulate (sampled)") as bar:
-        r = _run(cfg, ics5, save=True)
+        r = _run(cfg, ics5, save=True, policy=stepsize)
         bar.update(1.0)
     u = np.concatenate([r.u, r.u[:, -1:]], axis=1)
-    steps = (len(r.t) - 1) * substeps_for(split_sampled(cfg.controller)[1].period, cfg.horizon.dt)
-    ok = r.status == Status.OK
     settings = {**sampled_settings(cfg), "save_every": 1}      # every sample instant
     settings.pop("eps")
     return dict(t=r.t, q=r.q, p=r.p, u=u,
                 Hd=np.full(r.q.shape[:2], np.nan), status=r.status.astype(np.int32),
-                n_steps=np.where(ok, steps, 0).astype(np.int64), n_rejected=np.zeros(len(ok), np.int64),
+                n_steps=r.n_steps.astype(np.int64), n_rejected=r.n_rejected.astype(np.int64),
                 settings=settings, T_eps=r.T_eps, min_abs_theta=r.min_abs_theta, max_excursion=r.max_excursion,
                 u_peak=r.u_peak, u_norm_peak=r.u_norm_peak, u_energy=r.u_energy, u_abs_int=r.u_abs_int,
                 run_info={"wall_s": time.perf_counter() - t0, "devices": [str(jax.devices()[0])]})

@@ -169,7 +169,7 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     if is_sampled(cfg.controller):
         if cfg.lanes is not None:
             raise ValueError("per-trajectory parameters are not available for a sampled law yet; drop them")
-        return Solution(**sampled_solution(cfg, ics, progress))
+        return Solution(**sampled_solution(cfg, ics, progress, stepsize))
     horizon = cfg.horizon
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
