@@ -108,12 +108,13 @@ def test_a_period_that_needs_more_attempts_than_its_share_ends_budget_exhausted(
 def _loss(k, y0):
     """Final |q|^2 plus the control energy of the sampled paper law with gain ``k`` from ``y0`` (float64)."""
     law = PaperLaw(js.paper_gains()._replace(k=k))
-    run = solve_sampled(law, None, y0[None], t_final=2.0, sampler=Sampler(0.1), dtype=jnp.float64, save=False,
+    run = solve_sampled(law, None, y0[None], t_final=1.0, sampler=Sampler(0.1), dtype=jnp.float64, save=False,
                         rtol=1e-10, atol=1e-10)
     return jnp.sum(run.q_final ** 2) + jnp.sum(run.u_energy)
 
 
-def test_reverse_mode_gradients_match_finite_differences():
+@pytest.mark.slow            # 4 s with the compiled programs cached (tracing the gradient); the quick tier keeps
+def test_reverse_mode_gradients_match_finite_differences():     # the forward-mode check of tests/test_actuators.py
     """jax.grad through the adaptive held loop, with respect to a gain of the law and to the start, against central
     differences of the same loop."""
     with jax.enable_x64(True):
@@ -123,7 +124,7 @@ def test_reverse_mode_gradients_match_finite_differences():
         h = 1e-6
         fd_k = (float(loss(k0 + h, y0)) - float(loss(k0 - h, y0))) / (2 * h)
         np.testing.assert_allclose(float(g_k), fd_k, rtol=1e-5)
-        for i in (0, 2, 3):                                  # x0, theta0, p1(0)
+        for i in (0, 2):                                     # x0, theta0
             e = jnp.zeros(5).at[i].set(h)
             fd = (float(loss(k0, y0 + e)) - float(loss(k0, y0 - e))) / (2 * h)
             np.testing.assert_allclose(float(g_y[i]), fd, rtol=1e-5, atol=1e-8)
