@@ -32,11 +32,12 @@ DESCRIPTIONS = {
     Status.NONFINITE: ("the state, the law's output or its effort integral became inf/NaN (a diverging run); "
                        "outputs NaN from then on. Under fixed-step "
                        "RK4: a step too large, usually near theta = 0 (use the adaptive method or a smaller dt). "
-                       "In the sampled-data loop: usually a law whose output is unbounded on what it measures "
-                       "(Astolfi's divides by the measured theta, which noise makes cross 0): bound it with a "
-                       "saturation, or lower the noise; a smaller dt or float64 does not help there"),
+                       "In the sampled-data loop: a law whose output is not finite on what it measures"),
     Status.BUDGET_EXHAUSTED: ("the adaptive stepper used its step budget before the horizon; outputs NaN "
-                              "after the last time reached; raise max_steps"),
+                              "after the last time reached; raise max_steps, unless the run is flying away "
+                              "(a large max_excursion): a law whose output is unbounded on what it measures "
+                              "(Astolfi's divides by the measured theta, which measurement noise makes cross 0) "
+                              "needs a saturation or less noise, not more steps"),
     Status.CROSSED_SINGULAR: ("a fixed RK4 step jumped across theta = 0, which the exact closed loop never "
                               "does; outputs NaN after; use the adaptive method or a smaller dt"),
     Status.STEP_UNDERFLOW: "the adaptive step size fell below its floor; outputs NaN after the last time reached",

@@ -92,11 +92,10 @@ def add_compare(subparsers) -> None:
 
 def _say_substeps(parser) -> None:
     """compare has no --dt: its --sample-period help says how the plant is integrated between samples."""
-    from ..studies.compare import SUBSTEPS
-
     action = next(a for a in parser._actions if a.dest == "sample_period")
-    action.help = (f"zero-order hold at period TS: the law evaluated once per sample and held, the plant integrated "
-                   f"by {SUBSTEPS} RK4 substeps per period; --t-final must be a whole number of periods")
+    action.help = ("zero-order hold at period TS: the law evaluated once per sample and held, the plant integrated "
+                   "in between by the adaptive RK4 to --rtol/--atol, landing on each sample instant; --t-final must "
+                   "be a whole number of periods")
 
 
 def _names(args):

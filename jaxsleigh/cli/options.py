@@ -94,7 +94,8 @@ def add_sampler_options(parser, *, seed: bool = True) -> None:
     a = parser.add_argument_group("digital controller")
     a.add_argument("--sample-period", type=number("--sample-period", "0.01"), default=None, metavar="TS",
                    help="zero-order hold at period TS: the law evaluated once per sample and held, the plant "
-                        "integrated by RK4 substeps of at most --dt in between; --t-final must be a whole number of "
+                        "integrated in between by the adaptive RK4 to --rtol/--atol, landing on each sample instant "
+                        "(with --method rk4: fixed steps of at most --dt); --t-final must be a whole number of "
                         "periods")
     a.add_argument("--delay", type=whole("--delay", "1", minimum=0), default=0, metavar="K",
                    help="delay of K whole samples (needs --sample-period)")

@@ -208,8 +208,8 @@ class Sampled(NamedTuple):
 
     It is a piece like the others: ``js.simulate(ics, controller=sampled(law, 0.05))``, ``js.run_ensemble``,
     ``js.run_basin`` and ``js.compare`` integrate it with the sampled-data loop
-    (`jaxsleigh.integrate.sampled.solve_sampled`: the law evaluated once per sample, the plant by fixed RK4
-    substeps in between). Called as a law it is the continuous idealisation (the wrapped law itself).
+    (`jaxsleigh.integrate.sampled.solve_sampled`: the law evaluated once per sample, the plant by the adaptive
+    RK4 to the run's tolerances in between, each sample instant a step boundary). Called as a law it is the continuous idealisation (the wrapped law itself).
     Build it with `sampled` (checks the numbers, and runs the paper's `jaxsleigh.Gains` as `PaperLaw`).
     """
 

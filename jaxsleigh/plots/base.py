@@ -24,7 +24,7 @@ __all__ = ["METHOD_NAMES", "STAMP_GID", "T_EPS", "check_stamp", "new_figure", "f
            "device_text", "provenance_line", "provenance_parts", "stamp"]
 
 #: Display names of the integration methods.
-METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4", "sampled": "zero-order hold, RK4 substeps"}
+METHOD_NAMES = {"adaptive": "adaptive RK4", "rk4": "fixed-step RK4", "sampled": "zero-order hold, adaptive RK4 between samples"}
 
 #: The convergence time's symbol in every figure (mathtext, one spelling across the plotting modules).
 T_EPS = r"$T_\varepsilon$"

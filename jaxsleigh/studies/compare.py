@@ -93,7 +93,8 @@ def _row(T_eps, status, energy, u_peak, min_theta) -> dict:
 #: The base step [s] of `compare`'s continuous loop (the adaptive method starts with it and grows it).
 BASE_STEP = 0.01
 
-#: RK4 substeps per sample period in `compare`'s sampled-data loop (its default ``substeps``).
+#: ``substeps`` of `compare`'s sampled-data loop: its first step is a period / SUBSTEPS (the adaptive RK4 then
+#: chooses its steps to the tolerances; fixed RK4 steps per period with ``method="rk4"``).
 SUBSTEPS = 20
 
 
@@ -131,7 +132,7 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         for unknown plants); the literature's laws carry their own, fixed, model of it.
       saturation: ``U`` to clip each component of ``u`` to ``[-U, U]``; sampler: a
         `jaxsleigh.controllers.actuators.Sampler` for the sampled-data loop (``t_final`` a whole number of
-        periods; ``substeps`` RK4 steps per period).
+        periods; the plant integrated to the tolerances between the samples).
       stepsize: a `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Effort spent after settling
         by the paper's law under small k needs ``atol=1e-8`` in float32 (docs/evidence/settled-phase.md).
     """

@@ -190,7 +190,8 @@ def _host_law(start, law, tune):
 
 def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     r"""The tuner's lane summaries of a law behind a digital controller (`jaxsleigh.controllers.actuators.Sampled`),
-    from the sampled-data loop (`jaxsleigh.integrate.sampled.solve_sampled`, RK4 substeps of at most ``cfg.dt``):
+    from the sampled-data loop (`jaxsleigh.integrate.sampled.solve_sampled`, the adaptive RK4 at the loss's ``rtol`` and
+    ``atol`` between the sample instants):
     the soft time \(S = \int_0^T \phi\,dt\) by the trapezoid rule on the sample instants, the control energy exact
     for the held input. A lane that failed counts the whole horizon and energy 1 (values only; the candidate is
     then invalid)."""
@@ -200,7 +201,8 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
 
     smp = plain_sampler(law.sampler)
     r = solve_sampled(law.law, plant, y0, t_final=float(cfg.t_final), sampler=smp, eps=float(cfg.eps),
-                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype)
+                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype, rtol=float(cfg.rtol),
+                      atol=float(cfg.atol))
     ok = r.status == Status.OK
     q = jnp.where(jnp.isfinite(r.q), r.q, 0.0)                              # (N, K+1, 3); no NaN in the gradient
     y = jnp.moveaxis(jnp.concatenate([q, jnp.zeros(q.shape[:2] + (2,), q.dtype)], axis=-1), -1, 0)
