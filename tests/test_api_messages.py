@@ -181,10 +181,10 @@ ICS = np.array([[1.0, 1.0, 0.5]])
 G = js.paper_gains()
 P = js.paper_plant()
 FRONTS = {
-    "simulate": lambda **kw: js.simulate(kw.pop("ics", ICS), progress=False, **kw),
-    "run_ensemble": lambda **kw: js.run_ensemble(kw.pop("ics", ICS), progress=False, **kw),
-    "run_basin": lambda **kw: js.run_basin(kw.pop("ics", ICS), progress=False, **kw),
-    "sweep": lambda **kw: js.sweep(kw.pop("ics", ICS), {"l1": [1.0, 2.0]}, progress=False, **kw),
+    "simulate": lambda **kw: js.simulate(kw.pop("ics", ICS), **kw, run=js.RunOptions(progress=False)),
+    "run_ensemble": lambda **kw: js.run_ensemble(kw.pop("ics", ICS), **kw, run=js.RunOptions(progress=False)),
+    "run_basin": lambda **kw: js.run_basin(kw.pop("ics", ICS), **kw, run=js.RunOptions(progress=False)),
+    "sweep": lambda **kw: js.sweep(kw.pop("ics", ICS), {"l1": [1.0, 2.0]}, **kw, run=js.RunOptions(progress=False)),
 }
 # input name in the message -> keyword arguments built from the traced scalar x
 INPUTS = {
@@ -243,7 +243,8 @@ def test_the_differentiable_path_named_in_the_message_exists():
 def test_concrete_jax_arrays_are_not_tracers(no_work):
     # a jax.Array of concrete numbers is an ordinary input: the front gets past the check (to the work)
     with pytest.raises(AssertionError, match="work started"):
-        js.simulate(jnp.array([1.0, 1.0, 0.5]), gains=G._replace(k=jnp.float32(0.1)), t_final=1.0, progress=False)
+        js.simulate(jnp.array([1.0, 1.0, 0.5]), gains=G._replace(k=jnp.float32(0.1)), t_final=1.0,
+                    run=js.RunOptions(progress=False))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -362,7 +363,8 @@ def test_result_files_carry_a_format_version_and_old_files_still_load(tmp_path):
     """Version 2 files name their format; a file of 0.1 (no version) loads as before; a newer one is refused."""
     from jaxsleigh.files.npz import FORMAT_VERSION
 
-    res = js.run_basin(js.grid_starts(x=(-1, 1, 2), y=(-1, 1, 2), theta=0.4), t_final=1.0, progress=False)
+    res = js.run_basin(js.grid_starts(x=(-1, 1, 2), y=(-1, 1, 2), theta=0.4), t_final=1.0,
+                       run=js.RunOptions(progress=False))
     path = js.save_basin(tmp_path / "b.npz", res)
     with np.load(path) as z:
         data = {k: z[k] for k in z.files}

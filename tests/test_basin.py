@@ -27,7 +27,8 @@ from jaxsleigh.status import Status
 
 # a small x-y slice with a mix of converged and unsettled starts (10 of 24 converge)
 GRID = dict(x="-2:2:6", y="-1.5:1.5:4", theta=0.9)
-FAST = dict(eps=0.31, t_final=30.0, dt=0.05, method="rk4", progress=False)
+FAST = dict(eps=0.31, t_final=30.0, dt=0.05, stepsize=jaxsleigh.StepSizeController(method="rk4"),
+            run=jaxsleigh.RunOptions(progress=False))
 
 
 def _t_eps_from_trajectories(q: np.ndarray, t: np.ndarray, eps: float) -> np.ndarray:
@@ -48,7 +49,7 @@ def xt_result():
     """A tiny x-theta map (theta = 0 row included) from the default adaptive float32 engine."""
     with pytest.warns(FlaggedStartsWarning, match="6 of 30 initial conditions flagged"):
         return run_basin(grid_starts(x="-2:2:6", y=0.5, theta="-2.5:2.5:5"), eps=0.3, t_final=30.0, dt=0.05,
-                         progress=False)
+                         run=jaxsleigh.RunOptions(progress=False))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -59,8 +60,8 @@ def xt_result():
 def test_t_eps_equals_t_eps_of_full_trajectories(x64):
     starts = grid_starts(**GRID)
     res = run_basin(starts, x64=x64, **FAST)
-    sol = jaxsleigh.simulate(starts.ics, t_final=FAST["t_final"], dt=FAST["dt"], save_every=1, method="rk4",
-                             x64=x64)
+    sol = jaxsleigh.simulate(starts.ics, t_final=FAST["t_final"], dt=FAST["dt"], x64=x64,
+                             stepsize=jaxsleigh.StepSizeController(method="rk4"), saveat=jaxsleigh.SaveAt(every=1))
     assert np.all(res.status == Status.OK) and np.all(sol.status == Status.OK)
     # no saved |q| is so close to eps that rounding could flip inside/outside
     assert np.min(np.abs(np.linalg.norm(sol.q, axis=-1) - FAST["eps"])) > 1e-4
@@ -92,8 +93,9 @@ def test_converged_set_agrees_with_float64_reference():
     """Default engine (adaptive, float32) against float64 trajectories saved at every base step."""
     starts = grid_starts(**GRID)
     kw = dict(eps=0.31, t_final=30.0, dt=0.05)
-    res = run_basin(starts, progress=False, **kw)
-    ref_sol = jaxsleigh.simulate(starts.ics, save_every=1, x64=True, **{k: kw[k] for k in ("t_final", "dt")})
+    res = run_basin(starts, run=jaxsleigh.RunOptions(progress=False), **kw)
+    ref_sol = jaxsleigh.simulate(starts.ics, x64=True, saveat=jaxsleigh.SaveAt(every=1),
+                                 **{k: kw[k] for k in ("t_final", "dt")})
     ref = _t_eps_from_trajectories(ref_sol.q, ref_sol.t, kw["eps"])
     np.testing.assert_array_equal(res.converged, np.isfinite(ref))
     both = np.isfinite(ref)

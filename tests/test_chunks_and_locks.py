@@ -33,9 +33,14 @@ from jaxsleigh.files.runlock import RunLock
 
 REPO = Path(__file__).resolve().parents[1]
 BASIN = ["--samples", "32", "--t-final", "0.3", "--dt", "0.05", "--chunk-size", "8", "--no-progress"]
-KW = dict(t_final=0.3, dt=0.05, progress=False)
+KW = dict(t_final=0.3, dt=0.05)
 N, CHUNK = 16, 4
 FIELDS = ("q", "p", "T_eps", "status", "n_steps", "Hd0", "Hd_final", "min_abs_theta")
+
+
+def _quiet(**fields):
+    """The `jaxsleigh.RunOptions` of these runs (no progress bar)."""
+    return js.RunOptions(progress=False, **fields)
 
 
 def run_cli(argv, capsys):
@@ -57,10 +62,10 @@ def same(a, b) -> bool:
 def runs(tmp_path_factory):
     """The uninterrupted result, its chunk folder, and a folder of the same run with other chunks."""
     ics = js.sample_starts(N, seed=5).ics
-    ref = js.run_ensemble(ics, chunk_size=CHUNK, **KW)
+    ref = js.run_ensemble(ics, **KW, run=_quiet(chunk_size=CHUNK))
     base = tmp_path_factory.mktemp("chunks")
-    js.run_ensemble(ics, chunk_size=CHUNK, checkpoint_dir=base / "own", **KW)
-    js.run_ensemble(ics, chunk_size=2 * CHUNK, checkpoint_dir=base / "wide", **KW)   # other chunk size
+    js.run_ensemble(ics, **KW, run=_quiet(chunk_size=CHUNK, checkpoint_dir=base / "own"))
+    js.run_ensemble(ics, **KW, run=_quiet(chunk_size=2 * CHUNK, checkpoint_dir=base / "wide"))   # other chunk size
     return ics, ref, base
 
 
@@ -113,7 +118,8 @@ def test_shuffled_copied_or_foreign_chunks_give_the_same_result_or_a_named_refus
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                res = js.run_ensemble(ics, chunk_size=CHUNK, checkpoint_dir=d, resume=True, **KW)
+                res = js.run_ensemble(ics, **KW, run=_quiet(chunk_size=CHUNK, checkpoint_dir=d,
+                                                             resume=True))
             except CheckpointError as e:
                 assert foreign, f"own chunks refused: {e}"                 # refused only for a foreign chunk
                 assert any(f in str(e) for f in foreign) and "different run" in str(e)
@@ -145,10 +151,10 @@ def test_a_swapped_basin_chunk_is_named_and_recomputed(tmp_path, capsys):
 def test_a_chunk_without_its_identity_is_not_trusted(tmp_path):
     ics = js.sample_starts(8, seed=1).ics
     d = tmp_path / "ck"
-    js.run_ensemble(ics, chunk_size=4, checkpoint_dir=d, **KW)
+    js.run_ensemble(ics, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d))
     _strip_identity(d / "chunk_000001.npz")
     with pytest.warns(DamagedCheckpointWarning, match=r"chunk_000001\.npz.*earlier jaxsleigh"):
-        res = js.run_ensemble(ics, chunk_size=4, checkpoint_dir=d, resume=True, **KW)
+        res = js.run_ensemble(ics, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d, resume=True))
     assert res.run_info["chunks_reused"] == 1
 
 
@@ -222,11 +228,11 @@ def test_the_library_locks_its_checkpoint_folder(tmp_path):
     p = _holder(d, "another-run", folder=True)
     try:
         with pytest.raises(RunLockedError, match=rf"checkpoint folder .*ck.* pid {p.pid}"):
-            js.run_ensemble(js.sample_starts(4, seed=1).ics, chunk_size=4, checkpoint_dir=d, **KW)
+            js.run_ensemble(js.sample_starts(4, seed=1).ics, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d))
         assert not list(d.glob("chunk_*.npz")) and not (d / "manifest.json").exists()
     finally:
         _kill9(p)
-    js.run_ensemble(js.sample_starts(4, seed=1).ics, chunk_size=4, checkpoint_dir=d, **KW)
+    js.run_ensemble(js.sample_starts(4, seed=1).ics, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d))
     assert not list(d.glob(".lock.*"))                                   # stale one removed, own released
 
 
@@ -317,12 +323,12 @@ def test_exit_codes_of_the_typed_errors_are_documented():
 def test_a_refused_resume_names_the_setting_and_both_values(tmp_path):
     ics = js.sample_starts(8, seed=1).ics
     d = tmp_path / "ck"
-    js.run_ensemble(ics, chunk_size=4, checkpoint_dir=d, **KW)
+    js.run_ensemble(ics, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d))
     with pytest.raises(CheckpointError, match=r"t_final 0\.3 in the checkpoint vs 0\.2 now") as info:
-        js.run_ensemble(ics, chunk_size=4, checkpoint_dir=d, resume=True, **{**KW, "t_final": 0.2})
+        js.run_ensemble(ics, **{**KW, "t_final": 0.2}, run=_quiet(chunk_size=4, checkpoint_dir=d, resume=True))
     assert "{" not in str(info.value) and "drop --resume" not in str(info.value)
     with pytest.raises(CheckpointError, match="other initial conditions"):
-        js.run_ensemble(ics + 0.1, chunk_size=4, checkpoint_dir=d, resume=True, **KW)
+        js.run_ensemble(ics + 0.1, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d, resume=True))
 
 
 def test_cli_refusals_name_the_option_and_never_suggest_what_is_refused(tmp_path, capsys):
@@ -356,10 +362,11 @@ def test_a_refused_resume_from_python_names_the_leaf_of_a_law_that_differs(tmp_p
 
     ics = js.sample_starts(4, seed=1).ics
     d = tmp_path / "ck"
-    js.run_ensemble(ics, chunk_size=2, checkpoint_dir=d, controller=saturate(make_controller("astolfi"), 2.0), **KW)
+    js.run_ensemble(ics, controller=saturate(make_controller("astolfi"), 2.0), **KW,
+                    run=_quiet(chunk_size=2, checkpoint_dir=d))
     with pytest.raises(CheckpointError, match=r"controller\.u_max 2\.0 in the checkpoint vs 3\.0 now") as info:
-        js.run_ensemble(ics, chunk_size=2, checkpoint_dir=d, resume=True,
-                        controller=saturate(make_controller("astolfi"), 3.0), **KW)
+        js.run_ensemble(ics, controller=saturate(make_controller("astolfi"), 3.0), **KW,
+                        run=_quiet(chunk_size=2, checkpoint_dir=d, resume=True))
     assert "{" not in str(info.value)
 
 

@@ -81,8 +81,8 @@ def basin_file(tmp_path_factory):
     """A tiny basin result written by the library (no command line): its arrays, to be damaged one at a time."""
     import jaxsleigh as js
 
-    res = js.run_basin(np.array([[1.0, 1.0, 0.5], [1.0, 0.5, 0.5]]), t_final=0.5, dt=0.05, method="rk4",
-                       progress=False)
+    res = js.run_basin(np.array([[1.0, 1.0, 0.5], [1.0, 0.5, 0.5]]), t_final=0.5, dt=0.05,
+                       stepsize=js.StepSizeController(method="rk4"), run=js.RunOptions(progress=False))
     path = js.save_basin(tmp_path_factory.mktemp("basin") / "b.npz", res)
     with np.load(path) as z:
         return {k: z[k] for k in z.files}

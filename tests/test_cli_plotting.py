@@ -60,7 +60,8 @@ def test_simulate_contract_and_settings_round_trip(tmp_path, capsys):
     assert s["command"][:2] == ["jaxsleigh", "simulate"]
     # the file holds what the library computes with those settings
     ref = jaxsleigh.simulate(np.asarray(s["ics"]), t_final=s["t_final"], dt=s["dt"],
-                             save_every=s["save_every"], method=s["method"])
+                             stepsize=jaxsleigh.StepSizeController(method=s["method"]),
+                             saveat=jaxsleigh.SaveAt(every=s["save_every"]))
     np.testing.assert_allclose(data["q"], ref.q, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(data["u"], ref.u, rtol=1e-5, atol=1e-5)
 
@@ -279,7 +280,8 @@ def test_provenance_stamp_names_dtype_method_and_device():
     assert "float32, adaptive RK4" in fig.get_suptitle() and "float" not in text and "adaptive RK4" not in text
     assert "rtol = 1e-06, atol = 1e-09" in text and "device cuda:0" in text
     # a real run records its device, and the figure drawn from its file names it
-    real = jaxsleigh.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01, method="rk4")
+    real = jaxsleigh.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01,
+                              stepsize=jaxsleigh.StepSizeController(method="rk4"))
     fig = plotting.plot_hamiltonian(real)
     (text,) = [t.get_text() for t in fig.texts if t.get_gid() == STAMP_GID]
     assert "float32" in fig.get_suptitle() and f"device {device_text(None, real.run_info)}" in text
@@ -397,7 +399,7 @@ def test_momentum_spike_does_not_flatten_the_rest():
 def small_basin():
     with pytest.warns(Warning):
         return jaxsleigh.run_basin(jaxsleigh.grid_starts(x="-2:2:4", y=0.5, theta="-2:2:3"), eps=0.3,
-                                   t_final=10.0, dt=0.05, progress=False)
+                                   t_final=10.0, dt=0.05, run=jaxsleigh.RunOptions(progress=False))
 
 
 def test_basin_overview_footer_clears_the_histogram_label_and_no_stamp(small_basin):

@@ -172,8 +172,8 @@ def test_nonholonomic_constraint(sample_states, paper_args):
     lateral = f[:, 0] * np.sin(th) - f[:, 1] * np.cos(th)
     np.testing.assert_allclose(lateral, 0.0, atol=1e-14 * (1 + np.abs(f[:, :2]).max()))
     # and along a closed-loop trajectory (the states the simulator actually visits)
-    sol = js.simulate([[-3.0, -2.0, np.pi / 8, 0.0, 0.0], [1.0, -2.0, 0.7, 1.0, -0.5]], t_final=5.0, dt=0.01,
-                      save_every=5, x64=True)
+    sol = js.simulate([[-3.0, -2.0, np.pi / 8, 0.0, 0.0], [1.0, -2.0, 0.7, 1.0, -0.5]], t_final=5.0, dt=0.01, x64=True,
+                      saveat=js.SaveAt(every=5))
     y = np.concatenate([sol.q, sol.p], axis=-1).reshape(-1, 5)
     f = np.asarray(jax.vmap(lambda y: vector_field(0.0, y, paper_args))(jnp.asarray(y)))
     lateral = f[:, 0] * np.sin(y[:, 2]) - f[:, 1] * np.cos(y[:, 2])
@@ -219,7 +219,8 @@ _NEAR_SINGULAR = [(0.5, -0.5, 0.05, 0.0, 0.0), (-0.2, 0.3, -0.02, 0.3, 0.1)]
 def test_Hd_never_increases_along_simulate(method, x64):
     """(g) H_d(t) is non-increasing along simulated trajectories (up to rounding of H_d itself)."""
     ics = _REGULAR + (_NEAR_SINGULAR if method == "adaptive" else [])
-    sol = js.simulate(ics, t_final=20.0, dt=0.01, save_every=2, method=method, x64=x64)
+    sol = js.simulate(ics, t_final=20.0, dt=0.01, x64=x64,
+                      stepsize=js.StepSizeController(method=method), saveat=js.SaveAt(every=2))
     assert np.all(sol.status == Status.OK), sol.status
     Hd = sol.Hd.astype(np.float64)
     assert np.all(np.isfinite(Hd))

@@ -36,7 +36,7 @@ def test_python_program_fills_the_same_folder_as_the_command_line(tmp_path):
         from jaxsleigh.cli.common import compilation_cache_dir
         d = js.enable_compilation_cache()
         assert d == compilation_cache_dir(), (d, compilation_cache_dir())
-        js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)
+        js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, saveat=js.SaveAt(every=1))
         print(d)
     """)
     r = subprocess.run([sys.executable, "-c", code], env=_env(cache), capture_output=True, text=True, timeout=300)
@@ -71,7 +71,7 @@ def test_import_alone_leaves_the_cache_off(tmp_path):
     cache = tmp_path / "cache"
     code = textwrap.dedent("""
         import jax, jaxsleigh as js
-        js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, save_every=1)
+        js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, saveat=js.SaveAt(every=1))
         print(jax.config.jax_compilation_cache_dir)
     """)
     r = subprocess.run([sys.executable, "-c", code], env=_env(cache), capture_output=True, text=True, timeout=300)

@@ -51,7 +51,7 @@ def test_user_law_matches_scipy_radau(method):
     ics = np.array([[-3.0, -2.0, np.pi / 8, 0.0, 0.0], [1.0, 1.0, 0.0, 0.5, -0.3], [2.0, -1.0, -1.0, 0.0, 0.0]])
     law = PD(kp=2.0, kd=1.5)
     if method == "simulate":
-        out = js.simulate(ics, controller=law, t_final=10.0, x64=True, save_every=1000)
+        out = js.simulate(ics, controller=law, t_final=10.0, x64=True, saveat=js.SaveAt(every=1000))
         final = np.concatenate([out.q[:, -1], out.p[:, -1]], axis=1)
         status = out.status
     else:
@@ -229,7 +229,8 @@ def test_a_user_law_that_blows_up_ends_with_a_status_never_a_silent_nan():
     assert res.status[1] == js.Status.OK and np.all(np.isfinite(res.q_final[1]))
     assert res.status[0] in (js.Status.STEP_UNDERFLOW, js.Status.NONFINITE)
     assert np.all(np.isnan(res.q_final[0])) and np.isnan(res.T_eps[0])
-    fixed = js.run_ensemble(np.array([[6.0, 0.0, 0.3]]), controller=law, t_final=2.0, method="rk4")
+    fixed = js.run_ensemble(np.array([[6.0, 0.0, 0.3]]), controller=law, t_final=2.0,
+                            stepsize=js.StepSizeController(method="rk4"))
     assert fixed.status[0] == js.Status.NONFINITE and np.all(np.isnan(fixed.q_final[0]))
 
 

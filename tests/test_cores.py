@@ -58,7 +58,7 @@ def test_the_first_runs_core_count_follows_the_settings():
     ``JAX_NUM_CPU_DEVICES`` in the test of three cores) is kept."""
     code = """
         import jax, jaxsleigh as js
-        r = js.run_ensemble([[1.0, 1.0, 0.5]], t_final=0.1, progress=False)
+        r = js.run_ensemble([[1.0, 1.0, 0.5]], t_final=0.1, run=js.RunOptions(progress=False))
         print(len(jax.devices()), len(r.run_info["devices"]))
     """
     assert _python(code, JAXSLEIGH_CORES="1") == "1 1"
@@ -82,12 +82,13 @@ def test_results_are_byte_identical_on_one_two_and_three_cores():
             return h.hexdigest()
         runs = {}
         for c in (1, 2, 3):
-            a = js.run_ensemble(ics, t_final=8.0, chunk_size=1200, cores=c, progress=False)
-            b = js.run_ensemble(ics[:200], t_final=4.0, x64=True, chunk_size=200, cores=c, progress=False)
-            p = js.run_ensemble(ics, t_final=8.0, method="rk4", summaries=False, check_passivity=False,
-                                chunk_size=1200, cores=c, progress=False)
-            s = js.run_ensemble(ics[:900], t_final=3.0, save_every=50, chunk_size=900, cores=c, progress=False)
-            g = js.sweep(ics[:500], {"k": [0.5, 2.0]}, t_final=4.0, cores=c, progress=False)
+            run = lambda chunk=None: js.RunOptions(chunk_size=chunk, cores=c, progress=False)
+            a = js.run_ensemble(ics, t_final=8.0, run=run(1200))
+            b = js.run_ensemble(ics[:200], t_final=4.0, x64=True, run=run(200))
+            p = js.run_ensemble(ics, t_final=8.0, stepsize=js.StepSizeController(method="rk4", check_passivity=False),
+                                saveat=js.SaveAt(summaries=False), run=run(1200))
+            s = js.run_ensemble(ics[:900], t_final=3.0, saveat=js.SaveAt(every=50), run=run(900))
+            g = js.sweep(ics[:500], {"k": [0.5, 2.0]}, t_final=4.0, run=run())
             assert a.n_steps.max() > 4 * np.median(a.n_steps)        # stragglers: some parts are compacted
             runs[c] = [digest(a, "q_final", "p_final", "T_eps", "n_steps", "n_rejected", "u_energy", "status"),
                        digest(b, "q_final", "T_eps", "n_steps"), digest(p, "q_final", "p_final", "status"),
@@ -111,7 +112,7 @@ def test_jax_started_first_is_said_once_with_the_way_out():
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
             for _ in range(2):
-                r = js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, progress=False)
+                r = js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, run=js.RunOptions(progress=False))
         said = [str(x.message) for x in w if "cores" in str(x.message)]
         print(len(said), jax.config.jax_num_cpu_devices, len(r.run_info["devices"]), said[0] if said else "")
     """)
@@ -120,9 +121,9 @@ def test_jax_started_first_is_said_once_with_the_way_out():
 
 def test_bad_core_counts_are_refused_or_named():
     with pytest.raises(ValueError, match="cores"):
-        js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, cores=0, progress=False)
+        js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, run=js.RunOptions(cores=0, progress=False))
     with pytest.raises(ValueError, match="cores"):
-        js.run_basin(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, cores=1.5, progress=False)
+        js.run_basin(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, run=js.RunOptions(cores=1.5, progress=False))
     with pytest.raises(ValueError, match="devices is empty"):
         cores.workers([])
     out = _python("""
@@ -130,7 +131,7 @@ def test_bad_core_counts_are_refused_or_named():
         import jax, jaxsleigh as js
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
-            js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, progress=False)
+            js.run_ensemble([[1.0, 1.0, 0.5]], t_final=1.0, run=js.RunOptions(progress=False))
         print(len(jax.devices()) >= 1, any("JAXSLEIGH_CORES" in str(x.message) for x in w))
     """, JAXSLEIGH_CORES="many")
     assert out == "True True"
@@ -198,8 +199,8 @@ def test_interrupted_while_a_tail_runs_loses_nothing_and_resumes_to_the_same_byt
     rng = np.random.default_rng(11)
     ics = np.column_stack([rng.uniform(-3, 3, (5000, 2)), rng.uniform(0.3, 3, 5000) * rng.choice([-1, 1], 5000)])
     ics[::250, 2] = 0.01                                     # stragglers in every part
-    kw = dict(t_final=6.0, chunk_size=2048, progress=False)
-    whole = js.run_ensemble(ics, **kw)
+    run = js.RunOptions(chunk_size=2048, progress=False)
+    whole = js.run_ensemble(ics, t_final=6.0, run=run)
     real, calls = ens.drive_final, []
 
     def interrupted(*a, **k):
@@ -211,10 +212,10 @@ def test_interrupted_while_a_tail_runs_loses_nothing_and_resumes_to_the_same_byt
 
     monkeypatch.setattr(ens, "drive_final", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        js.run_ensemble(ics, checkpoint_dir=tmp_path / "ck", **kw)
+        js.run_ensemble(ics, t_final=6.0, run=run._replace(checkpoint_dir=tmp_path / "ck"))
     assert sorted(p.name for p in (tmp_path / "ck").glob("chunk_*.npz")) == ["chunk_000000.npz"]
     monkeypatch.setattr(ens, "drive_final", real)
-    resumed = js.run_ensemble(ics, checkpoint_dir=tmp_path / "ck", resume=True, **kw)
+    resumed = js.run_ensemble(ics, t_final=6.0, run=run._replace(checkpoint_dir=tmp_path / "ck", resume=True))
     assert resumed.run_info["chunks_reused"] == 1
     for f in ("q_final", "T_eps", "n_steps", "status", "u_energy"):
         np.testing.assert_array_equal(getattr(resumed, f), getattr(whole, f), err_msg=f)
@@ -225,9 +226,10 @@ def test_the_three_fronts_take_one_cpu_chunk_size():
     """`run_ensemble`, `run_basin` and `sweep` resolve an unset chunk size to the same CPU default
     (`jaxsleigh.cores.CPU_CHUNK`), recorded in their settings; a chunk size given is kept."""
     ics = np.array([[1.0, -1.0, 0.5], [-2.0, 1.0, 2.0]])
-    kw = dict(t_final=0.5, progress=False)
+    kw = dict(t_final=0.5, run=js.RunOptions(progress=False))
     got = {"run_ensemble": js.run_ensemble(ics, **kw).settings["chunk_size"],
            "run_basin": js.run_basin(ics, **kw).settings["chunk_size"],
            "sweep": js.sweep(ics, {"k": [0.1, 0.2]}, **kw).settings["chunk_size"]}
     assert got == dict.fromkeys(got, cores.CPU_CHUNK)
-    assert js.run_ensemble(ics, chunk_size=4, **kw).settings["chunk_size"] == 4
+    assert js.run_ensemble(ics, t_final=0.5,
+                           run=js.RunOptions(chunk_size=4, progress=False)).settings["chunk_size"] == 4

@@ -469,12 +469,13 @@ def test_the_first_differing_option_is_named_with_both_values(opts, other, j):
 #: a Python program that runs the basin of WORK over processes with the library's runner (no command line)
 PYTHON_BASIN = textwrap.dedent("""
     import sys
-    from jaxsleigh import run_basin, sample_starts, save_basin
+    from jaxsleigh import RunOptions, run_basin, sample_starts, save_basin
     from jaxsleigh.files.runner import Processes, leave, run_to_file
 
     out, coordinator, n, i = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
     starts = sample_starts(200, seed=3)
-    done = run_to_file(out, lambda **kw: run_basin(starts, t_final=2.0, chunk_size=16, progress=False, **kw),
+    done = run_to_file(out, lambda **kw: run_basin(starts, t_final=2.0,
+                                                   run=RunOptions(chunk_size=16, progress=False, **kw)),
                        save_basin, options={"samples": 200, "seed": 3, "t_final": 2.0},
                        processes=Processes(coordinator, n, i) if n > 1 else None)
     if done.result is not None:
@@ -504,7 +505,7 @@ def test_a_python_program_runs_a_multi_process_basin_with_the_library_runner(tmp
 def test_the_library_runner_owns_its_output_and_resumes_with_python_words(tmp_path):
     """One process: a second run on a file whose chunks an interrupted run left is refused in Python's words
     (resume=True), continued with resume=True, and its options compared with the interrupted run's."""
-    from jaxsleigh import run_basin, sample_starts, save_basin
+    from jaxsleigh import RunOptions, run_basin, sample_starts, save_basin
     from jaxsleigh.errors import CheckpointError
     from jaxsleigh.files.runner import chunk_dir, run_to_file
 
@@ -513,10 +514,10 @@ def test_the_library_runner_owns_its_output_and_resumes_with_python_words(tmp_pa
     def run(t_final, interrupt=False, **resume):
         def study(**kw):
             if interrupt:                      # the run is interrupted after its chunks are written
-                run_basin(starts, t_final=t_final, chunk_size=16, progress=False,
-                          checkpoint_dir=kw["checkpoint_dir"], resume=False)
+                run_basin(starts, t_final=t_final, run=RunOptions(chunk_size=16, progress=False,
+                                                                 checkpoint_dir=kw["checkpoint_dir"], resume=False))
                 raise KeyboardInterrupt
-            return run_basin(starts, t_final=t_final, chunk_size=16, progress=False, **kw)
+            return run_basin(starts, t_final=t_final, run=RunOptions(chunk_size=16, progress=False, **kw))
         return run_to_file(out, study, save_basin, options={"t_final": t_final}, **resume)
 
     with pytest.raises(KeyboardInterrupt):

@@ -66,7 +66,9 @@ def reference():
 
 
 def test_effort_integrals_match_the_reference_quadrature(reference):
-    res = js.run_ensemble(STARTS, t_final=T, x64=True, rtol=1e-11, atol=1e-11, max_steps=2_000_000, progress=False)
+    res = js.run_ensemble(STARTS, t_final=T, x64=True,
+                          stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_steps=2_000_000),
+                          run=js.RunOptions(progress=False))
     assert np.all(res.status == 0)
     np.testing.assert_allclose(res.u_energy, reference[:, 0], rtol=1e-7)
     np.testing.assert_allclose(res.u_abs_int, reference[:, 1], rtol=1e-7)
@@ -75,7 +77,9 @@ def test_effort_integrals_match_the_reference_quadrature(reference):
     assert np.all(peaks <= reference[:, 2:] * (1 + 1e-9))
     np.testing.assert_allclose(peaks, reference[:, 2:], rtol=2e-2)
     # simulate reports the same integrals (it steps on the save grid, so to the tolerance)
-    sol = js.simulate(STARTS, t_final=T, x64=True, rtol=1e-11, atol=1e-11, max_steps=2_000_000, save_every=100)
+    sol = js.simulate(STARTS, t_final=T, x64=True,
+                      stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_steps=2_000_000),
+                      saveat=js.SaveAt(every=100))
     np.testing.assert_allclose(sol.effort["u_energy"], reference[:, 0], rtol=1e-7)
 
 
@@ -83,7 +87,8 @@ def test_effort_quadrature_is_fourth_order(reference):
     """Fixed RK4 on tame starts: the energy error falls 16x per halving of dt (measured 15.6-16.3)."""
     errs = []
     for dt in (0.02, 0.01, 0.005):
-        res = js.run_ensemble(STARTS[TAME], t_final=T, dt=dt, method="rk4", x64=True, progress=False)
+        res = js.run_ensemble(STARTS[TAME], t_final=T, dt=dt, x64=True,
+                              stepsize=js.StepSizeController(method="rk4"), run=js.RunOptions(progress=False))
         errs.append(np.abs(res.u_energy - reference[TAME, 0]) / reference[TAME, 0])
     errs = np.array(errs)
     ratios = errs[:-1] / errs[1:]
@@ -91,7 +96,7 @@ def test_effort_quadrature_is_fourth_order(reference):
 
 
 def test_default_float32_effort_is_accurate(reference):
-    res = js.run_ensemble(STARTS, t_final=T, progress=False)
+    res = js.run_ensemble(STARTS, t_final=T, run=js.RunOptions(progress=False))
     np.testing.assert_allclose(res.u_energy, reference[:, 0], rtol=2e-3)
 
 
@@ -120,7 +125,7 @@ def test_observers_do_not_change_the_trajectory():
 
 def test_effort_is_nan_where_a_start_was_not_integrated():
     with pytest.warns(js.errors.FlaggedStartsWarning):
-        res = js.run_ensemble([[1.0, 1.0, 0.5], [1.0, 1.0, 0.0]], t_final=1.0, progress=False)
+        res = js.run_ensemble([[1.0, 1.0, 0.5], [1.0, 1.0, 0.0]], t_final=1.0, run=js.RunOptions(progress=False))
     assert np.isfinite(res.u_energy[0]) and np.isnan(res.u_energy[1]) and np.all(np.isnan(res.u_peak[1]))
 
 
@@ -171,8 +176,10 @@ def test_dense_t_eps_with_long_steps_matches_a_float64_reference():
     from jaxsleigh.studies.bench import workload
 
     ics = workload(24, seed=3)
-    ref = js.run_ensemble(ics, x64=True, rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000, progress=False)
-    res = js.run_ensemble(ics, max_step=1.0, progress=False)
+    ref = js.run_ensemble(ics, x64=True,
+                          stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_step=0.1, max_steps=4_000_000),
+                          run=js.RunOptions(progress=False))
+    res = js.run_ensemble(ics, stepsize=js.StepSizeController(max_step=1.0), run=js.RunOptions(progress=False))
     both = np.isfinite(ref.T_eps) & np.isfinite(res.T_eps)
     assert both.sum() >= 18 and np.array_equal(np.isfinite(ref.T_eps), np.isfinite(res.T_eps))
     assert np.max(np.abs(res.T_eps[both] - ref.T_eps[both])) < 1e-3

@@ -40,8 +40,8 @@ def _assert_same(a, b, rtol=0.0):
 def test_chunked_equals_unchunked():
     ics = _ics(40, seed=1)
     kw = dict(t_final=20.0, eps=0.5, x64=True)
-    whole = run_ensemble(ics, chunk_size=64, **kw)
-    chunked = run_ensemble(ics, chunk_size=7, **kw)
+    whole = run_ensemble(ics, **kw, run=js.RunOptions(chunk_size=64))
+    chunked = run_ensemble(ics, **kw, run=js.RunOptions(chunk_size=7))
     assert np.all(whole.status == Status.OK)
     _assert_same(whole, chunked, rtol=1e-12)
 
@@ -81,7 +81,8 @@ def test_summaries_equal_those_from_full_trajectories(method):
     save interval and min/max may only be more extreme."""
     ics = _ics(24, seed=3)
     eps, T = 0.6, 30.0
-    r = run_ensemble(ics, t_final=T, dt=0.01, eps=eps, method=method, save_every=1, x64=True)
+    r = run_ensemble(ics, t_final=T, dt=0.01, eps=eps, x64=True, stepsize=js.StepSizeController(method=method),
+                     saveat=js.SaveAt(every=1))
     assert np.all(r.status == Status.OK)
     qn = np.linalg.norm(r.q, axis=2)
     T_path = np.array([_T_eps_from_path(r.t, qn[i], eps) for i in range(len(ics))])
@@ -109,12 +110,13 @@ def test_summaries_equal_those_from_full_trajectories(method):
 
 _SHARD_SCRIPT = textwrap.dedent("""
     import json, sys, numpy as np, jax
+    from jaxsleigh import RunOptions
     from jaxsleigh.studies.ensemble import run_ensemble, SUMMARY_FIELDS
     assert jax.device_count() == 4, jax.devices()
     ics = np.array(json.loads(sys.argv[1]))
     out = {}
     for name, dev in (("sharded", None), ("single", jax.devices()[:1])):
-        r = run_ensemble(ics, t_final=10.0, eps=0.5, x64=True, chunk_size=32, devices=dev)
+        r = run_ensemble(ics, t_final=10.0, eps=0.5, x64=True, run=RunOptions(chunk_size=32, devices=dev))
         out[name] = {k: np.asarray(getattr(r, k), np.float64).tolist() for k in SUMMARY_FIELDS}
         out[name + "_devices"] = r.run_info["devices"]
     print("RESULT" + json.dumps(out))
@@ -152,20 +154,20 @@ def test_bad_rows_do_not_spoil_the_batch():
 
 def test_checkpoint_resume_gives_the_same_result(tmp_path):
     ics = _ics(30, seed=6)
-    kw = dict(t_final=5.0, chunk_size=8)
-    full = run_ensemble(ics, **kw)
+    kw, run = dict(t_final=5.0), js.RunOptions(chunk_size=8)
+    full = run_ensemble(ics, **kw, run=run)
     ck = tmp_path / "ck"
-    run_ensemble(ics, checkpoint_dir=ck, **kw)
+    run_ensemble(ics, **kw, run=run._replace(checkpoint_dir=ck))
     chunks = sorted(ck.glob("chunk_*.npz"))
     assert len(chunks) == 4
     chunks[1].unlink()
     chunks[3].unlink()                                      # as if killed after chunks 0 and 2
     with pytest.raises(ValueError, match="resume"):
-        run_ensemble(ics, checkpoint_dir=ck, **kw)          # refuses to mix without --resume
-    resumed = run_ensemble(ics, checkpoint_dir=ck, resume=True, **kw)
+        run_ensemble(ics, **kw, run=run._replace(checkpoint_dir=ck))          # refuses to mix without --resume
+    resumed = run_ensemble(ics, **kw, run=run._replace(checkpoint_dir=ck, resume=True))
     _assert_same(full, resumed)
     with pytest.raises(ValueError, match="other settings"):
-        run_ensemble(ics, checkpoint_dir=ck, resume=True, t_final=10.0, chunk_size=8)
+        run_ensemble(ics, t_final=10.0, run=run._replace(checkpoint_dir=ck, resume=True))
 
 
 # --------------------------------------------------------------------------- near the singular set
@@ -201,8 +203,9 @@ def test_tiny_theta0_budget_is_reported_then_raised():
     short = run_ensemble(ic, t_final=2.0, x64=True)
     assert short.status[0] == Status.BUDGET_EXHAUSTED
     assert 0.0 < short.t_reached[0] < 2.0 and np.isnan(short.q_final[0]).all()
-    ok = run_ensemble(ic, t_final=2.0, x64=True, max_steps=2_000_000)
-    tight = run_ensemble(ic, t_final=2.0, x64=True, max_steps=4_000_000, rtol=1e-10, atol=1e-10)
+    ok = run_ensemble(ic, t_final=2.0, x64=True, stepsize=js.StepSizeController(max_steps=2_000_000))
+    tight = run_ensemble(ic, t_final=2.0, x64=True,
+                         stepsize=js.StepSizeController(max_steps=4_000_000, rtol=1e-10, atol=1e-10))
     assert ok.status[0] == Status.OK and tight.status[0] == Status.OK
     assert np.abs(ok.q_final[0] - tight.q_final[0]).max() <= 1e-6 * ok.max_excursion[0]
     assert ok.max_excursion[0] > 1e5
@@ -214,20 +217,20 @@ def test_starts_off_the_singular_set_never_go_nonfinite():
     rng = np.random.default_rng(7)
     n = 64
     ics = np.column_stack([rng.uniform(-5, 5, (n, 2)), rng.choice([-1, 1], n) * 10 ** rng.uniform(-2, 0.5, n)])
-    r = run_ensemble(ics, t_final=20.0, max_steps=400_000)
+    r = run_ensemble(ics, t_final=20.0, stepsize=js.StepSizeController(max_steps=400_000))
     assert np.all(r.status == Status.OK), np.bincount(r.status)
     assert np.isfinite(r.q_final).all() and np.isfinite(r.Hd_final).all()
-    fixed = run_ensemble(ics, t_final=20.0, method="rk4")
+    fixed = run_ensemble(ics, t_final=20.0, stepsize=js.StepSizeController(method="rk4"))
     assert np.any(fixed.status != Status.OK)
     assert np.isnan(fixed.q_final[fixed.status != Status.OK]).all()
 
 
 def test_plain_fixed_path_equals_the_checked_stepper():
-    """run_ensemble(method='rk4', summaries=False) is plain RK4: same final states as the stepper's
-    fixed mode, status judged at the end, summaries NaN; it refuses other combinations."""
+    """run_ensemble(stepsize=StepSizeController(method='rk4'), saveat=SaveAt(summaries=False)) is plain RK4: same
+    final states as the stepper's fixed mode, status judged at the end, summaries NaN; it refuses other combinations."""
     ics = np.vstack([_ics(16, seed=8), [[3.0, 3.0, 1e-3]]])
-    kw = dict(t_final=5.0, method="rk4", check_passivity=False, x64=True)
-    plain = run_ensemble(ics, summaries=False, **kw)
+    kw = dict(t_final=5.0, stepsize=js.StepSizeController(method="rk4", check_passivity=False), x64=True)
+    plain = run_ensemble(ics, **kw, saveat=js.SaveAt(summaries=False))
     full = run_ensemble(ics, **kw)
     ok = full.status == Status.OK
     assert ok[:-1].all() and plain.status[-1] in (Status.NONFINITE, Status.CROSSED_SINGULAR)
@@ -235,4 +238,4 @@ def test_plain_fixed_path_equals_the_checked_stepper():
     np.testing.assert_array_equal(plain.status[ok], Status.OK)
     assert np.isnan(plain.T_eps).all() and np.isnan(plain.q_final[-1]).all()
     with pytest.raises(ValueError, match="summaries=False"):
-        run_ensemble(ics, t_final=5.0, summaries=False)
+        run_ensemble(ics, t_final=5.0, saveat=js.SaveAt(summaries=False))

@@ -125,9 +125,10 @@ def test_settled_steps_are_not_capped_by_the_damping_rate_or_the_oscillation():
     like 1 / theta as the sleigh settles; between 30 s and 40 s the exponential step takes fewer than a fifth of
     the steps that either bound allows at 30 s, and ends on the final state of a tight float64 run."""
     start = [[1.0, -1.0, 0.6]]
-    a, b = (js.simulate(start, gains="tuned", t_final=t, save_every=100) for t in (30.0, 40.0))
-    ref = js.simulate(start, gains="tuned", t_final=40.0, save_every=100, x64=True, rtol=1e-11, atol=1e-11,
-                      max_steps=10 ** 7)
+    a, b = (js.simulate(start, gains="tuned", t_final=t, saveat=js.SaveAt(every=100)) for t in (30.0, 40.0))
+    ref = js.simulate(start, gains="tuned", t_final=40.0, x64=True,
+                      stepsize=js.StepSizeController(rtol=1e-11, atol=1e-11, max_steps=10 ** 7),
+                      saveat=js.SaveAt(every=100))
     assert a.status[0] == b.status[0] == ref.status[0] == 0
     g, pl = js.load_gains("tuned"), js.paper_plant()
     theta30 = float(a.q[0, -1, 2])
@@ -144,7 +145,8 @@ def test_t_eps_within_a_millisecond_of_radau(gains):
     g = js.paper_gains() if gains == "paper" else js.load_gains(gains)
     args = ClosedLoop(js.paper_plant(), g)
     T, eps = 60.0, 0.05
-    res = js.run_ensemble(starts, gains=None if gains == "paper" else gains, t_final=T, eps=eps, progress=False)
+    res = js.run_ensemble(starts, gains=None if gains == "paper" else gains, t_final=T, eps=eps,
+                          run=js.RunOptions(progress=False))
     f, jac = numpy_field(args)
     with jax.enable_x64(True):
         for i, s in enumerate(starts):
@@ -167,7 +169,8 @@ def test_near_theta_zero_nothing_non_finite_passes_as_ok():
     n = 2200
     ics = np.column_stack([rng.uniform(-3, 3, (n, 2)), rng.uniform(0.3, 3, n) * rng.choice([-1, 1], n)])
     ics[:60, 2] = np.geomspace(1e-6, 0.05, 60) * np.resize([1, -1], 60)
-    r = js.run_ensemble(ics, t_final=5.0, chunk_size=n, max_steps=4000, progress=False)
+    r = js.run_ensemble(ics, t_final=5.0,
+                        stepsize=js.StepSizeController(max_steps=4000), run=js.RunOptions(chunk_size=n, progress=False))
     ok = r.status == 0
     assert (~ok).any() and ok.sum() > 0.9 * n                # some stiff starts gave up, and said so
     fields = np.column_stack([r.q_final, r.p_final, r.Hd_final, r.u_energy, r.min_abs_theta])
@@ -186,7 +189,8 @@ def test_energy_spent_after_settling_needs_atol_1e_8_in_float32():
 
     ics, old = np.array(OLD_BALANCED_STARTS), js.gains(**OLD_BALANCED)
     run = lambda x64, atol, T=100.0: js.run_ensemble(ics, gains=old, t_final=T, x64=x64,  # noqa: E731
-                                                     stepsize=js.StepSizeController(atol=atol), progress=False)
+                                                     stepsize=js.StepSizeController(atol=atol),
+                                                     run=js.RunOptions(progress=False))
     ref, tight, loose = run(True, None), run(False, 1e-8), run(False, None)
     half = run(True, None, 50.0)
     assert np.all(ref.status == 0) and np.all(tight.status == 0) and np.all(loose.status == 0)

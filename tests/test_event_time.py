@@ -44,7 +44,8 @@ def test_median_settling_time_derivative_matches_finite_differences(law, field, 
 
         x0 = getattr(c, field) if index is None else getattr(c, field)[index]
         r = f(c)
-        ref = js.run_ensemble(ics, controller=c, t_final=100.0, x64=True, rtol=1e-9, atol=1e-9)
+        ref = js.run_ensemble(ics, controller=c, t_final=100.0, x64=True,
+                              stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9))
         settled = np.isfinite(ref.T_eps)
         assert settled.sum() >= 20
         np.testing.assert_array_equal(np.asarray(r.settled), settled)

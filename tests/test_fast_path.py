@@ -1,4 +1,5 @@
-"""The plain fixed-step path (``run_ensemble(method="rk4", summaries=False)``) in cache blocks.
+"""The plain fixed-step path (``run_ensemble(stepsize=StepSizeController(method="rk4"), saveat=SaveAt(summaries=False))``)
+in cache blocks.
 
 ``run_plain`` steps blocks of ``PLAIN_BLOCK`` trajectories through all steps before moving on
 (issue 12). These tests hold it to the earlier form (one scan over the whole batch, ``block=None``):
@@ -19,7 +20,9 @@ import pytest
 
 from jaxsleigh.model.closed_loop import ClosedLoop
 from jaxsleigh.integrate.engine import check_ics, drive_plain, initial_w, make_horizon
+from jaxsleigh.integrate.stepsize import StepSizeController
 from jaxsleigh.studies.ensemble import run_ensemble
+from jaxsleigh.studies.options import RunOptions, SaveAt
 from jaxsleigh.model.params import paper_gains, paper_plant
 from jaxsleigh.status import Status
 from jaxsleigh.integrate.stepper import PLAIN_BLOCK, run_plain
@@ -105,8 +108,8 @@ def test_status_logic_unchanged_on_failing_starts():
 
     # the same through the public call: status and NaN outputs where flagged
     with pytest.warns(UserWarning):
-        r = run_ensemble(ics, method="rk4", summaries=False, check_passivity=False, t_final=5.0, dt=0.25,
-                         progress=False)
+        r = run_ensemble(ics, t_final=5.0, dt=0.25, stepsize=StepSizeController(method="rk4", check_passivity=False),
+                         saveat=SaveAt(summaries=False), run=RunOptions(progress=False))
     np.testing.assert_array_equal(r.status, s_blk)
     assert np.all(np.isnan(r.q_final[r.status != Status.OK]))
     assert np.all(np.isfinite(r.q_final[r.status == Status.OK]))
@@ -154,9 +157,10 @@ def test_fast_path_matches_the_per_step_path():
     """The issue's call against the stepper's fixed-step path (per-step checks and summaries):
     the same RK4, so the same final states to float32 rounding, and the same status."""
     ics = _tame(600, seed=11)
-    kw = dict(method="rk4", check_passivity=False, t_final=20.0, dt=0.01, progress=False)
-    fast = run_ensemble(ics, summaries=False, **kw)
-    slow = run_ensemble(ics, summaries=True, **kw)
+    kw = dict(stepsize=StepSizeController(method="rk4", check_passivity=False), t_final=20.0, dt=0.01,
+              run=RunOptions(progress=False))
+    fast = run_ensemble(ics, **kw, saveat=SaveAt(summaries=False))
+    slow = run_ensemble(ics, **kw, saveat=SaveAt(summaries=True))
     np.testing.assert_array_equal(fast.status, slow.status)
     assert np.all(fast.status == Status.OK)
     rel = _rel(np.hstack([fast.q_final, fast.p_final]), np.hstack([slow.q_final, slow.p_final]))

@@ -40,7 +40,7 @@ def test_simulate_answers_any_input_with_a_message_or_flagged_rows(ics, L, k, D)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", JaxsleighWarning)   # flagged rows are checked below
-            sol = js.simulate(arr, gains=js.Gains(L, k, D), t_final=0.05, dt=0.01, save_every=1)
+            sol = js.simulate(arr, gains=js.Gains(L, k, D), t_final=0.05, dt=0.01, saveat=js.SaveAt(every=1))
     except ValueError as e:
         assert len(str(e)) > 10
         return

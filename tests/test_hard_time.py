@@ -110,7 +110,7 @@ def test_a_literature_law_is_tuned_on_the_same_objective():
     assert prob.x0.shape == (4,)                             # gamma, k, h, K; not model.m, model.J, ...
     np.testing.assert_allclose(prob.x0, np.log([law.gamma, law.k, law.h, law.K]), rtol=1e-12)
     (f, aux), g = prob.value_and_grad(jnp.asarray(prob.x0, jnp.float32))
-    r = js.run_ensemble(starts, controller=law, t_final=100.0, eps=CFG.eps, progress=False)
+    r = js.run_ensemble(starts, controller=law, t_final=100.0, eps=CFG.eps, run=js.RunOptions(progress=False))
     T = np.where(np.isfinite(r.T_eps), r.T_eps, 100.0)
     assert np.all(r.status == 0)
     np.testing.assert_allclose(float(aux["T_quantiles"][0]), np.median(T), rtol=1e-3)

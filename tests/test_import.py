@@ -71,7 +71,8 @@ def test_a_run_replaces_nothing_inside_jax(tmp_path):
 
         before = objects()
         js.enable_compilation_cache(sys.argv[1])
-        s = js.simulate([[1.0, 1.0, 0.5]], t_final=1.0, dt=0.01, save_every=10, progress=False)
+        s = js.simulate([[1.0, 1.0, 0.5]], t_final=1.0, dt=0.01, saveat=js.SaveAt(every=10),
+                        run=js.RunOptions(progress=False))
         js.solve(js.paper_gains(), jnp.asarray([1.0, 1.0, 0.5]), t_final=1.0).q_final.block_until_ready()
         after = objects()
         replaced = sorted(f"{m}.{a}" for (m, a), i in before.items() if (m, a) in after and after[m, a] != i)

@@ -12,7 +12,7 @@ import jaxsleigh as js
 from jaxsleigh.errors import FlaggedStartsWarning
 from jaxsleigh.status import Status
 
-SHORT = dict(t_final=2.0, dt=0.01, save_every=10)
+SHORT = dict(t_final=2.0, dt=0.01, saveat=js.SaveAt(every=10))
 GOOD = np.array([[1.0, 1.0, 0.5, 0.0, 0.0],
                  [-3.0, -2.0, np.pi / 8, 0.0, 0.0],
                  [1.0, -2.0, 0.7, 1.0, -0.5]])
@@ -44,14 +44,14 @@ def test_all_bad_batch_raises():
 def test_bad_row_in_batch_is_flagged_and_isolated(bad_row, code, method):
     ics = np.insert(GOOD, 1, bad_row, axis=0)
     with pytest.warns(FlaggedStartsWarning, match="1 of 4 initial conditions flagged.*row 1 "):
-        sol = js.simulate(ics, method=method, x64=True, **SHORT)
+        sol = js.simulate(ics, x64=True, **SHORT, stepsize=js.StepSizeController(method=method))
     assert sol.status.tolist() == [Status.OK, code, Status.OK, Status.OK]
     for a in (sol.q, sol.p, sol.u, sol.Hd):
         assert np.isnan(a[1]).all()
         assert np.isfinite(a[[0, 2, 3]]).all()
     with warnings.catch_warnings():
         warnings.simplefilter("error")           # the clean batch warns about nothing
-        ref = js.simulate(GOOD, method=method, x64=True, **SHORT)
+        ref = js.simulate(GOOD, x64=True, **SHORT, stepsize=js.StepSizeController(method=method))
     for a, b in ((sol.q, ref.q), (sol.p, ref.p), (sol.u, ref.u), (sol.Hd, ref.Hd)):
         np.testing.assert_allclose(a[[0, 2, 3]], b, rtol=1e-11, atol=1e-12)
     np.testing.assert_array_equal(sol.n_steps[[0, 2, 3]], ref.n_steps)
@@ -87,16 +87,16 @@ def test_three_and_five_column_ics_agree():
     (dict(t_final=1.005, dt=0.01), "whole multiple of dt"),
     (dict(t_final=0.015, dt=0.01), "whole multiple of dt"),
     (dict(t_final=1.0, dt=0.3), "whole multiple of dt"),
-    (dict(t_final=1.0, dt=0.01, save_every=7), "multiple of save_every"),
-    (dict(save_every=0), "save_every must be >= 1"),
-    (dict(save_every=2.5), "save_every must be a whole number"),
-    (dict(method="euler"), "method must be one of"),
-    (dict(rtol=0.0), "rtol must be > 0"),
-    (dict(atol=-1e-6), "atol must be > 0"),
-    (dict(max_steps=10, method="rk4"), "max_steps 10 is below"),
+    (dict(t_final=1.0, dt=0.01, saveat=js.SaveAt(every=7)), "multiple of save_every"),
+    (dict(saveat=js.SaveAt(every=0)), "save_every must be >= 1"),
+    (dict(saveat=js.SaveAt(every=2.5)), "save_every must be a whole number"),
+    (dict(stepsize=js.StepSizeController(method="euler")), "method must be 'adaptive' or 'rk4'"),
+    (dict(stepsize=js.StepSizeController(rtol=0.0)), "rtol must be > 0"),
+    (dict(stepsize=js.StepSizeController(atol=-1e-6)), "atol must be > 0"),
+    (dict(stepsize=js.StepSizeController(max_steps=10, method="rk4")), "max_steps 10 is below"),
 ])
 def test_bad_options_raise(kw, match):
-    opts = dict(t_final=1.0, dt=0.01, save_every=10)
+    opts = dict(t_final=1.0, dt=0.01, saveat=js.SaveAt(every=10))
     opts.update(kw)
     with pytest.raises(ValueError, match=match):
         js.simulate(GOOD, **opts)
@@ -197,7 +197,8 @@ TINY_EXPECTED = {
 @pytest.mark.parametrize("method,x64", list(TINY_EXPECTED), ids=[f"{m}-{'f64' if x else 'f32'}" for m, x in TINY_EXPECTED])
 def test_tiny_theta0_is_reported_not_garbage(method, x64):
     ics = np.array([[3.0, 3.0, 1e-3, 0.0, 0.0], [1.0, 1.0, 0.5, 0.0, 0.0]])
-    sol = js.simulate(ics, method=method, x64=x64, t_final=10.0, dt=0.01, save_every=10)
+    sol = js.simulate(ics, x64=x64, t_final=10.0, dt=0.01, stepsize=js.StepSizeController(method=method),
+                      saveat=js.SaveAt(every=10))
     assert sol.status[0] != Status.OK
     assert sol.status[0] == TINY_EXPECTED[method, x64], Status(int(sol.status[0])).name
     # the failed row: finite up to where it stopped, NaN after (never a finite wrong value)
@@ -214,7 +215,7 @@ def test_tiny_theta0_is_reported_not_garbage(method, x64):
 def test_small_theta0_adaptive_reaches_horizon():
     """theta0 = 1e-2 at (3, 3): the adaptive method gets through the stiff start in both precisions
     (the sleigh is flung ~1e4 away and comes back) and they agree; fixed RK4 fails and says so."""
-    kw = dict(t_final=10.0, dt=0.01, save_every=10)
+    kw = dict(t_final=10.0, dt=0.01, saveat=js.SaveAt(every=10))
     s32 = js.simulate([3.0, 3.0, 1e-2], x64=False, **kw)
     s64 = js.simulate([3.0, 3.0, 1e-2], x64=True, **kw)
     for s in (s32, s64):
@@ -225,6 +226,6 @@ def test_small_theta0_adaptive_reaches_horizon():
     assert np.abs(s32.q[0] - s64.q[0]).max() <= 1e-4 * scale
     assert np.all(np.diff(s64.Hd[0]) <= 1e-12 * s64.Hd[0, 0])
     for x64 in (False, True):
-        r = js.simulate([3.0, 3.0, 1e-2], method="rk4", x64=x64, **kw)
+        r = js.simulate([3.0, 3.0, 1e-2], x64=x64, **kw, stepsize=js.StepSizeController(method="rk4"))
         assert r.status[0] in (Status.NONFINITE, Status.CROSSED_SINGULAR)
         assert np.isnan(r.q[0, -1]).all()

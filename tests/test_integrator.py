@@ -138,13 +138,13 @@ def test_simulate_does_not_recompile_on_second_call():
     horizon) reuses every compiled kernel."""
     ics_a = [[1.0, 1.0, 0.5], [-3.0, -2.0, np.pi / 8], [2.0, -1.0, -1.0]]
     ics_b = [[0.3, -1.0, 1.2], [2.0, 2.0, -1.3], [-1.0, 0.5, 2.0]]
-    kw = dict(t_final=1.0, dt=0.01, save_every=10)
+    kw = dict(t_final=1.0, dt=0.01, saveat=js.SaveAt(every=10))
     for method in ("adaptive", "rk4"):
-        first = js.simulate(ics_a, method=method, **kw)
+        first = js.simulate(ics_a, **kw, stepsize=js.StepSizeController(method=method))
         sizes = _jit_cache_sizes()
         assert sum(sizes.values()) > 0, "no jitted kernels found: the test would be vacuous"
-        sol = js.simulate(ics_b, method=method, gains=js.gains((1.0, 1.0, 1.0), 0.3, (2.0, 3.0)),
-                          plant=js.plant_params(3.0, 0.5, 0.7), **kw)
+        sol = js.simulate(ics_b, gains=js.gains((1.0, 1.0, 1.0), 0.3, (2.0, 3.0)),
+                          plant=js.plant_params(3.0, 0.5, 0.7), **kw, stepsize=js.StepSizeController(method=method))
         assert np.all(sol.status == Status.OK)
         assert not np.allclose(sol.q[:, -1], first.q[:, -1])
         assert _jit_cache_sizes() == sizes, method
@@ -171,7 +171,8 @@ def test_adaptive_converges_to_reference_as_rtol_tightens(paper_args):
     refs = np.array(refs)
     errs = []
     for tol in (1e-4, 1e-6, 1e-8):
-        sol = js.simulate(_ADAPTIVE_STARTS, t_final=t_final, dt=0.1, save_every=5, rtol=tol, atol=tol, x64=True)
+        sol = js.simulate(_ADAPTIVE_STARTS, t_final=t_final, dt=0.1, x64=True,
+                          stepsize=js.StepSizeController(rtol=tol, atol=tol), saveat=js.SaveAt(every=5))
         assert np.all(sol.status == Status.OK)
         np.testing.assert_allclose(sol.t, t_eval, atol=1e-12)
         errs.append(np.max(np.abs(sol.q - refs), axis=(1, 2)))
@@ -181,6 +182,7 @@ def test_adaptive_converges_to_reference_as_rtol_tightens(paper_args):
     assert np.all(errs[-1] < 1e-6), errs
     # the fixed-step method at the same base step cannot do this: from the stiff paper start it
     # raises H_d or jumps across theta = 0 and is flagged (not returned as silent garbage)
-    fixed = js.simulate(_ADAPTIVE_STARTS[:1], t_final=t_final, dt=0.1, save_every=5, method="rk4", x64=True)
+    fixed = js.simulate(_ADAPTIVE_STARTS[:1], t_final=t_final, dt=0.1, x64=True,
+                        stepsize=js.StepSizeController(method="rk4"), saveat=js.SaveAt(every=5))
     assert fixed.status[0] in (Status.CROSSED_SINGULAR, Status.NONFINITE, Status.UNRELIABLE)
     assert np.isnan(fixed.q[0, -1]).all()

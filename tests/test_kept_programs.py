@@ -43,7 +43,7 @@ def kept(monkeypatch, tmp_path):
 
 
 def _run(**kw):
-    sol = js.simulate(ICS, t_final=2.0, dt=0.01, save_every=10, progress=False, **kw)
+    sol = js.simulate(ICS, t_final=2.0, dt=0.01, saveat=js.SaveAt(every=10), run=js.RunOptions(progress=False), **kw)
     return np.concatenate([sol.q.ravel(), sol.p.ravel(), sol.u.ravel(), sol.n_steps.ravel().astype(float)])
 
 
@@ -75,7 +75,7 @@ def test_a_later_process_loads_instead_of_tracing_and_gets_the_same_bytes(kept, 
 
 def test_an_ensemble_is_the_same_bytes_kept_or_not(kept, monkeypatch):
     starts = js.sample_starts(64, seed=3).ics
-    kw = dict(t_final=5.0, progress=False)
+    kw = dict(t_final=5.0, run=js.RunOptions(progress=False))
     a = js.run_ensemble(starts, **kw)
     assert len(list(kept.glob("*.stablehlo"))) >= 3
     with monkeypatch.context() as m:
@@ -144,7 +144,8 @@ def test_a_second_process_traces_nothing(tmp_path):
             "traced, export = [], KeptProgram._export\n"
             "KeptProgram._export = lambda self, *a: traced.append(1) or export(self, *a)\n"
             "js.enable_compilation_cache()\n"
-            "s = js.simulate([[1.0, 1.0, 0.5]], t_final=1.0, dt=0.01, save_every=10, progress=False)\n"
+            "s = js.simulate([[1.0, 1.0, 0.5]], t_final=1.0, dt=0.01, saveat=js.SaveAt(every=10),\n"
+            "                run=js.RunOptions(progress=False))\n"
             "np.save(sys.argv[1], np.concatenate([s.q.ravel(), s.u.ravel()]))\n"
             "print(len(traced))\n")
     root = Path(__file__).resolve().parents[1]

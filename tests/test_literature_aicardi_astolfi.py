@@ -304,8 +304,8 @@ def test_aicardi_settling_time_is_the_same_in_float32_and_float64():
     law = AicardiLaw(gamma=0.358, k=0.636, h=0.365, K=1.60)
     starts = np.array([(2.0, 1.0, 0.5), (-2.0, 1.5, -1.0), (-1.5, -2.0, 2.0), (2.5, -1.0, -2.5), (0.5, 0.2, 3.0),
                        (-2.8, 0.3, 0.4)])
-    r32 = js.run_ensemble(starts, controller=law, t_final=100.0, progress=False)
-    r64 = js.run_ensemble(starts, controller=law, t_final=100.0, progress=False, x64=True)
+    r32 = js.run_ensemble(starts, controller=law, t_final=100.0, run=js.RunOptions(progress=False))
+    r64 = js.run_ensemble(starts, controller=law, t_final=100.0, x64=True, run=js.RunOptions(progress=False))
     assert np.all(np.isfinite(r64.T_eps)) and np.all(r64.T_eps > 20.0)
     np.testing.assert_allclose(r32.T_eps, r64.T_eps, rtol=0, atol=0.1)
 
@@ -319,6 +319,6 @@ def test_a_diverging_astolfi_run_is_reported_not_ok():
     law = AstolfiLaw(k=0.211, p2=1.678, p3=-4.192, K=1.038)
     ics = draw_compare_starts("wide", 256, 0)[[22, 100]]
     for x64 in (False, True):
-        r = js.run_ensemble(ics, controller=law, t_final=100.0, x64=x64, progress=False)
+        r = js.run_ensemble(ics, controller=law, t_final=100.0, x64=x64, run=js.RunOptions(progress=False))
         assert r.status.tolist() == [js.Status.NONFINITE] * 2, (x64, r.status)
         assert not np.any(r.converged)

@@ -73,7 +73,7 @@ def test_objective_energy_agrees_with_the_accurate_engine():
     data, cfg, tr, fr = _setup("paper", t_final=5.0, stop_fraction=1e-6, rtol=1e-8, atol=1e-8)
     _, aux = tu.objective(tr, fr, data, cfg, n_attempts=6000)
     assert np.all(np.asarray(aux["lanes"].t) == 5.0)
-    v = tu.validate("paper", _ICS, t_final=5.0, x64=True, rtol=1e-9, atol=1e-9)
+    v = tu.validate("paper", _ICS, t_final=5.0, x64=True, stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9))
     # trapezoid (second order) on the adaptive steps vs the engine's RK4-order quadrature
     np.testing.assert_allclose(np.asarray(aux["lanes"].u_energy), v.u_energy, rtol=1e-3)
     assert float(aux["energy"]) == pytest.approx(np.exp(np.mean(np.log(v.u_energy))), rel=1e-3)
@@ -224,7 +224,8 @@ def test_balanced_near_the_singular_set_flags_what_it_cannot_integrate():
     either ends OK with finite figures or with another status and NaN outputs, never a silent NaN or inf."""
     th = np.geomspace(1e-4, 0.05, 24) * np.resize([1, -1], 24)
     ics = np.column_stack([np.resize([2.0, -1.5, 0.5], 24), np.resize([1.0, 2.5, -2.0], 24), th])
-    r = js.run_ensemble(ics, gains="balanced", t_final=5.0, max_steps=3000, progress=False)
+    r = js.run_ensemble(ics, gains="balanced", t_final=5.0,
+                        stepsize=js.StepSizeController(max_steps=3000), run=js.RunOptions(progress=False))
     ok = r.status == 0
     assert ok.any() and (~ok).any()                     # both paths: integrated, and flagged
     fields = np.column_stack([r.q_final, r.p_final, r.Hd_final, r.u_energy, r.min_abs_theta])

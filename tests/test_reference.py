@@ -70,7 +70,9 @@ def runs():
     """simulate() of all starts with each (method, x64) combination, computed once."""
     out = {}
     for method, x64 in TOL_Q:
-        out[method, x64] = js.simulate(ICS, t_final=T_FINAL, dt=DT, save_every=SAVE_EVERY, method=method, x64=x64)
+        out[method, x64] = js.simulate(ICS, t_final=T_FINAL, dt=DT, x64=x64,
+                                       stepsize=js.StepSizeController(method=method),
+                                       saveat=js.SaveAt(every=SAVE_EVERY))
     return out
 
 

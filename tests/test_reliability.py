@@ -56,17 +56,17 @@ def test_resume_without_manifest_never_mixes_runs(tmp_path, capsys):
 
 def test_damaged_chunks_are_named_and_recomputed(tmp_path):
     ics = js.sample_starts(48, seed=1).ics
-    kw = dict(t_final=0.5, dt=0.05, chunk_size=16, progress=False)
-    ref = js.run_ensemble(ics, **kw)
+    kw, run = dict(t_final=0.5, dt=0.05), js.RunOptions(chunk_size=16, progress=False)
+    ref = js.run_ensemble(ics, **kw, run=run)
     d = tmp_path / "ck"
-    js.run_ensemble(ics, checkpoint_dir=d, **kw)
+    js.run_ensemble(ics, **kw, run=run._replace(checkpoint_dir=d))
     raw = (d / "chunk_000000.npz").read_bytes()
     (d / "chunk_000000.npz").write_bytes(raw[: len(raw) // 2])          # truncated
     (d / "chunk_000001.npz").write_bytes(b"")                           # empty
     (d / "manifest.json").write_text("{not json")                       # corrupt manifest
     (d / ".chunk_000002.npz.999.tmp").write_bytes(b"leftover")          # a killed write's leftover
     with pytest.warns(DamagedCheckpointWarning) as record:
-        res = js.run_ensemble(ics, checkpoint_dir=d, resume=True, **kw)
+        res = js.run_ensemble(ics, **kw, run=run._replace(checkpoint_dir=d, resume=True))
     text = " | ".join(str(w.message) for w in record)
     assert "chunk_000000.npz" in text and "chunk_000001.npz" in text and "manifest.json" in text
     assert res.run_info["chunks_reused"] == 1                           # only chunk 2 was sound
@@ -76,16 +76,16 @@ def test_damaged_chunks_are_named_and_recomputed(tmp_path):
 
 
 def test_a_chunk_of_another_run_stops_the_api_too(tmp_path):
-    kw = dict(t_final=0.5, dt=0.05, chunk_size=16, progress=False)
+    kw, run = dict(t_final=0.5, dt=0.05), js.RunOptions(chunk_size=16, progress=False)
     d = tmp_path / "ck"
-    js.run_ensemble(js.sample_starts(32, seed=1).ics, checkpoint_dir=d, **kw)
+    js.run_ensemble(js.sample_starts(32, seed=1).ics, **kw, run=run._replace(checkpoint_dir=d))
     (d / "manifest.json").unlink()
     with pytest.raises(CheckpointError, match="chunk_000000.npz.*different run"):
-        js.run_ensemble(js.sample_starts(32, seed=2).ics, checkpoint_dir=d, resume=True, **kw)
+        js.run_ensemble(js.sample_starts(32, seed=2).ics, **kw, run=run._replace(checkpoint_dir=d, resume=True))
     with pytest.raises(CheckpointError, match="resume=True"):          # and never overwritten silently
-        js.run_ensemble(js.sample_starts(32, seed=2).ics, checkpoint_dir=d, **kw)
+        js.run_ensemble(js.sample_starts(32, seed=2).ics, **kw, run=run._replace(checkpoint_dir=d))
     with pytest.raises(ValueError, match="needs checkpoint_dir"):
-        js.run_ensemble(js.sample_starts(32, seed=2).ics, resume=True, **kw)
+        js.run_ensemble(js.sample_starts(32, seed=2).ics, **kw, run=run._replace(resume=True))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,12 +193,12 @@ def test_ctrl_c_in_tune_writes_the_best_gains_and_history(tmp_path, capsys, monk
 def test_one_unrepresentable_row_is_flagged_and_named(tmp_path, capsys):
     ics = np.array([[1.0, 1.0, 0.5], [1.0, 1.0, 1e-200], [-1.0, 2.0, 1.0]])
     with pytest.warns(FlaggedStartsWarning, match=r"row 1 \(status 8 out_of_range") as rec:
-        sol = js.simulate(ics, t_final=0.5, save_every=10)
+        sol = js.simulate(ics, t_final=0.5, saveat=js.SaveAt(every=10))
     assert rec[0].message.rows == [1]
     assert sol.status.tolist() == [0, Status.OUT_OF_RANGE, 0]
     assert np.all(np.isnan(sol.q[1])) and np.all(np.isfinite(sol.q[[0, 2]]))
     with pytest.warns(FlaggedStartsWarning):
-        res = js.run_ensemble(ics, t_final=0.5, progress=False)
+        res = js.run_ensemble(ics, t_final=0.5, run=js.RunOptions(progress=False))
     assert res.status.tolist() == [0, Status.OUT_OF_RANGE, 0] and np.isnan(res.T_eps[1])
     np.save(tmp_path / "s.npy", ics)
     rc, out, err = run_cli(["simulate", "--ics", tmp_path / "s.npy", "--t-final", "0.5", "--out",
@@ -234,10 +234,10 @@ def test_the_plain_region_needs_no_compiled_check(monkeypatch):
 
 def test_float32_underflow_hints_at_x64():
     with pytest.warns(FlaggedStartsWarning, match="x64"):
-        sol = js.simulate([[1, 1, 0.5], [1, 1, 1e-30]], t_final=0.5, save_every=10)
+        sol = js.simulate([[1, 1, 0.5], [1, 1, 1e-30]], t_final=0.5, saveat=js.SaveAt(every=10))
     assert sol.status[1] == Status.OUT_OF_RANGE
-    sol = js.simulate([[1, 1, 0.5], [1, 1, 1e-30]], t_final=0.01, dt=0.01, save_every=1, x64=True,
-                      max_steps=50)
+    sol = js.simulate([[1, 1, 0.5], [1, 1, 1e-30]], t_final=0.01, dt=0.01, x64=True,
+                      stepsize=js.StepSizeController(max_steps=50), saveat=js.SaveAt(every=1))
     assert sol.status[1] != Status.OUT_OF_RANGE                        # representable in float64
 
 
@@ -258,10 +258,10 @@ def test_no_trajectory_ok_exits_3(tmp_path, capsys):
     (dict(gains="no_such_preset"), "not found.*'tuned'"),
     (dict(plant=js.PlantParams(m=-2.0)), "mass m must be > 0"),
     (dict(plant=js.PlantParams(m=np.nan)), "m must be finite"),
-    (dict(rtol=-1), "rtol must be > 0"),
-    (dict(max_step=-1), "max_step must be > 0"),
-    (dict(max_steps=3_000_000_000), "max_steps must be <="),
-    (dict(max_steps=1.5), "max_steps must be a whole number"),
+    (dict(stepsize=js.StepSizeController(rtol=-1)), "rtol must be > 0"),
+    (dict(stepsize=js.StepSizeController(max_step=-1)), "max_step must be > 0"),
+    (dict(stepsize=js.StepSizeController(max_steps=3_000_000_000)), "max_steps must be <="),
+    (dict(stepsize=js.StepSizeController(max_steps=1.5)), "max_steps must be a whole number"),
     (dict(t_final=1e300, dt=1e290), "t_final must be <="),
     (dict(t_final=1e6, dt=1e-5), "more than one run can take"),
     (dict(x64="yes"), "x64 must be True or False"),
@@ -273,8 +273,8 @@ def test_api_validates_eagerly(entry, kw, match):
         fn([[1.0, 1.0, 0.5], [2.0, 1.0, 1.0]], **{"t_final": 0.5, **kw})
 
 
-@pytest.mark.parametrize("kw, match", [(dict(chunk_size=1.5), "chunk_size must be a whole number"),
-                                       (dict(chunk_size=0), "chunk_size must be >= 1"),
+@pytest.mark.parametrize("kw, match", [(dict(run=js.RunOptions(chunk_size=1.5)), "chunk_size must be a whole number"),
+                                       (dict(run=js.RunOptions(chunk_size=0)), "chunk_size must be >= 1"),
                                        (dict(eps=True), "eps must be a real number")])
 def test_run_ensemble_options(kw, match):
     with pytest.raises(ValueError, match=match):

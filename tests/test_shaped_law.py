@@ -75,7 +75,7 @@ def test_paper_law_is_the_special_case_b_zero():
 def test_hd_never_rises_and_matches_the_dissipation_formula():
     """Along trajectories H_d (kinetic + V) never increases (float64), and at random states its derivative along the
     field is -v^T D_d v <= 0 (eq. 18 with V in place of w^T L w / 2)."""
-    sol = js.simulate(ICS, controller=SHAPED, t_final=80, x64=True, save_every=1)
+    sol = js.simulate(ICS, controller=SHAPED, t_final=80, x64=True, saveat=js.SaveAt(every=1))
     assert np.all(sol.status == Status.OK)
     Hd = np.asarray(sol.Hd)
     assert np.all(np.isfinite(Hd))
@@ -141,7 +141,8 @@ def test_w_chart_against_scipy_radau_in_the_physical_chart():
         args = ClosedLoop(jax.tree_util.tree_map(jnp.asarray, plant), FunctionLaw(SHAPED))
         f = jax.jit(lambda y: jnp.stack(vector_field_law_control(0.0, y, args)[0]))
         jac = jax.jit(jax.jacfwd(lambda y: jnp.stack(vector_field_law_control(0.0, y, args)[0])))
-        r = js.run_ensemble(ICS[:3], controller=SHAPED, t_final=20, x64=True, rtol=1e-10, atol=1e-10)
+        r = js.run_ensemble(ICS[:3], controller=SHAPED, t_final=20, x64=True,
+                            stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10))
         for i, ic in enumerate(ICS[:3]):
             sol = solve_ivp(lambda t, y: np.asarray(f(jnp.asarray(y))), (0, 20), np.r_[ic, 0, 0], method="Radau",
                             rtol=1e-10, atol=1e-10, jac=lambda t, y: np.asarray(jac(jnp.asarray(y))))
@@ -203,7 +204,8 @@ def test_near_theta_zero_the_shaped_preset_says_what_it_did(x64):
     state and summaries, or with another status and NaN outputs; no silent non-finite value."""
     th = np.r_[np.geomspace(1e-6, 0.05, 24) * np.resize([1, -1], 24), 0.5, -1.0, 2.0, -2.5]
     ics = np.column_stack([np.resize([2.0, -1.0, 0.5], 28), np.resize([1.0, 2.0, -2.5], 28), th])
-    r = js.run_ensemble(ics, controller=js.load_shaped(), t_final=5.0, max_steps=4000, x64=x64, progress=False)
+    r = js.run_ensemble(ics, controller=js.load_shaped(), t_final=5.0, x64=x64,
+                        stepsize=js.StepSizeController(max_steps=4000), run=js.RunOptions(progress=False))
     ok = r.status == Status.OK
     assert ok[24:].all()                                     # the ordinary starts run through
     fields = np.column_stack([r.q_final, r.p_final, r.u_energy, r.min_abs_theta])

@@ -35,13 +35,15 @@ FAST = dict(t_final=6.0, dt=0.02, eps=0.2, gains="tuned")
 @pytest.fixture(scope="module")
 def ml_sweep():
     """A 2 x 2 grid over m and l (the knife edge l = 0 included), float64, chunks straddling values."""
-    return sweep(STARTS, ["m=1:3:2", "l=0:1.5:2"], x64=True, chunk_size=5, progress=False, **FAST)
+    return sweep(STARTS, ["m=1:3:2", "l=0:1.5:2"], x64=True, run=jaxsleigh.RunOptions(chunk_size=5, progress=False),
+                 **FAST)
 
 
 @pytest.fixture(scope="module")
 def ml_separate(ml_sweep):
     """The separate runs that ``ml_sweep`` replaces, one per value set."""
-    return [jaxsleigh.run_ensemble(STARTS.ics, plant=plant_params(m, 1.0, l), x64=True, progress=False, **FAST)
+    return [jaxsleigh.run_ensemble(STARTS.ics, plant=plant_params(m, 1.0, l), x64=True,
+                                   run=jaxsleigh.RunOptions(progress=False), **FAST)
             for m, l in ml_sweep.values]
 
 
@@ -83,7 +85,7 @@ def test_gain_sweep_equals_separate_runs_and_does_not_recompile():
     from jaxsleigh.integrate import stepper
 
     base = load_gains("tuned")
-    kw = dict(FAST, gains=base, progress=False, x64=True, chunk_size=5)
+    kw = dict(FAST, gains=base, x64=True, run=jaxsleigh.RunOptions(chunk_size=5, progress=False))
     r1 = sweep(STARTS, ["k=0.05:0.4:3:log"], **kw)
     sizes = (engine._segment_batch._cache_size(), stepper.init_batch_lanes._cache_size())
     r2 = sweep(STARTS, ["k=0.07:0.5:3"], **kw)                       # other values, same shapes
@@ -99,7 +101,8 @@ def test_gain_sweep_equals_separate_runs_and_does_not_recompile():
 
 def test_results_record_the_parameters_each_row_used():
     plants = stack_plants([plant_params(2, 1, 1), plant_params(0.5, 3, 0.0), plant_params(4, 0.2, 2)])
-    res = jaxsleigh.run_ensemble(STARTS.ics[:3], plant=plants, progress=False, x64=True, **FAST)
+    res = jaxsleigh.run_ensemble(STARTS.ics[:3], plant=plants, x64=True, run=jaxsleigh.RunOptions(progress=False),
+                                 **FAST)
     np.testing.assert_array_equal(res.params["m"], [2, 0.5, 4])
     np.testing.assert_array_equal(res.params["l"], [1, 0, 2])
     np.testing.assert_array_equal(res.params["coulomb_eps"], [0.1] * 3)
@@ -135,8 +138,9 @@ def test_knife_edge_and_sampled_plant_agree_with_scipy():
     g = load_gains("tuned")
     t_final = 3.0
     res = jaxsleigh.run_ensemble(ics, plant=stack_plants(plants), gains=g, t_final=t_final, x64=True,
-                                 progress=False)
-    sol = jaxsleigh.simulate(ics, plant=stack_plants(plants), gains=g, t_final=t_final, save_every=50, x64=True)
+                                 run=jaxsleigh.RunOptions(progress=False))
+    sol = jaxsleigh.simulate(ics, plant=stack_plants(plants), gains=g, t_final=t_final, x64=True,
+                             saveat=jaxsleigh.SaveAt(every=50))
     assert sol.settings["params"]["l"] == [0.0, 0.0, 0.4, 0.4]
     for i, plant in enumerate(plants):
         ref = _reference_final(np.concatenate([ics[i], [0, 0]]), plant, g, t_final)

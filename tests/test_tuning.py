@@ -150,7 +150,7 @@ def test_small_tune_improves_keeps_frozen_gains_and_returns_valid_gains(small_ru
     train = tu.draw_starts(tu.UniformStarts(), config.batch, config.seed)
     held = tu.UniformStarts(theta_min=0.05)(np.random.default_rng(777), 24)
     ics = np.concatenate([train, tu.guard_starts(), held, [[1.0, 1.0, 0.05], [-2.0, 0.5, -0.05]]])
-    r = run_ensemble(ics, gains=res.gains, t_final=30.0, progress=False)
+    r = run_ensemble(ics, gains=res.gains, t_final=30.0, run=js.RunOptions(progress=False))
     assert np.all(r.status == Status.OK)
     assert np.all(np.isfinite(r.q_final)) and np.all(r.min_abs_theta > 0)
 

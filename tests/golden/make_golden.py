@@ -36,7 +36,7 @@ def golden_runs() -> dict:
     runs = {}
     ics = np.array([[-3.0, -2.0, np.pi / 8, 0.0, 0.0], [1.0, 1.0, 0.5, 0.0, 0.0], [2.0, -1.0, -1.0, 0.3, -0.2]])
     for x64 in (False, True):
-        sol = js.simulate(ics, t_final=20.0, dt=0.01, save_every=100, x64=x64)
+        sol = js.simulate(ics, t_final=20.0, dt=0.01, x64=x64, saveat=js.SaveAt(every=100))
         tag = "f64" if x64 else "f32"
         runs[f"simulate_{tag}"] = {"t": sol.t, "q": sol.q, "p": sol.p, "u": sol.u, "Hd": sol.Hd,
                                    "status": sol.status, "n_steps": sol.n_steps, "n_rejected": sol.n_rejected,
@@ -49,7 +49,8 @@ def golden_runs() -> dict:
     runs["ensemble"].update({k: getattr(res, k) for k in ("T_eps", "min_abs_theta", "max_excursion", "Hd0",
                                                       "Hd_final", "t_reached", "n_steps", "n_rejected", "status",
                                                       "u_peak", "u_norm_peak", "u_energy", "u_abs_int")})
-    fast = js.run_ensemble(starts, t_final=30.0, method="rk4", summaries=False, check_passivity=False)
+    fast = js.run_ensemble(starts, t_final=30.0, stepsize=js.StepSizeController(method="rk4", check_passivity=False),
+                           saveat=js.SaveAt(summaries=False))
     runs["ensemble_plain"] = {"q": fast.q_final, "p": fast.p_final, "status": fast.status, "Hd_final": fast.Hd_final}
     basin = js.run_basin(js.grid_starts(x=(-2, 2, 4), y=(-2, 2, 3), theta=0.5), t_final=20.0)
     runs["basin"] = {k: v for k, v in basin._asdict().items()
