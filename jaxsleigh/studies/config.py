@@ -124,7 +124,7 @@ def reject_traced(front: str, **inputs) -> None:
                     f"differentiate, use {DIFFERENTIABLE_PATHS}")
 
 
-#: The step-size keywords `solve_config` also takes one by one (the command line's flags).
+#: The step-size keywords `solve_config` also takes one by one (the command line passes a `StepSizeController`).
 _STEP_KEYWORDS = ("method", "rtol", "atol", "max_step", "max_steps", "check_passivity")
 
 
@@ -216,7 +216,7 @@ def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None
 
     Args mean the same as in `jaxsleigh.simulate`. ``stepsize`` is a `jaxsleigh.StepSizeController` (its
     ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here);
-    those six may also come as keywords (``**step``), as the command line passes them. ``gains`` may be a `Gains`, a preset
+    those six may also come as keywords (``**step``). ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
     `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
     (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
