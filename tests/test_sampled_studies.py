@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
+from jaxsleigh import RunOptions, SaveAt
 from jaxsleigh.cli import main
 from jaxsleigh.controllers.actuators import Sampler, sampled, saturate
 from jaxsleigh.controllers.paper import PaperLaw
@@ -46,7 +47,7 @@ def test_run_ensemble_and_basin_summarise_the_sampled_loop(reference):
     np.testing.assert_array_equal(r.n_steps, np.asarray(reference.n_steps))             # the loop's own counts
     np.testing.assert_array_equal(r.n_rejected, np.asarray(reference.n_rejected))
     assert np.all(r.n_steps >= 200) and np.all(r.t_reached == 10.0)                     # a step per period at least
-    chunked = js.run_ensemble(ICS, controller=LAW, t_final=10.0, chunk_size=2)
+    chunked = js.run_ensemble(ICS, controller=LAW, t_final=10.0, run=RunOptions(chunk_size=2))
     np.testing.assert_allclose(chunked.q_final, r.q_final, rtol=1e-5, atol=1e-6)
     b = js.run_basin(ICS, controller=LAW, t_final=10.0)
     np.testing.assert_array_equal(b.q_final, r.q_final)
@@ -54,17 +55,17 @@ def test_run_ensemble_and_basin_summarise_the_sampled_loop(reference):
 
 
 def test_a_sampled_run_checkpoints_and_resumes_like_any_other(tmp_path):
-    whole = js.run_ensemble(ICS, controller=LAW, t_final=2.0, chunk_size=1)
+    whole = js.run_ensemble(ICS, controller=LAW, t_final=2.0, run=RunOptions(chunk_size=1))
     ck = tmp_path / "chunks"
-    js.run_ensemble(ICS, controller=LAW, t_final=2.0, chunk_size=1, checkpoint_dir=ck)
+    js.run_ensemble(ICS, controller=LAW, t_final=2.0, run=RunOptions(chunk_size=1, checkpoint_dir=ck))
     (sorted(ck.glob("chunk_*"))[1]).unlink()                        # an interrupted run: one chunk missing
-    resumed = js.run_ensemble(ICS, controller=LAW, t_final=2.0, chunk_size=1, checkpoint_dir=ck, resume=True)
+    resumed = js.run_ensemble(ICS, controller=LAW, t_final=2.0, run=RunOptions(chunk_size=1, checkpoint_dir=ck, resume=True))
     assert resumed.run_info["chunks_reused"] == 2
     for k in ("q_final", "T_eps", "u_energy", "status"):
         np.testing.assert_array_equal(getattr(resumed, k), getattr(whole, k))
     with pytest.raises(Exception, match="period"):                  # another sampler is another run
-        js.run_ensemble(ICS, controller=sampled(js.paper_gains(), 0.1), t_final=2.0, chunk_size=1,
-                        checkpoint_dir=ck, resume=True)
+        js.run_ensemble(ICS, controller=sampled(js.paper_gains(), 0.1), t_final=2.0,
+                        run=RunOptions(chunk_size=1, checkpoint_dir=ck, resume=True))
 
 
 def test_the_tuner_tunes_a_sampled_law_on_the_sampled_loop():
@@ -107,7 +108,7 @@ def test_the_sampling_period_matters_in_the_studies():
 
 def test_what_cannot_take_a_sampled_law_says_so(tmp_path):
     with pytest.raises(ValueError, match="save_every"):
-        js.run_ensemble(ICS, controller=LAW, t_final=1.0, save_every=10)
+        js.run_ensemble(ICS, controller=LAW, t_final=1.0, saveat=SaveAt(every=10))
     with pytest.raises(ValueError, match="period cannot vary per trajectory"):
         js.sweep(ICS[:, :3], ["sampler.period=0.05:0.1:2"], controller=LAW, t_final=1.0)
     with pytest.raises(ValueError, match="solve_sampled"):

@@ -1,9 +1,9 @@
 """The host runner: a long, chunked run that owns its output file, in one process or in several.
 
-A study that writes its result chunk by chunk (`jaxsleigh.run_basin`, `jaxsleigh.sweep`, or any function
-taking ``checkpoint_dir``, ``resume`` and ``shard``) runs to one file ``out`` in four steps, the same from
-Python and from the command line (``jaxsleigh basin`` and ``jaxsleigh sweep`` are `run_to_file` with
-their own checks and printing):
+A study that writes its result chunk by chunk (`jaxsleigh.run_basin`, `jaxsleigh.sweep`, or any function that
+takes the runner's ``checkpoint_dir``, ``resume`` and ``shard``, e.g. into `jaxsleigh.RunOptions`) runs to one file
+``out`` in four steps, the same from Python and from the command line (``jaxsleigh basin`` and ``jaxsleigh
+sweep`` are `run_to_file` with their own checks and printing):
 
 1. **own** ``out``: a lock next to it (`jaxsleigh.files.runlock.RunLock`; another live run on the same
    file is refused with `jaxsleigh.errors.RunLockedError`, exit code 5 on the command line), then refuse
