@@ -85,3 +85,10 @@ def test_only_the_integrate_floor_loops_over_time():
             elif isinstance(node, ast.ImportFrom) and (node.module or "").endswith("lax"):
                 found += [f"{rel}:{node.lineno} from lax import {a.name}" for a in node.names if a.name in loops]
     assert not found, found
+
+
+def test_each_command_line_module_only_parses_calls_and_prints():
+    """A command's module holds its flags, one call into the library and its printing: at most 300 lines each (what a
+    run does lives in the library, reachable from Python)."""
+    long = {p.name: n for p in sorted((PKG / "cli").glob("*.py")) if (n := len(p.read_text().splitlines())) > 300}
+    assert not long, long
