@@ -260,13 +260,13 @@ def test_compare_refuses_a_horizon_too_long_naming_its_own_flag(capsys, tmp_path
 
 def test_compare_help_names_every_law_null_and_no_dt(capsys):
     """The help lists the default laws from the registry, says what null means, and names no --dt (compare
-    has none: its sampled loop takes a fixed number of substeps per period)."""
+    has none: its sampled loop steps to the tolerances, landing on each sample instant)."""
     from jaxsleigh.controllers.registry import controller_names
 
     code, out, _ = _run(["compare", "--help"], capsys)
     text = " ".join(out.split())
     assert code == 0 and ",".join(controller_names()) in text and "null" in text and "did not settle" in text
-    assert "--dt" not in text and "substeps per period" in text
+    assert "--dt" not in text and "landing on each sample instant" in text
 
 
 def test_compare_equal_energy_tunes_the_literature_laws_to_the_papers_budget(capsys, tmp_path):
