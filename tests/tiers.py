@@ -67,7 +67,9 @@ def main() -> int:
     listed = read_list(Path(__file__).parent / "slow.txt") if a.add else {}
     new = slow_tests({k: v for k, v in cost.items() if k not in listed}, a.budget)
     quick = sum(v for k, v in cost.items() if k not in listed and k not in new)
-    notes = {**{k: f"{v:.1f} s" for k, v in listed.items()},
+    kept = {line.partition("#")[0].strip(): line.partition("#")[2].strip()
+            for line in (Path(__file__).parent / "slow.txt").read_text().splitlines()} if a.add else {}
+    notes = {**{k: kept.get(k) or f"{v:.1f} s" for k, v in listed.items()},
              **{k: f"{cost[k]:.1f} s" + (" compiling" if a.add else "") for k in new}}
     slow, cost = sorted(notes), {**listed, **cost}
     lines = ["# Tests left out of the quick tier (python -m pytest -q -m \"not slow\"), by name, with their",
