@@ -381,3 +381,16 @@ def test_time_varying_law_is_evaluated_at_the_sample_instants():
     expect = np.clip(np.column_stack([2.0 * np.sin(tk) + q[:, 0], 2.0 * np.cos(tk) - v[:, 1]]), -1.5, 1.5)
     np.testing.assert_allclose(np.asarray(run.u)[0], expect, rtol=1e-5, atol=1e-5)
     assert np.abs(np.asarray(run.u)[0, :, 0] - np.clip(q[:, 0], -1.5, 1.5)).max() > 0.1    # t was used
+
+
+def test_near_theta_zero_the_sampled_loop_reports_every_row():
+    """Starts just off the singular set under the sampled paper law: a row is OK with finite results, or it carries
+    a status that says why not; never OK with a NaN or inf in what it reports."""
+    ics = np.array([[1.0, 1.0, th, 0.0, 0.0] for th in (1e-2, 1e-4, 1e-6, -1e-6)] + [[3.0, -2.0, 1e-5, 1.0, -1.0]])
+    run = solve_sampled(PaperLaw(), None, ics, t_final=2.0, sampler=Sampler(0.1), substeps=4)
+    st = np.asarray(run.status)
+    for f in ("q_final", "p_final", "u_energy", "u_norm_peak", "min_abs_theta"):
+        x = np.asarray(getattr(run, f)).reshape(len(ics), -1)
+        assert np.all(np.isfinite(x[st == Status.OK])), f
+        assert np.all(np.isnan(x[st != Status.OK])), f
+    assert np.all(~np.isnan(np.asarray(run.T_eps)[st == Status.OK]))
