@@ -20,6 +20,7 @@ from .studies.simulate import Solution, simulate
 from .integrate.solve import SolveOutput, solve
 from .integrate.stepsize import StepSizeController
 from .studies.options import RunOptions, SaveAt
+from .studies.audit import Audit
 from .status import Status
 from .studies.sweep import SweepResult, load_sweep, save_sweep, sweep
 from .model import charts, controller  # noqa: F401

@@ -150,15 +150,16 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
 
 
 def _stage_quadrature(observers, h, g1, stages, dtype):
-    """The observers' integrands over a step's stages ``((y2, u2), (y3, u3), (y4, u4))`` with RK4's
-    weights."""
+    r"""The observers' integrands over a step's stages ``((y2, u2), (y3, u3), (y4, u4))`` with RK4's
+    weights: ``(dq, g4)``, the rows' increment and their integrands at the last stage (for the error estimate
+    \(h (g_4 - g_5) / 6\) of the rows, as of the state, `_adaptive_outcome`)."""
     g2, g3, g4 = (_integrands(observers, yi, ui, dtype) for yi, ui in stages)
-    return (h / 6.0) * (g1 + 2.0 * g2 + 2.0 * g3 + g4)
+    return (h / 6.0) * (g1 + 2.0 * g2 + 2.0 * g3 + g4), g4
 
 
 def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
     """Classical RK4 from ``k1`` (as `rk4_stages`) that also integrates the
-    observers' integrands over the same stages: returns ``(dy, k4, dq)``."""
+    observers' integrands over the same stages: returns ``(dy, k4, (dq, g4))``."""
     f = chart_for(args.controller).field_and_control
     y2 = y + (0.5 * h) * k1
     k2, u2 = f(t + 0.5 * h, y2, args)
@@ -166,24 +167,24 @@ def _stages_with_quadrature(t, y, h, args, k1, g1, observers):
     k3, u3 = f(t + 0.5 * h, y3, args)
     y4 = y + h * k3
     k4, u4 = f(t + h, y4, args)
-    dq = _stage_quadrature(observers, h, g1, ((y2, u2), (y3, u3), (y4, u4)), y.dtype)
-    return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4, dq
+    dq, g4 = _stage_quadrature(observers, h, g1, ((y2, u2), (y3, u3), (y4, u4)), y.dtype)
+    return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), k4, (dq, g4)
 
 
 def _increment(chart, s: "StepState", h, args, k1, observers, adaptive: bool):
-    """One step's increment, last-stage slope, observers' quadrature and error estimate (``None``: the
-    classical one): the exponential RK4 for the stiff damping when adaptive in a chart that has it
+    """One step's increment, last-stage slope, observers' quadrature ``(dq, g4)`` and error estimate (``None``:
+    the classical one): the exponential RK4 for the stiff damping when adaptive in a chart that has it
     (`jaxsleigh.integrate.etd`), classical RK4 otherwise."""
     lam = chart.stiff_rate(s.y, args) if adaptive else None
     if lam is not None:
         osc = chart.oscillation(s.y, args)
         dy, k4, error, stages = etd_stages(chart.field_and_control, s.t, s.y, h, args, k1, lam, osc)
-        dq = _stage_quadrature(observers, h, s.g1, stages, s.y.dtype) if s.quad.shape[0] else s.quad
+        dq = _stage_quadrature(observers, h, s.g1, stages, s.y.dtype) if s.quad.shape[0] else (s.quad, s.quad)
         return dy, k4, dq, error
     if s.quad.shape[0]:
         return (*_stages_with_quadrature(s.t, s.y, h, args, k1, s.g1, observers), None)
     dy, k4 = rk4_stages(chart.field, s.t, s.y, h, args, k1)
-    return dy, k4, s.quad, None
+    return dy, k4, (s.quad, s.quad), None
 
 
 def _all_finite(*xs):
@@ -214,6 +215,8 @@ class _Trial(NamedTuple):
     dy: jax.Array         # (5,) the increment, y_new - y
     k4: jax.Array         # (5,) the last stage's slope
     dq: jax.Array         # (m,) the observers' quadrature rows over the step
+    g4: jax.Array         # (m,) their integrands at the last stage
+    g5: jax.Array         # (m,) their integrands at y_new (FSAL, the next step's g1); g4 without FSAL
     error: object         # the exponential RK4's error estimate, a function of (y_new, k5); None: the classical one
     y_new: jax.Array      # (5,) the state at its end
     k5: jax.Array         # (5,) f(t + h, y_new) (FSAL); without FSAL the carried k1, unchanged
@@ -235,10 +238,11 @@ def _trial_step(chart, s: StepState, target, active, args, observers, *, adaptiv
     evaluated at the end (the next step's ``k1``); without it ``k1`` is recomputed and f(y_new) is not."""
     h, hit = _step_towards(s, target, active)
     k1 = s.k1 if fsal else chart.field(s.t, s.y, args)
-    dy, k4, dq, error = _increment(chart, s, h, args, k1, observers, adaptive)
+    dy, k4, (dq, g4), error = _increment(chart, s, h, args, k1, observers, adaptive)
     y_new = s.y + dy
     k5, u_new = chart.field_and_control(s.t + h, y_new, args) if fsal else (s.k1, None)
-    return _Trial(h, hit, k1, dy, k4, dq, error, y_new, k5, u_new)
+    g5 = _integrands(observers, y_new, u_new, s.y.dtype) if s.quad.shape[0] else g4
+    return _Trial(h, hit, k1, dy, k4, dq, g4, g5, error, y_new, k5, u_new)
 
 
 def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor: bool):
@@ -259,8 +263,11 @@ def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose
     """``(ok, h_next, status, err)`` of an adaptive step: good and within tolerance (error ratio ``err``), the next
     step to try, and ``STEP_UNDERFLOW`` where a rejected step leaves a vanishing next step."""
     h, y_new, k5 = trial.h, trial.y_new, trial.k5
-    # the error measure and the step-size policy: jaxsleigh.integrate.stepsize
+    # the error measure and the step-size policy: jaxsleigh.integrate.stepsize; the observers' quadrature rows
+    # (the effort integrals) are under the same norm as the state, with their own embedded estimate
     err = error_ratio(h, s.y, y_new, trial.k4, k5, ctl, e=None if trial.error is None else trial.error(y_new, k5))
+    if s.quad.shape[0]:
+        err = jnp.maximum(err, error_ratio(h, s.quad, s.quad + trial.dq, trial.g4, trial.g5, ctl))
     good = finite & ~crossed & ~rose
     err = jnp.where(good, err, jnp.inf)
     ok = good & (err <= 1.0)
@@ -295,8 +302,7 @@ def _quadrature_after(observers, s: StepState, trial: _Trial, acc):
     """``(quad, g1)``: the observers' quadrature rows and integrands, advanced where the step was accepted."""
     if not s.quad.shape[0]:
         return s.quad, s.g1
-    g_new = _integrands(observers, trial.y_new, trial.u_new, s.y.dtype)
-    return jnp.where(acc, s.quad + trial.dq, s.quad), jnp.where(acc, g_new, s.g1)
+    return jnp.where(acc, s.quad + trial.dq, s.quad), jnp.where(acc, trial.g5, s.g1)
 
 
 def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
