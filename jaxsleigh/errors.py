@@ -10,7 +10,7 @@ type, not by their text::
 """
 from __future__ import annotations
 
-__all__ = ["JaxsleighWarning", "FlaggedStartsWarning", "DamagedCheckpointWarning", "CheckpointError",
+__all__ = ["JaxsleighWarning", "FlaggedStartsWarning", "DamagedCheckpointWarning", "AccuracyWarning", "CheckpointError",
            "RunLockedError", "RunLockWarning", "DiskFullError"]
 
 
@@ -34,6 +34,11 @@ class FlaggedStartsWarning(JaxsleighWarning):
 
 class DamagedCheckpointWarning(JaxsleighWarning):
     """A checkpoint chunk could not be read (truncated, empty, corrupt) and is recomputed."""
+
+
+class AccuracyWarning(JaxsleighWarning):
+    """The accuracy audit (`jaxsleigh.studies.audit`) found the result's rows off their float64 reference by more
+    than its thresholds: the energy, ``T_eps`` or final states it reports are not to be trusted at these settings."""
 
 
 class CheckpointError(ValueError):

@@ -35,6 +35,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from ..files.chunks import ChunkStore, starts_digest
 from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
+from .audit import audit_rows, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (active_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
@@ -308,6 +309,20 @@ def _lane_args(cfg, ics5: np.ndarray, summaries) -> Optional[ClosedLoop]:
     return ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
 
 
+def _rows_law(lane_args: Optional[ClosedLoop], rows, **law) -> dict:
+    """The keywords ``plant``, ``gains``, ``controller`` of a run of the rows ``rows`` only (the per-trajectory
+    parameters of those rows; the audit's re-run)."""
+    if lane_args is None:
+        return law
+    from ..model.lanes import take_lanes
+    from ..model.params import Gains
+
+    per_row = take_lanes(lane_args.controller, rows)
+    paper = isinstance(per_row, Gains)
+    return {"plant": take_lanes(lane_args.plant, rows), "gains": per_row if paper else None,
+            "controller": None if paper else per_row}
+
+
 def _ensemble_settings(cfg, sampled: bool, save_every, chunk_size: int, summaries, observers) -> dict:
     """Everything that produces the result (the same for every run of the same call)."""
     settings = {
@@ -552,7 +567,7 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
 
 def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
                   eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController, saveat: SaveAt,
-                  run: RunOptions) -> Optional[EnsembleResult]:
+                  run: RunOptions, audit: Any = None) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
@@ -605,8 +620,19 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
     run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
-    return _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
-                            lane_args=lane_args, run_info=run_info)
+    result = _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
+                              lane_args=lane_args, run_info=run_info)
+    spec = resolve_audit(audit)
+    if spec is not None:
+        def rerun(rows, rtol, atol):   # the same study of some rows, in float64 at tight tolerances
+            law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
+            return _run_ensemble(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
+                                 stepsize=StepSizeController(rtol=rtol, atol=atol,
+                                                             max_steps=min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)),
+                                 saveat=SaveAt(), run=RunOptions(progress=False), audit=False)
+
+        run_info["audit"] = audit_rows(result, rerun, spec, what="ensemble")
+    return result
 
 
 #: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.
@@ -618,7 +644,7 @@ ENSEMBLE_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps"
 def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
                  stepsize: Optional[StepSizeController] = None, saveat: Optional[SaveAt] = None,
-                 run: Optional[RunOptions] = None, observers: Optional[tuple] = None,
+                 run: Optional[RunOptions] = None, observers: Optional[tuple] = None, audit: Any = None,
                  **options) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
@@ -639,6 +665,9 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         run stops the run with a `CheckpointError`, a damaged one is recomputed.
       observers: the on-line summaries (`jaxsleigh.integrate.observers`; default `DEFAULT_OBSERVERS`); the
         standard fields that no given observer provides are NaN, other observers' results are in ``observed``.
+      audit: the accuracy audit (`jaxsleigh.Audit`, `jaxsleigh.studies.audit`): a random 1% of the rows (at most
+        64; none below 500 starts) re-run in float64 at rtol = atol = 1e-10, the worst differences in
+        ``run_info["audit"]`` and an `AccuracyWarning` when they exceed its thresholds. ``False``: no audit.
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``save_every``, ``summaries``, ``chunk_size``, ``segment``, ``devices``,
         ``checkpoint_dir``, ``resume``, ``progress``, ``shard``), mapped onto the objects.
@@ -648,4 +677,4 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     """
     stepsize, saveat, run = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
     return _run_ensemble(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                         x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)
+                         x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run, audit=audit)

@@ -1,0 +1,141 @@
+r"""The accuracy audit: a random sample of a result's rows re-run in float64 at tight tolerances.
+
+Error control judges each step's local error; what a study reports (the control energy
+\(E = \int_0^T \|u\|^2 dt\), \(T_\epsilon\), the final state) is a global quantity, and some laws make it
+sensitive below any step's tolerance. A settled phase whose \((w_2, p_1)\) oscillation is weakly unstable
+grows from an amplitude of \(10^{-9}\) to \(10^{-2}\) over tens of seconds: a run whose absolute tolerance is
+\(10^{-6}\) damps the seed numerically and reports a fraction of the energy (the 0.2 release's ``balanced``
+gains: a median of 7.6 against 136 in float64; ``docs/evidence/accuracy.md``). No local estimate sees an error
+in a mode that is below the tolerance, so the library checks its result globally instead.
+
+`audit_rows` draws \(n = \min(\text{max\_rows}, \lceil \text{fraction}\cdot N\rceil)\) rows with
+``numpy.random.default_rng(seed)`` (the same rows on every run and in every process), integrates them again in
+float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows that reached the horizon in both:
+
+* ``worst_energy_rel``: \(\max |E - E_{\text{ref}}| / |E_{\text{ref}}|\) (the row's energy, relative);
+* ``worst_T_eps_s``: \(\max |T_\epsilon - T_{\epsilon,\text{ref}}|\) (``inf`` where one settled and the other not);
+* ``worst_state``: \(\max \|(q, p)(T) - (q, p)_{\text{ref}}(T)\|_\infty\);
+* ``status_mismatch``: rows whose status differs;
+
+and ``passed``: every figure within its threshold (`Audit`). A result that fails says so: ``run_info["audit"]``,
+an `jaxsleigh.errors.AccuracyWarning` naming the settings that agree, and the command line's audit line.
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import Callable, NamedTuple, Optional
+
+import numpy as np
+
+from ..status import Status
+
+__all__ = ["Audit", "audit_rows", "audit_line", "resolve"]
+
+
+class Audit(NamedTuple):
+    """The audit's sample and thresholds.
+
+    Attributes:
+      fraction, max_rows: rows re-run: ``min(max_rows, ceil(fraction * N))``.
+      min_starts: a result of fewer starts is not audited (its record says so), unless ``rows`` is given.
+      rows: re-run exactly this many rows (at most N), whatever N.
+      seed: of the draw of the rows.
+      rtol, atol: the reference's tolerances (float64).
+      energy_rel, T_eps_s, state: the thresholds of ``passed`` (relative energy, seconds, absolute state).
+    """
+
+    fraction: float = 0.01
+    max_rows: int = 64
+    min_starts: int = 500
+    rows: Optional[int] = None
+    seed: int = 0
+    rtol: float = 1e-10
+    atol: float = 1e-10
+    energy_rel: float = 0.02
+    T_eps_s: float = 0.05
+    state: float = 1e-3
+
+    def count(self, n: int) -> int:
+        """How many of ``n`` rows this audit re-runs (0: none)."""
+        if self.rows is not None:
+            return int(min(max(int(self.rows), 0), n))
+        if n < self.min_starts:
+            return 0
+        return int(min(self.max_rows, math.ceil(self.fraction * n), n))
+
+
+def resolve(audit) -> Optional[Audit]:
+    """A front's ``audit`` argument as an `Audit` (``None`` or ``True``: the default one; ``False``: none)."""
+    if audit is False:
+        return None
+    if audit is None or audit is True:
+        return Audit()
+    if isinstance(audit, Audit):
+        return audit
+    raise ValueError(f"audit must be True, False, None or a jaxsleigh.Audit(...), got {audit!r}")
+
+
+def _worst(values) -> Optional[float]:
+    v = np.asarray(values, np.float64)
+    return float(np.max(v)) if v.size else None
+
+
+def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audit: Audit, *,
+               what: str = "result") -> dict:
+    """Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
+    ``rerun(rows, rtol, atol)``, the same study of the rows ``rows`` in float64 at those tolerances. Returns the
+    record (also when nothing was re-run: ``{"rows": 0, "why": ...}``) and warns when it fails."""
+    n = int(np.shape(result.status)[0])
+    k = audit.count(n)
+    if k == 0:
+        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts (pass audit=jaxsleigh.Audit(rows=k) "
+                                  f"to audit a small run)"}
+    t0 = time.perf_counter()
+    rows = np.sort(np.random.default_rng(audit.seed).choice(n, size=k, replace=False))
+    ref = rerun(rows, audit.rtol, audit.atol)
+    st, st_ref = np.asarray(result.status)[rows], np.asarray(ref.status)
+    both = (st == Status.OK) & (st_ref == Status.OK)
+    T = np.asarray(result.T_eps, np.float64)[rows][both]
+    T_ref = np.asarray(ref.T_eps, np.float64)[both]
+    with np.errstate(invalid="ignore"):       # inf - inf: neither settled, no difference
+        dT = np.where(np.isinf(T) & np.isinf(T_ref), 0.0, np.abs(T - T_ref))
+    E = np.asarray(result.u_energy, np.float64)[rows][both]
+    E_ref = np.asarray(ref.u_energy, np.float64)[both]
+    finite_E = np.isfinite(E) & np.isfinite(E_ref)
+    dE = np.abs(E - E_ref)[finite_E] / np.maximum(np.abs(E_ref[finite_E]), 1e-300)
+    y = np.concatenate([np.asarray(result.q_final)[rows], np.asarray(result.p_final)[rows]], axis=1)[both]
+    y_ref = np.concatenate([np.asarray(ref.q_final), np.asarray(ref.p_final)], axis=1)[both]
+    dy = np.max(np.abs(y - y_ref), axis=1) if y.size else np.zeros(0)
+    rec = {"rows": k, "seed": audit.seed, "reference": f"float64, rtol = atol = {audit.rtol:g}",
+           "compared": int(both.sum()), "status_mismatch": int(np.sum(st != st_ref)),
+           "worst_energy_rel": _worst(dE), "share_energy_off_5pct": float(np.mean(dE > 0.05)) if dE.size else None,
+           "worst_T_eps_s": _worst(dT), "worst_state": _worst(dy),
+           "thresholds": {"energy_rel": audit.energy_rel, "T_eps_s": audit.T_eps_s, "state": audit.state},
+           "wall_s": round(time.perf_counter() - t0, 3)}
+    rec["passed"] = bool(rec["status_mismatch"] == 0
+                         and (rec["worst_energy_rel"] or 0.0) <= audit.energy_rel
+                         and (rec["worst_T_eps_s"] or 0.0) <= audit.T_eps_s
+                         and (rec["worst_state"] or 0.0) <= audit.state)
+    if not rec["passed"]:
+        from ..errors import AccuracyWarning
+
+        warnings.warn(f"the accuracy audit of this {what} failed: {audit_line(rec)}. What it reports is not what "
+                      "float64 gives for this law at these settings; run it with x64=True and "
+                      "StepSizeController(rtol=1e-10, atol=1e-10) (--x64 --rtol 1e-10 --atol 1e-10), or trust "
+                      "only what the audit confirms", AccuracyWarning, stacklevel=3)
+    return rec
+
+
+def audit_line(rec: Optional[dict]) -> str:
+    """One line for the command line: what the audit found (or why it did not run)."""
+    if not rec:
+        return "accuracy audit: not run"
+    if not rec.get("rows"):
+        return f"accuracy audit: not run ({rec.get('why', 'no rows')})"
+    f = lambda v, fmt: "n/a" if v is None else format(v, fmt)  # noqa: E731
+    return (f"accuracy audit ({rec['rows']} rows against {rec['reference']}): "
+            f"{'passed' if rec['passed'] else 'FAILED'}; worst energy {f(rec['worst_energy_rel'], '.2%')}, "
+            f"worst T_eps {f(rec['worst_T_eps_s'], '.2g')} s, worst final state {f(rec['worst_state'], '.2g')}, "
+            f"status mismatches {rec['status_mismatch']}")
