@@ -3,11 +3,15 @@ with the training discretisation: convergence times and their tables."""
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
+from ..errors import AccuracyWarning
+from ..integrate.stepsize import StepSizeController
 from ..model.params import PlantParams, load_gains
+from ..studies.audit import Audit
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
 
@@ -30,6 +34,8 @@ class Validation(NamedTuple):
       u_energy: (N,) control energy \(\int_0^T |u|^2 dt\) [N^2 s]; u_norm_peak: (N,) largest
         \(|u|\) [N]; median_energy, median_peak_u: their medians over the starts that did not
         fail; n_crossed: starts that failed or whose theta changed sign (crossed the singular set).
+      audit: the accuracy audit of the run at the given settings (`jaxsleigh.studies.audit`); resolved: it failed,
+        so every figure above is of the float64 re-run at rtol = atol = 1e-10 (what the gains really do).
     """
 
     T_eps: np.ndarray
@@ -48,6 +54,8 @@ class Validation(NamedTuple):
     median_energy: float = float("nan")
     median_peak_u: float = float("nan")
     n_crossed: int = 0
+    audit: Optional[dict] = None
+    resolved: bool = False
 
 
 def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0, eps: float = 0.05,
@@ -58,14 +66,29 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     `ControlEffort` quadrature (RK4 order) when it reports one; otherwise
     from a second run saving every base step (trapezoid on the saved samples).
     ``ensemble_kw`` go to `run_ensemble` (e.g. ``stepsize=jaxsleigh.StepSizeController(atol=1e-8)``);
-    ``progress`` sets the progress bar of ``run`` (`jaxsleigh.RunOptions`)."""
+    ``progress`` sets the progress bar of ``run`` (`jaxsleigh.RunOptions`).
+
+    Every validation is audited (`jaxsleigh.studies.audit`: up to 64 of the starts re-run in float64 at
+    rtol = atol = 1e-10; ``audit=`` another `jaxsleigh.Audit`, or ``False``). Where the audit fails, the figures are
+    those of the whole set re-run at the audit's reference settings (``resolved``): a tuner judged on them cannot be
+    fooled by a settled phase that the defaults do not resolve."""
     from ..studies.ensemble import run_ensemble
 
     g = load_gains(gains)
     kw = dict(ensemble_kw)
     run = kw.pop("run", None) or RunOptions()
-    r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64,
-                     run=run if progress is None else run._replace(progress=progress), **kw)
+    run = run if progress is None else run._replace(progress=progress)
+    audit = kw.pop("audit", Audit(rows=min(64, int(np.shape(ics)[0]))))
+    with warnings.catch_warnings():           # a failed audit is acted on here: the gains are measured resolved
+        warnings.simplefilter("ignore", AccuracyWarning)
+        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64, run=run, audit=audit, **kw)
+    rec = (r.run_info or {}).get("audit")
+    resolved = bool(rec and rec.get("rows") and not rec["passed"])
+    if resolved:
+        # the settings misreport these gains (an unresolved settled phase flatters them): a tuner must see what
+        # they really do, so every figure comes from float64 at the audit's reference tolerances
+        kw["stepsize"] = StepSizeController(rtol=audit.rtol, atol=audit.atol, max_steps=100 * int(round(t_final / kw.get("dt", 0.01))) + 1000)
+        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=True, run=run, audit=False, **kw)
     T = np.where(r.status == Status.OK, r.T_eps, np.nan)
     n = T.size
     conv = np.isfinite(T)
@@ -85,7 +108,7 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
                       int(np.sum(~ok)), r.status, float(np.mean(r.n_steps)),
                       int(np.max(r.n_steps + r.n_rejected)), r.settings, energy, peak,
                       float(np.median(energy[ok])) if ok.any() else float("nan"),
-                      float(np.median(peak[ok])) if ok.any() else float("nan"), int(np.sum(crossed)))
+                      float(np.median(peak[ok])) if ok.any() else float("nan"), int(np.sum(crossed)), rec, resolved)
 
 
 def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarray, np.ndarray]:
@@ -135,4 +158,4 @@ def validation_dict(v: Validation, **extra) -> dict:
             "frac_converged": v.frac_converged, "frac_se": v.frac_se, "median_energy": num(v.median_energy),
             "median_peak_u": num(v.median_peak_u), "mean_adaptive_steps": v.mean_steps,
             "max_attempts": v.max_attempts, "n_status_not_ok": v.n_failed, "n_crossed_theta0": v.n_crossed,
-            **extra}
+            "audit": v.audit, "resolved_in_float64": v.resolved, **extra}
