@@ -28,6 +28,7 @@ from . import clock  # first: its fallback origin is the earliest moment of the 
 from .. import cores
 from ..cache import enable_compilation_cache
 from .basin import add_basin
+from .optimum import add_optimum
 from .bench import add_bench
 from .compare import add_compare, add_controllers
 from .common import EXIT_USAGE, PROG, Parser, parse_ic, say_failure
@@ -38,7 +39,8 @@ from .tune import add_tune
 
 __all__ = ["main", "build_parser", "parse_ic", "SUBCOMMANDS"]
 
-SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_sweep, add_controllers, add_compare]
+SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_sweep, add_controllers, add_compare,
+               add_optimum]
 
 
 def build_parser() -> Parser:
