@@ -27,10 +27,12 @@ terminal conditions (equalities \(c = p(T)\), inequality \(g = (|q(T)|^2 - \epsi
 
 \[ L_\rho(z) = |z|^2 + \lambda^\top c + \tfrac\rho2 |c|^2 + \tfrac1{2\rho}\big(\max(0, \mu + \rho g)^2 - \mu^2\big), \]
 
-minimised in \(z\) by L-BFGS (``optax.lbfgs``, zoom line search) for ``inner`` iterations, then
+minimised in \(z\) by L-BFGS (memory 8, with a parallel backtracking line search: `_functions`; optax's L-BFGS,
+whose zoom line search is a sequential loop that every lane of a ``vmap``-ped batch waits out, took 0.8 s per
+iteration on 12 problems against 8 ms here) for ``inner`` iterations, then
 \(\lambda \leftarrow \lambda + \rho c\), \(\mu \leftarrow \max(0, \mu + \rho g)\), and \(\rho\) grows fourfold where
-the violation did not halve, for at most ``outer`` rounds; every problem of a batch (starts x horizons x initial
-guesses) runs at once, ``vmap``-ped. The problem is not convex (the sleigh is nonholonomic), so each problem
+the violation did not halve, for at most ``outer`` rounds; every problem of a batch (starts x initial guesses, one
+batch per horizon) runs at once, ``vmap``-ped. The problem is not convex (the sleigh is nonholonomic), so each problem
 starts from ``guesses`` turn-drive-turn manoeuvres (turn towards or away from the origin, drive, turn to
 \(\theta = 0\), each with a smooth speed profile, the input from the plant's inverse dynamics), and the best
 converged one is kept: the result is the best local optimum found, an upper bound on the global one.
