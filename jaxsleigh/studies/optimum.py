@@ -278,39 +278,63 @@ def _functions(plant, eps: float, substeps: int):
 
 
 def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: int, progress=None):
-    """Augmented Lagrangian on a batch: ``y0`` (B, 5), ``T`` (B,), ``z0`` (B, N, 2), all float64."""
+    """Augmented Lagrangian on a batch: ``y0`` (B, 5), ``T`` (B,), ``z0`` (B, N, 2), all float64.
+
+    Problems that converge leave the batch: once at most a quarter of a batch of 128 or more is still working, the
+    rest continues in a batch of the next power of two (padded with copies of a working problem), so that a
+    few slow problems do not keep the whole batch busy (each new size compiles once)."""
     try:
         start, step, measure = _functions(plant, eps, substeps)
     except TypeError:                               # a plant with unhashable leaves: compiled afresh
         start, step, measure = _functions.__wrapped__(plant, eps, substeps)
     B = y0.shape[0]
-    z = jnp.asarray(z0)
-    y0, T = jnp.asarray(y0), jnp.asarray(T)
-    lam, mu, rho = jnp.zeros((B, 2)), jnp.zeros(B), jnp.full(B, float(opts.rho0))
-    viol_prev = np.full(B, np.inf)
-    rho_before = rho
+    y0_h, T_h, z_h = np.asarray(y0, np.float64), np.asarray(T, np.float64), np.array(z0, np.float64)
+    lam_h, mu_h, rho_h, vp_h = np.zeros((B, 2)), np.zeros(B), np.full(B, float(opts.rho0)), np.full(B, np.inf)
+    status_h = np.full(B, int(OptimumStatus.INFEASIBLE), np.int32)
+    yT_h, kkt_h, zn_h = np.full((B, 5), np.nan), np.full(B, np.nan), np.full(B, np.nan)
+    active, size, fresh = np.arange(B), B, True
     for k in range(opts.outer):
-        f, g, S0, Y0, r0 = start(z, y0, T, lam, mu, rho)
-        if k == 0:
+        if k == 0 or (size >= 128 and active.size <= size // 4):
+            size = B if k == 0 else int(2 ** math.ceil(math.log2(active.size)))
+            lanes = np.concatenate([active, np.full(size - active.size, active[0])])
+            z, y0j, Tj = jnp.asarray(z_h[lanes]), jnp.asarray(y0_h[lanes]), jnp.asarray(T_h[lanes])
+            lam, mu, rho, vp = jnp.asarray(lam_h[lanes]), jnp.asarray(mu_h[lanes]), rho_h[lanes], vp_h[lanes]
+            fresh = True
+        f, g, S0, Y0, r0 = start(z, y0j, Tj, lam, mu, jnp.asarray(rho))
+        if fresh:
             S, Y, r = S0, Y0, r0
+            fresh = False
         else:                       # keep the curvature pairs where the penalty weight did not change
-            r = jnp.where((rho == rho_before)[:, None], r, 0.0)
-        rho_before = rho
+            r = jnp.where(jnp.asarray(rho == rho_before)[:, None], r, 0.0)
+        rho_before = rho.copy()
+        rj = jnp.asarray(rho)
         for _ in range(opts.inner):
-            z, f, g, S, Y, r = step(z, f, g, S, Y, r, y0, T, lam, mu, rho)
-        c, gq, _, _, _ = measure(z, y0, T, lam, mu)
-        lam = lam + rho[:, None] * c
-        mu = jnp.maximum(0.0, mu + rho * gq)
+            z, f, g, S, Y, r = step(z, f, g, S, Y, r, y0j, Tj, lam, mu, rj)
+        c, gq, _, _, _ = measure(z, y0j, Tj, lam, mu)
+        lam = lam + rj[:, None] * c
+        mu = jnp.maximum(0.0, mu + rj * gq)
         viol = np.maximum(np.linalg.norm(np.asarray(c), axis=1), np.maximum(np.asarray(gq), 0.0))
-        rho = jnp.asarray(np.where(viol > 0.5 * viol_prev, np.minimum(np.asarray(rho) * 4.0, 1e8), np.asarray(rho)))
-        viol_prev = np.minimum(viol, viol_prev)
-        c, gq, yT, kkt, zn = (np.asarray(a) for a in measure(z, y0, T, lam, mu))
-        status = _status(c, gq, kkt, zn, yT, eps, opts)
+        rho = np.where(viol > 0.5 * vp, np.minimum(rho * 4.0, 1e8), rho)
+        vp = np.minimum(viol, vp)
+        c, gq, yT, kkt, zn = (np.asarray(a) for a in measure(z, y0j, Tj, lam, mu))
+        st = _status(c, gq, kkt, zn, yT, eps, opts)
+        n = active.size
+        z_h[active], lam_h[active], mu_h[active] = np.asarray(z)[:n], np.asarray(lam)[:n], np.asarray(mu)[:n]
+        rho_h[active], vp_h[active], status_h[active] = rho[:n], vp[:n], st[:n]
+        yT_h[active], kkt_h[active], zn_h[active] = yT[:n], kkt[:n], zn[:n]
         if progress is not None:
-            progress((k + 1) / opts.outer, float(np.mean(status == OptimumStatus.CONVERGED)))
-        if np.all(status == OptimumStatus.CONVERGED):
+            progress((k + 1) / opts.outer, float(np.mean(status_h == OptimumStatus.CONVERGED)))
+        keep = st[:n] != OptimumStatus.CONVERGED
+        if not keep.any():
             break
-    return np.asarray(z), status, yT, kkt / np.maximum(2 * zn, 1e-12), np.asarray(lam), np.asarray(mu)
+        if not keep.all():          # the lanes of the batch stay where they are until the batch shrinks
+            lanes_now = np.concatenate([active[keep], np.full(size - int(keep.sum()), active[keep][0])])
+            order = np.concatenate([np.flatnonzero(keep), np.full(size - int(keep.sum()), np.flatnonzero(keep)[0])])
+            z, y0j, Tj, lam, mu = (a[order] for a in (z, y0j, Tj, lam, mu))
+            S, Y, r = S[order], Y[order], r[order]
+            rho, vp, rho_before = rho[order], vp[order], rho_before[order]
+            active = lanes_now[:int(keep.sum())]
+    return z_h, status_h, yT_h, kkt_h / np.maximum(2 * zn_h, 1e-12), lam_h, mu_h
 
 
 def _status(c, g, kkt, zn, yT, eps, opts):
