@@ -22,6 +22,7 @@ class Status(enum.IntEnum):
     STEP_UNDERFLOW = 6
     UNRELIABLE = 7
     OUT_OF_RANGE = 8
+    NOT_SETTLING = 9
 
 
 DESCRIPTIONS = {
@@ -46,6 +47,10 @@ DESCRIPTIONS = {
     Status.OUT_OF_RANGE: ("the start is so close to theta = 0 that its w-chart state (~ 1/theta0^2) or H_d overflows "
                           "the working precision; not integrated, outputs NaN; use float64 (x64=True, --x64) "
                           "or a larger |theta0|"),
+    Status.NOT_SETTLING: ("certified not to settle within the horizon: it is so far from the target that the "
+                          "energy H_d it has left (which never rises, eq. 18) cannot carry it into the ball |q| <= eps "
+                          "in the time left; stopped early, T_eps = inf (not settled, as for a start that reaches "
+                          "the horizon outside the ball), outputs NaN after the time reached"),
 }
 
 #: Codes of starts that were flagged before integration (never stepped).

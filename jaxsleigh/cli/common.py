@@ -150,10 +150,11 @@ def settled_text(status, T_eps, eps: Optional[float] = None) -> str:
 
 
 def exit_code(status, T_eps=None, eps: Optional[float] = None) -> int:
-    """`EXIT_OK` if any trajectory ended OK, else `EXIT_NONE_OK` (with a message)."""
+    """`EXIT_OK` if any trajectory ended OK (or certified not to settle: an answer too), else `EXIT_NONE_OK` (with a
+    message)."""
     from ..status import Status
 
-    if np.any(np.asarray(status) == Status.OK):
+    if np.any(np.isin(np.asarray(status), (Status.OK, Status.NOT_SETTLING))):
         return EXIT_OK
     print(f"{PROG}: error: no trajectory ended OK ({status_line(status, T_eps, eps)}); see the status "
           f"codes in --help (exit code {EXIT_NONE_OK})", file=sys.stderr)

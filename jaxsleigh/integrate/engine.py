@@ -22,10 +22,11 @@ from ..model.charts import chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
 from .stepsize import StepSizeController
+from .stragglers import certify
 from .stepper import (Controls, StepState, controls, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
                       run_segment)
 
-__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "drive_saving", "drive_plain",
+__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "drive_saving", "drive_plain",
            "make_controls",
            "shard_batch", "batch_mesh", "active_lanes", "bucket", "take_lanes_of", "put_lanes", "finish_state",
            "working_dtype", "default_max_steps", "METHODS"]
@@ -324,7 +325,7 @@ def _finish(full: StepState, t_final: float) -> StepState:
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
                 segment: int = 1000, compact: bool = True, progress=None, mesh=None,
                 observers=DEFAULT_OBSERVERS, state: Optional[StepState] = None, stop_at: int = 0,
-                finish: bool = True) -> StepState:
+                finish: bool = True, certify: bool = False) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
     (``observers``, `jaxsleigh.integrate.observers`), taking steps as ``step`` says (a resolved
     `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.step_controller`);
@@ -334,6 +335,10 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
     batch (a power of two, >= `MIN_BATCH`, so few shapes compile): the cost then follows the sum over
     trajectories of the steps each needs, not the batch's maximum.
+
+    With ``certify``, between segments the adaptive engine stops the lanes that cannot settle before the horizon
+    (`jaxsleigh.integrate.stragglers`: far from the target with too little H_d left; status ``NOT_SETTLING``):
+    what a basin asks (does it settle?), not what an ensemble's final states need.
 
     Returns the final `StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
@@ -360,6 +365,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     target = np.asarray(horizon.t_final, np.dtype(dtype))
     b = _first_batch(y0w, status0, state, args, ctl, observers, mesh, n, dtype)
     for _ in range(-(-max_steps // segment) + 1):
+        if adaptive and certify:
+            b = _certified(b, horizon, eps, mesh)
         act = np.asarray(_active(b.state, target, ctl))
         if progress is not None:
             frac = np.where(act, np.asarray(b.state.t, np.float64) / horizon.t_final, 1.0)
@@ -371,6 +378,43 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
         b = b._replace(state=_segment_batch(b.state, target, b.args, ctl, segment, adaptive, monitor, observers))
     full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
     return _finish(full, horizon.t_final) if finish else full
+
+
+def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
+                  segment: int = 1000, observers=DEFAULT_OBSERVERS, certify: bool = False) -> StepState:
+    """One segment of a batch-last host ``state`` (as `drive_final` steps it: ``segment`` attempts, then, with
+    ``certify``, the lanes that cannot settle stopped), returned on the host, not finished. `drive_final(stop_at=...)` followed by calls of this
+    steps every lane exactly as `drive_final` alone would, at the same segment boundaries: what a pool of stragglers
+    gathered from many batches runs (`jaxsleigh.studies.ensemble`). Per-lane ``args`` are given for the batch's
+    lanes."""
+    from ..model.lanes import has_lanes
+
+    dtype = state.y.dtype
+    segment = max(1, min(segment, horizon.n_steps + 8))
+    ctl = step_controls(horizon, dtype, step, eps)
+    if has_lanes(args.plant, args.gains):
+        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), args)
+    target = np.asarray(horizon.t_final, np.dtype(dtype))
+    dev = jax.tree_util.tree_map(jnp.asarray, state)
+    dev = _segment_batch(dev, target, args, ctl, segment, step.method == "adaptive", step.check_passivity, observers)
+    b = _Batch(dev, args, None, np.arange(state.t.shape[-1]), None)
+    if certify and step.method == "adaptive":
+        b = _certified(b, horizon, eps, None)
+    return jax.tree_util.tree_map(np.asarray, b.state)
+
+
+def _certified(b: "_Batch", horizon: Horizon, eps: float, mesh) -> "_Batch":
+    """``b`` with its lanes that cannot settle before the horizon stopped (status ``NOT_SETTLING``,
+    `jaxsleigh.integrate.stragglers`); checked between segments, at the same attempt counts in every batch."""
+    st = b.state
+    status = certify(np.asarray(st.status), np.asarray(st.t), np.asarray(st.y), np.asarray(st.Hd), args=b.args,
+                     t_final=horizon.t_final, eps=eps)
+    if status is None:
+        return b
+    new = jnp.asarray(status)
+    if mesh is not None:
+        new = shard_batch(new, mesh)
+    return b._replace(state=st._replace(status=new))
 
 
 class _Batch(NamedTuple):

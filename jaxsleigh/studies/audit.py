@@ -15,7 +15,7 @@ float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows t
 * ``worst_energy_rel``: \(\max |E - E_{\text{ref}}| / |E_{\text{ref}}|\) (the row's energy, relative);
 * ``worst_T_eps_s``: \(\max |T_\epsilon - T_{\epsilon,\text{ref}}|\) (``inf`` where one settled and the other not);
 * ``worst_state``: \(\max \|(q, p)(T) - (q, p)_{\text{ref}}(T)\|_\infty\);
-* ``status_mismatch``: rows whose status differs;
+* ``status_mismatch``: rows whose status differs (``NOT_SETTLING`` and OK unsettled count as one answer);
 
 and ``passed``: every figure within its threshold (`Audit`). A result that fails says so: ``run_info["audit"]``,
 an `jaxsleigh.errors.AccuracyWarning` naming the settings that agree, and the command line's audit line.
@@ -82,6 +82,16 @@ def _worst(values) -> Optional[float]:
     return float(np.max(v)) if v.size else None
 
 
+def _answers(status, T_eps, rows) -> np.ndarray:
+    """Statuses as answers: ``NOT_SETTLING`` (certified not to settle, `jaxsleigh.integrate.stragglers`) and OK without
+    settling (``T_eps = inf``) say the same, so they compare equal."""
+    st = np.array(status, np.int64)
+    T = np.asarray(T_eps, np.float64) if rows is None else np.asarray(T_eps, np.float64)[rows]
+    st[st == Status.NOT_SETTLING] = -1
+    st[(st == Status.OK) & np.isinf(T)] = -1
+    return st
+
+
 def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audit: Audit, *,
                what: str = "result") -> dict:
     """Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
@@ -109,7 +119,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     y_ref = np.concatenate([np.asarray(ref.q_final), np.asarray(ref.p_final)], axis=1)[both]
     dy = np.max(np.abs(y - y_ref), axis=1) if y.size else np.zeros(0)
     rec = {"rows": k, "seed": audit.seed, "reference": f"float64, rtol = atol = {audit.rtol:g}",
-           "compared": int(both.sum()), "status_mismatch": int(np.sum(st != st_ref)),
+           "compared": int(both.sum()), "status_mismatch": int(np.sum(_answers(st, result.T_eps, rows)
+                                                                    != _answers(st_ref, ref.T_eps, None))),
            "worst_energy_rel": _worst(dE), "share_energy_off_5pct": float(np.mean(dE > 0.05)) if dE.size else None,
            "worst_T_eps_s": _worst(dT), "worst_state": _worst(dy),
            "thresholds": {"energy_rel": audit.energy_rel, "T_eps_s": audit.T_eps_s, "state": audit.state},

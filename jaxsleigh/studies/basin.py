@@ -415,13 +415,16 @@ class BasinResult(NamedTuple):
 
     @property
     def not_converged(self) -> np.ndarray:
-        """Reached the horizon but not settled (``T_eps = inf``)."""
-        return (self.status == Status.OK) & ~np.isfinite(self.T_eps)
+        """Not settled within the horizon (``T_eps = inf``): reached it outside the ball, or certified not to settle
+        before it (``NOT_SETTLING``, stopped early)."""
+        return (((self.status == Status.OK) & ~np.isfinite(self.T_eps))
+                | (self.status == Status.NOT_SETTLING))
 
     @property
     def failed(self) -> np.ndarray:
-        """Integrated but stopped before the horizon (non-finite, budget, underflow, ...)."""
-        return self.valid & (self.status != Status.OK)
+        """Integrated but stopped before the horizon without an answer (non-finite, budget, underflow, ...); a start
+        certified not to settle (``NOT_SETTLING``) has one: `not_converged`."""
+        return self.valid & (self.status != Status.OK) & (self.status != Status.NOT_SETTLING)
 
     @property
     def fraction(self) -> float:
@@ -487,7 +490,8 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
     res = _run_ensemble(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                        x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run, audit=audit)
+                        x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run, audit=audit,
+                        certify=True)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
     settings = {k: v for k, v in res.settings.items() if k not in ("save_every",)}
@@ -508,6 +512,10 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
               stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None, audit: Any = None,
               **options) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence (settled within the horizon).
+
+    A start that cannot settle before the horizon any more (far from the target with too little \(H_d\) left to
+    come back: `jaxsleigh.integrate.stragglers`) is stopped there with status ``NOT_SETTLING`` and ``T_eps = inf``:
+    not settled, like a start that reaches the horizon outside the ball, at a fraction of the steps.
 
     Args:
       starts: a `BasinStarts` (`grid_starts`, `sample_starts`) or an ``(N, 3)`` / ``(N, 5)`` array.

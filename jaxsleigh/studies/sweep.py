@@ -406,7 +406,7 @@ class SweepResult(NamedTuple):
         energy = eff.get("u_energy_median")
         head = "   fraction +- s.e.   median T_eps   failed" + ("   median int|u|^2" if energy is not None else "")
         lines = [" ".join(f"{n:>10}" for n in self.names) + head]
-        failed = (self.valid & (self.status != Status.OK)).sum(axis=1)
+        failed = (self.valid & (self.status != Status.OK) & (self.status != Status.NOT_SETTLING)).sum(axis=1)
         for p in range(self.values.shape[0]):
             vals = " ".join(f"{v:10.4g}" for v in self.values[p])
             line = f"{vals}   {S[p]:.3f} +- {se[p]:.3f}      {med[p]:9.3g}      {failed[p]:6d}"
@@ -414,7 +414,8 @@ class SweepResult(NamedTuple):
                 line += f"   {energy[p]:16.4g}"
             lines.append(line)
         lines.append("failed: starts that did not reach the horizon, including those whose adaptive step budget "
-                     "ran out (BUDGET_EXHAUSTED: raise max_steps / --max-steps); see the status counts")
+                     "ran out (BUDGET_EXHAUSTED: raise max_steps / --max-steps), not those certified not to settle "
+                     "(NOT_SETTLING, unsettled); see the status counts")
         return "\n".join(lines)
 
 
