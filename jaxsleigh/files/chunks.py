@@ -1,6 +1,8 @@
 """Chunk checkpoints of long runs: nothing lost when a run is interrupted, nothing mixed on resume.
 
-A `ChunkStore` is a folder of ``chunk_NNNNNN.npz`` files plus a ``manifest.json``. Every
+A `ChunkStore` is a folder of ``chunk_NNNNNN.npz`` files plus a ``manifest.json`` (and, while a chunk's stragglers
+still run in a pool shared by many chunks, its work in progress ``pending_NNNNNN.npz``: the states its parts ended
+with, from which a killed run resumes with the same bits). Every
 chunk carries the fingerprint of the run that wrote it (a hash of the settings and of *all* the
 starts) and its own identity (its index, its rows ``[lo, hi)`` and a digest of the starts of those
 rows), and is checked on reuse whether or not the manifest exists:
@@ -107,7 +109,7 @@ class ChunkStore:
         self.close()
 
     def _check(self, resume: bool, manifest: dict) -> None:
-        have = self.chunks()
+        have = self.chunks() + sorted(self.folder.glob("pending_*.npz"))
         if have and not resume:
             raise CheckpointError(f"checkpoint {str(self.folder)!r} already holds {len(have)} chunk(s) of an "
                                   f"earlier run; pass resume=True (--resume) with the same settings to continue "
@@ -205,6 +207,47 @@ class ChunkStore:
             self._damaged(path, f"expected {rows} rows per field")
             return None
         return data
+
+    def pending_path(self, index: int) -> Path:
+        return self.folder / f"pending_{index:06d}.npz"
+
+    def save_pending(self, index: int, arrays: dict, *, lo: int, starts) -> Path:
+        """Write chunk ``index``'s work in progress (its parts' states, whose stragglers are still running elsewhere)
+        atomically, tagged as `save` tags a chunk: a run killed before the chunk ends resumes from it."""
+        ident = np.array([index, lo, lo + len(starts)], np.int64)
+
+        def write(f):
+            np.savez(f, **arrays, **{_KEY: np.array(self.key), _ID: ident, _STARTS: np.array(starts_digest(starts))})
+
+        return atomic_write(self.pending_path(index), write, when_full=self._when_full())
+
+    def load_pending(self, index: int, rows: int, *, lo: int, starts) -> Optional[dict]:
+        """Chunk ``index``'s work in progress (`save_pending`) if it is there, of this run and of this chunk; ``None``
+        otherwise (a damaged one is named in a `DamagedCheckpointWarning` and the chunk recomputed)."""
+        path = self.pending_path(index)
+        if not path.exists():
+            return None
+        try:
+            with np.load(io.BytesIO(path.read_bytes()), allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
+            self._damaged(path, f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
+            return None
+        key, ident, digest = data.pop(_KEY, None), data.pop(_ID, None), data.pop(_STARTS, None)
+        if key is None or str(key) != self.key:
+            raise self._foreign(path)
+        if ident is None or np.asarray(ident).ravel().tolist() != [index, lo, lo + rows] \
+                or str(digest) != starts_digest(starts):
+            self._damaged(path, f"it is not the work of chunk {index} (rows {lo}-{lo + rows - 1}) of these starts")
+            return None
+        return data
+
+    def drop_pending(self, index: int) -> None:
+        """Remove chunk ``index``'s work in progress (once the chunk itself is written)."""
+        try:
+            self.pending_path(index).unlink()
+        except FileNotFoundError:
+            pass
 
     @staticmethod
     def _damaged(path: Path, why: str) -> None:

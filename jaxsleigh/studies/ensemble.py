@@ -38,7 +38,7 @@ from .options import RunOptions, SaveAt, front_options
 from .audit import audit_rows, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import (active_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
+from ..integrate.engine import (active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
                                 finish_state, initial_w, put_lanes, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import PlantParams
@@ -54,6 +54,14 @@ __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 #: default 10^5-start basin took 20.9 s with 128, 24.7 s with 16, 67.3 s with 0 (every part finishing its own
 #: stragglers; python experiments/performance/engine_defaults.py)
 TAIL_LANES = 128
+
+#: the pool of stragglers' batches (`_Stragglers`): powers of two from TAIL_MIN to TAIL_MAX lanes. On XLA:CPU the
+#: compiled step gives every lane the same bits at 64, 128 and 256 lanes (float32; 8, 16-32 and 1024 each round
+#: otherwise; float64 from 32 on), so a straggler's result does not depend on the lanes that share its batch
+TAIL_MIN, TAIL_MAX = 64, 256
+
+#: chunks whose parts are done may wait this many at most for their stragglers before the next chunk starts
+MAX_PENDING = 16
 
 SUMMARY_FIELDS = ("q_final", "p_final", "T_eps", "min_abs_theta", "max_excursion", "Hd0", "Hd_final", "t_reached",
                   "n_steps", "n_rejected", "status", "u_peak", "u_norm_peak", "u_energy", "u_abs_int")
@@ -221,7 +229,8 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
         obs.setdefault(k, np.full((n,) + shape, np.nan))
     out = {
         "q_final": yq[:, :3], "p_final": yq[:, 3:],
-        "T_eps": np.where(ok, obs.pop("T_eps"), np.nan),
+        # certified not to settle (jaxsleigh.integrate.stragglers): not settled within the horizon, T_eps = inf
+        "T_eps": np.where(ok, obs.pop("T_eps"), np.where(status == Status.NOT_SETTLING, np.inf, np.nan)),
         "Hd0": hd0,
         "Hd_final": np.where(ok & chart.has_energy, np.asarray(final.Hd, np.float64), np.nan),
         "t_reached": np.where(invalid, np.nan, np.asarray(final.t, np.float64)),
@@ -377,13 +386,16 @@ class _Chunks:
     their stiff stragglers finished in one tail batch in the background)."""
 
     def __init__(self, cfg, *, step, observers, saveat: SaveAt, segment, dtype, devs, lane_args, ics5, status0, chunk,
-                 bar, tail_pool):
+                 bar, tail_pool, certify=False):
         self.cfg, self.horizon, self.eps, self.adaptive = cfg, cfg.horizon, cfg.eps, cfg.adaptive
         self.step, self.observers, (self.save_every, self.summaries) = step, observers, saveat
         self.segment, self.chart, self.dtype, self.devs = segment, chart_for(cfg.law), dtype, devs
         self.args, self.lane_args, self.ics5, self.status0 = ClosedLoop(cfg.plant, cfg.law), lane_args, ics5, status0
         self.n, self.chunk, self.part_sizes = ics5.shape[0], chunk, _part_sizes(chunk, devs)
         self.bar, self.tail_pool = bar, tail_pool
+        self._pool, self._pool_lock = None, threading.Lock()
+        self.store = None                 # the checkpoint store, where chunks in progress are written
+        self.certify = bool(certify)      # stop the lanes that cannot settle (jaxsleigh.integrate.stragglers)
 
     def sampled_part(self, lo, hi):
         """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
@@ -393,9 +405,12 @@ class _Chunks:
 
         return sampled_summaries(self.cfg, self.ics5[lo:hi], take_lanes(self.lane_args, np.arange(lo, hi)))
 
-    def engine_part(self, lo, hi):
+    def engine_part(self, lo, hi, ci=None, pending=None):
         """The engine's summaries (and trajectories) of rows lo:hi, padded to the chunk's shape and
-        cut into its parts, which run concurrently on the devices; returns a function that gives them."""
+        cut into its parts, which run concurrently on the devices; returns a function that gives them.
+        With stragglers and a store, the parts' states are written as the chunk's work in progress (`pending`,
+        `jaxsleigh.files.chunks.ChunkStore.save_pending`) before they go to the pool; ``pending`` (those arrays, read
+        back on resume) takes the parts' place."""
         part_sizes = self.part_sizes
         pad = sum(part_sizes) - (hi - lo)
         st = np.concatenate([self.status0[lo:hi], np.full(pad, Status.INVALID_INPUT, np.int32)])
@@ -414,10 +429,34 @@ class _Chunks:
                 sub = _PartProgress(i, done, bar_lock, self.bar, cuts, lo, hi, self.n)
                 return self._engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], sub, tails)
 
-        pieces = run_parts(part, range(len(part_sizes)), self.devs)
+        if tails and pending is not None:
+            pieces = self._pieces_from(pending, len(part_sizes))
+        else:
+            pieces = run_parts(part, range(len(part_sizes)), self.devs)
+            if tails and self.store is not None and ci is not None:
+                self.store.save_pending(ci, self._pieces_to(pieces), lo=lo, starts=self.ics5[lo:hi])
         if not tails:
             return lambda: {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
         return self._tail(pieces, [np.arange(cuts[i], cuts[i + 1]) for i in range(len(part_sizes))], y0w, st, rows, lo)
+
+    @staticmethod
+    def _pieces_to(pieces) -> dict:
+        """The parts' host states as named arrays (``p<part>_<leaf>``) for a pending chunk's file."""
+        return {f"p{p:04d}_{i:03d}": np.asarray(leaf) for p, piece in enumerate(pieces)
+                for i, leaf in enumerate(jax.tree_util.tree_leaves(piece))}
+
+    def _pieces_from(self, arrays: dict, n_parts: int) -> list:
+        """`_pieces_to` read back: the parts' host states (the tree of the stepper's state, from its shape)."""
+        from ..integrate.engine import step_controls
+        from ..integrate.stepper import init_batch
+
+        with jax.enable_x64(self.cfg.x64):
+            ctl = step_controls(self.horizon, self.dtype, self.step, self.eps)
+            shape = jax.eval_shape(lambda y, s: init_batch(y, s, self.args, ctl, observers=self.observers),
+                                   jax.ShapeDtypeStruct((1, 5), self.dtype), jax.ShapeDtypeStruct((1,), jnp.int32))
+        tree = jax.tree_util.tree_structure(shape)
+        return [jax.tree_util.tree_unflatten(tree, [arrays[f"p{p:04d}_{i:03d}"] for i in range(tree.num_leaves)])
+                for p in range(n_parts)]
 
     def _lanes_args(self, rows):
         """The closed loop's ``args`` for ``rows`` (their lanes, with per-trajectory parameters)."""
@@ -433,14 +472,15 @@ class _Chunks:
         a = self._lanes_args(rows)
         horizon, step, segment, observers = self.horizon, self.step, self.segment, self.observers
         kw = dict(eps=self.eps, progress=sub, observers=observers)
+        fin = dict(certify=self.certify)
         if not self.summaries:
             part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
                                     y0w, st, a, horizon)
         elif tails:
             return drive_final(y0w, st, a, horizon, step, segment=segment, stop_at=TAIL_LANES, finish=False,
-                               **kw)
+                               **kw, **fin)
         elif self.save_every is None:
-            final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw)
+            final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw, **fin)
             part = _chunk_summaries(final, y0w, st, a, observers)
         else:
             final, ys = drive_saving(y0w, st, a, horizon, step, **kw)
@@ -453,35 +493,58 @@ class _Chunks:
         return part
 
     def _tail(self, fulls, where, y0w, st, rows, lo):
-        """The parts' still-active lanes (a few stiff stragglers each) gathered into one batch and run to
-        the horizon on one device, in the background while the next chunks' parts run; returns a
-        function that waits for it and gives the chunk's summaries. The gathering does not depend on
-        the number of cores, so neither do the results."""
+        """The parts' still-active lanes (a few stiff stragglers each) handed to the run's one pool of stragglers
+        (`_Stragglers`), which steps them with every other chunk's in the background while the next chunks' parts
+        run; returns a function that waits for them and gives the chunk's summaries (``ready()``: they are back).
+        Neither the gathering nor the pool's batches change a lane's bits, so neither do the number of cores."""
         active = [active_lanes(f, self.horizon, self.step) for f in fulls]
         sel = np.concatenate([w[a] for w, a in zip(where, active)])
-        job = self.tail_pool.submit(self._run_tail, fulls, active, sel, rows, lo) if sel.size else None
+        owner = None
+        if sel.size:
+            lanes = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
+                                           *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
+            owner = _Waiting(lanes)
+            self.stragglers().add(lanes, rows[sel], owner)
 
         def result():
-            done = job.result() if job is not None else None
+            done = None if owner is None else self.stragglers().wait(owner)
             return self._tail_summaries(fulls, where, active, done, y0w, st, rows)
 
-        result.ready = lambda: job is None or job.done()
+        result.ready = lambda: owner is None or owner.event.is_set()
         return result
 
-    def _run_tail(self, fulls, active, sel, rows, lo):
-        """The tail batch (the parts' ``active`` lanes, rows ``rows[sel]``) run to the horizon (in the tail pool)."""
-        merged = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
-                                        *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
-        # padded to a power of two with idle copies of its first lane, so few shapes compile
-        m = sel.size
-        fill = np.concatenate([np.arange(m), np.zeros(bucket(m) - m, int)])
-        merged = take_lanes_of(merged, fill)
-        idle = np.where(np.arange(fill.size) < m, merged.status, Status.INVALID_INPUT)
-        merged = merged._replace(status=idle.astype(merged.status.dtype))
-        with jax.default_device(self.devs[lo // self.chunk % len(self.devs)]), jax.enable_x64(self.cfg.x64):
-            done = drive_final(None, None, self._lanes_args(rows[sel[fill]]), self.horizon, self.step, eps=self.eps,
-                               segment=self.segment, observers=self.observers, state=merged, finish=False)
-        return take_lanes_of(done, np.arange(m))
+    def stragglers(self) -> "_Stragglers":
+        """The run's pool of stragglers, started in the tail thread on first use."""
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = _Stragglers(self)
+                self._pool.future = self.tail_pool.submit(self._pool.run)
+            return self._pool
+
+    def close_stragglers(self) -> None:
+        """No more stragglers will come: the pool's thread ends once its lanes are done."""
+        with self._pool_lock:
+            if self._pool is not None:
+                self._pool.close()
+
+    def run_stragglers(self, lanes, rows):
+        """One segment of the pool's ``lanes`` (host, batch-last; their ``rows`` give per-lane parameters) in batches
+        of `TAIL_MIN` to `TAIL_MAX` lanes (padded with idle copies of a lane), then the lanes that cannot settle
+        stopped (`jaxsleigh.integrate.engine.advance_lanes`)."""
+        n = lanes.t.shape[-1]
+        out = []
+        with jax.default_device(self.devs[0]), jax.enable_x64(self.cfg.x64):
+            for g in range(0, n, TAIL_MAX):
+                idx = np.arange(g, min(g + TAIL_MAX, n))
+                m = idx.size
+                fill = np.concatenate([idx, np.full(max(TAIL_MIN, bucket(m)) - m, idx[0])])
+                batch = take_lanes_of(lanes, fill)
+                idle = np.where(np.arange(fill.size) < m, batch.status, Status.INVALID_INPUT)
+                batch = batch._replace(status=idle.astype(batch.status.dtype))
+                done = advance_lanes(batch, self._lanes_args(rows[fill]), self.horizon, self.step, eps=self.eps,
+                                     segment=self.segment, observers=self.observers, certify=self.certify)
+                out.append(take_lanes_of(done, np.arange(m)))
+        return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1), *out)
 
     def _tail_summaries(self, fulls, where, active, done, y0w, st, rows):
         """The chunk's summaries: every part's final state with its finished tail lanes (``done``) put back."""
@@ -497,24 +560,121 @@ class _Chunks:
         return {key: np.concatenate([p[key] for p in out]) for key in out[0]}
 
 
+class _Waiting:
+    """A chunk's stragglers in the pool: their host states (batch-last), filled in as each lane finishes; ``event`` is
+    set when the last one has."""
+
+    def __init__(self, lanes):
+        self.state, self.left, self.event = lanes, int(lanes.t.shape[-1]), threading.Event()
+
+    def put(self, ks: np.ndarray, lanes) -> None:
+        self.state = put_lanes(self.state, ks, lanes)
+        self.left -= ks.size
+        if self.left == 0:
+            self.event.set()
+
+
+class _Stragglers:
+    """The run's one pool of stragglers: every chunk's parts hand it their still-active lanes, and one thread steps
+    them together, one segment at a time, taking in new lanes between segments and handing every finished lane back
+    to its chunk (`_Waiting`). One fixed cost per attempted step for the whole run instead of one per chunk.
+
+    Its batches hold `TAIL_MIN` to `TAIL_MAX` lanes, sizes at which the compiled step gives each lane the same bits
+    whatever the others are, and lanes are stepped in segments at the same attempt counts as in their parts: a
+    lane's result does not depend on when it came or with which lanes it ran."""
+
+    def __init__(self, chunks: "_Chunks"):
+        self.chunks = chunks
+        self.cond = threading.Condition()
+        self.incoming: list = []
+        self.closed = False
+        self.error: Optional[BaseException] = None
+        self.future = None
+        self.owners: list = []
+
+    def add(self, lanes, rows, owner: _Waiting) -> None:
+        with self.cond:
+            if self.error is not None:
+                raise RuntimeError("the pool of stragglers failed") from self.error
+            self.incoming.append((lanes, np.asarray(rows), owner))
+            self.owners.append(owner)
+            self.cond.notify_all()
+
+    def close(self) -> None:
+        with self.cond:
+            self.closed = True
+            self.cond.notify_all()
+
+    def wait(self, owner: _Waiting):
+        """``owner``'s lanes once all are done (raises the pool's error if it failed)."""
+        owner.event.wait()
+        if self.error is not None and owner.left:
+            raise RuntimeError("the pool of stragglers failed") from self.error
+        return owner.state
+
+    def run(self) -> None:
+        try:
+            self._run()
+        except BaseException as e:
+            with self.cond:
+                self.error = e
+                for o in self.owners:
+                    o.event.set()
+            raise
+
+    def _run(self) -> None:
+        lanes, rows, who = None, np.zeros(0, np.int64), []      # who: (owner, k) of each lane
+        while True:
+            with self.cond:
+                while not self.incoming and not self.closed and not who:
+                    self.cond.wait()
+                new, self.incoming = self.incoming, []
+                closed = self.closed
+            for st, r, owner in new:
+                lanes = st if lanes is None or not who else jax.tree_util.tree_map(
+                    lambda a, b: np.concatenate([a, b], axis=-1), lanes, st)
+                rows = r if not who else np.concatenate([rows, r])
+                who += [(owner, k) for k in range(r.size)]
+            if not who:
+                if closed:
+                    return
+                continue
+            lanes = self.chunks.run_stragglers(lanes, rows)
+            act = active_lanes(lanes, self.chunks.horizon, self.chunks.step)
+            done = np.flatnonzero(~act)
+            by_owner: dict = {}
+            for i in done:
+                owner, k = who[i]
+                by_owner.setdefault(id(owner), (owner, [], []))[1].append(k)
+                by_owner[id(owner)][2].append(i)
+            for owner, ks, idx in by_owner.values():
+                owner.put(np.asarray(ks), take_lanes_of(lanes, np.asarray(idx)))
+            keep = np.flatnonzero(act)
+            lanes, rows, who = take_lanes_of(lanes, keep), rows[keep], [who[i] for i in keep]
+
+
 def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, fields, sampled) -> tuple:
     """``(result, new)`` for chunk ``ci`` (rows ``lo:hi``): ``result()`` gives its summaries, read back from
     ``store`` when it holds them (``new`` False), else computed (sampled-data loops at once; the engine's parts
     started, their tails maybe still running: ``result.ready()`` says)."""
+    pending = None
     if store is not None:
         part = store.load(ci, hi - lo, fields=fields, lo=lo, starts=chunks.ics5[lo:hi])
         if part is not None:
             return (lambda: part), False
+        if not sampled:         # its parts ended, its stragglers did not: they go on from there
+            pending = store.load_pending(ci, hi - lo, lo=lo, starts=chunks.ics5[lo:hi])
     if sampled:
         part = chunks.sampled_part(lo, hi)
         return (lambda: part), True
-    return chunks.engine_part(lo, hi), True
+    return chunks.engine_part(lo, hi, ci, pending), True
 
 
 def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
     """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
     returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
     n, chunk, ics5, devs = chunks.n, chunks.chunk, chunks.ics5, chunks.devs
+    chunks.store = store
     parts, reused = [], 0
     pending: collections.deque = collections.deque()
 
@@ -522,9 +682,13 @@ def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, 
         part = {k: v[:hi - lo] for k, v in result().items()}
         if store is not None and new:
             store.save(ci, part, lo=lo, starts=ics5[lo:hi])
+            store.drop_pending(ci)
         if shard is None:
             parts.append(part)
         chunks.bar.update(hi / n)
+
+    def ready(entry):
+        return getattr(entry[3], "ready", lambda: True)()
 
     starts = list(range(0, n, chunk))
     try:
@@ -535,11 +699,14 @@ def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, 
             result, new = _chunk_result(chunks, store if resume else None, ci, lo, hi, fields=fields, sampled=sampled)
             reused += not new
             pending.append((ci, lo, hi, result, new))    # in order, behind any chunk still finishing
-            # chunks end in order; the tails of up to one chunk per device run behind the next chunk's parts
-            while pending and (len(pending) > len(devs) or getattr(pending[0][3], "ready", lambda: True)()):
+            # chunks end in order; their stragglers run in the pool behind the next chunks' parts (at most
+            # MAX_PENDING chunks wait for theirs)
+            while pending and (len(pending) > MAX_PENDING or ready(pending[0])):
                 done_chunk(*pending.popleft())
+        chunks.close_stragglers()
     except BaseException:
-        # interrupted: a chunk whose tail is running still ends and is written (nothing finished is lost)
+        # interrupted: a chunk whose stragglers are in the pool still ends and is written (nothing finished is lost)
+        chunks.close_stragglers()
         while pending:
             try:
                 done_chunk(*pending.popleft())
@@ -567,7 +734,7 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
 
 def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
                   eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController, saveat: SaveAt,
-                  run: RunOptions, audit: Any = None) -> Optional[EnsembleResult]:
+                  run: RunOptions, audit: Any = None, certify: bool = False) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
@@ -578,6 +745,9 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
     `jaxsleigh.cores.default_chunk_size`). ``run.shard = (index, count)``: compute only the chunks
     ``i % count == index`` not already in ``run.checkpoint_dir``, write them there and return ``None``
     (`jaxsleigh.files.distributed`); a later call without it assembles the result.
+
+    ``certify`` (a basin's question, does it settle?) stops the starts that cannot settle before the horizon, status
+    ``NOT_SETTLING`` (`jaxsleigh.integrate.stragglers`; recorded in the settings).
 
     Returns:
       `EnsembleResult` (``None`` with ``run.shard``).
@@ -601,6 +771,8 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
     with jax.enable_x64(cfg.x64):
         dtype = working_dtype()
         settings = _ensemble_settings(cfg, sampled, save_every, chunk_size, summaries, observers)
+        if certify:
+            settings["stops_unsettled"] = True
         devices_used = [str(d) for d in devs]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
@@ -614,7 +786,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
                 concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
             chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
                              devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
-                             tail_pool=tail_pool)
+                             tail_pool=tail_pool, certify=certify and cfg.adaptive)
             parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields, sampled=sampled)
         if shard is not None:
             return None
