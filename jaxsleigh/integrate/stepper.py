@@ -49,12 +49,16 @@ from ..model.charts import chart_for, q_norm2_w  # noqa: F401  (q_norm2_w: re-ex
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, StepInfo
 from .etd import etd_stages
+from .guard import oscillation_guard
 from .rk4 import rk4_stages, rk4_step
 from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment", "run_to",
            "run_saving", "run_plain", "q_norm2_w"]
+
+#: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
+GUARD_EVERY = 8
 
 # A step that would overshoot the next save time by less than this fraction is stretched onto it,
 # so that rounding in t never leaves a tiny last step.
@@ -112,6 +116,7 @@ class StepState(NamedTuple):
     quad: jax.Array       # (m,) quadrature rows of the observers, integrated with the RK4 weights
     g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
     err_prev: jax.Array   # error ratio of the last accepted step (the PI controller's memory)
+    guard: tuple = ()     # (cap, atol, age) of jaxsleigh.integrate.guard in a chart with the pair; () elsewhere
 
 
 def _integrands(observers, y, u, dtype):
@@ -146,7 +151,25 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
         Hd=chart.energy(y0w, args),
         obs=tuple(o.init(t0, y0w, u0, ctl, chart) for o in observers),
         quad=jnp.zeros_like(g1), g1=g1, err_prev=jnp.ones((), dtype),
+        guard=_guard_at(chart, t0, y0w, args, ctl),
     )
+
+
+def _guard_at(chart, t, y, args, ctl: Controls) -> tuple:
+    """The guard's state at ``y`` (`jaxsleigh.integrate.guard`), refreshed after `GUARD_EVERY` attempts."""
+    g = oscillation_guard(chart, t, y, args, jnp.asarray(ctl.atol, y.dtype))
+    return () if g is None else (*g, jnp.full(g[0].shape, GUARD_EVERY - 1, jnp.int32))
+
+
+def _guard_now(chart, s: "StepState", args, ctl: Controls) -> tuple:
+    """The guard for this attempt: every `GUARD_EVERY` attempts (of the whole batch at once: one refresh resets every
+    lane's age, so lanes gathered from other batches fall back into step) computed afresh at the step's start, else
+    carried. Its three forward-mode products cost about a step; every eighth attempt keeps them near 10%."""
+    if not s.guard:
+        return ()
+    cap, atol, age = s.guard
+    return jax.lax.cond(jnp.any(age <= 0), lambda: _guard_at(chart, s.t, s.y, args, ctl),
+                        lambda: (cap, atol, age - 1))
 
 
 def _stage_quadrature(observers, h, g1, stages, dtype):
@@ -259,13 +282,16 @@ def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor:
     return finite, crossed, rose, Hd_new
 
 
-def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose, ctl: Controls):
+def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose, ctl: Controls, guard=None):
     """``(ok, h_next, status, err)`` of an adaptive step: good and within tolerance (error ratio ``err``), the next
-    step to try, and ``STEP_UNDERFLOW`` where a rejected step leaves a vanishing next step."""
+    step to try, and ``STEP_UNDERFLOW`` where a rejected step leaves a vanishing next step. ``guard``: the
+    `jaxsleigh.integrate.guard` of the step's start, ``(cap, atol)``: the largest next step and the state's
+    absolute tolerance there."""
     h, y_new, k5 = trial.h, trial.y_new, trial.k5
     # the error measure and the step-size policy: jaxsleigh.integrate.stepsize; the observers' quadrature rows
     # (the effort integrals) are under the same norm as the state, with their own embedded estimate
-    err = error_ratio(h, s.y, y_new, trial.k4, k5, ctl, e=None if trial.error is None else trial.error(y_new, k5))
+    err = error_ratio(h, s.y, y_new, trial.k4, k5, ctl if guard is None else ctl._replace(atol=guard[1]),
+                      e=None if trial.error is None else trial.error(y_new, k5))
     if s.quad.shape[0]:
         err = jnp.maximum(err, error_ratio(h, s.quad, s.quad + trial.dq, trial.g4, trial.g5, ctl))
     good = finite & ~crossed & ~rose
@@ -273,7 +299,7 @@ def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose
     ok = good & (err <= 1.0)
     h_next = next_step(h, err, ctl, err_prev=s.err_prev)
     h_next = jnp.where(ok & trial.hit, jnp.maximum(h_next, s.h), h_next)
-    h_next = jnp.minimum(h_next, ctl.max_step)
+    h_next = jnp.minimum(h_next, ctl.max_step if guard is None else jnp.minimum(ctl.max_step, guard[0]))
     # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
     # need h ~ 1e-8 s at first from theta0 = 1e-2 (|dp/dt| ~ 1e12) and
     # need h ~ 1e-12 s at first from theta0 = 1e-3 (Jacobian eigenvalues ~ 1e10 i)
@@ -326,7 +352,9 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     trial = _trial_step(chart, s, target, active, args, observers, adaptive=adaptive, fsal=fsal)
     finite, crossed, rose, Hd_new = _judge(chart, s, trial, args, adaptive=adaptive, monitor=monitor)
     if adaptive:
-        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl)
+        # a weakly damped settled oscillation is resolved, whatever its amplitude (jaxsleigh.integrate.guard)
+        guard = _guard_now(chart, s, args, ctl)
+        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl, guard[:2] or None)
     else:
         ok, h_next, status, err = _fixed_outcome(s, active, finite, crossed, rose)
     acc, rej = active & ok, active & ~ok
@@ -347,6 +375,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         obs=tuple(o.update(st, info, ctl) for o, st in zip(observers, s.obs)),
         quad=quad, g1=g1,
         err_prev=jnp.where(acc, jnp.maximum(err, 1e-4), s.err_prev).astype(dtype) if adaptive else s.err_prev,
+        guard=guard if adaptive else s.guard,
     )
 
 

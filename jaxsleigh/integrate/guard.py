@@ -1,0 +1,79 @@
+r"""The settled oscillation's guard: resolve the \((w_2, p_1)\) oscillation where it is weakly damped or growing.
+
+After settling, the closed loop in the w chart has a complex pair of Jacobian eigenvalues
+\(\sigma \pm i\omega\), \(\omega \approx \sqrt{V_{22}/m}/|w_1|\), whose mode lives in \((w_2, p_1)\) and, through
+the coupling \(\partial \dot w_2 / \partial p_2\), \(\partial \dot p_2 / \partial w_2\), in \(p_2\). For the paper's
+gains it is well damped (\(\sigma \approx -1.2 \ldots -1.7\) s\(^{-1}\) along the README's starts); for gains with
+little singular damping \(k\) or a shaped potential, \(\sigma\) rises through zero as \(\theta \to 0\) (the 0.2
+``balanced`` gains: \(-0.85\) at 30 s, \(+1.24\) at 50 s; ``shaped``: \(-0.50\) at 30 s, \(+0.19\) at 60 s;
+``docs/evidence/accuracy.md``). The mode then grows from the transient's remainder, of amplitude
+\(10^{-9}\) or less, to \(10^{-2}\) and spends most of the control energy of the run.
+
+No error estimate sees a mode below the tolerance, and a step of \(h \omega \gg 1\) (which the exponential step
+of `jaxsleigh.integrate.etd` allows) gets its growth rate wrong: float32 at the default tolerances reported 5%
+of the 0.2 gains' float64 energy on some starts. So where the pair is weakly damped, \(\sigma > -\delta\)
+(`DAMPING`), the step is capped at \(h \le c / \omega\) (`PHASE`): the oscillation is resolved, whatever its
+amplitude, and its growth rate comes out right. Elsewhere (the paper's gains, the transient) nothing changes.
+
+**How \(\sigma\) is computed.** The 3x3 block \(B\) of the Jacobian on \((w_2, p_1, p_2)\) carries the pair exactly
+(to the digits printed above, against the full 5x5 eigenvalues); its three columns are three forward-mode
+products of the field. Its characteristic polynomial \(s^3 - \operatorname{tr} B\, s^2 + m_2 s - \det B\)
+(\(m_2\) the sum of the principal 2x2 minors) has one real root \(r\), the stiff damping of \(p_2\), near
+\(B_{33}\); Newton's method from \(B_{33}\) finds it, and the pair's real part is
+\(\sigma = (\operatorname{tr} B - r) / 2\). The choice is not differentiated (``stop_gradient``).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["pair_damping", "oscillation_guard", "DAMPING", "PHASE", "ATOL_FACTOR"]
+
+#: \(\delta\) [1/s]: the pair counts as weakly damped where \(\sigma > -\delta\)
+DAMPING = 0.75
+#: \(c\) [rad]: the largest phase of the oscillation per step where it is weakly damped
+PHASE = 0.5
+#: the absolute tolerance's factor where the pair is weakly damped: the mode's seed, far below the tolerance, is
+#: what grows; errors of the slow part must stay below it
+ATOL_FACTOR = 1e-2
+#: (w2, p1, p2): the rows and columns of the block, in the w chart's state
+_BLOCK = (1, 3, 4)
+
+
+def pair_damping(field, t, y, args):
+    r"""\((\sigma, \omega^2)\): the real part of the complex pair of the Jacobian block on \((w_2, p_1, p_2)\) of
+    ``field`` at ``y`` (``(5,)`` or batch-last ``(5, N)``) and the square of its imaginary part (\(\le 0\): the
+    block has three real eigenvalues there, no oscillation)."""
+    f = lambda v: field(t, v, args)  # noqa: E731
+    cols = []
+    for j in _BLOCK:
+        e = jnp.zeros_like(y).at[j].set(1.0)
+        cols.append(jax.jvp(f, (y,), (e,))[1])
+    B = [[cols[c][_BLOCK[r]] for c in range(3)] for r in range(3)]
+    tr = B[0][0] + B[1][1] + B[2][2]
+    m2 = (B[0][0] * B[1][1] - B[0][1] * B[1][0] + B[0][0] * B[2][2] - B[0][2] * B[2][0]
+          + B[1][1] * B[2][2] - B[1][2] * B[2][1])
+    det = (B[0][0] * (B[1][1] * B[2][2] - B[1][2] * B[2][1]) - B[0][1] * (B[1][0] * B[2][2] - B[1][2] * B[2][0])
+           + B[0][2] * (B[1][0] * B[2][1] - B[1][1] * B[2][0]))
+    r = B[2][2]
+    for _ in range(8):
+        p = ((r - tr) * r + m2) * r - det
+        dp = (3.0 * r - 2.0 * tr) * r + m2
+        r = r - jnp.where(dp != 0, p / jnp.where(dp != 0, dp, 1.0), 0.0)
+    sigma = 0.5 * (tr - r)
+    # the other two roots are those of s^2 - 2 sigma s + det / r
+    prod = det / jnp.where(r != 0, r, 1.0)
+    return sigma, prod - sigma * sigma
+
+
+def oscillation_guard(chart, t, y, args, atol):
+    r"""``(cap, atol)`` at ``y``: where the block has a complex pair \(\sigma \pm i\omega\) that is weakly damped
+    (\(\sigma > -\delta\)) the largest step \(c / \omega\) and the absolute tolerance ``atol`` times `ATOL_FACTOR`,
+    elsewhere ``inf`` and ``atol``; ``None`` in a chart without the pair."""
+    if chart.oscillation(y, args) is None:
+        return None
+    sigma, omega2 = pair_damping(chart.field, t, y, args)
+    weak = jax.lax.stop_gradient((omega2 > 0) & (sigma > -DAMPING))
+    cap = PHASE * jax.lax.rsqrt(jnp.where(omega2 > 0, omega2, 1.0))
+    return (jax.lax.stop_gradient(jnp.where(weak, cap, jnp.inf).astype(y.dtype)),
+            jnp.where(weak, atol * ATOL_FACTOR, atol).astype(y.dtype))
