@@ -23,7 +23,7 @@ from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics
 from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
-from .chunked import how_it_ran, run_chunked_command
+from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
 from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
                      add_sampler_options, check_outputs, check_tolerance_flags, exit_code, law_kwargs,
                      model_from_args, status_epilog, status_line)
@@ -123,6 +123,9 @@ def add_study_options(p, *, theta_help: str, samples_example: str, samples_help:
     r.add_argument("--keep-chunks", action="store_true", help=keep_help)
     r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                    help="progress bar with ETA on stderr (default: only on a terminal)")
+    r.add_argument("--audit-rows", type=_whole("--audit-rows", "64", 0, 4096), default=None, metavar="K",
+                   help="accuracy audit: re-run K random rows in float64 at rtol = atol = 1e-10 and report the worst "
+                        "differences (default: 1%% of the rows, at most 64, from 500 rows on; 0: no audit)")
 
 
 def _starts_from_args(args):
@@ -197,7 +200,8 @@ def run_basin_command(args) -> int:
         run = RunOptions(chunk_size=args.chunk_size, progress=args.progress, checkpoint_dir=checkpoint_dir,
                          resume=resume, shard=shard)
         return run_basin(st["starts"], eps=args.eps, t_final=args.t_final, dt=args.dt, plant=st["plant"],
-                         **law_kwargs(st["law"]), x64=args.x64, stepsize=stepsize_from_args(args), run=run)
+                         **law_kwargs(st["law"]), x64=args.x64, stepsize=stepsize_from_args(args), run=run,
+                         audit=audit_from_args(args))
 
     def finish(res, written, record, caught) -> int:
         n_flag = int((~res.valid).sum())
@@ -214,7 +218,9 @@ def run_basin_command(args) -> int:
         print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
         print(f"{PROG} basin: {status_line(res.status, res.T_eps, args.eps)}; {record['wall_s']:.1f} s wall "
               f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
+        say_audit("basin", res)
         return exit_code(res.status, res.T_eps, args.eps)
 
     return run_chunked_command(args, "basin", out, check=check, study=study, save=save_basin,
-                               info=lambda res: {"summary": res.summary()}, finish=finish)
+                               info=lambda res: {"summary": res.summary(), "audit": res.run_info.get("audit")},
+                               finish=finish)

@@ -99,3 +99,18 @@ def how_it_ran(res, record: dict) -> str:
     return (f"{res.settings['dtype']}, {res.settings['method']}"
             + (f", {record['processes']} processes" if "processes" in record else "")
             + (f", {n} chunk(s) resumed" if n else ""))
+
+
+def audit_from_args(args):
+    """The accuracy audit of ``--audit-rows`` (`jaxsleigh.Audit`; ``False`` for 0; the default audit without it)."""
+    from ..studies.audit import Audit
+
+    rows = getattr(args, "audit_rows", None)
+    return None if rows is None else (False if rows == 0 else Audit(rows=rows))
+
+
+def say_audit(command: str, res) -> None:
+    """The audit's line on stdout (a failed audit's warning, with what to do, is on stderr already)."""
+    from ..studies.audit import audit_line
+
+    print(f"{PROG} {command}: {audit_line((res.run_info or {}).get('audit'))}")

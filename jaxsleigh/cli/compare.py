@@ -5,6 +5,8 @@ import json
 import math
 import time
 
+from ..studies.audit import audit_line
+from .chunked import audit_from_args
 from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs, number,
                      sampler_from_args, whole)
 
@@ -82,6 +84,9 @@ def add_compare(subparsers) -> None:
                    help=f"training starts (default {DEFAULT_TRAIN})")
     g.add_argument("--steps", type=whole("--steps", "60", maximum=10_000), default=None, metavar="K",
                    help=f"tuner iterations per law (default {DEFAULT_STEPS})")
+    p.add_argument("--audit-rows", type=whole("--audit-rows", "64", minimum=0, maximum=4096), default=None, metavar="K",
+                   help="accuracy audit of every law and start set: K random rows re-run in float64 at rtol = atol = "
+                        "1e-10 (default: 1%% of the rows, at most 64, from 500 starts on; 0: none)")
     p.add_argument("--out", required=True, metavar="TABLE.json", help="the rows, with what made them")
     p.add_argument("--plot", default=None, metavar="FIG.png",
                    help="draw the laws side by side: per start distribution, the distribution over the starts "
@@ -191,7 +196,7 @@ def _cmd_compare(args) -> int:
     starts = {d: draw_compare_starts(d, args.samples, args.seed) for d in dists}
     stepsize = StepSizeController(rtol=args.rtol, atol=args.atol)
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
-                   x64=args.x64, stepsize=stepsize)
+                   x64=args.x64, stepsize=stepsize, audit=audit_from_args(args))
     record = _record(args, rows, names, dists, time.perf_counter() - t0, dt=dt, equal=equal)
     atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
     if args.plot:
@@ -201,5 +206,8 @@ def _cmd_compare(args) -> int:
                           title="Controllers on the same plant and starts"
                                 + (", at the paper's training energy" if equal is not None else ""))
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
+    for r in rows:
+        if (r.get("audit") or {}).get("rows"):
+            print(f"{PROG} compare: {r['controller']} on {r['starts']}: {audit_line(r['audit'])}")
     print(f"{PROG} compare: wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
     return 0

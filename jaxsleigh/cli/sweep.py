@@ -23,7 +23,7 @@ import sys
 from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
 from .basin import _starts_from_args, add_study_options
-from .chunked import how_it_ran, run_chunked_command
+from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
 from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
                      law_kwargs, model_from_args, status_epilog, status_line)
 from .options import stepsize_from_args
@@ -111,7 +111,7 @@ def run_sweep_command(args) -> int:
                          resume=resume, shard=shard)
         return sweep(st["starts"], st["axes"], plant=st["plant"], **law_kwargs(st["law"]), eps=args.eps,
                      t_final=args.t_final, dt=args.dt, x64=args.x64, stepsize=stepsize_from_args(args), run=run,
-                     labels=st["labels"])
+                     labels=st["labels"], audit=audit_from_args(args))
 
     def finish(res, written, record, caught) -> int:
         n_flag = int((~res.valid[0]).sum())
@@ -127,11 +127,12 @@ def run_sweep_command(args) -> int:
         print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts, "
               f"{status_line(res.status, res.T_eps, args.eps)}; {record['wall_s']:.1f} s wall "
               f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
+        say_audit("sweep", res)
         return exit_code(res.status, res.T_eps, args.eps)
 
     def info(res) -> dict:
         S, se = res.fractions()
-        return {"fraction": S.tolist(), "fraction_se": se.tolist()}
+        return {"fraction": S.tolist(), "fraction_se": se.tolist(), "audit": res.run_info.get("audit")}
 
     return run_chunked_command(args, "sweep", out, check=lambda: st.update(_check(args, out)), study=study,
                                save=save_sweep, info=info, finish=finish)

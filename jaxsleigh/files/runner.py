@@ -318,7 +318,7 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
 
 
 #: Options that do not change the chunks (left out of the checkpoint's recorded options).
-_NOT_RECORDED = {"out", "plot", "resume", "keep_chunks"}
+_NOT_RECORDED = {"out", "plot", "resume", "keep_chunks", "audit_rows"}
 
 
 def leave(done: Finished) -> int:

@@ -122,7 +122,7 @@ def check_horizon(t_final: float, sampler=None, substeps: int = SUBSTEPS, *, fla
 
 def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=None, t_final: float = 100.0,
             eps: float = 0.05, saturation: Optional[float] = None, sampler=None, x64: bool = False,
-            substeps: int = SUBSTEPS, stepsize=None) -> list:
+            substeps: int = SUBSTEPS, stepsize=None, audit=None) -> list:
     """One row per (law, start set): ``{"controller", "starts", "n", **METRICS, "per_start"}`` (module docstring).
 
     Args:
@@ -135,6 +135,7 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         periods; the plant integrated to the tolerances between the samples).
       stepsize: a `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Effort spent after settling
         by the paper's law under small k needs ``atol=1e-8`` in float32 (docs/evidence/settled-phase.md).
+      audit: the accuracy audit of every run, as in `jaxsleigh.run_ensemble` (its record is the row's ``audit``).
     """
     from .ensemble import run_ensemble
     from .options import RunOptions
@@ -148,9 +149,10 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         for sname, ics in starts.items():
             ics = np.asarray(ics, np.float64)
             r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, dt=dt, eps=eps, x64=x64,
-                             stepsize=stepsize, run=RunOptions(progress=False))
+                             stepsize=stepsize, run=RunOptions(progress=False), audit=audit)
             row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
-            rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row})
+            rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row,
+                         "audit": r.run_info.get("audit")})
     return rows
 
 
