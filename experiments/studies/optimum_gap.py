@@ -140,6 +140,14 @@ def main(argv=None) -> None:
                                        "median_frontier": [float(np.nanmedian(c)) for c in res.frontier().T],
                                        "laws": rows}
         keep[dname] = (res, pts)
+    arrays = {}
+    for dname, (res, pts) in keep.items():
+        arrays[f"{dname}_horizons"], arrays[f"{dname}_frontier"] = res.horizons, res.frontier()
+        for lname, p in pts.items():
+            for key, a in zip(("T_law", "E_law", "time_ratio", "energy_ratio"), p):
+                arrays[f"{dname}_{lname}_{key}"] = a
+    (ROOT / "out").mkdir(exist_ok=True)
+    np.savez(ROOT / "out" / "optimum_gap.npz", **arrays)
     out["wall_s"] = round(time.perf_counter() - t_start, 1)
     out["loadavg_end"] = load()
     Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
@@ -154,14 +162,17 @@ def figure(keep, path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 3, figsize=(15, 8.5))
+    names = list(next(iter(keep.values()))[1])
+    colour = {n: f"C{i}" for i, n in enumerate(names)}        # one colour per law in every panel
+    marker = dict(zip(names, "osD^vx*"))
     for row, (dname, (res, pts)) in enumerate(keep.items()):
         for col, (k, label) in enumerate(((3, r"energy ratio $E_{law} / E^*(T_{law})$"),
                                           (2, r"time ratio $T_{law} / T^*(E_{law})$"))):
             ax = axes[row, col]
             for lname, p in pts.items():
                 a = np.sort(p[k][np.isfinite(p[k])])
-                if a.size:
-                    ax.step(a, np.arange(1, a.size + 1) / p[k].size, where="post", label=lname)
+                ax.step(a if a.size else [np.nan], np.arange(1, a.size + 1) / p[k].size if a.size else [np.nan],
+                        where="post", color=colour[lname], label=f"{lname} ({a.size}/{p[k].size})")
             ax.set_xscale("log")
             ax.set_xlabel(label)
             ax.set_ylabel("fraction of starts")
@@ -170,18 +181,20 @@ def figure(keep, path) -> None:
             ax.grid(True, which="both", alpha=0.3)
         ax = axes[row, 2]
         fr = res.frontier()
-        for i, c in zip(range(3), ("C0", "C1", "C2")):
+        for i, c in zip(range(3), ("k", "0.45", "0.7")):
             ax.loglog(res.horizons, fr[i], "-", color=c, lw=2, label=f"E*(T), start {i}")
-            for m, (lname, p) in zip("osD^vx*", pts.items()):
+            for lname, p in pts.items():
                 if np.isfinite(p[0][i]) and np.isfinite(p[1][i]):
-                    ax.loglog(p[0][i], p[1][i], m, color=c, ms=6, mfc="none")
+                    ax.loglog(p[0][i], p[1][i], marker[lname], color=colour[lname], ms=7, mfc="none", mew=1.5,
+                              mec=colour[lname])
+        for lname in names:
+            ax.plot([], [], marker[lname], color=colour[lname], mfc="none", label=lname)
         ax.set_xlabel("T [s]")
-        ax.set_ylabel("energy")
-        ax.set_title(f"{dname}: frontier of 3 starts, laws' (T_law, E_law) as markers ("
-                     + ", ".join(f"{m} {n}" for m, n in zip("osD^vx*", pts)) + ")", fontsize=7)
+        ax.set_ylabel(r"energy $\int |u|^2 dt$")
+        ax.set_title(f"{dname}: frontier of 3 starts (lines), each law's (T_law, E_law) on them", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    axes[0, 2].legend(fontsize=7)
+        ax.legend(fontsize=6, ncol=2)
+        axes[row, 0].legend(fontsize=7, title="settled / starts", title_fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")
