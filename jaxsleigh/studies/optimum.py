@@ -27,7 +27,7 @@ terminal conditions (equalities \(c = p(T)\), inequality \(g = (|q(T)|^2 - \epsi
 
 \[ L_\rho(z) = |z|^2 + \lambda^\top c + \tfrac\rho2 |c|^2 + \tfrac1{2\rho}\big(\max(0, \mu + \rho g)^2 - \mu^2\big), \]
 
-minimised in \(z\) by L-BFGS (memory 8, with a parallel backtracking line search: `_functions`; optax's L-BFGS,
+minimised in \(z\) by L-BFGS (memory 8, with a parallel backtracking line search; optax's L-BFGS,
 whose zoom line search is a sequential loop that every lane of a ``vmap``-ped batch waits out, took 0.8 s per
 iteration on 12 problems against 8 ms here) for ``inner`` iterations, then
 \(\lambda \leftarrow \lambda + \rho c\), \(\mu \leftarrow \max(0, \mu + \rho g)\), and \(\rho\) grows fourfold where
