@@ -140,7 +140,7 @@ def _no_work(*a, **k):
 
 
 #: where each command's work begins (stubbed: the test is about the checks before it)
-WORK = [("jaxsleigh.studies.ensemble", "_run_chunks"), ("jaxsleigh.studies.simulate", "drive_saving"),
+WORK = [("jaxsleigh.studies.ensemble", "_run_chunks"), ("jaxsleigh.studies.optimum", "_solve_starts"), ("jaxsleigh.studies.simulate", "drive_saving"),
         ("jaxsleigh.studies.simulate", "sampled_solution"), ("jaxsleigh.tuning.optimizer", "_iterate"),
         ("jaxsleigh.tuning.pareto", "_front_vmap"), ("jaxsleigh.tuning.pareto", "_front_warm"),
         ("jaxsleigh.tuning.pareto", "random_search"), ("jaxsleigh.tuning.cma_search", "search"),
@@ -153,8 +153,10 @@ WORK = [("jaxsleigh.studies.ensemble", "_run_chunks"), ("jaxsleigh.studies.simul
 COMMAND_ARGS = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"],
                 "basin": ["--x", "-1:1:2", "--y", "1", "--theta", "0.5", "--t-final", "1"],
                 "sweep": ["--param", "k=0.1:1:2", "--samples", "2", "--t-final", "1"],
-                "compare": ["--t-final", "1"], "tune": [], "bench": [], "paper": [], "controllers": []}
-OUTPUTS = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json", "paper": "p"}
+                "compare": ["--t-final", "1"], "tune": [], "bench": [], "paper": [], "controllers": [],
+                "optimum": ["--samples", "1", "--horizons", "1"]}
+OUTPUTS = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json", "paper": "p",
+           "optimum": "o.npz"}
 PATH_OPTIONS = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--json", "--help"}
 
 
