@@ -116,7 +116,7 @@ class StepState(NamedTuple):
     quad: jax.Array       # (m,) quadrature rows of the observers, integrated with the RK4 weights
     g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
     err_prev: jax.Array   # error ratio of the last accepted step (the PI controller's memory)
-    guard: tuple = ()     # (cap, atol, age) of jaxsleigh.integrate.guard in a chart with the pair; () elsewhere
+    guard: tuple = ()     # (cap, atol) of jaxsleigh.integrate.guard in a chart with the pair; () elsewhere
 
 
 def _integrands(observers, y, u, dtype):
@@ -156,20 +156,23 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
 
 
 def _guard_at(chart, t, y, args, ctl: Controls) -> tuple:
-    """The guard's state at ``y`` (`jaxsleigh.integrate.guard`), refreshed after `GUARD_EVERY` attempts."""
-    g = oscillation_guard(chart, t, y, args, jnp.asarray(ctl.atol, y.dtype))
-    return () if g is None else (*g, jnp.full(g[0].shape, GUARD_EVERY - 1, jnp.int32))
+    """The guard's state ``(cap, atol)`` at ``y`` (`jaxsleigh.integrate.guard`); ``()`` in a chart without the pair."""
+    g = oscillation_guard(chart, t, y, args, jnp.asarray(ctl.atol, y.dtype), jnp.asarray(ctl.eps, y.dtype))
+    return () if g is None else g
 
 
-def _guard_now(chart, s: "StepState", args, ctl: Controls) -> tuple:
-    """The guard for this attempt: every `GUARD_EVERY` attempts (of the whole batch at once: one refresh resets every
-    lane's age, so lanes gathered from other batches fall back into step) computed afresh at the step's start, else
-    carried. Its three forward-mode products cost about a step; every eighth attempt keeps them near 10%."""
+def _guard_now(chart, s: "StepState", active, args, ctl: Controls) -> tuple:
+    """The guard for this attempt: refreshed at the step's start on a lane's every `GUARD_EVERY`-th attempt, carried
+    otherwise. A lane's guard depends on its own attempts only, not on the batch it is in; the refresh runs when some
+    lane is due (the lanes of one batch attempt together, so they are due together). Its three forward-mode products
+    cost about a step; every eighth attempt keeps them near a tenth of the run."""
     if not s.guard:
         return ()
-    cap, atol, age = s.guard
-    return jax.lax.cond(jnp.any(age <= 0), lambda: _guard_at(chart, s.t, s.y, args, ctl),
-                        lambda: (cap, atol, age - 1))
+    due = active & ((s.n_accept + s.n_reject) % GUARD_EVERY == 0)
+    return jax.lax.cond(jnp.any(due),
+                        lambda: tuple(jnp.where(due, new, old)
+                                      for new, old in zip(_guard_at(chart, s.t, s.y, args, ctl), s.guard)),
+                        lambda: s.guard)
 
 
 def _stage_quadrature(observers, h, g1, stages, dtype):
@@ -353,8 +356,8 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     finite, crossed, rose, Hd_new = _judge(chart, s, trial, args, adaptive=adaptive, monitor=monitor)
     if adaptive:
         # a weakly damped settled oscillation is resolved, whatever its amplitude (jaxsleigh.integrate.guard)
-        guard = _guard_now(chart, s, args, ctl)
-        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl, guard[:2] or None)
+        guard = _guard_now(chart, s, active, args, ctl)
+        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl, guard or None)
     else:
         ok, h_next, status, err = _fixed_outcome(s, active, finite, crossed, rose)
     acc, rej = active & ok, active & ~ok
