@@ -753,6 +753,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
       `EnsembleResult` (``None`` with ``run.shard``).
     """
     reject_traced("run_ensemble", **locals())    # first: a NumPy front, neither jittable nor differentiable
+    spec = resolve_audit(audit)
     save_every, summaries = saveat
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, x64=x64, eps=eps,
                        stepsize=stepsize, controller=controller)
@@ -794,7 +795,6 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
     run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
     result = _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
                               lane_args=lane_args, run_info=run_info)
-    spec = resolve_audit(audit)
     if spec is not None:
         def rerun(rows, rtol, atol):   # the same study of some rows, in float64 at tight tolerances
             law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
