@@ -43,9 +43,9 @@ BALANCED_02 = {"L": [2.153, 1.742, 2.492], "k": 0.001467, "D_hat": [[2.565, -0.0
 RUN = r"""
 import json, sys
 import numpy as np
+import jaxsleigh as js                     # first: the library on PYTHONPATH (this tree's, or --also's commit)
 sys.path.insert(0, sys.argv[5])
 from studies.preset_effort import readme_starts, wide_starts
-import jaxsleigh as js
 law, dist, n, mode = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
 ics = (readme_starts if dist == "readme" else wide_starts)(n)
 B02 = json.loads(sys.argv[6])
