@@ -65,10 +65,10 @@ def test_a_different_answer_fails_the_audit_but_unsettled_and_certified_unsettle
 def test_small_runs_say_they_were_not_audited():
     r = js.run_ensemble(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, run=js.RunOptions(progress=False))
     assert r.run_info["audit"]["rows"] == 0 and "fewer than 500" in r.run_info["audit"]["why"]
-    assert "audit" not in js.run_ensemble(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, audit=False,
-                                          run=js.RunOptions(progress=False)).run_info
+    assert "audit" not in js.run_ensemble(np.array([[1.0, 1.0, 0.5]]), t_final=1.0,
+                                          run=js.RunOptions(progress=False, audit=False)).run_info
     with pytest.raises(ValueError, match="audit must be"):
-        js.run_ensemble(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, audit="yes")
+        js.run_ensemble(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, run=js.RunOptions(audit="yes"))
 
 
 @pytest.mark.slow
@@ -77,7 +77,7 @@ def test_the_audit_passes_the_defaults_and_fails_loose_tolerances():
     RK4 steps of 0.05 s (unstable near theta = 0 and in the transient) the audit fails and says so."""
     ics = np.array([[1.0, 1.0, 0.5], [-2.0, 1.5, -1.0], [2.5, -0.5, 2.0], [0.5, -2.0, -0.3], [-1.0, -1.0, 1.2],
                     [3.0, 2.0, -2.5]])
-    run = dict(t_final=20.0, audit=Audit(rows=4), run=js.RunOptions(progress=False))
+    run = dict(t_final=20.0, run=js.RunOptions(progress=False, audit=Audit(rows=4)))
     good = js.run_ensemble(ics, **run).run_info["audit"]
     assert good["passed"] and good["rows"] == 4 and good["worst_energy_rel"] < 1e-3
     with pytest.warns(AccuracyWarning):
@@ -96,7 +96,7 @@ def test_a_validation_that_fails_its_audit_reports_the_resolved_figures():
     from jaxsleigh.tuning.validation import validate
 
     ics, old = np.array(OLD_BALANCED_STARTS), js.gains(**OLD_BALANCED)
-    ref = js.run_ensemble(ics, gains=old, x64=True, run=js.RunOptions(progress=False), audit=False,
+    ref = js.run_ensemble(ics, gains=old, x64=True, run=js.RunOptions(progress=False, audit=False),
                           stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=10**6))
     loose = validate(old, ics, audit=Audit(rows=2, energy_rel=1e-9))
     assert loose.resolved and not loose.audit["passed"]

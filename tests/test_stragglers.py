@@ -59,8 +59,8 @@ def test_the_new_status_is_described_and_counted_as_not_settled():
 
 @pytest.fixture(scope="module")
 def far_run():
-    return js.run_basin(np.array([FAR, [1.0, 1.0, 1.0]]), t_final=100.0, run=js.RunOptions(progress=False),
-                        audit=False)
+    return js.run_basin(np.array([FAR, [1.0, 1.0, 1.0]]), t_final=100.0,
+                        run=js.RunOptions(progress=False, audit=False))
 
 
 @pytest.mark.slow
@@ -118,19 +118,18 @@ def test_a_run_killed_while_its_stragglers_run_resumes_from_its_parts_to_the_sam
     rng = np.random.default_rng(3)
     ics = np.column_stack([rng.uniform(-3, 3, (2048, 2)), rng.uniform(0.3, 3, 2048)])
     ics[::64, 2] = 0.01                                      # stragglers in both parts
-    run = js.RunOptions(chunk_size=2048, progress=False)
-    whole = js.run_basin(ics, t_final=4.0, run=run, audit=False)
+    run = js.RunOptions(chunk_size=2048, progress=False, audit=False)
+    whole = js.run_basin(ics, t_final=4.0, run=run)
 
     def dead(self, lanes, rows):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(ens._Chunks, "run_stragglers", dead)
     with pytest.raises((KeyboardInterrupt, RuntimeError)):
-        js.run_basin(ics, t_final=4.0, run=run._replace(checkpoint_dir=tmp_path / "ck"), audit=False)
+        js.run_basin(ics, t_final=4.0, run=run._replace(checkpoint_dir=tmp_path / "ck"))
     assert [p.name for p in (tmp_path / "ck").glob("*_*.npz")] == ["pending_000000.npz"]
     monkeypatch.undo()
-    resumed = js.run_basin(ics, t_final=4.0, run=run._replace(checkpoint_dir=tmp_path / "ck", resume=True),
-                           audit=False)
+    resumed = js.run_basin(ics, t_final=4.0, run=run._replace(checkpoint_dir=tmp_path / "ck", resume=True))
     for f in ("q_final", "T_eps", "n_steps", "status", "u_energy"):
         np.testing.assert_array_equal(getattr(resumed, f), getattr(whole, f), err_msg=f)
     assert sorted(p.name for p in (tmp_path / "ck").glob("*_*.npz")) == ["chunk_000000.npz"]

@@ -7,7 +7,7 @@ Under the gains that ``balanced`` had until 2026-11 (``OLD_BALANCED``: k = 0.001
 seeded at amplitudes of 1e-5 to 1e-8, below float32's default absolute tolerance (1e-6), so the adaptive
 step does not resolve it there. This script measures:
 
-1. **Radau.** Two starts (those of ``tests/test_etd.py::test_energy_spent_after_settling_needs_atol_1e_8_in_float32``):
+1. **Radau.** Two starts (those of ``tests/test_etd.py::test_energy_spent_after_settling_is_resolved_at_the_default_tolerances``):
    the float64 state at 50 s, integrated to 65 s by ``scipy.integrate.solve_ivp(method="Radau", rtol=1e-10,
    atol=1e-13)`` in the physical chart, against jaxsleigh in float64 (default tolerances), float32 at atol 1e-8,
    float32 at its defaults, and float32 fixed-step RK4 at dt = 1e-3 (theta and p1 at 65 s).

@@ -198,10 +198,9 @@ def run_basin_command(args) -> int:
 
     def study(checkpoint_dir, resume, shard):
         run = RunOptions(chunk_size=args.chunk_size, progress=args.progress, checkpoint_dir=checkpoint_dir,
-                         resume=resume, shard=shard)
+                         resume=resume, shard=shard, audit=audit_from_args(args))
         return run_basin(st["starts"], eps=args.eps, t_final=args.t_final, dt=args.dt, plant=st["plant"],
-                         **law_kwargs(st["law"]), x64=args.x64, stepsize=stepsize_from_args(args), run=run,
-                         audit=audit_from_args(args))
+                         **law_kwargs(st["law"]), x64=args.x64, stepsize=stepsize_from_args(args), run=run)
 
     def finish(res, written, record, caught) -> int:
         n_flag = int((~res.valid).sum())

@@ -108,10 +108,10 @@ def run_sweep_command(args) -> int:
 
     def study(checkpoint_dir, resume, shard):
         run = RunOptions(chunk_size=args.chunk_size, progress=args.progress, checkpoint_dir=checkpoint_dir,
-                         resume=resume, shard=shard)
+                         resume=resume, shard=shard, audit=audit_from_args(args))
         return sweep(st["starts"], st["axes"], plant=st["plant"], **law_kwargs(st["law"]), eps=args.eps,
                      t_final=args.t_final, dt=args.dt, x64=args.x64, stepsize=stepsize_from_args(args), run=run,
-                     labels=st["labels"], audit=audit_from_args(args))
+                     labels=st["labels"])
 
     def finish(res, written, record, caught) -> int:
         n_flag = int((~res.valid[0]).sum())

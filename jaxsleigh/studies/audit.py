@@ -148,8 +148,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     n = int(np.shape(result.status)[0])
     k = audit.count(n)
     if k == 0:
-        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts (pass audit=jaxsleigh.Audit(rows=k) "
-                                  f"to audit a small run)"}
+        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts (pass run=jaxsleigh.RunOptions(audit="
+                                  f"jaxsleigh.Audit(rows=k)) to audit a small run)"}
     t0 = time.perf_counter()
     rows = np.sort(np.random.default_rng(audit.seed).choice(n, size=k, replace=False))
     mine, ref = _Rows.of(result, rows), _Rows.of(rerun(rows, audit.rtol, audit.atol))

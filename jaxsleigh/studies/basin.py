@@ -481,7 +481,7 @@ class BasinResult(NamedTuple):
 
 def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], controller: Any, t_final: float,
                dt: float, eps: float, x64: bool, stepsize: StepSizeController,
-               run: RunOptions, audit: Any = None) -> Optional[BasinResult]:
+               run: RunOptions) -> Optional[BasinResult]:
     r"""`run_basin` (see there) with its options resolved into the objects (`front_options`): integrate the
     closed loop from every start (``starts``: a `BasinStarts` or an ``(N, 3)`` / ``(N, 5)`` array) and summarise
     convergence. ``run.chunk_size`` defaults to 16384 on CPU (2^22 per device on accelerators,
@@ -490,7 +490,7 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
     res = _run_ensemble(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                        x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run, audit=audit,
+                        x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run,
                         certify=True)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
@@ -509,7 +509,7 @@ BASIN_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "
 
 def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Gains] = None, controller: Any = None,
               t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
-              stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None, audit: Any = None,
+              stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None,
               **options) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence (settled within the horizon).
 
@@ -525,7 +525,6 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
       stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4).
       run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 2^22 per device on
         accelerators); ``checkpoint_dir`` and ``resume`` continue an interrupted run.
-      audit: the accuracy audit, as in `jaxsleigh.run_ensemble` (``run_info["audit"]``; ``False``: none).
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
         ``shard``), mapped onto the objects.
@@ -535,7 +534,7 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
     """
     stepsize, _, run = front_options("run_basin", BASIN_KEYWORDS, stepsize, None, run, options)
     return _run_basin(starts, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                      x64=x64, stepsize=stepsize, run=run, audit=audit)
+                      x64=x64, stepsize=stepsize, run=run)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -149,7 +149,7 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         for sname, ics in starts.items():
             ics = np.asarray(ics, np.float64)
             r = run_ensemble(ics, plant=plant, controller=law, t_final=t_final, dt=dt, eps=eps, x64=x64,
-                             stepsize=stepsize, run=RunOptions(progress=False), audit=audit)
+                             stepsize=stepsize, run=RunOptions(progress=False, audit=audit))
             row = _row(r.T_eps, r.status, r.u_energy, r.u_norm_peak, r.min_abs_theta)
             rows.append({"controller": name, "starts": sname, "n": int(ics.shape[0]), **row,
                          "audit": r.run_info.get("audit")})

@@ -734,7 +734,7 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
 
 def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
                   eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController, saveat: SaveAt,
-                  run: RunOptions, audit: Any = None, certify: bool = False) -> Optional[EnsembleResult]:
+                  run: RunOptions, certify: bool = False) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
@@ -753,7 +753,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
       `EnsembleResult` (``None`` with ``run.shard``).
     """
     reject_traced("run_ensemble", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    spec = resolve_audit(audit)
+    spec = resolve_audit(run.audit)
     save_every, summaries = saveat
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every, x64=x64, eps=eps,
                        stepsize=stepsize, controller=controller)
@@ -801,7 +801,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
             return _run_ensemble(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                  stepsize=StepSizeController(rtol=rtol, atol=atol,
                                                              max_steps=min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)),
-                                 saveat=SaveAt(), run=RunOptions(progress=False), audit=False)
+                                 saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
 
         run_info["audit"] = audit_rows(result, rerun, spec, what="ensemble")
     return result
@@ -816,7 +816,7 @@ ENSEMBLE_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps"
 def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
                  stepsize: Optional[StepSizeController] = None, saveat: Optional[SaveAt] = None,
-                 run: Optional[RunOptions] = None, observers: Optional[tuple] = None, audit: Any = None,
+                 run: Optional[RunOptions] = None, observers: Optional[tuple] = None,
                  **options) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
@@ -832,14 +832,14 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         monitor; defaults per dtype).
       saveat: `jaxsleigh.SaveAt` (default: final states and summaries; ``every=k``: also the trajectories every
         ``k`` base steps, ``N * T * 5`` numbers; ``summaries=False``: the plain fixed-step path).
-      run: `jaxsleigh.RunOptions` (chunks, devices, checkpoint and resume, progress, a process's share).
+      run: `jaxsleigh.RunOptions` (chunks, devices, checkpoint and resume, progress, a process's share; its
+        ``audit``: a random 1% of the rows, at most 64, none below 500 starts, re-run in float64 at rtol = atol =
+        1e-10, the worst differences in ``run_info["audit"]`` and an `AccuracyWarning` beyond its thresholds,
+        `jaxsleigh.studies.audit`; ``RunOptions(audit=False)``: none).
         Every finished chunk is written atomically and carries the fingerprint of its run; a chunk of another
         run stops the run with a `CheckpointError`, a damaged one is recomputed.
       observers: the on-line summaries (`jaxsleigh.integrate.observers`; default `DEFAULT_OBSERVERS`); the
         standard fields that no given observer provides are NaN, other observers' results are in ``observed``.
-      audit: the accuracy audit (`jaxsleigh.Audit`, `jaxsleigh.studies.audit`): a random 1% of the rows (at most
-        64; none below 500 starts) re-run in float64 at rtol = atol = 1e-10, the worst differences in
-        ``run_info["audit"]`` and an `AccuracyWarning` when they exceed its thresholds. ``False``: no audit.
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``save_every``, ``summaries``, ``chunk_size``, ``segment``, ``devices``,
         ``checkpoint_dir``, ``resume``, ``progress``, ``shard``), mapped onto the objects.
@@ -849,4 +849,4 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
     """
     stepsize, saveat, run = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
     return _run_ensemble(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                         x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run, audit=audit)
+                         x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)

@@ -49,6 +49,8 @@ class RunOptions(NamedTuple):
       checkpoint_dir: write every finished chunk there; resume: reuse them (same settings and starts).
       progress: ``True`` / ``False`` / ``None`` (auto: on a terminal).
       shard: ``(index, count)``: compute only this process's share of the chunks (multi-process runs).
+      audit: the accuracy audit (`jaxsleigh.Audit`; ``None``: the default one, rows from 500 starts on; ``False``:
+        none): it adds ``run_info["audit"]`` and changes no number of the result.
     """
 
     chunk_size: Optional[int] = None
@@ -59,6 +61,7 @@ class RunOptions(NamedTuple):
     resume: bool = False
     progress: Any = None
     shard: Optional[tuple] = None
+    audit: Any = None
 
 
 def _check_policy(ss: StepSizeController) -> None:
@@ -88,7 +91,9 @@ class StudyOptions(NamedTuple):
 _KEYWORD_HOME = {**{k: ("stepsize", k) for k in ("rtol", "atol", "max_step", "max_steps", "method",
                                                   "check_passivity")},
                  "save_every": ("saveat", "every"), "summaries": ("saveat", "summaries"),
-                 **{k: ("run", k) for k in RunOptions._fields}}
+                 **{k: ("run", k) for k in RunOptions._fields if k != "audit"}}
+#: the fronts that audit (``RunOptions.audit`` is not a keyword of jaxsleigh 0.1: it goes through as it is)
+_AUDITED = frozenset({"run_ensemble", "run_basin", "sweep"})
 #: fields put even at their default: an object's ``method="adaptive"`` clashes with ``method="rk4"`` given by itself
 _ALWAYS_PUT = frozenset({"method", "check_passivity", "summaries"})
 
@@ -105,6 +110,10 @@ def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, ru
     means for this front (`jaxsleigh.simulate` keeps every 10th step).
     """
     _refuse_unknown(front, allowed, dict(options or {}))
+    audit = None if run is None else getattr(run, "audit", None)
+    if audit is not None and front not in _AUDITED:
+        raise ValueError(f"{front}() has no use for run.audit = {audit!r} (drop it; run_ensemble, run_basin and "
+                         f"sweep audit)")
     warn_deprecated(front, ((k,) + _KEYWORD_HOME[k] for k in options or {}), stacklevel=stacklevel)
     out = _merged_keywords(front, allowed, stepsize, saveat, run, options)
     ss = stepsize if stepsize is not None else StepSizeController()
@@ -114,7 +123,7 @@ def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, ru
         home, field = _KEYWORD_HOME[key]
         fields[home][field] = value
     return StudyOptions(StepSizeController(**fields["stepsize"]), saveat_default._replace(**fields["saveat"]),
-                        RunOptions(**fields["run"]))
+                        RunOptions(**fields["run"], audit=audit))
 
 
 def _refuse_unknown(front: str, allowed: frozenset, options: dict) -> None:

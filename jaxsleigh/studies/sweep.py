@@ -523,7 +523,7 @@ def _sweep_result(res, names, values: np.ndarray, shape, axes, st: BasinStarts, 
 
 def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
            dt: float, eps: float, x64: bool, labels: Optional[Mapping[str, str]], stepsize: StepSizeController,
-           run: RunOptions, audit: Any = None) -> Optional[SweepResult]:
+           run: RunOptions) -> Optional[SweepResult]:
     r"""`sweep` (see there) with its options resolved into the objects (`front_options`): run every start under
     every parameter value set, as one ensemble of ``P * N`` rows, and summarise per value set. ``labels``:
     parameter name -> text naming it in error messages (the CLI passes its ``--param``). ``run.chunk_size``
@@ -538,7 +538,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     P, N = values.shape[0], st.ics.shape[0]
     law = {"gains": lg, "controller": None} if controller is None else {"gains": None, "controller": lg}
     res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps, x64=x64,
-                        observers=None, stepsize=stepsize, saveat=SaveAt(), run=run, audit=audit)
+                        observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
     settings = _sweep_settings(res.settings, controller, base_plant, base_gains, st, names, axes, P, N)
@@ -552,7 +552,7 @@ SWEEP_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "
 
 def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
           t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
-          stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None, audit: Any = None,
+          stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None,
           **options) -> Optional[SweepResult]:
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
 
@@ -564,7 +564,6 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
       plant, gains, controller: the base values of everything not swept (default: the paper's).
       t_final, dt, eps, x64, stepsize, run: as in `jaxsleigh.run_basin`; ``run.chunk_size`` counts rows
         (start x value set): memory is bounded by the chunk, not by ``P * N``.
-      audit: the accuracy audit over the ``P * N`` rows, as in `jaxsleigh.run_ensemble` (``False``: none).
       **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
         ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
         ``shard``) and ``labels`` (parameter name -> text naming it in messages).
@@ -575,7 +574,7 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
     labels = options.pop("labels", None)
     stepsize, _, run = front_options("sweep", SWEEP_KEYWORDS, stepsize, None, run, options)
     return _sweep(starts, params, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                  x64=x64, labels=labels, stepsize=stepsize, run=run, audit=audit)
+                  x64=x64, labels=labels, stepsize=stepsize, run=run)
 
 
 # ---------------------------------------------------------------------------------------------

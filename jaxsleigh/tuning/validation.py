@@ -81,14 +81,16 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     audit = kw.pop("audit", Audit(rows=min(64, int(np.shape(ics)[0]))))
     with warnings.catch_warnings():           # a failed audit is acted on here: the gains are measured resolved
         warnings.simplefilter("ignore", AccuracyWarning)
-        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64, run=run, audit=audit, **kw)
+        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64, run=run._replace(audit=audit),
+                         **kw)
     rec = (r.run_info or {}).get("audit")
     resolved = bool(rec and rec.get("rows") and not rec["passed"])
     if resolved:
         # the settings misreport these gains (an unresolved settled phase flatters them): a tuner must see what
         # they really do, so every figure comes from float64 at the audit's reference tolerances
         kw["stepsize"] = StepSizeController(rtol=audit.rtol, atol=audit.atol, max_steps=100 * int(round(t_final / kw.get("dt", 0.01))) + 1000)
-        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=True, run=run, audit=False, **kw)
+        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=True, run=run._replace(audit=False),
+                         **kw)
     T = np.where(r.status == Status.OK, r.T_eps, np.nan)
     n = T.size
     conv = np.isfinite(T)
