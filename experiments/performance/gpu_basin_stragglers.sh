@@ -48,13 +48,12 @@ import json, sys, time
 import numpy as np
 import jaxsleigh as js
 n, name, out = int(sys.argv[1]), sys.argv[2], sys.argv[3]
-import inspect
 # the same work in both trees: the accuracy audit (float64 re-runs of 64 rows, this tree only) is left out
-kw = {"audit": False} if "audit" in inspect.signature(js.run_basin).parameters else {}
-js.run_basin(js.sample_starts(10000, seed=1), run=js.RunOptions(progress=False), **kw)          # compile
+ro = js.RunOptions(progress=False, **({"audit": False} if "audit" in js.RunOptions._fields else {}))
+js.run_basin(js.sample_starts(10000, seed=1), run=ro)          # compile
 s = js.sample_starts(n, seed=0)
 t0 = time.perf_counter()
-r = js.run_basin(s, run=js.RunOptions(progress=False), **kw)
+r = js.run_basin(s, run=ro)
 wall = time.perf_counter() - t0
 np.savez(f"/tmp/{name}_basin.npz", status=r.status, T_eps=r.T_eps, n_steps=r.n_steps, n_rejected=r.n_rejected)
 codes, counts = np.unique(r.status, return_counts=True)
