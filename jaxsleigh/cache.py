@@ -28,6 +28,10 @@ import numpy as np
 
 __all__ = ["compilation_cache_dir", "enable_compilation_cache"]
 
+#: the persistent cache's bound in bytes (least recently used entries are evicted beyond it): a whole test
+#: suite's programs take about 0.5 GB
+CACHE_MAX_BYTES = 4 * 1024**3
+
 
 def compilation_cache_dir() -> Optional[Path]:
     """Where compiled programs are kept between processes: ``$JAXSLEIGH_CACHE_DIR``, else
@@ -46,11 +50,16 @@ def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Opti
     program or the command line) compiles nothing that was compiled before.
 
     The command line calls it when it starts; a Python program calls it once, before its first
-    simulation (JAX reads the setting when it first compiles). It sets three of JAX's settings for
-    the whole process: ``jax_compilation_cache_dir`` (the folder), and
+    simulation (JAX reads the setting when it first compiles). It sets four of JAX's settings for
+    the whole process: ``jax_compilation_cache_dir`` (the folder),
     ``jax_persistent_cache_min_compile_time_secs`` and ``jax_persistent_cache_min_entry_size_bytes``
-    to 0 (every program is kept: the sleigh's are small and quick to compile, but many). With the
-    cache on, the engine's traced programs are kept as well (`KeptProgram`).
+    to 0 (every program is kept: the sleigh's are small and quick to compile, but many), and
+    ``jax_compilation_cache_max_size`` to `CACHE_MAX_BYTES`. The bound is what makes the folder safe to
+    share: without one, JAX writes entries in place and reads them without a lock, so a process that
+    reads an entry another is still writing aborts (two test workers, or the processes of one basin,
+    compiling the same program); with one, JAX takes a file lock around every read and write (the
+    ``filelock`` package) and evicts the least recently used entries beyond the bound. With the
+    cache on, the engine's traced programs are kept as well (`KeptProgram`, written atomically).
 
     Args:
       path: the cache folder. Default: the command line's (`compilation_cache_dir`:
@@ -91,6 +100,8 @@ def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Opti
         # cache every program: the sleigh's are small and quick to compile, but many
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        # a bound turns on JAX's file lock around every read and write of the shared folder
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
     return d
 
 

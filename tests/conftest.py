@@ -35,6 +35,7 @@ if _CACHE is not None:
     os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(js.cache.CACHE_MAX_BYTES))
 
 #: tests measured slow (node ids without parameters: every case of a listed test is slow)
 SLOW = frozenset(line.split("#")[0].strip() for line in (Path(__file__).parent / "slow.txt").read_text().splitlines()

@@ -37,12 +37,17 @@ def test_python_program_fills_the_same_folder_as_the_command_line(tmp_path):
         d = js.enable_compilation_cache()
         assert d == compilation_cache_dir(), (d, compilation_cache_dir())
         js.simulate([1.0, 1.0, 0.5], t_final=0.1, dt=0.01, saveat=js.SaveAt(every=1))
+        import jax
+        assert jax.config.jax_compilation_cache_max_size == js.cache.CACHE_MAX_BYTES > 0
         print(d)
     """)
     r = subprocess.run([sys.executable, "-c", code], env=_env(cache), capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert Path(r.stdout.strip()) == cache
     assert len([p for p in cache.rglob("*") if p.is_file()]) >= 1
+    # the folder is shared between processes: JAX read and wrote it under its file lock (a bounded cache's),
+    # so no process reads an entry another is still writing
+    assert (cache / ".lockfile").exists()
 
 
 def test_default_folder_and_off_switch(monkeypatch, tmp_path):

@@ -157,7 +157,8 @@ COMMAND_ARGS = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"],
                 "optimum": ["--samples", "1", "--horizons", "1"]}
 OUTPUTS = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json", "paper": "p",
            "optimum": "o.npz"}
-PATH_OPTIONS = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--json", "--help"}
+PATH_OPTIONS = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--cache", "--history", "--json",
+                "--help"}
 
 
 def test_no_numeric_flag_of_any_command_shows_a_traceback(tmp_path, capsys, monkeypatch):
@@ -165,6 +166,7 @@ def test_no_numeric_flag_of_any_command_shows_a_traceback(tmp_path, capsys, monk
     code 2, or the command's work reached; never a traceback (two of these were OverflowErrors)."""
     import argparse
 
+    monkeypatch.chdir(tmp_path)                             # a path option missed below writes here, not in the checkout
     for mod, name in WORK:
         monkeypatch.setattr(importlib.import_module(mod), name, _no_work)
     base, outputs, paths = COMMAND_ARGS, OUTPUTS, PATH_OPTIONS
