@@ -102,7 +102,27 @@ def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Opti
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
         # a bound turns on JAX's file lock around every read and write of the shared folder
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    _stamp_unbounded_entries(d)
     return d
+
+
+def _stamp_unbounded_entries(d: Path) -> None:
+    """Give every entry of ``d`` that an unbounded cache kept (an earlier jaxsleigh's, or JAX's own default) the
+    access-time file a bounded cache keeps beside each entry, its file's modification time: without one, JAX's
+    eviction fails on every write and keeps nothing new. Under JAX's lock; a no-op once done."""
+    import filelock
+
+    from .jax_private import cache_entry_suffixes
+
+    entry, atime = cache_entry_suffixes()
+    try:
+        with filelock.FileLock(d / ".lockfile", timeout=10):
+            for p in d.glob(f"*{entry}"):
+                stamp = d / (p.name[: -len(entry)] + atime)
+                if not stamp.exists():
+                    stamp.write_bytes(p.stat().st_mtime_ns.to_bytes(8, "little"))
+    except (OSError, filelock.Timeout):
+        pass                      # another process holds the folder: it stamps them, or JAX warns and compiles
 
 
 # --- programs kept exported: a second process skips tracing as well as compiling --------------------------------

@@ -50,6 +50,20 @@ def test_python_program_fills_the_same_folder_as_the_command_line(tmp_path):
     assert (cache / ".lockfile").exists()
 
 
+def test_entries_an_unbounded_cache_kept_are_stamped_so_that_the_bounded_one_keeps_writing(tmp_path):
+    """A folder filled by an unbounded cache (an earlier jaxsleigh's) has entries without access-time files; JAX's
+    bounded cache reads one for every entry before it writes. `enable_compilation_cache` stamps them (their
+    modification time) and leaves stamped ones alone."""
+    d = tmp_path / "old"
+    d.mkdir()
+    (d / "jit_f-abc-cache").write_bytes(b"x" * 10)
+    (d / "jit_g-def-cache").write_bytes(b"y")
+    (d / "jit_g-def-atime").write_bytes((7).to_bytes(8, "little"))
+    jaxsleigh.cache._stamp_unbounded_entries(d)
+    assert int.from_bytes((d / "jit_f-abc-atime").read_bytes(), "little") == (d / "jit_f-abc-cache").stat().st_mtime_ns
+    assert int.from_bytes((d / "jit_g-def-atime").read_bytes(), "little") == 7
+
+
 def test_default_folder_and_off_switch(monkeypatch, tmp_path):
     monkeypatch.delenv("JAXSLEIGH_CACHE_DIR", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))

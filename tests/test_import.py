@@ -93,9 +93,10 @@ def test_the_private_jax_name_jaxsleigh_reads_is_where_it_expects():
     from pathlib import Path
 
     import jaxsleigh
-    from jaxsleigh.jax_private import distributed_client
+    from jaxsleigh.jax_private import cache_entry_suffixes, distributed_client
 
     assert distributed_client() is None                  # no jax.distributed.initialize in this process
+    assert cache_entry_suffixes() == ("-cache", "-atime")
     root = Path(jaxsleigh.__file__).parent
     reach = [f"{p.relative_to(root)}:{n.lineno}" for p in root.rglob("*.py") if p.name != "jax_private.py"
              for n in ast.walk(ast.parse(p.read_text()))
