@@ -241,7 +241,6 @@ def test_cli_search_writes_gains_with_their_figures(tmp_path, capsys):
     (["--energy-percentiles", "50,90"], "belong to --search"),
     (["--atol", "1e-8", "--validate", "0"], "--validate 0 skips it"),
     (["--pareto", "2", "--rtol", "1e-7", "--validate", "0"], "drop --rtol"),
-    (["--controller", "astolfi", "--atol", "1e-8"], "tune --controller does not run"),
     (["--search", "--energy-percentiles", "50,100"], "in (0, 100)"),
     (["--search", "--energy-percentiles", "50,50"], "distinct"),
     (["--search", "--energy-percentiles", "median"], "e.g. --energy-percentiles 50,75,90"),

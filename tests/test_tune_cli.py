@@ -90,6 +90,22 @@ def test_a_budget_that_is_not_met_is_said_flagged_and_exits_3(tmp_path, capsys):
     assert f"{meta['training_energy']:.4g}" in line and "--energy-budget 1e-09" in line and "not meet" in line
 
 
+def test_a_tuned_law_is_checked_on_held_out_starts_by_the_accurate_engine_and_audited(tmp_path, capsys):
+    """Like the paper's gains, a tuned law is measured on starts the tuner never saw, with the accurate engine, and
+    that check is audited in float64: its figures are in the law's file and in the printed table."""
+    out = tmp_path / "t.json"
+    argv = ["tune", "--controller", "astolfi", "--steps", "1", "--out", out, "--batch", "2", "--t-final", "2",
+            "--validate", "3", "--atol", "1e-7", "--no-progress"]
+    rc, printed, err = _run(argv, capsys)
+    assert rc == 0, err
+    v = json.loads(out.read_text())["meta"]["validation"]
+    assert set(v) == {"initial", "tuned"}
+    for row in v.values():
+        assert row["n"] == 3 and row["seed"] == 1000 and row["audit"]["rows"] == 3
+        assert isinstance(row["audit"]["passed"], bool) and row["median_energy"] > 0
+    assert "| initial |" in printed and "| tuned |" in printed
+
+
 def test_gradient_tuning_that_misses_its_budget_says_so(tmp_path, capsys):
     out = tmp_path / "g.json"
     rc, _, err = _run(["tune", "--out", out, "--steps", "2", "--batch", "4", "--t-final", "5", "--n-attempts", "2000",

@@ -119,14 +119,11 @@ def _cmd_law(args, plant, law) -> int:
     from ..tuning.law import InvalidStartingLaw
     from ..tuning.runs import law_run
 
-    if args.rtol is not None or args.atol is not None:
-        raise ValueError("--rtol / --atol set the tolerance of the held-out check, which tune --controller "
-                         "does not run: drop them")
     names = gain_names(law) if args.tune == "L,k,D_hat" else [n.strip() for n in args.tune.split(",")]
     try:
         o = law_run(tuning_run(args, LAW_FLAGS), law, args.controller, batch=args.batch, seed=args.seed, tune=names,
                     plant=plant, loss=loss_config(args), steps=args.steps, lr=args.lr, x64=args.x64,
-                    n_attempts=args.n_attempts)
+                    n_attempts=args.n_attempts, held_out=held_out(args))
     except InvalidStartingLaw:
         raise ValueError(_invalid_law_message(args)) from None
     if o.interrupted:
@@ -136,6 +133,7 @@ def _cmd_law(args, plant, law) -> int:
     res = o.result
     print(f"{PROG} tune --controller {args.controller}: tuned {', '.join(names)} in {len(res.history['loss'])} "
           f"steps; training loss {res.loss:.4g}, energy {res.energy:.4g}; wrote " + " and ".join(map(str, o.written)))
+    _print_held_out(o)
     return _budget_exit(args, o)
 
 

@@ -212,7 +212,7 @@ def tune_run(run, gains0="paper", *, config: TuneConfig = TuneConfig(), loss: Lo
         save_gains(res.gains, run.out, **meta)          # before the held-out check, so that it cannot lose them
         written = [run.out, *_history(run, lambda p: tu.save_history(res.history, p))]
         run.finished()
-        rows = _held_out_rows(res, plant, x64, held_out, "tuned")
+        rows = _held_out_rows(res.initial, res.gains, plant, x64, held_out, "tuned")
         if rows:
             meta["validation"] = {k: {"n": v.n, "seed": held_out.seed, **held_out.tolerances(),
                                       "median_T_0.05": _num(v.median), "median_se": _num(v.median_se),
@@ -266,7 +266,7 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
         wall = time.perf_counter() - t0
         written = _write_search(run, res, record, wall_s=wall)
         run.finished()
-        rows = _held_out_rows(res, plant, x64, held_out, "searched")
+        rows = _held_out_rows(res.initial, res.gains, plant, x64, held_out, "searched")
         if rows:
             _write_search(run, res, record, wall_s=wall,
                           validation={k: tu.validation_dict(v, seed=held_out.seed) for k, v in rows.items()})
@@ -288,12 +288,14 @@ def _write_search(run: TuningRun, res, record: dict, **extra) -> tuple:
 
 def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, seed: int = 0, tune=None, plant=None,
             loss: LossConfig = LossConfig(), steps: int = 150, lr: float = 0.05, x64: bool = False,
-            n_attempts: Optional[int] = None) -> RunOutcome:
+            n_attempts: Optional[int] = None, held_out: Optional[HeldOut] = None) -> RunOutcome:
     """`jaxsleigh.tuning.tune_law` of ``law`` (registered as ``name``; ``tune``: the leaves to tune, default all of
     `jaxsleigh.tuning.gain_names`) on ``batch`` starts drawn from ``starts`` with ``seed``, as a run that owns
     ``run.out``: the tuned law's file (`jaxsleigh.tuning.law_file`: every parameter, the actuator, how it was found,
-    the history; with ``loss.energy_budget`` whether the training energy meets it) and the history. After Ctrl-C
-    the best valid law so far. Raises what `tune_law` raises (`InvalidStartingLaw`: the law is not a valid start)."""
+    the history; with ``loss.energy_budget`` whether the training energy meets it) and the history, then the
+    ``held_out`` check of the starting and the tuned law (`jaxsleigh.tuning.validate`: the accurate engine, audited)
+    written into it. After Ctrl-C the best valid law so far. Raises what `tune_law` raises (`InvalidStartingLaw`: the
+    law is not a valid start)."""
     from .. import tuning as tu
 
     run = as_run(run)
@@ -312,9 +314,14 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
             return RunOutcome(stop.partial, _write_law(run, stop.partial, record, interrupted=True), True, wall, {})
         wall = time.perf_counter() - t0
         met = _budget_met(loss.energy_budget, res.energy)
-        written = _write_law(run, res, record, wall_s=wall, **({} if met is None else {"energy_budget_met": met}))
+        extra = dict(wall_s=wall, **({} if met is None else {"energy_budget_met": met}))
+        written = _write_law(run, res, record, **extra)          # before the held-out check, so that it cannot lose it
         run.finished()
-    return RunOutcome(res, written, False, wall, {}, None if met is None else res.energy, met)
+        rows = _held_out_rows(law, res.law, plant, x64, held_out, "tuned")
+        if rows:
+            written = _write_law(run, res, record, **extra, validation={
+                k: tu.validation_dict(v, seed=held_out.seed) for k, v in rows.items()})
+    return RunOutcome(res, written, False, wall, rows, None if met is None else res.energy, met)
 
 
 def _write_law(run: TuningRun, res, record: dict, **extra) -> tuple:
@@ -431,15 +438,16 @@ def _measured_front(front, budgets, held_out: HeldOut, baseline: bool, progress,
 # what the runs write
 # ---------------------------------------------------------------------------------------------
 
-def _held_out_rows(res, plant, x64: bool, held_out: Optional[HeldOut], label: str) -> dict:
-    """``{"initial": .., label: ..}``: the initial and the found gains of ``res`` on the held-out starts."""
+def _held_out_rows(initial, found, plant, x64: bool, held_out: Optional[HeldOut], label: str) -> dict:
+    """``{"initial": .., label: ..}``: the initial and the found gains (or laws) on the held-out starts, each by
+    `jaxsleigh.tuning.validate` (audited; re-measured in float64 where the audit fails)."""
     from .. import tuning as tu
 
     if held_out is None or not held_out.n:
         return {}
     ics = held_out.starts()
-    return {"initial": tu.validate(res.initial, ics, plant=plant, x64=x64, stepsize=held_out.stepsize),
-            label: tu.validate(res.gains, ics, plant=plant, x64=x64, stepsize=held_out.stepsize)}
+    return {"initial": tu.validate(initial, ics, plant=plant, x64=x64, stepsize=held_out.stepsize),
+            label: tu.validate(found, ics, plant=plant, x64=x64, stepsize=held_out.stepsize)}
 
 
 def _history(run: TuningRun, write) -> list:

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import AccuracyWarning
 from ..integrate.stepsize import StepSizeController
-from ..model.params import PlantParams, load_gains
+from ..model.params import Gains, PlantParams, load_gains
 from ..studies.audit import Audit
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
@@ -60,7 +60,8 @@ class Validation(NamedTuple):
 
 def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0, eps: float = 0.05,
              x64: bool = False, n_boot: int = 1000, seed: int = 0, progress: Any = None, **ensemble_kw) -> Validation:
-    """Measure ``T_eps`` and the control effort with the accurate engine
+    """Measure ``T_eps`` and the control effort of ``gains`` (the paper's law; or any feedback law, a
+    `jaxsleigh.model.controller` object) with the accurate engine
     (`run_ensemble`, adaptive RK4, default tolerances), never with the
     training discretisation. The effort comes from the engine's on-line
     `ControlEffort` quadrature (RK4 order) when it reports one; otherwise
@@ -74,23 +75,22 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     fooled by a settled phase that the defaults do not resolve."""
     from ..studies.ensemble import run_ensemble
 
-    g = load_gains(gains)
-    kw = dict(ensemble_kw)
+    law = gains if callable(gains) and not isinstance(gains, (Gains, str)) else None
+    g = None if law is not None else load_gains(gains)
+    kw = dict(ensemble_kw, **({"gains": g} if law is None else {"controller": law}))
     run = kw.pop("run", None) or RunOptions()
     run = run if progress is None else run._replace(progress=progress)
     audit = kw.pop("audit", Audit(rows=min(64, int(np.shape(ics)[0]))))
     with warnings.catch_warnings():           # a failed audit is acted on here: the gains are measured resolved
         warnings.simplefilter("ignore", AccuracyWarning)
-        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=x64, run=run._replace(audit=audit),
-                         **kw)
+        r = run_ensemble(ics, plant=plant, t_final=t_final, eps=eps, x64=x64, run=run._replace(audit=audit), **kw)
     rec = (r.run_info or {}).get("audit")
     resolved = bool(rec and rec.get("rows") and not rec["passed"])
     if resolved:
         # the settings misreport these gains (an unresolved settled phase flatters them): a tuner must see what
         # they really do, so every figure comes from float64 at the audit's reference tolerances
         kw["stepsize"] = StepSizeController(rtol=audit.rtol, atol=audit.atol, max_steps=100 * int(round(t_final / kw.get("dt", 0.01))) + 1000)
-        r = run_ensemble(ics, plant=plant, gains=g, t_final=t_final, eps=eps, x64=True, run=run._replace(audit=False),
-                         **kw)
+        r = run_ensemble(ics, plant=plant, t_final=t_final, eps=eps, x64=True, run=run._replace(audit=False), **kw)
     T = np.where(r.status == Status.OK, r.T_eps, np.nan)
     n = T.size
     conv = np.isfinite(T)
@@ -117,6 +117,9 @@ def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarra
     """``(energy, peak |u|)`` per start: the engine's observers, else a saved-path quadrature."""
     if getattr(r, "u_energy", None) is not None:
         return np.asarray(r.u_energy, np.float64), np.asarray(r.u_norm_peak, np.float64)
+    if g is None:                             # a law's effort is always observed; a run without it reports none
+        nan = np.full(np.shape(r.T_eps), np.nan)
+        return nan, nan
     import jax.numpy as jnp
 
     from ..model.w_laws import control_w_components
