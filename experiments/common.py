@@ -1,15 +1,16 @@
-"""What the scripts of both folders share: the repository's root, the machine's load, a fresh Python process
+"""What the scripts of both folders share: the repository's root, the machine and its load, a fresh Python process
 that prints one JSON line, and a git worktree of an earlier commit to run against.
 
 Import it from a script of ``studies/`` or ``performance/`` with
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from common import ROOT, baseline_tree, load, run_py
+    from common import ROOT, baseline_tree, load, machine, run_py
 """
 from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
 import tempfile
@@ -22,6 +23,15 @@ ROOT = Path(__file__).resolve().parents[1]
 def load() -> list:
     """The machine's load averages over 1, 5 and 15 minutes, rounded: recorded next to every timing."""
     return [round(x, 2) for x in os.getloadavg()]
+
+
+def machine() -> dict:
+    """What ran a figure: the architecture, the cores, Python's and JAX's versions and JAX's backend (JAX is
+    imported: call it where the script uses JAX anyway)."""
+    import jax
+
+    return {"arch": platform.machine(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "jax": jax.__version__, "jax_backend": jax.default_backend()}
 
 
 def run_py(code: str, args=(), env=None) -> dict:

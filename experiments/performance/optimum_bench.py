@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -22,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import ROOT, load  # noqa: E402
+from common import ROOT, load, machine  # noqa: E402
 
 sys.path.insert(0, str(ROOT))
 
@@ -36,7 +34,6 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     horizons = tuple(float(v) for v in args.horizons.split(","))
 
-    import jax
 
     from jaxsleigh import optimum
     from jaxsleigh.tuning.starts import UniformStarts
@@ -54,8 +51,7 @@ def main(argv=None) -> None:
            "share_solved": (counts["converged"] + counts["not_stationary"]) / res.status.size,
            "median_energy": [float(np.nanmedian(c)) for c in res.energy.T],
            "loadavg_start": load_start, "loadavg_end": load(),
-           "machine": {"arch": platform.machine(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
-                       "backend": jax.default_backend()}}
+           "machine": machine()}
     print(json.dumps(out, indent=1))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=2) + "\n")

@@ -15,6 +15,7 @@ settled phase oscillates, as ``balanced_0.2``; every controller of ``jaxsleigh c
 Printed and written as JSON, per law and distribution: the energy percentiles 25/50/75/90 of both (over the starts
 that reached the horizon in both) and their worst relative difference; the share of starts whose energy is more
 than 5% off; the median T_0.05 of both; the settled fraction of both; the mean accepted steps of the default run.
+A start whose reference spent its step budget (no answer to compare with) is not judged; the rows say how many.
 The criteria (all must hold): percentiles within 2%, fewer than 2% of starts more than 5% off, median T_0.05 within
 0.05 s, settled fraction within 0.005. ``--also COMMIT`` runs the default column again with that commit's library
 (a git worktree) in the same run, for a before/after comparison.
@@ -72,10 +73,13 @@ def _arr(xs):
 
 
 def compare(d: dict, ref: dict) -> dict:
-    """The default run ``d`` against the reference ``ref`` (per-start arrays of one law and distribution)."""
-    ok = (np.array(d["status"]) == 0) & (np.array(ref["status"]) == 0)
+    """The default run ``d`` against the reference ``ref`` (per-start arrays of one law and distribution). A start
+    whose reference did not finish (its step budget spent: no answer to compare with) is not judged, as in the
+    accuracy audit; it is counted in ``n_reference_unfinished``."""
+    judged = np.array(ref["status"]) == 0
+    ok = (np.array(d["status"]) == 0) & judged
     e, er = _arr(d["u_energy"])[ok], _arr(ref["u_energy"])[ok]
-    T, Tr = _arr(d["T_eps"]), _arr(ref["T_eps"])
+    T, Tr = _arr(d["T_eps"])[judged], _arr(ref["T_eps"])[judged]
     T = np.where(np.isnan(T), np.inf, T)
     Tr = np.where(np.isnan(Tr), np.inf, Tr)
     pct = {f"p{q}": [float(np.percentile(e, q)), float(np.percentile(er, q))] for q in QS}
@@ -84,7 +88,7 @@ def compare(d: dict, ref: dict) -> dict:
     both = np.isfinite(T) & np.isfinite(Tr)
     med, med_r = float(np.median(T)), float(np.median(Tr))
     out = {
-        "n": len(d["status"]), "n_compared": int(ok.sum()),
+        "n": len(d["status"]), "n_compared": int(ok.sum()), "n_reference_unfinished": int((~judged).sum()),
         "energy_percentiles_default_vs_reference": pct,
         "energy_percentile_worst_rel": worst,
         "share_energy_off_5pct": float(np.mean(rel > 0.05)),
@@ -110,6 +114,8 @@ def main(argv=None) -> None:
     ap.add_argument("--dists", default="readme,wide")
     ap.add_argument("--also", default=None, help="also run the default column with this commit's library")
     ap.add_argument("--out", default=str(ROOT / "docs" / "figures" / "default_accuracy.json"))
+    ap.add_argument("--merge", action="store_true",
+                    help="replace these rows in an existing --out and keep its others (each row names its command)")
     args = ap.parse_args(argv)
     here = str(ROOT / "experiments")
     env_now = {"PYTHONPATH": str(ROOT)}
@@ -118,6 +124,11 @@ def main(argv=None) -> None:
            "dtype": "float32 (default) against float64 at rtol = atol = 1e-10 (reference)",
            "machine": {"arch": platform.machine(), "python": platform.python_version()}, "load_start": load(),
            "t_final": 100.0, "eps": 0.05, "rows": {}}
+    if args.merge and Path(args.out).exists():
+        old = json.loads(Path(args.out).read_text())
+        out["rows"] = {k: dict(v, command=v.get("command", old["command"])) for k, v in old["rows"].items()}
+        if isinstance(old.get("partial"), str):            # rows parsed from an interrupted run's printed lines
+            out["earlier_rows"] = old["partial"]
     for dist in args.dists.split(","):
         for law in args.laws.split(","):
             t0 = time.perf_counter()
@@ -126,6 +137,7 @@ def main(argv=None) -> None:
             ref = run_py(RUN, (law, dist, args.n, "reference", here, json.dumps(BALANCED_02)), env_now)
             row = compare(d, ref)
             row["wall_s_default"] = round(t1 - t0, 1)
+            row["command"] = out["command"]
             if base is not None:
                 old = run_py(RUN, (law, dist, args.n, "default", here, json.dumps(BALANCED_02)),
                              {"PYTHONPATH": str(base)})
@@ -139,6 +151,7 @@ def main(argv=None) -> None:
                      f">5% {row['before']['share_energy_off_5pct']:.3f} steps {row['before']['mean_steps']:.0f}"
                      if base is not None else ""), flush=True)
     out["load_end"] = load()
+    out["partial"] = len(out["rows"]) < len(LAWS) * 2
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
@@ -26,6 +24,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(ROOT / "experiments"))
+from common import machine  # noqa: E402  (experiments/common.py)
 
 
 def main(argv=None) -> int:
@@ -34,15 +34,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "docs/figures/heading_wrap.json"))
     args = ap.parse_args(argv)
 
-    import jax
     import jaxsleigh as js
     from jaxsleigh.controllers.aicardi import AicardiLaw
     from preset_effort import readme_starts
 
     ics = readme_starts(args.n)
     out = {"command": ["python", "experiments/studies/heading_wrap.py"] + list(argv if argv is not None else sys.argv[1:]),
-           "dtype": "float32", "machine": {"arch": platform.machine(), "cpu_count": os.cpu_count(),
-                                           "jax_backend": jax.default_backend(), "jax": jax.__version__},
+           "dtype": "float32", "machine": machine(),
            "n": int(ics.shape[0]), "t_final": 100.0, "eps": 0.05, "laws": {}}
     for name, kw in (("paper", {"gains": js.paper_gains()}), ("aicardi", {"controller": AicardiLaw()})):
         r = js.run_ensemble(ics, t_final=100.0, eps=0.05, run=js.RunOptions(progress=False), **kw)

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -33,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, load  # noqa: E402
+from common import ROOT, load, machine  # noqa: E402
 from preset_effort import readme_starts, wide_starts  # noqa: E402
 
 sys.path.insert(0, str(ROOT))
@@ -100,7 +98,6 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     horizons = tuple(float(v) for v in args.horizons.split(","))
 
-    import jax
 
     from jaxsleigh import RunOptions, StepSizeController, optimum, run_ensemble
     from jaxsleigh.status import Status
@@ -112,7 +109,7 @@ def main(argv=None) -> None:
            "horizons": list(horizons), "optimum": "jaxsleigh.optimum, 24 intervals, default OptimumOptions",
            "E_law": "int_0^100 |u|^2 dt (the law's whole effort, settling included)",
            "T_law": "T_0.05: the start of the last stay in |q| <= 0.05",
-           "machine": {"arch": platform.machine(), "cpu_count": os.cpu_count(), "jax": jax.__version__},
+           "machine": machine(),
            "loadavg_start": load_start, "distributions": {}}
     keep = {}
     for dname, ics in dists.items():

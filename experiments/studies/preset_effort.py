@@ -26,8 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -36,6 +34,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+from common import machine  # noqa: E402  (experiments/common.py)
 
 PRESETS = ("paper", "balanced", "tuned", "shaped")
 QS = (10, 25, 50, 75, 90)
@@ -94,7 +94,6 @@ def main(argv=None) -> None:
     if args.out is None:
         args.out = str(ROOT / "docs" / "figures" / ("preset_effort_x64.json" if args.x64 else "preset_effort.json"))
 
-    import jax
 
     from jaxsleigh import RunOptions, StepSizeController, load_shaped, run_ensemble
 
@@ -106,8 +105,7 @@ def main(argv=None) -> None:
            "dtype": "float64" if args.x64 else "float32",
            "method": "adaptive, " + ("default tolerances" if args.atol is None else f"default rtol, atol {args.atol:g}"),
            "atol": args.atol, "t_final": 100.0, "eps": 0.05,
-           "machine": {"arch": platform.machine(), "cpu_count": os.cpu_count(), "jax_backend": jax.default_backend(),
-                       "jax": jax.__version__},
+           "machine": machine(),
            "energy": "int_0^T ||u||^2 dt over the starts that reached the horizon; ratio_to_paper: each "
                      "percentile / the paper gains' same percentile on the same starts",
            "T": "T_0.05 (the start of the last stay in |q| <= 0.05); a start not settled by 100 s counts as infinite (null)",

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import sys
 import time
@@ -39,6 +38,8 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "experiments"))
+from common import machine  # noqa: E402  (experiments/common.py)
 
 from laws import OLD_BALANCED, OLD_BALANCED_STARTS  # noqa: E402  (tests/laws.py: the gains and starts the tests use)
 
@@ -79,7 +80,6 @@ def radau_check(g) -> list:
 
 def draw(g, rows: list, path, command: str) -> None:
     """theta(t) and the energy so far (trapezoid on the 0.1 s samples) for `STARTS`, three ways."""
-    import platform
 
     import jaxsleigh as js
     from jaxsleigh.plots.base import new_figure, save_figure
@@ -139,7 +139,6 @@ def main(argv=None) -> None:
     ap.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "settled_tolerance.png"))
     ap.add_argument("--figure-only", action="store_true", help="redraw the figure from the JSON's Radau rows")
     args = ap.parse_args(argv)
-    import jax
 
     import jaxsleigh as js
     from preset_effort import readme_starts
@@ -150,8 +149,7 @@ def main(argv=None) -> None:
         draw(old, doc["radau"], args.figure, doc["command"])
         return
     doc = {"command": "python experiments/studies/settled_tolerance.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])),
-           "machine": {"arch": platform.machine(), "cpu_count": os.cpu_count(), "jax_backend": jax.default_backend(),
-                       "jax": jax.__version__},
+           "machine": machine(),
            "gains": {"old balanced": OLD_BALANCED},
            "radau": radau_check(old)}
     draw(old, doc["radau"], args.figure, doc["command"])

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -41,6 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))        # preset_effort
+sys.path.insert(0, str(ROOT / "experiments"))
+from common import machine  # noqa: E402  (experiments/common.py)
 
 
 def host(law):
@@ -92,7 +93,6 @@ def main(argv=None) -> int:
         ap.error("--write-preset writes the shaped preset: use it with --family shaped")
     args.out = args.out or str(ROOT / f"docs/figures/{args.family}_study.json")
 
-    import jax
     from jaxsleigh.model.params import paper_gains
     from jaxsleigh.model.shaped_law import shaped_from_gains
     from jaxsleigh.tuning.hard_time import HardTimeConfig, hard_time_problem, tune_by_cma, tune_by_gradient
@@ -113,8 +113,7 @@ def main(argv=None) -> int:
     coords = law_coordinates(law0)
     cfg = HardTimeConfig(energy_margin=1.0)
     out = {"command": ["python", "experiments/studies/shaped_study.py"] + list(argv if argv is not None else sys.argv[1:]),
-           "dtype": "float32", "machine": {"arch": platform.machine(), "cpu_count": __import__("os").cpu_count(),
-                                           "jax_backend": jax.default_backend(), "jax": jax.__version__},
+           "dtype": "float32", "machine": machine(),
            "family": args.family, "config": cfg._asdict(), "n_train": args.n,
            "multiplier_every": args.multiplier_every,
            "coordinates": list(coords.names), "x0": coords.x0.tolist()}
