@@ -102,7 +102,7 @@ def test_the_pool_of_stragglers_gives_the_same_bits_whatever_the_chunk_size():
     rng = np.random.default_rng(11)
     ics = np.column_stack([rng.uniform(-3, 3, (4096, 2)), rng.uniform(0.3, 3, 4096) * rng.choice([-1, 1], 4096)])
     ics[::128, 2] = rng.uniform(0.003, 0.02, 32)            # stragglers in every part
-    runs = [js.run_basin(ics, t_final=6.0, run=js.RunOptions(chunk_size=c, progress=False), audit=False)
+    runs = [js.run_basin(ics, t_final=6.0, run=js.RunOptions(chunk_size=c, progress=False, audit=False))
             for c in (2048, 4096)]
     for f in ("q_final", "p_final", "T_eps", "n_steps", "n_rejected", "status", "u_energy"):
         np.testing.assert_array_equal(getattr(runs[0], f), getattr(runs[1], f), err_msg=f)

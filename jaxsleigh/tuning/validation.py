@@ -15,7 +15,12 @@ from ..studies.audit import Audit
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
 
-__all__ = ["Validation", "validate", "markdown_table", "validation_dict"]
+__all__ = ["Validation", "validate", "markdown_table", "validation_dict", "AUDIT_ROWS"]
+
+#: the starts of a validation that its audit re-runs in float64 (all of them for fewer): a law that misreports
+#: systematically (the 0.2 ``balanced`` gains: two thirds of the starts more than 5% off) cannot pass 16 rows, and 16
+#: cost a quarter of 64 (each is a float64 run at rtol = atol = 1e-10, the dearest part of a validation)
+AUDIT_ROWS = 16
 
 
 class Validation(NamedTuple):
@@ -69,7 +74,7 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     ``ensemble_kw`` go to `run_ensemble` (e.g. ``stepsize=jaxsleigh.StepSizeController(atol=1e-8)``);
     ``progress`` sets the progress bar of ``run`` (`jaxsleigh.RunOptions`).
 
-    Every validation is audited (`jaxsleigh.studies.audit`: up to 64 of the starts re-run in float64 at
+    Every validation is audited (`jaxsleigh.studies.audit`: `AUDIT_ROWS` of the starts re-run in float64 at
     rtol = atol = 1e-10; ``audit=`` another `jaxsleigh.Audit`, or ``False``). Where the audit fails, the figures are
     those of the whole set re-run at the audit's reference settings (``resolved``): a tuner judged on them cannot be
     fooled by a settled phase that the defaults do not resolve."""
@@ -80,7 +85,7 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     kw = dict(ensemble_kw, **({"gains": g} if law is None else {"controller": law}))
     run = kw.pop("run", None) or RunOptions()
     run = run if progress is None else run._replace(progress=progress)
-    audit = kw.pop("audit", Audit(rows=min(64, int(np.shape(ics)[0]))))
+    audit = kw.pop("audit", Audit(rows=min(AUDIT_ROWS, int(np.shape(ics)[0]))))
     with warnings.catch_warnings():           # a failed audit is acted on here: the gains are measured resolved
         warnings.simplefilter("ignore", AccuracyWarning)
         r = run_ensemble(ics, plant=plant, t_final=t_final, eps=eps, x64=x64, run=run._replace(audit=audit), **kw)
