@@ -26,9 +26,13 @@ def load() -> list:
 
 
 def machine() -> dict:
-    """What ran a figure: the architecture, the cores, Python's and JAX's versions and JAX's backend (JAX is
-    imported: call it where the script uses JAX anyway)."""
+    """What ran a figure: the architecture, the cores, Python's and JAX's versions and JAX's backend. It starts
+    JAX, after giving it one CPU device per core as the command line does (`jaxsleigh.cores`)."""
     import jax
+
+    import jaxsleigh
+
+    jaxsleigh.cores.configure()
 
     return {"arch": platform.machine(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
             "jax": jax.__version__, "jax_backend": jax.default_backend()}
