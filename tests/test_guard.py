@@ -14,8 +14,10 @@ from jaxsleigh.model.charts import WChart
 
 #: settled states in the w chart (w1 = theta small, the rest smaller), where the pair is fast
 STATES = np.array([[0.02, 1e-4, -2e-4, 1e-4, 0.0], [-0.01, -3e-4, 1e-4, 0.0, 1e-5], [0.05, 2e-3, 1e-3, -1e-3, 2e-4]])
-#: a state near the target where the `balanced` gains' pair is weakly damped (sigma = -0.35 / s)
-WEAK = np.array([0.00101785, -0.00069916, 0.03874416, -0.00072213, -0.0023888])
+#: states near the target where the `balanced` gains' pair is weakly damped: sigma = -0.55 / s at omega = 171 rad/s
+#: (guarded), and sigma = -0.35 / s at omega = 507 rad/s (faster than FASTEST: left alone)
+WEAK = np.array([0.00302107, 0.00300406, -0.00071043, -0.00025541, -0.00595812])
+FAST = np.array([0.00101785, -0.00069916, 0.03874416, -0.00072213, -0.0023888])
 
 
 def _pair(field, y, args):
@@ -31,7 +33,7 @@ def test_sigma_and_omega_are_the_jacobians_complex_pair(x64, gains):
     rounding, and the full Jacobian's pair to 1% where it is settled."""
     args = js.ClosedLoop(js.paper_plant(), js.load_gains(gains))
     chart = WChart()
-    for y in (*STATES, WEAK):
+    for y in (*STATES, WEAK, FAST):
         sigma, omega2 = map(float, guard.pair_damping(chart.field, 0.0, jnp.asarray(y), args))
         J = np.asarray(jax.jacfwd(lambda v: chart.field(0.0, v, args))(jnp.asarray(y)))
         block = np.linalg.eigvals(J[np.ix_([1, 3, 4], [1, 3, 4])])
@@ -44,24 +46,28 @@ def test_sigma_and_omega_are_the_jacobians_complex_pair(x64, gains):
 
 
 def test_the_guard_caps_steps_only_near_the_target_where_the_pair_is_weak(x64):
-    """``(cap, atol)``: the cap is 0.5/omega and atol/100 where |q| <= 4 eps and sigma > -0.75; inf and atol where
-    the pair is well damped (the paper's gains settle with sigma < -1) or far from the target."""
+    """``(cap, atol)``: the cap is 0.5/omega and atol/100 (not below 1e-8) where |q| <= 4 eps, sigma > -0.75 and
+    omega < 500 rad/s; inf and atol where the pair is well damped (the paper's gains settle with sigma < -1), faster,
+    or far from the target."""
     chart = WChart()
     eps, atol = 0.05, 1e-6
     seen = set()
     for gains in ("paper", "balanced"):
         args = js.ClosedLoop(js.paper_plant(), js.load_gains(gains))
-        for y in (*STATES, WEAK):
+        for y in (*STATES, WEAK, FAST):
             y = jnp.asarray(y)
             sigma, omega2 = map(float, guard.pair_damping(chart.field, 0.0, y, args))
             cap, tol = map(float, guard.oscillation_guard(chart, 0.0, y, args, atol, eps))
-            seen.add(sigma > -guard.DAMPING)
-            if sigma > -guard.DAMPING:
-                assert cap == pytest.approx(guard.PHASE / np.sqrt(omega2)) and tol == pytest.approx(atol / 100)
+            weak = sigma > -guard.DAMPING
+            guarded = weak and np.sqrt(omega2) < guard.FASTEST
+            seen.add((weak, guarded))
+            if guarded:
+                assert cap == pytest.approx(guard.PHASE / np.sqrt(omega2))
+                assert tol == pytest.approx(max(atol / 100, guard.ATOL_FLOOR))
             else:
                 assert cap == np.inf and tol == atol
             far = y.at[1].set(2.0)                          # |q| > 4 eps: never guarded
             assert float(guard.oscillation_guard(chart, 0.0, far, args, atol, eps)[0]) == np.inf
-    assert seen == {True, False}                            # both branches were checked
+    assert seen == {(False, False), (True, True), (True, False)}     # every branch was checked
     paper = js.ClosedLoop(js.paper_plant(), js.paper_gains())
     assert all(float(guard.pair_damping(chart.field, 0.0, jnp.asarray(y), paper)[0]) < -guard.DAMPING for y in STATES)

@@ -12,8 +12,9 @@ little singular damping \(k\) or a shaped potential, \(\sigma\) rises through ze
 No error estimate sees a mode below the tolerance, and a step of \(h \omega \gg 1\) (which the exponential step
 of `jaxsleigh.integrate.etd` allows) gets its growth rate wrong: float32 at the default tolerances reported 5%
 of the 0.2 gains' float64 energy on some starts. So near the target (\(|q| \le\) `NEAR` \(\epsilon\)), where the
-pair is weakly damped, \(\sigma > -\delta\) (`DAMPING`), the step is capped at \(h \le c / \omega\) (`PHASE`) and
-the absolute tolerance divided by 100 (`ATOL_FACTOR`): the oscillation is resolved whatever its amplitude, the
+pair is weakly damped, \(\sigma > -\delta\) (`DAMPING`), and not faster than `FASTEST`, the step is capped at
+\(h \le c / \omega\) (`PHASE`) and
+the absolute tolerance divided by 100 (`ATOL_FACTOR`; not below `ATOL_FLOOR`): the oscillation is resolved whatever its amplitude, the
 errors of the slow part stay below its seed, and its growth rate comes out right. Elsewhere (the paper's gains,
 the transient, a start flung far from the target) nothing changes. float32 gets the 0.2 gains' energies to a few
 percent; closer it cannot: the onset hangs on the size of the seed, and float32's rounding is of that size
@@ -31,18 +32,28 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["pair_damping", "oscillation_guard", "DAMPING", "PHASE", "ATOL_FACTOR", "NEAR"]
+__all__ = ["pair_damping", "oscillation_guard", "DAMPING", "PHASE", "ATOL_FACTOR", "NEAR", "FASTEST", "ATOL_FLOOR"]
 
 #: \(\delta\) [1/s]: the pair counts as weakly damped where \(\sigma > -\delta\)
 DAMPING = 0.75
 #: \(c\) [rad]: the largest phase of the oscillation per step where it is weakly damped
 PHASE = 0.5
+#: [rad/s] the guard leaves a pair faster than this alone: \(\omega \propto 1/|w_1|\) grows without bound as
+#: \(\theta \to 0\), and with it the cost of a cap \(c/\omega\). There the exponential step integrates the pair's
+#: linear part exactly; where the guard corrects the
+#: energy (``balanced``, ``shaped``, the 0.2 ``balanced`` gains) the pair is weak at lower frequencies
+#: (``experiments/studies/pair_damping.py``: 90% of weak states below 30 and 139 rad/s)
+FASTEST = 500.0
 #: the guard acts within this many radii of the ball |q| <= eps (the settled phase; not on a start flung far
 #: from theta = 0, whose state and tolerances are of another scale)
 NEAR = 4.0
 #: the absolute tolerance's factor where the pair is weakly damped: the mode's seed, far below the tolerance, is
 #: what grows; errors of the slow part must stay below it
 ATOL_FACTOR = 1e-2
+#: the guard tightens the absolute tolerance to no less than this: atol = 1e-8 resolves the settled phase in float32
+#: and in float64 (``docs/evidence/settled-phase.md``), and float64's default is already there (tightened further,
+#: the ``tuned`` gains' float64 runs spent their whole step budget on 36 of 2048 README starts)
+ATOL_FLOOR = 1e-8
 #: (w2, p1, p2): the rows and columns of the block, in the w chart's state
 _BLOCK = (1, 3, 4)
 
@@ -81,7 +92,7 @@ def oscillation_guard(chart, t, y, args, atol, eps):
         return None
     sigma, omega2 = pair_damping(chart.field, t, y, args)
     near = chart.q_norm2(y) <= (NEAR * eps) ** 2
-    weak = jax.lax.stop_gradient(near & (omega2 > 0) & (sigma > -DAMPING))
+    weak = jax.lax.stop_gradient(near & (omega2 > 0) & (omega2 < FASTEST ** 2) & (sigma > -DAMPING))
     cap = PHASE * jax.lax.rsqrt(jnp.where(omega2 > 0, omega2, 1.0))
     return (jax.lax.stop_gradient(jnp.where(weak, cap, jnp.inf).astype(y.dtype)),
-            jnp.where(weak, atol * ATOL_FACTOR, atol).astype(y.dtype))
+            jnp.where(weak, jnp.minimum(atol, jnp.maximum(atol * ATOL_FACTOR, ATOL_FLOOR)), atol).astype(y.dtype))
