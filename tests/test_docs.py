@@ -175,12 +175,12 @@ def test_preset_numbers_are_the_committed_measurements():
     import json
 
     d = json.loads((DOCS / "figures" / "preset_effort.json").read_text())
-    assert d["dtype"] == "float32" and d["command"] == "python experiments/studies/preset_effort.py --atol 1e-8"
-    assert d["atol"] == 1e-8
+    assert d["dtype"] == "float32" and d["command"] == "python experiments/studies/preset_effort.py"
+    assert d["atol"] is None                                     # the default tolerances
     readme = " ".join((ROOT / "README.md").read_text().split())
     tuning = " ".join((DOCS / "how-to" / "tuning.md").read_text().split())
     for text in (readme, tuning):
-        assert "`python experiments/studies/preset_effort.py --atol 1e-8`" in text
+        assert "`python experiments/studies/preset_effort.py`" in text
     quantiles = ("p25", "p50", "p75", "p90")
     for name, f in d["distributions"]["readme"]["presets"].items():
         r = [f["energy_ratio_to_paper"][q] for q in quantiles]
@@ -201,11 +201,11 @@ def test_preset_numbers_are_the_committed_measurements():
     assert d64["dtype"] == "float64" and d64["command"] == "python experiments/studies/preset_effort.py --x64"
     bal64 = d64["distributions"]["readme"]["presets"]["balanced"]["energy_ratio_to_paper"]["p50"]
     assert f"float64 (`--x64`) agrees (median {bal64:.2f}x the paper's)" in tuning
-    for dist in ("readme", "wide"):                 # float64 at its defaults and float32 at atol 1e-8 agree
+    for dist in ("readme", "wide"):                 # float64 and float32, each at its defaults, agree to 1%
         for name, f in d64["distributions"][dist]["presets"].items():
             f32 = d["distributions"][dist]["presets"][name]
             for q, v in f["energy_ratio_to_paper"].items():
-                assert abs(v - f32["energy_ratio_to_paper"][q]) < 0.01, (dist, name, q)
+                assert abs(f32["energy_ratio_to_paper"][q] / v - 1.0) < 0.01, (dist, name, q)
     bal = d["distributions"]["readme"]["presets"]["balanced"]
     assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning
 
