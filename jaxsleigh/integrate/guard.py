@@ -13,9 +13,9 @@ No error estimate sees a mode below the tolerance, and a step of \(h \omega \gg 
 of `jaxsleigh.integrate.etd` allows) gets its growth rate wrong: float32 at the default tolerances reported 5%
 of the 0.2 gains' float64 energy on some starts. So near the target (\(|q| \le\) `NEAR` \(\epsilon\)), where the
 pair is weakly damped, \(\sigma > -\delta\) (`DAMPING`), and not faster than `FASTEST`, the step is capped at
-\(h \le c / \omega\) (`PHASE`) and
-the absolute tolerance divided by 100 (`ATOL_FACTOR`; not below `ATOL_FLOOR`): the oscillation is resolved whatever its amplitude, the
-errors of the slow part stay below its seed, and its growth rate comes out right. Elsewhere (the paper's gains,
+\(h \le c / \omega\) (`PHASE`) and the absolute tolerance divided by 100 (`ATOL_FACTOR`; not below `ATOL_FLOOR`):
+the oscillation is resolved whatever its amplitude, the errors of the slow part stay below its seed, and its growth
+rate comes out right. Elsewhere (the paper's gains,
 the transient, a start flung far from the target) nothing changes. float32 gets the 0.2 gains' energies to a few
 percent; closer it cannot: the onset hangs on the size of the seed, and float32's rounding is of that size
 (``docs/evidence/settled-phase.md``; the accuracy audit, `jaxsleigh.studies.audit`, reports it).
@@ -40,9 +40,9 @@ DAMPING = 0.75
 PHASE = 0.5
 #: [rad/s] the guard leaves a pair faster than this alone: \(\omega \propto 1/|w_1|\) grows without bound as
 #: \(\theta \to 0\), and with it the cost of a cap \(c/\omega\). There the exponential step integrates the pair's
-#: linear part exactly; where the guard corrects the
-#: energy (``balanced``, ``shaped``, the 0.2 ``balanced`` gains) the pair is weak at lower frequencies
-#: (``experiments/studies/pair_damping.py``: 90% of weak states below 30 and 139 rad/s)
+#: linear part exactly; where the guard corrects the energy (``balanced``, ``shaped``, the 0.2 ``balanced`` gains) the
+#: pair is weak at lower frequencies (``experiments/studies/pair_damping.py``: 90% of weak states below 30 and 139
+#: rad/s)
 FASTEST = 500.0
 #: the guard acts within this many radii of the ball |q| <= eps (the settled phase; not on a start flung far
 #: from theta = 0, whose state and tolerances are of another scale)
