@@ -211,6 +211,19 @@ def test_tiny_theta0_budget_is_reported_then_raised():
     assert ok.max_excursion[0] > 1e5
 
 
+def test_an_effort_that_overflows_ends_the_lane_at_once_not_at_the_budget():
+    """theta0 = 2e-4 in float32 (the defaults): |u|^2 ~ 1e38 overflows, so every step's error estimate is
+    inf - inf = NaN. A NaN ratio is a failed step: the step shrinks until it underflows and the lane ends
+    STEP_UNDERFLOW within a few dozen attempts, its final state NaN. (It used to become a NaN step size that
+    every later attempt kept, so the lane burnt its whole budget, 2e5 rejections, and ended BUDGET_EXHAUSTED.)
+    The neighbouring start at 4e-4 is integrated and still runs out of budget, honestly, with steps accepted."""
+    r = run_ensemble(np.array([[1.0, 1.0, 2e-4], [2.0, -1.0, -2e-4], [1.0, 1.0, 4e-4]]), t_final=5.0)
+    assert r.status[:2].tolist() == [Status.STEP_UNDERFLOW] * 2, r.status
+    assert (r.n_steps[:2] + r.n_rejected[:2] < 100).all(), (r.n_steps, r.n_rejected)
+    assert np.isnan(r.q_final[:2]).all()
+    assert r.status[2] in (Status.OK, Status.BUDGET_EXHAUSTED) and r.n_steps[2] > 1000, (r.status, r.n_steps)
+
+
 def test_starts_off_the_singular_set_never_go_nonfinite():
     """theta0 down to 1e-2 anywhere in |x|, |y| <= 5 (float32 default): every trajectory ends OK
     and finite (fixed RK4 at the same dt fails on some of them, and says so)."""

@@ -298,7 +298,9 @@ def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose
     if s.quad.shape[0]:
         err = jnp.maximum(err, error_ratio(h, s.quad, s.quad + trial.dq, trial.g4, trial.g5, ctl))
     good = finite & ~crossed & ~rose
-    err = jnp.where(good, err, jnp.inf)
+    # a NaN ratio (an overflowing estimate: inf - inf) is a failed step, not a step size: NaN there made every
+    # later step NaN and burnt the lane's whole budget in rejections
+    err = jnp.where(good & ~jnp.isnan(err), err, jnp.inf)
     ok = good & (err <= 1.0)
     h_next = next_step(h, err, ctl, err_prev=s.err_prev)
     h_next = jnp.where(ok & trial.hit, jnp.maximum(h_next, s.h), h_next)
