@@ -35,6 +35,8 @@ def _paper(text):
     rise, = _float(r"largest relative increase of H_d between samples: (\S+)", text)
     assert rise < 1e-4                                     # H_d does not increase (eq. 18)
     assert len(re.findall(r"H_d\(0\) = +[\d.e+]+ +T_eps = ", text)) == 6   # the six paper starts
+    t_ratio, e_ratio = _float(r"time ratio T_eps / T\*\(E\) >?= (\S+), energy ratio E / E\*\(T_eps\) >?= (\S+)", text)
+    assert t_ratio >= 1.0 and e_ratio >= 1.0                # no feedback law beats the open-loop optimum
 
 
 def _singular(text):

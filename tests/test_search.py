@@ -290,3 +290,88 @@ def test_cli_search_checkpoint_and_resume_must_agree(tmp_path, capsys):
     rc = cli_main(["tune", "--search", "--out", str(out), "--resume", "--no-progress", "--steps", "1", "--batch", "4",
                    "--population", "2"])
     assert rc == 2 and "damaged" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# the gap to the optimum as the objective
+# ---------------------------------------------------------------------------------------------
+
+def _frontier(ics, eps=0.05):
+    """An `OptimumResult` of ``ics`` whose frontier is E*(T) = c / T^2 at 5, 10, 20, 40 s (c per start): the gap
+    arithmetic is checked against it exactly; the optimum's own solver is tested in test_optimum.py."""
+    from jaxsleigh.studies.optimum import OptimumResult, OptimumStatus
+
+    ics = np.asarray(ics, float)
+    S, H = len(ics), np.array([5.0, 10.0, 20.0, 40.0])
+    starts = np.column_stack([ics[:, :3], np.zeros((S, 2))])
+    c = 100.0 * (1.0 + np.arange(S))[:, None]
+    return OptimumResult(starts=starts, horizons=H, eps=eps, energy=c / H ** 2, u=np.zeros((S, 4, 2, 2)),
+                         status=np.full((S, 4), OptimumStatus.CONVERGED, np.int32), q_final=np.zeros((S, 4, 3)),
+                         p_final=np.zeros((S, 4, 2)), kkt=np.zeros((S, 4)), guess=np.zeros((S, 4), np.int32))
+
+
+@pytest.fixture(scope="module")
+def gap_search():
+    front = _frontier(tu.draw_starts(tu.UniformStarts(), TINY.batch, TINY.seed))
+    return front, tu.search(config=TINY._replace(objective="gap"), frontier=front)
+
+
+def test_the_gap_search_minimises_the_median_time_ratio_it_reports(gap_search):
+    """The search's figure is the median over its starts of T_law / T*(E_law), re-measured from the returned gains'
+    own run; its score history is that median (no penalty on the feasible ones); the reference's gap is recorded,
+    and the gains returned are no further from the optimum than the starting gains."""
+    front, res = gap_search
+    again = tu.evaluate_population([res.gains], front.starts, frontier=front)
+    assert np.isfinite(res.figures["median_gap"]) and res.figures["median_gap"] >= 1.0
+    np.testing.assert_allclose(again.median_gap[0], res.figures["median_gap"], rtol=1e-4)
+    h = res.history
+    feas = h["feasible"].astype(bool)
+    np.testing.assert_allclose(h["score"][feas], np.minimum(h["median_gap"][feas], 100.0))
+    assert res.figures["median_gap"] <= res.reference["median_gap"] + 1e-12
+    assert res.settings["config"]["objective"] == "gap" and res.settings["frontier"]["horizons"] == [5, 10, 20, 40]
+
+
+def test_the_gap_is_exact_on_a_known_frontier_and_bounds_outside_it():
+    """E* = c / T^2: a law at T = 10 s with E = c / 25 is twice as slow as its energy allows (T* = 5) and spends
+    4x E*(10); outside the solved horizons the ratios are the bounds the docstring states."""
+    front = _frontier(np.zeros((1, 3)) + [1.0, 1.0, 0.5])
+    g = front.gap([10.0], [100.0 / 25])
+    np.testing.assert_allclose([g.time[0], g.energy[0]], [2.0, 4.0])
+    assert g.time_where[0] == 0 and g.energy_where[0] == 0
+    fast = front.gap([8.0], [1e4])           # more energy than the shortest horizon needs: T* < 5, ratio >= 8 / 5
+    assert fast.time_where[0] == -1 and fast.time[0] == pytest.approx(8.0 / 5.0)
+    slow = front.gap([80.0], [1.0])          # slower than the longest horizon: E ratio >= 1 / E*(40)
+    assert slow.energy_where[0] == 1 and slow.energy[0] == pytest.approx(1.0 / (100.0 / 1600))
+    assert np.isnan(front.gap([np.inf], [1.0]).time[0])
+
+
+def test_the_gap_objective_refuses_what_it_cannot_use():
+    front = _frontier(tu.draw_starts(tu.UniformStarts(), 4, 0))
+    for kwargs, words in (({"config": TINY._replace(objective="gap")}, "needs frontier="),
+                          ({"config": TINY, "frontier": front}, "objective='gap' only"),
+                          ({"config": TINY._replace(objective="speed")}, "'time' or 'gap'"),
+                          ({"config": TINY._replace(objective="gap", eps=0.1), "frontier": front}, "same ball")):
+        with pytest.raises(ValueError, match=words):
+            tu.search(**kwargs)
+
+
+def test_cli_search_on_the_gap_to_a_frontier_file(tmp_path, capsys):
+    from jaxsleigh.studies.optimum import save_optimum
+
+    front = save_optimum(tmp_path / "front.npz", _frontier(tu.draw_starts(tu.UniformStarts(), 8, 0)))
+    out = tmp_path / "g.json"
+    base = ["tune", "--search", "--out", str(out), "--steps", "2", "--population", "4", "--validate", "0",
+            "--no-progress"]
+    assert cli_main(base + ["--frontier", str(front)]) == 0, capsys.readouterr().err
+    said = capsys.readouterr().out
+    assert "median gap to the optimum" in said and "on the 8 training starts" in said, said
+    meta = json.loads(out.read_text())["meta"]
+    assert "median gap to the optimum" in meta["how"] and "--frontier" in meta["command"]
+    assert meta["training_figures"]["median_gap"] <= meta["reference_figures"]["median_gap"]
+    for extra, words in ((["--frontier", str(tmp_path / "none.npz")], "no such file"),
+                         (["--frontier", str(front), "--batch", "16"], "drop --batch 16")):
+        assert cli_main(base[:1] + ["--search", "--out", str(tmp_path / "h.json"), *extra]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, err
+    assert cli_main(["tune", "--out", str(tmp_path / "h.json"), "--frontier", str(front)]) == 2
+    assert "belong to --search" in capsys.readouterr().err

@@ -51,23 +51,6 @@ def laws():
     return out
 
 
-def ratios(res, T_law, E_law):
-    """Time and energy ratios per start, with where the inverse was censored (-1 below, +1 above the horizons)."""
-    fr = res.frontier()
-    H = res.horizons
-    T_star, wT = res.time_for_energy(E_law)
-    E_star, wE = res.energy_for_time(T_law)
-    # censored: use the bound the solved range gives
-    first = np.array([f[np.isfinite(f)][0] if np.isfinite(f).any() else np.nan for f in fr])
-    last = np.array([f[np.isfinite(f)][-1] if np.isfinite(f).any() else np.nan for f in fr])
-    t_ratio = np.where(wT == 0, T_law / T_star, np.where(wT == -1, T_law / H[0], np.nan))
-    e_ratio = np.where(wE == 0, E_law / E_star, np.where(wE == 1, E_law / last, np.nan))
-    ok = np.isfinite(T_law) & np.isfinite(E_law)
-    t_ratio, e_ratio = np.where(ok, t_ratio, np.nan), np.where(ok, e_ratio, np.nan)
-    del first
-    return t_ratio, e_ratio, wT, wE, ok
-
-
 def summary(t_ratio, e_ratio, wT, wE, ok, near):
     def q(a):
         a = a[np.isfinite(a)]
@@ -127,7 +110,8 @@ def main(argv=None) -> None:
             okr = np.asarray(r.status) == Status.OK
             T_law = np.where(okr & np.isfinite(r.T_eps), r.T_eps, np.nan)
             E_law = np.where(okr, np.asarray(r.u_energy, float), np.nan)
-            t_ratio, e_ratio, wT, wE, ok = ratios(res, T_law, E_law)
+            t_ratio, e_ratio, wT, wE = res.gap(T_law, E_law)
+            ok = np.isfinite(T_law) & np.isfinite(E_law)
             rows[lname] = summary(t_ratio, e_ratio, wT, wE, ok, near)
             pts[lname] = (T_law, E_law, t_ratio, e_ratio)
             print(f"  {lname:15s} {json.dumps({k: rows[lname][k] for k in ('settled', 'time_ratio', 'energy_ratio')})}",

@@ -66,7 +66,7 @@ def _tune_mode(args) -> int:
                                  f"--controller / --saturation / --sample-period")
     if args.steps is None:
         args.steps = 100 if search else 150
-    if args.batch is None:
+    if args.batch is None and getattr(args, "frontier", None) is None:
         args.batch = 128 if search else 256
     if search:
         return _cmd_search(args)
@@ -142,13 +142,14 @@ def _cmd_search(args) -> int:
     from ..tuning.cma_search import NoFeasibleCandidate
     from ..tuning.runs import search_run
 
+    frontier = _frontier(args)
     check_search(args)
     plant, gains0 = model_from_args(args)
     run = tuning_run(args, SEARCH_FLAGS)
     try:
         o = search_run(run, gains0, config=search_config(args), energy_budget=args.energy_budget, tune=args.tune,
                        plant=plant, x64=args.x64, stepsize=stepsize(args), progress=args.progress,
-                       held_out=held_out(args))
+                       held_out=held_out(args), frontier=frontier)
     except NoFeasibleCandidate as e:
         # the run finished: its history and checkpoint are kept (more generations resume it); name the flags
         print(_no_feasible_message(args, e, run.history), file=sys.stderr)
@@ -164,9 +165,33 @@ def _cmd_search(args) -> int:
           f"training starts, median energy {r['median_energy']:.4g} -> {f['median_energy']:.4g} (budget "
           f"{r['energy_budget']:.4g}), converged {r['frac_converged']:.3f} -> {f['frac_converged']:.3f}; "
           f"generation {res.best_generation} of {res.settings['generations_run']}, {o.wall_s:.1f} s wall")
+    if frontier is not None:
+        print(f"{PROG} tune --search: median gap to the optimum T_0.05 / T*(E) {r['median_gap']:.3g} -> "
+              f"{f['median_gap']:.3g} (1 is the optimum)")
     _print_held_out(o)
     _print_written_gains(args, res.gains)
     return 0
+
+
+def _frontier(args):
+    """``--frontier FILE``: the optimum result whose starts are the training starts (``--batch`` is their count)."""
+    if getattr(args, "frontier", None) is None:
+        return None
+    from ..studies.optimum import load_optimum
+
+    try:
+        res = load_optimum(args.frontier)
+    except FileNotFoundError:
+        raise ValueError(f"--frontier {args.frontier}: no such file; write one with 'jaxsleigh optimum --out "
+                         f"{args.frontier}'") from None
+    except (OSError, ValueError, KeyError) as e:
+        raise ValueError(f"--frontier {args.frontier} is not a file written by 'jaxsleigh optimum' "
+                         f"({type(e).__name__}: {e})") from None
+    n = int(res.starts.shape[0])
+    if args.batch is not None and args.batch != n:
+        raise ValueError(f"--frontier: its {n} starts are the training starts; drop --batch {args.batch}")
+    args.batch = n
+    return res
 
 
 def _cmd_pareto(args) -> int:

@@ -18,10 +18,10 @@ LAW_FLAGS = ("controller", "gains", "saturation", "sample_period", "delay", "noi
 GRADIENT_FLAGS = ("gains", "params", "damping", "robust", "tune", "seed", "batch", "steps", "lr", "mode", "t_final",
                   "dt", "n_attempts", "probe_budget", "stop_fraction", "energy_budget", "x64")
 SEARCH_FLAGS = ("gains", "params", "damping", "tune", "seed", "batch", "population", "energy_margin",
-                "energy_budget", "energy_percentiles", "rtol", "atol", "x64")
+                "energy_budget", "energy_percentiles", "rtol", "atol", "x64", "frontier")
 
 #: Options that only --search uses, with their defaults.
-SEARCH_ONLY = {"population": 16, "energy_margin": 0.95, "energy_percentiles": (50.0,)}
+SEARCH_ONLY = {"population": 16, "energy_margin": 0.95, "energy_percentiles": (50.0,), "frontier": None}
 #: Options of the gradient tuner that a search does not use, with their defaults.
 _GRADIENT_ONLY = {"pareto": None, "robust": False, "lr": 0.05, "mode": "forward", "t_final": 30.0, "dt": 0.01,
                   "n_attempts": 4000, "probe_budget": 100000, "stop_fraction": 0.5, "front_method": "warm",
@@ -60,7 +60,8 @@ def search_config(args):
     from ..tuning import SearchConfig
 
     return SearchConfig(generations=args.steps, population=args.population, batch=args.batch, seed=args.seed,
-                        energy_margin=args.energy_margin, energy_percentiles=args.energy_percentiles)
+                        energy_margin=args.energy_margin, energy_percentiles=args.energy_percentiles,
+                        objective="time" if getattr(args, "frontier", None) is None else "gap")
 
 
 def stepsize(args):
@@ -169,7 +170,8 @@ def _canonical_argv(args) -> list:
                 "--damping", args.damping] + (["--energy-budget", repr(args.energy_budget)]
                                               if args.energy_budget is not None else []) + (
             ["--energy-percentiles", ",".join(f"{q:g}" for q in args.energy_percentiles)]
-            if args.energy_percentiles != (50.0,) else []) + [
+            if args.energy_percentiles != (50.0,) else []) + (
+            ["--frontier", str(args.frontier)] if getattr(args, "frontier", None) is not None else []) + [
             a for flag in ("rtol", "atol") if getattr(args, flag) is not None
             for a in (f"--{flag}", repr(getattr(args, flag)))] + (["--x64"] if args.x64 else [])
     argv = ["tune", "--out", str(args.out), "--steps", str(args.steps), "--batch", str(args.batch),

@@ -134,6 +134,11 @@ def _add_search_options(p) -> None:
                    help="hold the energy within --energy-margin x the --gains' at each of these percentiles over the "
                         "training starts, not only the median (e.g. 50,75,90: the energy is bimodal, and a median "
                         "budget lets the upper half grow several-fold)")
+    d.add_argument("--frontier", default=None, metavar="FILE.npz",
+                   help="minimise the median gap to the optimum instead of the median time: T_0.05 / T*(E), the "
+                        "law's time over the earliest rest in the ball that its own energy could buy, against the "
+                        "energy-optimal frontier in FILE (written by 'jaxsleigh optimum'), on FILE's starts, under the "
+                        "same energy budget")
 
 
 def _add_pareto_options(p) -> None:

@@ -61,7 +61,7 @@ from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_p
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 
-__all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "optimum", "initial_guesses", "energy_for_time",
+__all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
            "time_for_energy", "save_optimum", "load_optimum", "rollout"]
 
 
@@ -350,6 +350,18 @@ def _status(c, g, kkt, zn, yT, eps, opts):
 
 
 # ------------------------------------------------------------------------------------------------ the result
+class Gap(NamedTuple):
+    r"""A law's distance from the optimum per start (`OptimumResult.gap`): ``time`` \(T_{law} / T^*(E_{law})\),
+    ``energy`` \(E_{law} / E^*(T_{law})\), and where each was a bound rather than a value (``time_where`` -1: a
+    lower bound, the law's energy exceeds the shortest horizon's; ``energy_where`` +1: a lower bound, the law is
+    slower than the longest horizon; 0: interpolated)."""
+
+    time: np.ndarray
+    energy: np.ndarray
+    time_where: np.ndarray
+    energy_where: np.ndarray
+
+
 @dataclass
 class OptimumResult:
     """Per start and horizon, the least-energy input found and how it ends.
@@ -396,6 +408,35 @@ class OptimumResult:
     def energy_for_time(self, T) -> tuple:
         """\\(E^*(T)\\) per start for horizons (S,): see `energy_for_time`."""
         return energy_for_time(self.horizons, self.frontier(), T)
+
+    def gap(self, T_law, E_law) -> "Gap":
+        r"""How far a law's runs from these starts are from the optimum: per start, the **time ratio**
+        \(T_{law} / T^*(E_{law})\) (how much longer than the earliest rest in the ball that the law's energy could
+        buy) and the **energy ratio** \(E_{law} / E^*(T_{law})\) (how much more energy than rest in the ball as
+        early as the law needs). Both are \(\ge 1\) up to the grid's and the solver's error, since the optimum is
+        the least over every input and a law's run is one of them.
+
+        Outside the solved horizons the ratios are *bounds*, used as their values and flagged in ``time_where`` /
+        ``energy_where`` (as `time_for_energy` / `energy_for_time`): where \(E_{law} > E^*(T_{min})\),
+        \(T^* < T_{min}\) and the time ratio is at least \(T_{law} / T_{min}\) (``-1``); where
+        \(T_{law} > T_{max}\) the energy ratio is at least \(E_{law} / E^*(T_{max})\) (``+1``); where the law's
+        energy buys no solved horizon (``+1``) or nothing was solved (``2``) the time ratio is NaN. A start the law
+        did not settle (``T_law`` NaN or inf) has NaN ratios.
+
+        Args:
+          T_law, E_law: (S,) the law's \(T_\epsilon\) (of this result's ``eps``) and control energy per start.
+        """
+        T_law = np.broadcast_to(np.asarray(T_law, float), self.starts.shape[:1])
+        E_law = np.broadcast_to(np.asarray(E_law, float), self.starts.shape[:1])
+        fr = self.frontier()
+        T_star, wT = time_for_energy(self.horizons, fr, E_law)
+        E_star, wE = energy_for_time(self.horizons, fr, T_law)
+        last = np.array([f[np.isfinite(f)][-1] if np.isfinite(f).any() else np.nan for f in fr])
+        ok = np.isfinite(T_law) & np.isfinite(E_law)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = np.where(wT == 0, T_law / T_star, np.where(wT == -1, T_law / self.horizons[0], np.nan))
+            e = np.where(wE == 0, E_law / E_star, np.where(wE == 1, E_law / last, np.nan))
+        return Gap(np.where(ok, t, np.nan), np.where(ok, e, np.nan), wT, wE)
 
     def counts(self) -> dict:
         return {s.name.lower(): int(np.sum(self.status == s)) for s in OptimumStatus}

@@ -84,7 +84,7 @@ class NoFeasibleCandidate(RuntimeError):
 #: Position of each tunable gain in the flat parameter vector ``(log_L (3), log_k, d_chol (3))``.
 _SLICES = {"L": slice(0, 3), "k": slice(3, 4), "D_hat": slice(4, 7)}
 _HISTORY = ("generation", "score", "median_T", "median_energy", "frac_converged", "n_bad", "feasible", "sigma",
-            "best_score", "wall_s")
+            "best_score", "wall_s", "median_gap")
 
 
 class SearchConfig(NamedTuple):
@@ -98,6 +98,10 @@ class SearchConfig(NamedTuple):
       converged_margin: the converged fraction must be at least the reference's plus this (the hard starts
         are a tail of a few %: a faster median tends to lengthen it, and the margin keeps the result from
         converging fewer starts than the reference on other starts).
+      objective: ``"time"``: the median \\(T_{0.05}\\) (the module docstring); ``"gap"``: the median over the starts
+        of the time ratio to the optimum, \\(T_{law} / T^*(E_{law})\\) (`jaxsleigh.OptimumResult.gap`: how much
+        longer than the earliest rest in the ball that the law's own energy could buy), under the same energy
+        budget; it needs ``search(frontier=...)``, whose starts are the training starts.
       penalty: \\(\\rho\\) of the exact penalty (module docstring).
       t_final: horizon [s] (the validation's 100 s). eps: radius of the ball of \\(T_\\epsilon\\).
       verify: feasible candidates tried against the guard starts, best first.
@@ -119,19 +123,23 @@ class SearchConfig(NamedTuple):
     eps: float = 0.05
     verify: int = 5
     energy_percentiles: tuple = (50.0,)
+    objective: str = "time"
 
 
 class PopulationFigures(NamedTuple):
     """Figures of each candidate on the training starts (arrays over the candidates): median T_eps
     (failures and unconverged count as inf), median control energy (of the OK starts), converged
-    fraction, starts that failed or crossed theta = 0, mean accepted steps; and the energy at each of the
-    ``percentiles`` asked for, shape (candidates, percentiles) (not one of `SCALAR_FIGURES`)."""
+    fraction, starts that failed or crossed theta = 0, mean accepted steps, the median time ratio to the optimum
+    (`jaxsleigh.OptimumResult.gap`; a start not settled or beyond the frontier counts as inf; NaN without a
+    frontier); and the energy at each of the ``percentiles`` asked for, shape (candidates, percentiles) (not one of
+    `SCALAR_FIGURES`)."""
 
     median_T: np.ndarray
     median_energy: np.ndarray
     frac_converged: np.ndarray
     n_bad: np.ndarray
     mean_steps: np.ndarray
+    median_gap: np.ndarray
     energy_at: np.ndarray
 
 
@@ -167,10 +175,11 @@ class SearchResult(NamedTuple):
 
 def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None, t_final: float = 100.0,
                         eps: float = 0.05, x64: bool = False, stepsize=None,
-                        percentiles: Sequence[float] = (50.0,)) -> PopulationFigures:
+                        percentiles: Sequence[float] = (50.0,), frontier=None) -> PopulationFigures:
     """Run every candidate of ``gains_list`` from every start of ``ics`` in one ensemble (gains as
     per-lane parameters, ``stepsize`` a `jaxsleigh.StepSizeController` or ``None`` for the defaults) and reduce
-    per candidate (`PopulationFigures`)."""
+    per candidate (`PopulationFigures`; the median gap against ``frontier``, a `jaxsleigh.OptimumResult` of the
+    same starts, if given)."""
     from ..studies.ensemble import run_ensemble
     from ..model.lanes import stack_gains
 
@@ -188,8 +197,13 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
     med_E = np.array([np.median(E[i][ok[i]]) if ok[i].any() else np.inf for i in range(P)])
     at = np.array([np.percentile(E[i][ok[i]], percentiles) if ok[i].any() else np.full(len(percentiles), np.inf)
                    for i in range(P)]).reshape(P, len(percentiles))
+    gap = np.full(P, np.nan)
+    if frontier is not None:
+        ratio = np.stack([frontier.gap(T[i], E[i]).time for i in range(P)])
+        gap = np.median(np.where(np.isnan(ratio), np.inf, ratio), axis=1)
     return PopulationFigures(np.median(T, axis=1), med_E, np.isfinite(T).mean(axis=1),
-                             np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1), at)
+                             np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1),
+                             gap, at)
 
 
 def _score(fig: PopulationFigures, i: int, e_max, f_min: float, cfg: SearchConfig) -> tuple[float, bool]:
@@ -198,7 +212,11 @@ def _score(fig: PopulationFigures, i: int, e_max, f_min: float, cfg: SearchConfi
     viol = sum(max(0.0, math.log(max(e, 1e-300) / b)) if math.isfinite(e) else 1e3
                for e, b in zip(fig.energy_at[i], np.atleast_1d(e_max)))
     viol += max(0.0, f_min - fig.frac_converged[i]) + float(fig.n_bad[i])
-    t = min(float(fig.median_T[i]), 2.0 * cfg.t_final)
+    if cfg.objective == "gap":
+        # a ratio, ~1-10 where the laws are (the penalty's scale suits it as it suits seconds); capped as time is
+        t = min(float(fig.median_gap[i]), 100.0)
+    else:
+        t = min(float(fig.median_T[i]), 2.0 * cfg.t_final)
     return t + cfg.penalty * viol, viol == 0.0
 
 
@@ -225,7 +243,7 @@ def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list, opt
         arrays["options"] = np.array(json.dumps(options, sort_keys=True, default=str))
     arrays.update({f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()})
     for f in _HISTORY:
-        arrays[f"hist/{f}"] = np.asarray([h[f] for h in hist], np.float64)
+        arrays[f"hist/{f}"] = np.asarray([h.get(f, math.nan) for h in hist], np.float64)
     arrays["top/score"] = np.asarray([t[0] for t in top], np.float64)
     arrays["top/generation"] = np.asarray([t[1] for t in top], np.int64)
     arrays["top/x"] = np.asarray([t[2] for t in top], np.float64).reshape(len(top), state.mean.size)
@@ -238,7 +256,7 @@ def _load(path: Path, key: str, rng):
     rng.bit_generator.state = json.loads(str(a["rng"]))
     state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
     n = len(a["hist/generation"])
-    hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY} for i in range(n)]
+    hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY if f"hist/{f}" in a} for i in range(n)]
     top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
            zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]
     return state, hist, top
@@ -247,7 +265,7 @@ def _load(path: Path, key: str, rng):
 def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = SearchConfig(), reference="paper",
            energy_budget: Optional[float] = None, tune=None, plant: Optional[PlantParams] = None, x64: bool = False,
            d_floor: float = D_FLOOR, stepsize=None, progress: Any = None, checkpoint=None,
-           resume: bool = False, options: Optional[dict] = None) -> SearchResult:
+           resume: bool = False, options: Optional[dict] = None, frontier=None) -> SearchResult:
     """The fastest gains (median T_eps on ``config.batch`` training starts) whose median control energy
     is at most ``energy_budget`` (default: ``config.energy_margin`` x the ``reference`` gains' on the
     same starts), with no fewer converged than ``reference`` and no start failing or crossing
@@ -258,11 +276,14 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     ``RuntimeError`` if no feasible candidate passes the guard starts. ``stepsize``: the engine's
     `jaxsleigh.StepSizeController` for every run (``None``: the defaults). Control energy spent after settling
     needs a tighter absolute tolerance than the float32 default to be resolved (``atol=1e-8``:
-    docs/evidence/settled-phase.md); a search on the defaults can reward gains for energy that float32 does not see."""
+    docs/evidence/settled-phase.md); a search on the defaults can reward gains for energy that float32 does not see.
+    ``frontier``: with ``config.objective="gap"``, the `jaxsleigh.OptimumResult` of the training starts (its
+    ``starts`` replace ``starts`` and ``config.batch``; its ``eps`` must be ``config.eps``): the search minimises the
+    median time ratio to that optimum instead of the median time."""
     pcts = _checked_search_inputs(config, energy_budget)
     space = _search_space(gains0, tune, d_floor)
-    ics = draw_starts(starts, config.batch, config.seed)
-    ev = _Evaluator(ics, plant, config.t_final, config.eps, x64, stepsize, pcts)
+    ics = _training_starts(starts, config, frontier)
+    ev = _Evaluator(ics, plant, config.t_final, config.eps, x64, stepsize, pcts, frontier)
     guard = guard_starts()
     settings, key = _search_settings(config, space, ev, reference, energy_budget, starts)
     ckpt = None if checkpoint is None else Path(checkpoint)
@@ -275,6 +296,26 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     except KeyboardInterrupt:
         raise TuningInterrupted(_partial(run, space, budget, settings), ckpt) from None
     return _verified(run, space, ev, guard, budget, settings)
+
+
+def _training_starts(starts, config: SearchConfig, frontier) -> np.ndarray:
+    """The training starts: ``config.batch`` drawn from ``starts``, or the frontier's own for the gap objective."""
+    if config.objective not in ("time", "gap"):
+        raise ValueError(f"search: objective must be 'time' or 'gap', got {config.objective!r}")
+    if config.objective == "time":
+        if frontier is not None:
+            raise ValueError("search: a frontier is used by objective='gap' only; set it, or drop the frontier")
+        return draw_starts(starts, config.batch, config.seed)
+    if frontier is None or not hasattr(frontier, "gap"):
+        raise ValueError("search: objective='gap' needs frontier=, the jaxsleigh.optimum result of the training "
+                         f"starts (jaxsleigh.optimum(starts, horizons)), got {type(frontier).__name__}")
+    if not math.isclose(float(frontier.eps), float(config.eps)):
+        raise ValueError(f"search: the frontier was solved for the ball eps = {frontier.eps:g}, the search measures "
+                         f"T_eps for eps = {config.eps:g}; solve it for the same ball")
+    if not np.isfinite(frontier.frontier()).any():
+        raise ValueError("search: the frontier has no solved problem (every status is INFEASIBLE or worse); "
+                         "solve it with more iterations or longer horizons")
+    return np.asarray(frontier.starts, np.float64)
 
 
 def _checked_search_inputs(config: SearchConfig, energy_budget: Optional[float]) -> tuple:
@@ -350,11 +391,13 @@ class _Evaluator(NamedTuple):
     x64: bool
     stepsize: Any
     pcts: tuple
+    frontier: Any = None
 
     def evaluate(self, gains_list) -> PopulationFigures:
         """`evaluate_population` of ``gains_list`` on the training starts."""
         return evaluate_population(gains_list, self.ics, plant=self.plant, t_final=self.t_final, eps=self.eps,
-                                   x64=self.x64, stepsize=self.stepsize, percentiles=self.pcts)
+                                   x64=self.x64, stepsize=self.stepsize, percentiles=self.pcts,
+                                   frontier=self.frontier)
 
 
 def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, reference, energy_budget: Optional[float],
@@ -367,11 +410,17 @@ def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, refere
                 "plant": None if ev.plant is None else repr(ev.plant), "method": "CMA-ES on the accurate engine"}
     if ev.stepsize is not None:            # (left out otherwise: the fingerprints of earlier runs hold)
         settings["stepsize"] = ev.stepsize._asdict()
+    if ev.frontier is not None:
+        settings["starts"] = "the frontier's"
+        settings["frontier"] = {"horizons": [float(h) for h in ev.frontier.horizons],
+                                "sha256": hashlib.sha256(np.ascontiguousarray(ev.frontier.frontier()).tobytes()).hexdigest()}
     # the generation count is left out: a finished or interrupted run can be resumed for more generations
     # (a generation does not depend on how many follow it)
     # (the percentiles are left out at their default: the fingerprints of earlier runs hold)
+    # (and so is the objective at "time")
     key = _fingerprint({**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"
-                                               and not (k == "energy_percentiles" and ev.pcts == (50.0,))}},
+                                               and not (k == "energy_percentiles" and ev.pcts == (50.0,))
+                                               and not (k == "objective" and v == "time")}},
                        ev.ics)
     return settings, key
 
@@ -395,6 +444,8 @@ def _budget(ref: PopulationFigures, energy_budget: Optional[float], config: Sear
                       "mean_steps": float(ref.mean_steps[0]),
                       "energy_budget": float(e_max[pcts.index(50.0)]) if 50.0 in pcts else math.nan,
                       "converged_floor": f_min}
+    if np.isfinite(ref.median_gap[0]):
+        reference_figs["median_gap"] = float(ref.median_gap[0])
     if pcts != (50.0,):
         reference_figs["energy_budgets"] = {f"p{q:g}": float(b) for q, b in zip(pcts, e_max)}
     return _Budget(e_max, f_min, reference_figs)
@@ -452,7 +503,8 @@ def _generation(run: _SearchState, gen: int, space: _Space, ev: _Evaluator, budg
     run.hist.append({"generation": gen, "score": float(scores[b]), "median_T": float(figs.median_T[b]),
                      "median_energy": float(figs.median_energy[b]), "frac_converged": float(figs.frac_converged[b]),
                      "n_bad": int(figs.n_bad[b]), "feasible": bool(scored[b][1]), "sigma": float(run.state.sigma),
-                     "best_score": run.top[0][0] if run.top else math.inf, "wall_s": time.perf_counter() - run.t0})
+                     "best_score": run.top[0][0] if run.top else math.inf, "wall_s": time.perf_counter() - run.t0,
+                     "median_gap": float(figs.median_gap[b])})
 
 
 def _partial(run: _SearchState, space: _Space, budget: _Budget, settings: dict) -> Optional[SearchResult]:

@@ -236,7 +236,7 @@ def _gradient_interrupted(run: TuningRun, part, wall: float) -> RunOutcome:
 
 def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), reference=None,
                energy_budget: Optional[float] = None, tune=None, plant=None, x64: bool = False, stepsize=None,
-               progress: Any = None, held_out: Optional[HeldOut] = None) -> RunOutcome:
+               progress: Any = None, held_out: Optional[HeldOut] = None, frontier=None) -> RunOutcome:
     """`jaxsleigh.tuning.search` (the arguments are its own; ``reference`` defaults to ``gains0``) as a run that owns
     ``run.out``: a gains file with the training figures of the gains found and of the reference, the history (one
     row per generation), then the ``held_out`` check (``initial``, ``searched``) written into it. A finished or
@@ -253,7 +253,8 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
         try:
             res = tu.search(gains0, config=config, reference=gains0 if reference is None else reference,
                             energy_budget=energy_budget, tune=names, plant=plant, x64=x64, stepsize=stepsize,
-                            progress=progress, checkpoint=run.checkpoint, resume=run.resume, options=run.options)
+                            progress=progress, checkpoint=run.checkpoint, resume=run.resume, options=run.options,
+                            frontier=frontier)
         except NoFeasibleCandidate as e:          # finished: its history is kept, and its checkpoint
             history = e.history
             _history(run, lambda p: _save_arrays(p, history))
@@ -276,7 +277,8 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
 def _write_search(run: TuningRun, res, record: dict, **extra) -> tuple:
     """Write the searched gains, with their figures and how they were found, and the history; the paths written."""
     cfg = record["config"]
-    save_gains(res.gains, run.out, how="jaxsleigh tune --search: CMA-ES on the accurate engine's median T_0.05 under "
+    what = ("median gap to the optimum T_0.05 / T*(E)" if cfg.objective == "gap" else "median T_0.05")
+    save_gains(res.gains, run.out, how=f"jaxsleigh tune --search: CMA-ES on the accurate engine's {what} under "
                "a control-energy budget at the percentiles " + ", ".join(f"{q:g}" for q in cfg.energy_percentiles),
                command=run.command, tuned=record["tuned"], **record["tolerances"],
                initial_gains=gains_to_dict(res.initial), training_figures=res.figures, reference_figures=res.reference,
