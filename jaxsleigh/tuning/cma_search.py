@@ -129,26 +129,26 @@ class SearchConfig(NamedTuple):
 class PopulationFigures(NamedTuple):
     """Figures of each candidate on the training starts (arrays over the candidates): median T_eps
     (failures and unconverged count as inf), median control energy (of the OK starts), converged
-    fraction, starts that failed or crossed theta = 0, mean accepted steps, the median time ratio to the optimum
-    (`jaxsleigh.OptimumResult.gap`; a start not settled or beyond the frontier counts as inf; NaN without a
-    frontier); and the energy at each of the ``percentiles`` asked for, shape (candidates, percentiles) (not one of
-    `SCALAR_FIGURES`)."""
+    fraction, starts that failed or crossed theta = 0, mean accepted steps; the energy at each of the
+    ``percentiles`` asked for, shape (candidates, percentiles) (not one of `SCALAR_FIGURES`); and the median time
+    ratio to the optimum (`jaxsleigh.OptimumResult.gap`; a start not settled or beyond the frontier counts as inf;
+    NaN without a frontier, ``None`` where not computed)."""
 
     median_T: np.ndarray
     median_energy: np.ndarray
     frac_converged: np.ndarray
     n_bad: np.ndarray
     mean_steps: np.ndarray
-    median_gap: np.ndarray
     energy_at: np.ndarray
+    median_gap: Optional[np.ndarray] = None
 
 
 #: The figures of one candidate that a search keeps for its best ones (one number each).
-SCALAR_FIGURES = PopulationFigures._fields[:-1]
+SCALAR_FIGURES = tuple(f for f in PopulationFigures._fields if f != "energy_at")
 
 
 def _scalars(fig: PopulationFigures, i: int) -> tuple:
-    return tuple(float(getattr(fig, k)[i]) for k in SCALAR_FIGURES)
+    return tuple(math.nan if getattr(fig, k) is None else float(getattr(fig, k)[i]) for k in SCALAR_FIGURES)
 
 
 class SearchResult(NamedTuple):
@@ -203,7 +203,7 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
         gap = np.median(np.where(np.isnan(ratio), np.inf, ratio), axis=1)
     return PopulationFigures(np.median(T, axis=1), med_E, np.isfinite(T).mean(axis=1),
                              np.sum(~ok | crossed, axis=1), np.asarray(r.n_steps, np.float64).reshape(P, N).mean(1),
-                             gap, at)
+                             at, gap)
 
 
 def _score(fig: PopulationFigures, i: int, e_max, f_min: float, cfg: SearchConfig) -> tuple[float, bool]:
@@ -444,7 +444,7 @@ def _budget(ref: PopulationFigures, energy_budget: Optional[float], config: Sear
                       "mean_steps": float(ref.mean_steps[0]),
                       "energy_budget": float(e_max[pcts.index(50.0)]) if 50.0 in pcts else math.nan,
                       "converged_floor": f_min}
-    if np.isfinite(ref.median_gap[0]):
+    if ref.median_gap is not None and np.isfinite(ref.median_gap[0]):
         reference_figs["median_gap"] = float(ref.median_gap[0])
     if pcts != (50.0,):
         reference_figs["energy_budgets"] = {f"p{q:g}": float(b) for q, b in zip(pcts, e_max)}
@@ -504,7 +504,7 @@ def _generation(run: _SearchState, gen: int, space: _Space, ev: _Evaluator, budg
                      "median_energy": float(figs.median_energy[b]), "frac_converged": float(figs.frac_converged[b]),
                      "n_bad": int(figs.n_bad[b]), "feasible": bool(scored[b][1]), "sigma": float(run.state.sigma),
                      "best_score": run.top[0][0] if run.top else math.inf, "wall_s": time.perf_counter() - run.t0,
-                     "median_gap": float(figs.median_gap[b])})
+                     "median_gap": math.nan if figs.median_gap is None else float(figs.median_gap[b])})
 
 
 def _partial(run: _SearchState, space: _Space, budget: _Budget, settings: dict) -> Optional[SearchResult]:
