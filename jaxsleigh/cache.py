@@ -31,10 +31,6 @@ __all__ = ["compilation_cache_dir", "enable_compilation_cache"]
 #: the persistent cache's bound in bytes (least recently used entries are evicted beyond it): a whole test
 #: suite's programs take about 0.5 GB
 CACHE_MAX_BYTES = 4 * 1024**3
-#: programs that compile faster than this [s] are not kept: single array operations and small staging programs
-#: (10-20 ms) compile about as fast as the cache reads them, and with a bound JAX scans the whole folder on every
-#: write (its eviction), so each kept entry makes every later write slower; the engine's programs take 0.04-4 s
-CACHE_MIN_COMPILE_S = 0.02
 
 
 def compilation_cache_dir() -> Optional[Path]:
@@ -56,9 +52,8 @@ def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Opti
     The command line calls it when it starts; a Python program calls it once, before its first
     simulation (JAX reads the setting when it first compiles). It sets four of JAX's settings for
     the whole process: ``jax_compilation_cache_dir`` (the folder),
-    ``jax_persistent_cache_min_compile_time_secs`` to `CACHE_MIN_COMPILE_S` (every program of the engine is kept:
-    the sleigh's are small and quick to compile, but many; single operations are not) and
-    ``jax_persistent_cache_min_entry_size_bytes`` to 0, and
+    ``jax_persistent_cache_min_compile_time_secs`` and ``jax_persistent_cache_min_entry_size_bytes``
+    to 0 (every program is kept: the sleigh's are small and quick to compile, but many), and
     ``jax_compilation_cache_max_size`` to `CACHE_MAX_BYTES`. The bound is what makes the folder safe to
     share: without one, JAX writes entries in place and reads them without a lock, so a process that
     reads an entry another is still writing aborts (two test workers, or the processes of one basin,
@@ -102,8 +97,8 @@ def enable_compilation_cache(path: Union[str, os.PathLike, None] = None) -> Opti
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         jax.config.update("jax_compilation_cache_dir", str(d))
-        # cache every program of the engine (the sleigh's are small and quick to compile, but many), not single ops
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_S)
+        # cache every program: the sleigh's are small and quick to compile, but many
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
         # a bound turns on JAX's file lock around every read and write of the shared folder
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)

@@ -33,7 +33,7 @@ js.cores.configure()
 _CACHE = js.enable_compilation_cache()
 if _CACHE is not None:
     os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(js.cache.CACHE_MIN_COMPILE_S))
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
     os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(js.cache.CACHE_MAX_BYTES))
 
