@@ -10,9 +10,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
-from jaxsleigh.controllers.actuators import Sampler
+from jaxsleigh.controllers.actuators import Sampler, sampled
 from jaxsleigh.controllers.paper import PaperLaw
 from jaxsleigh.integrate.sampled import solve_sampled
+from jaxsleigh.model.controller import PerTrajectory
 from jaxsleigh.status import Status
 
 #: the command line's --ic 1,1,0.5: (x, y, theta) with zero momentum
@@ -129,3 +130,58 @@ def test_reverse_mode_gradients_match_finite_differences():     # the forward-mo
             fd = (float(loss(k0, y0 + e)) - float(loss(k0, y0 - e))) / (2 * h)
             np.testing.assert_allclose(float(g_y[i]), fd, rtol=1e-5, atol=1e-8)
         assert abs(float(g_k)) > 1e-3 and np.all(np.abs(np.asarray(g_y)[[0, 2]]) > 1e-3)
+
+
+def test_solve_takes_a_sampled_law_on_the_same_stepper(reference):
+    """``js.solve(sampled(law, Ts), y0)`` is the sampled-data loop through the front door: the same program as
+    `solve_sampled` for a batch of one (bitwise), meeting the same tolerance against the DOP853 reference; the held
+    loop has no H_d (NaN)."""
+    with jax.enable_x64(True):
+        law = sampled(PaperLaw(), TS)
+        tight = js.StepSizeController(rtol=1e-11, atol=1e-12)
+        out = js.solve(law, jnp.asarray(START[0]), t_final=T_FINAL, stepsize=tight)
+        run = solve_sampled(PaperLaw(), None, START, t_final=T_FINAL, sampler=Sampler(TS), dtype=jnp.float64,
+                            save=False, stepsize=tight)
+        assert int(out.status) == Status.OK
+        np.testing.assert_array_equal(np.asarray(out.q_final), np.asarray(run.q_final)[0])
+        assert float(out.u_energy) == float(run.u_energy[0]) and float(out.T_eps) == float(run.T_eps[0])
+        assert int(out.n_steps) == int(run.n_steps[0]) > 1000
+        assert np.abs(np.asarray(out.q_final) - reference[:3]).max() < 1e-9
+        assert np.isnan(float(out.Hd0)) and np.isnan(float(out.Hd_final))
+
+
+def test_solve_carries_the_observers_it_is_given_under_a_sampled_law():
+    from jaxsleigh.integrate.observers import ConvergenceTime
+    law = sampled(PaperLaw(), 0.1)
+    out = js.solve(law, jnp.asarray([1.0, 1.0, 0.5]), t_final=1.0, observers=(ConvergenceTime(),))
+    assert sorted(out.summaries) == ["T_eps"] and out.u_energy is None
+    assert int(out.status) == Status.OK and float(out.T_eps) == np.inf         # 1 s is too short to settle
+
+
+def test_solve_refuses_a_sampled_law_it_cannot_run():
+    y0 = jnp.asarray([1.0, 1.0, 0.5])
+    with pytest.raises(ValueError, match="whole number of sampling periods"):
+        js.solve(sampled(PaperLaw(), 0.3), y0, t_final=1.0)
+    with pytest.raises(ValueError, match="must be concrete"):
+        jax.jit(lambda c: js.solve(c, y0, t_final=1.0).u_energy)(sampled(PaperLaw(), 0.1))
+    with pytest.raises(ValueError, match="vmap solve"):
+        js.solve(PerTrajectory(sampled(PaperLaw(), 0.1)), y0, t_final=1.0)
+
+
+def _solve_loss(k, y0):
+    """`_loss` through `js.solve`: final |q|^2 plus the control energy, one start."""
+    law = sampled(PaperLaw(js.paper_gains()._replace(k=k)), 0.1)
+    out = js.solve(law, y0, t_final=1.0, stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10))
+    return jnp.sum(out.q_final ** 2) + out.u_energy
+
+
+@pytest.mark.slow
+def test_gradients_through_solve_of_a_sampled_law_match_finite_differences():
+    with jax.enable_x64(True):
+        k0, y0 = jnp.asarray(0.1), jnp.asarray([1.0, 1.0, 0.5, 0.0, 0.0])
+        loss = jax.jit(_solve_loss)
+        g_k = float(jax.jit(jax.grad(_solve_loss))(k0, y0))
+        h = 1e-6
+        fd_k = (float(loss(k0 + h, y0)) - float(loss(k0 - h, y0))) / (2 * h)
+        np.testing.assert_allclose(g_k, fd_k, rtol=1e-5)
+        assert abs(g_k) > 1e-3

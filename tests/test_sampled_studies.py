@@ -111,8 +111,6 @@ def test_what_cannot_take_a_sampled_law_says_so(tmp_path):
         js.run_ensemble(ICS, controller=LAW, t_final=1.0, saveat=SaveAt(every=10))
     with pytest.raises(ValueError, match="period cannot vary per trajectory"):
         js.sweep(ICS[:, :3], ["sampler.period=0.05:0.1:2"], controller=LAW, t_final=1.0)
-    with pytest.raises(ValueError, match="solve_sampled"):
-        js.solve(LAW, ICS[0], t_final=1.0)
     with pytest.raises(ValueError, match="whole number of sampling periods"):
         js.simulate(ICS, controller=sampled(js.paper_gains(), 0.3), t_final=10.0)
 

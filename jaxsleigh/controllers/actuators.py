@@ -3,7 +3,7 @@ r"""Actuators between a feedback law and the plant: saturation of the force, and
 A real sleigh cannot apply any force: its motors saturate, and a digital controller measures, computes
 and updates its output only at sampling instants. The pieces here wrap a law (any controller in the sense
 of `jaxsleigh.model.controller`) and are themselves laws, so they compose
-(``Saturation(NormSaturation(PaperLaw(), 10.0), (8.0, 4.0))``), run through `jaxsleigh.simulate`,
+(``Saturation(NormSaturation(PaperLaw(), 10.0), (8.0, 4.0))``), run through `jaxsleigh.solve`, `jaxsleigh.simulate`,
 `jaxsleigh.run_ensemble` and `jaxsleigh.integrate.sampled.solve_sampled`, and are differentiable (their
 numbers are traced leaves; ``jax.grad`` goes through them, also with respect to ``u_max``).
 
@@ -11,7 +11,8 @@ numbers are traced leaves; ``jax.grad`` goes through them, also with respect to 
 * `NormSaturation`: the Euclidean norm bounded, direction kept,
   \(u = \hat u \min(1, \bar u / \|\hat u\|)\).
 * `Sampler`: zero-order hold at period \(T_s\), a delay of whole samples, Gaussian measurement noise. It is
-  not a law (the sampled loop is not an ODE); `jaxsleigh.integrate.sampled.solve_sampled` integrates it.
+  not a law (the sampled loop is not an ODE): ``sampled(law, period)`` puts it behind a law, and `jaxsleigh.solve`
+  (one start, traced) or `jaxsleigh.integrate.sampled.solve_sampled` (a batch) integrates that.
 
 The classes do not check their numbers when constructed (JAX rebuilds them from arbitrary leaves inside
 ``jit``, ``vmap`` and ``grad``); build them with the checking factories `saturate` and `sampler`, which
@@ -206,10 +207,11 @@ class Sampled(NamedTuple):
 
     \[ u(t) = \mathrm{law}(\tilde q_{k-d}, \tilde v_{k-d}, t_{k-d}) \quad (t \in [t_k, t_{k+1})) \]
 
-    It is a piece like the others: ``js.simulate(ics, controller=sampled(law, 0.05))``, ``js.run_ensemble``,
-    ``js.run_basin`` and ``js.compare`` integrate it with the sampled-data loop
+    It is a piece like the others: ``js.solve(sampled(law, 0.05), y0)``, ``js.simulate(ics, controller=...)``,
+    ``js.run_ensemble``, ``js.run_basin`` and ``js.compare`` integrate it with the sampled-data loop
     (`jaxsleigh.integrate.sampled.solve_sampled`: the law evaluated once per sample, the plant by the adaptive
-    RK4 to the run's tolerances in between, each sample instant a step boundary). Called as a law it is the continuous idealisation (the wrapped law itself).
+    RK4 to the run's tolerances in between, each sample instant a step boundary). Called as a law it is the
+    continuous idealisation (the wrapped law itself).
     Build it with `sampled` (checks the numbers, and runs the paper's `jaxsleigh.Gains` as `PaperLaw`).
     """
 

@@ -88,7 +88,8 @@ from .observers import DEFAULT_OBSERVERS, collect_values
 from .stepper import Controls, StepState, controls, init_state, is_active, run_checkpointed
 from .stepsize import StepSizeController
 
-__all__ = ["SampledRun", "HeldInput", "held_input_type", "solve_sampled", "sample_count", "SEGMENT", "BLOCK"]
+__all__ = ["SampledRun", "HeldInput", "held_input_type", "solve_sampled", "sample_count", "substeps_for", "is_concrete", "SEGMENT",
+           "BLOCK"]
 
 #: Attempts per checkpointed segment of a period (adaptive): a period costs its attempts rounded up to this.
 SEGMENT = 4
@@ -114,6 +115,7 @@ class SampledRun(NamedTuple):
       max_excursion: (N,) largest \\(|q|\\) at the ends of the steps (the names of `jaxsleigh.EnsembleResult`).
       n_steps, n_rejected: (N,) int32 accepted and rejected attempted steps.
       t_reached: (N,) the time integrated to (``t_final`` for a row that is OK; NaN for one not integrated).
+      summaries: every observer's values by name (those above, and those of observers given to `solve_sampled`).
     """
 
     t: Any
@@ -133,6 +135,7 @@ class SampledRun(NamedTuple):
     n_steps: Any = None
     n_rejected: Any = None
     t_reached: Any = None
+    summaries: Any = None
 
 
 class HeldInput(NamedTuple):
@@ -177,7 +180,14 @@ def sample_count(t_final, period) -> int:
     return K
 
 
-def _is_concrete(tree) -> bool:
+def substeps_for(period: float, dt: float) -> int:
+    """``substeps`` of a sampling period for a base step ``dt``: the first step tried is ``period / substeps``, at
+    most ``dt`` and at most a quarter period (the fixed RK4 steps per period with ``method="rk4"``)."""
+    return max(4, math.ceil(period / dt - 1e-9))
+
+
+def is_concrete(tree) -> bool:
+    """No leaf of ``tree`` is a tracer (its numbers are known now, not inside ``jit``/``grad``/``vmap``)."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
@@ -238,7 +248,7 @@ def _period_budget(ss: StepSizeController, K: int, substeps: int, dtype) -> int:
 def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final: float, sampler,
                   substeps: int = 20, eps: float = 0.05, dtype=jnp.float32, save: bool = True,
                   rtol: Optional[float] = None, atol: Optional[float] = None,
-                  stepsize: Optional[StepSizeController] = None) -> SampledRun:
+                  stepsize: Optional[StepSizeController] = None, observers: tuple = OBSERVERS) -> SampledRun:
     """Integrate the sampled-data closed loop (module docstring) from a batch of starts.
 
     Args:
@@ -263,6 +273,8 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
         (attempted steps per start over the run, shared evenly between the periods; default 20 (float32) or 30
         (float64) times ``substeps`` per period, as the continuous loop's 20x or 30x its base steps).
         ``check_passivity`` does not apply (the held loop has no \\(H_d\\)).
+      observers: the summaries to carry (static; default those of every run): `SampledRun.summaries` holds all of
+        their values by name, and the standard ones are also its fields.
 
     Returns:
       `SampledRun`.
@@ -298,7 +310,7 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     plant = plant_params() if plant is None else plant
 
     y0 = jnp.asarray(ics)
-    if _is_concrete(y0):
+    if is_concrete(y0):
         y0 = jnp.asarray(np.asarray(ics, dtype=np.float64), dtype)
     else:
         y0 = y0.astype(dtype)
@@ -313,7 +325,7 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     adaptive = ss.method == "adaptive"
     return _solve(law, plant, y0, jnp.asarray(period, dtype), jnp.asarray(noise, dtype),
                   jnp.asarray(seed % 2**32, jnp.uint32), ctl, K=K, delay=delay, save=bool(save), adaptive=adaptive,
-                  budget=budget, segment=SEGMENT if adaptive else budget)
+                  budget=budget, segment=SEGMENT if adaptive else budget, observers=tuple(observers))
 
 
 def _row_axes(plant):
@@ -345,13 +357,13 @@ def _held_loop(plant, held: type, u) -> ClosedLoop:
     return ClosedLoop(plant, PerTrajectory(held(u.T)))
 
 
-def _integrands(y, u, dtype):
+def _integrands(y, u, dtype, observers):
     """The observers' quadrature integrands at ``y`` under ``u`` (as the stepper stacks them)."""
-    rows = [g for o in OBSERVERS for g in o.integrand(y, u)]
+    rows = [g for o in observers for g in o.integrand(y, u)]
     return jnp.stack(rows).astype(dtype) if rows else jnp.zeros((0,) + y.shape[1:], dtype)
 
 
-def _hold(s: StepState, u, plant, held: type):
+def _hold(s: StepState, u, plant, held: type, observers):
     """The stepper's state ``s`` (batch-last) made ready for a period with ``u`` (N, 2) held: a row whose input is not
     finite becomes ``NONFINITE`` (and idles, its input set to 0 so that no inf enters the program); the first slope
     ``k1`` and the observers' integrands ``g1``, carried from the previous step's end under the previous input, are
@@ -362,10 +374,10 @@ def _hold(s: StepState, u, plant, held: type):
     u = jnp.where(finite[:, None], u, jnp.zeros((), dtype))
     args = _held_loop(plant, held, u)
     k1, u_at = held.chart.field_and_control(s.t, s.y, args)
-    return s._replace(status=status, k1=k1, g1=_integrands(s.y, u_at, dtype)), args, u
+    return s._replace(status=status, k1=k1, g1=_integrands(s.y, u_at, dtype, observers)), args, u
 
 
-def _start(y0, plant, ctl: Controls, held: type):
+def _start(y0, plant, ctl: Controls, held: type, observers):
     """The mask of valid starts and the stepper's batch-last state at t = 0 with no input yet (`_hold` puts the first
     one in): a non-finite start is ``INVALID_INPUT`` and replaced by zeros (never stepped). ``T_eps`` is 0 for a
     start already in the ball."""
@@ -375,7 +387,7 @@ def _start(y0, plant, ctl: Controls, held: type):
     zero = jnp.zeros((2,), y0.dtype)
 
     def one(y, st, pl):
-        return init_state(y, st, ClosedLoop(pl, held(zero)), ctl, 0.0, OBSERVERS)
+        return init_state(y, st, ClosedLoop(pl, held(zero)), ctl, 0.0, observers)
 
     return valid, jax.vmap(one, in_axes=(0, 0, _row_axes(plant)), out_axes=-1)(y0, status0, plant)
 
@@ -394,32 +406,31 @@ def _samples(saved, valid, y0, period, K: int):
     return jnp.arange(K + 1, dtype=y0.dtype) * period, traj[:, :, :3], traj[:, :, 3:], jnp.swapaxes(us, 0, 1)
 
 
-def _finish(s: StepState, valid, y0, saved, period, K: int, save: bool) -> SampledRun:
+def _finish(s: StepState, valid, y0, saved, period, K: int, save: bool, observers) -> SampledRun:
     """The `SampledRun` of the stepper's final state: a row that is not OK has NaN summaries and final state."""
     ok = s.status == int(Status.OK)
     y_fin = _nan_unless(ok[:, None], s.y.T)
-    values = collect_values(OBSERVERS, s.obs, s.quad)
-    nan_bad = lambda x: _nan_unless(ok if jnp.ndim(x) == 1 else ok[:, None], x)  # noqa: E731
+    values = {k: _nan_unless(ok.reshape(ok.shape + (1,) * (jnp.ndim(v) - 1)), v)        # a row's values: first axis
+              for k, v in collect_values(observers, s.obs, s.quad).items()}
     t = q = p = u = None
     if save:
         t, q, p, u = _samples(saved, valid, y0, period, K)
+    named = {k: values.get(k) for k in ("T_eps", "u_energy", "u_norm_peak", "min_abs_theta", "u_peak", "u_abs_int",
+                                        "max_excursion")}
     return SampledRun(
-        t=t, q=q, p=p, u=u,
-        q_final=y_fin[:, :3], p_final=y_fin[:, 3:],
-        T_eps=nan_bad(values["T_eps"]), u_energy=nan_bad(values["u_energy"]),
-        u_norm_peak=nan_bad(values["u_norm_peak"]), min_abs_theta=nan_bad(values["min_abs_theta"]),
-        status=s.status, u_peak=nan_bad(values["u_peak"]), u_abs_int=nan_bad(values["u_abs_int"]),
-        max_excursion=nan_bad(values["max_excursion"]), n_steps=s.n_accept, n_rejected=s.n_reject,
+        t=t, q=q, p=p, u=u, q_final=y_fin[:, :3], p_final=y_fin[:, 3:], status=s.status, n_steps=s.n_accept,
+        n_rejected=s.n_reject, summaries=values, **named,
         t_reached=_nan_unless(valid, s.t))
 
 
-def _to_sample(s: StepState, target, args: ClosedLoop, ctl: Controls, *, budget: int, segment: int, adaptive: bool):
+def _to_sample(s: StepState, target, args: ClosedLoop, ctl: Controls, *, budget: int, segment: int, adaptive: bool,
+               observers):
     """At most ``budget`` attempted steps of every start towards ``target``, in checkpointed segments of ``segment``
     attempts (`jaxsleigh.integrate.stepper.run_checkpointed`) gathered in blocks of `BLOCK` segments; a segment, and a
     block, in which no start is active is skipped (one test of the batch, forward and in reverse mode)."""
     block = segment * BLOCK
     run = functools.partial(run_checkpointed, target=target, args=args, ctl=ctl, segment=segment, adaptive=adaptive,
-                            monitor=False, observers=OBSERVERS)
+                            monitor=False, observers=observers)
     if budget <= block:
         return run(s, n_attempts=budget)
 
@@ -434,29 +445,31 @@ def _to_sample(s: StepState, target, args: ClosedLoop, ctl: Controls, *, budget:
     return jax.lax.scan(outer, s, None, length=-(-budget // block))[0]
 
 
-@functools.partial(jax.jit, static_argnames=("K", "delay", "save", "adaptive", "budget", "segment"))
-def _solve(law, plant, y0, period, noise, seed, ctl, *, K, delay, save, adaptive, budget, segment):
+@functools.partial(jax.jit, static_argnames=("K", "delay", "save", "adaptive", "budget", "segment", "observers"))
+def _solve(law, plant, y0, period, noise, seed, ctl, *, K, delay, save, adaptive, budget, segment,
+           observers=OBSERVERS):
     """`solve_sampled` on checked inputs: one ``lax.scan`` over the ``K`` samples; in each, measure and hold
     (`_control`, `_hold`), then step to the next sample instant in at most ``budget`` attempts, ``segment`` at a
     time (`jaxsleigh.integrate.stepper.run_checkpointed`); then the run (`_finish`)."""
     dtype = y0.dtype
     key0 = jax.random.PRNGKey(seed)
     held = held_input_type(physical_chart_for(law))
-    valid, s0 = _start(y0, plant, ctl, held)
+    valid, s0 = _start(y0, plant, ctl, held, observers)
     buf0 = jnp.zeros((max(delay, 1), y0.shape[0], 2), dtype)
 
     @functools.partial(jax.checkpoint, prevent_cse=False)
     def sample(carry, k):
         s, buf = carry
         u, buf = _control(law, plant, s.y.T, buf, s.status, k, key0, noise, period, delay)
-        s, args, u = _hold(s, u, plant, held)
+        s, args, u = _hold(s, u, plant, held, observers)
         target = (k + 1).astype(dtype) * period
         per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)      # this period's share of attempts
-        s = _to_sample(s, target, args, per, budget=budget, segment=segment, adaptive=adaptive)
+        s = _to_sample(s, target, args, per, budget=budget, segment=segment, adaptive=adaptive,
+                       observers=observers)
         short = (s.status == int(Status.OK)) & (s.t < target)
         s = s._replace(status=jnp.where(short, int(Status.BUDGET_EXHAUSTED), s.status).astype(jnp.int32))
         good = (s.status == int(Status.OK))[:, None]
         return (s, buf), ((_nan_unless(good, s.y.T), _nan_unless(good, u)) if save else None)
 
     (s, _), saved = jax.lax.scan(sample, (s0, buf0), jnp.arange(K))
-    return _finish(s, valid, y0, saved, period, K, save)
+    return _finish(s, valid, y0, saved, period, K, save, observers)

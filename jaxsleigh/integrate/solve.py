@@ -1,7 +1,8 @@
 r"""The differentiable solve: one trajectory of the closed loop as a pure JAX function.
 
 `solve` integrates one start under any controller (the paper's law, `jaxsleigh.Gains`, in its w
-chart; any other law ``u = law(q, v)`` in the physical chart, `jaxsleigh.model.charts`) with the engine's
+chart; any other law ``u = law(q, v)`` in the physical chart, `jaxsleigh.model.charts`; a digital controller
+``sampled(law, period)``, its sample instants step boundaries, `jaxsleigh.integrate.sampled`) with the engine's
 own stepper (`jaxsleigh.integrate.stepper.attempt`, the step-size policy of `jaxsleigh.integrate.stepsize`) and
 observers (`jaxsleigh.integrate.observers`), and returns the final state and the observers' summaries as JAX
 arrays. It runs a fixed number of attempted steps in a ``lax.scan``, so it composes with ``jit``,
@@ -25,7 +26,7 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from ..controllers.actuators import is_sampled
+from ..controllers.actuators import Sampled, is_sampled
 from ..cores import configure
 from ..deprecation import warn_deprecated
 from ..model.charts import chart_for
@@ -33,6 +34,7 @@ from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
 from ..model.params import paper_plant
 from ..status import Status
+from .sampled import is_concrete, solve_sampled, substeps_for
 from .stepper import controls, init_state, run_segment
 from .stepsize import StepSizeController
 
@@ -92,7 +94,11 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     r"""Integrate one start ``y0`` ((3,) or (5,), physical state) to ``t_final`` under ``controller``.
 
     Args:
-      controller: `jaxsleigh.Gains` (the paper's law) or any law ``u = law(q, v)`` (`jaxsleigh.model.controller`).
+      controller: `jaxsleigh.Gains` (the paper's law) or any law ``u = law(q, v)`` (`jaxsleigh.model.controller`),
+        possibly behind actuator pieces; a digital controller ``sampled(law, period, ...)``
+        (`jaxsleigh.controllers.actuators.sampled`) runs the sampled-data loop on the same stepper, its sample
+        instants step boundaries (``t_final`` a whole number of periods; the sampler's numbers, ``t_final`` and
+        ``dt`` concrete; the noise is keyed by ``(seed, k)``, so starts vmapped together see the same draws).
       y0: ``(x, y, theta)`` (zero momentum) or ``(x, y, theta, p1, p2)``; its dtype sets the precision.
       plant: `jaxsleigh.PlantParams` (default: the paper's).
       t_final, dt: horizon and base step (the fixed step of ``"rk4"``, the first step of ``"adaptive"``).
@@ -119,9 +125,6 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     if controller is None or not (callable(controller) or hasattr(controller, "L")):
         raise ValueError(f"controller must be jaxsleigh.Gains (the paper's law) or a law u = law(q, v), "
                          f"got {type(controller).__name__}")
-    if is_sampled(controller):
-        raise ValueError("solve integrates the continuous loop; a sampled law (controller=sampled(...)) runs in "
-                         "jaxsleigh.integrate.sampled.solve_sampled, which is differentiable too")
     for name, value in (("t_final", t_final), ("dt", dt), ("eps", eps)):
         _check_positive(name, value)
     y0 = jnp.asarray(y0)
@@ -131,6 +134,8 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         y0 = jnp.concatenate([y0, jnp.zeros(2, y0.dtype)])
     if y0.shape != (5,):
         raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
+    if is_sampled(controller):
+        return _solve_held(controller, y0, plant, t_final, dt, ss, eps, tuple(observers))
     dtype = y0.dtype
     adaptive = ss.method == "adaptive"
     max_attempts = ss.max_steps
@@ -154,6 +159,28 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
                        n_rejected=s.n_reject, summaries=summaries,
                        Hd0=jnp.where(valid & energy, s0.Hd, jnp.nan),
                        Hd_final=jnp.where(valid & energy & (status == Status.OK), s.Hd, jnp.nan))
+
+
+def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps, observers) -> SolveOutput:
+    """`solve` under a `jaxsleigh.controllers.actuators.Sampled` law: the sample instants are step boundaries of the
+    same stepper and the held input is state (`jaxsleigh.integrate.sampled`), so the tolerances, the observers and the
+    gradients work as for any law. One start is a batch of one of `jaxsleigh.integrate.sampled.solve_sampled`, its
+    first step ``period / substeps`` (`jaxsleigh.integrate.sampled.substeps_for` of ``dt``). The held loop has no
+    \\(H_d\\): ``Hd0`` and ``Hd_final`` are NaN."""
+    if not isinstance(controller, Sampled):
+        raise ValueError("solve integrates one start: a sampled law with per-trajectory numbers (PerTrajectory) runs "
+                         "in jaxsleigh.run_ensemble; to solve many starts, vmap solve over them")
+    if not is_concrete((controller.sampler, t_final, dt)):
+        raise ValueError("under a sampled law, the sampler's numbers, t_final and dt must be concrete (they set the "
+                         "number of samples of the compiled loop): differentiate or vmap with respect to the law's "
+                         "parameters, e.g. lambda gains: solve(sampled(gains, 0.2), y0)")
+    run = solve_sampled(controller.law, paper_plant() if plant is None else plant, y0[None], t_final=t_final,
+                        sampler=controller.sampler, substeps=substeps_for(float(controller.sampler.period), float(dt)),
+                        eps=eps, dtype=y0.dtype, save=False, stepsize=ss, observers=observers)
+    nan = jnp.full((), jnp.nan, y0.dtype)
+    return SolveOutput(q_final=run.q_final[0], p_final=run.p_final[0], status=run.status[0],
+                       t_reached=run.t_reached[0], n_steps=run.n_steps[0], n_rejected=run.n_rejected[0],
+                       summaries={k: v[0] for k, v in run.summaries.items()}, Hd0=nan, Hd_final=nan)
 
 
 def _stepsize(stepsize, options: dict) -> StepSizeController:

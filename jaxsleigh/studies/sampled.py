@@ -9,7 +9,6 @@ sampled one has not is NaN: ``Hd`` (the closed loop is no longer port-Hamiltonia
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Optional
 
@@ -21,16 +20,10 @@ from ..controllers.actuators import Sampler
 from ..integrate.engine import check_ics
 from ..integrate.stepsize import StepSizeController
 from ..model.controller import PerTrajectory
-from ..integrate.sampled import solve_sampled
+from ..integrate.sampled import solve_sampled, substeps_for
 from ..progress import Progress
 
 __all__ = ["substeps_for", "split_sampled", "sampled_settings", "sampled_solution", "sampled_summaries"]
-
-
-def substeps_for(period: float, dt: float) -> int:
-    """``substeps`` of a sampling period for a base step ``dt``: the first step tried is ``period / substeps``, at
-    most ``dt`` and at most a quarter period (the fixed RK4 steps per period with ``method="rk4"``)."""
-    return max(4, math.ceil(period / dt - 1e-9))
 
 
 def plain_sampler(smp) -> Sampler:
