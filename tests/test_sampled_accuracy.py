@@ -185,3 +185,14 @@ def test_gradients_through_solve_of_a_sampled_law_match_finite_differences():
         fd_k = (float(loss(k0 + h, y0)) - float(loss(k0 - h, y0))) / (2 * h)
         np.testing.assert_allclose(g_k, fd_k, rtol=1e-5)
         assert abs(g_k) > 1e-3
+
+
+def test_solve_saves_the_samples_of_a_sampled_law():
+    law = sampled(PaperLaw(), 0.1)
+    out = js.solve(law, jnp.asarray([1.0, 1.0, 0.5]), t_final=1.0, saveat=js.SaveAt(every=10))
+    run = solve_sampled(PaperLaw(), None, START[:, :3], t_final=1.0, sampler=Sampler(0.1), substeps=10)
+    assert out.t.shape == (11,) and out.q.shape == (11, 3) and out.u.shape == (10, 2)
+    np.testing.assert_array_equal(np.asarray(out.q), np.asarray(run.q)[0])
+    np.testing.assert_array_equal(np.asarray(out.u), np.asarray(run.u)[0])
+    with pytest.raises(ValueError, match="must be the sampling period"):
+        js.solve(law, jnp.asarray([1.0, 1.0, 0.5]), t_final=1.0, saveat=js.SaveAt(every=5))

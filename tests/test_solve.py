@@ -107,3 +107,56 @@ def test_solve_reports_a_start_that_cannot_be_integrated():
     g = jax.grad(lambda y: run(y).summaries["u_energy"][0])(starts)
     assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g[1:]) == 0)
     assert int(solve(js.paper_gains(), np.array([1.0, 1.0, 0.0]), t_final=1.0).status) == S.SINGULAR_START
+
+
+def test_saveat_gives_the_trajectory_of_the_host_front():
+    """``saveat=SaveAt(every=n)``: the traced trajectory at the save times, as `js.simulate` saves it (float64, the
+    same steps landing on the same save times: equal to rounding), the input there too, and its final state."""
+    with jax.enable_x64(True):
+        out = jax.jit(lambda y: solve(js.paper_gains(), y, t_final=10.0, saveat=js.SaveAt(every=50)))(jnp.asarray(Y0))
+        sim = js.simulate(Y0, t_final=10.0, saveat=js.SaveAt(every=50), x64=True)
+    assert out.t.shape == (21,) and out.q.shape == (21, 3) and out.p.shape == (21, 2) and out.u.shape == (21, 2)
+    np.testing.assert_allclose(np.asarray(out.t), np.asarray(sim.t), rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(out.q), np.asarray(sim.q).reshape(21, 3), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.p), np.asarray(sim.p).reshape(21, 2), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.u), np.asarray(sim.u).reshape(21, 2), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.q[-1]), np.asarray(out.q_final), rtol=1e-12)
+    assert int(out.status) == 0 and solve(js.paper_gains(), Y0[:3], t_final=10.0).t is None
+
+
+def test_saveat_shares_the_budget_between_the_save_intervals():
+    """A save interval that needs more than its share of ``max_steps`` ends the run ``BUDGET_EXHAUSTED`` there: the
+    states it did not reach are NaN, never stale (the summaries are up to ``t_reached``, as without saving)."""
+    out = solve(js.paper_gains(), jnp.asarray(Y0, jnp.float32), t_final=2.0, saveat=js.SaveAt(every=20),
+                stepsize=js.StepSizeController(max_steps=20))
+    assert int(out.status) == js.Status.BUDGET_EXHAUSTED
+    q = np.asarray(out.q)
+    assert np.all(np.isfinite(q[0])) and np.all(np.isnan(q[-1])) and float(out.t_reached) < 2.0
+
+
+@pytest.mark.slow
+def test_gradient_of_a_trajectory_loss_matches_finite_differences():
+    """d/dk of the summed squared distance along the saved trajectory (float64, tight tolerances)."""
+    g = js.paper_gains()
+    tight = js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=20_000)
+
+    def loss(k):
+        out = solve(g._replace(k=k), jnp.asarray(Y0), t_final=3.0, stepsize=tight, saveat=js.SaveAt(every=30))
+        return jnp.sum(out.q ** 2)
+
+    with jax.enable_x64(True):
+        k0 = jnp.asarray(float(g.k))
+        grad = float(jax.jit(jax.grad(loss))(k0))
+        f = jax.jit(loss)
+        fd = float(_fd(lambda k: f(k), k0, 1e-6))
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
+    assert abs(grad) > 1e-3
+
+
+@pytest.mark.parametrize("saveat, says", [(js.SaveAt(every=0), "whole number of base steps"),
+                                          (js.SaveAt(every=3), "multiple of saveat.every"),
+                                          (js.SaveAt(every=10, summaries=False), "summaries"),
+                                          ({"every": 10}, "jaxsleigh.SaveAt")])
+def test_solve_refuses_a_saveat_it_cannot_keep(saveat, says):
+    with pytest.raises(ValueError, match=says):
+        solve(js.paper_gains(), Y0[:3], t_final=1.0, saveat=saveat)

@@ -35,7 +35,9 @@ from .observers import DEFAULT_OBSERVERS, collect_values
 from ..model.params import paper_plant
 from ..status import Status
 from .sampled import is_concrete, solve_sampled, substeps_for
-from .stepper import controls, init_state, run_segment
+from .engine import make_horizon
+from .saveat import SaveAt
+from .stepper import controls, init_state, run_budget, run_segment
 from .stepsize import StepSizeController
 
 __all__ = ["solve", "SolveOutput"]
@@ -54,6 +56,8 @@ class SolveOutput(NamedTuple):
         attributes (`T_eps`, `u_energy`, ...).
       Hd0, Hd_final: the paper's closed-loop energy \(H_d\) at the start and at the end (NaN for a law without
         it, and at the end of a run that did not end OK).
+      t, q, p, u: with ``saveat=SaveAt(every=n)``: the save times (K+1,) from 0, and the configuration (K+1, 3),
+        momentum (K+1, 2) and input (K+1, 2) there (NaN from where the run stopped); ``None`` without.
     """
 
     q_final: jax.Array
@@ -65,6 +69,10 @@ class SolveOutput(NamedTuple):
     summaries: dict
     Hd0: Optional[jax.Array] = None
     Hd_final: Optional[jax.Array] = None
+    t: Optional[jax.Array] = None
+    q: Optional[jax.Array] = None
+    p: Optional[jax.Array] = None
+    u: Optional[jax.Array] = None
 
     def _summary(self, name: str):
         return self.summaries.get(name)
@@ -90,7 +98,7 @@ SOLVE_KEYWORDS = {"method": ("stepsize", "method"), "max_attempts": ("stepsize",
 
 def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01,
           stepsize: Optional[StepSizeController] = None, eps: float = 0.05, observers: Any = DEFAULT_OBSERVERS,
-          **options) -> SolveOutput:
+          saveat: Optional[SaveAt] = None, **options) -> SolveOutput:
     r"""Integrate one start ``y0`` ((3,) or (5,), physical state) to ``t_final`` under ``controller``.
 
     Args:
@@ -110,11 +118,16 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         ``t_reached``).
       eps: radius of the ball of ``T_eps``.
       observers: the summaries to carry (static).
+      saveat: `jaxsleigh.SaveAt`: ``SaveAt(every=n)`` also returns the trajectory at \(t_j = j\,n\,dt\) (``t``, ``q``,
+        ``p``, ``u``; ``t_final`` a whole number of save intervals, ``t_final``, ``dt`` concrete). The steps land on
+        the save times and ``max_steps`` is shared evenly between the save intervals (as between a sampled loop's
+        periods), a stretch of the scan in which the lane is done skipped; the results differ from a run without
+        saving within the tolerances. Under a sampled law the samples are saved: ``n dt`` must be the period.
       **options: the deprecated ``method=`` and ``max_attempts=`` (one `DeprecationWarning`): now
         ``stepsize.method`` and ``stepsize.max_steps``.
 
     Returns:
-      `SolveOutput`. Concrete settings are checked here (``t_final``, ``dt``, ``eps`` finite and positive, a
+      `SolveOutput` (its ``t``, ``q``, ``p``, ``u`` ``None`` without ``saveat``). Concrete settings are checked here (``t_final``, ``dt``, ``eps`` finite and positive, a
       controller given); the gains and plant are not (they may be traced): validate them with `jaxsleigh.gains` /
       `jaxsleigh.plant_params` first. A start that cannot be integrated is reported as data, as in every
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
@@ -134,8 +147,9 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         y0 = jnp.concatenate([y0, jnp.zeros(2, y0.dtype)])
     if y0.shape != (5,):
         raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
+    every = _save_every(saveat)
     if is_sampled(controller):
-        return _solve_held(controller, y0, plant, t_final, dt, ss, eps, tuple(observers))
+        return _solve_held(controller, y0, plant, t_final, dt, ss, eps, tuple(observers), every)
     dtype = y0.dtype
     adaptive = ss.method == "adaptive"
     max_attempts = ss.max_steps
@@ -147,8 +161,12 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
     yc, status0 = _start_in_chart(y0, chart)
     s0 = init_state(yc, status0, args, ctl, observers=tuple(observers))
-    s = run_segment(s0, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), adaptive=adaptive,
-                    monitor=bool(ss.check_passivity), observers=tuple(observers))
+    run = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=tuple(observers))
+    traj = {}
+    if every is None:
+        s = run_segment(s0, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), **run)
+    else:
+        s, traj = _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every, int(max_attempts), **run)
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
     y = jnp.where(status0 == Status.OK, chart.from_chart(s.y), jnp.nan)
@@ -158,15 +176,67 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
                        n_rejected=s.n_reject, summaries=summaries,
                        Hd0=jnp.where(valid & energy, s0.Hd, jnp.nan),
-                       Hd_final=jnp.where(valid & energy & (status == Status.OK), s.Hd, jnp.nan))
+                       Hd_final=jnp.where(valid & energy & (status == Status.OK), s.Hd, jnp.nan), **traj)
 
 
-def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps, observers) -> SolveOutput:
+#: attempts per checkpointed segment, and segments per block, of a save interval (`jaxsleigh.integrate.stepper.run_budget`)
+SAVE_SEGMENT, SAVE_BLOCK = 8, 8
+
+
+def _save_every(saveat) -> Optional[int]:
+    """``saveat.every`` checked (``None``: no trajectory): a whole number >= 1, with summaries."""
+    if saveat is None:
+        return None
+    if not isinstance(saveat, SaveAt):
+        raise ValueError(f"saveat must be a jaxsleigh.SaveAt, got {type(saveat).__name__}")
+    if not saveat.summaries:
+        raise ValueError("solve always carries its summaries: SaveAt(summaries=False) is the fronts' plain fixed-step "
+                         "path (jaxsleigh.run_ensemble)")
+    if saveat.every is None:
+        return None
+    e = saveat.every
+    if isinstance(e, bool) or not isinstance(e, int) and not (isinstance(e, float) and e.is_integer()) or e < 1:
+        raise ValueError(f"saveat.every must be a whole number of base steps >= 1, got {e!r}")
+    return int(e)
+
+
+def _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every: int, max_attempts: int, **run):
+    """The stepper's final state and the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of ``every`` base
+    steps: one ``lax.scan`` over the save intervals, each at most its share of ``max_attempts`` attempts
+    (`jaxsleigh.integrate.stepper.run_budget`), landing on its save time. A state the lane did not reach (it stopped,
+    or its share ran out: ``BUDGET_EXHAUSTED``) is NaN."""
+    if not is_concrete((t_final, dt)):
+        raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")
+    horizon = make_horizon(t_final, dt, every, flags={"save_every": "saveat.every"})
+    dtype = s0.y.dtype
+    times = jnp.asarray(horizon.save_times(), dtype)
+    budget = -(-max_attempts // horizon.n_out)
+
+    def interval(s, target):
+        per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)
+        s = run_budget(s, target, args, per, budget=budget, segment=SAVE_SEGMENT, block=SAVE_BLOCK, **run)
+        short = (s.status == Status.OK) & (s.t < target)
+        s = s._replace(status=jnp.where(short, Status.BUDGET_EXHAUSTED, s.status).astype(s.status.dtype))
+        good = s.status == Status.OK
+        y = jnp.where(good, chart.from_chart(s.y), jnp.nan)
+        u = jnp.where(good, jnp.stack(chart.field_and_control(s.t, s.y, args)[1]), jnp.nan)
+        return s, (y, u)
+
+    s, (ys, us) = jax.lax.scan(jax.checkpoint(interval, prevent_cse=False), s0, times)
+    ok0 = status0 == Status.OK
+    y_first = jnp.where(ok0, y0, jnp.nan)
+    u_first = jnp.where(ok0, jnp.stack(chart.field_and_control(s0.t, s0.y, args)[1]), jnp.nan)
+    ys, us = jnp.concatenate([y_first[None], ys]), jnp.concatenate([u_first[None], us])
+    return s, dict(t=jnp.asarray(horizon.t(), dtype), q=ys[:, :3], p=ys[:, 3:], u=us)
+
+
+def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps, observers, every) -> SolveOutput:
     """`solve` under a `jaxsleigh.controllers.actuators.Sampled` law: the sample instants are step boundaries of the
     same stepper and the held input is state (`jaxsleigh.integrate.sampled`), so the tolerances, the observers and the
     gradients work as for any law. One start is a batch of one of `jaxsleigh.integrate.sampled.solve_sampled`, its
     first step ``period / substeps`` (`jaxsleigh.integrate.sampled.substeps_for` of ``dt``). The held loop has no
-    \\(H_d\\): ``Hd0`` and ``Hd_final`` are NaN."""
+    \\(H_d\\): ``Hd0`` and ``Hd_final`` are NaN. Saving keeps the samples: ``t``, ``q``, ``p`` at the K+1 sample
+    instants, ``u`` (K, 2) the input held on each period."""
     if not isinstance(controller, Sampled):
         raise ValueError("solve integrates one start: a sampled law with per-trajectory numbers (PerTrajectory) runs "
                          "in jaxsleigh.run_ensemble; to solve many starts, vmap solve over them")
@@ -174,13 +244,18 @@ def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps,
         raise ValueError("under a sampled law, the sampler's numbers, t_final and dt must be concrete (they set the "
                          "number of samples of the compiled loop): differentiate or vmap with respect to the law's "
                          "parameters, e.g. lambda gains: solve(sampled(gains, 0.2), y0)")
+    period = float(controller.sampler.period)
+    if every is not None and abs(every * float(dt) - period) > 1e-9 * period:
+        raise ValueError(f"under a sampled law solve saves the samples: saveat.every * dt ({every} * {float(dt):g}) "
+                         f"must be the sampling period {period:g}")
     run = solve_sampled(controller.law, paper_plant() if plant is None else plant, y0[None], t_final=t_final,
-                        sampler=controller.sampler, substeps=substeps_for(float(controller.sampler.period), float(dt)),
-                        eps=eps, dtype=y0.dtype, save=False, stepsize=ss, observers=observers)
+                        sampler=controller.sampler, substeps=substeps_for(period, float(dt)), eps=eps, dtype=y0.dtype,
+                        save=every is not None, stepsize=ss, observers=observers)
+    traj = {} if every is None else dict(t=run.t, q=run.q[0], p=run.p[0], u=run.u[0])
     nan = jnp.full((), jnp.nan, y0.dtype)
     return SolveOutput(q_final=run.q_final[0], p_final=run.p_final[0], status=run.status[0],
                        t_reached=run.t_reached[0], n_steps=run.n_steps[0], n_rejected=run.n_rejected[0],
-                       summaries={k: v[0] for k, v in run.summaries.items()}, Hd0=nan, Hd_final=nan)
+                       summaries={k: v[0] for k, v in run.summaries.items()}, Hd0=nan, Hd_final=nan, **traj)
 
 
 def _stepsize(stepsize, options: dict) -> StepSizeController:

@@ -54,8 +54,8 @@ from .rk4 import rk4_stages, rk4_step
 from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
-__all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment", "run_to",
-           "run_saving", "run_plain", "q_norm2_w"]
+__all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment",
+           "run_to", "run_budget", "run_saving", "run_plain", "q_norm2_w"]
 
 #: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
 GUARD_EVERY = 8
@@ -478,6 +478,30 @@ def run_checkpointed(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n
 
     out, acc = jax.lax.scan(outer, (s, acc), None, length=-(-int(n_attempts) // int(segment)))[0]
     return out if accumulate is None else (out, acc)
+
+
+def run_budget(s: StepState, target, args: ClosedLoop, ctl: Controls, *, budget: int, segment: int, block: int,
+               adaptive: bool, monitor: bool, observers=DEFAULT_OBSERVERS) -> StepState:
+    """At most ``budget`` attempted steps (static) of every lane towards ``target``: `run_checkpointed` in segments of
+    ``segment`` attempts gathered in checkpointed blocks of ``block`` segments; a segment, and a block, in which no
+    lane is active is skipped (one test of the batch, forward and in reverse mode). The stretch between two instants
+    of a run that lands on them (the sampled loop's sample instants, `jaxsleigh.solve`'s save times); ``ctl.max_steps``
+    still caps each lane's attempts in all."""
+    n_block = segment * block
+    run = functools.partial(run_checkpointed, target=target, args=args, ctl=ctl, segment=segment, adaptive=adaptive,
+                            monitor=monitor, observers=observers)
+    if budget <= n_block:
+        return run(s, n_attempts=budget)
+
+    @functools.partial(jax.checkpoint, prevent_cse=False)
+    def run_block(c):
+        return run(c, n_attempts=n_block)
+
+    def outer(c, _):
+        busy = jnp.any(is_active(c, jnp.asarray(target, c.y.dtype), ctl))
+        return jax.lax.cond(busy, run_block, lambda c: c, c), None
+
+    return jax.lax.scan(outer, s, None, length=-(-budget // n_block))[0]
 
 
 def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,

@@ -2,7 +2,7 @@
 
 * `jaxsleigh.StepSizeController` (`jaxsleigh.integrate.stepsize`): how steps are taken (method, tolerances,
   the policy's safety and factor limits, largest step, step budget, the passivity monitor);
-* `SaveAt`: what to keep (trajectories every ``every`` base steps, or final states and summaries only, or the
+* `SaveAt` (`jaxsleigh.integrate.saveat`): what to keep (trajectories every ``every`` base steps, or final states and summaries only, or the
   plain fast path without summaries);
 * `RunOptions`: how to run (chunks, segments, devices, checkpoint, resume, progress, the share of a
   multi-process run).
@@ -19,22 +19,10 @@ import math
 from typing import Any, NamedTuple, Optional
 
 from ..deprecation import OBJECT_CLASS, warn_deprecated
+from ..integrate.saveat import SaveAt
 from ..integrate.stepsize import StepSizeController
 
 __all__ = ["SaveAt", "RunOptions", "StudyOptions", "front_options"]
-
-
-class SaveAt(NamedTuple):
-    """What a study keeps.
-
-    Attributes:
-      every: keep the trajectories every ``every`` base steps (``None``: final states and summaries only).
-      summaries: ``False`` runs the plain fixed-step path (final states only, no per-step checks or
-        summaries; needs ``StepSizeController(method="rk4", check_passivity=False)``).
-    """
-
-    every: Optional[int] = None
-    summaries: bool = True
 
 
 class RunOptions(NamedTuple):
