@@ -80,7 +80,7 @@ from ..controllers.paper import PaperLaw
 from ..model.charts import PhysicalChart, physical_chart_for
 from ..model.closed_loop import ClosedLoop
 from ..model.controller import FunctionLaw, PerTrajectory, apply_law, is_paper_law
-from ..model.params import PlantParams, plant_params
+from ..model.params import PlantParams, is_concrete, plant_params
 from ..model.plant import velocity
 from ..status import Status
 from .engine import BUDGET_FACTOR, MAX_BASE_STEPS
@@ -88,7 +88,7 @@ from .observers import DEFAULT_OBSERVERS, collect_values
 from .stepper import Controls, StepState, controls, init_state, run_budget
 from .stepsize import StepSizeController
 
-__all__ = ["SampledRun", "HeldInput", "held_input_type", "solve_sampled", "sample_count", "substeps_for", "is_concrete", "SEGMENT",
+__all__ = ["SampledRun", "HeldInput", "held_input_type", "solve_sampled", "sample_count", "substeps_for", "SEGMENT",
            "BLOCK"]
 
 #: Attempts per checkpointed segment of a period (adaptive): a period costs its attempts rounded up to this.
@@ -184,11 +184,6 @@ def substeps_for(period: float, dt: float) -> int:
     """``substeps`` of a sampling period for a base step ``dt``: the first step tried is ``period / substeps``, at
     most ``dt`` and at most a quarter period (the fixed RK4 steps per period with ``method="rk4"``)."""
     return max(4, math.ceil(period / dt - 1e-9))
-
-
-def is_concrete(tree) -> bool:
-    """No leaf of ``tree`` is a tracer (its numbers are known now, not inside ``jit``/``grad``/``vmap``)."""
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def _positive(name: str, value) -> float:

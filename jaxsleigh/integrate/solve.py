@@ -32,9 +32,9 @@ from ..deprecation import warn_deprecated
 from ..model.charts import chart_for
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
-from ..model.params import paper_plant
+from ..model.params import is_concrete, paper_plant
 from ..status import Status
-from .sampled import is_concrete, solve_sampled, substeps_for
+from .sampled import solve_sampled, substeps_for
 from .engine import make_horizon
 from .saveat import SaveAt
 from .stepper import controls, init_state, run_budget, run_segment

@@ -32,6 +32,7 @@ __all__ = [
     "as_gains",
     "as_plant",
     "lane_record",
+    "is_concrete",
 ]
 
 
@@ -69,7 +70,8 @@ class Gains(NamedTuple):
     D_hat: Any
 
 
-def _is_concrete(x) -> bool:
+def is_concrete(x) -> bool:
+    """No leaf of ``x`` is a tracer (its numbers are known now, not inside ``jit``/``grad``/``vmap``)."""
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x))
 
 
