@@ -62,6 +62,21 @@ def test_a_different_answer_fails_the_audit_but_unsettled_and_certified_unsettle
     assert rec["status_mismatch"] == 1 and not rec["passed"]
 
 
+def test_what_a_run_did_not_measure_is_not_compared():
+    """The plain fixed-step path (``SaveAt(summaries=False)``) has no T_eps and no energy (NaN): its OK agrees with a
+    reference that settled or not, and only its final positions are judged."""
+    result = _fake([np.nan] * 3, T=[np.nan] * 3)
+    ref = _fake([1.0, 2.0, 3.0], T=[5.0, np.inf, np.inf])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rec = audit_rows(result, lambda rows, rtol, atol: ref, Audit(rows=3))
+    assert rec["passed"] and rec["status_mismatch"] == 0 and rec["worst_T_eps_s"] == 0.0
+    moved = _fake([1.0, 2.0, 3.0], T=[5.0, np.inf, np.inf])
+    moved.q_final = np.full((3, 3), 0.1)
+    with pytest.warns(AccuracyWarning):
+        assert not audit_rows(result, lambda rows, rtol, atol: moved, Audit(rows=3))["passed"]
+
+
 def test_small_runs_say_they_were_not_audited():
     r = js.run_ensemble(np.array([[1.0, 1.0, 0.5]]), t_final=1.0, run=js.RunOptions(progress=False))
     assert r.run_info["audit"]["rows"] == 0 and "fewer than 500" in r.run_info["audit"]["why"]
