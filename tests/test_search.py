@@ -312,7 +312,7 @@ def _frontier(ics, eps=0.05):
 
 @pytest.fixture(scope="module")
 def gap_search():
-    front = _frontier(tu.draw_starts(tu.UniformStarts(), TINY.batch, TINY.seed))
+    front = _frontier(tu.draw_starts(tu.UniformStarts(), TINY.batch, TINY.seed)[:6])     # not config.batch's 8
     return front, tu.search(config=TINY._replace(objective="gap"), frontier=front)
 
 
@@ -329,6 +329,7 @@ def test_the_gap_search_minimises_the_median_time_ratio_it_reports(gap_search):
     np.testing.assert_allclose(h["score"][feas], np.minimum(h["median_gap"][feas], 100.0))
     assert res.figures["median_gap"] <= res.reference["median_gap"] + 1e-12
     assert res.settings["config"]["objective"] == "gap" and res.settings["frontier"]["horizons"] == [5, 10, 20, 40]
+    assert res.settings["config"]["batch"] == 6              # what it trained on: the frontier's starts
 
 
 def test_the_gap_is_exact_on_a_known_frontier_and_bounds_outside_it():

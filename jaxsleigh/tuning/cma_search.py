@@ -410,8 +410,9 @@ def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, refere
                 "plant": None if ev.plant is None else repr(ev.plant), "method": "CMA-ES on the accurate engine"}
     if ev.stepsize is not None:            # (left out otherwise: the fingerprints of earlier runs hold)
         settings["stepsize"] = ev.stepsize._asdict()
-    if ev.frontier is not None:
+    if ev.frontier is not None:                # its starts are the training starts: config.batch is not used
         settings["starts"] = "the frontier's"
+        settings["config"] = {**settings["config"], "batch": int(np.shape(ev.ics)[0])}
         settings["frontier"] = {"horizons": [float(h) for h in ev.frontier.horizons],
                                 "sha256": hashlib.sha256(np.ascontiguousarray(ev.frontier.frontier()).tobytes()).hexdigest()}
     # the generation count is left out: a finished or interrupted run can be resumed for more generations
