@@ -264,3 +264,14 @@ def test_the_library_run_refuses_a_held_out_a_stale_checkpoint_and_other_options
     with pytest.raises(ValueError, match="resume=True: no checkpoint"):
         tune_run(TuningRun(out, resume=True), config=TuneConfig(steps=1, batch=2))
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, name, folder", [(["compare", "--samples", "2", "--t-final", "5"], "c.json", False),
+                                                (["paper"], "paper", True)], ids=["compare", "paper"])
+def test_compare_and_paper_refuse_an_out_that_another_run_holds(tmp_path, capsys, argv, name, folder):
+    """Every command that writes owns its --out: compare's table and paper's folder too (nothing computed)."""
+    out = tmp_path / name
+    with RunLock(out, "another-run", folder=folder):
+        rc, _, err = _run([*argv, "--out", out], capsys)
+    assert rc == EXIT_LOCKED and "in use by another run" in err and "choose another --out" in err, err
+    assert "Traceback" not in err and not (out / "paper.npz").exists() and not out.is_file()

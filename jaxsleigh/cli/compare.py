@@ -4,6 +4,8 @@ from __future__ import annotations
 import json
 import math
 import time
+import uuid
+from pathlib import Path
 
 from ..studies.audit import audit_line
 from .chunked import audit_from_args
@@ -173,10 +175,8 @@ def row_lines(rows, *, eps: float, t_final: float) -> list:
 
 
 def _cmd_compare(args) -> int:
-    from ..controllers.registry import make_controller
-    from ..files.npz import atomic_write_text
-    from ..integrate.stepsize import StepSizeController
-    from ..studies.compare import check_horizon, compare, draw_compare_starts, json_ready, tune_to_budget
+    from ..files.runlock import RunLock
+    from ..studies.compare import check_horizon
 
     names, dists = _names(args)
     train, steps = _tuning(args)
@@ -184,6 +184,17 @@ def _cmd_compare(args) -> int:
     dt = check_horizon(args.t_final, sampler, flag="--t-final")
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
+    # the run owns its --out: while it runs, another run writing the same file is refused (exit code 5)
+    with RunLock(Path(args.out), uuid.uuid4().hex, what="output", hint="choose another --out"):
+        return _run_compare(args, names, dists, train, steps, sampler, dt)
+
+
+def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
+    from ..controllers.registry import make_controller
+    from ..files.npz import atomic_write_text
+    from ..integrate.stepsize import StepSizeController
+    from ..studies.compare import compare, draw_compare_starts, json_ready, tune_to_budget
+
     t0 = time.perf_counter()
     equal = None
     if args.equal_energy:

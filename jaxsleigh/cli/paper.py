@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 import time
+import uuid
+from pathlib import Path
 
 from .common import PROG, add_progress_option, check_outputs, number
 
@@ -30,12 +32,15 @@ def add_paper(subparsers) -> None:
 
 
 def _cmd_paper(args) -> int:
+    from ..files.runlock import RunLock
     from ..plots.paper_run import run_paper, summary_table
 
     check_outputs(folders=[args.out])
     t0 = time.perf_counter()
-    paths = run_paper(args.out, x64=args.x64, dt=args.dt, t_final=args.t_final, progress=args.progress,
-                      command=[PROG, *args._argv], stamp=args.stamp)
+    # the run owns its --out folder: while it runs, another run writing there is refused (exit code 5)
+    with RunLock(Path(args.out), uuid.uuid4().hex, folder=True, what="output folder", hint="choose another --out"):
+        paths = run_paper(args.out, x64=args.x64, dt=args.dt, t_final=args.t_final, progress=args.progress,
+                          command=[PROG, *args._argv], stamp=args.stamp)
     wall = time.perf_counter() - t0
     print(summary_table(paths["npz"]))
     print(f"{PROG} paper: {wall:.1f} s wall simulating and drawing (start-up and imports: see the total on "
