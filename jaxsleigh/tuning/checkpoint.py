@@ -1,5 +1,6 @@
 """Checkpoint and resume of the tuners: the optimiser's whole state in one fingerprinted ``.npz``, written
-atomically after every iteration (`TunerCheckpoint` for the paper's gains, `LawCheckpoint` for any law), and
+atomically after every iteration, in one format for every tuner (`Stamp`: `TunerCheckpoint` for the paper's gains,
+`LawCheckpoint` for any law, the CMA-ES search's generations), and
 `TuningInterrupted` (Ctrl-C keeps the best so far). A checkpoint may also carry the options of the command that
 wrote it (`checkpoint_options`), so that a refused resume can name the option first."""
 from __future__ import annotations
@@ -8,7 +9,7 @@ import hashlib
 import json
 import zipfile
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +18,7 @@ import numpy as np
 from ..model.params import gains_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
-           "checkpoint_options"]
+           "checkpoint_options", "Stamp", "tree_arrays", "tree_from"]
 
 
 class TuningInterrupted(KeyboardInterrupt):
@@ -78,6 +79,46 @@ def _differences(old: dict, new: dict, limit: int = 6) -> str:
     return "; ".join(diffs[:limit]) + more
 
 
+class Stamp(NamedTuple):
+    """What identifies a tuner's checkpoint, and the one format every tuner writes (the gradient tuner, `tune_law`, the
+    CMA-ES search): a ``.npz`` holding ``key`` (the run's fingerprint), ``settings`` (what the fingerprint hashes, as
+    JSON: a refused resume names what differs), ``options`` (the command line's, if given) and the tuner's own
+    arrays, written atomically."""
+
+    key: str
+    settings: dict
+    options: Optional[dict] = None
+
+    @classmethod
+    def of(cls, key: str, settings: dict, options: Optional[dict] = None) -> "Stamp":
+        """The settings as JSON reads them back (tuples become lists), so that a refusal compares like with like."""
+        return cls(key, json.loads(json.dumps(settings or {}, sort_keys=True, default=str)), options)
+
+    def write(self, path, arrays: dict) -> None:
+        from ..files.npz import atomic_write
+
+        head = {"key": np.array(self.key), "settings": np.array(json.dumps(self.settings, sort_keys=True))}
+        if self.options is not None:
+            head["options"] = np.array(json.dumps(self.options, sort_keys=True, default=str))
+        atomic_write(Path(path), lambda fh: np.savez(fh, **head, **arrays))
+
+    def read(self, path, what: str = "tuner checkpoint") -> Optional[dict]:
+        """The tuner's arrays (`read_checkpoint`), ``None`` if there is no file."""
+        return read_checkpoint(Path(path), self.key, self.settings, what)
+
+
+def tree_arrays(prefix: str, tree) -> dict:
+    """``{prefix/i: leaf i}`` of a pytree, for `Stamp.write`."""
+    return {f"{prefix}/{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree_util.tree_leaves(tree))}
+
+
+def tree_from(a: dict, prefix: str, like):
+    """The pytree shaped (and typed) like ``like`` from the arrays `tree_arrays` wrote."""
+    leaves, tdef = jax.tree_util.tree_flatten(like)
+    return jax.tree_util.tree_unflatten(
+        tdef, [jnp.asarray(a[f"{prefix}/{i}"], jnp.asarray(leaf).dtype) for i, leaf in enumerate(leaves)])
+
+
 class TunerCheckpoint:
     """The optimiser's whole state in one ``.npz`` (pytree leaves by position), written atomically.
 
@@ -90,54 +131,34 @@ class TunerCheckpoint:
         self.path = Path(path)
         self.key = key
         self._row_fields = tuple(row_fields)
-        self.options = options
+        self.stamp = Stamp(key, _SETTINGS.get(key) or {}, options)
 
     def save(self, it, trainable, opt_state, best, valid_points, rows, scalars: dict, probes) -> None:
-        from ..files.npz import atomic_write
-
-        arrays = {"key": np.array(self.key), "it": np.int64(it),
-                  "settings": np.array(json.dumps(_SETTINGS.get(self.key) or {}, sort_keys=True))}
-        if self.options is not None:
-            arrays["options"] = np.array(json.dumps(self.options, sort_keys=True, default=str))
-        for k, v in scalars.items():
-            arrays[f"scalar/{k}"] = np.float64(v)
-
-        def put(prefix, tree):
-            for i, leaf in enumerate(jax.tree_util.tree_leaves(tree)):
-                arrays[f"{prefix}/{i}"] = np.asarray(leaf)
-
-        put("trainable", trainable)
-        put("opt_state", opt_state)
+        arrays = {"it": np.int64(it), **{f"scalar/{k}": np.float64(v) for k, v in scalars.items()},
+                  **tree_arrays("trainable", trainable), **tree_arrays("opt_state", opt_state)}
         if best is not None:
-            arrays["best/value"], arrays["best/it"] = np.float64(best[0]), np.int64(best[1])
-            put("best/trainable", best[2])
+            arrays.update({"best/value": np.float64(best[0]), "best/it": np.int64(best[1]),
+                           **tree_arrays("best/trainable", best[2])})
         arrays["valid/value"] = np.asarray([v for v, _, _ in valid_points], np.float64)
         arrays["valid/it"] = np.asarray([i for _, i, _ in valid_points], np.int64)
         for j, (_, _, tr) in enumerate(valid_points):
-            put(f"valid/{j}", tr)
+            arrays.update(tree_arrays(f"valid/{j}", tr))
         for f in self._row_fields:
             arrays[f"rows/{f}"] = np.asarray([r[f] for r in rows])
-        if probes is not None:
-            for j, (pstarts, _) in enumerate(probes):
-                arrays[f"probes/{j}"] = np.asarray(pstarts)
-        atomic_write(self.path, lambda fh: np.savez(fh, **arrays))
+        for j, (pstarts, _) in enumerate(probes or ()):
+            arrays[f"probes/{j}"] = np.asarray(pstarts)
+        self.stamp.write(self.path, arrays)
 
     def load(self, trainable, opt_state, groups):
         """``(it, trainable, opt_state, best, valid_points, rows, scalars, probes)`` restructured like
         ``trainable`` / ``opt_state``; ``None`` if there is no file."""
-        a = read_checkpoint(self.path, self.key, _SETTINGS.get(self.key) or {})
+        a = self.stamp.read(self.path)
         if a is None:
             return None
-
-        def get(prefix, like):
-            leaves, tdef = jax.tree_util.tree_flatten(like)
-            return jax.tree_util.tree_unflatten(
-                tdef, [jnp.asarray(a[f"{prefix}/{i}"], jnp.asarray(leaf).dtype) for i, leaf in enumerate(leaves)])
-
         best = None
         if "best/value" in a:
-            best = (float(a["best/value"]), int(a["best/it"]), get("best/trainable", trainable))
-        valid_points = [(float(v), int(i), get(f"valid/{j}", trainable))
+            best = (float(a["best/value"]), int(a["best/it"]), tree_from(a, "best/trainable", trainable))
+        valid_points = [(float(v), int(i), tree_from(a, f"valid/{j}", trainable))
                         for j, (v, i) in enumerate(zip(a["valid/value"], a["valid/it"]))]
         n_rows = len(a[f"rows/{self._row_fields[0]}"])
         rows = [{f: _scalar(a[f"rows/{f}"][r]) for f in self._row_fields} for r in range(n_rows)]
@@ -145,8 +166,8 @@ class TunerCheckpoint:
         probes = None
         if "probes/0" in a:
             probes = [(a[f"probes/{j}"], groups[j][2]) for j in range(len(groups)) if f"probes/{j}" in a]
-        return (int(a["it"]), get("trainable", trainable), get("opt_state", opt_state), best, valid_points, rows,
-                scalars, probes)
+        return (int(a["it"]), tree_from(a, "trainable", trainable), tree_from(a, "opt_state", opt_state), best,
+                valid_points, rows, scalars, probes)
 
 
 def _scalar(x):
@@ -195,40 +216,31 @@ class LawCheckpoint:
     the descent stopped (at an invalid candidate)."""
 
     def __init__(self, path, key: str, settings: dict, options: dict | None = None):
-        self.path, self.key, self.settings, self.options = Path(path), key, settings, options
+        self.path, self.key, self.stamp = Path(path), key, Stamp.of(key, settings, options)
 
     def save(self, it: int, params, opt_state, best, hist: dict, stopped: bool) -> None:
-        from ..files.npz import atomic_write
-
-        arrays = {"key": np.array(self.key), "it": np.int64(it), "stopped": np.bool_(stopped),
-                  "settings": np.array(json.dumps(self.settings, sort_keys=True, default=str)),
-                  "params": np.asarray(params)}
-        if self.options is not None:
-            arrays["options"] = np.array(json.dumps(self.options, sort_keys=True, default=str))
-        for i, leaf in enumerate(jax.tree_util.tree_leaves(opt_state)):
-            arrays[f"opt_state/{i}"] = np.asarray(leaf)
+        arrays = {"it": np.int64(it), "stopped": np.bool_(stopped), "params": np.asarray(params),
+                  **tree_arrays("opt_state", opt_state)}
         if best is not None:
-            arrays["best/params"] = np.asarray(best[0])
-            arrays["best/loss"], arrays["best/energy"] = np.float64(best[1]), np.float64(best[2])
+            arrays.update({"best/params": np.asarray(best[0]), "best/loss": np.float64(best[1]),
+                           "best/energy": np.float64(best[2])})
         for k, v in hist.items():
             arrays[f"hist/{k}"] = np.asarray(v, bool if k == "valid" else np.float64)
-        atomic_write(self.path, lambda fh: np.savez(fh, **arrays))
+        self.stamp.write(self.path, arrays)
 
     def load(self, params, opt_state):
         """``(it, params, opt_state, best, hist, stopped)`` shaped like ``params`` / ``opt_state``; ``None`` if there is
         no file. Refuses a damaged file or one written with other settings (naming what differs)."""
-        a = read_checkpoint(self.path, self.key, self.settings)
+        a = self.stamp.read(self.path)
         if a is None:
             return None
         dtype = jnp.asarray(params).dtype
-        leaves, tdef = jax.tree_util.tree_flatten(opt_state)
-        state = jax.tree_util.tree_unflatten(
-            tdef, [jnp.asarray(a[f"opt_state/{i}"], jnp.asarray(leaf).dtype) for i, leaf in enumerate(leaves)])
         best = None
         if "best/params" in a:
             best = (jnp.asarray(a["best/params"], dtype), float(a["best/loss"]), float(a["best/energy"]))
         hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
-        return int(a["it"]), jnp.asarray(a["params"], dtype), state, best, hist, bool(a["stopped"])
+        return (int(a["it"]), jnp.asarray(a["params"], dtype), tree_from(a, "opt_state", opt_state), best, hist,
+                bool(a["stopped"]))
 
 
 def read_checkpoint(path: Path, key: str, settings: dict, what: str = "tuner checkpoint") -> Optional[dict]:

@@ -53,7 +53,7 @@ from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dic
 from ..progress import Progress
 from ..status import Status
 from ..studies.options import RunOptions
-from .checkpoint import TuningInterrupted, read_checkpoint
+from .checkpoint import Stamp, TuningInterrupted
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
@@ -235,24 +235,19 @@ def _fingerprint(settings: dict, ics) -> str:
     return h.hexdigest()
 
 
-def _save(path: Path, key: str, state: CMAState, rng, hist: list, top: list, options: Optional[dict] = None) -> None:
-    from ..files.npz import atomic_write
-
-    arrays = {"key": np.array(key), "rng": np.array(json.dumps(rng.bit_generator.state))}
-    if options is not None:
-        arrays["options"] = np.array(json.dumps(options, sort_keys=True, default=str))
-    arrays.update({f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()})
-    for f in _HISTORY:
-        arrays[f"hist/{f}"] = np.asarray([h.get(f, math.nan) for h in hist], np.float64)
+def _save(path: Path, stamp: Stamp, state: CMAState, rng, hist: list, top: list) -> None:
+    arrays = {"rng": np.array(json.dumps(rng.bit_generator.state)),
+              **{f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()},
+              **{f"hist/{f}": np.asarray([h.get(f, math.nan) for h in hist], np.float64) for f in _HISTORY}}
     arrays["top/score"] = np.asarray([t[0] for t in top], np.float64)
     arrays["top/generation"] = np.asarray([t[1] for t in top], np.int64)
     arrays["top/x"] = np.asarray([t[2] for t in top], np.float64).reshape(len(top), state.mean.size)
     arrays["top/figures"] = np.asarray([t[3] for t in top], np.float64).reshape(len(top), len(SCALAR_FIGURES))
-    atomic_write(path, lambda fh: np.savez(fh, **arrays))
+    stamp.write(path, arrays)
 
 
-def _load(path: Path, key: str, rng):
-    a = read_checkpoint(path, key, {}, what="search checkpoint")
+def _load(path: Path, stamp: Stamp, rng):
+    a = stamp.read(path, what="search checkpoint")
     rng.bit_generator.state = json.loads(str(a["rng"]))
     state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
     n = len(a["hist/generation"])
@@ -290,9 +285,10 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     # the reference and the start in one ensemble; the start is candidate "generation -1"
     ref = ev.evaluate([reference, space.g0])
     budget = _budget(ref, energy_budget, config, pcts)
-    run = _start(space, ref, budget, config, ckpt if resume else None, key)
+    stamp = Stamp.of(key, settings, options)
+    run = _start(space, ref, budget, config, ckpt if resume else None, stamp)
     try:
-        _generations(run, space, ev, budget, config, ckpt, key, progress, options)
+        _generations(run, space, ev, budget, config, ckpt, stamp, progress)
     except KeyboardInterrupt:
         raise TuningInterrupted(_partial(run, space, budget, settings), ckpt) from None
     return _verified(run, space, ev, guard, budget, settings)
@@ -461,7 +457,7 @@ class _SearchState:
 
 
 def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: SearchConfig,
-           resume_from: Optional[Path], key: str) -> _SearchState:
+           resume_from: Optional[Path], stamp: Stamp) -> _SearchState:
     """A fresh run from the starting gains (candidate 1 of ``ref``, kept if feasible), or the one
     checkpointed at ``resume_from`` if that file exists."""
     rng = np.random.default_rng(config.seed)
@@ -470,19 +466,19 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
     if feasible0:
         top.append((float(s0), -1, space.full0[space.free].copy(), _scalars(ref, 1)))
     if resume_from is not None and resume_from.exists():
-        state, hist, top = _load(resume_from, key, rng)
+        state, hist, top = _load(resume_from, stamp, rng)
     return _SearchState(state, rng, hist, top, time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0))
 
 
 def _generations(run: _SearchState, space: _Space, ev: _Evaluator, budget: _Budget, config: SearchConfig,
-                 ckpt: Optional[Path], key: str, progress: Any, options: Optional[dict] = None) -> None:
+                 ckpt: Optional[Path], stamp: Stamp, progress: Any) -> None:
     """The remaining generations of ``run`` (updated in place), each checkpointed and reported."""
     with Progress(progress, desc="search (CMA-ES)") as bar:
         while int(run.state.generation) < config.generations:
             gen = int(run.state.generation)
             _generation(run, gen, space, ev, budget, config)
             if ckpt is not None:
-                _save(ckpt, key, run.state, run.rng, run.hist, run.top, options)
+                _save(ckpt, stamp, run.state, run.rng, run.hist, run.top)
             bar.update((gen + 1) / config.generations)
             bar.postfix(median_T=f"{run.top[0][3][0]:.2f}" if run.top else "-", sigma=f"{float(run.state.sigma):.3f}")
 
