@@ -214,7 +214,7 @@ def _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every: int, max_
 
     def interval(s, target):
         per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)
-        s = run_budget(s, target, args, per, budget=budget, segment=SAVE_SEGMENT, block=SAVE_BLOCK, **run)
+        s = run_budget(s, target, args, per, budget=budget, segment=min(SAVE_SEGMENT, budget), block=SAVE_BLOCK, **run)
         short = (s.status == Status.OK) & (s.t < target)
         s = s._replace(status=jnp.where(short, Status.BUDGET_EXHAUSTED, s.status).astype(s.status.dtype))
         good = s.status == Status.OK
