@@ -127,8 +127,9 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         ``stepsize.method`` and ``stepsize.max_steps``.
 
     Returns:
-      `SolveOutput` (its ``t``, ``q``, ``p``, ``u`` ``None`` without ``saveat``). Concrete settings are checked here (``t_final``, ``dt``, ``eps`` finite and positive, a
-      controller given); the gains and plant are not (they may be traced): validate them with `jaxsleigh.gains` /
+      `SolveOutput` (its ``t``, ``q``, ``p``, ``u`` ``None`` without ``saveat``). Concrete settings are checked
+      here (``t_final``, ``dt``, ``eps`` finite and positive, a controller given); the gains and plant are not (they
+      may be traced): validate them with `jaxsleigh.gains` /
       `jaxsleigh.plant_params` first. A start that cannot be integrated is reported as data, as in every
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
       whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
@@ -179,7 +180,7 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
                        Hd_final=jnp.where(valid & energy & (status == Status.OK), s.Hd, jnp.nan), **traj)
 
 
-#: attempts per checkpointed segment, and segments per block, of a save interval (`jaxsleigh.integrate.stepper.run_budget`)
+#: attempts per checkpointed segment, and segments per block, of a save interval (`stepper.run_budget`)
 SAVE_SEGMENT, SAVE_BLOCK = 8, 8
 
 

@@ -54,8 +54,8 @@ from .rk4 import rk4_stages, rk4_step
 from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
-__all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt", "run_segment",
-           "run_to", "run_budget", "run_saving", "run_plain", "q_norm2_w"]
+__all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt",
+           "run_segment", "run_to", "run_budget", "run_saving", "run_plain", "q_norm2_w"]
 
 #: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
 GUARD_EVERY = 8

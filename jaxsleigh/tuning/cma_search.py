@@ -409,8 +409,8 @@ def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, refere
     if ev.frontier is not None:                # its starts are the training starts: config.batch is not used
         settings["starts"] = "the frontier's"
         settings["config"] = {**settings["config"], "batch": int(np.shape(ev.ics)[0])}
-        settings["frontier"] = {"horizons": [float(h) for h in ev.frontier.horizons],
-                                "sha256": hashlib.sha256(np.ascontiguousarray(ev.frontier.frontier()).tobytes()).hexdigest()}
+        digest = hashlib.sha256(np.ascontiguousarray(ev.frontier.frontier()).tobytes()).hexdigest()
+        settings["frontier"] = {"horizons": [float(h) for h in ev.frontier.horizons], "sha256": digest}
     # the generation count is left out: a finished or interrupted run can be resumed for more generations
     # (a generation does not depend on how many follow it)
     # (the percentiles are left out at their default: the fingerprints of earlier runs hold)
