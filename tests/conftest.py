@@ -18,6 +18,7 @@ tier, for every change. A test is slow if it carries ``@pytest.mark.slow`` or is
 """
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -40,6 +41,40 @@ if _CACHE is not None:
 #: tests measured slow (node ids without parameters: every case of a listed test is slow)
 SLOW = frozenset(line.split("#")[0].strip() for line in (Path(__file__).parent / "slow.txt").read_text().splitlines()
                  if line.split("#")[0].strip())
+
+
+def _memory_maps() -> int:
+    """How many memory mappings this process holds (Linux's ``/proc/self/maps``; 0 where there is none)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return f.read().count(b"\n")
+    except OSError:
+        return 0
+
+
+def _max_memory_maps() -> int:
+    """The kernel's bound on one process's memory mappings (``vm.max_map_count``, 65,530 by default)."""
+    try:
+        return int(Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return 65530
+
+
+#: drop JAX's compiled programs once a worker holds half the kernel's bound on mappings
+_MAPS_LIMIT = _max_memory_maps() // 2
+
+
+@pytest.fixture(autouse=True)
+def _bounded_memory_maps():
+    """Every program XLA compiles on the CPU keeps about three memory mappings until it is freed, and a test
+    worker compiles thousands: past ``vm.max_map_count`` the next mapping fails and XLA dies of a segmentation
+    fault (seen at 90-97% of cold full runs, while serialising a program for the persistent cache). After a
+    test that leaves a worker over half the bound, JAX's in-memory caches are dropped (later tests read their
+    programs back from the persistent cache, or compile them again)."""
+    yield
+    if _memory_maps() > _MAPS_LIMIT:
+        jax.clear_caches()
+        gc.collect()
 
 
 def pytest_collection_modifyitems(config, items):
