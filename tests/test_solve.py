@@ -134,6 +134,26 @@ def test_saveat_shares_the_budget_between_the_save_intervals():
     assert np.all(np.isfinite(q[0])) and np.all(np.isnan(q[-1])) and float(out.t_reached) < 2.0
 
 
+def test_saveat_near_and_on_the_singular_set():
+    """Vmapped with a good start: a start 1e-3 rad off theta = 0 with momentum, which float32 cannot carry through
+    its default budget, ends with a status that says so, its start saved and every later state NaN, never a stale or
+    silent number; a start on the set ends ``SINGULAR_START`` with every saved state and input NaN; the good start's
+    trajectory is the one it has alone."""
+    starts = jnp.asarray(np.array([Y0, [1.0, 1.0, 1e-3, 0.1, -0.2], [1.0, 1.0, 0.0, 0.1, -0.2]], np.float32))
+    out = jax.jit(jax.vmap(lambda y: solve(js.paper_gains(), y, t_final=2.0, saveat=js.SaveAt(every=50))))(starts)
+    status = np.asarray(out.status).tolist()
+    assert status[0] == js.Status.OK and status[1] not in (js.Status.OK, js.Status.NONFINITE)
+    assert status[2] == js.Status.SINGULAR_START
+    q, p, u, t = (np.asarray(a) for a in (out.q, out.p, out.u, out.t))
+    assert np.all(np.isfinite(q[0])) and np.all(np.isfinite(p[0])) and np.all(np.isfinite(u[0]))
+    after = t[1] > float(out.t_reached[1])
+    assert np.all(np.isfinite(q[1, 0])) and after.sum() >= 1
+    assert np.all(np.isnan(q[1, after])) and np.all(np.isnan(p[1, after])) and np.all(np.isnan(u[1, after]))
+    assert np.all(np.isnan(q[2])) and np.all(np.isnan(p[2])) and np.all(np.isnan(u[2]))
+    alone = solve(js.paper_gains(), starts[0], t_final=2.0, saveat=js.SaveAt(every=50))
+    np.testing.assert_allclose(q[0], np.asarray(alone.q), rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.slow
 def test_gradient_of_a_trajectory_loss_matches_finite_differences():
     """d/dk of the summed squared distance along the saved trajectory (float64, tight tolerances)."""
