@@ -47,11 +47,14 @@ def test_adding_to_the_list_keeps_it_and_fits_the_rest(tmp_path, monkeypatch):
 
     here = tmp_path / "tests"
     here.mkdir()
-    (here / "slow.txt").write_text("# head\ntests/test_old.py::test_kept  # 3.0 s\n")
+    (here / "slow.txt").write_text("# head\ntests/test_old.py::test_kept  # 3.0 s\n"
+                                   "tests/test_old.py::test_noted  # compiling: a note written by hand\n")
     (tmp_path / "d.txt").write_text(REPORT)
     monkeypatch.setattr(tiers, "__file__", str(here / "tiers.py"))
     monkeypatch.setattr(sys, "argv", ["tiers.py", str(tmp_path / "d.txt"), "--add", "--budget", "5"])
     assert tiers.main() == 0
     listed = tiers.read_list(here / "slow.txt")
-    assert listed == pytest.approx({"tests/test_old.py::test_kept": 3.0, "tests/test_a.py::test_big": 15.0})
-    assert "test_big  # 15.0 s compiling" in (here / "slow.txt").read_text()
+    assert listed == pytest.approx({"tests/test_old.py::test_kept": 3.0, "tests/test_old.py::test_noted": 0.0,
+                                    "tests/test_a.py::test_big": 15.0})
+    text = (here / "slow.txt").read_text()
+    assert "test_big  # 15.0 s compiling" in text and "test_noted  # compiling: a note written by hand" in text

@@ -41,7 +41,8 @@ def read_list(path: Path) -> dict:
     for line in path.read_text().splitlines():
         node, _, note = line.partition("#")
         if node.strip():
-            out[node.strip()] = float(note.strip().split()[0]) if note.strip() else 0.0
+            seconds = re.match(r"\s*([0-9.]+)", note)       # a note written by hand need not start with them
+            out[node.strip()] = float(seconds.group(1)) if seconds else 0.0
     return out
 
 
