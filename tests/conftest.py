@@ -68,7 +68,8 @@ _MAPS_LIMIT = _max_memory_maps() // 2
 def _bounded_memory_maps():
     """Every program XLA compiles on the CPU keeps about three memory mappings until it is freed, and a test
     worker compiles thousands: past ``vm.max_map_count`` the next mapping fails and XLA dies of a segmentation
-    fault (seen at 90-97% of cold full runs, while serialising a program for the persistent cache). After a
+    fault (seen at 90-97% of cold full runs, while serialising a program for the persistent cache; the cost per
+    program: ``python experiments/performance/memory_maps.py``). After a
     test that leaves a worker over half the bound, JAX's in-memory caches are dropped (later tests read their
     programs back from the persistent cache, or compile them again)."""
     yield
