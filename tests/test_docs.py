@@ -447,3 +447,20 @@ def test_concepts_page_global_trap_and_fields_hold():
     exec(compile(head + blocks[1], "concepts.md", "exec"), fields)
     assert not np.allclose(fields["a"].q_final, fields["b"].q_final)     # k = 5.0 is a new run
     assert np.allclose(fields["a"].q_final, trap["a"].q_final)           # the same law at k = 1
+
+
+@pytest.mark.slow
+def test_the_trajectory_loss_example_prints_what_the_tuning_page_says(capsys):
+    """The how-to's loss along the path runs as written and prints the losses and derivatives the page quotes."""
+    page = (DOCS / "how-to" / "tuning.md").read_text()
+    section = page.split("## A loss along the trajectory", 1)[1]
+    code = section.split("```python", 1)[1].split("```", 1)[0]
+    exec(compile(code, "tuning.md", "exec"), {})
+    printed = [[float(x) for x in re.findall(r"Array\((-?[\d.e+-]+)", line)]
+               for line in capsys.readouterr().out.splitlines() if line.strip()]
+    quoted = re.search(r"a loss of (\S+) with d/dk = (\S+) for the\s+continuous law, and (\S+) with d/dk = (\S+) "
+                       r"behind", section)
+    want = [float(x.rstrip(",")) for x in quoted.groups()]
+    assert len(printed) == 2 and all(len(p) == 2 for p in printed), printed
+    for got, w in zip(printed[0] + printed[1], want):
+        assert got == pytest.approx(w, rel=2e-3), (printed, want)
