@@ -4,8 +4,10 @@ tuner), recorded by ``tests/golden/make_golden.py`` and re-recorded only for a d
 (the exponential RK4 step with a PI controller in the w chart; the settled phase's (w2, p1) oscillation in that step).
 
 They must hold on every x86-64 CPU, so they are bitwise only where the arithmetic is: statuses equal; step counts
-within a step or two (1%) per lane and 0.5% in total; float32 results within float32 rounding as a stiff run grows
-it (1e-4 of each field's scale); float64 runs within 1e-10 relative. XLA:CPU's code depends on the instruction set
+within a step or two (1%) per lane and 0.5% in total; float32 results within 1e-4 relative plus 3e-4 of each field's
+scale, the run's own accuracy (on an AVX-512 Xeon the basin's start (-2, -2, 0.5), still on its way at 20 s, ends
+with p2 -0.125795 against the recorded -0.125738, 1.6e-4 of the field's scale apart, and both within 1.2e-4 of a
+float64 run at rtol = atol = 1e-10, -0.125680); float64 runs within 1e-10 relative. XLA:CPU's code depends on the instruction set
 (vector width, FMA, the polynomial of each transcendental): on an AVX-512 EPYC the plain path's final states moved
 by 1e-5 and a float64 peak |u| by 1.2e-12 relative; compiled for SSE4.2 only
 (``XLA_FLAGS=--xla_cpu_max_isa=SSE4_2``), two of simulate_f32's three step counts move by two steps.
@@ -47,7 +49,7 @@ def _mismatch(key: str, want: np.ndarray, got: np.ndarray):
         else:
             finite = np.abs(want[np.isfinite(want)])
             scale = finite.max() if finite.size else 0.0
-            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * scale, equal_nan=True)
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=3e-4 * scale, equal_nan=True)
     except AssertionError as e:
         return str(e).strip().splitlines()[-1] if str(e).strip() else "differs"
     return None
