@@ -382,3 +382,7 @@ def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
     with pytest.raises(ValueError, match=r"config\.steps 4 in the checkpoint vs 8 now") as info:
         TunerCheckpoint(path, key(8), ("loss",)).load({"a": np.zeros(1)}, (), [])
     assert "{" not in str(info.value) and "delete or move" in str(info.value)
+    other = tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False, 0.0, None,
+                             ics + 1.0)
+    with pytest.raises(ValueError, match=r"other settings \(other initial conditions\);"):   # not two digests
+        TunerCheckpoint(path, other, ("loss",)).load({"a": np.zeros(1)}, (), [])

@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import CheckpointError, DamagedCheckpointWarning
 from .npz import atomic_write, atomic_write_text
 
-__all__ = ["ChunkStore", "starts_digest"]
+__all__ = ["ChunkStore", "starts_digest", "setting_differences", "joined"]
 
 _KEY = "__run_key__"
 _ID = "__chunk__"          # [index, lo, hi]: which chunk this is and which rows it holds
@@ -266,14 +266,26 @@ def _leaves(value, prefix: str = "") -> dict:
     return out
 
 
-def _value_differences(name: str, old, new) -> list:
-    """``['controller.u_max 2.0 in the checkpoint vs 3.0 now']``: a setting that differs, leaf by leaf when it
-    is a record (never a whole dict)."""
+def setting_differences(name: str, old, new, *, said: Optional[dict] = None) -> list:
+    """``['controller.u_max 2.0 in the checkpoint vs 3.0 now']``: how a setting of a checkpoint differs from this run's,
+    leaf by leaf when it is a record (never a whole dict); ``said`` gives the words for a leaf whose values mean
+    nothing to a reader (``{"ics": "other initial conditions"}``). Every resumable run refuses in these words."""
     if not (isinstance(old, dict) and isinstance(new, dict)):
         return [f"{name} {old!r} in the checkpoint vs {new!r} now"]
     a, b = _leaves(old), _leaves(new)
-    return [f"{name}{'.' + k.lstrip('.') if k else ''} {a.get(k, '(unset)')!r} in the checkpoint vs "
-            f"{b.get(k, '(unset)')!r} now" for k in sorted(set(a) | set(b), key=str) if a.get(k) != b.get(k)]
+    out = []
+    for k in sorted(set(a) | set(b), key=str):
+        if a.get(k) != b.get(k):
+            label = ".".join(part for part in (name, str(k).lstrip(".")) if part)
+            out.append((said or {}).get(k) or f"{label} {a.get(k, '(unset)')!r} in the checkpoint vs "
+                                              f"{b.get(k, '(unset)')!r} now")
+    return out
+
+
+def joined(diffs: list, limit: int = 6) -> str:
+    """The first ``limit`` differences, and how many more."""
+    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more
 
 
 def _differences(old, new: dict, limit: int = 6) -> str:
@@ -286,14 +298,11 @@ def _differences(old, new: dict, limit: int = 6) -> str:
         for k in sorted(set(o_set) | set(n_set)):
             if k in _VOLATILE or o_set.get(k) == n_set.get(k):
                 continue
-            diffs.extend(_value_differences(k, o_set.get(k, "(unset)"), n_set.get(k, "(unset)")))
+            diffs.extend(setting_differences(k, o_set.get(k, "(unset)"), n_set.get(k, "(unset)")))
     if old.get("n") != new.get("n"):
         diffs.append(f"{old.get('n')} starts in the checkpoint vs {new.get('n')} now")
     elif "starts" in old and old.get("starts") != new.get("starts"):
         diffs.append("other initial conditions (e.g. another --seed, grid or --ics file)")
     if old.get("chunk") != new.get("chunk") and not any(d.startswith("chunk_size") for d in diffs):
         diffs.append(f"chunks of {old.get('chunk')} rows in the checkpoint vs {new.get('chunk')} now")
-    if not diffs:
-        return "other settings or initial conditions"
-    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
-    return "; ".join(diffs[:limit]) + more
+    return joined(diffs, limit) if diffs else "other settings or initial conditions"

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..files.chunks import joined, setting_differences
 from ..model.params import gains_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
@@ -55,28 +56,11 @@ def tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor
 _SETTINGS: dict = {}
 
 
-def _flat(d, prefix=""):
-    out = {}
-    for k, v in (d.items() if isinstance(d, dict) else []):
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
-def _differences(old: dict, new: dict, limit: int = 6) -> str:
+def _differences(old: dict, new: dict) -> str:
     """``'config.steps 4 in the checkpoint vs 8 now; ...'``; '' when either side is unknown."""
     if not old or not new:
         return ""
-    a, b = _flat(old), _flat(new)
-    diffs = []
-    for k in sorted(set(a) | set(b)):
-        if a.get(k) != b.get(k):
-            diffs.append("other initial conditions" if k == "ics" else
-                         f"{k} {a.get(k, '(unset)')!r} in the checkpoint vs {b.get(k, '(unset)')!r} now")
-    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
-    return "; ".join(diffs[:limit]) + more
+    return joined(setting_differences("", old, new, said={"ics": "other initial conditions"}))
 
 
 class Stamp(NamedTuple):
