@@ -313,13 +313,18 @@ def _frontier(ics, eps=0.05):
 @pytest.fixture(scope="module")
 def gap_search():
     front = _frontier(tu.draw_starts(tu.UniformStarts(), TINY.batch, TINY.seed)[:6])     # not config.batch's 8
-    return front, tu.search(config=TINY._replace(objective="gap"), frontier=front)
+    # the reference is a feasible candidate (its own energy, no converged margin): the search cannot return worse
+    return front, tu.search(config=TINY._replace(objective="gap", energy_margin=1.0, converged_margin=0.0),
+                            frontier=front)
 
 
 def test_the_gap_search_minimises_the_median_time_ratio_it_reports(gap_search):
     """The search's figure is the median over its starts of T_law / T*(E_law), re-measured from the returned gains'
     own run; its score history is that median (no penalty on the feasible ones); the reference's gap is recorded,
-    and the gains returned are no further from the optimum than the starting gains."""
+    and, the starting gains being the reference and feasible (``energy_margin=1``, ``converged_margin=0``), the gains
+    returned are no further from the optimum than they are. (With the default margins the reference is not feasible
+    and a search may return gains further from the optimum that spend less: on an AVX-512 Xeon this tiny search
+    returned 9.79 against the reference's 9.07.)"""
     front, res = gap_search
     again = tu.evaluate_population([res.gains], front.starts, frontier=front)
     assert np.isfinite(res.figures["median_gap"]) and res.figures["median_gap"] >= 1.0
