@@ -14,10 +14,11 @@ reference at rtol = atol = 1e-10 in these variants, each in a fresh process:
   the pair is weakly damped, near the target) brought down to 1e-10 (`jaxsleigh.integrate.guard`'s ``ATOL_FLOOR``
   and ``ATOL_FACTOR``, set before the first run);
 * ``float64_rtol_1e-10``: float64 at rtol = 1e-10, atol at its default; ``float64_atol_1e-10`` (and ``1e-9``): the
-  other way round, the absolute tolerance everywhere; ``float32_atol_1e-10``: float32 with that absolute tolerance.
+  other way round, the absolute tolerance everywhere; ``float32_atol_1e-10``: float32 with that absolute tolerance;
+* ``float64_1e-12``: float64 at rtol = atol = 1e-12: how far the reference itself is from converged.
 
-Printed and written per variant: the starts whose energy is more than 5% off the reference (their rows), the largest
-relative difference, the energy percentiles 25/50/75/90 relative to the reference's, the mean steps and the wall time.
+Printed and written per variant: the starts whose energy is more than 5% off the reference (their rows; also against
+``float64_1e-12``, ``against_1e-12``), the largest relative difference, the energy percentiles 25/50/75/90 relative to the reference's, the mean steps and the wall time.
 """
 from __future__ import annotations
 
@@ -25,13 +26,12 @@ import argparse
 import json
 import platform
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import ROOT, load, run_py  # noqa: E402
+from common import ROOT, load, run_py
 
 BALANCED_02 = {"L": [2.153, 1.742, 2.492], "k": 0.001467, "D_hat": [[2.565, -0.0328], [-0.0328, 10.824]]}
 
@@ -46,6 +46,7 @@ VARIANTS = {
     "float64_atol_1e-10": (True, None, 1e-10, None),
     "float64_atol_1e-9": (True, None, 1e-9, None),
     "float32_atol_1e-10": (False, None, 1e-10, None),
+    "float64_1e-12": (True, 1e-12, 1e-12, None),
 }
 
 RUN = r"""
@@ -89,17 +90,22 @@ def main(argv=None) -> None:
            "gains": BALANCED_02, "starts": f"readme_starts({args.n})", "t_final": 100.0, "eps": 0.05,
            "machine": {"arch": platform.machine(), "python": platform.python_version()}, "load_start": load(),
            "variants": {}}
-    runs = {}
-    for name, (x64, rtol, atol, floor) in VARIANTS.items():
-        runs[name] = run_py(RUN, (here, args.n, int(x64), json.dumps(rtol), json.dumps(atol), json.dumps(floor),
-                                  json.dumps(BALANCED_02)), {"PYTHONPATH": str(ROOT)})
+    runs = {name: run_py(RUN, (here, args.n, int(x64), json.dumps(rtol), json.dumps(atol), json.dumps(floor),
+                               json.dumps(BALANCED_02)), {"PYTHONPATH": str(ROOT)})
+            for name, (x64, rtol, atol, floor) in VARIANTS.items()}
+    ref = runs["reference"]
+    out["reference"] = {"mean_steps": float(np.mean(ref["n_steps"])), "wall_s": ref["wall_s"],
+                        "status_not_ok": int(np.sum(np.array(ref["status"]) != 0))}
+    for name, run in runs.items():
         if name == "reference":
-            out["reference"] = {"mean_steps": float(np.mean(runs[name]["n_steps"])), "wall_s": runs[name]["wall_s"],
-                                "status_not_ok": int(np.sum(np.array(runs[name]["status"]) != 0))}
             continue
-        row = out["variants"][name] = compare(runs[name], runs["reference"])
+        row = out["variants"][name] = compare(run, ref)
+        if name != "float64_1e-12":          # also against the tighter float64 run
+            row["against_1e-12"] = compare(run, runs["float64_1e-12"])
+        tight = row.get("against_1e-12", {})
         print(f"{name:22s} off >5%: {len(row['rows_off_5pct']):3d} ({row['share_off_5pct']:.3f}) rows "
-              f"{row['rows_off_5pct']}  max {row['max_rel']:.2f}  steps {row['mean_steps']:.0f}  {row['wall_s']} s",
+              f"{row['rows_off_5pct']}  max {row['max_rel']:.2f}  steps {row['mean_steps']:.0f}  {row['wall_s']} s"
+              + (f"  | against 1e-12: {len(tight['rows_off_5pct'])} off, max {tight['max_rel']:.2f}" if tight else ""),
               flush=True)
     out["load_end"] = load()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
