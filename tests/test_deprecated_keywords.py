@@ -123,7 +123,7 @@ def test_solve_keywords_and_the_object_give_the_same_numbers():
     (lambda: solve(js.paper_gains(), START[0], stepsize=js.StepSizeController(method="euler")), ValueError,
      "stepsize.method must be 'adaptive' or 'rk4'"),
     (lambda: solve(js.paper_gains(), START[0], stepsize=js.StepSizeController(max_steps=2.5)), ValueError,
-     "stepsize.max_steps .* must be a whole number"),
+     "stepsize.max_steps must be a whole number"),
 ])
 def test_solve_names_what_is_wrong(call, err, match):
     """An unknown keyword, a keyword against the object's own field, an object of the wrong kind; a keyword

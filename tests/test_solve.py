@@ -76,10 +76,10 @@ def test_solve_reports_an_exhausted_budget():
     assert int(out.status) == js.Status.BUDGET_EXHAUSTED and float(out.t_reached) < 10.0
 
 
-@pytest.mark.parametrize("kw, says", [({"t_final": -1.0}, "t_final must be finite and > 0"),
-                                      ({"t_final": float("nan")}, "t_final must be finite and > 0"),
-                                      ({"dt": 0.0}, "dt must be finite and > 0"),
-                                      ({"eps": -0.1}, "eps must be finite and > 0")])
+@pytest.mark.parametrize("kw, says", [({"t_final": -1.0}, "t_final must be > 0"),
+                                      ({"t_final": float("nan")}, "t_final must be finite"),
+                                      ({"dt": 0.0}, "dt must be > 0"),
+                                      ({"eps": -0.1}, "eps must be > 0")])
 def test_solve_refuses_a_setting_that_cannot_run(kw, says):
     """A negative horizon ran as status 0, ``dt = 0`` raised ZeroDivisionError: each is a ValueError naming it."""
     with pytest.raises(ValueError, match=says):

@@ -86,7 +86,8 @@ from ..status import Status
 from .engine import BUDGET_FACTOR, MAX_BASE_STEPS
 from .observers import DEFAULT_OBSERVERS, collect_values
 from .stepper import Controls, StepState, controls, init_state, run_budget
-from .stepsize import StepSizeController
+from .stepsize import StepSizeController, check_policy
+from ..validate import real, whole
 
 __all__ = ["SampledRun", "HeldInput", "held_input_type", "solve_sampled", "sample_count", "substeps_for", "SEGMENT",
            "BLOCK"]
@@ -186,30 +187,16 @@ def substeps_for(period: float, dt: float) -> int:
     return max(4, math.ceil(period / dt - 1e-9))
 
 
-def _positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be > 0 and finite, got {value!r}")
-    return v
-
-
 def _step_policy(stepsize, rtol, atol) -> StepSizeController:
     """``stepsize`` (default `StepSizeController()`) with ``rtol`` / ``atol`` put in; ``ValueError`` for a tolerance
     given twice, a method that is neither ``"adaptive"`` nor ``"rk4"``, or something that is not a policy."""
-    ss = StepSizeController() if stepsize is None else stepsize
-    if not isinstance(ss, StepSizeController):
-        raise ValueError(f"stepsize must be a jaxsleigh.StepSizeController, got {type(ss).__name__}")
+    ss = check_policy(stepsize)
     for name, value in (("rtol", rtol), ("atol", atol)):
         if value is not None:
             if getattr(ss, name) is not None:
                 raise ValueError(f"{name} is given twice (as {name}= and in stepsize): give it once")
             ss = ss._replace(**{name: value})
-    if ss.method not in ("adaptive", "rk4"):
-        raise ValueError(f"stepsize.method must be 'adaptive' or 'rk4', got {ss.method!r}")
-    return ss
+    return check_policy(ss)
 
 
 def _controls(ss: StepSizeController, dtype, *, period: float, substeps: int, eps: float) -> Controls:
@@ -217,9 +204,6 @@ def _controls(ss: StepSizeController, dtype, *, period: float, substeps: int, ep
     base step, the first one tried, \\(T_s / \\text{substeps}\\); the tolerances (the dtype's defaults unless given),
     the largest step (100 base steps unless given), the ball's radius and the policy's factors. The budget is set per
     period (`_period_budget`)."""
-    for name in ("rtol", "atol", "max_step", "safety", "factor_min", "factor_max"):
-        if getattr(ss, name) is not None:
-            _positive(name, getattr(ss, name))
     return controls(ss, dtype, dt=period / substeps, eps=eps, max_steps=0)
 
 
@@ -232,8 +216,6 @@ def _period_budget(ss: StepSizeController, K: int, substeps: int, dtype) -> int:
     m = ss.max_steps
     if m is None:
         return BUDGET_FACTOR.get(jnp.dtype(dtype).name, 30) * substeps if adaptive else substeps
-    if isinstance(m, (bool, np.bool_)) or not float(m).is_integer() or int(m) < 1:
-        raise ValueError(f"max_steps must be an integer >= 1, got {m!r}")
     if not adaptive and int(m) < K * substeps:
         raise ValueError(f"max_steps {int(m)} is below the {K * substeps} steps fixed RK4 takes ({substeps} per "
                          f"period over {K} periods); raise it to at least {K * substeps}")
@@ -286,13 +268,9 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     if jax.dtypes.canonicalize_dtype(dtype) != dtype:
         raise ValueError(f"dtype {dtype} needs 64-bit JAX: run inside `with jax.enable_x64(True):` "
                          f"(or set jax.config.update('jax_enable_x64', True))")
-    if isinstance(substeps, (bool, np.bool_)) or not float(substeps).is_integer() or int(substeps) < 1:
-        raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
-    substeps = int(substeps)
+    substeps = whole("substeps", substeps)
     K = sample_count(t_final, period)
-    eps = float(eps)
-    if not (math.isfinite(eps) and eps > 0):
-        raise ValueError(f"eps must be > 0 and finite, got {eps!r}")
+    eps = real("eps", eps, positive=True)
     ss = _step_policy(stepsize, rtol, atol)
     ctl = _controls(ss, dtype, period=period, substeps=substeps, eps=eps)
     budget = _period_budget(ss, K, substeps, dtype)

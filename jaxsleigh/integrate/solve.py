@@ -20,7 +20,6 @@ not traced.
 """
 from __future__ import annotations
 
-import operator
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -38,7 +37,8 @@ from .sampled import solve_sampled, substeps_for
 from .engine import make_horizon
 from .saveat import SaveAt
 from .stepper import controls, init_state, run_budget, run_segment
-from .stepsize import StepSizeController
+from .stepsize import StepSizeController, check_policy
+from ..validate import real
 
 __all__ = ["solve", "SolveOutput"]
 
@@ -140,7 +140,8 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         raise ValueError(f"controller must be jaxsleigh.Gains (the paper's law) or a law u = law(q, v), "
                          f"got {type(controller).__name__}")
     for name, value in (("t_final", t_final), ("dt", dt), ("eps", eps)):
-        _check_positive(name, value)
+        if is_concrete(value):                   # a traced one is checked where it is concrete
+            real(name, value, positive=True)
     y0 = jnp.asarray(y0)
     if not jnp.issubdtype(y0.dtype, jnp.floating):
         y0 = y0.astype(jnp.zeros(()).dtype)
@@ -268,9 +269,7 @@ def _stepsize(stepsize, options: dict) -> StepSizeController:
     if unknown:
         raise TypeError(f"solve() got an unexpected keyword argument {unknown[0]!r}; its options are "
                         f"stepsize=jaxsleigh.StepSizeController(...)")
-    ss = StepSizeController() if stepsize is None else stepsize
-    if not isinstance(ss, StepSizeController):
-        raise ValueError(f"stepsize must be a jaxsleigh.StepSizeController, got {type(ss).__name__}")
+    ss = check_policy(stepsize)
     warn_deprecated("solve", ((k,) + SOLVE_KEYWORDS[k] for k in options), stacklevel=3)
     for key, value in options.items():
         field = SOLVE_KEYWORDS[key][1]
@@ -279,30 +278,7 @@ def _stepsize(stepsize, options: dict) -> StepSizeController:
             raise ValueError(f"solve(): {key}={value!r} contradicts stepsize.{field} = {mine!r}; give it once, "
                              f"as stepsize.{field}")
         ss = ss._replace(**{field: value})
-    if ss.method not in ("adaptive", "rk4"):
-        raise ValueError(f"stepsize.method must be 'adaptive' or 'rk4', got {ss.method!r}")
-    if ss.max_steps is not None:
-        try:
-            n = operator.index(ss.max_steps)
-        except TypeError:
-            raise ValueError(f"stepsize.max_steps (the attempted steps of solve's scan) must be a whole number, "
-                             f"static (not traced), got {ss.max_steps!r}") from None
-        if n < 1:
-            raise ValueError(f"stepsize.max_steps must be >= 1, got {n}")
-    return ss
-
-
-def _check_positive(name: str, value) -> None:
-    """A ``ValueError`` naming ``name`` unless a concrete ``value`` is a finite positive number (a traced one
-    passes: it is checked where it is concrete)."""
-    try:
-        v = float(value)
-    except jax.errors.ConcretizationTypeError:
-        return
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (v > 0.0 and v < float("inf")):
-        raise ValueError(f"{name} must be finite and > 0, got {v:g}")
+    return check_policy(ss)
 
 
 def _start_in_chart(y0: jax.Array, chart) -> tuple[jax.Array, jax.Array]:

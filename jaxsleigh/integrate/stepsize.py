@@ -33,7 +33,7 @@ from typing import NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-__all__ = ["StepSizeController", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR"]
+__all__ = ["StepSizeController", "check_policy", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR"]
 
 #: Tolerances of the adaptive method, per dtype (chosen from measured accuracy, see the docs).
 DEFAULT_RTOL = {"float32": 1e-6, "float64": 1e-8}
@@ -78,6 +78,44 @@ class StepSizeController(NamedTuple):
         return self._replace(rtol=DEFAULT_RTOL.get(name, 1e-6) if self.rtol is None else self.rtol,
                              atol=DEFAULT_ATOL.get(name, 1e-6) if self.atol is None else self.atol,
                              max_step=MAX_STEP_FACTOR * dt if self.max_step is None else self.max_step)
+
+
+#: the policy's numbers and what each must be: ``(field, lowest, lowest allowed, highest, highest allowed, words)``
+_RANGES = (("rtol", 0.0, False, None, False, "> 0"), ("atol", 0.0, False, None, False, "> 0"),
+           ("max_step", 0.0, False, None, False, "> 0"), ("safety", 0.0, False, 1.0, True, "in (0, 1]"),
+           ("factor_min", 0.0, False, 1.0, False, "in (0, 1)"), ("factor_max", 1.0, False, None, False, "> 1"))
+
+
+def check_policy(stepsize, name: str = "stepsize") -> StepSizeController:
+    """``stepsize`` (``None``: the default policy) checked; the one check of a step policy, run by every front
+    (`jaxsleigh.solve`, the sampled-data loop, the studies' option objects): a `StepSizeController`, ``method``
+    ``"adaptive"`` or ``"rk4"``, ``rtol``, ``atol``, ``max_step`` (where given) > 0, ``safety`` in (0, 1],
+    ``factor_min`` in (0, 1), ``factor_max`` > 1, each finite, and ``max_steps`` (where given) a whole number
+    >= 1, static. A traced number passes: it is checked where it is concrete. Otherwise a ``ValueError`` naming
+    the field as ``{name}.{field}``."""
+    import math
+
+    from ..model.params import is_concrete
+    from ..validate import INT32_MAX, whole
+
+    ss = StepSizeController() if stepsize is None else stepsize
+    if not isinstance(ss, StepSizeController):
+        raise ValueError(f"{name} must be a jaxsleigh.StepSizeController, got {type(ss).__name__}")
+    if ss.method not in ("adaptive", "rk4"):
+        raise ValueError(f"{name}.method must be 'adaptive' or 'rk4', got {ss.method!r}")
+    for field, lo, lo_in, hi, hi_in, need in _RANGES:
+        value = getattr(ss, field)
+        if value is None or not is_concrete(value):
+            continue
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}.{field} must be a number {need}, got {value!r}") from None
+        if not (math.isfinite(v) and (v >= lo if lo_in else v > lo) and (hi is None or (v <= hi if hi_in else v < hi))):
+            raise ValueError(f"{name}.{field} must be {need} and finite, got {value!r}")
+    if ss.max_steps is not None:
+        ss = ss._replace(max_steps=whole(f"{name}.max_steps", ss.max_steps, maximum=INT32_MAX - 1, example=20000))
+    return ss
 
 
 def error_ratio(h, y, y_new, k4, k5, ctl, e=None):

@@ -15,12 +15,11 @@ engine behind it as many.
 """
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple, Optional
 
 from ..deprecation import OBJECT_CLASS, warn_deprecated
 from ..integrate.saveat import SaveAt
-from ..integrate.stepsize import StepSizeController
+from ..integrate.stepsize import StepSizeController, check_policy
 
 __all__ = ["SaveAt", "RunOptions", "StudyOptions", "front_options"]
 
@@ -50,21 +49,6 @@ class RunOptions(NamedTuple):
     progress: Any = None
     shard: Optional[tuple] = None
     audit: Any = None
-
-
-def _check_policy(ss: StepSizeController) -> None:
-    for name, value, ok, need in (
-            ("safety", ss.safety, lambda v: 0 < v <= 1, "in (0, 1]"),
-            ("factor_min", ss.factor_min, lambda v: 0 < v < 1, "in (0, 1)"),
-            ("factor_max", ss.factor_max, lambda v: v > 1, "> 1")):
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"stepsize.{name} must be a number {need}, got {value!r}") from None
-        if not (math.isfinite(v) and ok(v)):
-            raise ValueError(f"stepsize.{name} must be {need}, got {value!r}")
-    if ss.method not in ("adaptive", "rk4"):
-        raise ValueError(f"stepsize.method must be 'adaptive' or 'rk4', got {ss.method!r}")
 
 
 class StudyOptions(NamedTuple):
@@ -130,7 +114,7 @@ def _fields_put(home: str, cls, obj):
     if not isinstance(obj, cls):
         raise ValueError(f"{home} must be a jaxsleigh.{cls.__name__}, got {type(obj).__name__}")
     if cls is StepSizeController:
-        _check_policy(obj)
+        check_policy(obj)
     for key, field in ((k, f) for k, (h, f) in _KEYWORD_HOME.items() if h == home):
         value, default = getattr(obj, field), cls._field_defaults[field]
         if value != default or key in _ALWAYS_PUT:
