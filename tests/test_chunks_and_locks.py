@@ -386,3 +386,35 @@ def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
                              ics + 1.0)
     with pytest.raises(ValueError, match=r"other settings \(other initial conditions\);"):   # not two digests
         TunerCheckpoint(path, other, ("loss",)).load({"a": np.zeros(1)}, (), [])
+
+
+def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
+    """A basin's chunk and a tuner's state are one layout (`jaxsleigh.files.chunks.write_checkpoint`): the run's arrays
+    and a header under ``__name__`` keys, the fingerprint first; the same state gives the same bytes; a tuner file of
+    the earlier layout (``key``/``settings`` among the arrays) still resumes."""
+    from jaxsleigh import tuning as tu
+    from jaxsleigh.files.chunks import read_checkpoint_file
+    from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint
+
+    s = ChunkStore(tmp_path / "ck", "k")
+    s.open(resume=False, manifest={})
+    try:
+        starts = np.arange(20.0).reshape(4, 5)
+        chunk = s.save(0, {"a": np.arange(4.0)}, lo=0, starts=starts)
+    finally:
+        s.close()
+    g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
+    key = tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False, 0.0, None, ics)
+    tuner = tmp_path / "t.ckpt.npz"
+    ck = TunerCheckpoint(tuner, key, ("loss",), options={"--steps": 4})
+    ck.save(3, {"a": np.ones(1)}, (), None, [], [], {}, None)
+    first = tuner.read_bytes()
+    ck.save(3, {"a": np.ones(1)}, (), None, [], [], {}, None)
+    assert tuner.read_bytes() == first
+    (arrays_c, head_c), (arrays_t, head_t) = read_checkpoint_file(chunk), read_checkpoint_file(tuner)
+    assert set(head_c) == {"run_key", "chunk", "starts"} and str(head_c["run_key"]) == "k"
+    assert set(head_t) == {"run_key", "settings", "options"} and str(head_t["run_key"]) == key
+    assert set(arrays_c) == {"a"} and not any(k.startswith("__") or k in ("key", "settings") for k in arrays_t)
+    # the earlier layout: the header's entries among the arrays, without underscores
+    np.savez(tuner, key=np.array(key), settings=head_t["settings"], **arrays_t)
+    assert TunerCheckpoint(tuner, key, ("loss",)).load({"a": np.zeros(1)}, (), [])[0] == 3

@@ -32,16 +32,35 @@ from typing import Optional
 import numpy as np
 
 from ..errors import CheckpointError, DamagedCheckpointWarning
-from .npz import atomic_write, atomic_write_text
+from .npz import atomic_write_text, write_npz_deterministic
 
-__all__ = ["ChunkStore", "starts_digest", "setting_differences", "joined"]
+__all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "starts_digest", "setting_differences", "joined"]
 
+#: the fingerprint in every checkpoint file's header (`write_checkpoint`); a chunk's also holds ``__chunk__`` (its
+#: index and rows ``[index, lo, hi]``) and ``__starts__`` (the digest of the starts of those rows)
 _KEY = "__run_key__"
-_ID = "__chunk__"          # [index, lo, hi]: which chunk this is and which rows it holds
-_STARTS = "__starts__"     # digest of the starts of those rows
 
 #: Settings that vary between equal runs (never a reason to refuse a checkpoint).
 _VOLATILE = {"devices", "wall_s", "chunks_reused"}
+
+
+def write_checkpoint(path, arrays: dict, *, key: str, when_full: str = "", **header) -> Path:
+    """One checkpoint file, the layout of every resumable run's (the chunk store's chunks and work in progress, every
+    tuner's state): ``arrays`` next to a header, the run's fingerprint ``key`` and the ``header`` entries given
+    (``chunk``, ``starts``, ``settings``, ``options``; ``None`` left out), stored as ``__key__``-style names;
+    uncompressed, with fixed timestamps (equal state, equal bytes), written atomically (``when_full``: what continues
+    the work once a full disk has space)."""
+    head = {f"__{k}__": np.asarray(v) for k, v in header.items() if v is not None}
+    return write_npz_deterministic(path, {**arrays, _KEY: np.array(key), **head}, compress=False, when_full=when_full)
+
+
+def read_checkpoint_file(path) -> tuple:
+    """``(arrays, header)`` of a checkpoint file (`write_checkpoint`), the header by name (``run_key``, ``chunk``,
+    ``starts``, ``settings``, ``options``); raises what `numpy.load` raises for a damaged file."""
+    with np.load(io.BytesIO(Path(path).read_bytes()), allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    data.pop("format_version", None)
+    return data, {k[2:-2]: data.pop(k) for k in list(data) if k.startswith("__") and k.endswith("__")}
 
 
 def starts_digest(starts) -> str:
@@ -159,12 +178,8 @@ class ChunkStore:
     def save(self, index: int, arrays: dict, *, lo: int, starts) -> Path:
         """Write chunk ``index`` atomically, tagged with the run's fingerprint and its identity: its
         index, its rows ``[lo, lo + len(starts))`` and the digest of their ``starts``."""
-        ident = np.array([index, lo, lo + len(starts)], np.int64)
-
-        def write(f):
-            np.savez(f, **arrays, **{_KEY: np.array(self.key), _ID: ident, _STARTS: np.array(starts_digest(starts))})
-
-        return atomic_write(self.path(index), write, when_full=self._when_full())
+        return write_checkpoint(self.path(index), arrays, key=self.key, when_full=self._when_full(),
+                                chunk=np.array([index, lo, lo + len(starts)], np.int64), starts=starts_digest(starts))
 
     def load(self, index: int, rows: int, fields=None, *, lo: int, starts) -> Optional[dict]:
         """Chunk ``index`` if it exists, belongs to this run and is this very chunk (index, rows
@@ -176,16 +191,14 @@ class ChunkStore:
         if not path.exists():
             return None
         try:
-            raw = path.read_bytes()
-            with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
+            data, head = read_checkpoint_file(path)
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
             self._damaged(path, f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
             return None
-        key = data.pop(_KEY, None)
+        key = head.get("run_key")
         if key is None or str(key) != self.key:
             raise self._foreign(path)
-        ident, digest = data.pop(_ID, None), data.pop(_STARTS, None)
+        ident, digest = head.get("chunk"), head.get("starts")
         want = [index, lo, lo + rows]
         if ident is None or digest is None:
             self._damaged(path, "it was written by an earlier jaxsleigh that does not record which chunk it is, "
@@ -214,12 +227,8 @@ class ChunkStore:
     def save_pending(self, index: int, arrays: dict, *, lo: int, starts) -> Path:
         """Write chunk ``index``'s work in progress (its parts' states, whose stragglers are still running elsewhere)
         atomically, tagged as `save` tags a chunk: a run killed before the chunk ends resumes from it."""
-        ident = np.array([index, lo, lo + len(starts)], np.int64)
-
-        def write(f):
-            np.savez(f, **arrays, **{_KEY: np.array(self.key), _ID: ident, _STARTS: np.array(starts_digest(starts))})
-
-        return atomic_write(self.pending_path(index), write, when_full=self._when_full())
+        return write_checkpoint(self.pending_path(index), arrays, key=self.key, when_full=self._when_full(),
+                                chunk=np.array([index, lo, lo + len(starts)], np.int64), starts=starts_digest(starts))
 
     def load_pending(self, index: int, rows: int, *, lo: int, starts) -> Optional[dict]:
         """Chunk ``index``'s work in progress (`save_pending`) if it is there, of this run and of this chunk; ``None``
@@ -228,12 +237,11 @@ class ChunkStore:
         if not path.exists():
             return None
         try:
-            with np.load(io.BytesIO(path.read_bytes()), allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
+            data, head = read_checkpoint_file(path)
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
             self._damaged(path, f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
             return None
-        key, ident, digest = data.pop(_KEY, None), data.pop(_ID, None), data.pop(_STARTS, None)
+        key, ident, digest = head.get("run_key"), head.get("chunk"), head.get("starts")
         if key is None or str(key) != self.key:
             raise self._foreign(path)
         if ident is None or np.asarray(ident).ravel().tolist() != [index, lo, lo + rows] \

@@ -1,6 +1,6 @@
 """Checkpoint and resume of the tuners: the optimiser's whole state in one fingerprinted ``.npz``, written
-atomically after every iteration, in one format for every tuner (`Stamp`: `TunerCheckpoint` for the paper's gains,
-`LawCheckpoint` for any law, the CMA-ES search's generations), and
+atomically after every iteration in the layout of every resumable run's checkpoints, the chunk store's too
+(`Stamp`: `TunerCheckpoint` for the paper's gains, `LawCheckpoint` for any law, the CMA-ES search's generations), and
 `TuningInterrupted` (Ctrl-C keeps the best so far). A checkpoint may also carry the options of the command that
 wrote it (`checkpoint_options`), so that a refused resume can name the option first."""
 from __future__ import annotations
@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..files.chunks import joined, setting_differences
+from ..files.chunks import joined, read_checkpoint_file, setting_differences, write_checkpoint
 from ..model.params import gains_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
@@ -64,10 +64,10 @@ def _differences(old: dict, new: dict) -> str:
 
 
 class Stamp(NamedTuple):
-    """What identifies a tuner's checkpoint, and the one format every tuner writes (the gradient tuner, `tune_law`, the
-    CMA-ES search): a ``.npz`` holding ``key`` (the run's fingerprint), ``settings`` (what the fingerprint hashes, as
-    JSON: a refused resume names what differs), ``options`` (the command line's, if given) and the tuner's own
-    arrays, written atomically."""
+    """What identifies a tuner's checkpoint (the gradient tuner, `tune_law`, the CMA-ES search), written in the layout
+    of every resumable run's checkpoints (`jaxsleigh.files.chunks.write_checkpoint`): the tuner's own arrays and a
+    header of ``key`` (the run's fingerprint), ``settings`` (what the fingerprint hashes, as JSON: a refused resume
+    names what differs) and ``options`` (the command line's, if given)."""
 
     key: str
     settings: dict
@@ -79,12 +79,8 @@ class Stamp(NamedTuple):
         return cls(key, json.loads(json.dumps(settings or {}, sort_keys=True, default=str)), options)
 
     def write(self, path, arrays: dict) -> None:
-        from ..files.npz import atomic_write
-
-        head = {"key": np.array(self.key), "settings": np.array(json.dumps(self.settings, sort_keys=True))}
-        if self.options is not None:
-            head["options"] = np.array(json.dumps(self.options, sort_keys=True, default=str))
-        atomic_write(Path(path), lambda fh: np.savez(fh, **head, **arrays))
+        write_checkpoint(Path(path), arrays, key=self.key, settings=json.dumps(self.settings, sort_keys=True),
+                         options=None if self.options is None else json.dumps(self.options, sort_keys=True, default=str))
 
     def read(self, path, what: str = "tuner checkpoint") -> Optional[dict]:
         """The tuner's arrays (`read_checkpoint`), ``None`` if there is no file."""
@@ -167,15 +163,20 @@ def checkpoint_options(path) -> dict | None:
     """The options (``{flag: value}``) a checkpoint was written with, as its writer passed them (``options=``);
     ``None`` for a file without them or one that cannot be read (its loader then says what is wrong)."""
     try:
-        with np.load(path, allow_pickle=False) as z:
-            text = str(z["options"]) if "options" in z.files else None
+        text = _header(path)[1].get("options")
+        doc = None if text is None else json.loads(str(text))
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError):
         return None
-    try:
-        doc = None if text is None else json.loads(text)
-    except ValueError:
-        return None
     return doc if isinstance(doc, dict) else None
+
+
+def _header(path) -> tuple:
+    """``(arrays, header)`` of a tuner's checkpoint (`jaxsleigh.files.chunks.read_checkpoint_file`); a file of the
+    earlier layout (``key``, ``settings``, ``options`` among the arrays) read the same way."""
+    arrays, head = read_checkpoint_file(path)
+    if not head:
+        head = {"run_key" if k == "key" else k: arrays.pop(k) for k in ("key", "settings", "options") if k in arrays}
+    return arrays, head
 
 
 def law_fingerprint(law, names, plant, loss, lr, x64, n_attempts, starts) -> tuple:
@@ -233,14 +234,13 @@ def read_checkpoint(path: Path, key: str, settings: dict, what: str = "tuner che
     if not path.exists():
         return None
     try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        a, head = _header(path)
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
         raise ValueError(f"{what} {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
                          "and start afresh (without --resume)") from None
-    if str(a.get("key")) != key:
+    if str(head.get("run_key")) != key:
         try:
-            old = json.loads(str(a["settings"])) if "settings" in a else {}
+            old = json.loads(str(head["settings"])) if "settings" in head else {}
         except ValueError:
             old = {}
         why = _differences(old, settings)
