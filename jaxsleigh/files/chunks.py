@@ -178,8 +178,7 @@ class ChunkStore:
     def save(self, index: int, arrays: dict, *, lo: int, starts) -> Path:
         """Write chunk ``index`` atomically, tagged with the run's fingerprint and its identity: its
         index, its rows ``[lo, lo + len(starts))`` and the digest of their ``starts``."""
-        return write_checkpoint(self.path(index), arrays, key=self.key, when_full=self._when_full(),
-                                chunk=np.array([index, lo, lo + len(starts)], np.int64), starts=starts_digest(starts))
+        return self._write(self.path(index), index, arrays, lo, starts)
 
     def load(self, index: int, rows: int, fields=None, *, lo: int, starts) -> Optional[dict]:
         """Chunk ``index`` if it exists, belongs to this run and is this very chunk (index, rows
@@ -188,30 +187,8 @@ class ChunkStore:
         `DamagedCheckpointWarning`); `CheckpointError` if another run wrote it. ``fields``: the
         names the chunk must hold (all of them, no others)."""
         path = self.path(index)
-        if not path.exists():
-            return None
-        try:
-            data, head = read_checkpoint_file(path)
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
-            self._damaged(path, f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
-            return None
-        key = head.get("run_key")
-        if key is None or str(key) != self.key:
-            raise self._foreign(path)
-        ident, digest = head.get("chunk"), head.get("starts")
-        want = [index, lo, lo + rows]
-        if ident is None or digest is None:
-            self._damaged(path, "it was written by an earlier jaxsleigh that does not record which chunk it is, "
-                                "so it cannot be trusted under this name")
-            return None
-        got = np.asarray(ident).ravel().tolist()
-        if got != want:
-            what = (f"chunk {got[0]} (rows {got[1]}-{got[2] - 1})" if len(got) == 3 else f"identity {got}")
-            self._damaged(path, f"it holds {what}, not chunk {index} (rows {lo}-{lo + rows - 1}): it was renamed, "
-                                f"copied over another chunk or written with other chunk bounds")
-            return None
-        if str(digest) != starts_digest(starts):
-            self._damaged(path, f"its rows {lo}-{lo + rows - 1} were computed from other starts")
+        data = self._read(path, index, rows, lo, starts)
+        if data is None:
             return None
         if fields is not None and set(data) != set(fields):
             self._damaged(path, f"holds fields {sorted(data)}, expected {sorted(fields)}")
@@ -227,13 +204,21 @@ class ChunkStore:
     def save_pending(self, index: int, arrays: dict, *, lo: int, starts) -> Path:
         """Write chunk ``index``'s work in progress (its parts' states, whose stragglers are still running elsewhere)
         atomically, tagged as `save` tags a chunk: a run killed before the chunk ends resumes from it."""
-        return write_checkpoint(self.pending_path(index), arrays, key=self.key, when_full=self._when_full(),
-                                chunk=np.array([index, lo, lo + len(starts)], np.int64), starts=starts_digest(starts))
+        return self._write(self.pending_path(index), index, arrays, lo, starts)
 
     def load_pending(self, index: int, rows: int, *, lo: int, starts) -> Optional[dict]:
         """Chunk ``index``'s work in progress (`save_pending`) if it is there, of this run and of this chunk; ``None``
         otherwise (a damaged one is named in a `DamagedCheckpointWarning` and the chunk recomputed)."""
-        path = self.pending_path(index)
+        return self._read(self.pending_path(index), index, rows, lo, starts)
+
+    def _write(self, path: Path, index: int, arrays: dict, lo: int, starts) -> Path:
+        return write_checkpoint(path, arrays, key=self.key, when_full=self._when_full(),
+                                chunk=np.array([index, lo, lo + len(starts)], np.int64), starts=starts_digest(starts))
+
+    def _read(self, path: Path, index: int, rows: int, lo: int, starts) -> Optional[dict]:
+        """The arrays of ``path`` if it is there, of this run, and chunk ``index``'s (rows ``[lo, lo + rows)`` of
+        ``starts``); ``None`` (with a `DamagedCheckpointWarning` saying why) if it is missing, damaged or another
+        chunk's; `CheckpointError` if another run wrote it."""
         if not path.exists():
             return None
         try:
@@ -244,9 +229,18 @@ class ChunkStore:
         key, ident, digest = head.get("run_key"), head.get("chunk"), head.get("starts")
         if key is None or str(key) != self.key:
             raise self._foreign(path)
-        if ident is None or np.asarray(ident).ravel().tolist() != [index, lo, lo + rows] \
-                or str(digest) != starts_digest(starts):
-            self._damaged(path, f"it is not the work of chunk {index} (rows {lo}-{lo + rows - 1}) of these starts")
+        if ident is None or digest is None:
+            self._damaged(path, "it was written by an earlier jaxsleigh that does not record which chunk it is, "
+                                "so it cannot be trusted under this name")
+            return None
+        got = np.asarray(ident).ravel().tolist()
+        if got != [index, lo, lo + rows]:
+            what = (f"chunk {got[0]} (rows {got[1]}-{got[2] - 1})" if len(got) == 3 else f"identity {got}")
+            self._damaged(path, f"it holds {what}, not chunk {index} (rows {lo}-{lo + rows - 1}): it was renamed, "
+                                f"copied over another chunk or written with other chunk bounds")
+            return None
+        if str(digest) != starts_digest(starts):
+            self._damaged(path, f"its rows {lo}-{lo + rows - 1} were computed from other starts")
             return None
         return data
 
