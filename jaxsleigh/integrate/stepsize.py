@@ -33,7 +33,8 @@ from typing import NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-__all__ = ["StepSizeController", "check_policy", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR"]
+__all__ = ["StepSizeController", "check_policy", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL",
+           "MAX_STEP_FACTOR"]
 
 #: Tolerances of the adaptive method, per dtype (chosen from measured accuracy, see the docs).
 DEFAULT_RTOL = {"float32": 1e-6, "float64": 1e-8}

@@ -79,8 +79,9 @@ class Stamp(NamedTuple):
         return cls(key, json.loads(json.dumps(settings or {}, sort_keys=True, default=str)), options)
 
     def write(self, path, arrays: dict) -> None:
+        options = None if self.options is None else json.dumps(self.options, sort_keys=True, default=str)
         write_checkpoint(Path(path), arrays, key=self.key, settings=json.dumps(self.settings, sort_keys=True),
-                         options=None if self.options is None else json.dumps(self.options, sort_keys=True, default=str))
+                         options=options)
 
     def read(self, path, what: str = "tuner checkpoint") -> Optional[dict]:
         """The tuner's arrays (`read_checkpoint`), ``None`` if there is no file."""
