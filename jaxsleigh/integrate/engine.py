@@ -437,19 +437,26 @@ def _placed(state, args, lane_host, mesh):
 
 def _first_batch(y0w, status0, state, args: ClosedLoop, ctl, observers, mesh, n: int, dtype) -> _Batch:
     """The whole batch of `drive_final`, from ``y0w`` and ``status0`` or a host ``state`` to continue."""
+    lane_host, args, first = _started(y0w, status0, state is None, args, ctl, observers, n, dtype)
+    state = first if state is None else jax.tree_util.tree_map(jnp.asarray, state)
+    return _Batch(*_placed(state, args, lane_host, mesh), lane_host, np.arange(n), None)
+
+
+def _started(y0w, status0, start: bool, args: ClosedLoop, ctl, observers, n: int, dtype):
+    """``(lane_host, args, state)`` of a batch of ``n`` lanes: with per-lane parameters (`jaxsleigh.model.lanes`)
+    ``lane_host`` holds them on the host, one lane per trajectory, and ``args`` on the device (else ``None`` and
+    ``args`` as given); ``state`` is the stepper's first state from ``y0w`` and ``status0`` if ``start``, else
+    ``None``."""
     from ..model.lanes import broadcast_lanes, has_lanes
 
     lane_host = None
     if has_lanes(args.plant, args.gains):    # per-lane parameters: one lane per trajectory of the batch
         lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
-    if state is not None:
-        state = jax.tree_util.tree_map(jnp.asarray, state)
-    elif lane_host is not None:
-        state = init_batch_lanes(y0w, np.asarray(status0, np.int32), args, ctl, observers)
-    else:
-        state = _init_batch(y0w, np.asarray(status0, np.int32), args, ctl, observers)
-    return _Batch(*_placed(state, args, lane_host, mesh), lane_host, np.arange(n), None)
+    if not start:
+        return lane_host, args, None
+    init = _init_batch if lane_host is None else init_batch_lanes
+    return lane_host, args, init(y0w, np.asarray(status0, np.int32), args, ctl, observers)
 
 
 def _merged(full, idx: np.ndarray, host: StepState) -> StepState:
@@ -509,17 +516,10 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
     leaves, as in `drive_final`."""
-    from ..model.lanes import broadcast_lanes, has_lanes
-
     dtype = y0w.dtype
     ctl = step_controls(horizon, dtype, step, eps)
     adaptive, monitor = step.method == "adaptive", step.check_passivity
-    if has_lanes(args.plant, args.gains):
-        args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype),
-                                      ClosedLoop(*broadcast_lanes(args.plant, args.gains, y0w.shape[0])))
-        state = init_batch_lanes(y0w, np.asarray(status0, np.int32), args, ctl, observers)
-    else:
-        state = _init_batch(y0w, np.asarray(status0, np.int32), args, ctl, observers)
+    _, args, state = _started(y0w, status0, True, args, ctl, observers, y0w.shape[0], dtype)
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):
