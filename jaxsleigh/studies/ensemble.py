@@ -673,7 +673,7 @@ def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, f
 def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
     """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
     returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
-    n, chunk, ics5, devs = chunks.n, chunks.chunk, chunks.ics5, chunks.devs
+    n, chunk, ics5 = chunks.n, chunks.chunk, chunks.ics5
     chunks.store = store
     parts, reused = [], 0
     pending: collections.deque = collections.deque()
