@@ -136,22 +136,10 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     """
     ss = _stepsize(stepsize, options)
     configure()              # a run begins: one JAX CPU device per core, if JAX has not started (jaxsleigh.cores)
-    if controller is None or not (callable(controller) or hasattr(controller, "L")):
-        raise ValueError(f"controller must be jaxsleigh.Gains (the paper's law) or a law u = law(q, v), "
-                         f"got {type(controller).__name__}")
-    for name, value in (("t_final", t_final), ("dt", dt), ("eps", eps)):
-        if is_concrete(value):                   # a traced one is checked where it is concrete
-            real(name, value, positive=True)
-    y0 = jnp.asarray(y0)
-    if not jnp.issubdtype(y0.dtype, jnp.floating):
-        y0 = y0.astype(jnp.zeros(()).dtype)
-    if y0.shape == (3,):
-        y0 = jnp.concatenate([y0, jnp.zeros(2, y0.dtype)])
-    if y0.shape != (5,):
-        raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
-    every = _save_every(saveat)
+    y0 = _checked_start(controller, y0, t_final=t_final, dt=dt, eps=eps)
+    every, observers = _save_every(saveat), tuple(observers)
     if is_sampled(controller):
-        return _solve_held(controller, y0, plant, t_final, dt, ss, eps, tuple(observers), every)
+        return _solve_held(controller, y0, plant, t_final, dt, ss, eps, observers, every)
     dtype = y0.dtype
     adaptive = ss.method == "adaptive"
     max_attempts = ss.max_steps
@@ -162,19 +150,46 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     chart = chart_for(controller)
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
     yc, status0 = _start_in_chart(y0, chart)
-    s0 = init_state(yc, status0, args, ctl, observers=tuple(observers))
-    run = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=tuple(observers))
+    s0 = init_state(yc, status0, args, ctl, observers=observers)
+    run = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers)
     traj = {}
     if every is None:
         s = run_segment(s0, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), **run)
     else:
         s, traj = _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every, int(max_attempts), **run)
-    status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, dtype)), Status.BUDGET_EXHAUSTED,
+    return _output(s, s0, status0, chart, t_final, observers, traj)
+
+
+def _checked_start(controller, y0, **numbers) -> jax.Array:
+    """``y0`` as a (5,) floating array (a (3,) start gets zero momentum), after checking the concrete settings of a
+    `solve` call: a controller given, ``numbers`` (``t_final``, ``dt``, ``eps``) finite and > 0 (a traced one is
+    checked where it is concrete), the start's shape."""
+    if controller is None or not (callable(controller) or hasattr(controller, "L")):
+        raise ValueError(f"controller must be jaxsleigh.Gains (the paper's law) or a law u = law(q, v), "
+                         f"got {type(controller).__name__}")
+    for name, value in numbers.items():
+        if is_concrete(value):
+            real(name, value, positive=True)
+    y0 = jnp.asarray(y0)
+    if not jnp.issubdtype(y0.dtype, jnp.floating):
+        y0 = y0.astype(jnp.zeros(()).dtype)
+    if y0.shape == (3,):
+        y0 = jnp.concatenate([y0, jnp.zeros(2, y0.dtype)])
+    if y0.shape != (5,):
+        raise ValueError(f"y0 must have shape (3,) or (5,) (one start; vmap for many), got {y0.shape}")
+    return y0
+
+
+def _output(s, s0, status0, chart, t_final, observers, traj: dict) -> SolveOutput:
+    """The `SolveOutput` of the stepper's last state ``s`` (first ``s0``): a lane still OK short of ``t_final`` ran
+    out of budget; a start that could not be integrated (``status0`` not OK) has NaN outputs and summaries, and
+    \(H_d\) is NaN under a law without it."""
+    status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, s.t.dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
-    y = jnp.where(status0 == Status.OK, chart.from_chart(s.y), jnp.nan)
-    summaries = jax.tree_util.tree_map(lambda v: jnp.where(status0 == Status.OK, v, jnp.nan),
-                                       collect_values(tuple(observers), s.obs, s.quad))
     valid, energy = status0 == Status.OK, chart.has_energy
+    y = jnp.where(valid, chart.from_chart(s.y), jnp.nan)
+    summaries = jax.tree_util.tree_map(lambda v: jnp.where(valid, v, jnp.nan),
+                                       collect_values(observers, s.obs, s.quad))
     return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
                        n_rejected=s.n_reject, summaries=summaries,
                        Hd0=jnp.where(valid & energy, s0.Hd, jnp.nan),
