@@ -18,7 +18,8 @@ reference at rtol = atol = 1e-10 in these variants, each in a fresh process:
 * ``float64_1e-12``: float64 at rtol = atol = 1e-12: how far the reference itself is from converged.
 
 Printed and written per variant: the starts whose energy is more than 5% off the reference (their rows; also against
-``float64_1e-12``, ``against_1e-12``), the largest relative difference, the energy percentiles 25/50/75/90 relative to the reference's, the mean steps and the wall time.
+``float64_1e-12``, ``against_1e-12``), the largest relative difference, the energy percentiles 25/50/75/90 relative
+to the reference's, the mean steps and the wall time.
 """
 from __future__ import annotations
 
