@@ -59,7 +59,8 @@ from studies.preset_effort import readme_starts
 n, x64, rtol, atol, floor = int(sys.argv[2]), sys.argv[3] == "1", *(json.loads(a) for a in sys.argv[4:7])
 if floor is not None:           # the guard's absolute tolerance where the pair is weakly damped: `floor` exactly
     guard.ATOL_FLOOR, guard.ATOL_FACTOR = floor, floor / (1e-8 if x64 else 1e-6)
-ss = js.StepSizeController(rtol=rtol, atol=atol, max_steps=None if rtol is None and atol is None else 2 * 30 * 10000 + 1000)
+budget = None if rtol is None and atol is None else 2 * 30 * 10000 + 1000
+ss = js.StepSizeController(rtol=rtol, atol=atol, max_steps=budget)
 t0 = time.perf_counter()
 r = js.run_ensemble(readme_starts(n), gains=js.gains(**json.loads(sys.argv[7])), t_final=100.0, eps=0.05, x64=x64,
                     stepsize=ss, run=js.RunOptions(progress=False))
