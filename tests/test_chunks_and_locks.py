@@ -373,19 +373,20 @@ def test_a_refused_resume_from_python_names_the_leaf_of_a_law_that_differs(tmp_p
 def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
     from jaxsleigh import tuning as tu
     from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint
+    from jaxsleigh.tuning.optimizer import CandidateTrack
 
     g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
     key = lambda steps: tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=steps), tu.LossConfig(), None, None,  # noqa
                                          None, False, 0.0, None, ics)
     path = tmp_path / "t.ckpt.npz"
-    TunerCheckpoint(path, key(4), ("loss",)).save(0, {"a": np.zeros(1)}, (), None, [], [], {}, None)
+    TunerCheckpoint(path, key(4), ("loss",)).save(0, {"a": np.zeros(1)}, (), CandidateTrack(0.0, False))
     with pytest.raises(ValueError, match=r"config\.steps 4 in the checkpoint vs 8 now") as info:
-        TunerCheckpoint(path, key(8), ("loss",)).load({"a": np.zeros(1)}, (), [])
+        TunerCheckpoint(path, key(8), ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))
     assert "{" not in str(info.value) and "delete or move" in str(info.value)
     other = tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False, 0.0, None,
                              ics + 1.0)
     with pytest.raises(ValueError, match=r"other settings \(other initial conditions\);"):   # not two digests
-        TunerCheckpoint(path, other, ("loss",)).load({"a": np.zeros(1)}, (), [])
+        TunerCheckpoint(path, other, ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))
 
 
 def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
@@ -395,6 +396,7 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     from jaxsleigh import tuning as tu
     from jaxsleigh.files.chunks import read_checkpoint_file
     from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint
+    from jaxsleigh.tuning.optimizer import CandidateTrack
 
     s = ChunkStore(tmp_path / "ck", "k")
     s.open(resume=False, manifest={})
@@ -407,9 +409,9 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     key = tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False, 0.0, None, ics)
     tuner = tmp_path / "t.ckpt.npz"
     ck = TunerCheckpoint(tuner, key, ("loss",), options={"--steps": 4})
-    ck.save(3, {"a": np.ones(1)}, (), None, [], [], {}, None)
+    ck.save(3, {"a": np.ones(1)}, (), CandidateTrack(0.0, False))
     first = tuner.read_bytes()
-    ck.save(3, {"a": np.ones(1)}, (), None, [], [], {}, None)
+    ck.save(3, {"a": np.ones(1)}, (), CandidateTrack(0.0, False))
     assert tuner.read_bytes() == first
     (arrays_c, head_c), (arrays_t, head_t) = read_checkpoint_file(chunk), read_checkpoint_file(tuner)
     assert set(head_c) == {"run_key", "chunk", "starts"} and str(head_c["run_key"]) == "k"
@@ -417,4 +419,4 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     assert set(arrays_c) == {"a"} and not any(k.startswith("__") or k in ("key", "settings") for k in arrays_t)
     # the earlier layout: the header's entries among the arrays, without underscores
     np.savez(tuner, key=np.array(key), settings=head_t["settings"], **arrays_t)
-    assert TunerCheckpoint(tuner, key, ("loss",)).load({"a": np.zeros(1)}, (), [])[0] == 3
+    assert TunerCheckpoint(tuner, key, ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))[0] == 3

@@ -28,6 +28,8 @@ GRADIENT = ["tune", "--steps", "3", "--batch", "4", "--t-final", "5", "--n-attem
 SEARCH = ["tune", "--search", "--steps", "3", "--batch", "8", "--population", "4", "--validate", "0", "--no-progress"]
 FRONT = ["tune", "--pareto", "2", "--steps", "2", "--warm-steps", "1", "--batch", "4", "--t-final", "10",
          "--n-attempts", "1500", "--tune", "L,k", "--validate", "0", "--budgets", "5:50", "--no-progress"]
+FRONT_VMAP = ["tune", "--pareto", "2", "--front-method", "vmap", "--steps", "3", "--batch", "4", "--t-final", "10",
+              "--n-attempts", "1500", "--tune", "L,k", "--validate", "0", "--budgets", "5:50", "--no-progress"]
 LAW = ["tune", "--controller", "astolfi", "--steps", "3", "--batch", "2", "--t-final", "2", "--validate", "0",
        "--no-progress"]
 
@@ -148,6 +150,28 @@ def test_a_front_resumes_to_the_front_of_an_uninterrupted_run(tmp_path, capsys):
     assert "interrupted after 1 of 2 points" in said, said
     a, b = _doc(whole), _doc(out)
     assert a == b and len(b["points"]) == 2 and "interrupted" not in b
+
+
+@pytest.mark.slow
+def test_a_vmapped_front_resumes_to_the_front_of_an_uninterrupted_run(tmp_path, capsys):
+    from jaxsleigh.tuning import pareto
+
+    real = pareto._assess_candidates
+
+    def interrupt(m):
+        calls = []
+
+        def assess(*a, **k):
+            calls.append(1)
+            if len(calls) == 3:                          # two iterations checkpointed; Ctrl-C in the third
+                raise KeyboardInterrupt
+            return real(*a, **k)
+        m.setattr(pareto, "_assess_candidates", assess)
+
+    whole, out, said = _interrupt_and_resume(tmp_path, capsys, FRONT_VMAP, interrupt, history=False)
+    assert "interrupted after 2 of 3 iterations; wrote the best candidate so far of 2 of 2 budgets" in said, said
+    a, b = _doc(whole), _doc(out)
+    assert a == b and len(b["points"]) == 2 and "interrupted" not in b and b["method"] == "vmap"
 
 
 @pytest.mark.slow

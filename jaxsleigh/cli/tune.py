@@ -25,7 +25,7 @@ import sys
 import numpy as np
 
 from .common import EXIT_INTERRUPTED, EXIT_NONE_OK, PROG, model_from_args
-from .tune_flags import (GRADIENT_FLAGS, LAW_FLAGS, SEARCH_FLAGS, SEARCH_ONLY, check_pareto, check_search,
+from .tune_flags import (GRADIENT_FLAGS, LAW_FLAGS, PARETO_FLAGS, SEARCH_FLAGS, SEARCH_ONLY, check_pareto, check_search,
                          front_budgets, held_out, in_flags, loss_config, search_config, stepsize, tune_config,
                          tuning_run)
 from .tune_options import EPILOG, add_tune_options
@@ -201,14 +201,18 @@ def _cmd_pareto(args) -> int:
 
     check_pareto(args)
     plant, gains0 = model_from_args(args)
-    o = front_run(tuning_run(args, history=False), front_budgets(args), method=args.front_method, gains0=gains0,
-                  config=tune_config(args), loss=loss_config(args), warm_steps=args.warm_steps, tune=args.tune,
-                  plant=plant, x64=args.x64, progress=args.progress, held_out=held_out(args), baseline=args.baseline,
-                  plot=args.plot)
+    o = front_run(tuning_run(args, PARETO_FLAGS, history=False), front_budgets(args), method=args.front_method,
+                  gains0=gains0, config=tune_config(args), loss=loss_config(args), warm_steps=args.warm_steps,
+                  tune=args.tune, plant=plant, x64=args.x64, progress=args.progress, held_out=held_out(args),
+                  baseline=args.baseline, plot=args.plot)
     if o.interrupted and o.result is None:
         print(f"{PROG} tune: interrupted before the first point of the front was finished; nothing written",
               file=sys.stderr)
         return EXIT_INTERRUPTED
+    if o.interrupted and o.result.method == "vmap":
+        return _interrupted(o, "", lambda front: (
+            f"{front.settings['iterations_run']} of {args.steps} iterations; wrote the best candidate so far of "
+            f"{len(front.points)} of {args.pareto} budgets to {args.out} (\"interrupted\": true, not checked)"))
     if o.interrupted:
         return _interrupted(o, "", lambda front: (
             f"{len(front.points)} of {args.pareto} points; wrote them to {args.out} (\"interrupted\": true, not "

@@ -9,7 +9,8 @@ import re
 from .common import PROG
 
 __all__ = ["LAW_FLAGS", "GRADIENT_FLAGS", "SEARCH_FLAGS", "tuning_run", "tune_config", "loss_config",
-           "search_config", "held_out", "stepsize", "check_search", "check_pareto", "front_budgets", "in_flags"]
+           "search_config", "held_out", "stepsize", "check_search", "check_pareto", "front_budgets", "in_flags",
+           "PARETO_FLAGS"]
 
 #: The flags that determine a run of each mode, in the order a refused ``--resume`` names them (``--steps`` is
 #: left out where a resumed run may go on for more steps: a law's and a search's).
@@ -17,6 +18,8 @@ LAW_FLAGS = ("controller", "gains", "saturation", "sample_period", "delay", "noi
              "seed", "batch", "lr", "t_final", "dt", "stop_fraction", "energy_budget", "n_attempts", "x64")
 GRADIENT_FLAGS = ("gains", "params", "damping", "robust", "tune", "seed", "batch", "steps", "lr", "mode", "t_final",
                   "dt", "n_attempts", "probe_budget", "stop_fraction", "energy_budget", "x64")
+PARETO_FLAGS = ("gains", "params", "damping", "tune", "seed", "batch", "steps", "lr", "mode", "t_final", "dt",
+                "n_attempts", "probe_budget", "stop_fraction", "x64", "front_method", "budgets", "pareto")
 SEARCH_FLAGS = ("gains", "params", "damping", "tune", "seed", "batch", "population", "energy_margin",
                 "energy_budget", "energy_percentiles", "rtol", "atol", "x64", "frontier")
 
@@ -122,9 +125,6 @@ def check_pareto(args) -> None:
                 reason="every point is a whole tuning run (seconds to minutes each; 1000 points took about 50 "
                        "minutes), and a front is drawn well by a few dozen",
                 fix="give fewer points, or compute several fronts over narrower --budgets ranges")
-    if args.front_method != "warm" and args.resume:
-        raise ValueError("--front-method vmap computes every point at once and keeps no finished points to resume: "
-                         "use --front-method warm to continue an interrupted front, or drop --resume")
     if args.plot and not args.validate:
         raise ValueError("--plot draws the front validated on the held-out starts; drop --validate 0 or drop --plot")
     check_outputs(args.out, figures={"--plot": args.plot})

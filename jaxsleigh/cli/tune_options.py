@@ -165,7 +165,7 @@ def add_tune_options(p) -> None:
                         "at the same time")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its checkpoint FILE.json.ckpt.npz (same options; with "
-                        "--pareto: from the finished points kept in FILE.json)")
+                        "--pareto and --front-method warm: from the finished points kept in FILE.json)")
     for add in (_add_optimiser_options, _add_objective_options, _add_search_options, _add_pareto_options):
         add(p)
     add_model_options(p)

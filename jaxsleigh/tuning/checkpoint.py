@@ -19,7 +19,8 @@ from ..files.chunks import joined, read_checkpoint_file, setting_differences, wr
 from ..model.params import gains_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
-           "checkpoint_options", "Stamp", "tree_arrays", "tree_from"]
+           "checkpoint_options", "Stamp", "tree_arrays", "tree_from", "track_arrays",
+           "restore_track"]
 
 
 class TuningInterrupted(KeyboardInterrupt):
@@ -104,8 +105,7 @@ class TunerCheckpoint:
     """The optimiser's whole state in one ``.npz`` (pytree leaves by position), written atomically.
 
     The state: the iteration, the current parameters and optax state (which, with the backtracking
-    wrapper, holds the last valid point), the best and every valid candidate, the history rows, the
-    host counters and scalars (``scalars``: e.g. the augmented Lagrangian's multiplier) and the probe set.
+    wrapper, holds the last valid point), and the `jaxsleigh.tuning.optimizer.CandidateTrack` (`track_arrays`).
     """
 
     def __init__(self, path, key: str, row_fields, options: dict | None = None):
@@ -114,41 +114,56 @@ class TunerCheckpoint:
         self._row_fields = tuple(row_fields)
         self.stamp = Stamp(key, _SETTINGS.get(key) or {}, options)
 
-    def save(self, it, trainable, opt_state, best, valid_points, rows, scalars: dict, probes) -> None:
-        arrays = {"it": np.int64(it), **{f"scalar/{k}": np.float64(v) for k, v in scalars.items()},
-                  **tree_arrays("trainable", trainable), **tree_arrays("opt_state", opt_state)}
-        if best is not None:
-            arrays.update({"best/value": np.float64(best[0]), "best/it": np.int64(best[1]),
-                           **tree_arrays("best/trainable", best[2])})
-        arrays["valid/value"] = np.asarray([v for v, _, _ in valid_points], np.float64)
-        arrays["valid/it"] = np.asarray([i for _, i, _ in valid_points], np.int64)
-        for j, (_, _, tr) in enumerate(valid_points):
-            arrays.update(tree_arrays(f"valid/{j}", tr))
-        for f in self._row_fields:
-            arrays[f"rows/{f}"] = np.asarray([r[f] for r in rows])
-        for j, (pstarts, _) in enumerate(probes or ()):
-            arrays[f"probes/{j}"] = np.asarray(pstarts)
-        self.stamp.write(self.path, arrays)
+    def save(self, it, trainable, opt_state, track) -> None:
+        self.stamp.write(self.path, {"it": np.int64(it), **tree_arrays("trainable", trainable),
+                                     **tree_arrays("opt_state", opt_state), **track_arrays(track, self._row_fields)})
 
-    def load(self, trainable, opt_state, groups):
-        """``(it, trainable, opt_state, best, valid_points, rows, scalars, probes)`` restructured like
-        ``trainable`` / ``opt_state``; ``None`` if there is no file."""
+    def load(self, trainable, opt_state, groups, track):
+        """``(it, trainable, opt_state)`` restructured like ``trainable`` / ``opt_state``, ``track`` restored
+        (`restore_track`); ``None`` if there is no file."""
         a = self.stamp.read(self.path)
         if a is None:
             return None
-        best = None
-        if "best/value" in a:
-            best = (float(a["best/value"]), int(a["best/it"]), tree_from(a, "best/trainable", trainable))
-        valid_points = [(float(v), int(i), tree_from(a, f"valid/{j}", trainable))
-                        for j, (v, i) in enumerate(zip(a["valid/value"], a["valid/it"]))]
-        n_rows = len(a[f"rows/{self._row_fields[0]}"])
-        rows = [{f: _scalar(a[f"rows/{f}"][r]) for f in self._row_fields} for r in range(n_rows)]
-        scalars = {k.split("/", 1)[1]: float(v) for k, v in a.items() if k.startswith("scalar/")}
-        probes = None
-        if "probes/0" in a:
-            probes = [(a[f"probes/{j}"], groups[j][2]) for j in range(len(groups)) if f"probes/{j}" in a]
-        return (int(a["it"]), tree_from(a, "trainable", trainable), tree_from(a, "opt_state", opt_state), best,
-                valid_points, rows, scalars, probes)
+        restore_track(a, track, trainable, groups, self._row_fields)
+        return int(a["it"]), tree_from(a, "trainable", trainable), tree_from(a, "opt_state", opt_state)
+
+
+def track_arrays(track, row_fields, prefix: str = "") -> dict:
+    """The arrays of a `jaxsleigh.tuning.optimizer.CandidateTrack` under ``prefix``: its counters and multiplier, the
+    best and every valid candidate, the history rows (``row_fields``) and the probe set."""
+    p = prefix
+    arrays = {f"{p}scalar/rejections": np.float64(track.rejections), f"{p}scalar/n_accepted": np.float64(
+        track.n_accepted), f"{p}scalar/multiplier": np.float64(track.lam)}
+    if track.best is not None:
+        arrays.update({f"{p}best/value": np.float64(track.best[0]), f"{p}best/it": np.int64(track.best[1]),
+                       **tree_arrays(f"{p}best/trainable", track.best[2])})
+    arrays[f"{p}valid/value"] = np.asarray([v for v, _, _ in track.valid_points], np.float64)
+    arrays[f"{p}valid/it"] = np.asarray([i for _, i, _ in track.valid_points], np.int64)
+    for j, (_, _, tr) in enumerate(track.valid_points):
+        arrays.update(tree_arrays(f"{p}valid/{j}", tr))
+    for f in row_fields:
+        arrays[f"{p}rows/{f}"] = np.asarray([r[f] for r in track.rows])
+    for j, (pstarts, _) in enumerate(track.probes or ()):
+        arrays[f"{p}probes/{j}"] = np.asarray(pstarts)
+    return arrays
+
+
+def restore_track(a: dict, track, trainable, groups, row_fields, prefix: str = "") -> None:
+    """Set ``track`` to the state `track_arrays` wrote under ``prefix`` (candidates shaped like ``trainable``; the
+    probe sets' plants from ``groups``)."""
+    p = prefix
+    track.best = None
+    if f"{p}best/value" in a:
+        track.best = (float(a[f"{p}best/value"]), int(a[f"{p}best/it"]), tree_from(a, f"{p}best/trainable", trainable))
+    track.valid_points = [(float(v), int(i), tree_from(a, f"{p}valid/{j}", trainable))
+                          for j, (v, i) in enumerate(zip(a[f"{p}valid/value"], a[f"{p}valid/it"]))]
+    n_rows = len(a[f"{p}rows/{row_fields[0]}"])
+    track.rows = [{f: _scalar(a[f"{p}rows/{f}"][r]) for f in row_fields} for r in range(n_rows)]
+    track.probes = None
+    if f"{p}probes/0" in a:
+        track.probes = [(a[f"{p}probes/{j}"], groups[j][2]) for j in range(len(groups)) if f"{p}probes/{j}" in a]
+    track.rejections, track.n_accepted = int(a[f"{p}scalar/rejections"]), int(a[f"{p}scalar/n_accepted"])
+    track.lam = float(a[f"{p}scalar/multiplier"])
 
 
 def _scalar(x):

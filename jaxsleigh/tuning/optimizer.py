@@ -455,11 +455,9 @@ def _resume(store, resume: bool, track: CandidateTrack, trainable, opt_state, gr
     it0 = 0
     if store is not None:
         if resume:
-            st = store.load(trainable, opt_state, groups)
+            st = store.load(trainable, opt_state, groups, track)
             if st is not None:
-                it0, trainable, opt_state, track.best, track.valid_points, track.rows, scalars, track.probes = st
-                track.rejections, track.n_accepted = int(scalars["rejections"]), int(scalars["n_accepted"])
-                track.lam = float(scalars["multiplier"])
+                it0, trainable, opt_state = st
         elif store.path.exists():
             raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
                              "resume=True (--resume) to continue it, or delete it to start afresh")
@@ -488,9 +486,7 @@ def _iterate(run: _Run, track: CandidateTrack, trainable, opt_state, it0: int, s
             stop = (track.rejections >= config.max_rejections
                     or float(opt_state.scale) < config.min_scale)
             if store is not None:
-                store.save(it + 1 if not stop else steps, trainable, opt_state, track.best, track.valid_points,
-                           track.rows, {"rejections": track.rejections, "n_accepted": track.n_accepted,
-                                        "multiplier": track.lam}, track.probes)
+                store.save(it + 1 if not stop else steps, trainable, opt_state, track)
             bar.update(it, row)
             if callback is not None:
                 callback(it, row)

@@ -18,6 +18,7 @@ ways to compute the front (``method``):
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 import time
@@ -33,9 +34,10 @@ from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
-from .checkpoint import TuningInterrupted
+from .checkpoint import TuningInterrupted, tree_from
 from .optimizer import CandidateTrack, TuneConfig, TuneHistory, _Context, _step, make_optimizer, tune
-from .params import D_FLOOR, GainParams, gains_from_params, params_from_gains, parse_tune, split_params
+from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
+    split_params
 from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
 from .validation import Validation, validate, validation_dict
 
@@ -120,7 +122,8 @@ def budgets_between(lo: float, hi: float, n: int) -> np.ndarray:
 def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=UniformStarts(),
                  config: TuneConfig = TuneConfig(), loss: LossConfig = LossConfig(), warm_steps: Optional[int] = None,
                  tune_names=None, plant: Optional[PlantParams] = None, x64: bool = False,
-                 d_floor: float = D_FLOOR, progress: Any = None, on_point=None, done: Optional[dict] = None) -> Front:
+                 d_floor: float = D_FLOOR, progress: Any = None, on_point=None, done: Optional[dict] = None,
+                 checkpoint=None, resume: bool = False, options: Optional[dict] = None) -> Front:
     """Tune one set of gains per energy budget (``budgets``, sorted increasing) with ``method``
     (``"warm"`` or ``"vmap"``, module docstring). The same training starts (``starts``,
     ``config.seed``) serve every point. Returns a `Front` whose points are not yet evaluated
@@ -131,22 +134,35 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
         (e.g. to write it, so that nothing finished is lost).
       done: ``"warm"``: ``{budget index: FrontPoint}`` finished by an interrupted run with the same
         settings (`finished_points`); they are kept, not recomputed.
+      checkpoint: ``"vmap"``: a file for the whole vmapped optimiser's state (every budget's parameters, optax
+        state, multiplier and candidates), written atomically after every iteration in the layout of every
+        resumable run (`jaxsleigh.tuning.checkpoint.Stamp`); ``resume=True`` continues from it to the front an
+        uninterrupted run computes, bit for bit, and refuses one written with other settings (naming them);
+        ``options`` (the command's) are recorded in it.
 
     Raises:
-      TuningInterrupted: Ctrl-C; its ``partial`` is the `Front` of the finished points (``None`` if none).
+      TuningInterrupted: Ctrl-C; its ``partial`` is the `Front` of the finished points (``"vmap"``: each budget's
+        best valid candidate so far, not re-checked; ``None`` if none).
     """
     budgets = _checked_budgets(method, budgets)
+    if method != "vmap" and (checkpoint is not None or resume):
+        raise ValueError("checkpoint and resume are the vmapped front's; a warm front keeps its finished points "
+                         "(on_point) and continues from them (done)")
+    if resume and checkpoint is None:
+        raise ValueError("resume=True needs checkpoint (the file the interrupted front wrote)")
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
+    settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+    if method == "warm":
         points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, gains0=gains0, starts=starts,
                                     config=config, loss=loss, tune_names=tune_names, plant=plant, x64=x64,
                                     d_floor=d_floor, progress=progress)
     else:
-        points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress)
-    wall = time.perf_counter() - t0
-    settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
-    return Front(points, method, wall, evals, settings)
+        store = None if checkpoint is None else _front_store(checkpoint, settings, plant, d_floor, options)
+        points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress,
+                                    store, resume, settings)
+    return Front(points, method, time.perf_counter() - t0, evals, settings)
 
 
 def _checked_budgets(method, budgets) -> np.ndarray:
@@ -241,12 +257,15 @@ def _point(budget, gains, history, it, settings) -> FrontPoint:
     return FrontPoint(float(budget), gains, train, None, history)
 
 
-def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress):
-    """The whole optimiser vmapped over budgets (same safety contract as `tune`, no checkpoint)."""
+def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress, store=None,
+                resume: bool = False, settings: Optional[dict] = None):
+    """The whole optimiser vmapped over budgets (same safety contract as `tune`), checkpointed after every iteration
+    in ``store`` (`_front_store`; ``None``: no checkpoint) and continued from it with ``resume``."""
     names = parse_tune(tune_names)
     g0 = load_gains(gains0)
     ics = draw_starts(starts, config.batch, config.seed)
     nb = budgets.size
+    t0 = time.perf_counter()
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
         data = make_training_set(ics, plant=plant, guard=None, seed=config.seed + 1, dtype=dtype)
@@ -258,9 +277,98 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
         ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
-        run = _VmapRun(budgets, tracks, ctx, vgb, stepb, frozen, data, cfg, dtype, np.ones(nb, bool))
-        evals = _vmap_iterations(run, trainable, opt_state, progress)
+        run = _VmapRun(budgets, tracks, ctx, vgb, stepb, frozen, data, cfg, dtype, np.ones(nb, bool), store)
+        start = _VmapState(0, 0, trainable, opt_state)
+        if store is not None:
+            start = _vmap_resumed(run, start, resume, ics)
+        try:
+            evals = _vmap_iterations(run, start, progress)
+        except KeyboardInterrupt:
+            raise TuningInterrupted(_vmap_so_far(run, settings, time.perf_counter() - t0),
+                                    None if store is None else store.path) from None
     return _verified_points(budgets, tracks, ctx, ics, groups), evals
+
+
+class _FrontStore(NamedTuple):
+    """Where a vmapped front keeps its checkpoint: the file, what its fingerprint hashes besides the training starts
+    (the front's settings, the plant, the parameters' floor) and the command's options."""
+
+    path: Path
+    settings: dict
+    options: Optional[dict]
+
+    def stamp(self, ics):
+        """The checkpoint's `jaxsleigh.tuning.checkpoint.Stamp` for the training starts ``ics``."""
+        from .checkpoint import Stamp
+
+        a = np.ascontiguousarray(ics, np.float64)
+        key = hashlib.sha256(json.dumps(self.settings, sort_keys=True).encode() + a.tobytes()).hexdigest()
+        return Stamp.of(key, {**self.settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, self.options)
+
+
+def _front_store(path, settings: dict, plant, d_floor: float, options: Optional[dict]) -> _FrontStore:
+    from ..studies.config import plant_to_dict
+
+    doc = json.loads(json.dumps({**settings, "plant": None if plant is None else plant_to_dict(plant),
+                                 "d_floor": float(d_floor)}, sort_keys=True, default=_json_default))
+    return _FrontStore(Path(path), doc, options)
+
+
+class _VmapState(NamedTuple):
+    """Where a vmapped front's iterations stand: the next iteration, the objective evaluations so far, and the
+    budgets' parameters and optax state (the tracks and ``alive`` are `_VmapRun`'s)."""
+
+    it: int
+    evals: int
+    trainable: Any
+    opt_state: Any
+
+
+def _vmap_resumed(run: "_VmapRun", start: _VmapState, resume: bool, ics) -> _VmapState:
+    """``start``, or with ``resume`` the state of the checkpoint (the tracks and ``alive`` restored in ``run``);
+    refuses a checkpoint written with other settings, and one that exists without ``resume``."""
+    from .checkpoint import restore_track
+
+    path = run.store.path
+    if not resume:
+        if path.exists():
+            raise ValueError(f"front checkpoint {str(path)!r} exists from an earlier run; pass resume=True (--resume) "
+                             "to continue it, or delete it to start afresh")
+        return start
+    a = run.store.stamp(ics).read(path, "front checkpoint")
+    if a is None:
+        return start
+    one = jax.tree_util.tree_map(lambda x: x[0], start.trainable)
+    for b, track in enumerate(run.tracks):
+        restore_track(a, track, one, run.ctx.groups, TuneHistory._fields, prefix=f"budget{b}/")
+    run.alive[:] = a["alive"]
+    return _VmapState(int(a["it"]), int(a["evals"]), tree_from(a, "trainable", start.trainable),
+                      tree_from(a, "opt_state", start.opt_state))
+
+
+def _vmap_saved(run: "_VmapRun", state: _VmapState) -> None:
+    """Write the checkpoint of ``state`` and the tracks (nothing without a store)."""
+    from .checkpoint import track_arrays, tree_arrays
+
+    if run.store is None:
+        return
+    arrays = {"it": np.int64(state.it), "evals": np.int64(state.evals), "alive": np.asarray(run.alive),
+              **tree_arrays("trainable", state.trainable), **tree_arrays("opt_state", state.opt_state)}
+    for b, track in enumerate(run.tracks):
+        arrays.update(track_arrays(track, TuneHistory._fields, prefix=f"budget{b}/"))
+    run.store.stamp(run.ctx.ics).write(run.store.path, arrays)
+
+
+def _vmap_so_far(run: "_VmapRun", settings: Optional[dict], wall: float) -> Optional["Front"]:
+    """The `Front` a Ctrl-C of the vmapped front carries: each budget's best valid candidate so far, not re-checked
+    (``None``: no budget has one)."""
+    ctx, points = run.ctx, []
+    for b, track in enumerate(run.tracks):
+        if track.best is not None:
+            g = gains_numpy(track.best[2], ctx.frozen, ctx.d_floor, ctx.g0, ctx.names)
+            points.append(_point(run.budgets[b], g, track.history(), track.best[1], {"probe_at_result": None}))
+    done = max((len(t.rows) for t in run.tracks), default=0)
+    return Front(points, "vmap", wall, 0, {**(settings or {}), "iterations_run": done}) if points else None
 
 
 def _vmapped_optimiser(config, d_floor, trainable):
@@ -293,17 +401,21 @@ class _VmapRun(NamedTuple):
     cfg: LossConfig
     dtype: Any
     alive: np.ndarray
+    store: Optional[_FrontStore] = None
 
 
-def _vmap_iterations(run: _VmapRun, trainable, opt_state, progress) -> int:
-    """Run the vmapped optimiser until ``config.steps`` iterations or every budget's track stops; the tracks
-    record each candidate. Returns the number of objective evaluations (of budgets still alive)."""
+def _vmap_iterations(run: _VmapRun, state: _VmapState, progress) -> int:
+    """Run the vmapped optimiser from ``state`` until ``config.steps`` iterations or every budget's track stops; the
+    tracks record each candidate, and the state is checkpointed after every iteration (`_vmap_saved`). Returns the
+    number of objective evaluations (of budgets still alive)."""
     config = run.ctx.config
     alive = run.alive
     t_start = time.perf_counter()
-    evals = 0
+    trainable, opt_state, evals = state.trainable, state.opt_state, state.evals
     with Progress(progress, desc=f"front (vmap x{run.budgets.size})") as bar:
-        for it in range(config.steps):
+        for it in range(state.it, config.steps):
+            if not alive.any():
+                break
             lam = np.array([t.lam for t in run.tracks])
             c = run.cfg._replace(energy_budget=jnp.asarray(run.budgets, run.dtype),
                                  multiplier=jnp.asarray(lam, run.dtype))
@@ -313,10 +425,9 @@ def _vmap_iterations(run: _VmapRun, trainable, opt_state, progress) -> int:
             trainable, opt_state = run.stepb(trainable, opt_state, out[1], jnp.asarray(ok))
             rej = np.array([t.rejections for t in run.tracks])
             alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
+            _vmap_saved(run, _VmapState(it + 1, evals, trainable, opt_state))
             bar.update((it + 1) / config.steps)
             bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in run.tracks if t.rows)))
-            if not alive.any():
-                break
     return evals
 
 

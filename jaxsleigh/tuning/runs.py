@@ -11,8 +11,8 @@ file, `law_run` (any other law, or the paper's behind an actuator, `jaxsleigh.tu
    runs never both write it. A checkpoint left by an interrupted run is refused without ``resume=True`` (nothing is
    written over it), ``resume=True`` without one, and a resume whose options differ from those the checkpoint
    records names the first that differs, with both values.
-2. **During the work** the tuner writes its checkpoint, atomically, after every step (a front: the output itself
-   after every point, marked ``"interrupted": true``).
+2. **During the work** the tuner writes its checkpoint, atomically, after every step (a front computed point by
+   point: the output itself after every point, marked ``"interrupted": true``).
 3. **Ctrl-C** writes the best result so far to the output (marked ``"interrupted": true``) with the history, keeps
    the checkpoint, and returns a `RunOutcome` with ``interrupted=True``; the same call with ``resume=True`` continues
    to the file an uninterrupted run writes (the same numbers, bit for bit).
@@ -346,21 +346,21 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
     """`jaxsleigh.tuning.pareto_front` (the arguments are its own; ``budgets`` a whole number N: N budgets from a
     quarter of the paper's gains' training energy to twice the ``tuned`` preset's) as a run that owns ``run.out``:
     the front is written after every point (``"interrupted": true`` until the last; ``resume=True`` keeps the
-    finished points of the file and computes the others, ``method="warm"`` only), then every point and the paper's
+    finished points of the file and computes the others); ``method="vmap"``, which finishes every point at once,
+    keeps its whole state in ``run.checkpoint`` after every iteration instead, writes each budget's best candidate
+    so far on Ctrl-C, and ``resume=True`` continues from the checkpoint. Then every point and the paper's
     and ``tuned`` gains (``references``) are measured on the ``held_out`` starts, with ``baseline`` a random search
     that spends as many objective evaluations, and the front is drawn to ``plot`` (which needs the check)."""
     from .. import tuning as tu
     from .pareto import _front_settings, finished_points
 
     run, names, held_out = as_run(run), tu.parse_tune(tune), held_out or HeldOut(n=0)
-    if run.resume and method != "warm":
-        raise ValueError(f"method={method!r} computes every point at once and keeps no finished points to resume: use "
-                         f"method='warm' to continue an interrupted front, or drop {run.words.resume}")
     if plot is not None and not held_out.n:
         raise ValueError("plot draws the front measured on the held-out starts: give held_out with n > 0")
     kw = dict(config=config, loss=loss, plant=plant, x64=x64)
-    with run.owned("front", checkpointed=False, also=(plot,)):
-        earlier = _interrupted_front(run)
+    vmap = method == "vmap"
+    with run.owned("front", checkpointed=vmap, also=(plot,)):
+        earlier = None if vmap else _interrupted_front(run)
         if isinstance(budgets, (int, np.integer)):
             budgets = tu.default_budgets(int(budgets), **kw)
         done = None
@@ -375,13 +375,15 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
 
         t0 = time.perf_counter()
         try:
+            resumable = dict(checkpoint=run.checkpoint, resume=run.resume, options=run.options) if vmap else {}
             front = tu.pareto_front(budgets, method=method, gains0=gains0, warm_steps=warm_steps, tune_names=names,
-                                    progress=progress, on_point=keep, done=done, **kw)
+                                    progress=progress, on_point=keep, done=done, **resumable, **kw)
         except TuningInterrupted as stop:
             if stop.partial is not None:
                 keep(stop.partial)
             return RunOutcome(stop.partial, () if stop.partial is None else (run.out,), True,
                               time.perf_counter() - t0, {})
+        run.finished()
         front, refs, rows, base = _measured_front(front, budgets, held_out, baseline, progress, kw)
         meta = {"command": run.command, "held_out": {"n": held_out.n, "seed": held_out.seed, **held_out.tolerances(),
                                                      "starts": repr(UniformStarts())}, **initial}
