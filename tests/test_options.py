@@ -20,7 +20,7 @@ OLD_KEYWORDS = {"method", "rtol", "atol", "max_step", "max_steps", "check_passiv
                 "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume", "progress", "shard", "policy"}
 
 
-@pytest.mark.parametrize("engine", ["ensemble._run_ensemble", "basin._run_basin", "sweep._sweep",
+@pytest.mark.parametrize("engine", ["ensemble.run_ensemble_resolved", "basin._run_basin", "sweep._sweep",
                                     "simulate._simulate"])
 def test_the_engine_behind_each_front_takes_the_option_objects_whole(engine):
     """The objects go down as they are: the engine behind a front takes ``stepsize`` and ``run`` (not their

@@ -128,7 +128,8 @@ def add_study_options(p, *, theta_help: str, samples_example: str, samples_help:
                         "differences (default: 1%% of the rows, at most 64, from 500 rows on; 0: no audit)")
 
 
-def _starts_from_args(args):
+def starts_from_args(args):
+    """The `jaxsleigh.studies.basin.BasinStarts` the flags ask for (a grid, samples or an ``--ics`` file)."""
     from ..studies.basin import array_starts, grid_starts, parse_axis, sample_starts
 
     coords = {"x": args.x, "y": args.y, "theta": args.theta}
@@ -193,7 +194,7 @@ def run_basin_command(args) -> int:
         check_tolerance_flags(args)
         solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
                      stepsize=stepsize_from_args(args), x64=args.x64, eps=args.eps, flags=FLAGS)
-        st["starts"] = _starts_from_args(args)
+        st["starts"] = starts_from_args(args)
         check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
 
     def study(checkpoint_dir, resume, shard):

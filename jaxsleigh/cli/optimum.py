@@ -46,7 +46,7 @@ examples:
 
 def _horizons(text: str):
     """--horizons 5,10,20,40: increasing numbers > 0."""
-    from ..studies.optimum import _as_horizons
+    from ..studies.optimum import as_horizons
 
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
@@ -54,7 +54,7 @@ def _horizons(text: str):
         raise argparse.ArgumentTypeError(f"could not parse --horizons {text!r}; write increasing horizons in "
                                          f"seconds, e.g. --horizons 5,10,20,40") from None
     try:
-        return tuple(float(v) for v in _as_horizons(values))
+        return tuple(float(v) for v in as_horizons(values))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"--horizons {text!r}: {e}") from None
 

@@ -22,7 +22,7 @@ import sys
 
 from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
-from .basin import _starts_from_args, add_study_options
+from .basin import starts_from_args, add_study_options
 from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
 from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
                      law_kwargs, model_from_args, status_epilog, status_line)
@@ -153,7 +153,7 @@ def _check(args, out) -> dict:
     labels = {a.name: f"--param {s}" for a, s in zip(axes, args.param)}
     if args.ics is None and args.samples is None and args.x is None and args.y is None and args.theta is None:
         args.samples = DEFAULT_SAMPLES
-    starts = _starts_from_args(args)
+    starts = starts_from_args(args)
     # values x starts, from the counts alone: refused before any value set or row is built
     check_rows(math.prod(a.n for a in axes), starts.ics.shape[0], "jaxsleigh sweep")
     names, values, _ = param_grid(axes, law_names)

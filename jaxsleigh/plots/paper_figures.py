@@ -44,7 +44,6 @@ __all__ = [
     "save_figure",
 ]
 
-_new_figure = new_figure   # the former private name, still imported by jaxsleigh.plots.sweep
 
 
 # ---------------------------------------------------------------------------------------------

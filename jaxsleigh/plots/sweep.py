@@ -7,7 +7,7 @@ from typing import Optional
 import numpy as np
 
 from .base import T_EPS
-from .paper_figures import _new_figure
+from .paper_figures import new_figure
 from ..studies.sweep import SweepResult
 
 __all__ = ["plot_sweep", "plot_sweep_line", "plot_sweep_grid"]
@@ -36,7 +36,7 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
     panel; pass two ``axes`` to leave it out)."""
     if axes is None:
         n = 3 if _has_effort(res) else 2
-        fig = _new_figure((5.4 * n, 4.2))
+        fig = new_figure((5.4 * n, 4.2))
         axes = fig.subplots(1, n)
     ax_f, ax_t = axes[0], axes[1]
     fig = ax_f.figure
@@ -108,7 +108,7 @@ def plot_sweep_grid(res: SweepResult, axes=None):
         raise ValueError("a heat map needs a sweep over two parameters (two --param)")
     if axes is None:
         n = 3 if _has_effort(res) else 2
-        fig = _new_figure((5.75 * n, 4.6))
+        fig = new_figure((5.75 * n, 4.6))
         axes = fig.subplots(1, n)
     fig = axes[0].figure
     n1, n2 = res.grid_shape

@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .config import reject_traced
-from .ensemble import _run_ensemble
+from .ensemble import run_ensemble_resolved
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
@@ -295,7 +295,8 @@ def array_starts(ics, *, source: Optional[str] = None) -> BasinStarts:
     return BasinStarts(arr, "array", (int(arr.shape[0]),), (), spec)
 
 
-def _starts_from_spec(ics: np.ndarray, spec: dict) -> BasinStarts:
+def starts_from_spec(ics: np.ndarray, spec: dict) -> BasinStarts:
+    """The `BasinStarts` of a saved basin from its starts ``ics`` and the settings' ``"starts"`` entry ``spec``."""
     kind = spec["kind"]
     if kind == "grid":
         g = grid_starts(*(Axis(*spec[c]) for c in COORDS))
@@ -489,9 +490,9 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
     reject_traced("run_basin", **locals())    # first: a NumPy front, neither jittable nor differentiable
     if not isinstance(starts, BasinStarts):
         starts = array_starts(starts)
-    res = _run_ensemble(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                        x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run,
-                        certify=True)
+    res = run_ensemble_resolved(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt,
+                                eps=eps, x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run,
+                                certify=True)
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
     settings = {k: v for k, v in res.settings.items() if k not in ("save_every",)}
@@ -599,7 +600,7 @@ def load_basin(path) -> BasinResult:
     settings = json.loads(str(data["settings_json"]))
     settings.pop("status_codes", None)
     ics = data["ics"]
-    starts = _starts_from_spec(ics, settings["starts"])
+    starts = starts_from_spec(ics, settings["starts"])
     ics5 = ics if ics.shape[1] == 5 else np.concatenate([ics, np.zeros((ics.shape[0], 2))], axis=1)
     return BasinResult(starts=starts, ics=ics5, settings=settings, run_info=None,
                        **{k: data[k] for k in _PER_START}, **{k: data[k] for k in _EFFORT if k in data})

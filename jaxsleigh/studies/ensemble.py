@@ -381,7 +381,7 @@ class _PartProgress:
 
 
 class _Chunks:
-    """The per-chunk work of `_run_ensemble`, holding what every chunk shares: a chunk's rows computed by the
+    """The per-chunk work of `run_ensemble_resolved`, holding what every chunk shares: a chunk's rows computed by the
     sampled-data loop (`sampled_part`) or by the engine (`engine_part`: parts run concurrently on the devices,
     their stiff stragglers finished in one tail batch in the background)."""
 
@@ -732,7 +732,7 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
                           observed=observed or None, run_info=run_info)
 
 
-def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
+def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
                   eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController, saveat: SaveAt,
                   run: RunOptions, certify: bool = False) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
@@ -798,7 +798,7 @@ def _run_ensemble(ics, *, plant: Optional[PlantParams], gains: Any, controller: 
     if spec is not None:
         def rerun(rows, rtol, atol):   # the same study of some rows, in float64 at tight tolerances
             law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
-            return _run_ensemble(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
+            return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                  stepsize=StepSizeController(rtol=rtol, atol=atol,
                                                              max_steps=min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)),
                                  saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
@@ -848,5 +848,5 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       `EnsembleResult` (``None`` for one share of a multi-process run).
     """
     stepsize, saveat, run = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
-    return _run_ensemble(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
+    return run_ensemble_resolved(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
                          x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)

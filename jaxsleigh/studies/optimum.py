@@ -530,7 +530,8 @@ def _as_starts(starts) -> np.ndarray:
     return a
 
 
-def _as_horizons(horizons) -> np.ndarray:
+def as_horizons(horizons) -> np.ndarray:
+    """``horizons`` as a 1-D float64 array of strictly increasing, finite horizons > 0 (else ``ValueError``)."""
     try:
         h = np.atleast_1d(np.asarray(horizons, dtype=np.float64))
     except (TypeError, ValueError):
@@ -626,7 +627,7 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
 
     plant = as_plant(plant)
     starts = _as_starts(starts)
-    horizons = _as_horizons(horizons)
+    horizons = as_horizons(horizons)
     eps = float(eps)
     if not (math.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be a finite number > 0 (the ball's radius), got {eps}")

@@ -529,7 +529,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     parameter name -> text naming it in error messages (the CLI passes its ``--param``). ``run.chunk_size``
     counts rows (default as `run_basin`). Returns a `SweepResult` (``None`` with ``run.shard``)."""
     reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    from .ensemble import _run_ensemble
+    from .ensemble import run_ensemble_resolved
 
     st = _as_starts(starts)
     controller, law_names = _resolve_controller(controller, gains)
@@ -537,7 +537,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     base_plant, base_gains, lp, lg = _row_lanes(names, values, plant, gains, controller, labels, st.ics.shape[0])
     P, N = values.shape[0], st.ics.shape[0]
     law = {"gains": lg, "controller": None} if controller is None else {"gains": None, "controller": lg}
-    res = _run_ensemble(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps, x64=x64,
+    res = run_ensemble_resolved(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps, x64=x64,
                         observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
@@ -630,7 +630,7 @@ def save_sweep(path, result: SweepResult) -> Path:
 
 def load_sweep(path) -> SweepResult:
     """Read an ``.npz`` written by `save_sweep` (or ``jaxsleigh sweep``)."""
-    from .basin import _starts_from_spec
+    from .basin import starts_from_spec
     from ..files.npz import read_npz
 
     d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)",
@@ -642,6 +642,6 @@ def load_sweep(path) -> SweepResult:
     recorded = {k: d[k] for k in ("u_energy", "u_abs_int", "u_norm_peak", *FINAL_FIELDS) if k in d}
     return SweepResult(names=tuple(str(n) for n in d["names"]), values=d["values"],
                        grid_shape=tuple(int(x) for x in d["grid_shape"]), axes=axes,
-                       starts=_starts_from_spec(d["ics"], settings["starts"]), ics=d["ics"], T_eps=d["T_eps"],
+                       starts=starts_from_spec(d["ics"], settings["starts"]), ics=d["ics"], T_eps=d["T_eps"],
                        status=d["status"], n_steps=d["n_steps"], min_abs_theta=d["min_abs_theta"], Hd0=d["Hd0"],
                        **recorded, settings=settings, run_info=None)

@@ -204,7 +204,9 @@ def make_optimizer(lr: float, steps: int, *, clip: float = 1.0, warmup: int = 5,
     return backtracking(optax.chain(optax.clip_by_global_norm(clip), optax.adam(schedule)))
 
 
-def _step(opt, trainable, opt_state, grad, valid):
+def optimizer_step(opt, trainable, opt_state, grad, valid):
+    """One step of the optimiser ``opt`` (`make_optimizer`): ``(trainable, opt_state)`` after ``grad``; with
+    ``valid`` False the backtracking wrapper redoes the last valid step, half as long."""
     updates, opt_state = opt.update(grad, opt_state, trainable, valid=valid)
     return optax.apply_updates(trainable, updates), opt_state
 
@@ -215,7 +217,7 @@ def _optimizer_and_step(lr: float, steps: int, clip: float, warmup: int, final_l
     one per call of `tune` (each point of a Pareto front) compiled and kept a new executable each time,
     so memory grew with every point."""
     return (make_optimizer(lr, steps, clip=clip, warmup=warmup, final_lr=final_lr),
-            jax.jit(_step, static_argnums=0))
+            jax.jit(optimizer_step, static_argnums=0))
 
 
 class _Bar:
@@ -255,7 +257,7 @@ def _validate_number(name, v, *, integer=False, positive=True):
     return x
 
 
-class _Context(NamedTuple):
+class TuneContext(NamedTuple):
     """What the candidate bookkeeping of one tuning run needs to know (fixed for the run)."""
 
     config: Any
@@ -283,7 +285,7 @@ class CandidateTrack:
         self.probes, self.n_accepted, self.rejections = None, 0, 0
         self.best, self.valid_points, self.rows = None, [], []
 
-    def assess(self, it: int, value: float, gnorm: float, valid: bool, trainable, aux, scale: float, ctx: _Context,
+    def assess(self, it: int, value: float, gnorm: float, valid: bool, trainable, aux, scale: float, ctx: TuneContext,
                wall: float, invalid_start: Callable) -> bool:
         """Record candidate ``it``; returns whether it is valid. ``invalid_start(aux, value, gnorm, probe_attempts)``
         gives the message raised when the very first candidate is not valid."""
@@ -321,7 +323,7 @@ class CandidateTrack:
     def history(self) -> "TuneHistory":
         return TuneHistory(**{f: np.asarray([r[f] for r in self.rows]) for f in TuneHistory._fields})
 
-    def verify(self, ctx: _Context, checks, n: int):
+    def verify(self, ctx: TuneContext, checks, n: int):
         """The best of the ``n`` best valid candidates that passes the accurate engine's check on ``checks``
         (``n = 0``: the best, unchecked). Returns ``(candidate, gains, probe_at_result, why)``; ``candidate``
         is ``None`` when none passed (``why`` says why the last one failed)."""
@@ -420,7 +422,7 @@ def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig) -> tuple:
 
 class _Run(NamedTuple):
     """The fixed parts of one tuning run, built in its precision: the training set, the objective's
-    settings, the value-and-gradient function, the optimiser and its jitted step, and the `_Context`."""
+    settings, the value-and-gradient function, the optimiser and its jitted step, and the `TuneContext`."""
 
     data: Any
     cfg: LossConfig
@@ -428,7 +430,7 @@ class _Run(NamedTuple):
     vg: Callable
     opt: Any
     step: Callable
-    ctx: _Context
+    ctx: TuneContext
 
 
 def _prepare(g0, theta0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64,
@@ -445,7 +447,7 @@ def _prepare(g0, theta0, names, ics, steps, config: TuneConfig, loss: LossConfig
                                     float(config.final_lr))
     opt_state = opt.init(trainable)
     groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
-    ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
+    ctx = TuneContext(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
     return _Run(data, cfg, dtype, vg, opt, step, ctx), trainable, opt_state
 
 
@@ -494,7 +496,7 @@ def _iterate(run: _Run, track: CandidateTrack, trainable, opt_state, it0: int, s
                 break
 
 
-def _interrupted(track: CandidateTrack, ctx: _Context) -> Optional[TuneResult]:
+def _interrupted(track: CandidateTrack, ctx: TuneContext) -> Optional[TuneResult]:
     """The `TuneResult` a Ctrl-C carries: the best valid candidate so far, not re-checked (``None``: none yet)."""
     if track.best is None:
         return None
@@ -506,7 +508,7 @@ def _interrupted(track: CandidateTrack, ctx: _Context) -> Optional[TuneResult]:
                        "method": "interrupted; best valid candidate so far, not re-checked"})
 
 
-def _final_check(track: CandidateTrack, ctx: _Context, guard, best, best_gains) -> tuple:
+def _final_check(track: CandidateTrack, ctx: TuneContext, guard, best, best_gains) -> tuple:
     """``(best, best_gains, verified_iteration, probe_at_result)``: with ``config.verify``, the best candidate
     that passes the accurate engine on the training and guard starts (RuntimeError if none does)."""
     config, verified, probe_at_result = ctx.config, None, None

@@ -35,7 +35,7 @@ from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
 from .checkpoint import TuningInterrupted, tree_from
-from .optimizer import CandidateTrack, TuneConfig, TuneHistory, _Context, _step, make_optimizer, tune
+from .optimizer import CandidateTrack, TuneConfig, TuneContext, TuneHistory, make_optimizer, optimizer_step, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
 from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
@@ -153,7 +153,7 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
-    settings = _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+    settings = front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
     if method == "warm":
         points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, gains0=gains0, starts=starts,
                                     config=config, loss=loss, tune_names=tune_names, plant=plant, x64=x64,
@@ -191,7 +191,7 @@ def _front_warm(budgets, t0, warm_steps, on_point, done, *, gains0, starts, conf
     order = list(range(j0, budgets.size)) + list(range(j0 - 1, -1, -1))
     found = dict(done or {})
     evals = 1 + sum(int(p.train.get("iterations_run", 0)) for p in found.values())
-    settings = _front_settings("warm", budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
+    settings = front_settings("warm", budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
 
     def so_far():
         return Front([found[j] for j in sorted(found)], "warm", time.perf_counter() - t0, evals, settings)
@@ -221,7 +221,8 @@ def _warm_tune(budget, src, warm_steps, *, gains0, starts, config, loss, tune_na
                 tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
 
 
-def _front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts) -> dict:
+def front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts) -> dict:
+    """What determines a front (recorded in its file; a resume or a checkpoint must match it)."""
     return {"method": method, "budgets": budgets.tolist(), "config": config._asdict(),
             "loss": {k: float(v) for k, v in loss._asdict().items() if k != "energy_budget"},
             "warm_steps": warm_steps if method == "warm" else None, "x64": bool(x64),
@@ -275,7 +276,7 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (nb,) + jnp.shape(x)), trainable)
         vgb, opt_state, stepb = _vmapped_optimiser(config, d_floor, trainable)
         groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
-        ctx = _Context(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
+        ctx = TuneContext(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
         run = _VmapRun(budgets, tracks, ctx, vgb, stepb, frozen, data, cfg, dtype, np.ones(nb, bool), store)
         start = _VmapState(0, 0, trainable, opt_state)
@@ -382,18 +383,18 @@ def _vmapped_optimiser(config, d_floor, trainable):
     opt = make_optimizer(config.lr, config.steps, clip=config.clip, warmup=config.warmup,
                          final_lr=config.final_lr)
     opt_state = jax.vmap(opt.init)(trainable)
-    stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: _step(opt, tr, st, gr, v)))
+    stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: optimizer_step(opt, tr, st, gr, v)))
     return vgb, opt_state, stepb
 
 
 class _VmapRun(NamedTuple):
     """One vmapped front run (`_front_vmap`): the budgets and each one's `CandidateTrack`, the candidates'
-    `_Context`, the jitted vmapped objective and step (`_vmapped_optimiser`), the objective's fixed inputs
+    `TuneContext`, the jitted vmapped objective and step (`_vmapped_optimiser`), the objective's fixed inputs
     (frozen parameters, training set, `LossConfig`, dtype), and which budgets are still alive (updated in place)."""
 
     budgets: np.ndarray
     tracks: list
-    ctx: _Context
+    ctx: TuneContext
     vgb: Any
     stepb: Any
     frozen: Any

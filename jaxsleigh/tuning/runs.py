@@ -352,7 +352,7 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
     and ``tuned`` gains (``references``) are measured on the ``held_out`` starts, with ``baseline`` a random search
     that spends as many objective evaluations, and the front is drawn to ``plot`` (which needs the check)."""
     from .. import tuning as tu
-    from .pareto import _front_settings, finished_points
+    from .pareto import front_settings, finished_points
 
     run, names, held_out = as_run(run), tu.parse_tune(tune), held_out or HeldOut(n=0)
     if plot is not None and not held_out.n:
@@ -366,7 +366,7 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
         done = None
         if earlier is not None:
             warm = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
-            done = finished_points(earlier, _front_settings("warm", np.sort(np.asarray(budgets, np.float64)), config,
+            done = finished_points(earlier, front_settings("warm", np.sort(np.asarray(budgets, np.float64)), config,
                                                             loss, warm, x64, gains0, names, UniformStarts()))
         initial = {"initial_gains": gains_to_dict(load_gains(gains0))}
 
