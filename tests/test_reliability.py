@@ -16,6 +16,7 @@ import pytest
 import jaxsleigh as js
 from jaxsleigh import cli
 from jaxsleigh import tuning as tu
+from jaxsleigh.tuning import optimizer
 from jaxsleigh.errors import CheckpointError, DamagedCheckpointWarning, FlaggedStartsWarning
 from jaxsleigh.status import Status
 
@@ -158,7 +159,7 @@ def test_interrupted_tuning_resumes_to_the_same_answer(tmp_path):
 
 def test_ctrl_c_in_tune_writes_the_best_gains_and_history(tmp_path, capsys, monkeypatch):
     calls = {"n": 0}
-    real = tu._Bar.update
+    real = optimizer._Bar.update
 
     def interrupt_second(self, it, row):
         calls["n"] += 1
@@ -166,7 +167,7 @@ def test_ctrl_c_in_tune_writes_the_best_gains_and_history(tmp_path, capsys, monk
         if calls["n"] == 2:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(tu._Bar, "update", interrupt_second)
+    monkeypatch.setattr(optimizer._Bar, "update", interrupt_second)
     out, hist = tmp_path / "g.json", tmp_path / "h.npz"
     argv = ["tune", "--out", out, "--history", hist, "--steps", "3", "--batch", "24", "--n-attempts", "2000",
             "--t-final", "15", "--tune", "L,k", "--validate", "0", "--probe-budget", "100000", "--no-progress"]
@@ -178,7 +179,7 @@ def test_ctrl_c_in_tune_writes_the_best_gains_and_history(tmp_path, capsys, monk
     assert (tmp_path / "g.json.ckpt.npz").exists()
     rc, _, err = run_cli(argv, capsys)                                  # without --resume: refused
     assert rc == 2 and "--resume" in err
-    monkeypatch.setattr(tu._Bar, "update", real)
+    monkeypatch.setattr(optimizer._Bar, "update", real)
     rc, out_text, err = run_cli([*argv, "--resume"], capsys)
     assert rc == 0, err
     d = json.loads(out.read_text())

@@ -157,9 +157,9 @@ GRADIENT = ["tune", "--steps", "2", "--batch", "4", "--t-final", "5", "--n-attem
 
 
 def test_a_refused_gradient_resume_names_the_flag_not_the_settings(tmp_path, capsys, monkeypatch):
-    from jaxsleigh import tuning as tu
+    from jaxsleigh.tuning import optimizer
 
-    real = tu._Bar.update
+    real = optimizer._Bar.update
 
     def interrupt(self, it, row):
         real(self, it, row)
@@ -167,7 +167,7 @@ def test_a_refused_gradient_resume_names_the_flag_not_the_settings(tmp_path, cap
 
     out = tmp_path / "g.json"
     with monkeypatch.context() as m:
-        m.setattr(tu._Bar, "update", interrupt)
+        m.setattr(optimizer._Bar, "update", interrupt)
         rc, _, err = _run([*GRADIENT, "--out", out], capsys)
     assert rc == EXIT_INTERRUPTED, err
     rc, _, err = _run([*GRADIENT, "--out", out, "--lr", "0.1", "--resume"], capsys)

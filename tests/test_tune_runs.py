@@ -90,16 +90,16 @@ def _interrupt_and_resume(tmp_path, capsys, argv, interrupt, *, history=True):
 
 @pytest.mark.slow
 def test_gradient_tuning_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, capsys):
-    from jaxsleigh import tuning as tu
+    from jaxsleigh.tuning import optimizer
 
-    real = tu._Bar.update
+    real = optimizer._Bar.update
 
     def interrupt(m):
         def update(self, it, row):
             real(self, it, row)
             if it == 1:                                  # two iterations done and checkpointed
                 raise KeyboardInterrupt
-        m.setattr(tu._Bar, "update", update)
+        m.setattr(optimizer._Bar, "update", update)
 
     whole, out, said = _interrupt_and_resume(tmp_path, capsys, GRADIENT, interrupt)
     assert "interrupted after 2 iterations" in said, said

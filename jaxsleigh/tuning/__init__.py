@@ -76,12 +76,11 @@ Everything public is re-exported here.
 """
 from __future__ import annotations
 
-from .checkpoint import TunerCheckpoint as _TunerCheckpoint, TuningInterrupted  # noqa: F401
+from .checkpoint import TuningInterrupted
 from .gradients import GRADIENT_MODES, make_value_and_grad
 from .history import load_history, save_history
 from .objective import LaneSummary, LossConfig, TrainingSet, make_training_set, objective, soft_convergence
 from .optimizer import BacktrackState, TuneConfig, TuneHistory, TuneResult, backtracking, make_optimizer, tune
-from .optimizer import _Bar  # noqa: F401  (the tuner's progress bar; tests patch its update)
 from .pareto import (FRONT_METHODS, Front, FrontPoint, budgets_between, default_budgets, evaluate_front, front_dict,
                      load_front, pareto_front, point_gains, random_search, save_front, training_energy)
 from .law import LawTuneResult, gain_names, tune_law
