@@ -113,7 +113,7 @@ def test_gradient_of_a_law_through_the_stepper_matches_finite_differences():
     central finite differences (float64, fixed-step RK4)."""
     from jaxsleigh.model.closed_loop import ClosedLoop
     from jaxsleigh.integrate.engine import make_controls, make_horizon
-    from jaxsleigh.integrate.stepper import init_state, run_to
+    from jaxsleigh.integrate.stepper import WhileActive, init_state, run
 
     with jax.enable_x64(True):
         horizon = make_horizon(2.0, 0.01)
@@ -123,7 +123,7 @@ def test_gradient_of_a_law_through_the_stepper_matches_finite_differences():
         def final_x(kp):
             args = ClosedLoop(js.paper_plant(), PD(kp, 1.5))
             s = init_state(y0, jnp.int32(0), args, ctl)
-            return run_to(s, 2.0, args, ctl, adaptive=False).y[0]
+            return run(s, 2.0, args, ctl, WhileActive(), adaptive=False).y[0]
 
         g = jax.jacfwd(final_x)(2.0)
         h = 1e-5

@@ -106,7 +106,7 @@ def test_observers_only_watch_and_effort_integrals_are_under_error_control():
     the state alone would accept: at least as many steps, the same trajectory to the tolerance."""
     from jaxsleigh.integrate.engine import initial_w, make_controls, make_horizon
     from jaxsleigh.integrate.observers import ClosestApproach, ConvergenceTime, Excursion
-    from jaxsleigh.integrate.stepper import init_batch, run_segment
+    from jaxsleigh.integrate.stepper import Scan, init_batch, run
 
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
@@ -117,7 +117,7 @@ def test_observers_only_watch_and_effort_integrals_are_under_error_control():
         finals = []
         for obs in ((), (ConvergenceTime(), ClosestApproach(), Excursion()), js.observers.DEFAULT_OBSERVERS):
             s = init_batch(y0, jnp.asarray(st), args, ctl, observers=obs)
-            s = jax.jit(lambda s: run_segment(s, 5.0, args, ctl, n_attempts=3000, adaptive=True, observers=obs))(s)
+            s = jax.jit(lambda s: run(s, 5.0, args, ctl, Scan(3000), adaptive=True, observers=obs))(s)
             finals.append(s)
         # the same steps; the states to rounding (XLA fuses the step's arithmetic differently with observers)
         np.testing.assert_allclose(finals[0].y, finals[1].y, rtol=1e-12, atol=1e-14)

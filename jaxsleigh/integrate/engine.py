@@ -23,8 +23,8 @@ from ..status import Status
 from .observers import DEFAULT_OBSERVERS
 from .stepsize import StepSizeController
 from .stragglers import certify
-from .stepper import (Controls, StepState, controls, init_batch, init_batch_lanes, is_active, run_plain, run_saving,
-                      run_segment)
+from .stepper import (Controls, Scan, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
+                      run_saving)
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "drive_saving", "drive_plain",
            "make_controls",
@@ -261,8 +261,7 @@ def _active(s, target, ctl):
 
 @kept_jit(static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
 def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
-    return run_segment(state, target, args, ctl, n_attempts=n_attempts, adaptive=adaptive, monitor=monitor,
-                       observers=observers)
+    return run(state, target, args, ctl, Scan(n_attempts), adaptive=adaptive, monitor=monitor, observers=observers)
 
 
 @kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
@@ -583,10 +582,10 @@ def _plain_specialised(key, n_steps: int, block, dtype):
     tree, leaves = key
     args = jax.tree_util.tree_unflatten(tree, [np.asarray(v, dtype).reshape(shape) for shape, v in leaves])
 
-    def run(y, dt):
+    def kernel(y, dt):
         return run_plain(y, args, dt, n_steps=n_steps, block=block)
 
-    return jax.jit(run, donate_argnums=(0,), compiler_options=PLAIN_CPU_OPTIONS)
+    return jax.jit(kernel, donate_argnums=(0,), compiler_options=PLAIN_CPU_OPTIONS)
 
 
 @functools.lru_cache(maxsize=8)
@@ -605,7 +604,7 @@ def _plain_sharded(mesh, n_steps: int, block):
 
 
 def _plain_program(args: ClosedLoop, dt, dtype, *, mesh, block, vector_width, specialise, kernel):
-    """The program of `drive_plain` (see there): ``(run, auto_kernel)``, ``run(y, k)`` taking ``k`` plain
+    """The program of `drive_plain` (see there): ``(program, auto_kernel)``, ``program(y, k)`` taking ``k`` plain
     steps of a batch-last state; ``auto_kernel``: the one-kernel path was chosen by ``kernel="auto"``."""
     try:
         key = _args_key(args) if specialise else None
@@ -679,20 +678,20 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
     y = jnp.asarray(y, dtype).T
     if mesh is not None:
         y = shard_batch(y, mesh)
-    run, auto_kernel = _plain_program(args, horizon.dt, dtype, mesh=mesh, block=block, vector_width=vector_width,
-                                      specialise=specialise, kernel=kernel)
+    program, auto_kernel = _plain_program(args, horizon.dt, dtype, mesh=mesh, block=block, vector_width=vector_width,
+                                          specialise=specialise, kernel=kernel)
     done = 0
     while done < horizon.n_steps:
         k = min(segment, horizon.n_steps - done)
         try:
-            y = run(y, k)
+            y = program(y, k)
         except Exception as e:      # noqa: BLE001 - a GPU whose compiler refuses the kernel
             if not auto_kernel or done:
                 raise
             warnings.warn(f"the one-kernel fixed-step path failed on this GPU ({type(e).__name__}: {e}); "
                           f"running XLA's loop of kernels instead (drive_plain(kernel=False))", stacklevel=2)
-            run, auto_kernel = _plain_program(args, horizon.dt, dtype, mesh=mesh, block=block,
-                                              vector_width=vector_width, specialise=specialise, kernel=False)
+            program, auto_kernel = _plain_program(args, horizon.dt, dtype, mesh=mesh, block=block,
+                                                  vector_width=vector_width, specialise=specialise, kernel=False)
             continue
         done += k
         if progress is not None:

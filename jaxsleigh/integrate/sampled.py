@@ -60,7 +60,7 @@ Summaries, per start:
 Everything is one jitted ``lax.scan`` over the samples (the law vmapped over the batch through
 `jaxsleigh.model.controller.apply_law`). Each period is a bounded scan of attempts in checkpointed segments of
 `SEGMENT` attempts gathered in blocks of `BLOCK` segments, a segment or a block in which no start is active skipped
-(`jaxsleigh.integrate.stepper.run_budget`), and the period itself is checkpointed: reverse mode (``jax.grad``)
+(`jaxsleigh.integrate.stepper.Checkpointed`), and the period itself is checkpointed: reverse mode (``jax.grad``)
 with respect to the starts, the law's and the plant's numbers keeps one carry per sample and recomputes a period's
 steps when it needs them. What is differentiated is the scheme along the steps it chose (the step-size choice is
 not differentiated, as in `jaxsleigh.integrate.solve`).
@@ -85,7 +85,7 @@ from ..model.plant import velocity
 from ..status import Status
 from .engine import BUDGET_FACTOR, MAX_BASE_STEPS
 from .observers import DEFAULT_OBSERVERS, collect_values
-from .stepper import Controls, StepState, controls, init_state, run_budget
+from .stepper import Checkpointed, Controls, StepState, controls, init_state, run
 from .stepsize import StepSizeController, check_policy
 from ..validate import real, whole
 
@@ -401,7 +401,7 @@ def _solve(law, plant, y0, period, noise, seed, ctl, *, K, delay, save, adaptive
            observers=OBSERVERS):
     """`solve_sampled` on checked inputs: one ``lax.scan`` over the ``K`` samples; in each, measure and hold
     (`_control`, `_hold`), then step to the next sample instant in at most ``budget`` attempts, ``segment`` at a
-    time (`jaxsleigh.integrate.stepper.run_budget`); then the run (`_finish`)."""
+    time (`jaxsleigh.integrate.stepper.Checkpointed`); then the run (`_finish`)."""
     dtype = y0.dtype
     key0 = jax.random.PRNGKey(seed)
     held = held_input_type(physical_chart_for(law))
@@ -415,8 +415,8 @@ def _solve(law, plant, y0, period, noise, seed, ctl, *, K, delay, save, adaptive
         s, args, u = _hold(s, u, plant, held, observers)
         target = (k + 1).astype(dtype) * period
         per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)      # this period's share of attempts
-        s = run_budget(s, target, args, per, budget=budget, segment=segment, block=BLOCK, adaptive=adaptive,
-                       monitor=False, observers=observers)
+        s = run(s, target, args, per, Checkpointed(budget, segment, BLOCK), adaptive=adaptive, monitor=False,
+                observers=observers)
         short = (s.status == int(Status.OK)) & (s.t < target)
         s = s._replace(status=jnp.where(short, int(Status.BUDGET_EXHAUSTED), s.status).astype(jnp.int32))
         good = (s.status == int(Status.OK))[:, None]

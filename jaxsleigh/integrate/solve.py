@@ -36,7 +36,7 @@ from ..status import Status
 from .sampled import solve_sampled, substeps_for
 from .engine import make_horizon
 from .saveat import SaveAt
-from .stepper import controls, init_state, run_budget, run_segment
+from .stepper import Checkpointed, Scan, controls, init_state, run
 from .stepsize import StepSizeController, check_policy
 from ..validate import real
 
@@ -151,12 +151,12 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
     yc, status0 = _start_in_chart(y0, chart)
     s0 = init_state(yc, status0, args, ctl, observers=observers)
-    run = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers)
+    how = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers)
     traj = {}
     if every is None:
-        s = run_segment(s0, jnp.asarray(t_final, dtype), args, ctl, n_attempts=int(max_attempts), **run)
+        s = run(s0, jnp.asarray(t_final, dtype), args, ctl, Scan(int(max_attempts)), **how)
     else:
-        s, traj = _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every, int(max_attempts), **run)
+        s, traj = _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every, int(max_attempts), **how)
     return _output(s, s0, status0, chart, t_final, observers, traj)
 
 
@@ -196,7 +196,7 @@ def _output(s, s0, status0, chart, t_final, observers, traj: dict) -> SolveOutpu
                        Hd_final=jnp.where(valid & energy & (status == Status.OK), s.Hd, jnp.nan), **traj)
 
 
-#: attempts per checkpointed segment, and segments per block, of a save interval (`stepper.run_budget`)
+#: attempts per checkpointed segment, and segments per block, of a save interval (`stepper.Checkpointed`)
 SAVE_SEGMENT, SAVE_BLOCK = 8, 8
 
 
@@ -217,10 +217,10 @@ def _save_every(saveat) -> Optional[int]:
     return int(e)
 
 
-def _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every: int, max_attempts: int, **run):
+def _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every: int, max_attempts: int, **how):
     """The stepper's final state and the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of ``every`` base
     steps: one ``lax.scan`` over the save intervals, each at most its share of ``max_attempts`` attempts
-    (`jaxsleigh.integrate.stepper.run_budget`), landing on its save time. A state the lane did not reach (it stopped,
+    (`jaxsleigh.integrate.stepper.Checkpointed`), landing on its save time. A state the lane did not reach (it stopped,
     or its share ran out: ``BUDGET_EXHAUSTED``) is NaN."""
     if not is_concrete((t_final, dt)):
         raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")
@@ -231,7 +231,7 @@ def _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every: int, max_
 
     def interval(s, target):
         per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)
-        s = run_budget(s, target, args, per, budget=budget, segment=min(SAVE_SEGMENT, budget), block=SAVE_BLOCK, **run)
+        s = run(s, target, args, per, Checkpointed(budget, min(SAVE_SEGMENT, budget), SAVE_BLOCK), **how)
         short = (s.status == Status.OK) & (s.t < target)
         s = s._replace(status=jnp.where(short, Status.BUDGET_EXHAUSTED, s.status).astype(s.status.dtype))
         good = s.status == Status.OK
@@ -265,14 +265,14 @@ def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps,
     if every is not None and abs(every * float(dt) - period) > 1e-9 * period:
         raise ValueError(f"under a sampled law solve saves the samples: saveat.every * dt ({every} * {float(dt):g}) "
                          f"must be the sampling period {period:g}")
-    run = solve_sampled(controller.law, paper_plant() if plant is None else plant, y0[None], t_final=t_final,
+    out = solve_sampled(controller.law, paper_plant() if plant is None else plant, y0[None], t_final=t_final,
                         sampler=controller.sampler, substeps=substeps_for(period, float(dt)), eps=eps, dtype=y0.dtype,
                         save=every is not None, stepsize=ss, observers=observers)
-    traj = {} if every is None else dict(t=run.t, q=run.q[0], p=run.p[0], u=run.u[0])
+    traj = {} if every is None else dict(t=out.t, q=out.q[0], p=out.p[0], u=out.u[0])
     nan = jnp.full((), jnp.nan, y0.dtype)
-    return SolveOutput(q_final=run.q_final[0], p_final=run.p_final[0], status=run.status[0],
-                       t_reached=run.t_reached[0], n_steps=run.n_steps[0], n_rejected=run.n_rejected[0],
-                       summaries={k: v[0] for k, v in run.summaries.items()}, Hd0=nan, Hd_final=nan, **traj)
+    return SolveOutput(q_final=out.q_final[0], p_final=out.p_final[0], status=out.status[0],
+                       t_reached=out.t_reached[0], n_steps=out.n_steps[0], n_rejected=out.n_rejected[0],
+                       summaries={k: v[0] for k, v in out.summaries.items()}, Hd0=nan, Hd_final=nan, **traj)
 
 
 def _stepsize(stepsize, options: dict) -> StepSizeController:

@@ -31,8 +31,10 @@ exactly over the step; classical RK4 on the rest), with a PI controller (`jaxsle
 **Fixed shape.** One loop iteration is one attempted step of every trajectory of a batch; a
 trajectory that has reached its target time, failed, or used its budget idles. Every step of a
 batch heads for the same target time, so nothing is gathered or scattered per step:
-`run_segment` runs a fixed number of attempts (ensembles loop over segments on the host and
-compact the batch), `run_saving` walks a grid of save times (decimated trajectories).
+`run` is the one loop over time, in three kinds (`Scan`: a fixed number of attempts, the segments between which
+ensembles compact the batch on the host; `WhileActive`: until every lane is done; `Checkpointed`: a bounded number
+in checkpointed segments, for reverse mode); `run_saving` walks a grid of save times (decimated trajectories) with
+it, and `run_plain` is the fast path's plain fixed-step RK4 (no masks, no summaries).
 
 Time is accumulated with compensated (two-sum) addition, so float32 runs keep time exact to
 rounding over ``1e4`` or more steps.
@@ -40,7 +42,7 @@ rounding over ``1e4`` or more steps.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -55,7 +57,7 @@ from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt",
-           "run_segment", "run_to", "run_budget", "run_saving", "run_plain", "q_norm2_w"]
+           "run", "Scan", "WhileActive", "Checkpointed", "run_saving", "run_plain", "q_norm2_w"]
 
 #: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
 GUARD_EVERY = 8
@@ -406,35 +408,6 @@ def _batched_attempt(adaptive: bool, monitor: bool = True, observers=DEFAULT_OBS
     return functools.partial(attempt, adaptive=adaptive, monitor=monitor, observers=observers)
 
 
-def run_segment(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_attempts: int,
-                adaptive: bool, monitor: bool = True, unroll: int = 1, observers=DEFAULT_OBSERVERS) -> StepState:
-    """``n_attempts`` attempted steps towards ``target`` of a batch of trajectories.
-
-    ``s`` is batch-*last* (every field has the batch as its trailing axis): the scan carries
-    structure-of-arrays state and `attempt` broadcasts over that axis. On CPU this layout
-    ran ~3x faster than ``vmap`` of a whole scan (whose carry is batch-first). ``jit`` at the
-    call site.
-    """
-    step = _batched_attempt(adaptive, monitor, observers)
-
-    def body(c, _):
-        return step(c, target, args, ctl), None
-
-    s, _ = jax.lax.scan(body, s, None, length=n_attempts, unroll=unroll)
-    return s
-
-
-def run_to(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-           monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
-    """Step a batch (batch-last) until every trajectory has reached ``target`` or stopped."""
-    step = _batched_attempt(adaptive, monitor, observers)
-
-    def cond(c):
-        return jnp.any(is_active(c, jnp.asarray(target, c.y.dtype), ctl))
-
-    return jax.lax.while_loop(cond, lambda c: step(c, target, args, ctl), s)
-
-
 def starting_step(s: StepState, ctl: Controls) -> StepState:
     r"""``s`` (batch-last) with each lane's first step at most \(0.01\,\|y_0\| / \|f(y_0)\|\) in the tolerances'
     norm (Hairer's starting-step rule), no less than \(10^{-6}\) ``dt``; no derivative flows through the choice.
@@ -447,12 +420,60 @@ def starting_step(s: StepState, ctl: Controls) -> StepState:
     return s._replace(h=jnp.clip(h0, 1e-6 * ctl.dt, s.h).astype(s.y.dtype))
 
 
-def run_checkpointed(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n_attempts: int, segment: int = 200,
-                     adaptive: bool = True, monitor: bool = True, observers=DEFAULT_OBSERVERS, accumulate=None,
-                     acc=None):
-    """`run_segment` of ``n_attempts`` attempts (static) as ``ceil(n_attempts / segment)`` checkpointed segments, a
-    segment in which no trajectory is active skipped: differentiable in reverse mode (``jax.grad``) at a memory of
-    one segment's steps, where `run_to`'s ``while_loop`` has forward mode only.
+class Scan(NamedTuple):
+    """``n`` attempts, all of them (no test of the batch): the fronts' segments, between which the host checks the
+    batch (`jaxsleigh.integrate.engine`). Differentiable in both modes, at a memory of ``n`` steps in reverse mode."""
+
+    n: int
+    unroll: int = 1
+
+    def __call__(self, body, busy, carry):
+        return jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=int(self.n), unroll=self.unroll)[0]
+
+
+class WhileActive(NamedTuple):
+    """Until no lane is active (a ``while_loop``): as many attempts as the stiffest lane needs, forward mode only."""
+
+    def __call__(self, body, busy, carry):
+        return jax.lax.while_loop(busy, body, carry)
+
+
+class Checkpointed(NamedTuple):
+    """At most ``n`` attempts (static), in checkpointed segments of ``segment`` attempts, a segment in which no lane is
+    active skipped (one test of the batch); with ``block``, the segments gathered in checkpointed blocks of ``block``
+    segments, skipped alike. Differentiable in reverse mode (``jax.grad``) at a memory of one segment's steps (and one
+    block's segment ends): the tuners' objectives, `jaxsleigh.solve`'s save intervals, the sampled loop's periods."""
+
+    n: int
+    segment: int = 200
+    block: Optional[int] = None
+
+    def __call__(self, body, busy, carry):
+        segment, n = int(self.segment), int(self.n)
+
+        def skipped(inner, length):       # a scan of checkpointed `inner`, each skipped when no lane is active
+            inner = functools.partial(jax.checkpoint, prevent_cse=False)(inner)
+            return lambda c: jax.lax.scan(lambda c, _: (jax.lax.cond(busy(c), inner, lambda c: c, c), None), c, None,
+                                          length=length)[0]
+
+        def segments(length):
+            return skipped(lambda c: Scan(segment)(body, busy, c), length)
+
+        if self.block is None or n <= segment * int(self.block):
+            return segments(-(-n // segment))(carry)
+        return skipped(segments(int(self.block)), -(-n // (segment * int(self.block))))(carry)
+
+
+def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive: bool, monitor: bool = True,
+        observers=DEFAULT_OBSERVERS, accumulate=None, acc=None):
+    """The stepper's one loop over time: attempted steps of a batch (batch-last) towards ``target``, as ``loop``
+    says (`Scan`: a fixed number; `WhileActive`: until no lane is active; `Checkpointed`: at most a number, in
+    checkpointed segments, for reverse mode). A lane that has reached its target, failed or used its budget
+    (``ctl.max_steps``) idles.
+
+    ``s`` is batch-*last* (every field has the batch as its trailing axis): the loop carries structure-of-arrays
+    state and `attempt` broadcasts over that axis. On CPU this layout ran ~3x faster than ``vmap`` of a whole scan
+    (whose carry is batch-first). ``jit`` at the call site.
 
     ``target`` is a time (per lane or shared) or a function of the state giving each lane's target at each attempt
     (e.g. its own time once it has stopped, so that it idles). With ``accumulate(acc, s, s_new) -> acc``, a pytree
@@ -463,45 +484,16 @@ def run_checkpointed(s: StepState, target, args: ClosedLoop, ctl: Controls, *, n
     def target_of(c):
         return target(c) if callable(target) else jnp.asarray(target, c.y.dtype)
 
-    def body(carry, _):
+    def body(carry):
         c, a = carry
         c_new = step(c, target_of(c), args, ctl)
-        return (c_new, a if accumulate is None else accumulate(a, c, c_new)), None
+        return c_new, (a if accumulate is None else accumulate(a, c, c_new))
 
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def run(carry):
-        return jax.lax.scan(body, carry, None, length=segment)[0]
+    def busy(carry):
+        return jnp.any(is_active(carry[0], target_of(carry[0]), ctl))
 
-    def outer(carry, _):
-        busy = jnp.any(is_active(carry[0], target_of(carry[0]), ctl))
-        return jax.lax.cond(busy, run, lambda c: c, carry), None
-
-    out, acc = jax.lax.scan(outer, (s, acc), None, length=-(-int(n_attempts) // int(segment)))[0]
+    out, acc = loop(body, busy, (s, acc))
     return out if accumulate is None else (out, acc)
-
-
-def run_budget(s: StepState, target, args: ClosedLoop, ctl: Controls, *, budget: int, segment: int, block: int,
-               adaptive: bool, monitor: bool, observers=DEFAULT_OBSERVERS) -> StepState:
-    """At most ``budget`` attempted steps (static) of every lane towards ``target``: `run_checkpointed` in segments of
-    ``segment`` attempts gathered in checkpointed blocks of ``block`` segments; a segment, and a block, in which no
-    lane is active is skipped (one test of the batch, forward and in reverse mode). The stretch between two instants
-    of a run that lands on them (the sampled loop's sample instants, `jaxsleigh.solve`'s save times); ``ctl.max_steps``
-    still caps each lane's attempts in all."""
-    n_block = segment * block
-    run = functools.partial(run_checkpointed, target=target, args=args, ctl=ctl, segment=segment, adaptive=adaptive,
-                            monitor=monitor, observers=observers)
-    if budget <= n_block:
-        return run(s, n_attempts=budget)
-
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def run_block(c):
-        return run(c, n_attempts=n_block)
-
-    def outer(c, _):
-        busy = jnp.any(is_active(c, jnp.asarray(target, c.y.dtype), ctl))
-        return jax.lax.cond(busy, run_block, lambda c: c, c), None
-
-    return jax.lax.scan(outer, s, None, length=-(-budget // n_block))[0]
 
 
 def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
@@ -510,7 +502,7 @@ def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, ada
     shape (K, 5, N): the states at the save times (NaN where a trajectory never got there)."""
 
     def body(c, target):
-        c = run_to(c, target, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
+        c = run(c, target, args, ctl, WhileActive(), adaptive=adaptive, monitor=monitor, observers=observers)
         there = c.t >= target.astype(c.t.dtype)
         return c, jnp.where(there, c.y, jnp.nan)
 

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ..integrate.observers import ControlEffort, ConvergenceTime, hermite
-from ..integrate.stepper import controls, init_state, run_checkpointed, run_to, starting_step
+from ..integrate.stepper import Checkpointed, WhileActive, controls, init_state, run, starting_step
 from ..integrate.stepsize import StepSizeController
 from ..model.closed_loop import ClosedLoop
 from ..status import Status
@@ -98,7 +98,7 @@ def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.0
 
     ``reverse=False`` (static) steps in a ``while_loop``: differentiate in forward mode (``jax.jvp``,
     ``jax.jacfwd``, one tangent per parameter). ``reverse=True`` steps in checkpointed segments of ``segment``
-    attempts (`jaxsleigh.integrate.stepper.run_checkpointed`): ``jax.grad`` too, whose cost does not grow with the
+    attempts (`jaxsleigh.integrate.stepper.Checkpointed`): ``jax.grad`` too, whose cost does not grow with the
     number of parameters (``max_steps`` is then static)."""
     dtype = y0w.dtype
     ctl = controls(StepSizeController(rtol=rtol, atol=atol), dtype, dt=dt, eps=eps, max_steps=max_steps)
@@ -109,10 +109,9 @@ def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.0
     s = starting_step(s, ctl)
     T_end = jnp.asarray(t_final, dtype)
     if reverse:
-        s = run_checkpointed(s, T_end, args, ctl, n_attempts=int(max_steps), segment=int(segment),
-                             observers=_OBSERVERS)
+        s = run(s, T_end, args, ctl, Checkpointed(int(max_steps), int(segment)), adaptive=True, observers=_OBSERVERS)
     else:
-        s = run_to(s, T_end, args, ctl, adaptive=True, observers=_OBSERVERS)
+        s = run(s, T_end, args, ctl, WhileActive(), adaptive=True, observers=_OBSERVERS)
     (t_hard, q2, rate), (_, _, peak) = s.obs
     ok = (s.status == Status.OK) & (s.t >= T_end)
     settled = ok & (t_hard <= T_end)

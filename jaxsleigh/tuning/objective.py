@@ -18,7 +18,7 @@ from ..model.plant import velocity_components
 from ..status import Status
 from ..integrate.observers import ClosestApproach, Excursion
 from ..model.charts import WChart, chart_for
-from ..integrate.stepper import Controls, StepState, controls, init_state, run_checkpointed, starting_step
+from ..integrate.stepper import Checkpointed, Controls, StepState, controls, init_state, run, starting_step
 from ..integrate.stepsize import StepSizeController
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
@@ -225,7 +225,7 @@ def _effort(effort, h, y1, args: ClosedLoop, chart):
 
 def _integrate_soft(s0, n, dtype, args: ClosedLoop, ctl: Controls, terms: _SoftTerms, *, n_attempts: int,
                     segment: int, adaptive: bool):
-    """The checkpointed segments of `soft_convergence` (`jaxsleigh.integrate.stepper.run_checkpointed`, a lane
+    """The checkpointed segments of `soft_convergence` (`jaxsleigh.integrate.stepper.Checkpointed`, a lane
     idling once in the stopping ball): ``(state, S, B, (energy, last |u|^2, peak |u|^2))``."""
     def accumulate(acc, s, s_new):
         soft, bar, effort = acc
@@ -235,9 +235,9 @@ def _integrate_soft(s0, n, dtype, args: ClosedLoop, ctl: Controls, terms: _SoftT
 
     zeros = jnp.zeros(n, dtype)
     e_start = _effort_rate(s0.y, args, terms.chart)
-    s, (soft, bar, effort) = run_checkpointed(s0, lambda s: _target_of(s, terms), args, ctl, n_attempts=n_attempts,
-                                              segment=segment, adaptive=adaptive, observers=_OBSERVERS,
-                                              accumulate=accumulate, acc=(zeros, zeros, (zeros, e_start, e_start)))
+    s, (soft, bar, effort) = run(s0, lambda s: _target_of(s, terms), args, ctl, Checkpointed(n_attempts, segment),
+                                 adaptive=adaptive, observers=_OBSERVERS, accumulate=accumulate,
+                                 acc=(zeros, zeros, (zeros, e_start, e_start)))
     return s, soft, bar, effort
 
 
