@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from ..model.plant import open_loop
-from .rk4 import rk4_step
+from .rk4 import rk4_steps
 
 __all__ = ["plant_field_u", "piecewise_constant_final", "piecewise_constant_path"]
 
@@ -36,10 +36,7 @@ def _intervals(y0, u, T, params, substeps: int):
     dt = jnp.asarray(T, y0.dtype) / (u.shape[0] * substeps)
 
     def interval(y, uk):
-        def step(y, _):
-            return rk4_step(plant_field_u, 0.0, y, dt, (uk, params)), None
-
-        y, _ = jax.lax.scan(step, y, None, length=substeps)
+        y = rk4_steps(plant_field_u, y, (uk, params), dt=dt, n_steps=substeps)
         return y, y
 
     return jax.lax.scan(interval, y0, u)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["rk4_step", "rk4_stages", "solve_fixed"]
+__all__ = ["rk4_step", "rk4_stages", "rk4_steps", "solve_fixed"]
 
 
 def rk4_stages(f, t, y, h, args, k1):
@@ -29,8 +29,23 @@ def rk4_step(f, t, y, h, args):
     return y + rk4_stages(f, t, y, h, args, f(t, y, args))[0]
 
 
+def rk4_steps(f, y0, args, *, dt, n_steps: int, t0=0.0, first: int = 0, unroll: int = 1):
+    """The state after ``n_steps`` classical RK4 steps of size ``dt``, step ``i`` at time ``t0 + (first + i) dt``
+    (no accumulated rounding): the package's one fixed-step loop over time, under `solve_fixed`, the fast path's
+    plain RK4 (`jaxsleigh.integrate.stepper.run_plain`) and the open loop's held inputs
+    (`jaxsleigh.integrate.open_loop`)."""
+    dt = jnp.asarray(dt, y0.dtype)
+    t0 = jnp.asarray(t0, y0.dtype)
+
+    def step(carry, _):
+        i, y = carry
+        return (i + 1, rk4_step(f, t0 + i * dt, y, dt, args)), None
+
+    return jax.lax.scan(step, (jnp.asarray(first, jnp.int32), y0), None, length=n_steps, unroll=unroll)[0][1]
+
+
 def solve_fixed(f, y0, args, *, t0=0.0, dt, n_steps: int, save_every: int = 1, unroll: int = 1):
-    """Integrate ``n_steps`` RK4 steps of size ``dt``, saving every ``save_every`` steps.
+    """Integrate ``n_steps`` RK4 steps of size ``dt``, saving every ``save_every`` steps (`rk4_steps` between saves).
 
     Returns ``(ts, ys)`` with ``ts`` of shape ``(n_steps // save_every + 1,)`` (``t0`` included)
     and ``ys`` stacked along the first axis. ``n_steps`` must be a multiple of ``save_every``.
@@ -38,18 +53,12 @@ def solve_fixed(f, y0, args, *, t0=0.0, dt, n_steps: int, save_every: int = 1, u
     """
     if n_steps % save_every:
         raise ValueError(f"n_steps={n_steps} must be a multiple of save_every={save_every}")
-    dt = jnp.asarray(dt, y0.dtype)
-    t0 = jnp.asarray(t0, y0.dtype)
 
-    def inner(carry, _):
-        i, y = carry
-        return (i + 1, rk4_step(f, t0 + i * dt, y, dt, args)), None
+    def between(y, k):
+        y = rk4_steps(f, y, args, dt=dt, n_steps=save_every, t0=t0, first=k * save_every, unroll=unroll)
+        return y, y
 
-    def outer(carry, _):
-        carry, _ = jax.lax.scan(inner, carry, None, length=save_every, unroll=unroll)
-        return carry, carry[1]
-
-    _, ys = jax.lax.scan(outer, (jnp.asarray(0, jnp.int32), y0), None, length=n_steps // save_every)
+    _, ys = jax.lax.scan(between, y0, jnp.arange(n_steps // save_every, dtype=jnp.int32))
     ys = jnp.concatenate([y0[None], ys])
-    ts = t0 + dt * jnp.arange(ys.shape[0], dtype=y0.dtype) * save_every
+    ts = jnp.asarray(t0, y0.dtype) + jnp.asarray(dt, y0.dtype) * jnp.arange(ys.shape[0], dtype=y0.dtype) * save_every
     return ts, ys

@@ -52,7 +52,7 @@ from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, StepInfo
 from .etd import etd_stages
 from .guard import oscillation_guard
-from .rk4 import rk4_stages, rk4_step
+from .rk4 import rk4_stages, rk4_steps
 from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
@@ -518,12 +518,8 @@ PLAIN_BLOCK = 256
 
 
 def _plain_scan(y, args: ClosedLoop, dt, n_steps: int, unroll: int = 1):
-    """``n_steps`` classical RK4 steps of a batch-last state ``y`` (5, B), all lanes at once."""
-
-    def body(c, _):
-        return rk4_step(chart_for(args.controller).field, 0.0, c, dt, args), None
-
-    return jax.lax.scan(body, y, None, length=n_steps, unroll=unroll)[0]
+    """``n_steps`` classical RK4 steps of a batch-last state ``y`` (5, B), all lanes at once (`rk4_steps`)."""
+    return rk4_steps(chart_for(args.controller).field, y, args, dt=dt, n_steps=n_steps, unroll=unroll)
 
 
 def run_plain(y, args: ClosedLoop, dt, *, n_steps: int, unroll: int = 1, block: int | None = PLAIN_BLOCK):
