@@ -32,7 +32,7 @@ import numpy as np
 
 from ..status import Status
 
-__all__ = ["Audit", "audit_rows", "audit_line", "resolve"]
+__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve"]
 
 
 class Audit(NamedTuple):
@@ -139,8 +139,16 @@ def _agree(d: dict, audit: "Audit") -> np.ndarray:
     return d["same"] & (d["dT"] <= audit.T_eps_s) & (d["dE"] <= audit.energy_rel) & (d["dy"] <= audit.state)
 
 
+def audit_sample(audit: "Audit", n: int) -> np.ndarray:
+    """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty). They depend on ``n`` and the
+    audit's seed only, so a run may start their reference before its own result is done (`audit_rows`'s
+    ``reference``)."""
+    k = audit.count(n)
+    return np.sort(np.random.default_rng(audit.seed).choice(n, size=k, replace=False)) if k else np.zeros(0, np.int64)
+
+
 def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audit: "Audit", *,
-               what: str = "result") -> dict:
+               what: str = "result", reference: Optional[Callable[[], object]] = None) -> dict:
     """Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
     ``rerun(rows, rtol, atol)``, the same study of the rows ``rows`` in float64 at those tolerances. Returns the
     record (also when nothing was re-run: ``{"rows": 0, "why": ...}``) and warns when it fails.
@@ -148,15 +156,18 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     A row off its reference is re-run at ``audit.confirm_tol`` and that run becomes its reference: at 1e-10, float64
     itself is wrong for some laws (Aicardi's chatters at the target and never settles there; at 1e-12 it settles as
     float32 does at its defaults), and where the settled phase is unstable 1e-10 and 1e-12 can disagree with each
-    other (``reference_unconverged`` counts those rows)."""
+    other (``reference_unconverged`` counts those rows). ``reference()``, if given, returns what
+    ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns, computed ahead (e.g. in a thread of its own
+    while the run finished its last lanes)."""
     n = int(np.shape(result.status)[0])
     k = audit.count(n)
     if k == 0:
         return {"rows": 0, "why": f"fewer than {audit.min_starts} starts (pass run=jaxsleigh.RunOptions(audit="
                                   f"jaxsleigh.Audit(rows=k)) to audit a small run)"}
     t0 = time.perf_counter()
-    rows = np.sort(np.random.default_rng(audit.seed).choice(n, size=k, replace=False))
-    mine, ref = _Rows.of(result, rows), _Rows.of(rerun(rows, audit.rtol, audit.atol))
+    rows = audit_sample(audit, n)
+    first = reference() if reference is not None else rerun(rows, audit.rtol, audit.atol)
+    mine, ref = _Rows.of(result, rows), _Rows.of(first)
     off = np.where(~_agree(_differences(mine, ref), audit))[0]
     unconverged = 0
     if off.size:

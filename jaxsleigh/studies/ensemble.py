@@ -35,7 +35,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from ..files.chunks import ChunkStore, starts_digest
 from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
-from .audit import audit_rows, resolve as resolve_audit
+from .audit import audit_rows, audit_sample, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
@@ -670,9 +670,11 @@ def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, f
     return chunks.engine_part(lo, hi, ci, pending), True
 
 
-def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
+def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled,
+                after_parts=None) -> tuple:
     """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
-    returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
+    returns the chunks' summaries (none with ``shard``) and the number of chunks reused. ``after_parts()`` is called
+    once every chunk's parts are done, while the last stragglers may still run (a core is then free)."""
     n, chunk, ics5 = chunks.n, chunks.chunk, chunks.ics5
     chunks.store = store
     parts, reused = [], 0
@@ -704,6 +706,8 @@ def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, 
             while pending and (len(pending) > MAX_PENDING or ready(pending[0])):
                 done_chunk(*pending.popleft())
         chunks.close_stragglers()
+        if after_parts is not None:
+            after_parts()
     except BaseException:
         # interrupted: a chunk whose stragglers are in the pool still ends and is written (nothing finished is lost)
         chunks.close_stragglers()
@@ -782,29 +786,55 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
+
+        def rerun(rows, rtol, atol):   # the same study of some rows, in float64 at tight tolerances (the audit's)
+            law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
+            budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
+            return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
+                                         stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
+                                         saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
+
+        audit_ref = []          # the audit's reference, begun on the core the last stragglers leave free
+
+        def begin_audit():
+            rows = audit_sample(spec, n)
+            if rows.size:
+                audit_ref.append(audit_pool.submit(_timed, rerun, rows, spec.rtol, spec.atol))
+
+        audit_pool = concurrent.futures.ThreadPoolExecutor(1)
         # the store's lock on the folder is held until the last chunk is written or read
-        with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
-                concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
-            chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
-                             devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
-                             tail_pool=tail_pool, certify=certify and cfg.adaptive)
-            parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields, sampled=sampled)
+        try:
+            with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
+                    concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
+                chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
+                                 devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
+                                 tail_pool=tail_pool, certify=certify and cfg.adaptive)
+                parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
+                                            sampled=sampled,
+                                            after_parts=begin_audit if spec is not None and shard is None else None)
+        except BaseException:               # interrupted: the audit's reference is not waited for
+            audit_pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        audit_pool.shutdown(wait=False)     # its thread ends with the reference
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
-    run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
+        run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
     result = _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
                               lane_args=lane_args, run_info=run_info)
     if spec is not None:
-        def rerun(rows, rtol, atol):   # the same study of some rows, in float64 at tight tolerances
-            law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
-            return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
-                                 stepsize=StepSizeController(rtol=rtol, atol=atol,
-                                                             max_steps=min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)),
-                                 saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
-
-        run_info["audit"] = audit_rows(result, rerun, spec, what="ensemble")
+        ahead = (lambda: audit_ref[0].result()[0]) if audit_ref else None
+        rec = audit_rows(result, rerun, spec, what="ensemble", reference=ahead)
+        if audit_ref and rec.get("rows"):         # the reference's own seconds, spent beside the last stragglers
+            rec["wall_s"] = round(rec["wall_s"] + audit_ref[0].result()[1], 3)
+        run_info["audit"] = rec
     return result
+
+
+def _timed(fn, *args):
+    """``(fn(*args), seconds it took)``."""
+    t0 = time.perf_counter()
+    return fn(*args), time.perf_counter() - t0
 
 
 #: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.
