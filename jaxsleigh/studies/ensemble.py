@@ -736,9 +736,9 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
                           observed=observed or None, run_info=run_info)
 
 
-def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
-                  eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController, saveat: SaveAt,
-                  run: RunOptions, certify: bool = False) -> Optional[EnsembleResult]:
+def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
+                          dt: float, eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController,
+                          saveat: SaveAt, run: RunOptions, certify: bool = False) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
@@ -878,5 +878,5 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       `EnsembleResult` (``None`` for one share of a multi-process run).
     """
     stepsize, saveat, run = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
-    return run_ensemble_resolved(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
-                         x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)
+    return run_ensemble_resolved(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt,
+                                 eps=eps, x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)

@@ -538,7 +538,7 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     P, N = values.shape[0], st.ics.shape[0]
     law = {"gains": lg, "controller": None} if controller is None else {"gains": None, "controller": lg}
     res = run_ensemble_resolved(np.tile(st.ics, (P, 1)), plant=lp, **law, t_final=t_final, dt=dt, eps=eps, x64=x64,
-                        observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
+                                observers=None, stepsize=stepsize, saveat=SaveAt(), run=run)
     if res is None:                                # a shard of a multi-process run: chunks written
         return None
     settings = _sweep_settings(res.settings, controller, base_plant, base_gains, st, names, axes, P, N)

@@ -34,7 +34,7 @@ from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
-from .checkpoint import TuningInterrupted, tree_from
+from .checkpoint import Stamp, TuningInterrupted, restore_track, track_arrays, tree_arrays, tree_from
 from .optimizer import CandidateTrack, TuneConfig, TuneContext, TuneHistory, make_optimizer, optimizer_step, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
@@ -300,14 +300,13 @@ class _FrontStore(NamedTuple):
 
     def stamp(self, ics):
         """The checkpoint's `jaxsleigh.tuning.checkpoint.Stamp` for the training starts ``ics``."""
-        from .checkpoint import Stamp
-
         a = np.ascontiguousarray(ics, np.float64)
         key = hashlib.sha256(json.dumps(self.settings, sort_keys=True).encode() + a.tobytes()).hexdigest()
         return Stamp.of(key, {**self.settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, self.options)
 
 
 def _front_store(path, settings: dict, plant, d_floor: float, options: Optional[dict]) -> _FrontStore:
+    """The `_FrontStore` of a vmapped front of ``settings`` (`front_settings`) on ``plant``."""
     from ..studies.config import plant_to_dict
 
     doc = json.loads(json.dumps({**settings, "plant": None if plant is None else plant_to_dict(plant),
@@ -328,8 +327,6 @@ class _VmapState(NamedTuple):
 def _vmap_resumed(run: "_VmapRun", start: _VmapState, resume: bool, ics) -> _VmapState:
     """``start``, or with ``resume`` the state of the checkpoint (the tracks and ``alive`` restored in ``run``);
     refuses a checkpoint written with other settings, and one that exists without ``resume``."""
-    from .checkpoint import restore_track
-
     path = run.store.path
     if not resume:
         if path.exists():
@@ -349,8 +346,6 @@ def _vmap_resumed(run: "_VmapRun", start: _VmapState, resume: bool, ics) -> _Vma
 
 def _vmap_saved(run: "_VmapRun", state: _VmapState) -> None:
     """Write the checkpoint of ``state`` and the tracks (nothing without a store)."""
-    from .checkpoint import track_arrays, tree_arrays
-
     if run.store is None:
         return
     arrays = {"it": np.int64(state.it), "evals": np.int64(state.evals), "alive": np.asarray(run.alive),
