@@ -252,3 +252,30 @@ def test_plain_fixed_path_equals_the_checked_stepper():
     assert np.isnan(plain.T_eps).all() and np.isnan(plain.q_final[-1]).all()
     with pytest.raises(ValueError, match="summaries=False"):
         run_ensemble(ics, t_final=5.0, saveat=js.SaveAt(summaries=False))
+
+
+def test_the_three_kinds_of_the_one_loop_step_every_lane_alike():
+    """`stepper.run` with `Scan`, `WhileActive` and `Checkpointed` (with and without blocks) takes the same attempts:
+    a batch run to its horizon ends in the same states, step counts and statuses whichever loop carried it, and a
+    `Checkpointed` budget too small for the stiffest lane leaves that lane short while the others finish."""
+    from jaxsleigh.integrate.stepper import Checkpointed, Scan, WhileActive, controls, init_batch, run
+
+    cfg = js.StepSizeController(rtol=1e-6, atol=1e-6, max_step=0.01, max_steps=10**5)
+    with jax.enable_x64(True):
+        starts = np.array([[1.0, 1.0, 0.5], [-2.0, 0.5, -1.2], [0.3, -0.4, 0.05], [2.5, 2.5, 2.0]])
+        ics5, st0 = check_ics(starts, np.float64)
+        args = ClosedLoop(js.paper_plant(), js.gains())
+        ctl = controls(cfg, jnp.float64, dt=0.01, eps=0.05, max_steps=10**5)
+        s0 = init_batch(initial_w(ics5, st0, np.float64), jnp.asarray(st0, jnp.int32), args, ctl)
+        ends = {name: jax.jit(lambda s, loop=loop: run(s, 2.0, args, ctl, loop, adaptive=True))(s0)
+                for name, loop in {"scan": Scan(3000), "while": WhileActive(), "checkpointed": Checkpointed(3000, 16),
+                                   "blocks": Checkpointed(3000, 8, block=4)}.items()}
+        short = jax.jit(lambda s: run(s, 2.0, args, ctl, Checkpointed(250, 8, block=4), adaptive=True))(s0)
+    attempts = np.asarray(ends["while"].n_accept + ends["while"].n_reject)
+    assert np.all(np.asarray(ends["while"].t) == 2.0) and attempts.max() > 250 > attempts.min()
+    for name, s in ends.items():
+        np.testing.assert_allclose(np.asarray(s.y), np.asarray(ends["while"].y), rtol=1e-12, atol=1e-12, err_msg=name)
+        np.testing.assert_array_equal(np.asarray(s.n_accept), np.asarray(ends["while"].n_accept), err_msg=name)
+        np.testing.assert_array_equal(np.asarray(s.status), np.asarray(ends["while"].status), err_msg=name)
+    done = np.asarray(short.t) == 2.0
+    np.testing.assert_array_equal(done, attempts <= 256)

@@ -181,7 +181,7 @@ def _checked_start(controller, y0, **numbers) -> jax.Array:
 
 
 def _output(s, s0, status0, chart, t_final, observers, traj: dict) -> SolveOutput:
-    """The `SolveOutput` of the stepper's last state ``s`` (first ``s0``): a lane still OK short of ``t_final`` ran
+    r"""The `SolveOutput` of the stepper's last state ``s`` (first ``s0``): a lane still OK short of ``t_final`` ran
     out of budget; a start that could not be integrated (``status0`` not OK) has NaN outputs and summaries, and
     \(H_d\) is NaN under a law without it."""
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, s.t.dtype)), Status.BUDGET_EXHAUSTED,
