@@ -214,7 +214,7 @@ def test_a_front_compiles_the_optimiser_step_once_per_setting_not_per_point():
     from jaxsleigh import tuning as tu
     from jaxsleigh.tuning import optimizer
 
-    compiled = jax.jit(optimizer._step, static_argnums=0)._cache_size   # jit's cache of _step (shared)
+    compiled = jax.jit(optimizer.optimizer_step, static_argnums=0)._cache_size   # jit's cache of the step (shared)
     optimizer._optimizer_and_step.cache_clear()
     before = compiled()
     cfg = tu.TuneConfig(steps=2, batch=4, lr=0.2, warmup=1, seed=1, n_attempts=1500, probe=2, verify=1)
