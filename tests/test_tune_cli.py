@@ -182,7 +182,14 @@ def test_the_gradient_tuners_advice_names_flags(tmp_path, capsys):
     assert "n_attempts" not in err and "t_final" not in err
 
 
-def test_a_vmapped_front_resumes_only_from_its_checkpoint(tmp_path, capsys):
-    rc, _, err = _run(["tune", "--pareto", "2", "--front-method", "vmap", "--resume", "--out", tmp_path / "f.json",
-                       "--no-progress"], capsys)
+def test_a_vmapped_front_resumes_only_from_its_checkpoint_and_never_writes_over_an_interrupted_front(tmp_path,
+                                                                                                      capsys):
+    out = tmp_path / "f.json"
+    rc, _, err = _run(["tune", "--pareto", "2", "--front-method", "vmap", "--resume", "--out", out, "--no-progress"],
+                      capsys)
     assert rc == 2 and "--resume: no checkpoint" in err and "f.json.ckpt.npz" in err, err
+    kept = '{"method": "warm", "interrupted": true, "points": []}'
+    out.write_text(kept)                                   # the finished points of an interrupted warm front
+    rc, _, err = _run(["tune", "--pareto", "2", "--front-method", "vmap", "--steps", "1", "--batch", "4", "--t-final",
+                       "2", "--n-attempts", "500", "--validate", "0", "--out", out, "--no-progress"], capsys)
+    assert rc == 2 and "holds the finished points of an interrupted front" in err and out.read_text() == kept, err

@@ -360,7 +360,9 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
     kw = dict(config=config, loss=loss, plant=plant, x64=x64)
     vmap = method == "vmap"
     with run.owned("front", checkpointed=vmap, also=(plot,)):
-        earlier = None if vmap else _interrupted_front(run)
+        # an interrupted front in the output is never written over without resume (the vmapped one resumes from its
+        # checkpoint, not from the file)
+        earlier = None if vmap and run.resume else _interrupted_front(run)
         if isinstance(budgets, (int, np.integer)):
             budgets = tu.default_budgets(int(budgets), **kw)
         done = None
