@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Optional, Union
 
 import numpy as np
+import inspect
 
 __all__ = ["compilation_cache_dir", "enable_compilation_cache"]
 
@@ -214,8 +215,6 @@ class KeptProgram:
     """
 
     def __init__(self, fun, *, static_argnames=(), donate_argnums=()):
-        import inspect
-
         import jax
 
         self.__wrapped__ = fun

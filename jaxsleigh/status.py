@@ -64,8 +64,6 @@ def describe() -> str:
 
 def counts_in_words(status) -> str:
     """``'2 ok, 1 singular_start'``: how many trajectories ended with each status, by name."""
-    import numpy as np
-
     codes, counts = np.unique(np.asarray(status, dtype=np.int64), return_counts=True)
     names = {int(s): s.name.lower() for s in Status}
     return ", ".join(f"{int(n)} {names.get(int(c), f'code {int(c)}')}" for c, n in zip(codes, counts))

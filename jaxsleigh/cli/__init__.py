@@ -36,6 +36,9 @@ from .paper import add_paper
 from .simulate import add_simulate
 from .sweep import add_sweep
 from .tune import add_tune
+import threading
+import atexit
+import argparse
 
 __all__ = ["main", "build_parser", "parse_ic", "SUBCOMMANDS"]
 
@@ -45,8 +48,6 @@ SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_swee
 
 def build_parser() -> Parser:
     """The top-level parser with every registered subcommand."""
-    import argparse
-
     from .. import __version__
     from .common import EXIT_CODES
 
@@ -82,8 +83,6 @@ def _cache_help() -> str:
 
 
 def _cores(text: str) -> int:
-    import argparse
-
     try:
         n = int(text)
     except ValueError:
@@ -116,9 +115,6 @@ def run() -> None:
     its threads are joined and the exit handlers run (logging flushes, a multi-process run disconnects)
     exactly as at a normal exit, and only the freeing of memory is skipped.
     """
-    import atexit
-    import threading
-
     rc = main()
     shutdown = getattr(threading, "_shutdown", None)      # what the interpreter runs first at exit
     if shutdown is None:

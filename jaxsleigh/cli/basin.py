@@ -20,7 +20,7 @@ import re
 import sys
 
 from ..errors import FlaggedStartsWarning
-from ..files.npz import load_ics
+from ..files.npz import load_ics, npz_path, parse_number as _number
 from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
 from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
@@ -30,6 +30,8 @@ from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, 
 from .common import number as _positive_float
 from .common import whole as _whole_flag
 from .options import stepsize_from_args
+from ..studies.basin import array_starts, grid_starts, parse_axis, run_basin, sample_starts, save_basin
+from ..studies.config import solve_config
 
 __all__ = ["add_basin", "run_basin_command"]
 
@@ -130,8 +132,6 @@ def add_study_options(p, *, theta_help: str, samples_example: str, samples_help:
 
 def starts_from_args(args):
     """The `jaxsleigh.studies.basin.BasinStarts` the flags ask for (a grid, samples or an ``--ics`` file)."""
-    from ..studies.basin import array_starts, grid_starts, parse_axis, sample_starts
-
     coords = {"x": args.x, "y": args.y, "theta": args.theta}
     if args.seed is not None and args.samples is None and not args.noise:
         raise ValueError("--seed seeds --samples and --noise only; add one of them or drop --seed")
@@ -156,8 +156,6 @@ def starts_from_args(args):
 
 def _check_box(text: str, flag: str) -> None:
     """An interval LO:HI (or LO:HI:N, N ignored) or one value, for the --samples box."""
-    from ..files.npz import parse_number as _number
-
     parts = text.split(":")
     hint = f"write LO:HI (e.g. {flag} {'-pi:pi' if flag == '--theta' else '-3:3'}) or one value to hold it fixed"
     if len(parts) not in (1, 2, 3):
@@ -180,16 +178,11 @@ def run_basin_command(args) -> int:
     ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process computes its
     share of the chunks and process 0 writes the output.
     """
-    from ..files.npz import npz_path
-    from ..studies.basin import run_basin, save_basin
-
     out = npz_path(args.out)
     st = {}
 
     def check() -> None:
         """Validate everything before any work; nothing is written (folders are created)."""
-        from ..studies.config import solve_config
-
         st["plant"], st["law"] = plant, law = model_from_args(args)
         check_tolerance_flags(args)
         solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,

@@ -4,7 +4,8 @@ from __future__ import annotations
 import json
 import sys
 
-from .common import PROG, check_outputs, number, whole
+from .common import FLAGS, PROG, check_outputs, number, whole
+from ..studies.config import solve_config
 
 __all__ = ["add_bench"]
 
@@ -31,8 +32,6 @@ def add_bench(subparsers) -> None:
 
 def _cmd_bench(args) -> int:
     from ..studies.bench import bench
-    from ..studies.config import solve_config
-    from .common import FLAGS
 
     solve_config(t_final=args.t_final, dt=args.dt, x64=args.x64, flags=FLAGS)
     check_outputs(folders=[args.cache] if args.cache else [])

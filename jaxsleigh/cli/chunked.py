@@ -15,6 +15,9 @@ from typing import Any, Callable
 from ..files.runner import Finished, Words, chunk_dir, leave, run_to_file, start_processes
 from .common import EXIT_CLUSTER, PROG, report_warnings, say_failure
 from .options import processes_from_args
+from ..errors import FlaggedStartsWarning
+from ..files.distributed import ClusterError
+from ..studies.audit import Audit, audit_line
 
 __all__ = ["CLI_WORDS", "run_chunked_command", "shared_options", "how_it_ran"]
 
@@ -45,9 +48,6 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
     own way). A Ctrl-C says where the finished chunks are and how to continue; the run's other warnings are
     printed as ``jaxsleigh: warning: ...``.
     """
-    from ..errors import FlaggedStartsWarning
-    from ..files.distributed import ClusterError
-
     chunks, caught = chunk_dir(out), []
 
     def observed(**kw):
@@ -103,14 +103,10 @@ def how_it_ran(res, record: dict) -> str:
 
 def audit_from_args(args):
     """The accuracy audit of ``--audit-rows`` (`jaxsleigh.Audit`; ``False`` for 0; the default audit without it)."""
-    from ..studies.audit import Audit
-
     rows = getattr(args, "audit_rows", None)
     return None if rows is None else (False if rows == 0 else Audit(rows=rows))
 
 
 def say_audit(command: str, res) -> None:
     """The audit's line on stdout (a failed audit's warning, with what to do, is on stderr already)."""
-    from ..studies.audit import audit_line
-
     print(f"{PROG} {command}: {audit_line((res.run_info or {}).get('audit'))}")

@@ -25,6 +25,8 @@ from .options import (add_distributed_options, add_horizon_options, add_model_op
                       check_delay, check_tolerance_flags, law_kwargs, model_from_args, processes_from_args,
                       sampler_from_args)
 from .values import Parser, UsageError, ics_from_args, number, parse_ic, parse_triple, whole  # noqa: F401
+from ..status import Status, converged, counts_in_words, describe
+from ..validate import writable_dir, writable_path
 
 __all__ = ["PROG", "say_failure", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED",
            "EXIT_CLUSTER", "EXIT_INTERRUPTED", "EXIT_CODES", "FLAGS", "check_outputs", "check_figure",
@@ -69,8 +71,6 @@ def check_outputs(*paths, folders=(), named=None, figures=None) -> None:
     ``figures`` (``{flag: path}``): figure files (``--plot``), whose extension must also be a format
     matplotlib writes (`check_figure`). ``None`` paths are skipped.
     """
-    from ..validate import writable_dir, writable_path
-
     for flag, p in (figures or {}).items():
         if p is not None:
             check_figure(p, flag)
@@ -95,8 +95,6 @@ def figure_formats() -> list:
 def check_figure(path, flag: str = "--plot") -> Path:
     """Before any work: the figure file ``path`` (given with ``flag``) has an extension matplotlib
     writes (it picks the format from it) and can be written. Raises ``ValueError`` naming ``flag``."""
-    from ..validate import writable_path
-
     p = Path(path)
     ext = p.suffix.lower().lstrip(".")
     formats = figure_formats()
@@ -123,8 +121,6 @@ def status_line(status, T_eps=None, eps: Optional[float] = None) -> str:
     with ``T_eps`` (and the run's ``eps``) the line also says how many settled in the ball within the horizon:
     for one trajectory its ``T_eps`` (``inf``: it did not settle), for several the median over the settled ones.
     """
-    from ..status import counts_in_words
-
     n = int(np.size(status))
     counts = counts_in_words(status).replace(" ok", " integrated")
     line = f"{n} trajector{'y' if n == 1 else 'ies'}: {counts}"
@@ -136,8 +132,6 @@ def status_line(status, T_eps=None, eps: Optional[float] = None) -> str:
 def settled_text(status, T_eps, eps: Optional[float] = None) -> str:
     """``'0 settled (T_0.05 = inf)'``, ``'5 settled (median T_0.05 = 3.1 s)'``: how many trajectories settled in
     the ball ``|q| <= eps`` within the horizon (`jaxsleigh.status.converged`) and how fast."""
-    from ..status import converged
-
     T = np.asarray(T_eps, np.float64).ravel()
     ok = np.asarray(converged(np.asarray(status).ravel(), T))
     sym = f"T_{eps:g}" if eps is not None else "T_eps"
@@ -152,8 +146,6 @@ def settled_text(status, T_eps, eps: Optional[float] = None) -> str:
 def exit_code(status, T_eps=None, eps: Optional[float] = None) -> int:
     """`EXIT_OK` if any trajectory ended OK (or certified not to settle: an answer too), else `EXIT_NONE_OK` (with a
     message)."""
-    from ..status import Status
-
     if np.any(np.isin(np.asarray(status), (Status.OK, Status.NOT_SETTLING))):
         return EXIT_OK
     print(f"{PROG}: error: no trajectory ended OK ({status_line(status, T_eps, eps)}); see the status "
@@ -163,8 +155,6 @@ def exit_code(status, T_eps=None, eps: Optional[float] = None) -> int:
 
 def status_epilog() -> str:
     """The status codes and exit codes, formatted for a ``--help`` epilog."""
-    from ..status import describe
-
     codes = "\n".join(textwrap.fill(line, width=96, initial_indent="  ", subsequent_indent="      ")
                       for line in describe().splitlines())
     exits = "\n".join(f"  {c} = {t}" for c, t in EXIT_CODES.items())

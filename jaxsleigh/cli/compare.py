@@ -11,6 +11,10 @@ from ..studies.audit import audit_line
 from .chunked import audit_from_args
 from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs, number,
                      sampler_from_args, whole)
+import jax
+from ..files.npz import atomic_write_text
+from ..files.runlock import RunLock
+from ..integrate.stepsize import StepSizeController
 
 __all__ = ["add_controllers", "add_compare"]
 
@@ -132,8 +136,6 @@ def _tuning(args) -> tuple:
 
 def _record(args, rows, names, dists, wall_s, *, dt, equal=None) -> dict:
     """What `jaxsleigh compare --out` writes: the rows, the command and every setting that made them."""
-    import jax
-
     from ..studies.compare import START_DISTRIBUTIONS
 
     return {"rows": rows, "command": [PROG, *getattr(args, "_argv", [])],
@@ -175,7 +177,6 @@ def row_lines(rows, *, eps: float, t_final: float) -> list:
 
 
 def _cmd_compare(args) -> int:
-    from ..files.runlock import RunLock
     from ..studies.compare import check_horizon
 
     names, dists = _names(args)
@@ -191,8 +192,6 @@ def _cmd_compare(args) -> int:
 
 def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     from ..controllers.registry import make_controller
-    from ..files.npz import atomic_write_text
-    from ..integrate.stepsize import StepSizeController
     from ..studies.compare import compare, draw_compare_starts, json_ready, tune_to_budget
 
     t0 = time.perf_counter()

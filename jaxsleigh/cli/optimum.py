@@ -18,13 +18,14 @@ import sys
 
 import numpy as np
 
-from ..files.npz import load_ics
+from ..files.npz import load_ics, npz_path
 from ..files.runner import chunk_dir, sidecar
 from .chunked import run_chunked_command
 from .common import PROG, check_outputs
 from .common import number as _number
 from .common import whole as _whole
 from .options import add_distributed_options
+from ..studies.optimum import OptimumOptions, OptimumStatus, as_horizons, optimum, save_optimum
 
 __all__ = ["add_optimum", "run_optimum_command"]
 
@@ -46,8 +47,6 @@ examples:
 
 def _horizons(text: str):
     """--horizons 5,10,20,40: increasing numbers > 0."""
-    from ..studies.optimum import as_horizons
-
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
@@ -126,9 +125,6 @@ def _plot(res, path):
 
 def run_optimum_command(args) -> int:
     """Handler of ``jaxsleigh optimum``; returns the exit code."""
-    from ..files.npz import npz_path
-    from ..studies.optimum import OptimumOptions, OptimumStatus, optimum, save_optimum
-
     out = npz_path(args.out)
     st = {}
 

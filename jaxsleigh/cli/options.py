@@ -9,6 +9,11 @@ import numpy as np
 
 from ..files.distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from .values import number, parse_triple, whole
+from ..controllers.actuators import sampler
+from ..files.runner import Processes
+from ..integrate.sampled import sample_count
+from ..integrate.stepsize import StepSizeController
+from ..model.params import Gains, load_gains, plant_params, preset_names
 
 __all__ = ["add_model_options", "model_from_args", "check_bound_fits", "add_sampler_options", "sampler_from_args",
            "check_delay", "law_kwargs", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags",
@@ -21,8 +26,6 @@ __all__ = ["add_model_options", "model_from_args", "check_bound_fits", "add_samp
 
 def add_model_options(parser) -> None:
     """--gains, --params, --damping, --x64."""
-    from ..model.params import preset_names
-
     names = preset_names()
     g = parser.add_argument_group("model")
     g.add_argument("--gains", default="paper", metavar="FILE.json|" + "|".join(names),
@@ -49,7 +52,6 @@ def model_from_args(args):
     ``law`` is the paper's `Gains` (``--gains``) unless ``--controller`` names another law, or ``--saturation`` or
     ``--sample-period`` wrap it in an actuator (then a law ``u = law(q, v)``)."""
     from ..controllers.registry import make_controller
-    from ..model.params import load_gains, plant_params
 
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
     plant = plant_params(m, J, l, damping=args.damping)
@@ -114,8 +116,6 @@ def sampler_from_args(args):
         if args.delay or args.noise:
             raise ValueError("--delay and --noise belong to the digital controller: add --sample-period TS")
         return None
-    from ..controllers.actuators import sampler
-    from ..integrate.sampled import sample_count
 
     try:
         samples = sample_count(args.t_final, args.sample_period)
@@ -136,8 +136,6 @@ def check_delay(delay: int, samples: int, t_final: float, period: float) -> None
 
 def law_kwargs(law) -> dict:
     """``{"gains": law}`` for the paper's law, else ``{"controller": law}``: the keyword a front takes it by."""
-    from ..model.params import Gains
-
     return {"gains": law} if isinstance(law, Gains) else {"controller": law}
 
 
@@ -178,8 +176,6 @@ def add_tolerance_options(group) -> None:
 def stepsize_from_args(args):
     """The `jaxsleigh.StepSizeController` of ``--method``, ``--max-steps``, ``--rtol`` and ``--atol`` (``None``: the
     library's defaults)."""
-    from ..integrate.stepsize import StepSizeController
-
     return StepSizeController(method=args.method, max_steps=args.max_steps, rtol=args.rtol, atol=args.atol)
 
 
@@ -220,7 +216,5 @@ def add_distributed_options(parser) -> None:
 def processes_from_args(args):
     """The `jaxsleigh.files.runner.Processes` of `add_distributed_options` (none given: one process, or SLURM /
     Open MPI detected)."""
-    from ..files.runner import Processes
-
     return Processes(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
                      getattr(args, "process_id", None), getattr(args, "cluster_timeout", None) or CLUSTER_TIMEOUT_S)

@@ -7,6 +7,7 @@ import uuid
 from pathlib import Path
 
 from .common import PROG, add_progress_option, check_outputs, number
+from ..files.runlock import RunLock
 
 __all__ = ["add_paper"]
 
@@ -32,7 +33,6 @@ def add_paper(subparsers) -> None:
 
 
 def _cmd_paper(args) -> int:
-    from ..files.runlock import RunLock
     from ..plots.paper_run import run_paper, summary_table
 
     check_outputs(folders=[args.out])

@@ -14,6 +14,9 @@ from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_pr
                      check_outputs, check_tolerance_flags, exit_code, ics_from_args, law_kwargs, model_from_args,
                      report_warnings, status_epilog, status_line)
 from .options import stepsize_from_args
+from ..files.npz import npz_path, write_npz
+from ..studies.config import solve_config
+from ..studies.simulate import simulate
 
 __all__ = ["add_simulate"]
 
@@ -71,10 +74,6 @@ def _save_every(args) -> int:
 
 
 def _cmd_simulate(args) -> int:
-    from ..studies.config import solve_config
-    from ..files.npz import npz_path, write_npz
-    from ..studies.simulate import simulate
-
     plant, law = model_from_args(args)
     check_tolerance_flags(args)
     save_every = _save_every(args)

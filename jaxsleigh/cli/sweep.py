@@ -27,6 +27,12 @@ from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
 from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
                      law_kwargs, model_from_args, status_epilog, status_line)
 from .options import stepsize_from_args
+import numpy as np
+from ..files.npz import npz_path
+from ..model.controller import law_leaf_names
+from ..model.params import Gains
+from ..studies.config import solve_config
+from ..studies.sweep import PARAM_NAMES, apply_params, check_rows, param_grid, parse_param, save_sweep, sweep
 
 __all__ = ["add_sweep", "run_sweep_command"]
 
@@ -35,8 +41,6 @@ DEFAULT_SAMPLES = 256
 
 
 def _epilog() -> str:
-    from ..studies.sweep import PARAM_NAMES
-
     return (
         "parameters (--param NAME=LO:HI:P[:log], once or twice; two make a P1 x P2 grid):\n"
         f"  NAME: {', '.join(PARAM_NAMES)}\n"
@@ -100,9 +104,6 @@ def run_sweep_command(args) -> int:
     ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process computes its
     share of the chunks and process 0 writes the output, the same bytes as one process.
     """
-    from ..files.npz import npz_path
-    from ..studies.sweep import save_sweep, sweep
-
     out = npz_path(args.out)
     st = {}
 
@@ -140,9 +141,6 @@ def run_sweep_command(args) -> int:
 
 def _check(args, out) -> dict:
     """Validate everything before any work (a bad range names its --param); nothing is written."""
-    from ..studies.config import solve_config
-    from ..studies.sweep import apply_params, check_rows, param_grid, parse_param
-
     if len(args.param) > 2:
         raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
     plant, law = model_from_args(args)
@@ -169,11 +167,6 @@ def law_parameter_names(law) -> tuple:
     """The scalar parameters of a ``--controller`` law other than the paper's (its numeric leaves, as
     `jaxsleigh.model.controller.law_leaf_names` names them: ``K``, ``p2``, ``model.m``, ...), which ``--param``
     may sweep; ``()`` for the paper's law, whose gains are `jaxsleigh.studies.sweep.PARAM_NAMES`."""
-    import numpy as np
-
-    from ..model.controller import law_leaf_names
-    from ..model.params import Gains
-
     if isinstance(law, Gains):
         return ()
     return tuple(n for n, v in law_leaf_names(law).items() if np.ndim(v) == 0)
@@ -182,8 +175,6 @@ def law_parameter_names(law) -> tuple:
 def sweepable_names(args, law_names: tuple) -> list:
     """What ``--param`` may name with these options: the paper's gains and the plant's parameters under the
     paper's law; the plant's parameters and the law's own under another ``--controller``."""
-    from ..studies.sweep import PARAM_NAMES
-
     ok = [n for n, (where, _, _) in PARAM_NAMES.items() if where.startswith("plant.") or not law_names]
     return ok + [n for n in law_names if n not in ok]
 

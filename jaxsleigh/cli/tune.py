@@ -29,6 +29,8 @@ from .tune_flags import (GRADIENT_FLAGS, LAW_FLAGS, PARETO_FLAGS, SEARCH_FLAGS, 
                          front_budgets, held_out, in_flags, loss_config, search_config, stepsize, tune_config,
                          tuning_run)
 from .tune_options import EPILOG, add_tune_options
+from ..model.params import Gains
+from ..studies.optimum import load_optimum
 
 __all__ = ["add_tune"]
 
@@ -83,7 +85,6 @@ def _tune_mode(args) -> int:
 
 def _cmd_gradient(args) -> int:
     """Gradient descent on the surrogate (`jaxsleigh.tuning.runs.tune_run`), or `_cmd_law` for another law."""
-    from ..model.params import Gains
     from ..tuning import PlantDistribution
     from ..tuning.runs import tune_run
 
@@ -177,7 +178,6 @@ def _frontier(args):
     """``--frontier FILE``: the optimum result whose starts are the training starts (``--batch`` is their count)."""
     if getattr(args, "frontier", None) is None:
         return None
-    from ..studies.optimum import load_optimum
 
     try:
         res = load_optimum(args.frontier)

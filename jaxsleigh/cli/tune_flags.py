@@ -6,7 +6,10 @@ from __future__ import annotations
 import math
 import re
 
-from .common import PROG
+from .common import PROG, check_outputs
+from .chunked import CLI_WORDS
+from ..integrate.stepsize import StepSizeController
+from ..validate import check_count, check_memory
 
 __all__ = ["LAW_FLAGS", "GRADIENT_FLAGS", "SEARCH_FLAGS", "tuning_run", "tune_config", "loss_config",
            "search_config", "held_out", "stepsize", "check_search", "check_pareto", "front_budgets", "in_flags",
@@ -35,7 +38,6 @@ def tuning_run(args, flags=None, *, history: bool = True):
     """The `TuningRun` that owns ``--out`` (``--history``, ``--resume``; the values of ``flags`` recorded in the
     checkpoint, so that a refused ``--resume`` names the flag; the command line recorded in the files)."""
     from ..tuning.runs import TuningRun
-    from .chunked import CLI_WORDS
 
     options = None if flags is None else {k: getattr(args, k, None) for k in flags}
     return TuningRun(args.out, history=args.history if history else None, resume=args.resume, options=options,
@@ -76,7 +78,6 @@ def stepsize(args):
         used = " and ".join(f for f, v in (("--rtol", args.rtol), ("--atol", args.atol)) if v is not None)
         raise ValueError(f"{used} set the tolerance of the held-out check, and --validate 0 skips it: drop {used} "
                          f"or --validate 0")
-    from ..integrate.stepsize import StepSizeController
 
     return StepSizeController(rtol=args.rtol, atol=args.atol)
 
@@ -99,7 +100,6 @@ def check_search(args) -> None:
     if not 0 < args.energy_margin <= 10:
         raise ValueError(f"--energy-margin must be in (0, 10], got {args.energy_margin}")
     from ..tuning.cma_search import MAX_GENERATIONS, MAX_POPULATION
-    from ..validate import check_count, check_memory
 
     check_count("--steps (generations of --search)", args.steps, maximum=MAX_GENERATIONS,
                 reason="each generation runs the whole population on the training starts over 100 s (100 take "
@@ -115,8 +115,6 @@ def check_search(args) -> None:
 def check_pareto(args) -> None:
     """Every flag of ``--pareto`` checked before any work."""
     from ..tuning.pareto import MAX_FRONT_POINTS
-    from ..validate import check_count
-    from .common import check_outputs
 
     if args.robust or args.history or args.energy_budget is not None:
         raise ValueError("--pareto computes its own budgets and has no history file: drop --robust, "

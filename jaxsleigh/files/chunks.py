@@ -33,6 +33,8 @@ import numpy as np
 
 from ..errors import CheckpointError, DamagedCheckpointWarning
 from .npz import atomic_write_text, write_npz_deterministic
+from .runlock import RunLock
+from ..validate import writable_dir
 
 __all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "starts_digest", "setting_differences", "joined"]
 
@@ -103,9 +105,6 @@ class ChunkStore:
         differ), a damaged manifest is replaced (the chunks identify themselves). The folder stays
         locked (`jaxsleigh.files.runlock.RunLock`) until `close`.
         """
-        from .runlock import RunLock
-        from ..validate import writable_dir
-
         writable_dir(self.folder, what="checkpoint folder")
         self._lock = RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
                              hint="choose another --out / checkpoint folder").acquire()

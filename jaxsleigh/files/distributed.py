@@ -42,6 +42,8 @@ import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, Optional
+import signal
+import jax
 
 __all__ = ["Cluster", "ClusterError", "start", "cluster_env", "parse_coordinator", "run_shared",
            "CHECK_TIMEOUT_S", "WORK_TIMEOUT_S", "CLUSTER_TIMEOUT_S", "EXIT_CLUSTER"]
@@ -360,7 +362,6 @@ def _install_abort_handler(cluster_info: dict) -> None:
     to say what this process was doing and exit with `EXIT_CLUSTER` instead of 134 (best effort:
     without ctypes or libc's ``signal`` the abort stays)."""
     import ctypes
-    import signal
 
     def on_abort(signum):
         c = _ABORT["cluster"]
@@ -404,7 +405,6 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
     """
     given = [v is not None for v in (coordinator, num_processes, process_id)]
     _check_start_options(given, timeout_s)
-    import jax
 
     # JAX's own heartbeat would abort every process when one dies: make it never fire and watch
     # the signs of life ourselves (Cluster._dead), which can name the process and keep the others.
@@ -458,8 +458,6 @@ def _given_cluster(coordinator: str, num_processes, process_id) -> tuple:
 def _initialize(coordinator: Optional[str], n: Optional[int], i: Optional[int], timeout_s: float, kw: dict) -> None:
     """Start JAX's distributed runtime for process ``i`` of ``n`` (``None``: detected by JAX), saying
     on stderr what it waits for, with the abort handler in place; `ClusterError` if it fails."""
-    import jax
-
     info = {"index": "?" if i is None else i, "count": "?" if n is None else n, "phase": ""}
     if coordinator is not None and i == 0:
         _check_port(coordinator)
@@ -546,8 +544,6 @@ def run_shared(cluster: Cluster, *, check: Callable[[], Any], compute: Callable[
 def _check_everywhere(cluster: Cluster, check: Callable[[], Any], options: Any) -> Any:
     """Step 1 of `run_shared`: ``check()`` here, then the verdicts, options and devices of every
     process exchanged (`Cluster.agree`); returns this process's state."""
-    import jax
-
     state, error, code = None, None, None
     try:
         state = check()

@@ -12,6 +12,11 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+import zipfile
+import io as _io
+from ..errors import DiskFullError
+from ..status import describe
+from ..validate import check_memory
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
            "settings_arrays", "write_npz_deterministic", "read_npz", "npz_kind", "NPZ_KINDS", "FIELDS",
@@ -68,8 +73,6 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
     Returns the path written (``.npz`` appended when missing).
     """
-    from ..status import describe
-
     path = npz_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     ics = np.asarray(ics, dtype=np.float64)
@@ -125,8 +128,6 @@ def write_npz_deterministic(path, arrays: dict, *, compress: bool = True, when_f
     level 6, for a file 6% larger; ``compress=False`` stores them as they are (checkpoints, written often).
     ``when_full``: as in `atomic_write`."""
     arrays = {"format_version": np.int64(FORMAT_VERSION), **arrays}
-    import io as _io
-    import zipfile
 
     def write(f):
         method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
@@ -151,8 +152,6 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
     kind is refused with its name and the function that reads it ("x.npz is a sweep result; read it
     with jaxsleigh.load_sweep").
     """
-    import zipfile
-
     p = _npz_to_read(path, what)
     if p.is_dir():
         raise ValueError(f"{str(p)!r} is a folder; the path must be a .npz written by jaxsleigh: give the {what}")
@@ -370,10 +369,6 @@ def _header_lines(p: Path) -> int:
 def _check_npy_header(p: Path, name: str, fix: str) -> None:
     """Read only the ``.npy`` header and refuse, before any allocation, an array the file cannot hold
     (a header claiming more bytes than follow it: forged, truncated) or that would not fit in memory."""
-    import math
-
-    from ..validate import check_memory
-
     fmt = np.lib.format
     with open(p, "rb") as f:
         version = fmt.read_magic(f)
@@ -464,8 +459,6 @@ def atomic_write(path, write, *, when_full: str = "") -> Path:
 
 
 def _disk_full(path: Path, e: OSError, when_full: str):
-    from ..errors import DiskFullError
-
     what = "no space left on the device" if e.errno == errno.ENOSPC else "the disk quota is exceeded"
     return DiskFullError(e.errno, f"could not write {str(path)!r}: {what} ({os.strerror(e.errno)}); free some "
                                   f"space there (or choose another location) and run the command again"

@@ -45,7 +45,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Optional
 
-from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
+from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
+import hashlib
+from .npz import atomic_write_text
+from .runlock import RunLock
+from ..errors import CheckpointError, DiskFullError, RunLockedError
 
 __all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
            "sidecar", "options_differ", "load_average", "start_processes", "leave"]
@@ -115,8 +119,6 @@ def _single_run_id() -> str:
 def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
     """The fingerprint the processes of one run share (their output and chunk folder are one): their
     coordinator (or the SLURM / Open MPI job) and their count."""
-    import hashlib
-
     where = (processes.coordinator if processes is not None else None) or os.environ.get(
         "SLURM_JOB_ID") or os.environ.get("OMPI_MCA_orte_hnp_uri", "")
     return hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
@@ -126,8 +128,6 @@ def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words
     """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to ``out``
     (`RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
     Returns ``(lock, the chunk files found)``; the caller releases the lock."""
-    from .runlock import RunLock
-
     lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}").acquire()
     try:
         have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
@@ -143,8 +143,6 @@ def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words
 
 def _record_options(chunks, options: dict, resume: bool) -> None:
     """A fresh run records its options in ``chunks/options.json`` (after the checks: a refused run writes nothing)."""
-    from .npz import atomic_write_text
-
     rec = Path(chunks) / "options.json"
     if not resume or not rec.exists():
         atomic_write_text(rec, json.dumps(options, indent=1, sort_keys=True) + "\n")
@@ -175,8 +173,6 @@ def options_differ(chunks, options: dict, words: Words = PYTHON_WORDS) -> str:
 def _explained(e, chunks, options: dict, words: Words):
     """A full disk or a refused checkpoint told with what to do (where the finished chunks are, which options
     differ from the interrupted run's); ``None`` where there is nothing to add."""
-    from ..errors import CheckpointError, DiskFullError, RunLockedError
-
     if isinstance(e, DiskFullError):
         if words.resume != PYTHON_WORDS.resume and "(resume=True)" in str(e):
             return DiskFullError(e.errno, str(e).replace(" (resume=True)", ""), path=e.path)
@@ -195,8 +191,6 @@ def _explained(e, chunks, options: dict, words: Words):
 def start_processes(processes: Optional[Processes]):
     """Join the processes of a multi-process run (`jaxsleigh.files.distributed.start`): its `Cluster`, or
     ``None`` for one process. Call it before any JAX computation in this process."""
-    from .distributed import start
-
     p = processes or Processes()
     return start(p.coordinator, p.num_processes, p.process_id, timeout_s=p.timeout_s or CLUSTER_TIMEOUT_S)
 
@@ -214,9 +208,6 @@ def run_owned(check: Callable[[], dict], compute: Callable[[dict, tuple], None],
     equal in every process; ``recorded`` is what a fresh run records for a later resume to compare. The
     lock is released however the run ends; a full disk or a refused resume is told with what to do.
     """
-    from ..errors import CheckpointError, DiskFullError
-    from .distributed import run_shared
-
     held: dict = {}
 
     def checked():
@@ -289,8 +280,6 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
         study(checkpoint_dir=chunks, resume=True, shard=shard)
 
     def assemble(state, multi):
-        from .npz import atomic_write_text
-
         result = study(checkpoint_dir=chunks, resume=resume or multi, shard=None)
         written = [str(save(out, result))]
         run_info = getattr(result, "run_info", None) or {}

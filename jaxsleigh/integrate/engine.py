@@ -25,6 +25,9 @@ from .stepsize import StepSizeController
 from .stragglers import certify
 from .stepper import (Controls, Scan, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
                       run_saving)
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from ..errors import FlaggedStartsWarning
+from ..model.params import paper_gains, paper_plant
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "drive_saving", "drive_plain",
            "make_controls",
@@ -122,8 +125,6 @@ def _representable(ics5: np.ndarray, dtype, block: int = 1 << 16) -> np.ndarray:
     """Rows whose w-chart state, vector field and H_d are finite (with room) in ``dtype``: computed
     in float64 in blocks (memory bounded by the block), compared with the dtype's range. Rows in the plain region
     (`_PLAIN_THETA`, `_PLAIN_REACH`) are representable without the computation."""
-    from ..model.params import paper_gains, paper_plant
-
     ok = (np.abs(ics5[:, 2]) >= _PLAIN_THETA) & np.all(np.abs(ics5[:, [0, 1, 3, 4]]) <= _PLAIN_REACH, axis=1)
     rest = np.flatnonzero(~ok)
     if rest.size == 0:
@@ -164,8 +165,6 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
     Every run checks its starts here first: it is where a run begins, so here jaxsleigh asks JAX for one CPU
     device per core if JAX has not started yet (`jaxsleigh.cores.configure`).
     """
-    from ..errors import FlaggedStartsWarning
-
     configure()
     arr = _ics_rows(ics, name)
     status = _start_status(arr, dtype, singular)
@@ -285,8 +284,6 @@ def step_controls(horizon: Horizon, dtype, step: StepSizeController, eps) -> Con
 
 def shard_batch(tree, mesh):
     """Place every leaf of a batch-last pytree with its last axis split over ``mesh``'s devices."""
-    from jax.sharding import NamedSharding, PartitionSpec
-
     def put(a):
         return jax.device_put(a, NamedSharding(mesh, PartitionSpec(*([None] * (np.ndim(a) - 1)), "batch")))
 
@@ -296,8 +293,6 @@ def shard_batch(tree, mesh):
 def batch_mesh(devices=None):
     """A 1-D mesh named ``"batch"`` over ``devices`` (default: all of this process's devices, so a
     process of a multi-process run shards over its own), or ``None`` for one device."""
-    from jax.sharding import Mesh
-
     devices = jax.local_devices() if devices is None else list(devices)
     return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
@@ -592,14 +587,12 @@ def _plain_specialised(key, n_steps: int, block, dtype):
 def _plain_sharded(mesh, n_steps: int, block):
     """`_plain_batch` with the batch axis split over ``mesh``'s devices: each device runs
     its own cache blocks (no communication); jitted once per mesh and number of steps."""
-    from jax.sharding import PartitionSpec as P
-
-    spec = P(None, "batch")
+    spec = PartitionSpec(None, "batch")
 
     def local(y, args, dt):
         return run_plain(y, args, dt, n_steps=n_steps, block=block)
 
-    return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(spec, P(), P()), out_specs=spec),
+    return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(spec, PartitionSpec(), PartitionSpec()), out_specs=spec),
                    donate_argnums=(0,))
 
 

@@ -32,6 +32,9 @@ from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import math
+from ..model.params import is_concrete
+from ..validate import INT32_MAX, whole
 
 __all__ = ["StepSizeController", "check_policy", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL",
            "MAX_STEP_FACTOR"]
@@ -94,11 +97,6 @@ def check_policy(stepsize, name: str = "stepsize") -> StepSizeController:
     ``factor_min`` in (0, 1), ``factor_max`` > 1, each finite, and ``max_steps`` (where given) a whole number
     >= 1, static. A traced number passes: it is checked where it is concrete. Otherwise a ``ValueError`` naming
     the field as ``{name}.{field}``."""
-    import math
-
-    from ..model.params import is_concrete
-    from ..validate import INT32_MAX, whole
-
     ss = StepSizeController() if stepsize is None else stepsize
     if not isinstance(ss, StepSizeController):
         raise ValueError(f"{name} must be a jaxsleigh.StepSizeController, got {type(ss).__name__}")

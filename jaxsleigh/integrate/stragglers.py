@@ -44,6 +44,7 @@ from typing import Optional
 import numpy as np
 
 from ..status import Status
+from ..model.params import Gains
 
 __all__ = ["MARGIN", "damping_floor", "cannot_settle", "certify"]
 
@@ -56,8 +57,6 @@ def damping_floor(args, lanes: Optional[int] = None) -> Optional[np.ndarray]:
     per-trajectory gains, else a scalar array), or ``None`` where the certificate does not apply: a law other than
     the paper's (`jaxsleigh.Gains`), gains whose values are not concrete, \(L\) or \(k\) negative somewhere, or
     \(d \le 0\) everywhere."""
-    from ..model.params import Gains
-
     g = args.controller
     if not isinstance(g, Gains):
         return None

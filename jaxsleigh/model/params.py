@@ -16,6 +16,7 @@ import numpy as np
 
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
 from ..validate import real
+from ..files.npz import atomic_write_text
 
 __all__ = [
     "PlantParams",
@@ -236,8 +237,6 @@ def load_gains(spec) -> Gains:
 
 def save_gains(g: Gains, path, **meta) -> None:
     """Write gains in the JSON format (``meta`` is stored under ``"meta"``)."""
-    from ..files.npz import atomic_write_text
-
     d = gains_to_dict(g)
     if meta:
         d["meta"] = meta

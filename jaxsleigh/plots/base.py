@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
+import re
+from ..files.npz import atomic_write
 
 __all__ = ["METHOD_NAMES", "STAMP_GID", "T_EPS", "check_stamp", "new_figure", "figure_and_axes", "save_figure", "provenance",
            "device_text", "provenance_line", "provenance_parts", "stamp"]
@@ -55,8 +57,6 @@ def save_figure(fig, path, *, dpi: int = 150) -> Path:
     Written as the result files are (`jaxsleigh.files.npz.atomic_write`): into a temporary file in the same
     folder, then renamed into place, so that a failed write (a full disk) leaves no truncated figure; a full
     disk or quota raises `jaxsleigh.errors.DiskFullError` naming the file."""
-    from ..files.npz import atomic_write
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fmt = path.suffix.lower().lstrip(".") or None
@@ -111,8 +111,6 @@ def provenance_line(settings: Optional[Mapping], run_info: Optional[Mapping] = N
 
 def _names(text: str, part: str) -> bool:
     """Whether ``text`` names ``part`` as a whole (``'ε = 0.3'`` is not named by ``'ε = 0.35'``)."""
-    import re
-
     return bool(text) and re.search(rf"(?<![\w.]){re.escape(part)}(?![\w.])", text) is not None
 
 

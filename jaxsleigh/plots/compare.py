@@ -14,6 +14,7 @@ import textwrap
 import numpy as np
 
 from .base import T_EPS, new_figure, save_figure, stamp
+from ..controllers.registry import controller_names
 
 __all__ = ["plot_compare_ecdf", "ecdf_steps", "plot_against", "ENERGY_LABEL"]
 
@@ -63,8 +64,6 @@ _DASHES = ("-", "--", "-.", ":", (0, (6, 2, 1, 2, 1, 2)))
 def _law_styles(names) -> dict:
     """One colour and dash pattern per law, the same in every panel (laws with equal curves stay visible) and in
     every figure (a law of `jaxsleigh.controllers.registry` keeps its place in that list)."""
-    from ..controllers.registry import controller_names
-
     order = controller_names() + [n for n in names if n not in controller_names()]
     return {n: {"color": f"C{order.index(n) % 10}", "linestyle": _DASHES[order.index(n) % len(_DASHES)]}
             for n in names}

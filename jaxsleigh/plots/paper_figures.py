@@ -31,6 +31,7 @@ import numpy as np
 from . import base as _pb
 from .base import new_figure, provenance, save_figure, stamp  # noqa: F401 (stamp: public before)
 from ..status import Status
+from ..files.npz import read_npz
 
 __all__ = [
     "plot_paths",
@@ -56,8 +57,6 @@ def load_solution(path) -> SimpleNamespace:
     Returns a namespace with ``t, q, p, u, Hd, status, n_steps, settings`` (``settings`` decoded
     from ``settings_json``; it also holds ``ics`` and ``command``).
     """
-    from ..files.npz import read_npz
-
     data = read_npz(path, "simulation file (written by jaxsleigh simulate / paper)",
                     ("t", "q", "p", "u", "Hd", "status"), kind="simulation")
     settings = json.loads(str(data["settings_json"])) if "settings_json" in data else {}

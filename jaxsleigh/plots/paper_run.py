@@ -19,6 +19,8 @@ from ..model.params import paper_gains, paper_plant
 from ..integrate.stepsize import StepSizeController
 from ..studies.options import RunOptions, SaveAt
 from ..studies.simulate import simulate
+from ..files.npz import write_npz
+from ..status import Status
 
 __all__ = ["PAPER_ICS", "PAPER_T_FINAL", "FIGURES", "run_paper", "summary_table"]
 
@@ -79,7 +81,6 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
       ``{stem: Path}`` for the five figures and ``"npz"``.
     """
     from . import paper_figures as plotting
-    from ..files.npz import write_npz
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -98,7 +99,6 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
 def summary_table(path_or_solution) -> str:
     """One line per run: start, status, final |q|, H_d(0) and H_d(T), max |u|."""
     from .paper_figures import format_start, load_solution
-    from ..status import Status
 
     sol = load_solution(path_or_solution) if isinstance(path_or_solution, (str, Path)) else path_or_solution
     q, Hd, u, status = (np.asarray(a) for a in (sol.q, sol.Hd, sol.u, sol.status))

@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .config import reject_traced
-from .ensemble import run_ensemble_resolved
+from .ensemble import run_ensemble_resolved, summary_repr
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
@@ -460,8 +460,6 @@ class BasinResult(NamedTuple):
 
     def __repr__(self) -> str:
         # a summary, not every array (see `describe` for two lines, `summary` for a dict)
-        from .ensemble import summary_repr
-
         st = self.starts
         how = (f"grid {' x '.join(str(n) for n in st.shape)} over {', '.join(st.axes) or 'one point'}"
                if st.kind == "grid" else f"{st.kind}")

@@ -27,6 +27,11 @@ from ..integrate.stepsize import StepSizeController
 from .ensemble import run_ensemble
 from .options import RunOptions, SaveAt
 from ..status import Status
+import jax.numpy as jnp
+from ..cores import available_cores, workers
+from ..integrate.engine import check_ics, drive_plain, initial_w, make_horizon
+from ..model.closed_loop import ClosedLoop
+from ..model.params import paper_gains, paper_plant
 
 __all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine",
            "C_REFERENCE_SOURCE", "C_VARIANTS", "build_c_reference", "c_reference_run", "c_limit"]
@@ -78,7 +83,6 @@ def peak_rss_mb() -> float:
 
 
 def machine() -> dict:
-    import os
     return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
             "cpu_count": os.cpu_count(), "jax": jax.__version__,
             "devices": [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in jax.devices()]}
@@ -208,8 +212,6 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     ``ratio_cpu_vs_c_<name>``: JAX / that build). Returns a dict;
     ``available`` False with ``reason`` when the C program cannot be built (float64 runs are not
     compared either)."""
-    import jax.numpy as jnp
-
     log = log or (lambda *a: None)
     if jnp.zeros(()).dtype != jnp.float32:
         return {"available": False, "reason": "the C reference is float32; run without x64"}
@@ -264,12 +266,6 @@ def _load_c_programs(lib, build_dir, c_variants):
 
 def _w_chart_starts(ics, t_final, dt):
     """``(horizon, closed loop, status0, float32 w-chart starts)`` of the paper's loop from ``ics`` (N, 3)."""
-    import jax.numpy as jnp
-
-    from ..model.closed_loop import ClosedLoop
-    from ..integrate.engine import check_ics, initial_w, make_horizon
-    from ..model.params import paper_gains, paper_plant
-
     horizon = make_horizon(t_final, dt)
     args = ClosedLoop(paper_plant(), paper_gains())
     ics5, status0 = check_ics(ics)
@@ -280,8 +276,6 @@ def _w_chart_starts(ics, t_final, dt):
 def _c_limit_threads(c_threads):
     """``(cores of the JAX call, threads of the C program)``; ``c_threads`` None: as many as those cores on
     CPU, every core of the host on an accelerator."""
-    from ..cores import available_cores, workers
-
     cores = len(workers())
     if c_threads is None:       # on an accelerator the C program gets every core of the host
         c_threads = cores if jax.default_backend() == "cpu" else available_cores()
@@ -360,10 +354,6 @@ def _agreement(yc, yc_var: dict, y0w, status0, args, horizon) -> dict:
     """Final states (w chart) of the C program ``yc`` (and its variants ``yc_var``) against the JAX path's
     from the same float32 starts, relative to each state's largest component, on the tame starts (float32
     and float64 fixed-step results within 1e-3)."""
-    import jax.numpy as jnp
-
-    from ..integrate.engine import drive_plain
-
     yj, st = drive_plain(y0w, status0, args, horizon)
     with jax.enable_x64(True):
         y64, _ = drive_plain(jnp.asarray(np.asarray(y0w), jnp.float64), status0, args, horizon)

@@ -36,6 +36,11 @@ import numpy as np
 
 from ..controllers.actuators import sampled, saturate
 from ..status import Status, converged
+from .ensemble import run_ensemble
+from .options import RunOptions
+from ..controllers.registry import controller_class, make_controller
+from ..integrate.engine import MAX_BASE_STEPS
+from ..model.controller import controller_record
 
 __all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS", "BASE_STEP", "SUBSTEPS", "base_step",
            "check_horizon", "json_ready", "EqualEnergy", "tune_to_budget"]
@@ -108,8 +113,6 @@ def check_horizon(t_final: float, sampler=None, substeps: int = SUBSTEPS, *, fla
     r"""The base step of `compare` (`base_step`) after checking that the horizon fits one run:
     \(T / \Delta t \le\) `jaxsleigh.integrate.engine.MAX_BASE_STEPS`. Raises ``ValueError`` naming ``flag``
     (the caller's name for the horizon) and the longest horizon allowed."""
-    from ..integrate.engine import MAX_BASE_STEPS
-
     dt = base_step(sampler, substeps)
     longest = MAX_BASE_STEPS * dt
     if not float(t_final) <= longest * (1 + 1e-12):
@@ -137,9 +140,6 @@ def compare(laws: Mapping[str, Any], starts: Mapping[str, np.ndarray], *, plant=
         by the paper's law under small k needs ``atol=1e-8`` in float32 (docs/evidence/settled-phase.md).
       audit: the accuracy audit of every run, as in `jaxsleigh.run_ensemble` (its record is the row's ``audit``).
     """
-    from .ensemble import run_ensemble
-    from .options import RunOptions
-
     dt = check_horizon(t_final, sampler, substeps)
     rows = []
     for name, law in laws.items():
@@ -200,8 +200,6 @@ class EqualEnergy(NamedTuple):
 def _kept_as(name: str) -> Optional[str]:
     """``"published"`` for the paper's gains, ``"preset"`` for a law that ships a tuned preset, else ``None``
     (the law is tuned)."""
-    from ..controllers.registry import controller_class
-
     if name == "paper":
         return "published"
     return "preset" if hasattr(controller_class(name), "preset") else None
@@ -222,8 +220,6 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
     one line per law.
     """
     from .. import tuning
-    from ..controllers.registry import make_controller
-    from ..model.controller import controller_record
 
     say = log or (lambda msg: None)
     loss = tuning.LossConfig(t_final=float(t_train))

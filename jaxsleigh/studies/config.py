@@ -17,6 +17,7 @@ from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, St
 from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from ..validate import INT32_MAX, real, whole
+import jax
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict",
            "reject_traced"]
@@ -107,8 +108,6 @@ def reject_traced(front: str, **inputs) -> None:
     deep inside with ``TracerArrayConversionError`` or a misleading "must be a real number". Every
     front calls this first, on everything it was given (``front``: its name in the message).
     """
-    import jax
-
     for name, value in inputs.items():
         try:
             leaves = jax.tree_util.tree_flatten_with_path(value)[0]

@@ -41,12 +41,14 @@ from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
                                 finish_state, initial_w, put_lanes, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
-from ..model.params import PlantParams
+from ..model.params import Gains, PlantParams
 from ..controllers.actuators import is_sampled
 from ..progress import Progress
 from .sampled import sampled_settings, sampled_summaries
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
+from ..integrate.engine import step_controls
+from ..integrate.stepper import init_batch
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
@@ -324,7 +326,6 @@ def _rows_law(lane_args: Optional[ClosedLoop], rows, **law) -> dict:
     if lane_args is None:
         return law
     from ..model.lanes import take_lanes
-    from ..model.params import Gains
 
     per_row = take_lanes(lane_args.controller, rows)
     paper = isinstance(per_row, Gains)
@@ -447,9 +448,6 @@ class _Chunks:
 
     def _pieces_from(self, arrays: dict, n_parts: int) -> list:
         """`_pieces_to` read back: the parts' host states (the tree of the stepper's state, from its shape)."""
-        from ..integrate.engine import step_controls
-        from ..integrate.stepper import init_batch
-
         with jax.enable_x64(self.cfg.x64):
             ctl = step_controls(self.horizon, self.dtype, self.step, self.eps)
             shape = jax.eval_shape(lambda y, s: init_batch(y, s, self.args, ctl, observers=self.observers),

@@ -60,6 +60,9 @@ import numpy as np
 from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_path
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
+from ..files.chunks import ChunkStore
+from ..files.npz import damping_name, write_npz_deterministic
+from ..progress import Progress
 
 __all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
            "time_for_energy", "save_optimum", "load_optimum", "rollout"]
@@ -590,8 +593,6 @@ def _solve_starts(starts, horizons, plant, eps, opts, progress=None):
 
 
 def _settings(plant, eps, opts, horizons) -> dict:
-    from ..files.npz import damping_name
-
     return {"eps": float(eps), "horizons": [float(h) for h in horizons], "options": opts._asdict(),
             "plant": {"m": float(plant.m), "J": float(plant.J), "l": float(plant.l),
                       "damping": damping_name(type(plant.damping).__name__),
@@ -622,9 +623,6 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
       `OptimumResult`; its ``frontier()``, ``time_for_energy(E)`` and ``energy_for_time(T)`` give \(E^*(T)\)
       and its inverse.
     """
-    from ..files.chunks import ChunkStore
-    from ..progress import Progress
-
     plant = as_plant(plant)
     starts = _as_starts(starts)
     horizons = as_horizons(horizons)
@@ -672,8 +670,6 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
 
 def save_optimum(path, res: OptimumResult):
     """Write an `OptimumResult` to ``path`` (.npz, deterministic bytes); returns the path."""
-    from ..files.npz import write_npz_deterministic
-
     arrays = {"starts": res.starts, "horizons": res.horizons, "eps": np.float64(res.eps), "energy": res.energy,
               "frontier": res.frontier(), "u": res.u, "status": res.status, "q_final": res.q_final,
               "p_final": res.p_final, "kkt": res.kkt, "guess": res.guess,

@@ -29,6 +29,7 @@ from ..controllers.actuators import is_sampled
 from ..progress import Progress
 from .sampled import sampled_solution
 from ..status import CONVERGED, VALID
+from .ensemble import summary_repr
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
@@ -116,8 +117,6 @@ class Solution(NamedTuple):
 
     def __repr__(self) -> str:
         # a summary, not every trajectory
-        from .ensemble import summary_repr
-
         nan = np.full(np.shape(self.status), np.nan)
         Hd = np.asarray(self.Hd, np.float64)
         return summary_repr("Solution", self, status=self.status, T_eps=nan if self.T_eps is None else self.T_eps,

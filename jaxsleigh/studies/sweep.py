@@ -34,14 +34,18 @@ from typing import Any, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, t_eps_percentiles
+from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, starts_from_spec, t_eps_percentiles
 from ..model.damping import CoulombDamping, ViscousDamping, damping_from_name
-from ..model.params import Gains, PlantParams
+from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict
 from ..status import CONVERGED, VALID, Status, describe
 from ..validate import check_memory
-from .config import reject_traced
+from .config import plant_to_dict, reject_traced
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
+import jax
+from .ensemble import run_ensemble_resolved, summary_repr
+from ..files.npz import npz_path, parse_number, read_npz, settings_arrays, write_npz_deterministic
+from ..model.controller import PerTrajectory, as_controller, law_leaf_names
 
 __all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
            "save_sweep", "load_sweep"]
@@ -119,8 +123,6 @@ def parse_param(spec, flag: str = "--param", law_names: Sequence[str] = ()) -> P
     (``law_names``). Values may use ``pi``. The values are checked eagerly: a range that includes an inadmissible
     value (``m <= 0``, ``k <= 0``, ``J < 0``, ...) raises ``ValueError`` naming the ``--param``.
     """
-    from ..files.npz import parse_number
-
     if isinstance(spec, ParamAxis):
         ax, label = spec, f"{flag} {spec.spec()}"
     else:
@@ -194,7 +196,6 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     (`jaxsleigh.model.controller.PerTrajectory`): names that are not plant parameters set its scalar
     parameters."""
     from ..model.lanes import check_lanes
-    from ..model.params import as_gains, as_plant
 
     names = tuple(names)
     values = _value_table(names, values)
@@ -263,8 +264,6 @@ def _lane_gains(gains: Gains, col: dict, rep) -> Gains:
 
 def _law_scalar_names(law) -> tuple:
     """The names of a user's law's scalar parameters (what a sweep may set)."""
-    from ..model.controller import law_leaf_names
-
     return tuple(n for n, v in law_leaf_names(law).items() if np.ndim(v) == 0)
 
 
@@ -274,9 +273,6 @@ _GAIN_PARAMS = ("k", "l1", "l2", "l3", "d11", "d12", "d22")
 def _apply_law_params(names, values, plant: PlantParams, law, lab) -> tuple[PlantParams, Any]:
     """`apply_params` for a user's law: the plant's parameters (as for the paper's law) and the law's scalar
     parameters, per lane."""
-    import jax
-
-    from ..model.controller import PerTrajectory, law_leaf_names
     from ..model.lanes import check_lanes
 
     law_names = _law_scalar_names(law)
@@ -384,8 +380,6 @@ class SweepResult(NamedTuple):
 
     def __repr__(self) -> str:
         # a summary, not every (P, N) array (see `table` for one line per value set)
-        from .ensemble import summary_repr
-
         P, N = np.shape(self.status)[:2] if np.ndim(self.status) == 2 else (len(self.values), 0)
         S = self.fraction
         ranges = ", ".join(f"{n} {np.nanmin(self.values[:, i]):.4g}..{np.nanmax(self.values[:, i]):.4g}"
@@ -446,7 +440,6 @@ def _resolve_controller(controller, gains) -> tuple[Any, tuple]:
     refuses ``gains`` and ``controller`` together."""
     if controller is None:
         return None, ()
-    from ..model.controller import as_controller
 
     if gains is not None:
         raise ValueError("give either gains (the paper's law) or controller (any law u = law(q, v)), not both")
@@ -479,7 +472,6 @@ def _row_lanes(names, values: np.ndarray, plant, gains, controller, labels, n_st
     """``(base_plant, base_gains, plant, law)``: the base values and the per-row lanes of the plant and of the gains
     (or the user's law), row ``p * N + i`` under value set ``p``."""
     from ..model.lanes import broadcast_lanes, take_lanes
-    from ..model.params import as_gains, as_plant
 
     base_plant, base_gains = as_plant(plant), (as_gains(gains) if controller is None else None)
     lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels, controller=controller)
@@ -493,9 +485,6 @@ def _sweep_settings(run_settings: Mapping, controller, base_plant, base_gains, s
                     P: int, N: int) -> dict:
     """The sweep's settings: the run's (less its per-lane plant and gains), the controller, the base plant and
     gains, the starts and what was swept."""
-    from .config import plant_to_dict
-    from ..model.params import gains_to_dict
-
     settings = {k: v for k, v in run_settings.items() if k not in ("save_every", "plant", "gains")}
     if controller is not None:
         from ..model.controller import controller_record
@@ -529,7 +518,6 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     parameter name -> text naming it in error messages (the CLI passes its ``--param``). ``run.chunk_size``
     counts rows (default as `run_basin`). Returns a `SweepResult` (``None`` with ``run.shard``)."""
     reject_traced("sweep", **locals())    # first: a NumPy front, neither jittable nor differentiable
-    from .ensemble import run_ensemble_resolved
 
     st = _as_starts(starts)
     controller, law_names = _resolve_controller(controller, gains)
@@ -596,8 +584,6 @@ def save_sweep(path, result: SweepResult) -> Path:
     legend) and as scalars ``eps, t_final, dt, method, dtype, max_steps``, the base ``gains_L,
     gains_k, gains_D_hat, params (m, J, l), damping``.
     """
-    from ..files.npz import npz_path, settings_arrays, write_npz_deterministic
-
     path = npz_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     r, s = result, result.settings
@@ -630,9 +616,6 @@ def save_sweep(path, result: SweepResult) -> Path:
 
 def load_sweep(path) -> SweepResult:
     """Read an ``.npz`` written by `save_sweep` (or ``jaxsleigh sweep``)."""
-    from .basin import starts_from_spec
-    from ..files.npz import read_npz
-
     d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)",
                  ("settings_json", "values", "names", "grid_shape", "ics", "T_eps", "status", "n_steps",
                   "min_abs_theta", "Hd0"), kind="sweep")

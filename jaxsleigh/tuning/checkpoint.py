@@ -17,6 +17,8 @@ import numpy as np
 
 from ..files.chunks import joined, read_checkpoint_file, setting_differences, write_checkpoint
 from ..model.params import gains_to_dict
+from ..model.controller import law_leaf_names
+from ..studies.config import plant_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
            "checkpoint_options", "Stamp", "tree_arrays", "tree_from", "track_arrays",
@@ -36,8 +38,6 @@ class TuningInterrupted(KeyboardInterrupt):
 
 def tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics) -> str:
     """A hash of everything that determines a tuning run (a checkpoint only resumes the same run)."""
-    from ..studies.config import plant_to_dict
-
     doc = {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
            "loss": {k: float(v) for k, v in loss._asdict().items()},
            "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
@@ -198,9 +198,6 @@ def _header(path) -> tuple:
 def law_fingerprint(law, names, plant, loss, lr, x64, n_attempts, starts) -> tuple:
     """``(key, settings)``: a hash of everything that determines a `jaxsleigh.tuning.tune_law` run but its number of
     steps (a resumed run may go on for more), and those settings as JSON, for naming what differs."""
-    from ..model.controller import law_leaf_names
-    from ..studies.config import plant_to_dict
-
     leaves = {n: np.asarray(v, np.float64).tolist() for n, v in law_leaf_names(law).items()}
     doc = {"law": str(jax.tree_util.tree_structure(law)), "leaves": leaves, "tuned": list(names),
            "plant": plant_to_dict(plant), "loss": {k: float(v) for k, v in loss._asdict().items()}, "lr": float(lr),

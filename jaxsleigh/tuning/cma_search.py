@@ -57,6 +57,9 @@ from .checkpoint import Stamp, TuningInterrupted
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
+from ..model.lanes import stack_gains
+from ..studies.ensemble import run_ensemble
+from ..validate import check_count, check_memory
 
 __all__ = ["SearchConfig", "SearchResult", "PopulationFigures", "NoFeasibleCandidate", "evaluate_population", "search",
            "MAX_GENERATIONS", "MAX_POPULATION"]
@@ -180,9 +183,6 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
     per-lane parameters, ``stepsize`` a `jaxsleigh.StepSizeController` or ``None`` for the defaults) and reduce
     per candidate (`PopulationFigures`; the median gap against ``frontier``, a `jaxsleigh.OptimumResult` of the
     same starts, if given)."""
-    from ..studies.ensemble import run_ensemble
-    from ..model.lanes import stack_gains
-
     glist = [load_gains(g) for g in gains_list]
     ics = np.asarray(ics, np.float64)
     P, N = len(glist), ics.shape[0]
@@ -317,8 +317,6 @@ def _training_starts(starts, config: SearchConfig, frontier) -> np.ndarray:
 def _checked_search_inputs(config: SearchConfig, energy_budget: Optional[float]) -> tuple:
     """Refuse a bad ``config`` or ``energy_budget`` (ValueError, in a fixed order); returns the energy
     percentiles as floats."""
-    from ..validate import check_count, check_memory
-
     for name in ("generations", "population", "batch", "verify"):
         v = getattr(config, name)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (2 if name == "population" else 1):
@@ -533,8 +531,6 @@ def _verified(run: _SearchState, space: _Space, ev: _Evaluator, guard, budget: _
 
 
 def _guard_failure(g: Gains, guard, plant, t_final, x64, stepsize=None) -> str:
-    from ..studies.ensemble import run_ensemble
-
     r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, stepsize=stepsize,
                      run=RunOptions(progress=False))
     bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q_final)[:, 2]) != np.sign(guard[:, 2]))

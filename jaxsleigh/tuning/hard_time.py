@@ -46,7 +46,7 @@ import optax
 from ..controllers.actuators import is_sampled
 from ..integrate.engine import check_ics, initial_w
 from ..model.charts import chart_for
-from ..model.params import PlantParams, as_plant
+from ..model.params import PlantParams, as_plant, paper_gains
 from ..status import Status
 from .cmaes import cma_ask, cma_init, cma_tell
 from .event_time import settling
@@ -118,8 +118,6 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     `ShapedGains`, a literature law of `jaxsleigh.controllers`), moved in its coordinates
     (`jaxsleigh.tuning.law.law_coordinates`: the paper's gains in their 7 admissible numbers, another law's positive
     gains in logarithm)."""
-    from ..model.params import paper_gains
-
     ics5, status0 = _checked_inputs(law, starts)
     plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), as_plant(plant))
     coords = law_coordinates(law, dtype=dtype)

@@ -6,14 +6,13 @@ from pathlib import Path
 import numpy as np
 
 from .optimizer import TuneHistory
+from ..files.npz import atomic_write
 
 __all__ = ["save_history", "load_history"]
 
 
 def save_history(history: TuneHistory, path, **extra) -> Path:
     """Write the history as ``.npz`` (one key per field, plus ``extra`` arrays)."""
-    from ..files.npz import atomic_write
-
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")

@@ -17,15 +17,18 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..controllers.actuators import is_sampled
-from ..model.charts import chart_for
+from ..controllers.actuators import NormSaturation, Sampled, Saturation, is_sampled
+from ..model.charts import chart_for, physical_chart_for
 from ..model.controller import as_controller, is_paper_law, law_leaf_names, positive_names
 from ..integrate.engine import check_ics, initial_w
-from ..model.params import PlantParams, as_plant
+from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
 from .checkpoint import LawCheckpoint, TuningInterrupted, law_fingerprint
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
+from ..controllers.paper import PaperLaw
+from ..integrate.sampled import solve_sampled
+from ..studies.sampled import plain_sampler, substeps_for
 
 __all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names", "LawCoordinates", "law_coordinates",
            "InvalidStartingLaw"]
@@ -135,9 +138,6 @@ def law_coordinates(law, tune: Optional[Sequence[str]] = None, *, dtype=jnp.floa
 def _paper_prefix(law) -> Optional[str]:
     """The path (``"law.gains."``) of the paper's gains inside actuators (saturation, digital controller) around the
     paper's law; ``None`` for any other law."""
-    from ..controllers.actuators import NormSaturation, Sampled, Saturation
-    from ..controllers.paper import PaperLaw
-
     prefix = ""
     while isinstance(law, (Saturation, NormSaturation, Sampled)):
         law, prefix = law.law, prefix + "law."
@@ -148,8 +148,6 @@ def _wrapped_paper_coordinates(leaves, tree, names, idx, prefix: str, dtype) -> 
     """The paper's gains behind an actuator in the paper's admissible coordinates (`GainParams`: log L, log k and
     the Cholesky factor of D_hat - floor), so that every candidate has L, k > 0 and D_hat symmetric positive
     definite; only the gains in ``idx`` move."""
-    from ..model.params import Gains
-
     fields = ("L", "k", "D_hat")
     at = {f: names.index(prefix + f) for f in fields}
     p0 = params_from_gains(Gains(*(np.asarray(leaves[at[f]], np.float64) for f in fields)))
@@ -195,10 +193,6 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     the soft time \(S = \int_0^T \phi\,dt\) by the trapezoid rule on the sample instants, the control energy exact
     for the held input. A lane that failed counts the whole horizon and energy 1 (values only; the candidate is
     then invalid)."""
-    from ..integrate.sampled import solve_sampled
-    from ..model.charts import physical_chart_for
-    from ..studies.sampled import plain_sampler, substeps_for
-
     smp = plain_sampler(law.sampler)
     r = solve_sampled(law.law, plant, y0, t_final=float(cfg.t_final), sampler=smp, eps=float(cfg.eps),
                       substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype, rtol=float(cfg.rtol),

@@ -15,15 +15,18 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from ..controllers.actuators import NormSaturation, Sampled, Saturation
+from ..controllers.paper import PaperLaw
+from ..controllers.registry import make_controller
+from ..files.npz import atomic_write_text
+from ..model.controller import as_controller, is_paper_law, law_leaf_names
+from ..model.params import gains_to_dict, load_gains
 
 __all__ = ["bare_law", "actuator_record", "law_file_record", "save_law", "load_controller_record"]
 
 
 def bare_law(law):
     """``law`` without its actuators (saturation, digital controller): the law itself; the paper's as its `Gains`."""
-    from ..controllers.actuators import NormSaturation, Sampled, Saturation
-    from ..controllers.paper import PaperLaw
-
     while isinstance(law, (Saturation, NormSaturation, Sampled)):
         law = law.law
     return law.gains if isinstance(law, PaperLaw) else law
@@ -32,8 +35,6 @@ def bare_law(law):
 def actuator_record(law) -> dict:
     """The actuators ``law`` runs behind, as the flags that give them: ``saturation``, ``sample_period``, ``delay``,
     ``noise`` (``None`` / 0 where there is none)."""
-    from ..controllers.actuators import NormSaturation, Sampled, Saturation
-
     out = {"saturation": None, "sample_period": None, "delay": 0, "noise": 0.0}
     while isinstance(law, (Saturation, NormSaturation, Sampled)):
         if isinstance(law, Sampled):
@@ -48,9 +49,6 @@ def actuator_record(law) -> dict:
 
 def law_file_record(law, controller: str, **meta) -> dict:
     """The JSON document of a tuned ``law`` of the registered kind ``controller`` (module docstring)."""
-    from ..model.controller import is_paper_law, law_leaf_names
-    from ..model.params import gains_to_dict
-
     inner = bare_law(law)
     if is_paper_law(inner):
         return {**gains_to_dict(inner), "meta": {"controller": "paper", "actuator": actuator_record(law), **meta}}
@@ -60,8 +58,6 @@ def law_file_record(law, controller: str, **meta) -> dict:
 
 def save_law(law, controller: str, path, **meta) -> None:
     """Write `law_file_record` to ``path`` atomically."""
-    from ..files.npz import atomic_write_text
-
     atomic_write_text(path, json.dumps(law_file_record(law, controller, **meta), indent=1, default=str) + "\n")
 
 
@@ -69,8 +65,6 @@ def load_controller_record(path):
     """The law a file of `save_law` holds (a gains file: the paper's `Gains`), checked: a registered controller, every
     parameter of its law given as a finite number of the right shape, no other. Its ``actuator`` is not applied
     (give ``--saturation`` / ``--sample-period`` for that). ``ValueError`` saying what is wrong otherwise."""
-    from ..model.params import load_gains
-
     doc = _read(path)
     if "controller" not in doc:
         if {"L", "k", "D_hat"} & set(doc):
@@ -100,9 +94,6 @@ def _read(path) -> dict:
 
 def _law_from_params(name, params, source: str):
     """The registered law ``name`` with its numeric leaves set from ``params`` (``{leaf name: value}``)."""
-    from ..controllers.registry import make_controller
-    from ..model.controller import as_controller, law_leaf_names
-
     if not isinstance(name, str):
         raise ValueError(f"{source}: \"controller\" must be a name (jaxsleigh controllers lists them), got {name!r}")
     law = make_controller(name)

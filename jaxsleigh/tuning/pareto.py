@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
+from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
@@ -40,6 +40,9 @@ from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_
     split_params
 from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
 from .validation import Validation, validate, validation_dict
+from ..files.npz import atomic_write
+from ..studies.config import plant_to_dict
+from ..validate import check_count
 
 __all__ = ["FrontPoint", "Front", "training_energy", "default_budgets", "budgets_between", "pareto_front",
            "random_search", "evaluate_front",
@@ -172,7 +175,6 @@ def _checked_budgets(method, budgets) -> np.ndarray:
     budgets = np.sort(np.asarray(budgets, np.float64).ravel())
     if budgets.size == 0 or not np.all(np.isfinite(budgets)) or np.any(budgets <= 0):
         raise ValueError(f"budgets must be finite and > 0, got {budgets.tolist()}")
-    from ..validate import check_count
 
     check_count("pareto_front: the number of budgets", budgets.size, maximum=MAX_FRONT_POINTS,
                 reason="every point is a whole tuning run (seconds to minutes each)",
@@ -307,8 +309,6 @@ class _FrontStore(NamedTuple):
 
 def _front_store(path, settings: dict, plant, d_floor: float, options: Optional[dict]) -> _FrontStore:
     """The `_FrontStore` of a vmapped front of ``settings`` (`front_settings`) on ``plant``."""
-    from ..studies.config import plant_to_dict
-
     doc = json.loads(json.dumps({**settings, "plant": None if plant is None else plant_to_dict(plant),
                                  "d_floor": float(d_floor)}, sort_keys=True, default=_json_default))
     return _FrontStore(Path(path), doc, options)
@@ -497,7 +497,6 @@ def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: Tune
             continue
         soft, energy, v = min(ok, key=lambda c: c[0])
         g = gains_from_params(GainParams(v[:3], v[3], v[4:]), d_floor=d_floor)
-        from ..model.params import gains as make_gains
 
         g = make_gains(np.asarray(g.L, np.float64), float(g.k), np.asarray(g.D_hat, np.float64))
         points.append(FrontPoint(float(bgt), g, {"soft_loss": soft, "training_energy": energy, "feasible": True}))
@@ -538,8 +537,6 @@ def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> di
 def save_front(front: Front, path, *, references: Optional[dict] = None, **meta) -> Path:
     """Write `front_dict` as JSON (atomically); each point loads with ``jaxsleigh.load_gains``
     after `point_gains`."""
-    from ..files.npz import atomic_write
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(front_dict(front, references=references, **meta), indent=2)
@@ -549,8 +546,6 @@ def save_front(front: Front, path, *, references: Optional[dict] = None, **meta)
 
 def point_gains(point: dict) -> Gains:
     """The gains of one point of a front document."""
-    from ..model.params import gains as make_gains
-
     return make_gains(point["L"], point["k"], point["D_hat"])
 
 

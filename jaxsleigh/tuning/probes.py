@@ -16,6 +16,7 @@ from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains
 from ..status import Status
 from ..studies.options import RunOptions
+from ..studies.ensemble import run_ensemble
 
 __all__ = ["probe", "hardest", "check"]
 
@@ -23,8 +24,6 @@ __all__ = ["probe", "hardest", "check"]
 def probe(g: Gains, sets, horizon: float, budget: int, x64) -> tuple:
     """Integrate every ``(starts, plant)`` of ``sets`` over ``horizon`` with the accurate engine and
     ``budget`` attempts per start. Returns ``(all OK, [attempts per start of each set])``."""
-    from ..studies.ensemble import run_ensemble
-
     ok, attempts = True, []
     for starts, plant in sets:
         r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64,
@@ -49,8 +48,6 @@ def check(g: Gains, checks, horizon: float, x64, attempts: list | None = None) -
     seconds of the accurate engine (default budget), else what went wrong. ``attempts``, a list, gets
     the attempted steps of every start of each set appended (to tell whether the probe's budget binds
     at the checked gains)."""
-    from ..studies.ensemble import run_ensemble
-
     for starts, plant in checks:
         r = run_ensemble(starts, plant=plant, gains=g, t_final=horizon, x64=x64, run=RunOptions(progress=False))
         if attempts is not None:

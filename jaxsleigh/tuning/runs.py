@@ -44,13 +44,17 @@ import numpy as np
 
 from ..files.runlock import RunLock
 from ..files.runner import PYTHON_WORDS, Words
-from ..model.params import gains_to_dict, load_gains, save_gains
+from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
 from ..validate import writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
 from .cma_search import NoFeasibleCandidate, SearchConfig
 from .objective import LossConfig
 from .optimizer import TuneConfig
 from .starts import UniformStarts, draw_starts
+from .law_file import save_law
+from .pareto import finished_points, front_settings, load_front
+from ..files.npz import atomic_write
+from ..model.damping import damping_from_name
 
 __all__ = ["TuningRun", "RunOutcome", "HeldOut", "tune_run", "search_run", "law_run", "front_run"]
 
@@ -328,8 +332,6 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
 
 def _write_law(run: TuningRun, res, record: dict, **extra) -> tuple:
     """Write the tuned law (`jaxsleigh.tuning.law_file.save_law`) with how it was found, and its history."""
-    from .law_file import save_law
-
     budget = _budget(record["loss"].energy_budget)
     save_law(res.law, record["name"], run.out, how="jaxsleigh tune --controller: Adam on the soft convergence time"
              + ("" if budget is None else f" under a training energy budget {budget:g}"), command=run.command,
@@ -352,7 +354,6 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
     and ``tuned`` gains (``references``) are measured on the ``held_out`` starts, with ``baseline`` a random search
     that spends as many objective evaluations, and the front is drawn to ``plot`` (which needs the check)."""
     from .. import tuning as tu
-    from .pareto import front_settings, finished_points
 
     run, names, held_out = as_run(run), tu.parse_tune(tune), held_out or HeldOut(n=0)
     if plot is not None and not held_out.n:
@@ -404,8 +405,6 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
 def _interrupted_front(run: TuningRun) -> Optional[dict]:
     """The interrupted front in ``run.out`` that ``resume=True`` continues (``None``: none); refuses one without
     ``resume=True`` and ``resume=True`` without one."""
-    from .pareto import load_front
-
     earlier = None
     if run.out.is_file():
         try:
@@ -464,8 +463,6 @@ def _history(run: TuningRun, write) -> list:
 
 
 def _save_arrays(path: Path, arrays: dict) -> Path:
-    from ..files.npz import atomic_write
-
     atomic_write(path, lambda fh: np.savez(fh, **{k: np.asarray(v) for k, v in arrays.items()}))
     return path
 
@@ -489,9 +486,6 @@ def _budget_met(energy_budget, energy: float) -> Optional[bool]:
 
 def _plant_record(plant) -> dict:
     """``{"m", "J", "l", "damping"}`` of ``plant`` (``None``: the paper's), the damping by its name where it has one."""
-    from ..model.damping import damping_from_name
-    from ..model.params import PlantParams, lane_record
-
     plant = PlantParams() if plant is None else plant
     num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))
     d = plant.damping

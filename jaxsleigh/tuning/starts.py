@@ -16,7 +16,7 @@ import numpy as np
 from ..studies.basin import BasinStarts, sample_starts
 from ..model.damping import CoulombDamping, NoDamping, ViscousDamping
 from ..integrate.engine import check_ics
-from ..model.params import PlantParams, paper_plant
+from ..model.params import PlantParams, paper_plant, plant_params
 
 __all__ = ["UniformStarts", "WideStarts", "draw_starts", "sample_starts", "guard_starts", "PlantDistribution", "sample_plants",
            "validation_plants", "plant_groups", "first_lane"]
@@ -129,8 +129,6 @@ def sample_plants(dist: PlantDistribution, n: int, seed: int) -> list[tuple[np.n
 
 def validation_plants() -> dict[str, PlantParams]:
     """Named plants for the per-plant validation table (paper's plant first)."""
-    from ..model.params import plant_params
-
     return {
         "paper (m 2, J 1, l 1, Coulomb)": plant_params(2.0, 1.0, 1.0, "coulomb"),
         "heavy (m 4, J 2, l 1, Coulomb)": plant_params(4.0, 2.0, 1.0, "coulomb"),

@@ -10,10 +10,15 @@ import numpy as np
 
 from ..errors import AccuracyWarning
 from ..integrate.stepsize import StepSizeController
-from ..model.params import Gains, PlantParams, load_gains
+from ..model.params import Gains, PlantParams, load_gains, paper_plant
 from ..studies.audit import Audit
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
+import jax.numpy as jnp
+from ..model.coordinates import q_to_w
+from ..model.plant import velocity_components
+from ..model.w_laws import control_w_components
+from ..studies.ensemble import run_ensemble
 
 __all__ = ["Validation", "validate", "markdown_table", "validation_dict", "AUDIT_ROWS"]
 
@@ -78,8 +83,6 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     rtol = atol = 1e-10; ``audit=`` another `jaxsleigh.Audit`, or ``False``). Where the audit fails, the figures are
     those of the whole set re-run at the audit's reference settings (``resolved``): a tuner judged on them cannot be
     fooled by a settled phase that the defaults do not resolve."""
-    from ..studies.ensemble import run_ensemble
-
     law = gains if callable(gains) and not isinstance(gains, (Gains, str)) else None
     g = None if law is not None else load_gains(gains)
     kw = dict(ensemble_kw, **({"gains": g} if law is None else {"controller": law}))
@@ -125,13 +128,6 @@ def _effort(r, g, ics, plant, t_final, eps, x64, ensemble_kw) -> tuple[np.ndarra
     if g is None:                             # a law's effort is always observed; a run without it reports none
         nan = np.full(np.shape(r.T_eps), np.nan)
         return nan, nan
-    import jax.numpy as jnp
-
-    from ..model.w_laws import control_w_components
-    from ..model.coordinates import q_to_w
-    from ..studies.ensemble import run_ensemble
-    from ..model.params import paper_plant
-    from ..model.plant import velocity_components
 
     p = paper_plant() if plant is None else plant
     kw = {k: v for k, v in ensemble_kw.items() if k not in ("saveat", "run")}
