@@ -784,22 +784,8 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
-
-        def rerun(rows, rtol, atol):   # the same study of some rows, in float64 at tight tolerances (the audit's)
-            law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
-            budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
-            return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
-                                         stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
-                                         saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
-
-        audit_ref = []          # the audit's reference, begun on the core the last stragglers leave free
-
-        def begin_audit():
-            rows = audit_sample(spec, n)
-            if rows.size:
-                audit_ref.append(audit_pool.submit(_timed, rerun, rows, spec.rtol, spec.atol))
-
-        audit_pool = concurrent.futures.ThreadPoolExecutor(1)
+        audit = None if spec is None else _EarlyAudit(spec, n, _float64_rerun(
+            ics5, lane_args, cfg, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps))
         # the store's lock on the folder is held until the last chunk is written or read
         try:
             with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
@@ -809,24 +795,60 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
                                  tail_pool=tail_pool, certify=certify and cfg.adaptive)
                 parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
                                             sampled=sampled,
-                                            after_parts=begin_audit if spec is not None and shard is None else None)
+                                            after_parts=audit.begin if audit is not None and shard is None else None)
         except BaseException:               # interrupted: the audit's reference is not waited for
-            audit_pool.shutdown(wait=False, cancel_futures=True)
+            if audit is not None:
+                audit.stop(interrupted=True)
             raise
-        audit_pool.shutdown(wait=False)     # its thread ends with the reference
+        if audit is not None:
+            audit.stop(interrupted=False)
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
         run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
     result = _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
                               lane_args=lane_args, run_info=run_info)
-    if spec is not None:
-        ahead = (lambda: audit_ref[0].result()[0]) if audit_ref else None
-        rec = audit_rows(result, rerun, spec, what="ensemble", reference=ahead)
-        if audit_ref and rec.get("rows"):         # the reference's own seconds, spent beside the last stragglers
-            rec["wall_s"] = round(rec["wall_s"] + audit_ref[0].result()[1], 3)
-        run_info["audit"] = rec
+    if audit is not None:
+        run_info["audit"] = audit.record(result)
     return result
+
+
+def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
+    """``rerun(rows, rtol, atol)``: the same study of some rows of ``ics5``, in float64 at the tolerances given (the
+    accuracy audit's reference, `jaxsleigh.studies.audit`)."""
+    def rerun(rows, rtol, atol):
+        law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
+        budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
+        return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
+                                     stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
+                                     saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
+    return rerun
+
+
+class _EarlyAudit:
+    """The accuracy audit of an ensemble (`jaxsleigh.studies.audit`): its float64 reference begins in a thread of its
+    own as soon as the chunks' parts are done (on the core the last stragglers leave free), and the result is
+    audited against it once it is assembled."""
+
+    def __init__(self, spec, n: int, rerun):
+        self.spec, self.n, self.rerun = spec, n, rerun
+        self.pool, self.ref = concurrent.futures.ThreadPoolExecutor(1), None
+
+    def begin(self) -> None:
+        rows = audit_sample(self.spec, self.n)
+        if rows.size:
+            self.ref = self.pool.submit(_timed, self.rerun, rows, self.spec.rtol, self.spec.atol)
+
+    def stop(self, interrupted: bool) -> None:
+        """Let the reference's thread end with the reference; an interrupted run does not wait for it."""
+        self.pool.shutdown(wait=False, cancel_futures=interrupted)
+
+    def record(self, result) -> dict:
+        ahead = (lambda: self.ref.result()[0]) if self.ref is not None else None
+        rec = audit_rows(result, self.rerun, self.spec, what="ensemble", reference=ahead)
+        if self.ref is not None and rec.get("rows"):    # the reference's own seconds, spent beside the last stragglers
+            rec["wall_s"] = round(rec["wall_s"] + self.ref.result()[1], 3)
+        return rec
 
 
 def _timed(fn, *args):
