@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import os
 import pickle
 import threading
@@ -25,7 +26,6 @@ from pathlib import Path
 from typing import Optional, Union
 
 import numpy as np
-import inspect
 
 __all__ = ["compilation_cache_dir", "enable_compilation_cache"]
 

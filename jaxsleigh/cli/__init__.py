@@ -19,8 +19,11 @@ as ``jaxsleigh: error: ...`` and returns 2. Exit codes: `EXIT_CODES`.
 """
 from __future__ import annotations
 
+import argparse
+import atexit
 import os
 import sys
+import threading
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -36,9 +39,6 @@ from .paper import add_paper
 from .simulate import add_simulate
 from .sweep import add_sweep
 from .tune import add_tune
-import threading
-import atexit
-import argparse
 
 __all__ = ["main", "build_parser", "parse_ic", "SUBCOMMANDS"]
 

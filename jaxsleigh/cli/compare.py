@@ -7,11 +7,12 @@ import time
 import uuid
 from pathlib import Path
 
+import jax
+
 from ..studies.audit import audit_line
 from .chunked import audit_from_args
 from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs, number,
                      sampler_from_args, whole)
-import jax
 from ..files.npz import atomic_write_text
 from ..files.runlock import RunLock
 from ..integrate.stepsize import StepSizeController

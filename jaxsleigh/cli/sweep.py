@@ -20,6 +20,8 @@ import math
 import re
 import sys
 
+import numpy as np
+
 from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
 from .basin import starts_from_args, add_study_options
@@ -27,7 +29,6 @@ from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
 from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
                      law_kwargs, model_from_args, status_epilog, status_line)
 from .options import stepsize_from_args
-import numpy as np
 from ..files.npz import npz_path
 from ..model.controller import law_leaf_names
 from ..model.params import Gains

@@ -36,13 +36,14 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import socket
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, Optional
-import signal
+
 import jax
 
 __all__ = ["Cluster", "ClusterError", "start", "cluster_env", "parse_coordinator", "run_shared",

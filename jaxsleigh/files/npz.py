@@ -3,17 +3,18 @@ from __future__ import annotations
 
 import ast
 import errno
+import io as _io
 import json
 import math
 import operator
 import os
 import platform
+import zipfile
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
-import zipfile
-import io as _io
+
 from ..errors import DiskFullError
 from ..status import describe
 from ..validate import check_memory

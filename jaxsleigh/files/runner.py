@@ -35,6 +35,7 @@ Example, a basin over four processes of one machine (start the same script four 
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -46,7 +47,6 @@ from pathlib import Path
 from typing import Any, Callable, NamedTuple, Optional
 
 from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
-import hashlib
 from .npz import atomic_write_text
 from .runlock import RunLock
 from ..errors import CheckpointError, DiskFullError, RunLockedError

@@ -14,6 +14,7 @@ from typing import NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..cache import kept_jit
 from ..cores import configure
@@ -25,7 +26,6 @@ from .stepsize import StepSizeController
 from .stragglers import certify
 from .stepper import (Controls, Scan, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
                       run_saving)
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..errors import FlaggedStartsWarning
 from ..model.params import paper_gains, paper_plant
 

@@ -28,11 +28,12 @@ RK4 on the rest), whose own error estimate replaces the one above on \(p_2\) (``
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
-import math
+
 from ..model.params import is_concrete
 from ..validate import INT32_MAX, whole
 

@@ -17,9 +17,10 @@ Numerics modules never import this (nor any plotting module).
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
-import re
+
 from ..files.npz import atomic_write
 
 __all__ = ["METHOD_NAMES", "STAMP_GID", "T_EPS", "check_stamp", "new_figure", "figure_and_axes", "save_figure", "provenance",

@@ -21,13 +21,13 @@ from pathlib import Path
 from typing import Optional
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..integrate.stepsize import StepSizeController
 from .ensemble import run_ensemble
 from .options import RunOptions, SaveAt
 from ..status import Status
-import jax.numpy as jnp
 from ..cores import available_cores, workers
 from ..integrate.engine import check_ics, drive_plain, initial_w, make_horizon
 from ..model.closed_loop import ClosedLoop

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple, Optional
 
+import jax
 import numpy as np
 
 from ..model.controller import as_controller, controller_record
@@ -17,7 +18,6 @@ from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, St
 from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from ..validate import INT32_MAX, real, whole
-import jax
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict",
            "reject_traced"]

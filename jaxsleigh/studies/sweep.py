@@ -32,6 +32,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple, Optional, Sequence
 
+import jax
 import numpy as np
 
 from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, starts_from_spec, t_eps_percentiles
@@ -42,7 +43,6 @@ from ..validate import check_memory
 from .config import plant_to_dict, reject_traced
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
-import jax
 from .ensemble import run_ensemble_resolved, summary_repr
 from ..files.npz import npz_path, parse_number, read_npz, settings_arrays, write_npz_deterministic
 from ..model.controller import PerTrajectory, as_controller, law_leaf_names

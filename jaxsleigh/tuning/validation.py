@@ -6,6 +6,7 @@ import math
 import warnings
 from typing import Any, NamedTuple, Optional
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..errors import AccuracyWarning
@@ -14,7 +15,6 @@ from ..model.params import Gains, PlantParams, load_gains, paper_plant
 from ..studies.audit import Audit
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
-import jax.numpy as jnp
 from ..model.coordinates import q_to_w
 from ..model.plant import velocity_components
 from ..model.w_laws import control_w_components
