@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,7 @@ def main():
     record = {"command": "python experiments/performance/etd_phase_in.py " + " ".join(sys.argv[1:]),
               "dtype": "float32", "machine": machine(), "samples": a.samples, "load_start": load(), "runs": []}
     ref = None
-    with __import__("tempfile").TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp:
         for f in freqs:
             path = Path(tmp) / f"phase_in_{f:g}.npz"
             row = {"phase_in_rad_s": f, **run_py(RUN, [f, a.samples, path], env={"JAXSLEIGH_NO_COMPILE_CACHE": "1"})}
@@ -67,7 +68,8 @@ def main():
                 "settled_both": int(both.sum()),
                 "same_status": bool(np.array_equal(ref["status"], d["status"])),
                 "max_T_eps_change_s": float(np.abs(ref["T_eps"][both] - d["T_eps"][both]).max(initial=0.0)),
-                "max_energy_change_rel": float(np.abs(d["u_energy"][both] / ref["u_energy"][both] - 1).max(initial=0.0)),
+                "max_energy_change_rel": float(np.abs(d["u_energy"][both] / ref["u_energy"][both] - 1)
+                                               .max(initial=0.0)),
                 "steps_ratio": None}
             record["runs"].append(row)
             print(json.dumps(row), flush=True)
