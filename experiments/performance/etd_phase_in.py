@@ -1,13 +1,14 @@
 r"""From which frequency on the exponential step should integrate the settled oscillation: steps against accuracy.
 
-    python experiments/performance/etd_phase_in.py [--samples 20000] [--freqs 20,10,5]
+    python experiments/performance/etd_phase_in.py [--samples 20000] [--freqs 20,10,5] [--law paper]
                                                    [--out docs/figures/etd_phase_in.json]
 
 The exponential RK4 step (`jaxsleigh.integrate.etd`) integrates the \((w_2, p_1)\) oscillation exactly where its
 frequency is at least ``OSCILLATION_PHASE_IN`` (20 rad/s, the default); below, classical RK4 steps the pair and its
 accuracy caps the step (about 0.1 s in the settled phase of the default basin). For each frequency the default
 basin (``jaxsleigh basin --samples N --seed 5 --t-final 100``: `sample_starts`, paper gains, float32, adaptive)
-runs in a fresh process with the constant set there (no persistent compilation cache, so the programs are traced
+(or ``--law``: the ``tuned`` or ``balanced`` gains, or the ``shaped`` law's preset) runs in a fresh process with the
+constant set there (no persistent compilation cache, so the programs are traced
 with it): the attempted steps, the wall time (compilation included, so compare the steps), the statuses, and,
 against the default frequency's run, the largest change of ``T_eps`` and of the control energy on the starts that
 settle in both; with the accuracy audit of 64 rows against float64 at rtol = atol = 1e-10 (worst ``T_eps`` and
@@ -33,8 +34,10 @@ import jaxsleigh.integrate.etd as etd
 etd.OSCILLATION_PHASE_IN = float(sys.argv[1])
 import jaxsleigh as js
 starts = js.sample_starts(int(sys.argv[2]), seed=5)
+law = sys.argv[4]
+kw = {} if law == "paper" else {"controller": js.ShapedGains.preset()} if law == "shaped" else {"gains": law}
 t0 = time.perf_counter()
-r = js.run_basin(starts, t_final=100.0, eps=0.05, run=js.RunOptions(progress=False))
+r = js.run_basin(starts, t_final=100.0, eps=0.05, run=js.RunOptions(progress=False), **kw)
 wall = time.perf_counter() - t0
 out = sys.argv[3]
 np.savez(out, T_eps=r.T_eps, u_energy=r.u_energy, status=r.status)
@@ -50,16 +53,20 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--samples", type=int, default=20000)
     ap.add_argument("--freqs", default="20,10,5", help="phase-in frequencies [rad/s]; the first is the reference")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs/figures/etd_phase_in.json")
+    ap.add_argument("--law", choices=("paper", "tuned", "balanced", "shaped"), default="paper")
+    ap.add_argument("--out", type=Path, default=None, help="default docs/figures/etd_phase_in[_LAW].json")
     a = ap.parse_args()
     freqs = [float(f) for f in a.freqs.split(",")]
+    a.out = a.out or ROOT / "docs/figures" / ("etd_phase_in.json" if a.law == "paper" else f"etd_phase_in_{a.law}.json")
     record = {"command": "python experiments/performance/etd_phase_in.py " + " ".join(sys.argv[1:]),
-              "dtype": "float32", "machine": machine(), "samples": a.samples, "load_start": load(), "runs": []}
+              "dtype": "float32", "machine": machine(), "law": a.law, "samples": a.samples, "load_start": load(),
+              "runs": []}
     ref = None
     with tempfile.TemporaryDirectory() as tmp:
         for f in freqs:
             path = Path(tmp) / f"phase_in_{f:g}.npz"
-            row = {"phase_in_rad_s": f, **run_py(RUN, [f, a.samples, path], env={"JAXSLEIGH_NO_COMPILE_CACHE": "1"})}
+            row = {"phase_in_rad_s": f,
+                   **run_py(RUN, [f, a.samples, path, a.law], env={"JAXSLEIGH_NO_COMPILE_CACHE": "1"})}
             d = np.load(path)
             if ref is None:
                 ref = d
