@@ -39,7 +39,7 @@ from .audit import audit_rows, audit_sample, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
-                                finish_state, initial_w, put_lanes, take_lanes_of, working_dtype)
+                                finish_state, initial_w, put_lanes, step_controls, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import Gains, PlantParams
 from ..controllers.actuators import is_sampled
@@ -47,7 +47,6 @@ from ..progress import Progress
 from .sampled import sampled_settings, sampled_summaries
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
-from ..integrate.engine import step_controls
 from ..integrate.stepper import init_batch
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
