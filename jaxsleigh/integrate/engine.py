@@ -24,7 +24,7 @@ from ..status import Status
 from .observers import DEFAULT_OBSERVERS
 from .stepsize import StepSizeController
 from .stragglers import certify
-from .stepper import (Controls, Scan, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
+from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
                       run_saving)
 from ..errors import FlaggedStartsWarning
 from ..model.params import paper_gains, paper_plant
@@ -258,9 +258,10 @@ def _active(s, target, ctl):
     return is_active(s, target, ctl)
 
 
-@kept_jit(static_argnames=("n_attempts", "adaptive", "monitor", "observers"), donate_argnums=(0,))
+#: ``n_attempts`` is traced: one program serves every segment length (a short horizon's, a tail's)
+@kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
 def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
-    return run(state, target, args, ctl, Scan(n_attempts), adaptive=adaptive, monitor=monitor, observers=observers)
+    return run(state, target, args, ctl, Count(n_attempts), adaptive=adaptive, monitor=monitor, observers=observers)
 
 
 @kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
@@ -369,7 +370,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
             break
         if compact and b.idx.size > min_batch and act.sum() <= b.idx.size // 4:
             b = _compacted(b, act, min_batch, mesh, dtype)
-        b = b._replace(state=_segment_batch(b.state, target, b.args, ctl, segment, adaptive, monitor, observers))
+        b = b._replace(state=_segment_batch(b.state, target, b.args, ctl, np.int32(segment), adaptive, monitor,
+                                            observers))
     full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
     return _finish(full, horizon.t_final) if finish else full
 
@@ -390,7 +392,8 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), args)
     target = np.asarray(horizon.t_final, np.dtype(dtype))
     dev = jax.tree_util.tree_map(jnp.asarray, state)
-    dev = _segment_batch(dev, target, args, ctl, segment, step.method == "adaptive", step.check_passivity, observers)
+    dev = _segment_batch(dev, target, args, ctl, np.int32(segment), step.method == "adaptive", step.check_passivity,
+                         observers)
     b = _Batch(dev, args, None, np.arange(state.t.shape[-1]), None)
     if certify and step.method == "adaptive":
         b = _certified(b, horizon, eps, None)
@@ -517,10 +520,12 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
     save_times = horizon.save_times()
     out = []
     for i in range(0, save_times.size, block):
-        state, ys = _saving_batch(state, np.asarray(save_times[i:i + block], np.dtype(dtype)), args, ctl,
-                                  adaptive, monitor,
-                                  observers)
-        out.append(np.asarray(ys))
+        times = save_times[i:i + block]
+        # every block has ``block`` times (one program for any horizon): a short one repeats its last time, at
+        # which every lane already is or has stopped, so the padding takes no step and its rows are dropped
+        padded = np.concatenate([times, np.repeat(times[-1:], block - times.size)])
+        state, ys = _saving_batch(state, np.asarray(padded, np.dtype(dtype)), args, ctl, adaptive, monitor, observers)
+        out.append(np.asarray(ys)[:times.size])
         if progress is not None:
             progress.update(min(i + block, save_times.size) / save_times.size)
     ys = np.moveaxis(np.concatenate(out, axis=0), -1, 0)     # (K, 5, N) blocks -> (N, K, 5)

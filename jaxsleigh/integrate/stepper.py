@@ -57,7 +57,7 @@ from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt",
-           "run", "Scan", "WhileActive", "Checkpointed", "run_saving", "run_plain", "q_norm2_w"]
+           "run", "Scan", "Count", "WhileActive", "Checkpointed", "run_saving", "run_plain", "q_norm2_w"]
 
 #: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
 GUARD_EVERY = 8
@@ -431,6 +431,17 @@ class Scan(NamedTuple):
         return jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=int(self.n), unroll=self.unroll)[0]
 
 
+class Count(NamedTuple):
+    """``n`` attempts, all of them, with ``n`` traced (a ``fori_loop``): one compiled program for every segment length,
+    so a new horizon, whose first segment is shorter, compiles nothing new. Forward mode only: the engine's segments
+    (`jaxsleigh.integrate.engine`), which step every lane as `Scan` does (the same body, bitwise)."""
+
+    n: object
+
+    def __call__(self, body, busy, carry):
+        return jax.lax.fori_loop(0, self.n, lambda i, c: body(c), carry)
+
+
 class WhileActive(NamedTuple):
     """Until no lane is active (a ``while_loop``): as many attempts as the stiffest lane needs, forward mode only."""
 
@@ -467,9 +478,9 @@ class Checkpointed(NamedTuple):
 def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive: bool, monitor: bool = True,
         observers=DEFAULT_OBSERVERS, accumulate=None, acc=None):
     """The stepper's one loop over time: attempted steps of a batch (batch-last) towards ``target``, as ``loop``
-    says (`Scan`: a fixed number; `WhileActive`: until no lane is active; `Checkpointed`: at most a number, in
-    checkpointed segments, for reverse mode). A lane that has reached its target, failed or used its budget
-    (``ctl.max_steps``) idles.
+    says (`Scan`: a fixed number; `Count`: a traced number, forward only; `WhileActive`: until no lane is active;
+    `Checkpointed`: at most a number, in checkpointed segments, for reverse mode). A lane that has reached its
+    target, failed or used its budget (``ctl.max_steps``) idles.
 
     ``s`` is batch-*last* (every field has the batch as its trailing axis): the loop carries structure-of-arrays
     state and `attempt` broadcasts over that axis. On CPU this layout ran ~3x faster than ``vmap`` of a whole scan
