@@ -254,11 +254,12 @@ def test_plain_fixed_path_equals_the_checked_stepper():
         run_ensemble(ics, t_final=5.0, saveat=js.SaveAt(summaries=False))
 
 
-def test_the_three_kinds_of_the_one_loop_step_every_lane_alike():
-    """`stepper.run` with `Scan`, `WhileActive` and `Checkpointed` (with and without blocks) takes the same attempts:
-    a batch run to its horizon ends in the same states, step counts and statuses whichever loop carried it, and a
-    `Checkpointed` budget too small for the stiffest lane leaves that lane short while the others finish."""
-    from jaxsleigh.integrate.stepper import Checkpointed, Scan, WhileActive, controls, init_batch, run
+def test_every_kind_of_the_one_loop_steps_every_lane_alike():
+    """`stepper.run` with `Scan`, `Count` (its count traced), `WhileActive` and `Checkpointed` (with and without
+    blocks) takes the same attempts: a batch run to its horizon ends in the same states, step counts and statuses
+    whichever loop carried it, and a `Checkpointed` budget too small for the stiffest lane leaves that lane short while
+    the others finish."""
+    from jaxsleigh.integrate.stepper import Checkpointed, Count, Scan, WhileActive, controls, init_batch, run
 
     cfg = js.StepSizeController(rtol=1e-6, atol=1e-6, max_step=0.01, max_steps=10**5)
     with jax.enable_x64(True):
@@ -270,6 +271,7 @@ def test_the_three_kinds_of_the_one_loop_step_every_lane_alike():
         ends = {name: jax.jit(lambda s, loop=loop: run(s, 2.0, args, ctl, loop, adaptive=True))(s0)
                 for name, loop in {"scan": Scan(3000), "while": WhileActive(), "checkpointed": Checkpointed(3000, 16),
                                    "blocks": Checkpointed(3000, 8, block=4)}.items()}
+        ends["count"] = jax.jit(lambda s, n: run(s, 2.0, args, ctl, Count(n), adaptive=True))(s0, np.int32(3000))
         short = jax.jit(lambda s: run(s, 2.0, args, ctl, Checkpointed(250, 8, block=4), adaptive=True))(s0)
     attempts = np.asarray(ends["while"].n_accept + ends["while"].n_reject)
     assert np.all(np.asarray(ends["while"].t) == 2.0) and attempts.max() > 250 > attempts.min()
@@ -279,3 +281,23 @@ def test_the_three_kinds_of_the_one_loop_step_every_lane_alike():
         np.testing.assert_array_equal(np.asarray(s.status), np.asarray(ends["while"].status), err_msg=name)
     done = np.asarray(short.t) == 2.0
     np.testing.assert_array_equal(done, attempts <= 256)
+
+
+def test_a_new_horizon_compiles_no_new_segment_or_save_block():
+    """The engine's largest programs, a segment of attempts and a block of save times, are compiled once for a batch
+    shape: a second horizon, whose segments and last save block are shorter or longer, reuses them (the segment's
+    attempt count is traced; a save block always has the block's length, padded with its last time). (That they
+    step every lane as before: the golden runs, bitwise.)"""
+    from jaxsleigh.integrate import engine
+
+    ics = np.array([[1.0, 0.5, 0.3], [-2.0, 1.0, 1.2]])
+    js.run_ensemble(ics, t_final=1.0)                                   # segments of 108 attempts
+    js.simulate(ics, t_final=1.0, saveat=js.SaveAt(every=10))          # one block of 11 save times
+    sizes = engine._segment_batch._cache_size(), engine._saving_batch._cache_size()
+    r = js.run_ensemble(ics, t_final=2.5)                               # 258 attempts
+    sol = js.simulate(ics, t_final=2.5, saveat=js.SaveAt(every=5))     # 51 save times
+    assert (engine._segment_batch._cache_size(), engine._saving_batch._cache_size()) == sizes
+    assert np.all(r.status == 0) and sol.q.shape == (2, 51, 3) and np.all(np.isfinite(sol.q))
+    np.testing.assert_allclose(sol.q[:, -1], r.q_final, atol=1e-4)     # the path ends where the run does (its steps
+    #                                                                     land on the save times, so not bitwise)
+

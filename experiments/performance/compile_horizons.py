@@ -1,10 +1,10 @@
-"""Compilation in an exploring session: one fresh process runs ensembles and saved trajectories at several horizons,
+"""Compilation while exploring: one fresh process runs ensembles and saved trajectories at several horizons,
 this tree against a baseline, and counts what it compiled.
 
     python experiments/performance/compile_horizons.py [--repeats 3] [--baseline 8d27cd5]
                                                        [--out docs/figures/compile_horizons.json]
 
-The session (`SESSION`, public API only) is what a notebook user does while exploring: 600 starts (20 of them
+The program (`EXPLORE`, public API only) is what a notebook user runs while exploring: 600 starts (20 of them
 near theta = 0, so batches are compacted) at horizons of 3, 8 and 30 s and in float64 at 4 s, then trajectories
 saved at 100 s (every 10 base steps), 7.3 s (every 73) and 0.5 s (every step). Each run is a new process with no
 compilation cache (`JAXSLEIGH_NO_COMPILE_CACHE=1`, JAX's cache variables removed), so every program it needs is
@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-SESSION = """
+EXPLORE = """
 import hashlib, numpy as np, jaxsleigh as js
 rng = np.random.default_rng(4)
 ics = np.column_stack([rng.uniform(-3, 3, (600, 2)), rng.uniform(0.3, 3, 600) * rng.choice([-1, 1], 600)])
@@ -48,17 +48,17 @@ print("digest", h.hexdigest())
 _COMPILED = re.compile(r"Finished XLA compilation of (\S+) in ([0-9.e+-]+) sec")
 
 
-def session(tree: Path) -> dict:
-    """One fresh process of `SESSION` with ``tree`` on the path: wall time, programs compiled, compile seconds and
+def explore(tree: Path) -> dict:
+    """One fresh process of `EXPLORE` with ``tree`` on the path: wall time, programs compiled, compile seconds and
     the digest of its outputs."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))}
     env.update(JAX_PLATFORMS="cpu", JAXSLEIGH_NO_COMPILE_CACHE="1", JAX_LOG_COMPILES="1", PYTHONPATH=str(tree))
     with tempfile.TemporaryDirectory() as d:     # from an empty folder: `-c` puts it first on sys.path
         t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, "-c", SESSION], env=env, capture_output=True, text=True, cwd=d)
+        r = subprocess.run([sys.executable, "-c", EXPLORE], env=env, capture_output=True, text=True, cwd=d)
         wall = time.perf_counter() - t0
     if r.returncode:
-        raise SystemExit(f"the session failed with {tree} on the path:\n{r.stderr[-2000:]}")
+        raise SystemExit(f"the program failed with {tree} on the path:\n{r.stderr[-2000:]}")
     compiled = [(name, float(s)) for name, s in _COMPILED.findall(r.stderr)]
     engine = [s for name, s in compiled if name in ("jit(_segment_batch)", "jit(_saving_batch)")]
     return {"wall_s": wall, "programs": len(compiled), "compile_s": sum(s for _, s in compiled),
@@ -86,7 +86,7 @@ def main() -> None:
     try:
         for r in range(a.repeats):
             for t in (list(trees) if r % 2 == 0 else list(trees)[::-1]):
-                runs[t].append(session(trees[t]))
+                runs[t].append(explore(trees[t]))
                 x = runs[t][-1]
                 print(f"{t}: {x['wall_s']:.1f} s, {x['programs']} programs compiled in {x['compile_s']:.1f} s",
                       file=sys.stderr)

@@ -31,10 +31,11 @@ exactly over the step; classical RK4 on the rest), with a PI controller (`jaxsle
 **Fixed shape.** One loop iteration is one attempted step of every trajectory of a batch; a
 trajectory that has reached its target time, failed, or used its budget idles. Every step of a
 batch heads for the same target time, so nothing is gathered or scattered per step:
-`run` is the one loop over time, in three kinds (`Scan`: a fixed number of attempts, the segments between which
-ensembles compact the batch on the host; `WhileActive`: until every lane is done; `Checkpointed`: a bounded number
-in checkpointed segments, for reverse mode); `run_saving` walks a grid of save times (decimated trajectories) with
-it, and `run_plain` is the fast path's plain fixed-step RK4 (no masks, no summaries).
+`run` is the one loop over time, in four kinds (`Scan`: a fixed number of attempts; `Count`: a traced number, the
+segments between which ensembles compact the batch on the host, one program for every horizon; `WhileActive`: until
+every lane is done; `Checkpointed`: a bounded number in checkpointed segments, for reverse mode); `run_saving`
+walks a grid of save times (decimated trajectories) with it, and `run_plain` is the fast path's plain fixed-step RK4
+(no masks, no summaries).
 
 Time is accumulated with compensated (two-sum) addition, so float32 runs keep time exact to
 rounding over ``1e4`` or more steps.
