@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import statistics
 import subprocess
@@ -27,7 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from common import ROOT, baseline_tree, load, machine  # noqa: E402
 EXPLORE = """
 import hashlib, numpy as np, jaxsleigh as js
 rng = np.random.default_rng(4)
@@ -74,49 +74,40 @@ def main() -> None:
     a = ap.parse_args()
     if a.repeats < 1:
         ap.error("--repeats >= 1")
-    trees = {"this tree": ROOT}
-    tmp = None
-    if a.baseline:
-        tmp = tempfile.mkdtemp()
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", f"{tmp}/base", a.baseline],
-                       check=True, capture_output=True)
-        trees[a.baseline] = Path(tmp) / "base"
-    runs = {t: [] for t in trees}
-    loads = [os.getloadavg()[0]]
+    trees = {"this tree": ROOT, **({a.baseline: baseline_tree(a.baseline)} if a.baseline else {})}
+    runs, loads = {t: [] for t in trees}, [load()]
     try:
-        for r in range(a.repeats):
+        for r in range(a.repeats):          # interleaved, in alternating order: both trees see the same machine
             for t in (list(trees) if r % 2 == 0 else list(trees)[::-1]):
                 runs[t].append(explore(trees[t]))
                 x = runs[t][-1]
                 print(f"{t}: {x['wall_s']:.1f} s, {x['programs']} programs compiled in {x['compile_s']:.1f} s",
                       file=sys.stderr)
-            loads.append(os.getloadavg()[0])
+            loads.append(load())
     finally:
-        if tmp:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", f"{tmp}/base"],
+        if a.baseline:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(trees[a.baseline])],
                            capture_output=True)
-    digests = {x["digest"] for v in runs.values() for x in v}
-    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True).stdout.strip()
-    print(f"{a.repeats} repeats, medians of fresh processes without a cache; {platform.machine()}, "
-          f"os.cpu_count() = {os.cpu_count()}, 1-min load average {min(loads):.1f}-{max(loads):.1f}; "
-          f"outputs {'identical in every run' if len(digests) == 1 else 'DIFFER between runs'}\n")
+    same = len({x["digest"] for v in runs.values() for x in v}) == 1
+    table = {t: {k: statistics.median(x[k] for x in v)
+                 for k in ("wall_s", "programs", "compile_s", "engine_programs", "engine_compile_s")}
+             for t, v in runs.items()}
+    one_min = [x[0] for x in loads]
+    print(f"{a.repeats} repeats, medians of fresh processes without a cache; {machine()}, 1-min load average "
+          f"{min(one_min):.1f}-{max(one_min):.1f}; outputs {'identical in every run' if same else 'DIFFER'}\n")
     print("| tree | wall [s] | programs compiled | compile [s] | of them the engine's segments and save blocks |\n"
           "|---|---|---|---|---|")
-    table = {}
-    for t, v in runs.items():
-        m = {k: statistics.median(x[k] for x in v) for k in ("wall_s", "programs", "compile_s", "engine_programs",
-                                                            "engine_compile_s")}
-        table[t] = m
+    for t, m in table.items():
         print(f"| {t} | {m['wall_s']:.1f} | {m['programs']:.0f} | {m['compile_s']:.1f} | "
               f"{m['engine_programs']:.0f} in {m['engine_compile_s']:.1f} s |")
     if a.out:
+        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True).stdout.strip()
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps({
             "command": "python experiments/performance/compile_horizons.py " + " ".join(sys.argv[1:]), "head": head,
-            "machine": f"{platform.machine()} {platform.processor()}".strip(), "cpu_count": os.cpu_count(),
-            "dtype": "float32 (one run in float64)", "load_average_1min": loads,
-            "identical_outputs": len(digests) == 1, "runs": runs, "medians": table}, indent=1) + "\n")
+            "machine": machine(), "dtype": "float32 (one run in float64)", "load_average": loads,
+            "identical_outputs": same, "runs": runs, "medians": table}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
