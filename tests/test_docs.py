@@ -210,6 +210,34 @@ def test_preset_numbers_are_the_committed_measurements():
     assert f"**{bal['energy_ratio_to_paper']['p75']:.2f}**" in tuning
 
 
+def test_the_tolerance_table_quotes_its_json_and_its_claims_hold():
+    """The accuracy page's table of tolerances quotes `experiments/studies/tolerance_cost.py`'s JSON row by row, and
+    what the page says of it holds there: T_eps is early for every settled start at every tolerance (the 99th
+    percentile is negative), its median grows with the tolerance, float64 at 1e-6 errs as float32 does (truncation,
+    not rounding), no start settles in one run only, and the default has no start (basin) or one (wide) beyond 1 ms."""
+    import json
+
+    d = json.loads((DOCS / "figures" / "tolerance_cost.json").read_text())
+    assert d["command"] == "python experiments/studies/tolerance_cost.py" and d["n"] == 1024
+    page = (DOCS / "evidence" / "accuracy.md").read_text()
+    assert "`python experiments/studies/tolerance_cost.py`" in page
+    b, w = d["dists"]["basin"]["runs"], d["dists"]["wide"]["runs"]
+    ms = lambda x: f"{1e3 * x:.2f}".replace("-", "\u2212")  # noqa: E731
+    for key, rb in b.items():
+        rw = w[key]
+        tb, tw = rb["T_eps_diff_s"], rw["T_eps_diff_s"]
+        cells = (f"| {rb['mean_steps']:,.0f} / {rw['mean_steps']:,.0f} | {ms(tb['median'])} / {ms(tw['median'])} | "
+                 f"{ms(tb['p1'])} / {ms(tw['p1'])} | {ms(max(tb['p99'], tw['p99']))} |")
+        assert cells in page, (key, cells)
+        assert tb["p99"] < 0 and tw["p99"] < 0 and rb["settled_in_one_only"] == rw["settled_in_one_only"] == 0
+    medians = [b[k]["T_eps_diff_s"]["median"] for k in ("float32 1e-06", "float32 2e-06", "float32 3e-06", "float32 1e-05")]
+    assert medians == sorted(medians, reverse=True)
+    f32, f64 = b["float32 1e-06"]["T_eps_diff_s"], b["float64 1e-06"]["T_eps_diff_s"]
+    assert abs(f32["median"] / f64["median"] - 1) < 0.1
+    assert b["float32 1e-06"]["T_eps_diff_s"]["over_1e-3"] == 0 and w["float32 1e-06"]["T_eps_diff_s"]["over_1e-3"] <= 1
+    saved = 1 - b["float32 1e-05"]["mean_steps"] / b["float32 1e-06"]["mean_steps"]
+    assert f"saves {100 * saved:.0f}% of the steps of a basin" in " ".join(page.split())
+
 def test_family_study_tables_quote_their_json():
     """The shaped-energy page's tables of the two tuner studies quote `experiments/studies/shaped_study.py`'s JSON (shaped
     and paper families): each tuner's best training objective, and every held-out median T and energy ratio row."""
