@@ -230,7 +230,7 @@ def test_the_tolerance_table_quotes_its_json_and_its_claims_hold():
                  f"{ms(tb['p1'])} / {ms(tw['p1'])} | {ms(max(tb['p99'], tw['p99']))} |")
         assert cells in page, (key, cells)
         assert tb["p99"] < 0 and tw["p99"] < 0 and rb["settled_in_one_only"] == rw["settled_in_one_only"] == 0
-    medians = [b[k]["T_eps_diff_s"]["median"] for k in ("float32 1e-06", "float32 2e-06", "float32 3e-06", "float32 1e-05")]
+    medians = [b[f"float32 {tol}"]["T_eps_diff_s"]["median"] for tol in ("1e-06", "2e-06", "3e-06", "1e-05")]
     assert medians == sorted(medians, reverse=True)
     f32, f64 = b["float32 1e-06"]["T_eps_diff_s"], b["float64 1e-06"]["T_eps_diff_s"]
     assert abs(f32["median"] / f64["median"] - 1) < 0.1

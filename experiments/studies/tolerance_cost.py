@@ -18,7 +18,8 @@ run's time follows it; at this size compilation and the few starts near theta = 
 difference of T_eps from the reference over the starts that settle in both (mean, median, 1st and 99th
 percentiles, the largest in size, how many are more than 1e-3 s off), how many starts settle in one and not the
 other, the relative energy difference (99th percentile, largest, the share more than 5% off) and the final
-position's distance from the reference's, relative where the reference ends more than 1 m away (median, largest). Machine, dtype and command are in the JSON.
+position's distance from the reference's, relative where the reference ends more than 1 m away (median, largest).
+Machine, dtype and command are in the JSON.
 """
 from __future__ import annotations
 
@@ -56,9 +57,11 @@ def compare(r, ref) -> dict:
     d = t[both] - tr[both]
     e = np.abs(np.asarray(r.u_energy, np.float64)[ok] / np.asarray(ref.u_energy, np.float64)[ok] - 1.0)
     qr = np.asarray(ref.q_final, np.float64)[ok, :2]
-    q = np.linalg.norm(np.asarray(r.q_final, np.float64)[ok, :2] - qr, axis=1) / np.maximum(1.0, np.linalg.norm(qr, axis=1))
+    q = np.linalg.norm(np.asarray(r.q_final, np.float64)[ok, :2] - qr, axis=1)
+    q = q / np.maximum(1.0, np.linalg.norm(qr, axis=1))
+    one_only = ok & (np.isfinite(t) != np.isfinite(tr))
     return {"mean_steps": round(float(np.mean(r.n_steps)), 1), "compared": int(ok.sum()),
-            "settled_both": int(both.sum()), "settled_in_one_only": int((ok & (np.isfinite(t) != np.isfinite(tr))).sum()),
+            "settled_both": int(both.sum()), "settled_in_one_only": int(one_only.sum()),
             "T_eps_diff_s": {"mean": float(d.mean()), "median": float(np.median(d)), "p1": float(np.percentile(d, 1)),
                              "p99": float(np.percentile(d, 99)), "largest": float(np.abs(d).max()),
                              "over_1e-3": int((np.abs(d) > 1e-3).sum())},
@@ -75,7 +78,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/figures/tolerance_cost.json")
     a = ap.parse_args(argv)
     tols = [float(x) for x in a.tols.split(",")]
-    res = {"command": " ".join(["python experiments/studies/tolerance_cost.py", *(sys.argv[1:] if argv is None else argv)]),
+    given = sys.argv[1:] if argv is None else argv
+    res = {"command": " ".join(["python experiments/studies/tolerance_cost.py", *given]),
            "machine": machine(), "dtype": "float32 (the runs), float64 (the reference, and the run so marked)",
            "law": "paper's gains", "n": a.n, "load_start": load(), "dists": {}}
     for dist in a.dists.split(","):
