@@ -238,6 +238,7 @@ def test_the_tolerance_table_quotes_its_json_and_its_claims_hold():
     saved = 1 - b["float32 1e-05"]["mean_steps"] / b["float32 1e-06"]["mean_steps"]
     assert f"saves {100 * saved:.0f}% of the steps of a basin" in " ".join(page.split())
 
+
 def test_family_study_tables_quote_their_json():
     """The shaped-energy page's tables of the two tuner studies quote `experiments/studies/shaped_study.py`'s JSON (shaped
     and paper families): each tuner's best training objective, and every held-out median T and energy ratio row."""
