@@ -13,13 +13,13 @@ in eight |theta0| below 0.3, momentum for half; ``experiments/studies/preset_eff
 * in float64 at the float32 default's tolerance: the same tolerance in another precision, which tells the
   integrator's truncation error from float32's rounding.
 
-Per run (the starts whose status is OK in both it and the reference): the mean attempted steps (the cost: a large
-run's time follows it; at this size compilation and the few starts near theta = 0 decide the wall time), the signed
-difference of T_eps from the reference over the starts that settle in both (mean, median, 1st and 99th
-percentiles, the largest in size, how many are more than 1e-3 s off), how many starts settle in one and not the
-other, the relative energy difference (99th percentile, largest, the share more than 5% off) and the final
-position's distance from the reference's, relative where the reference ends more than 1 m away (median, largest).
-Machine, dtype and command are in the JSON.
+Per run (the starts whose status is OK in both it and the reference): the mean attempted steps (the cost in steps:
+at this size compilation and the few starts near theta = 0 decide the wall time, and what fewer steps buy a large
+basin in time is measured on the accuracy page), the signed difference of T_eps from the reference over the starts
+that settle in both (mean, median, 1st and 99th percentiles, the largest in size, how many are more than 1e-3 s
+off), how many starts settle in one and not the other, the relative energy difference (99th percentile, largest, the
+share more than 5% off) and the final position's distance from the reference's, relative where the reference ends
+more than 1 m away (median, largest). Machine, dtype and command are in the JSON.
 """
 from __future__ import annotations
 
