@@ -9,7 +9,8 @@ r"""The default basin's stragglers near theta = 0, answered: this tree against a
    timed in turn ``--repeats`` times (interleaved), with the load average before and after each run: wall time,
    starts per second, the status counts, the attempted steps.
 2. ``agreement``: of the last runs of both trees, the starts that settle in both (same status? the largest
-   difference of T_eps), and the share of starts without an answer (status 4, budget exhausted) in each.
+   difference of T_eps), and the share of starts without an answer (status 4, budget exhausted) in each. A start
+   whose T_eps differ by more than 1e-3 s is run again in float64 at rtol = atol = 1e-10: each tree's error.
 3. ``certified``: the ``--radau`` starts of the new run that were certified not to settle (status 9) with the
    largest ``|theta0|`` (the cheapest for the reference), integrated by SciPy's Radau in float64
    (rtol = atol = 1e-8, physical chart) to the horizon: whether each is outside the ball ``|q| <= eps`` there (it must
@@ -70,6 +71,25 @@ def agreement(a_path: Path, b_path: Path) -> dict:
             "transitions": {f"{x}->{y}": int(np.sum((sa == x) & (sb == y)))
                             for x in np.unique(sa) for y in np.unique(sb) if np.any((sa == x) & (sb == y))},
             "n": n}
+
+
+def reference_check(a_path: Path, b_path: Path, t_final: float, over: float = 1e-3) -> list:
+    """The starts that settle in both runs with T_eps more than ``over`` apart, run again in float64 at
+    rtol = atol = 1e-10 (`jaxsleigh.run_basin`, the reference): each run's T_eps error against it."""
+    import jaxsleigh as js
+
+    a, b = np.load(a_path), np.load(b_path)
+    ta, tb = a["T_eps"], b["T_eps"]
+    both = np.isfinite(ta) & np.isfinite(tb) & (a["status"] == 0) & (b["status"] == 0)
+    rows = np.flatnonzero(both & (np.abs(np.where(both, ta - tb, 0.0)) > over))
+    if rows.size == 0:
+        return []
+    ref = js.run_basin(b["ics"][rows], t_final=t_final, x64=True,
+                       stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10),
+                       run=js.RunOptions(progress=False, audit=False)).T_eps
+    return [{"row": int(i), "start": b["ics"][i].tolist(), "T_eps_baseline": float(ta[i]), "T_eps_new": float(tb[i]),
+             "T_eps_float64_reference": float(r), "error_baseline_s": float(ta[i] - r), "error_new_s": float(tb[i] - r)}
+            for i, r in zip(rows, np.asarray(ref))]
 
 
 def radau_check(path: Path, k: int, t_final: float, eps: float = 0.05) -> list:
@@ -136,6 +156,8 @@ def main():
         walls = {k: [r["wall_s"] for r in v] for k, v in res["runs"].items()}
         res["throughput_ratio"] = [round(b / n, 3) for b, n in zip(walls["baseline"], walls["new"])]
         res["agreement"] = agreement(work / "baseline.npz", work / "new.npz")
+        res["agreement"]["T_eps_over_1e-3_against_float64"] = reference_check(work / "baseline.npz",
+                                                                             work / "new.npz", a.t_final)
         print(json.dumps(res["agreement"]), flush=True)
         if a.radau:
             res["certified"] = radau_check(work / "new.npz", a.radau, a.t_final)
