@@ -4,9 +4,11 @@ r"""Stragglers near \(\theta = 0\): a certificate, from \(H_d\), that a trajecto
 on the default 10^5-start basin (`experiments/performance/basin_stragglers.py`), its trajectory has two phases:
 
 1. a *flight*: the sleigh turns away from \(\theta = 0\) within milliseconds and travels \(10^4\)-\(10^5\) m at up
-   to \(10^7\) m/s while the injected damping burns \(H_d\) down; the adaptive step is \(10^{-7}\)-\(10^{-5}\) s and
-   set by accuracy (SciPy's RK45 takes as many steps in the physical chart as in the w chart), not by the float32
-   rounding floor nor by rejections (~10% of attempts);
+   to \(10^7\) m/s while the injected damping burns \(H_d\) down; the adaptive step is \(10^{-7}\)-\(10^{-5}\) s,
+   not set by the float32 rounding floor nor by rejections (~10% of attempts), but by stability: the flight is
+   stiff. An explicit step needs ~2e5 attempts for the first second or less (SciPy's RK45 as many, in either chart),
+   where the implicit Radau and LSODA (float64, rtol = atol = 1e-8) cross the whole 100 s in ~2e3 steps
+   (`experiments/performance/flier_stiffness.py`);
 2. a *creep*: the sleigh has stopped (kinetic energy ~1e-9 J) far from the target with \(|w_3| \sim 10^3\), and the
    potential and the damping nearly balance; \(H_d\) stays at ~1e6 J, the sleigh creeps at ~1e-5 m/s, and the
    stiff, lightly damped oscillation of \((w_2, p_2)\) at \(\sim |Q_{w,22}| \sqrt{L_2 / (J + m l^2)}\) rad/s caps
