@@ -57,7 +57,10 @@ def rosenbrock_step(f, dtype):
 
 def integrate(step, y0, t_final: float, tol: float, dtype, max_attempts: int = 200_000) -> dict:
     """The host loop of adaptive steps from ``y0`` over ``[0, t_final]``."""
+    import jax
     import jax.numpy as jnp
+
+    from jaxsleigh.model.closed_loop import state_from_w
 
     y, t, h, n, rej = jnp.asarray(y0, dtype), 0.0, 1e-6, 0, 0
     t0 = time.perf_counter()
@@ -70,8 +73,8 @@ def integrate(step, y0, t_final: float, tol: float, dtype, max_attempts: int = 2
         else:
             rej += 1
         h *= min(5.0, max(0.2, 0.9 * max(e, 1e-10) ** (-1.0 / 3.0))) if np.isfinite(e) else 0.2
-    w = np.asarray(y, np.float64)
-    q = np.array([w[0], w[0] * (w[1] + w[2]), 0.5 * w[0] * w[0] * w[2]])          # the w chart's position
+    with jax.enable_x64(True):
+        q = np.asarray(state_from_w(jnp.asarray(y, jnp.float64)))[:3]
     return {"t_end": round(t, 6), "steps": n, "rejected": rej, "abs_q_end": float(np.linalg.norm(q)),
             "wall_s": round(time.perf_counter() - t0, 2)}
 
@@ -91,8 +94,7 @@ def main():
     from jaxsleigh.model.closed_loop import ClosedLoop, state_to_w, vector_field_w
 
     src = json.loads(a.fliers.read_text())
-    n, seed = (int(x) for x in src["starts"].split("(")[1].split(")")[0].replace("seed=", "").split(","))
-    ics = js.sample_starts(n, seed=seed).ics
+    ics = js.sample_starts(src["n"], seed=src["seed"]).ics
     fliers = src["rows"][:a.k]
     with jax.enable_x64(True):
         y0s = [np.asarray(state_to_w(jnp.asarray(np.r_[ics[r["row"]], 0.0, 0.0], jnp.float64))) for r in fliers]

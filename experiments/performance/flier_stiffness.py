@@ -31,14 +31,15 @@ from common import ROOT, load, machine  # noqa: E402
 
 
 def implicit(method: str, f, jac, y0, t_final: float) -> dict:
-    """``method`` (a stiff SciPy solver) on the w-chart closed loop from ``y0`` to ``t_final``."""
+    """``method`` (a stiff SciPy solver) on the w-chart closed loop from ``y0`` to ``t_final`` (in float64)."""
     from scipy.integrate import solve_ivp
+
+    from jaxsleigh.model.closed_loop import state_from_w
 
     t0 = time.perf_counter()
     s = solve_ivp(lambda t, y: np.asarray(f(t, y)), (0.0, t_final), y0, method=method, rtol=1e-8, atol=1e-8,
                   jac=lambda t, y: np.asarray(jac(t, y)))
-    w = s.y[:, -1]
-    q = np.array([w[0], w[0] * (w[1] + w[2]), 0.5 * w[0] * w[0] * w[2]])      # the w chart's position
+    q = np.asarray(state_from_w(s.y[:, -1]))[:3]
     return {"status": int(s.status), "t_end": float(s.t[-1]), "steps": int(s.t.size - 1), "nfev": int(s.nfev),
             "wall_s": round(time.perf_counter() - t0, 2), "abs_q_end": float(np.linalg.norm(q))}
 
@@ -85,6 +86,7 @@ def main():
     out = {"command": "python experiments/performance/flier_stiffness.py " + " ".join(sys.argv[1:]),
            "dtype": "engine float32 (defaults); SciPy float64", "machine": info, "load": load(),
            "starts": f"jaxsleigh.sample_starts({a.n}, seed={a.seed}) with |theta0| < {a.theta:g}: {near.size}",
+           "n": a.n, "seed": a.seed,
            "engine_status": {int(s): int(c) for s, c in zip(status, counts)}, "engine_wall_s": round(engine_s, 2),
            "fliers": len(rows),
            "summary": {"engine_t_reached_max": max((x["engine"]["t_reached"] for x in rows), default=None),
