@@ -4,7 +4,7 @@ r"""A linearly implicit step on the basin's fliers: a Rosenbrock pair in JAX, in
         [--out docs/figures/flier_rosenbrock.json]
 
 The first ``--k`` fliers of ``--fliers`` (written by ``experiments/performance/flier_stiffness.py``: starts of the
-default basin's sample that use up the engine's budget of 2e5 attempts) are integrated over 100 s in the w chart by
+default basin's sample that run long: the explicit step alone used up its budget of 2e5 attempts on them) are integrated over 100 s in the w chart by
 the modified Rosenbrock pair of order 2(3) of Shampine and Reichelt (MATLAB's ``ode23s``; SIAM J. Sci. Comput.
 18(1), 1997), with \(d = 1/(2 + \sqrt 2)\) and \(W = I - h d J\), \(J\) the 5x5 Jacobian from `jax.jacfwd`:
 

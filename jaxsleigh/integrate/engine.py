@@ -259,9 +259,40 @@ def _active(s, target, ctl):
 
 
 #: ``n_attempts`` is traced: one program serves every segment length (a short horizon's, a tail's)
-@kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
-def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
-    return run(state, target, args, ctl, Count(n_attempts), adaptive=adaptive, monitor=monitor, observers=observers)
+@kept_jit(static_argnames=("adaptive", "monitor", "observers", "implicit"), donate_argnums=(0,))
+def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True, observers=DEFAULT_OBSERVERS,
+                   implicit=False):
+    return run(state, target, args, ctl, Count(n_attempts), adaptive=adaptive, monitor=monitor, observers=observers,
+               implicit=implicit)
+
+
+def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
+             mesh=None):
+    """One segment of ``segment`` attempts of a batch. With ``stiff_after`` (adaptive; 0: never) a lane that has made
+    at least that many attempts takes the linearly implicit step for the whole segment (`STIFF_AFTER`), the others
+    the explicit one. A batch that holds both kinds is stepped twice, each time with the other kind's lanes held
+    (status set aside, so they idle), and each lane by its own kind's program: its bits never depend on whether its
+    neighbours are of the other kind."""
+    def step(st, implicit):
+        return _segment_batch(st, target, args, ctl, np.int32(segment), adaptive, monitor, observers, implicit)
+
+    if not (adaptive and stiff_after):
+        return step(state, False)
+    status = np.asarray(state.status)
+    ok = status == Status.OK
+    old = ok & (np.asarray(state.n_accept) + np.asarray(state.n_reject) >= stiff_after)
+    if not old.any() or old.sum() == ok.sum():
+        return step(state, bool(old.any()))
+    young = ok & ~old
+
+    def held(st, status):
+        return st._replace(status=jnp.asarray(status, jnp.int32) if mesh is None else shard_batch(
+            jnp.asarray(status, jnp.int32), mesh))
+
+    first = step(held(state, np.where(old, Status.INVALID_INPUT, status)), False)
+    s1 = np.asarray(first.status)
+    second = step(held(first, np.where(young, Status.INVALID_INPUT, np.where(old, Status.OK, s1))), True)
+    return held(second, np.where(young, s1, np.asarray(second.status)))
 
 
 @kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
@@ -298,6 +329,11 @@ def batch_mesh(devices=None):
     return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
 
+#: attempts after which the ensembles' adaptive engine steps a lane with the linearly implicit Rosenbrock step
+#: (`jaxsleigh.integrate.rosenbrock`): a lane still flying then is a stiff straggler near the singular set. A
+#: lane's own attempt count decides, so where it runs (a part, the pool of stragglers) never does.
+STIFF_AFTER = 20_000
+
 #: the smallest batch compaction gathers the active lanes into (a power of two), per dtype. A few stiff
 #: stragglers (starts near theta = 0) can take 100x the median's steps, and small batches make them cheaper. In float64 a batch of
 #: 32 or more lanes steps every lane bitwise as the uncompacted batch (tests/test_engine.py), 16 does not;
@@ -320,7 +356,7 @@ def _finish(full: StepState, t_final: float) -> StepState:
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
                 segment: int = 1000, compact: bool = True, progress=None, mesh=None,
                 observers=DEFAULT_OBSERVERS, state: Optional[StepState] = None, stop_at: int = 0,
-                finish: bool = True, certify: bool = False) -> StepState:
+                finish: bool = True, certify: bool = False, stiff_after: int = 0) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
     (``observers``, `jaxsleigh.integrate.observers`), taking steps as ``step`` says (a resolved
     `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.step_controller`);
@@ -334,6 +370,10 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     With ``certify``, between segments the adaptive engine stops the lanes that cannot settle before the horizon
     (`jaxsleigh.integrate.stragglers`: far from the target with too little H_d left; status ``NOT_SETTLING``):
     what a basin asks (does it settle?), not what an ensemble's final states need.
+
+    ``stiff_after`` (adaptive only; 0: never, the ensembles use `STIFF_AFTER`): a lane that has made that many
+    attempts at the start of a segment takes the linearly implicit step of `jaxsleigh.integrate.rosenbrock`
+    (`_segment`).
 
     Returns the final `StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
@@ -370,14 +410,15 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
             break
         if compact and b.idx.size > min_batch and act.sum() <= b.idx.size // 4:
             b = _compacted(b, act, min_batch, mesh, dtype)
-        b = b._replace(state=_segment_batch(b.state, target, b.args, ctl, np.int32(segment), adaptive, monitor,
-                                            observers))
+        b = b._replace(state=_segment(b.state, target, b.args, ctl, segment, adaptive, monitor, observers,
+                                      stiff_after, mesh))
     full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
     return _finish(full, horizon.t_final) if finish else full
 
 
 def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
-                  segment: int = 1000, observers=DEFAULT_OBSERVERS, certify: bool = False) -> StepState:
+                  segment: int = 1000, observers=DEFAULT_OBSERVERS, certify: bool = False,
+                  stiff_after: int = 0) -> StepState:
     """One segment of a batch-last host ``state`` (as `drive_final` steps it: ``segment`` attempts, then, with
     ``certify``, the lanes that cannot settle stopped), returned on the host, not finished. `drive_final(stop_at=...)` followed by calls of this
     steps every lane exactly as `drive_final` alone would, at the same segment boundaries: what a pool of stragglers
@@ -392,8 +433,8 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), args)
     target = np.asarray(horizon.t_final, np.dtype(dtype))
     dev = jax.tree_util.tree_map(jnp.asarray, state)
-    dev = _segment_batch(dev, target, args, ctl, np.int32(segment), step.method == "adaptive", step.check_passivity,
-                         observers)
+    dev = _segment(dev, target, args, ctl, segment, step.method == "adaptive", step.check_passivity, observers,
+                   stiff_after)
     b = _Batch(dev, args, None, np.arange(state.t.shape[-1]), None)
     if certify and step.method == "adaptive":
         b = _certified(b, horizon, eps, None)

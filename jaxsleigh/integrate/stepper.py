@@ -28,6 +28,12 @@ stability long after accuracy allows more. In the w chart the adaptive step is t
 of `jaxsleigh.integrate.etd` (the linear term of \(p_2\) and, from 20 rad/s, the oscillation integrated
 exactly over the step; classical RK4 on the rest), with a PI controller (`jaxsleigh.integrate.stepsize`).
 
+**Stiff flights.** A start within ~1e-3 rad of the singular set flies off with a huge \(H_d\) and stays stiff for
+its whole flight (`jaxsleigh.integrate.stragglers`): explicit steps are held at their stability limit there. With
+``implicit`` every step is instead the linearly implicit Rosenbrock step of `jaxsleigh.integrate.rosenbrock`
+(second order, L-stable, the same checks, observers and error norm); the ensembles' engine takes it for a lane that
+has made `jaxsleigh.integrate.engine.STIFF_AFTER` attempts.
+
 **Fixed shape.** One loop iteration is one attempted step of every trajectory of a batch; a
 trajectory that has reached its target time, failed, or used its budget idles. Every step of a
 batch heads for the same target time, so nothing is gathered or scattered per step:
@@ -54,6 +60,7 @@ from .observers import DEFAULT_OBSERVERS, StepInfo
 from .etd import etd_stages
 from .guard import oscillation_guard
 from .rk4 import rk4_stages, rk4_steps
+from .rosenbrock import rosenbrock_stages
 from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
@@ -250,6 +257,7 @@ class _Trial(NamedTuple):
     y_new: jax.Array      # (5,) the state at its end
     k5: jax.Array         # (5,) f(t + h, y_new) (FSAL); without FSAL the carried k1, unchanged
     u_new: tuple          # the control at y_new; None without FSAL
+    error_q: object = None  # the quadrature rows' error estimate; None: the classical h (g4 - g5) / 6
 
 
 def _step_towards(s: StepState, target, active):
@@ -274,6 +282,30 @@ def _trial_step(chart, s: StepState, target, active, args, observers, *, adaptiv
     return _Trial(h, hit, k1, dy, k4, dq, g4, g5, error, y_new, k5, u_new)
 
 
+def _rosenbrock_parts(chart, s: StepState, h, args, observers):
+    """The linearly implicit step of `jaxsleigh.integrate.rosenbrock` from ``s``: the arrays
+    ``(dy, k4, dq, g4, g5, e, e_q, y_new, k5, u_new)`` of a `_Trial`, with the observers' rows by Simpson's rule over
+    the step's midpoint stage (their difference from the trapezoid rule, ``e_q``, as their error) and that stage's
+    slope in the place of RK4's ``k4`` (the error's rounding floor)."""
+    dy, k5, u_new, e, (y_mid, u_mid, f_mid) = rosenbrock_stages(chart.field_and_control, s.t, s.y, h, args, s.k1)
+    y_new = s.y + dy
+    if s.quad.shape[0]:
+        g_mid = _integrands(observers, y_mid, u_mid, s.y.dtype)
+        g5 = _integrands(observers, y_new, u_new, s.y.dtype)
+        dq = (h / 6.0) * (s.g1 + 4.0 * g_mid + g5)
+        e_q = dq - (0.5 * h) * (s.g1 + g5)
+    else:
+        g_mid = g5 = dq = e_q = s.quad
+    return dy, f_mid, dq, g_mid, g5, e, e_q, y_new, k5, u_new
+
+
+def _implicit_trial(chart, s: StepState, target, active, args, observers) -> _Trial:
+    """The linearly implicit trial step (`_rosenbrock_parts`) from ``s`` towards ``target``."""
+    h, hit = _step_towards(s, target, active)
+    dy, k4, dq, g4, g5, e, e_q, y_new, k5, u_new = _rosenbrock_parts(chart, s, h, args, observers)
+    return _Trial(h, hit, s.k1, dy, k4, dq, g4, g5, lambda *_: e, y_new, k5, u_new, error_q=e_q)
+
+
 def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor: bool):
     """``(finite, crossed, rose, Hd_new)`` of a trial step: its end (adaptive: and f there) finite, ``w_1``
     carried across zero, H_d increased (never with the monitor off or in a chart without H_d), H_d at its end."""
@@ -288,24 +320,26 @@ def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor:
     return finite, crossed, rose, Hd_new
 
 
-def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose, ctl: Controls, guard=None):
+def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose, ctl: Controls, guard=None,
+                      implicit: bool = False):
     """``(ok, h_next, status, err)`` of an adaptive step: good and within tolerance (error ratio ``err``), the next
     step to try, and ``STEP_UNDERFLOW`` where a rejected step leaves a vanishing next step. ``guard``: the
     `jaxsleigh.integrate.guard` of the step's start, ``(cap, atol)``: the largest next step and the state's
-    absolute tolerance there."""
+    absolute tolerance there. ``implicit``: the step was the second-order Rosenbrock step (the next one from the
+    error's power -1/3)."""
     h, y_new, k5 = trial.h, trial.y_new, trial.k5
     # the error measure and the step-size policy: jaxsleigh.integrate.stepsize; the observers' quadrature rows
     # (the effort integrals) are under the same norm as the state, with their own embedded estimate
     err = error_ratio(h, s.y, y_new, trial.k4, k5, ctl if guard is None else ctl._replace(atol=guard[1]),
                       e=None if trial.error is None else trial.error(y_new, k5))
     if s.quad.shape[0]:
-        err = jnp.maximum(err, error_ratio(h, s.quad, s.quad + trial.dq, trial.g4, trial.g5, ctl))
+        err = jnp.maximum(err, error_ratio(h, s.quad, s.quad + trial.dq, trial.g4, trial.g5, ctl, e=trial.error_q))
     good = finite & ~crossed & ~rose
     # a NaN ratio (an overflowing estimate: inf - inf) is a failed step, not a step size: NaN there made every
     # later step NaN and burnt the lane's whole budget in rejections
     err = jnp.where(good & ~jnp.isnan(err), err, jnp.inf)
     ok = good & (err <= 1.0)
-    h_next = next_step(h, err, ctl, err_prev=s.err_prev)
+    h_next = next_step(h, err, ctl, order=2) if implicit else next_step(h, err, ctl, err_prev=s.err_prev)
     h_next = jnp.where(ok & trial.hit, jnp.maximum(h_next, s.h), h_next)
     h_next = jnp.minimum(h_next, ctl.max_step if guard is None else jnp.minimum(ctl.max_step, guard[0]))
     # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
@@ -340,12 +374,16 @@ def _quadrature_after(observers, s: StepState, trial: _Trial, acc):
 
 
 def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-            monitor: bool = True, observers=DEFAULT_OBSERVERS) -> StepState:
+            monitor: bool = True, observers=DEFAULT_OBSERVERS, implicit: bool = False) -> StepState:
     """One attempted step towards the time ``target`` (a no-op once there, failed or out of
     budget). A step that reaches ``target`` lands on it exactly. ``monitor`` (static) turns the
     passivity monitor on; off, fixed RK4 runs ~2x faster on CPU but a step that increases
     H_d goes unnoticed. ``observers`` (static, `jaxsleigh.integrate.observers`) are updated after
     every accepted step; their quadrature rows are integrated with the step's RK4 weights.
+
+    ``implicit`` (static; adaptive only): the step is the linearly implicit Rosenbrock step of
+    `jaxsleigh.integrate.rosenbrock` instead (for a stiff flight near the singular set, which the explicit step
+    crosses only at its stability limit; `jaxsleigh.integrate.engine.STIFF_AFTER`).
 
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
     trailing batch axis, so it also steps a batch-last batch (``y`` (5, N), scalars (N,))."""
@@ -357,12 +395,15 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     # (no FSAL): carrying f(y_new) across steps ran ~2x slower on XLA:CPU there, and fixed RK4
     # needs no fifth evaluation for an error estimate. Those observers need f(y_new) anyway.
     fsal = adaptive or _needs_fsal(observers)
-    trial = _trial_step(chart, s, target, active, args, observers, adaptive=adaptive, fsal=fsal)
+    implicit = implicit and adaptive
+    trial = (_implicit_trial(chart, s, target, active, args, observers) if implicit
+             else _trial_step(chart, s, target, active, args, observers, adaptive=adaptive, fsal=fsal))
     finite, crossed, rose, Hd_new = _judge(chart, s, trial, args, adaptive=adaptive, monitor=monitor)
     if adaptive:
         # a weakly damped settled oscillation is resolved, whatever its amplitude (jaxsleigh.integrate.guard)
         guard = _guard_now(chart, s, active, args, ctl)
-        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl, guard or None)
+        ok, h_next, status, err = _adaptive_outcome(s, trial, active, finite, crossed, rose, ctl, guard or None,
+                                                    implicit)
     else:
         ok, h_next, status, err = _fixed_outcome(s, active, finite, crossed, rose)
     acc, rej = active & ok, active & ~ok
@@ -402,11 +443,11 @@ def init_batch_lanes(y0w, status0, args: ClosedLoop, ctl: Controls, observers=No
     return jax.vmap(init, in_axes=(0, 0, axes, None, None), out_axes=-1)(y0w, status0, args, ctl, 0.0)
 
 
-def _batched_attempt(adaptive: bool, monitor: bool = True, observers=DEFAULT_OBSERVERS):
+def _batched_attempt(adaptive: bool, monitor: bool = True, observers=DEFAULT_OBSERVERS, implicit: bool = False):
     # attempt() broadcasts over the trailing batch axis; applying it to the batch directly keeps
     # XLA in the (5, N) layout. vmap(in_axes=-1) made it transpose to (N, 5) and re-derive the
     # step inside every per-field fusion: 3x slower on CPU (measured, 4096 trajectories).
-    return functools.partial(attempt, adaptive=adaptive, monitor=monitor, observers=observers)
+    return functools.partial(attempt, adaptive=adaptive, monitor=monitor, observers=observers, implicit=implicit)
 
 
 def starting_step(s: StepState, ctl: Controls) -> StepState:
@@ -477,7 +518,7 @@ class Checkpointed(NamedTuple):
 
 
 def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive: bool, monitor: bool = True,
-        observers=DEFAULT_OBSERVERS, accumulate=None, acc=None):
+        observers=DEFAULT_OBSERVERS, accumulate=None, acc=None, implicit: bool = False):
     """The stepper's one loop over time: attempted steps of a batch (batch-last) towards ``target``, as ``loop``
     says (`Scan`: a fixed number; `Count`: a traced number, forward only; `WhileActive`: until no lane is active;
     `Checkpointed`: at most a number, in checkpointed segments, for reverse mode). A lane that has reached its
@@ -490,8 +531,9 @@ def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive
     ``target`` is a time (per lane or shared) or a function of the state giving each lane's target at each attempt
     (e.g. its own time once it has stopped, so that it idles). With ``accumulate(acc, s, s_new) -> acc``, a pytree
     ``acc`` is carried and advanced after every attempt from the states before and after it (integrals that need
-    both ends of a step, such as the tuner's soft convergence time); the result is then ``(s, acc)``."""
-    step = _batched_attempt(adaptive, monitor, observers)
+    both ends of a step, such as the tuner's soft convergence time); the result is then ``(s, acc)``.
+    ``implicit``: `attempt`'s linearly implicit step instead of the explicit one."""
+    step = _batched_attempt(adaptive, monitor, observers, implicit)
 
     def target_of(c):
         return target(c) if callable(target) else jnp.asarray(target, c.y.dtype)

@@ -136,11 +136,15 @@ def error_ratio(h, y, y_new, k4, k5, ctl, e=None):
 PI_ALPHA, PI_BETA = 0.15, 0.05
 
 
-def next_step(h, err, ctl, err_prev=None):
+def next_step(h, err, ctl, err_prev=None, order: int = 4):
     """The next step after one of size ``h`` with error ratio ``err`` (not differentiated). With
     ``err_prev`` (the ratio of the last accepted step) an accepted step is followed by the PI choice
     \\(h\\,\\mathrm{safety}\\,\\mathrm{err}^{-\\alpha}\\,\\mathrm{err}_{\\text{prev}}^{\\beta}\\) (`PI_ALPHA`, `PI_BETA`); a rejected one, and every
-    step without ``err_prev``, by \\(h\\,\\mathrm{safety}\\,\\mathrm{err}^{-1/4}\\)."""
+    step without ``err_prev``, by \\(h\\,\\mathrm{safety}\\,\\mathrm{err}^{-1/4}\\). ``order=2`` (the Rosenbrock
+    step of `jaxsleigh.integrate.rosenbrock`, whose error is \\(O(h^3)\\)): always
+    \\(h\\,\\mathrm{safety}\\,\\mathrm{err}^{-1/3}\\)."""
+    if order == 2:
+        return h * jax.lax.stop_gradient(jnp.clip(ctl.safety * err ** (-1.0 / 3.0), ctl.factor_min, ctl.factor_max))
     fac = ctl.safety * jax.lax.rsqrt(jnp.sqrt(err))
     if err_prev is not None:
         pi = ctl.safety * err ** (-PI_ALPHA) * err_prev ** PI_BETA

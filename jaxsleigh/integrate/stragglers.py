@@ -8,7 +8,9 @@ on the default 10^5-start basin (`experiments/performance/basin_stragglers.py`),
    not set by the float32 rounding floor nor by rejections (~10% of attempts), but by stability: the flight is
    stiff. An explicit step needs ~2e5 attempts for the first second or less (SciPy's RK45 as many, in either chart),
    where the implicit Radau and LSODA (float64, rtol = atol = 1e-8) cross the whole 100 s in ~2e3 steps
-   (`experiments/performance/flier_stiffness.py`);
+   (`experiments/performance/flier_stiffness.py`). The ensembles' engine therefore switches a lane that has made
+   `jaxsleigh.integrate.engine.STIFF_AFTER` attempts to the linearly implicit step of
+   `jaxsleigh.integrate.rosenbrock`, which carries a flight to the horizon in a few thousand more;
 2. a *creep*: the sleigh has stopped (kinetic energy ~1e-9 J) far from the target with \(|w_3| \sim 10^3\), and the
    potential and the damping nearly balance; \(H_d\) stays at ~1e6 J, the sleigh creeps at ~1e-5 m/s, and the
    stiff, lightly damped oscillation of \((w_2, p_2)\) at \(\sim |Q_{w,22}| \sqrt{L_2 / (J + m l^2)}\) rad/s caps
@@ -33,8 +35,9 @@ it cannot settle before \(T\): the engine stops it there with status ``NOT_SETTL
 trajectory that reached the horizon unsettled; its final state is not computed). The margin \(c\) (4x on the
 energy) covers the difference between the computed and the exact \(H_d\) (the adaptive step's tolerances and the
 passivity monitor's 1e-6 slack). A stopped creeping straggler qualifies at once: \(H_d \sim 10^6\) J, \(d = 4\) and
-\(|q| \sim 10^4\) m give \(T - t \ge 10^3\) s. A flying one does not (its \(H_d\) is still huge): it keeps stepping
-and, where the budget runs out first, ends ``BUDGET_EXHAUSTED`` as before.
+\(|q| \sim 10^4\) m give \(T - t \ge 10^3\) s. A flying one does not (its \(H_d\) is still huge): it keeps stepping,
+implicitly once past the switch, until it creeps and is certified, or reaches the horizon; only where the budget runs
+out first does it end ``BUDGET_EXHAUSTED``.
 
 The check runs on the host between the engine's segments (`jaxsleigh.integrate.engine.drive_final`), at every
 lane's same attempt counts, so whether and where a lane stops never depends on the batch it runs in.

@@ -38,8 +38,9 @@ from .options import RunOptions, SaveAt, front_options
 from .audit import audit_rows, audit_sample, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import (active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain, drive_saving,
-                                finish_state, initial_w, put_lanes, step_controls, take_lanes_of, working_dtype)
+from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain,
+                                drive_saving, finish_state, initial_w, put_lanes, step_controls, take_lanes_of,
+                                working_dtype)
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import Gains, PlantParams
 from ..controllers.actuators import is_sampled
@@ -469,7 +470,7 @@ class _Chunks:
         a = self._lanes_args(rows)
         horizon, step, segment, observers = self.horizon, self.step, self.segment, self.observers
         kw = dict(eps=self.eps, progress=sub, observers=observers)
-        fin = dict(certify=self.certify)
+        fin = dict(certify=self.certify, stiff_after=STIFF_AFTER)
         if not self.summaries:
             part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
                                     y0w, st, a, horizon)
@@ -529,19 +530,22 @@ class _Chunks:
         of `TAIL_MIN` to `TAIL_MAX` lanes (padded with idle copies of a lane), then the lanes that cannot settle
         stopped (`jaxsleigh.integrate.engine.advance_lanes`)."""
         n = lanes.t.shape[-1]
+        # the lanes past the switch to the implicit step last (`_segment`), so that few batches hold both kinds
+        order = np.argsort(np.asarray(lanes.n_accept) + np.asarray(lanes.n_reject) >= STIFF_AFTER, kind="stable")
         out = []
         with jax.default_device(self.devs[0]), jax.enable_x64(self.cfg.x64):
             for g in range(0, n, TAIL_MAX):
-                idx = np.arange(g, min(g + TAIL_MAX, n))
+                idx = order[g:g + TAIL_MAX]
                 m = idx.size
                 fill = np.concatenate([idx, np.full(max(TAIL_MIN, bucket(m)) - m, idx[0])])
                 batch = take_lanes_of(lanes, fill)
                 idle = np.where(np.arange(fill.size) < m, batch.status, Status.INVALID_INPUT)
                 batch = batch._replace(status=idle.astype(batch.status.dtype))
                 done = advance_lanes(batch, self._lanes_args(rows[fill]), self.horizon, self.step, eps=self.eps,
-                                     segment=self.segment, observers=self.observers, certify=self.certify)
+                                     segment=self.segment, observers=self.observers, certify=self.certify,
+                                     stiff_after=STIFF_AFTER)
                 out.append(take_lanes_of(done, np.arange(m)))
-        return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1), *out)
+        return take_lanes_of(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1), *out), np.argsort(order))
 
     def _tail_summaries(self, fulls, where, active, done, y0w, st, rows):
         """The chunk's summaries: every part's final state with its finished tail lanes (``done``) put back."""
@@ -775,6 +779,8 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         settings = _ensemble_settings(cfg, sampled, save_every, chunk_size, summaries, observers)
         if certify:
             settings["stops_unsettled"] = True
+        if step.method == "adaptive" and summaries and save_every is None:
+            settings["stiff_after"] = STIFF_AFTER       # attempts before a lane's implicit steps
         devices_used = [str(d) for d in devs]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))

@@ -1,0 +1,106 @@
+"""The linearly implicit Rosenbrock step of the stiff stragglers: its 5x5 solve against NumPy, its order measured
+against DOP853, a lane's bits whatever its neighbours' step, and the basin's fliers carried to the horizon in
+agreement with float64 Radau."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxsleigh as js
+from jaxsleigh.integrate.engine import STIFF_AFTER, advance_lanes, check_ics, drive_final, initial_w, make_horizon
+from jaxsleigh.integrate.rosenbrock import lu_factor, lu_solve, rosenbrock_stages
+from jaxsleigh.model.closed_loop import ClosedLoop, state_from_w, state_to_w, vector_field_w, vector_field_w_control
+from numpy_field import numpy_field
+
+#: a start of the default basin (seed 5) 2e-4 rad from the singular set: a stiff flight of ~10^5 m
+FLIER = [1.9, -0.04, 2e-4]
+
+
+def test_the_pivoted_solve_agrees_with_numpy():
+    """Gaussian elimination with pairwise pivoting, lane by lane, solves as LAPACK does, also where the first pivot
+    is zero and where the matrices need a row exchange at every column."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 5, 16))
+    a[0, 0, :4] = 0.0                                  # no pivot in place
+    a[:, :, 4] = np.eye(5)[::-1] * np.arange(1, 6)     # a reversal: every column swaps
+    b = rng.normal(size=(5, 16))
+    with jax.enable_x64(True):
+        x = np.stack(lu_solve(lu_factor([[jnp.asarray(a[r, c]) for c in range(5)] for r in range(5)]),
+                              [jnp.asarray(v) for v in b]))
+    ref = np.stack([np.linalg.solve(a[:, :, k], b[:, k]) for k in range(16)], axis=1)
+    np.testing.assert_allclose(x, ref, rtol=1e-10, atol=1e-12)
+
+
+def _fixed(y0, t1, n, args):
+    """``n`` equal Rosenbrock steps over ``[0, t1]`` (float64) and the last step's error estimate."""
+    step = jax.jit(lambda t, y, h: rosenbrock_stages(vector_field_w_control, t, y, h, args,
+                                                     vector_field_w(t, y, args)))
+    y, h = jnp.asarray(y0), t1 / n
+    for i in range(n):
+        dy, *_, e, _ = step(i * h, y, h)
+        y = y + dy
+    return np.asarray(y), np.asarray(e)
+
+
+def test_the_step_is_second_order_and_its_estimate_third():
+    """Global error ~ h^2 against DOP853 (float64, rtol = 1e-12) from the paper's start over 1 s; the local error
+    estimate ~ h^3."""
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+    with jax.enable_x64(True):
+        y0 = np.asarray(state_to_w(jnp.asarray([1.0, 1.0, 0.5, 0.0, 0.0], jnp.float64)))
+        f, jac = numpy_field(args, vector_field_w)
+        ref = solve_ivp(f, (0.0, 1.0), y0, method="DOP853", rtol=1e-12, atol=1e-12).y[:, -1]
+        errs = [np.abs(_fixed(y0, 1.0, n, args)[0] - ref).max() for n in (50, 100, 200)]
+        est = [np.abs(_fixed(y0, h, 1, args)[1]).max() for h in (0.02, 0.01)]
+    orders = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert np.all((orders > 1.8) & (orders < 2.3)), (errs, orders)
+    assert 2.7 < np.log2(est[0] / est[1]) < 3.3, est
+
+
+def _segment(counts, n=30):
+    """A batch of 64 starts (float32) whose lanes have made ``counts`` attempts, after a segment of ``n`` more with
+    the switch to the implicit step at 1,000 (`jaxsleigh.integrate.engine.advance_lanes`, as the pool of stragglers
+    steps them)."""
+    rng = np.random.default_rng(5)
+    ics5, st = check_ics(np.column_stack([rng.uniform(-3, 3, (64, 2)), rng.uniform(0.05, 3, 64)]))
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+    hz = make_horizon(100.0, 0.01)
+    step = js.StepSizeController(rtol=1e-6, atol=1e-6, max_steps=10 ** 6, max_step=1.0)
+    s = drive_final(initial_w(ics5, st, jnp.float32), st, args, hz, step, eps=0.05, segment=n, stop_at=64,
+                    finish=False)             # the batch's start state, not stepped (64 lanes active)
+    s = s._replace(n_reject=np.asarray(counts, np.int32))
+    return advance_lanes(s, args, hz, step, eps=0.05, segment=n, stiff_after=1000)
+
+
+def test_a_lane_steps_as_its_own_kind_whatever_its_neighbours():
+    """Lanes past the switch take the implicit step and the others the explicit one, in one batch: every lane ends
+    with the bits it has in a batch of its own kind only, and the two kinds differ."""
+    past = np.arange(64) % 2 == 0
+    mixed = _segment(np.where(past, 1000, 0))
+    implicit = _segment(np.full(64, 1000))
+    explicit = _segment(np.zeros(64))
+    for a, b, c in zip(jax.tree_util.tree_leaves(mixed), jax.tree_util.tree_leaves(implicit),
+                       jax.tree_util.tree_leaves(explicit)):
+        np.testing.assert_array_equal(a[..., past], b[..., past])
+        np.testing.assert_array_equal(a[..., ~past], c[..., ~past])
+    assert not np.array_equal(implicit.y, explicit.y)
+    assert np.all(mixed.status == js.Status.OK) and np.all(mixed.n_accept >= 20)    # both kinds stepped
+
+
+@pytest.mark.slow
+def test_a_flier_reaches_the_horizon_where_float64_radau_ends():
+    """A flight that explicit steps alone do not carry through the budget of 2e5 attempts crosses 100 s after the
+    switch in a fraction of it, and ends within 1e-4 (relative) of SciPy's Radau (float64, rtol = atol = 1e-8,
+    w chart)."""
+    r = js.run_ensemble([FLIER], t_final=100.0, run=js.RunOptions(progress=False, audit=False))
+    assert r.status.tolist() == [js.Status.OK] and r.t_reached[0] == 100.0
+    assert STIFF_AFTER < r.n_steps[0] + r.n_rejected[0] < 100_000
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+    with jax.enable_x64(True):
+        f, jac = numpy_field(args, vector_field_w)
+        y0 = np.asarray(state_to_w(jnp.asarray(np.r_[FLIER, 0.0, 0.0], jnp.float64)))
+        sol = solve_ivp(f, (0.0, 100.0), y0, method="Radau", rtol=1e-8, atol=1e-8, jac=jac)
+        q_ref = np.asarray(state_from_w(jnp.asarray(sol.y[:, -1])))[:3]
+    assert sol.status == 0 and np.linalg.norm(q_ref) > 1e3          # a flight: it does not settle
+    np.testing.assert_allclose(r.q_final[0], q_ref, rtol=1e-4, atol=1e-4 * np.linalg.norm(q_ref))
