@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 import jaxsleigh as js
-from jaxsleigh.studies.basin import PowerLawFit, array_starts, path_length, power_law_fit, run_basin
+from jaxsleigh.studies.basin import PowerLawFit, path_length, power_law_fit
 from jaxsleigh.plots.basin import plot_power_laws
 from jaxsleigh.plots.paper_figures import plot_paths, save_figure
 from jaxsleigh.status import Status
@@ -65,8 +65,9 @@ def starts_at(pos, theta0):
 
 
 def summaries(theta0, *, x64, max_steps=None, t_final=T_WINDOW):
-    """run_basin at every position: {label: BasinResult}."""
-    return {lab: run_basin(array_starts(starts_at(pos, theta0)), eps=EPS, t_final=t_final, x64=x64,
+    """run_ensemble at every position: {label: EnsembleResult}. Not run_basin: a basin stops the starts certified
+    not to settle (status 9), and this study follows every start to the horizon."""
+    return {lab: js.run_ensemble(starts_at(pos, theta0), eps=EPS, t_final=t_final, x64=x64,
                            stepsize=js.StepSizeController(max_steps=max_steps), run=js.RunOptions(progress=False))
             for lab, pos in POSITIONS.items()}
 
@@ -86,7 +87,7 @@ def t_eps_long(pos, theta0, horizons):
     for H in horizons:
         if todo.size == 0:
             break
-        r = run_basin(array_starts(starts_at(pos, th[todo])), eps=EPS, t_final=H, x64=True,
+        r = js.run_ensemble(starts_at(pos, th[todo]), eps=EPS, t_final=H, x64=True,
                       stepsize=js.StepSizeController(max_steps=int(2000 * H)), run=js.RunOptions(progress=False))
         T[todo] = r.T_eps
         status[todo] = r.status
