@@ -268,26 +268,34 @@ def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True,
 
 def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
              mesh=None):
-    """One segment of ``segment`` attempts of a batch. With ``stiff_after`` (adaptive; 0: never) a lane that has made
-    at least that many attempts takes the linearly implicit step for the whole segment (`STIFF_AFTER`), the others
-    the explicit one. A batch that holds both kinds is stepped twice, each time with the other kind's lanes held
-    (status set aside, so they idle), and each lane by its own kind's program: its bits never depend on whether its
-    neighbours are of the other kind."""
+    """One segment of ``segment`` attempts of a batch. With ``stiff_after`` (adaptive; 0: never) a lane *flies* once
+    it has made at least that many attempts at a mean step below `FLIGHT_STEP` base steps (``t < FLIGHT_STEP dt n``
+    after ``n`` attempts: held far below the base step, by stability); from then on (``state.stiff``) it takes the
+    linearly implicit step, the others the explicit one (`STIFF_AFTER`). A batch that holds both kinds is stepped
+    twice, each time with the other kind's lanes held (status set aside, so they idle), and each lane by its own
+    kind's program: its bits never depend on whether its neighbours are of the other kind."""
     def step(st, implicit):
         return _segment_batch(st, target, args, ctl, np.int32(segment), adaptive, monitor, observers, implicit)
+
+    def put(a):
+        return jnp.asarray(a) if mesh is None else shard_batch(jnp.asarray(a), mesh)
 
     if not (adaptive and stiff_after):
         return step(state, False)
     status = np.asarray(state.status)
     ok = status == Status.OK
-    old = ok & (np.asarray(state.n_accept) + np.asarray(state.n_reject) >= stiff_after)
+    n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
+    was = np.asarray(state.stiff)
+    flies = was | (ok & (n >= stiff_after) & (np.asarray(state.t, np.float64) < FLIGHT_STEP * float(ctl.dt) * n))
+    if not np.array_equal(flies, was):
+        state = state._replace(stiff=put(flies))
+    old = ok & flies
     if not old.any() or old.sum() == ok.sum():
         return step(state, bool(old.any()))
     young = ok & ~old
 
     def held(st, status):
-        return st._replace(status=jnp.asarray(status, jnp.int32) if mesh is None else shard_batch(
-            jnp.asarray(status, jnp.int32), mesh))
+        return st._replace(status=put(np.asarray(status, np.int32)))
 
     first = step(held(state, np.where(old, Status.INVALID_INPUT, status)), False)
     s1 = np.asarray(first.status)
@@ -329,10 +337,16 @@ def batch_mesh(devices=None):
     return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
 
-#: attempts after which the ensembles' adaptive engine steps a lane with the linearly implicit Rosenbrock step
-#: (`jaxsleigh.integrate.rosenbrock`): a lane still flying then is a stiff straggler near the singular set. A
-#: lane's own attempt count decides, so where it runs (a part, the pool of stragglers) never does.
+#: attempts after which the ensembles' adaptive engine steps a lane that is still in a stiff flight (its mean step
+#: below `FLIGHT_STEP` base steps: a straggler near the singular set) with the linearly implicit Rosenbrock step
+#: (`jaxsleigh.integrate.rosenbrock`), for the rest of its run (`_segment`). A lane's own state decides, so where it
+#: runs (a part, the pool of stragglers) never does. A lane that is slow but not stiff (the `tuned` gains' settled
+#: phase, ~2e-3 s steps) stays on the explicit step, which handles its oscillation better.
 STIFF_AFTER = 20_000
+
+#: a flight's mean step, in base steps: at 20,000 attempts the default basin's fliers had reached t = 0.02-12 s,
+#: the `tuned` gains' slow lanes 40 s or more (dt = 0.01)
+FLIGHT_STEP = 0.1
 
 #: the smallest batch compaction gathers the active lanes into (a power of two), per dtype. A few stiff
 #: stragglers (starts near theta = 0) can take 100x the median's steps, and small batches make them cheaper. In float64 a batch of

@@ -127,6 +127,7 @@ class StepState(NamedTuple):
     g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
     err_prev: jax.Array   # error ratio of the last accepted step (the PI controller's memory)
     guard: tuple = ()     # (cap, atol) of jaxsleigh.integrate.guard in a chart with the pair; () elsewhere
+    stiff: jax.Array = False  # bool: the lane steps implicitly (set by the host, jaxsleigh.integrate.engine._segment)
 
 
 def _integrands(observers, y, u, dtype):
@@ -161,7 +162,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
         Hd=chart.energy(y0w, args),
         obs=tuple(o.init(t0, y0w, u0, ctl, chart) for o in observers),
         quad=jnp.zeros_like(g1), g1=g1, err_prev=jnp.ones((), dtype),
-        guard=_guard_at(chart, t0, y0w, args, ctl),
+        guard=_guard_at(chart, t0, y0w, args, ctl), stiff=jnp.zeros((), bool),
     )
 
 
@@ -424,7 +425,7 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         obs=tuple(o.update(st, info, ctl) for o, st in zip(observers, s.obs)),
         quad=quad, g1=g1,
         err_prev=jnp.where(acc, jnp.maximum(err, 1e-4), s.err_prev).astype(dtype) if adaptive else s.err_prev,
-        guard=guard if adaptive else s.guard,
+        guard=guard if adaptive else s.guard, stiff=s.stiff,
     )
 
 

@@ -530,8 +530,8 @@ class _Chunks:
         of `TAIL_MIN` to `TAIL_MAX` lanes (padded with idle copies of a lane), then the lanes that cannot settle
         stopped (`jaxsleigh.integrate.engine.advance_lanes`)."""
         n = lanes.t.shape[-1]
-        # the lanes past the switch to the implicit step last (`_segment`), so that few batches hold both kinds
-        order = np.argsort(np.asarray(lanes.n_accept) + np.asarray(lanes.n_reject) >= STIFF_AFTER, kind="stable")
+        # the lanes on the implicit step last (`jaxsleigh.integrate.engine._segment`), so few batches hold both kinds
+        order = np.argsort(np.asarray(lanes.stiff), kind="stable")
         out = []
         with jax.default_device(self.devs[0]), jax.enable_x64(self.cfg.x64):
             for g in range(0, n, TAIL_MAX):
