@@ -104,3 +104,20 @@ def test_a_flier_reaches_the_horizon_where_float64_radau_ends():
         q_ref = np.asarray(state_from_w(jnp.asarray(sol.y[:, -1])))[:3]
     assert sol.status == 0 and np.linalg.norm(q_ref) > 1e3          # a flight: it does not settle
     np.testing.assert_allclose(r.q_final[0], q_ref, rtol=1e-4, atol=1e-4 * np.linalg.norm(q_ref))
+
+
+@pytest.mark.slow
+def test_a_slow_lane_that_does_not_fly_stays_explicit(monkeypatch):
+    """The tuned gains' settled phase takes this held-out start ~85,000 explicit steps (at ~2e-3 s, a fifth of the
+    base step): it is slow, not stiff, and must not switch (on the second-order step it used up its budget). It ends
+    with the bits of a run without the switch."""
+    import jaxsleigh.studies.ensemble as ens
+
+    start = [[-1.85146552, -1.91892328, 1.25548718]]
+    kw = dict(gains=js.load_gains("tuned"), t_final=100.0, run=js.RunOptions(progress=False, audit=False))
+    r = js.run_ensemble(start, **kw)
+    assert r.status.tolist() == [js.Status.OK] and r.n_steps[0] + r.n_rejected[0] > 2 * STIFF_AFTER
+    monkeypatch.setattr(ens, "STIFF_AFTER", 0)
+    plain = js.run_ensemble(start, **kw)
+    for f in ("q_final", "p_final", "T_eps", "n_steps", "u_energy"):
+        np.testing.assert_array_equal(getattr(r, f), getattr(plain, f), err_msg=f)
