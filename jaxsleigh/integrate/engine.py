@@ -385,9 +385,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     (`jaxsleigh.integrate.stragglers`: far from the target with too little H_d left; status ``NOT_SETTLING``):
     what a basin asks (does it settle?), not what an ensemble's final states need.
 
-    ``stiff_after`` (adaptive only; 0: never, the ensembles use `STIFF_AFTER`): a lane that has made that many
-    attempts at the start of a segment takes the linearly implicit step of `jaxsleigh.integrate.rosenbrock`
-    (`_segment`).
+    ``stiff_after`` (adaptive only; 0: never, the ensembles use `STIFF_AFTER`): a lane still in a stiff flight
+    after that many attempts takes the linearly implicit step of `jaxsleigh.integrate.rosenbrock` (`_segment`).
 
     Returns the final `StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has

@@ -5,7 +5,7 @@ whole flight (`jaxsleigh.integrate.stragglers`): the explicit RK4 step is held a
 stability, not accuracy, and uses its whole budget of attempts before \(t = 1\) s. An implicit method crosses the
 same 100 s in a few thousand steps (measured: `experiments/performance/flier_stiffness.py`,
 `experiments/performance/flier_rosenbrock.py`). The ensemble engine therefore switches a trajectory to this step
-once it has made `jaxsleigh.integrate.engine.STIFF_AFTER` attempts.
+once it is still flying after `jaxsleigh.integrate.engine.STIFF_AFTER` attempts.
 
 **The step** (MATLAB's ``ode23s``; L. F. Shampine and M. W. Reichelt, *The MATLAB ODE suite*, SIAM J. Sci. Comput.
 18(1), 1997). With \(F_0 = f(t, y)\), \(J = \partial f / \partial y\), \(T = \partial f / \partial t\) at

@@ -32,7 +32,7 @@ exactly over the step; classical RK4 on the rest), with a PI controller (`jaxsle
 its whole flight (`jaxsleigh.integrate.stragglers`): explicit steps are held at their stability limit there. With
 ``implicit`` every step is instead the linearly implicit Rosenbrock step of `jaxsleigh.integrate.rosenbrock`
 (second order, L-stable, the same checks, observers and error norm); the ensembles' engine takes it for a lane that
-has made `jaxsleigh.integrate.engine.STIFF_AFTER` attempts.
+is still flying after `jaxsleigh.integrate.engine.STIFF_AFTER` attempts.
 
 **Fixed shape.** One loop iteration is one attempted step of every trajectory of a batch; a
 trajectory that has reached its target time, failed, or used its budget idles. Every step of a

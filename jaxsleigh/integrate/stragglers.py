@@ -8,8 +8,8 @@ on the default 10^5-start basin (`experiments/performance/basin_stragglers.py`),
    not set by the float32 rounding floor nor by rejections (~10% of attempts), but by stability: the flight is
    stiff. An explicit step needs ~2e5 attempts for the first second or less (SciPy's RK45 as many, in either chart),
    where the implicit Radau and LSODA (float64, rtol = atol = 1e-8) cross the whole 100 s in ~2e3 steps
-   (`experiments/performance/flier_stiffness.py`). The ensembles' engine therefore switches a lane that has made
-   `jaxsleigh.integrate.engine.STIFF_AFTER` attempts to the linearly implicit step of
+   (`experiments/performance/flier_stiffness.py`). The ensembles' engine therefore switches a lane that is still
+   flying after `jaxsleigh.integrate.engine.STIFF_AFTER` attempts to the linearly implicit step of
    `jaxsleigh.integrate.rosenbrock`, which carries a flight to the horizon in a few thousand more;
 2. a *creep*: the sleigh has stopped (kinetic energy ~1e-9 J) far from the target with \(|w_3| \sim 10^3\), and the
    potential and the damping nearly balance; \(H_d\) stays at ~1e6 J, the sleigh creeps at ~1e-5 m/s, and the
