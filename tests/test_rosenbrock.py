@@ -58,17 +58,17 @@ def test_the_step_is_second_order_and_its_estimate_third():
     assert 2.7 < np.log2(est[0] / est[1]) < 3.3, est
 
 
-def _segment(counts, n=30):
-    """A batch of 64 starts (float32) whose lanes have made ``counts`` attempts, after a segment of ``n`` more with
-    the switch to the implicit step at 1,000 (`jaxsleigh.integrate.engine.advance_lanes`, as the pool of stragglers
-    steps them)."""
+def _segment(counts, n=30, lanes=64):
+    """The first ``lanes`` of 256 starts (float32) as one batch whose lanes have made ``counts`` attempts, after a
+    segment of ``n`` more with the switch to the implicit step at 1,000 (`jaxsleigh.integrate.engine.advance_lanes`,
+    as the pool of stragglers steps them)."""
     rng = np.random.default_rng(5)
-    ics5, st = check_ics(np.column_stack([rng.uniform(-3, 3, (64, 2)), rng.uniform(0.05, 3, 64)]))
+    ics5, st = check_ics(np.column_stack([rng.uniform(-3, 3, (256, 2)), rng.uniform(0.05, 3, 256)])[:lanes])
     args = ClosedLoop(js.paper_plant(), js.paper_gains())
     hz = make_horizon(100.0, 0.01)
     step = js.StepSizeController(rtol=1e-6, atol=1e-6, max_steps=10 ** 6, max_step=1.0)
-    s = drive_final(initial_w(ics5, st, jnp.float32), st, args, hz, step, eps=0.05, segment=n, stop_at=64,
-                    finish=False)             # the batch's start state, not stepped (64 lanes active)
+    s = drive_final(initial_w(ics5, st, jnp.float32), st, args, hz, step, eps=0.05, segment=n, stop_at=lanes,
+                    finish=False)             # the batch's start state, not stepped (every lane active)
     s = s._replace(n_reject=np.asarray(counts, np.int32))
     return advance_lanes(s, args, hz, step, eps=0.05, segment=n, stiff_after=1000)
 
@@ -86,6 +86,35 @@ def test_a_lane_steps_as_its_own_kind_whatever_its_neighbours():
         np.testing.assert_array_equal(a[..., ~past], c[..., ~past])
     assert not np.array_equal(implicit.y, explicit.y)
     assert np.all(mixed.status == js.Status.OK) and np.all(mixed.n_accept >= 20)    # both kinds stepped
+
+
+def test_a_lane_on_the_implicit_step_has_the_same_bits_in_the_pools_batch_sizes():
+    """The pool of stragglers steps its implicit lanes in batches of their own, of 64 to 256 lanes: a lane ends a
+    segment with the same bits in each."""
+    runs = [_segment(np.full(m, 1000), lanes=m) for m in (64, 128, 256)]
+    for small in runs[:2]:
+        for a, b in zip(jax.tree_util.tree_leaves(small), jax.tree_util.tree_leaves(runs[2])):
+            np.testing.assert_array_equal(a, b[..., :a.shape[-1]])
+    assert np.all(runs[2].stiff) and np.all(runs[2].n_accept >= 20)
+
+
+def test_the_flight_rule_reads_the_mean_step():
+    """A lane flies once it has made the switch's attempts at a mean step below a tenth of the base step, stays
+    flying, and never with the switch off (0) or once it has stopped."""
+    from jaxsleigh.integrate.engine import FLIGHT_STEP, flying
+
+    s = _segment(np.zeros(64), n=1)._replace(stiff=np.zeros(64, bool))
+    n = 1000 + np.asarray(s.n_accept) + np.asarray(s.n_reject)
+    slow = np.arange(64) % 3 == 0
+    t = np.where(slow, 0.5, 2.0) * FLIGHT_STEP * 0.01 * n
+    s = s._replace(n_reject=np.full(64, 1000, np.int32) + s.n_reject, t=t.astype(np.float32))
+    np.testing.assert_array_equal(flying(s, 0.01, 1000), slow)
+    np.testing.assert_array_equal(flying(s, 0.01, 2000), np.zeros(64, bool))
+    np.testing.assert_array_equal(flying(s, 0.01, 0), np.zeros(64, bool))
+    stopped = s._replace(status=np.where(slow, js.Status.NOT_SETTLING, s.status).astype(np.int32))
+    assert not flying(stopped, 0.01, 1000).any()
+    was = s._replace(stiff=np.arange(64) == 1)
+    np.testing.assert_array_equal(flying(was, 0.01, 1000), slow | (np.arange(64) == 1))
 
 
 @pytest.mark.slow

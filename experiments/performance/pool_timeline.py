@@ -72,9 +72,15 @@ def main():
     ap.add_argument("--n", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--out", type=Path, default=ROOT / "docs/figures/pool_timeline.json")
+    ap.add_argument("--compile-cache", action="store_true",
+                    help="use the persistent compilation cache, as the command line does (run twice: the second run "
+                         "compiles nothing, not even the programs that only the full basin's stragglers need)")
     a = ap.parse_args()
     info = machine()
     import jaxsleigh as js
+
+    if a.compile_cache:
+        js.enable_compilation_cache()
 
     js.run_basin(js.sample_starts(4000, seed=a.seed).ics, run=js.RunOptions(progress=False, audit=False))
     load_start = load()

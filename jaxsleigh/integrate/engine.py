@@ -266,6 +266,18 @@ def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True,
                implicit=implicit)
 
 
+def flying(state, dt, stiff_after: int) -> np.ndarray:
+    """The lanes of a batch-last ``state`` that take the linearly implicit step from its next segment on (`_segment`):
+    those that already do, and those still OK that have made ``stiff_after`` attempts (0: never) or more at a mean
+    step below `FLIGHT_STEP` base steps ``dt`` (``t < FLIGHT_STEP dt n`` after ``n`` attempts). Read on the host."""
+    was = np.asarray(state.stiff)
+    if not stiff_after:
+        return was
+    n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
+    ok = np.asarray(state.status) == Status.OK
+    return was | (ok & (n >= stiff_after) & (np.asarray(state.t, np.float64) < FLIGHT_STEP * float(dt) * n))
+
+
 def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
              mesh=None):
     """One segment of ``segment`` attempts of a batch. With ``stiff_after`` (adaptive; 0: never) a lane *flies* once
@@ -284,9 +296,8 @@ def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bo
         return step(state, False)
     status = np.asarray(state.status)
     ok = status == Status.OK
-    n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
     was = np.asarray(state.stiff)
-    flies = was | (ok & (n >= stiff_after) & (np.asarray(state.t, np.float64) < FLIGHT_STEP * float(ctl.dt) * n))
+    flies = flying(state, ctl.dt, stiff_after)
     if not np.array_equal(flies, was):
         state = state._replace(stiff=put(flies))
     old = ok & flies

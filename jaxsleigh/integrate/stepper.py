@@ -283,11 +283,11 @@ def _trial_step(chart, s: StepState, target, active, args, observers, *, adaptiv
     return _Trial(h, hit, k1, dy, k4, dq, g4, g5, error, y_new, k5, u_new)
 
 
-def _rosenbrock_parts(chart, s: StepState, h, args, observers):
-    """The linearly implicit step of `jaxsleigh.integrate.rosenbrock` from ``s``: the arrays
-    ``(dy, k4, dq, g4, g5, e, e_q, y_new, k5, u_new)`` of a `_Trial`, with the observers' rows by Simpson's rule over
-    the step's midpoint stage (their difference from the trapezoid rule, ``e_q``, as their error) and that stage's
-    slope in the place of RK4's ``k4`` (the error's rounding floor)."""
+def _implicit_trial(chart, s: StepState, target, active, args, observers) -> _Trial:
+    """The linearly implicit trial step of `jaxsleigh.integrate.rosenbrock` from ``s`` towards ``target``, with the
+    observers' rows by Simpson's rule over the step's midpoint stage (their difference from the trapezoid rule as
+    their error) and that stage's slope in the place of RK4's ``k4`` (the error's rounding floor)."""
+    h, hit = _step_towards(s, target, active)
     dy, k5, u_new, e, (y_mid, u_mid, f_mid) = rosenbrock_stages(chart.field_and_control, s.t, s.y, h, args, s.k1)
     y_new = s.y + dy
     if s.quad.shape[0]:
@@ -297,14 +297,7 @@ def _rosenbrock_parts(chart, s: StepState, h, args, observers):
         e_q = dq - (0.5 * h) * (s.g1 + g5)
     else:
         g_mid = g5 = dq = e_q = s.quad
-    return dy, f_mid, dq, g_mid, g5, e, e_q, y_new, k5, u_new
-
-
-def _implicit_trial(chart, s: StepState, target, active, args, observers) -> _Trial:
-    """The linearly implicit trial step (`_rosenbrock_parts`) from ``s`` towards ``target``."""
-    h, hit = _step_towards(s, target, active)
-    dy, k4, dq, g4, g5, e, e_q, y_new, k5, u_new = _rosenbrock_parts(chart, s, h, args, observers)
-    return _Trial(h, hit, s.k1, dy, k4, dq, g4, g5, lambda *_: e, y_new, k5, u_new, error_q=e_q)
+    return _Trial(h, hit, s.k1, dy, f_mid, dq, g_mid, g5, lambda *_: e, y_new, k5, u_new, error_q=e_q)
 
 
 def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor: bool):

@@ -38,9 +38,9 @@ from .options import RunOptions, SaveAt, front_options
 from .audit import audit_rows, audit_sample, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics, drive_final, drive_plain,
-                                drive_saving, finish_state, initial_w, put_lanes, step_controls, take_lanes_of,
-                                working_dtype)
+from ..integrate.engine import (FLIGHT_STEP, STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics,
+                                drive_final, drive_plain, drive_saving, finish_state, flying, initial_w, put_lanes,
+                                step_controls, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import Gains, PlantParams
 from ..controllers.actuators import is_sampled
@@ -529,13 +529,14 @@ class _Chunks:
         """One segment of the pool's ``lanes`` (host, batch-last; their ``rows`` give per-lane parameters) in batches
         of `TAIL_MIN` to `TAIL_MAX` lanes (padded with idle copies of a lane), then the lanes that cannot settle
         stopped (`jaxsleigh.integrate.engine.advance_lanes`)."""
-        n = lanes.t.shape[-1]
-        # the lanes on the implicit step last (`jaxsleigh.integrate.engine._segment`), so few batches hold both kinds
-        order = np.argsort(np.asarray(lanes.stiff), kind="stable")
+        # the lanes on the implicit step (`jaxsleigh.integrate.engine.flying`) in batches of their own: a batch that
+        # held both kinds would run both programs over all its lanes
+        flies = flying(lanes, np.asarray(self.horizon.dt, lanes.y.dtype), STIFF_AFTER)
+        kinds = [np.flatnonzero(~flies), np.flatnonzero(flies)]
+        order = np.concatenate(kinds)
         out = []
         with jax.default_device(self.devs[0]), jax.enable_x64(self.cfg.x64):
-            for g in range(0, n, TAIL_MAX):
-                idx = order[g:g + TAIL_MAX]
+            for idx in (kind[g:g + TAIL_MAX] for kind in kinds for g in range(0, kind.size, TAIL_MAX)):
                 m = idx.size
                 fill = np.concatenate([idx, np.full(max(TAIL_MIN, bucket(m)) - m, idx[0])])
                 batch = take_lanes_of(lanes, fill)
@@ -780,7 +781,8 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         if certify:
             settings["stops_unsettled"] = True
         if step.method == "adaptive" and summaries and save_every is None:
-            settings["stiff_after"] = STIFF_AFTER       # attempts before a lane's implicit steps
+            # the flight rule of the implicit step (`jaxsleigh.integrate.engine.flying`)
+            settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, FLIGHT_STEP
         devices_used = [str(d) for d in devs]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))
