@@ -1,6 +1,6 @@
 """The linearly implicit Rosenbrock step of the stiff stragglers: its 5x5 solve against NumPy, its order measured
-against DOP853, a lane's bits whatever its neighbours' step, and the basin's fliers carried to the horizon in
-agreement with float64 Radau."""
+against DOP853, a lane's bits whatever its neighbours' step, saved trajectories that switch, and the basin's fliers
+carried to the horizon in agreement with float64 Radau."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -117,14 +117,40 @@ def test_the_flight_rule_reads_the_mean_step():
     np.testing.assert_array_equal(flying(was, 0.01, 1000), slow | (np.arange(64) == 1))
 
 
+def test_saved_trajectories_switch_a_flight_and_leave_every_other_lane_alone():
+    """`drive_saving` (simulate's driver) stops a lane that has not flown at the checks (here 300 attempts, then
+    every 100) and lets it go on from there: the lanes that do not fly end with the bits of a run without the checks,
+    a near-singular one flies and ends differently (its saved rows finite)."""
+    from jaxsleigh.integrate.engine import drive_saving
+
+    ics5, st = check_ics([[1.0, 1.0, 0.5], [-2.0, 1.5, 2.0], FLIER, [0.5, -2.5, -1.0]])
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+    hz = make_horizon(2.0, 0.01, save_every=10)
+    step = js.StepSizeController(rtol=1e-6, atol=1e-6, max_steps=10 ** 6, max_step=1.0)
+    y0w = initial_w(ics5, st, jnp.float32)
+    kw = dict(eps=0.05, block=8)
+    plain, ys0 = drive_saving(y0w, st, args, hz, step, **kw)
+    switched, ys1 = drive_saving(y0w, st, args, hz, step, stiff_after=300, segment=100, **kw)
+    assert switched.stiff.tolist() == [False, False, True, False]
+    calm = ~switched.stiff
+    for a, b in zip(jax.tree_util.tree_leaves(plain), jax.tree_util.tree_leaves(switched)):
+        np.testing.assert_array_equal(a[..., calm], b[..., calm])
+    np.testing.assert_array_equal(ys0[calm], ys1[calm])
+    assert switched.status.tolist() == [js.Status.OK] * 4 and np.all(np.isfinite(ys1[2]))
+    assert switched.n_accept[2] + switched.n_reject[2] < plain.n_accept[2] + plain.n_reject[2]
+
+
 @pytest.mark.slow
 def test_a_flier_reaches_the_horizon_where_float64_radau_ends():
     """A flight that explicit steps alone do not carry through the budget of 2e5 attempts crosses 100 s after the
     switch in a fraction of it, and ends within 1e-4 (relative) of SciPy's Radau (float64, rtol = atol = 1e-8,
     w chart)."""
     r = js.run_ensemble([FLIER], t_final=100.0, run=js.RunOptions(progress=False, audit=False))
-    assert r.status.tolist() == [js.Status.OK] and r.t_reached[0] == 100.0
-    assert STIFF_AFTER < r.n_steps[0] + r.n_rejected[0] < 100_000
+    sim = js.simulate([FLIER], t_final=100.0, run=js.RunOptions(progress=False))   # the saved trajectory too
+    for x in (r, sim):
+        assert x.status.tolist() == [js.Status.OK] and x.t_reached[0] == 100.0
+        assert STIFF_AFTER < x.n_steps[0] + x.n_rejected[0] < 100_000
+    assert np.all(np.isfinite(sim.q))
     args = ClosedLoop(js.paper_plant(), js.paper_gains())
     with jax.enable_x64(True):
         f, jac = numpy_field(args, vector_field_w)
@@ -132,7 +158,8 @@ def test_a_flier_reaches_the_horizon_where_float64_radau_ends():
         sol = solve_ivp(f, (0.0, 100.0), y0, method="Radau", rtol=1e-8, atol=1e-8, jac=jac)
         q_ref = np.asarray(state_from_w(jnp.asarray(sol.y[:, -1])))[:3]
     assert sol.status == 0 and np.linalg.norm(q_ref) > 1e3          # a flight: it does not settle
-    np.testing.assert_allclose(r.q_final[0], q_ref, rtol=1e-4, atol=1e-4 * np.linalg.norm(q_ref))
+    for x in (r, sim):
+        np.testing.assert_allclose(x.q_final[0], q_ref, rtol=1e-4, atol=1e-4 * np.linalg.norm(q_ref))
 
 
 @pytest.mark.slow

@@ -280,26 +280,29 @@ def flying(state, dt, stiff_after: int) -> np.ndarray:
 
 def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
              mesh=None):
-    """One segment of ``segment`` attempts of a batch. With ``stiff_after`` (adaptive; 0: never) a lane *flies* once
-    it has made at least that many attempts at a mean step below `FLIGHT_STEP` base steps (``t < FLIGHT_STEP dt n``
-    after ``n`` attempts: held far below the base step, by stability); from then on (``state.stiff``) it takes the
-    linearly implicit step, the others the explicit one (`STIFF_AFTER`). A batch that holds both kinds is stepped
-    twice, each time with the other kind's lanes held (status set aside, so they idle), and each lane by its own
-    kind's program: its bits never depend on whether its neighbours are of the other kind."""
+    """One segment of ``segment`` attempts of a batch; with ``stiff_after`` (adaptive; 0: never) the lanes that fly
+    (`flying`) take the linearly implicit step, the others the explicit one (`_by_kind`)."""
     def step(st, implicit):
-        return _segment_batch(st, target, args, ctl, np.int32(segment), adaptive, monitor, observers, implicit)
+        return _segment_batch(st, target, args, ctl, np.int32(segment), adaptive, monitor, observers, implicit), None
 
     def put(a):
         return jnp.asarray(a) if mesh is None else shard_batch(jnp.asarray(a), mesh)
 
     if not (adaptive and stiff_after):
-        return step(state, False)
+        return step(state, False)[0]
+    return _by_kind(state, flying(state, ctl.dt, stiff_after), step, put)[0]
+
+
+def _by_kind(state, flies, step, put, merge=None):
+    """``step(state, implicit) -> (state, out)`` with the lanes ``flies`` (remembered from then on in ``state.stiff``)
+    on the implicit step and the others on the explicit one. A batch that holds both kinds is stepped twice, each
+    time with the other kind's lanes held (status set aside, so they idle), and each lane by its own kind's program:
+    its bits never depend on whether its neighbours are of the other kind. ``merge(out_explicit, out_implicit)``
+    combines the two passes' ``out``."""
+    if not np.array_equal(flies, np.asarray(state.stiff)):
+        state = state._replace(stiff=put(flies))
     status = np.asarray(state.status)
     ok = status == Status.OK
-    was = np.asarray(state.stiff)
-    flies = flying(state, ctl.dt, stiff_after)
-    if not np.array_equal(flies, was):
-        state = state._replace(stiff=put(flies))
     old = ok & flies
     if not old.any() or old.sum() == ok.sum():
         return step(state, bool(old.any()))
@@ -308,15 +311,16 @@ def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bo
     def held(st, status):
         return st._replace(status=put(np.asarray(status, np.int32)))
 
-    first = step(held(state, np.where(old, Status.INVALID_INPUT, status)), False)
+    first, out1 = step(held(state, np.where(old, Status.INVALID_INPUT, status)), False)
     s1 = np.asarray(first.status)
-    second = step(held(first, np.where(young, Status.INVALID_INPUT, np.where(old, Status.OK, s1))), True)
-    return held(second, np.where(young, s1, np.asarray(second.status)))
+    second, out2 = step(held(first, np.where(young, Status.INVALID_INPUT, np.where(old, Status.OK, s1))), True)
+    return held(second, np.where(young, s1, np.asarray(second.status))), merge and merge(out1, out2)
 
 
-@kept_jit(static_argnames=("adaptive", "monitor", "observers"), donate_argnums=(0,))
-def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS):
-    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers)
+@kept_jit(static_argnames=("adaptive", "monitor", "observers", "implicit"), donate_argnums=(0,))
+def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS, implicit=False):
+    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers,
+                      implicit=implicit)
 
 
 def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
@@ -573,11 +577,17 @@ def finish_state(full: StepState, horizon: Horizon) -> StepState:
 
 
 def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
-                 block: int = 100, progress=None, observers=DEFAULT_OBSERVERS):
+                 block: int = 100, progress=None, observers=DEFAULT_OBSERVERS, stiff_after: int = 0,
+                 segment: int = 1000):
     """Run a batch through the horizon's save grid (steps as in `drive_final`); returns ``(final_state, ys)`` with ``ys`` of
     shape (N, n_out, 5) in the w chart (NaN where a trajectory never got). The host loops over
     blocks of ``block`` save times (for the progress bar). ``args`` may carry per-trajectory
-    leaves, as in `drive_final`."""
+    leaves, as in `drive_final`.
+
+    ``stiff_after`` (adaptive only; 0: never): as in `drive_final`, a lane still in a stiff flight after that many
+    attempts takes the linearly implicit step (`flying`). A lane that has not flown is stopped for the check at
+    ``stiff_after`` attempts and then every ``segment`` (a per-lane budget, `_saving_block`), at the attempt counts
+    where `drive_final` checks it, and goes on from where it stopped: bit for bit as without the checks."""
     dtype = y0w.dtype
     ctl = step_controls(horizon, dtype, step, eps)
     adaptive, monitor = step.method == "adaptive", step.check_passivity
@@ -588,13 +598,48 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
         times = save_times[i:i + block]
         # every block has ``block`` times (one program for any horizon): a short one repeats its last time, at
         # which every lane already is or has stopped, so the padding takes no step and its rows are dropped
-        padded = np.concatenate([times, np.repeat(times[-1:], block - times.size)])
-        state, ys = _saving_batch(state, np.asarray(padded, np.dtype(dtype)), args, ctl, adaptive, monitor, observers)
+        padded = np.asarray(np.concatenate([times, np.repeat(times[-1:], block - times.size)]), np.dtype(dtype))
+        if adaptive and stiff_after:
+            state, ys = _saving_block(state, padded, args, ctl, monitor, observers, stiff_after, segment)
+        else:
+            state, ys = _saving_batch(state, padded, args, ctl, adaptive, monitor, observers)
         out.append(np.asarray(ys)[:times.size])
         if progress is not None:
             progress.update(min(i + block, save_times.size) / save_times.size)
     ys = np.moveaxis(np.concatenate(out, axis=0), -1, 0)     # (K, 5, N) blocks -> (N, K, 5)
     return _finish(jax.tree_util.tree_map(np.asarray, state), horizon.t_final), ys
+
+
+def _saving_block(state, times, args, ctl, monitor: bool, observers, stiff_after: int, segment: int):
+    """`drive_saving`'s block of save ``times`` with the switch to the implicit step: each lane that has not flown
+    runs to its next check (``stiff_after`` attempts, then every ``segment``; the budget ``ctl.max_steps`` per
+    lane), and the block is run again from there until no lane stops at a check before its end. A lane that stopped
+    goes on from its state, as a segment of `drive_final` does; its rows are the first pass's that reached them."""
+    budget = int(ctl.max_steps)
+    ys = None
+    while True:
+        flies = flying(state, ctl.dt, stiff_after)
+        n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
+        check = np.where(n < stiff_after, stiff_after, (n // segment + 1) * segment)
+        cap = np.where(flies, budget, np.minimum(check, budget)).astype(np.int32)
+        per_lane = ctl._replace(max_steps=cap)
+
+        def step(st, implicit):
+            st, y = _saving_batch(st, times, args, per_lane, True, monitor, observers, implicit)
+            return st, np.asarray(y)
+
+        state, y = _by_kind(state, flies, step, jnp.asarray, _first_reached)
+        ys = y if ys is None else _first_reached(ys, y)
+        n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
+        stopped = (np.asarray(state.status) == Status.OK) & (np.asarray(state.t) < times[-1]) & (n >= cap) \
+            & (cap < budget)
+        if not stopped.any():
+            return state, ys
+
+
+def _first_reached(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rows of saved states: ``a``'s, and ``b``'s where ``a`` has none (NaN: the lane had not reached that time)."""
+    return np.where(np.isnan(a), b, a)
 
 
 # the plain fixed-step path: cache blocks of PLAIN_BLOCK trajectories, optionally over several devices

@@ -545,12 +545,14 @@ def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive
 
 
 def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-               monitor: bool = True, observers=DEFAULT_OBSERVERS):
+               monitor: bool = True, observers=DEFAULT_OBSERVERS, implicit: bool = False):
     """Step a batch through ``save_times`` (shape (K,)), returning ``(state, ys)`` with ``ys`` of
-    shape (K, 5, N): the states at the save times (NaN where a trajectory never got there)."""
+    shape (K, 5, N): the states at the save times (NaN where a trajectory never got there). ``implicit`` as in
+    `attempt`."""
 
     def body(c, target):
-        c = run(c, target, args, ctl, WhileActive(), adaptive=adaptive, monitor=monitor, observers=observers)
+        c = run(c, target, args, ctl, WhileActive(), adaptive=adaptive, monitor=monitor, observers=observers,
+                implicit=implicit)
         there = c.t >= target.astype(c.t.dtype)
         return c, jnp.where(there, c.y, jnp.nan)
 

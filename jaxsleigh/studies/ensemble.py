@@ -481,7 +481,7 @@ class _Chunks:
             final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw, **fin)
             part = _chunk_summaries(final, y0w, st, a, observers)
         else:
-            final, ys = drive_saving(y0w, st, a, horizon, step, **kw)
+            final, ys = drive_saving(y0w, st, a, horizon, step, stiff_after=STIFF_AFTER, **kw)
             part = _chunk_summaries(final, y0w, st, a, observers)
             yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
             chart = self.chart
@@ -780,7 +780,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         settings = _ensemble_settings(cfg, sampled, save_every, chunk_size, summaries, observers)
         if certify:
             settings["stops_unsettled"] = True
-        if step.method == "adaptive" and summaries and save_every is None:
+        if step.method == "adaptive" and summaries:
             # the flight rule of the implicit step (`jaxsleigh.integrate.engine.flying`)
             settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, FLIGHT_STEP
         devices_used = [str(d) for d in devs]

@@ -19,7 +19,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
 from ..model.w_laws import control_w_components
 from ..model.coordinates import w_to_q
-from ..integrate.engine import check_ics, drive_saving, initial_w, working_dtype
+from ..integrate.engine import FLIGHT_STEP, STIFF_AFTER, check_ics, drive_saving, initial_w, working_dtype
 from ..integrate.stepsize import StepSizeController
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
@@ -178,8 +178,9 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
-            final, ys = drive_saving(y0w, status0, args, horizon, cfg.step_controller(stepsize), eps=cfg.eps,
-                                     progress=bar)
+            step = cfg.step_controller(stepsize)
+            final, ys = drive_saving(y0w, status0, args, horizon, step, eps=cfg.eps, progress=bar,
+                                     stiff_after=STIFF_AFTER)
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
         bad = status0 != 0
         yw[bad] = np.nan
@@ -194,7 +195,8 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     effort["T_eps"] = np.where(np.asarray(final.status) == 0, effort["T_eps"], np.nan)
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
                     n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),
-                    settings=_solution_settings(cfg, args, ics5.shape[0]), run_info=run_info,
+                    settings=_solution_settings(cfg, args, ics5.shape[0], step.method == "adaptive"),
+                    run_info=run_info,
                     **{k: effort[k] for k in SUMMARY_NAMES if k in effort})
 
 
@@ -219,10 +221,13 @@ def _trajectory_outputs(yw: np.ndarray, horizon, args: ClosedLoop, chart, *, lan
     return tuple(np.array(o[:, 0]) for o in _outputs_lanes(yw, t, args, chart))
 
 
-def _solution_settings(cfg, args: ClosedLoop, n: int) -> dict:
-    """The settings a `Solution` records: the run's, with its save interval and, with per-trajectory
-    parameters, the values each trajectory used; without the ensemble-only ``check_passivity`` and ``eps``."""
+def _solution_settings(cfg, args: ClosedLoop, n: int, adaptive: bool = False) -> dict:
+    """The settings a `Solution` records: the run's, with its save interval, the flight rule of the implicit step
+    (``adaptive``) and, with per-trajectory parameters, the values each trajectory used; without the ensemble-only
+    ``check_passivity`` and ``eps``."""
     settings = {**cfg.settings(), "save_every": cfg.horizon.save_every}
+    if adaptive:
+        settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, FLIGHT_STEP
     if cfg.lanes is not None:
         from ..model.lanes import lane_table
 
