@@ -58,19 +58,40 @@ def test_the_step_is_second_order_and_its_estimate_third():
     assert 2.7 < np.log2(est[0] / est[1]) < 3.3, est
 
 
-def _segment(counts, n=30, lanes=64):
-    """The first ``lanes`` of 256 starts (float32) as one batch whose lanes have made ``counts`` attempts, after a
-    segment of ``n`` more with the switch to the implicit step at 1,000 (`jaxsleigh.integrate.engine.advance_lanes`,
-    as the pool of stragglers steps them)."""
+def _start(lanes=64):
+    """The first ``lanes`` of 256 starts (float32) as one batch-last host state, not yet stepped (every lane active),
+    with their closed loop, horizon (100 s) and step-size policy."""
     rng = np.random.default_rng(5)
     ics5, st = check_ics(np.column_stack([rng.uniform(-3, 3, (256, 2)), rng.uniform(0.05, 3, 256)])[:lanes])
     args = ClosedLoop(js.paper_plant(), js.paper_gains())
     hz = make_horizon(100.0, 0.01)
     step = js.StepSizeController(rtol=1e-6, atol=1e-6, max_steps=10 ** 6, max_step=1.0)
-    s = drive_final(initial_w(ics5, st, jnp.float32), st, args, hz, step, eps=0.05, segment=n, stop_at=lanes,
-                    finish=False)             # the batch's start state, not stepped (every lane active)
+    s = drive_final(initial_w(ics5, st, jnp.float32), st, args, hz, step, eps=0.05, segment=30, stop_at=lanes,
+                    finish=False)
+    return s, args, hz, step
+
+
+def _segment(counts, n=30, lanes=64):
+    """`_start`'s batch whose lanes have made ``counts`` attempts, after a segment of ``n`` more with the switch to
+    the implicit step at 1,000 (`jaxsleigh.integrate.engine.advance_lanes`, as the pool of stragglers steps them)."""
+    s, args, hz, step = _start(lanes)
     s = s._replace(n_reject=np.asarray(counts, np.int32))
     return advance_lanes(s, args, hz, step, eps=0.05, segment=n, stiff_after=1000)
+
+
+def test_a_non_finite_implicit_trial_is_rejected_and_the_lane_says_so():
+    """A lane whose implicit trials are not finite (its carried slope poisoned with NaN) rejects every one, keeps a
+    finite state and ends with a failure status; its neighbours step as if it were not there."""
+    s, args, hz, step = _start()
+    s = s._replace(n_reject=np.full(64, 1000, np.int32))
+    k1 = np.array(s.k1)
+    k1[:, 0] = np.nan
+    bad = advance_lanes(s._replace(k1=k1), args, hz, step, eps=0.05, segment=200, stiff_after=1000)
+    good = advance_lanes(s, args, hz, step, eps=0.05, segment=200, stiff_after=1000)
+    assert bad.stiff[0] and bad.n_accept[0] == 0 and np.all(np.isfinite(bad.y[:, 0]))
+    assert bad.status[0] in (js.Status.STEP_UNDERFLOW, js.Status.NONFINITE)
+    for a, b in zip(jax.tree_util.tree_leaves(bad), jax.tree_util.tree_leaves(good)):
+        np.testing.assert_array_equal(a[..., 1:], b[..., 1:])
 
 
 def test_a_lane_steps_as_its_own_kind_whatever_its_neighbours():

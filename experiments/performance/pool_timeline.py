@@ -1,10 +1,13 @@
 r"""What bounds the default basin's wall time on CPU: the chunks' parts, then the pool of stragglers alone.
 
-    python experiments/performance/pool_timeline.py [--n 100000] [--seed 5] [--out docs/figures/pool_timeline.json]
+    python experiments/performance/pool_timeline.py [--n 100000] [--seed 5] [--compile-cache]
+        [--out docs/figures/pool_timeline.json]
 
 The default basin (``--n`` starts of `jaxsleigh.sample_starts`, seed ``--seed``, 100 s, adaptive, float32, every
-core), warm (a basin of 4,000 starts first compiles and caches the programs), with every call of the engine that the
-ensemble makes timed, in seconds from the call of `jaxsleigh.run_basin`:
+core), warm (a basin of 4,000 starts first compiles and caches the programs; with ``--compile-cache`` the
+persistent cache, as the command line has it, so that a second run compiles nothing, not even the programs that only
+the full basin's stragglers need, such as the implicit step's), with every call of the engine that the ensemble
+makes timed, in seconds from the call of `jaxsleigh.run_basin`:
 
 * ``parts``: `jaxsleigh.integrate.engine.drive_final`, once per part of a chunk (the parts run at once, one per
   core, until at most 128 of their 1,024 lanes are still active); ``parts_end_s`` is when the last one ended;

@@ -256,13 +256,16 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, con
         integrated in the physical chart, and ``Hd`` is NaN (H_d belongs to the paper's law).
       t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``); x64: compute in float64.
       stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4, tolerances per dtype, step cap 100 dt).
+        Adaptive, a start still in a stiff flight after `jaxsleigh.integrate.engine.STIFF_AFTER` attempts (a mean
+        step below a tenth of ``dt``: within ~1e-3 rad of theta = 0) goes on with the linearly implicit step
+        (`jaxsleigh.integrate.rosenbrock`), as in ensembles and basins; every other start is stepped as without it.
       saveat: `jaxsleigh.SaveAt` (``every``: keep every ``every``-th base step, default 10).
       run: `jaxsleigh.RunOptions` (only ``progress`` applies).
       **options: the keywords of jaxsleigh 0.1 (``save_every``, ``method``, ``rtol``, ``atol``, ``max_step``,
         ``max_steps``, ``progress``), mapped onto the objects.
 
     Returns:
-      `Solution`, as NumPy arrays.
+      `Solution`, as NumPy arrays; its ``settings`` record the flight rule (``stiff_after``, ``flight_step``).
 
     Raises:
       ValueError: any bad option, or a single start (or every start of a batch) that cannot be integrated. A
