@@ -1,21 +1,18 @@
-r"""A linearly implicit step on the basin's fliers: a Rosenbrock pair in JAX, in float32 and float64, against LSODA.
+r"""A linearly implicit step on the basin's fliers: the library's Rosenbrock pair, float32 and float64, against LSODA.
 
     python experiments/performance/flier_rosenbrock.py [--k 8] [--tol 1e-6] [--fliers docs/figures/flier_stiffness.json]
         [--out docs/figures/flier_rosenbrock.json]
 
 The first ``--k`` fliers of ``--fliers`` (written by ``experiments/performance/flier_stiffness.py``: starts of the
-default basin's sample that run long: the explicit step alone used up its budget of 2e5 attempts on them) are integrated over 100 s in the w chart by
-the modified Rosenbrock pair of order 2(3) of Shampine and Reichelt (MATLAB's ``ode23s``; SIAM J. Sci. Comput.
-18(1), 1997), with \(d = 1/(2 + \sqrt 2)\) and \(W = I - h d J\), \(J\) the 5x5 Jacobian from `jax.jacfwd`:
-
-\[ k_1 = W^{-1} f(y), \quad k_2 = W^{-1}\big(f(y + \tfrac h2 k_1) - k_1\big) + k_1, \quad y_1 = y + h k_2, \]
-\[ k_3 = W^{-1}\big(f(y_1) - (6 + \sqrt 2)(k_2 - f(y + \tfrac h2 k_1)) - 2 (k_1 - f(y))\big), \quad
-   e = \tfrac h6 (k_1 - 2 k_2 + k_3), \]
-
-a step accepted where \(\max_i |e_i| / (\mathrm{tol} (1 + \max(|y_i|, |y_{1,i}|))) \le 1\), the next \(h\) from the
-error to the power 1/3 (safety 0.9, factors 0.2 to 5). The step is jitted, the loop is on the host (one lane at a
-time: a measure of steps, not of speed). Reported per flier and dtype: accepted and rejected steps, and |q(100)|
-against LSODA's (float64, rtol = atol = 1e-8).
+default basin's sample that run long: the explicit step alone used up its budget of 2e5 attempts on them) are
+integrated over 100 s in the w chart by the modified Rosenbrock pair of order 2(3) of Shampine and Reichelt
+(MATLAB's ``ode23s``; SIAM J. Sci. Comput. 18(1), 1997) as the engine takes it,
+`jaxsleigh.integrate.rosenbrock.rosenbrock_stages` (its module docstring has the formulas), here with a plain
+controller of its own instead of the engine's: a step accepted where
+\(\max_i |e_i| / (\mathrm{tol} (1 + \max(|y_i|, |y_{1,i}|))) \le 1\), the next \(h\) from the error to the power
+1/3 (safety 0.9, factors 0.2 to 5). The step is jitted, the loop is on the host (one lane at a time: a measure of
+steps, not of speed). Reported per flier and dtype: accepted and rejected steps, and |q(100)| against LSODA's
+(float64, rtol = atol = 1e-8). `experiments/performance/flier_stiffness.py` measures the engine itself.
 """
 from __future__ import annotations
 
@@ -30,26 +27,18 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import ROOT, load, machine  # noqa: E402
 
-D = 1.0 / (2.0 + np.sqrt(2.0))
-E32 = 6.0 + np.sqrt(2.0)
-
-
-def rosenbrock_step(f, dtype):
-    """One jitted step ``(y, h) -> (y1, error ratio)`` of the pair above for the vector field ``f``."""
+def rosenbrock_step(field_and_control, args):
+    """One jitted step ``(y, h, tol) -> (y1, error ratio)`` of the library's pair for the vector field."""
     import jax
     import jax.numpy as jnp
 
+    from jaxsleigh.integrate.rosenbrock import rosenbrock_stages
+
     @jax.jit
     def step(y, h, tol):
-        f0, jac = f(y), jax.jacfwd(f)(y)
-        lu = jax.scipy.linalg.lu_factor(jnp.eye(5, dtype=dtype) - h * D * jac)
-        solve = lambda b: jax.scipy.linalg.lu_solve(lu, b)    # noqa: E731
-        k1 = solve(f0)
-        f1 = f(y + 0.5 * h * k1)
-        k2 = solve(f1 - k1) + k1
-        y1 = y + h * k2
-        k3 = solve(f(y1) - E32 * (k2 - f1) - 2.0 * (k1 - f0))
-        err = h / 6.0 * (k1 - 2.0 * k2 + k3)
+        f0, _ = field_and_control(0.0, y, args)
+        dy, _, _, err, _ = rosenbrock_stages(field_and_control, 0.0, y, h, args, f0)
+        y1 = y + dy
         return y1, jnp.max(jnp.abs(err) / (tol * (1.0 + jnp.maximum(jnp.abs(y), jnp.abs(y1)))))
 
     return step
@@ -91,7 +80,7 @@ def main():
     import jax.numpy as jnp
 
     import jaxsleigh as js
-    from jaxsleigh.model.closed_loop import ClosedLoop, state_to_w, vector_field_w
+    from jaxsleigh.model.closed_loop import ClosedLoop, state_to_w, vector_field_w_control
 
     src = json.loads(a.fliers.read_text())
     ics = js.sample_starts(src["n"], seed=src["seed"]).ics
@@ -106,7 +95,7 @@ def main():
             dtype = jnp.float64 if x64 else jnp.float32
             args = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), ClosedLoop(js.paper_plant(),
                                                                                    js.paper_gains()))
-            step = rosenbrock_step(lambda y: vector_field_w(0.0, y, args), dtype)
+            step = rosenbrock_step(vector_field_w_control, args)
             for row, y0 in zip(rows, y0s):
                 res = integrate(step, y0, 100.0, a.tol, dtype)
                 res["rel_diff_q_end_vs_LSODA"] = abs(res["abs_q_end"] - row["LSODA_abs_q_end"]) / row["LSODA_abs_q_end"]
@@ -119,7 +108,8 @@ def main():
                for name in ("float32", "float64")}
     out = {"command": "python experiments/performance/flier_rosenbrock.py " + " ".join(sys.argv[1:]),
            "dtype": "float32 and float64", "machine": info, "load": load(), "tol": a.tol,
-           "method": "modified Rosenbrock 2(3) (Shampine and Reichelt 1997), w chart, host loop",
+           "method": "modified Rosenbrock 2(3) (Shampine and Reichelt 1997), jaxsleigh.integrate.rosenbrock.rosenbrock_stages, "
+                     "w chart, host loop",
            "summary": summary, "rows": rows}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=1) + "\n")
