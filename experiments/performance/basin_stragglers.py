@@ -1,13 +1,15 @@
 r"""The default basin's stragglers near theta = 0, answered: this tree against an earlier commit, side by side.
 
     python experiments/performance/basin_stragglers.py [--n 100000] [--seed 5] [--t-final 100] [--baseline 96855ab]
-        [--new HEAD] [--repeats 1] [--radau 4] [--out docs/figures/basin_stragglers.json]
+        [--new HEAD] [--repeats 1] [--warmup N] [--radau 4] [--out docs/figures/basin_stragglers.json]
 
 1. ``runs``: ``jaxsleigh basin --samples N --seed S --t-final T`` (2 cores, float32, the defaults) in a fresh process
    of each tree, a git worktree of ``--baseline`` and one of ``--new`` (``HEAD`` by default, so that uncommitted
-   work in the folder does not enter the figure), each warmed first by a small basin (compiled programs cached), then
-   timed in turn ``--repeats`` times (interleaved), with the load average before and after each run: wall time,
-   starts per second, the status counts, the attempted steps.
+   work in the folder does not enter the figure), each warmed first by one untimed run of the same command
+   (``--warmup N``: a basin of N starts instead; a small one does not compile the programs that only the full
+   basin's stragglers need, so a tree's first timed run would compile them), then timed in turn ``--repeats`` times
+   (interleaved), with the load average before and after each run: wall time, starts per second, the status counts,
+   the attempted steps: the steady state of a command run again, with every program compiled and cached.
 2. ``agreement``: of the last runs of both trees, the starts that settle in both (same status? the largest
    difference of T_eps), and the share of starts without an answer (status 4, budget exhausted) in each. A start
    whose T_eps differ by more than 1e-3 s is run again in float64 at rtol = atol = 1e-10: each tree's error.
@@ -132,6 +134,7 @@ def main():
     ap.add_argument("--baseline", default="96855ab")
     ap.add_argument("--new", default="HEAD", help="commit of the new tree (default HEAD); 'working' for this folder")
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--warmup", type=int, default=0, help="starts of the untimed warm-up basin (0: --n, the same command)")
     ap.add_argument("--radau", type=int, default=4, help="certified starts checked by Radau (0: none)")
     ap.add_argument("--out", default="docs/figures/basin_stragglers.json")
     a = ap.parse_args()
@@ -147,7 +150,8 @@ def main():
            "load_start": load(), "warmup": {}, "runs": {"baseline": [], "new": []}}
     try:
         for name, tree in trees.items():          # compile and cache each tree's programs
-            res["warmup"][name] = basin(tree, work / f"warm_{name}.npz", 4000, a.seed, a.t_final)["wall_s"]
+            res["warmup"][name] = basin(tree, work / f"warm_{name}.npz", a.warmup or a.n, a.seed,
+                                        a.t_final)["wall_s"]
         for r in range(a.repeats):
             for name, tree in trees.items():
                 rec = basin(tree, work / f"{name}.npz", a.n, a.seed, a.t_final)
