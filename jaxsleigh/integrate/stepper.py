@@ -127,7 +127,7 @@ class StepState(NamedTuple):
     g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
     err_prev: jax.Array   # error ratio of the last accepted step (the PI controller's memory)
     guard: tuple = ()     # (cap, atol) of jaxsleigh.integrate.guard in a chart with the pair; () elsewhere
-    stiff: jax.Array = False  # bool: the lane steps implicitly (set by the host, jaxsleigh.integrate.engine._segment)
+    stiff: jax.Array = False  # bool: the lane steps implicitly (set by the host: jaxsleigh.integrate.engine.flying)
 
 
 def _integrands(observers, y, u, dtype):
