@@ -63,6 +63,18 @@ def test_compaction_equals_no_compaction():
                                    err_msg=jax.tree_util.keystr(path))
 
 
+def test_an_accelerator_compacts_to_no_fewer_than_a_few_thousand_lanes():
+    """On CPU compaction goes down to `MIN_BATCH` lanes; on an accelerator, where a loop iteration costs as much for
+    8,192 lanes as for 128 and every new batch shape compiles again, to `ACCELERATOR_MIN_BATCH`."""
+    from jaxsleigh.integrate.engine import ACCELERATOR_MIN_BATCH, MIN_BATCH, min_batch
+
+    assert min_batch(np.float32, "cpu") == MIN_BATCH["float32"] == 8
+    assert min_batch(np.float64, "cpu") == MIN_BATCH["float64"] == 32
+    for backend in ("gpu", "cuda", "rocm", "tpu"):
+        assert min_batch(np.float32, backend) == min_batch(np.float64, backend) == ACCELERATOR_MIN_BATCH == 8192
+    assert min_batch(np.float32) == min_batch(np.float32, jax.default_backend())
+
+
 def _T_eps_from_path(t, qn, eps):
     inside = qn <= eps
     if not inside[-1]:

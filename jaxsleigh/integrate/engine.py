@@ -369,6 +369,19 @@ FLIGHT_STEP = 0.1
 #: in float32 no size did (XLA compiles small batches with other rounding), so float32 takes the fastest.
 MIN_BATCH = {"float32": 8, "float64": 32}
 
+#: the smallest compacted batch on an accelerator. There a loop iteration costs about the same for 8,192 lanes as
+#: for 128 (one H200: 0.26-0.29 s per segment of 1,000 attempts at 8,192, 0.26 s at 128), while each new batch
+#: shape compiles its programs again (4.5 s for the explicit step, 6-8 s for the implicit one): smaller batches
+#: only add compilations (`experiments/performance/basin_segments.py`).
+ACCELERATOR_MIN_BATCH = 1 << 13
+
+
+def min_batch(dtype, backend: Optional[str] = None) -> int:
+    """The smallest batch `drive_final` compacts to: `MIN_BATCH` of ``dtype`` on CPU, `ACCELERATOR_MIN_BATCH`
+    on any other ``backend`` (default JAX's)."""
+    small = MIN_BATCH.get(np.dtype(dtype).name, 32)
+    return small if (backend or jax.default_backend()) == "cpu" else max(small, ACCELERATOR_MIN_BATCH)
+
 
 def bucket(n: int) -> int:
     """The batch size ``n`` lanes are padded to: the next power of two (few shapes compile)."""
@@ -393,7 +406,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
-    batch (a power of two, >= `MIN_BATCH`, so few shapes compile): the cost then follows the sum over
+    batch (a power of two, >= `min_batch`, so few shapes compile): the cost then follows the sum over
     trajectories of the steps each needs, not the batch's maximum.
 
     With ``certify``, between segments the adaptive engine stops the lanes that cannot settle before the horizon
@@ -420,7 +433,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     """
     dtype = y0w.dtype if state is None else state.y.dtype
     n = y0w.shape[0] if state is None else state.t.shape[-1]
-    min_batch = MIN_BATCH.get(np.dtype(dtype).name, 32)
+    smallest = min_batch(dtype)
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = step_controls(horizon, dtype, step, eps)
@@ -436,8 +449,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
             progress.update((n - b.idx.size + frac.sum()) / n)
         if not act.any() or act.sum() <= stop_at:
             break
-        if compact and b.idx.size > min_batch and act.sum() <= b.idx.size // 4:
-            b = _compacted(b, act, min_batch, mesh, dtype)
+        if compact and b.idx.size > smallest and act.sum() <= b.idx.size // 4:
+            b = _compacted(b, act, smallest, mesh, dtype)
         b = b._replace(state=_segment(b.state, target, b.args, ctl, segment, adaptive, monitor, observers,
                                       stiff_after, mesh))
     full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
