@@ -20,6 +20,7 @@ not traced.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -154,10 +155,17 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     how = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers)
     traj = {}
     if every is None:
-        s = run(s0, jnp.asarray(t_final, dtype), args, ctl, Scan(int(max_attempts)), **how)
+        s = _scan(s0, jnp.asarray(t_final, dtype), args, ctl, int(max_attempts), **how)
     else:
         s, traj = _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every, int(max_attempts), **how)
     return _output(s, s0, status0, chart, t_final, observers, traj)
+
+
+@functools.partial(jax.jit, static_argnames=("n", "adaptive", "monitor", "observers"))
+def _scan(s0, target, args, ctl, n: int, **how):
+    """`run` of ``n`` attempted steps (a ``lax.scan``), jitted: a second `solve` of the same law, shapes and options
+    compiles nothing (called outside ``jit``, each call of the bare loop traced and compiled it again)."""
+    return run(s0, target, args, ctl, Scan(n), **how)
 
 
 def _checked_start(controller, y0, **numbers) -> jax.Array:
