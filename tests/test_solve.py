@@ -71,18 +71,20 @@ def test_forward_mode_and_vmap_over_starts():
 
 
 def test_calling_solve_again_compiles_nothing(caplog):
-    """Outside ``jit`` the loop over time is one jitted program per law, shapes and options: a second call, from
-    another start and with another gain (of the same structure), runs without compiling anything."""
+    """Outside ``jit`` the loop over time (with or without saving) is one jitted program per law, shapes and options:
+    a second call, from another start and with another gain (of the same structure), compiles nothing."""
     import logging
 
     y0, y1 = jnp.asarray([1.0, 1.0, 0.5], jnp.float32), jnp.asarray([-1.0, 2.0, -0.4], jnp.float32)
     g = js.paper_gains()
     first = solve(g, y0, t_final=2.0)
+    solve(g, y0, t_final=2.0, saveat=js.SaveAt(every=10))
     other = g._replace(k=g.k * 2)                  # the same structure and dtypes
     with jax.log_compiles(True), caplog.at_level(logging.DEBUG):
         caplog.clear()
         again = solve(other, y1, t_final=2.0)
-        again.q_final.block_until_ready()
+        saved = solve(other, y1, t_final=2.0, saveat=js.SaveAt(every=10))
+        jax.block_until_ready((again, saved))
     compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
     assert compiled == []
     assert not np.allclose(np.asarray(first.q_final), np.asarray(again.q_final))

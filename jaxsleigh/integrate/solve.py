@@ -157,7 +157,10 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     if every is None:
         s = _scan(s0, jnp.asarray(t_final, dtype), args, ctl, int(max_attempts), **how)
     else:
-        s, traj = _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every, int(max_attempts), **how)
+        if not is_concrete((t_final, dt)):
+            raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")
+        s, traj = _run_saving(s0, y0, status0, args, ctl, chart, float(t_final), float(dt), every, int(max_attempts),
+                              **how)
     return _output(s, s0, status0, chart, t_final, observers, traj)
 
 
@@ -225,13 +228,13 @@ def _save_every(saveat) -> Optional[int]:
     return int(e)
 
 
-def _run_saving(s0, y0, status0, args, ctl, chart, t_final, dt, every: int, max_attempts: int, **how):
+@functools.partial(jax.jit, static_argnames=("chart", "t_final", "dt", "every", "max_attempts", "adaptive", "monitor",
+                                             "observers"))
+def _run_saving(s0, y0, status0, args, ctl, chart, t_final: float, dt: float, every: int, max_attempts: int, **how):
     """The stepper's final state and the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of ``every`` base
     steps: one ``lax.scan`` over the save intervals, each at most its share of ``max_attempts`` attempts
     (`jaxsleigh.integrate.stepper.Checkpointed`), landing on its save time. A state the lane did not reach (it stopped,
-    or its share ran out: ``BUDGET_EXHAUSTED``) is NaN."""
-    if not is_concrete((t_final, dt)):
-        raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")
+    or its share ran out: ``BUDGET_EXHAUSTED``) is NaN. Jitted, as `_scan`."""
     horizon = make_horizon(t_final, dt, every, flags={"save_every": "saveat.every"})
     dtype = s0.y.dtype
     times = jnp.asarray(horizon.save_times(), dtype)
