@@ -38,7 +38,10 @@ DESCRIPTIONS = {
                               "after the last time reached; raise max_steps, unless the run is flying away "
                               "(a large max_excursion): a law whose output is unbounded on what it measures "
                               "(Astolfi's divides by the measured theta, which measurement noise makes cross 0) "
-                              "needs a saturation or less noise, not more steps"),
+                              "needs a saturation or less noise, not more steps. A start within ~1e-3 rad of "
+                              "theta = 0 can fly off stiff: simulate, run_ensemble and basins switch it to the "
+                              "implicit step after 20,000 attempts; solve does not (use simulate, or raise "
+                              "max_steps)"),
     Status.CROSSED_SINGULAR: ("a fixed RK4 step jumped across theta = 0, which the exact closed loop never "
                               "does; outputs NaN after; use the adaptive method or a smaller dt"),
     Status.STEP_UNDERFLOW: "the adaptive step size fell below its floor; outputs NaN after the last time reached",

@@ -116,7 +116,10 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         adaptive policy (tolerances per dtype by default), ``check_passivity``, and ``max_steps``, the attempted
         steps \(n\) of the ``lax.scan`` (default: the base steps \(t_{final}/dt + 8\) for ``"rk4"``, 4x that for
         ``"adaptive"``); a start that needs more ends ``BUDGET_EXHAUSTED`` (its summaries are then up to
-        ``t_reached``).
+        ``t_reached``). A stiff flight near \(\theta = 0\) stays on the explicit step here, which crosses it
+        only at its stability limit: `jaxsleigh.simulate` switches such a start to the implicit step of
+        `jaxsleigh.integrate.rosenbrock` (from ``(1.9, -0.04, 2e-4)`` in float32 it reaches 100 s in 28,000
+        attempts, where `solve` ends ``BUDGET_EXHAUSTED`` at 0.1 s).
       eps: radius of the ball of ``T_eps``.
       observers: the summaries to carry (static).
       saveat: `jaxsleigh.SaveAt`: ``SaveAt(every=n)`` also returns the trajectory at \(t_j = j\,n\,dt\) (``t``, ``q``,
