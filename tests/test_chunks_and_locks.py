@@ -372,19 +372,19 @@ def test_a_refused_resume_from_python_names_the_leaf_of_a_law_that_differs(tmp_p
 
 def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
     from jaxsleigh import tuning as tu
-    from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint
+    from jaxsleigh.tuning.checkpoint import Stamp, TunerCheckpoint, tune_settings
     from jaxsleigh.tuning.optimizer import CandidateTrack
 
     g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
-    key = lambda steps: tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=steps), tu.LossConfig(), None, None,  # noqa
-                                         None, False, 0.0, None, ics)
+    settings = lambda steps: tune_settings(g0, ("L",), tu.TuneConfig(steps=steps), tu.LossConfig(), None, None,  # noqa
+                                           None, False, 0.0, None)
+    key = lambda steps: Stamp.of_run(settings(steps), ics)  # noqa
     path = tmp_path / "t.ckpt.npz"
     TunerCheckpoint(path, key(4), ("loss",)).save(0, {"a": np.zeros(1)}, (), CandidateTrack(0.0, False))
     with pytest.raises(ValueError, match=r"config\.steps 4 in the checkpoint vs 8 now") as info:
         TunerCheckpoint(path, key(8), ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))
     assert "{" not in str(info.value) and "delete or move" in str(info.value)
-    other = tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False, 0.0, None,
-                             ics + 1.0)
+    other = Stamp.of_run(settings(4), ics + 1.0)
     with pytest.raises(ValueError, match=r"other settings \(other initial conditions\);"):   # not two digests
         TunerCheckpoint(path, other, ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))
 
@@ -395,7 +395,7 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     the earlier layout (``key``/``settings`` among the arrays) still resumes."""
     from jaxsleigh import tuning as tu
     from jaxsleigh.files.chunks import read_checkpoint_file
-    from jaxsleigh.tuning.checkpoint import TunerCheckpoint, tune_fingerprint
+    from jaxsleigh.tuning.checkpoint import Stamp, TunerCheckpoint, tune_settings
     from jaxsleigh.tuning.optimizer import CandidateTrack
 
     s = ChunkStore(tmp_path / "ck", "k")
@@ -406,9 +406,11 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     finally:
         s.close()
     g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
-    key = tune_fingerprint(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False, 0.0, None, ics)
+    stamp = Stamp.of_run(tune_settings(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False,
+                                       0.0, None), ics, {"--steps": 4})
+    key = stamp.key
     tuner = tmp_path / "t.ckpt.npz"
-    ck = TunerCheckpoint(tuner, key, ("loss",), options={"--steps": 4})
+    ck = TunerCheckpoint(tuner, stamp, ("loss",))
     ck.save(3, {"a": np.ones(1)}, (), CandidateTrack(0.0, False))
     first = tuner.read_bytes()
     ck.save(3, {"a": np.ones(1)}, (), CandidateTrack(0.0, False))
@@ -419,4 +421,4 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     assert set(arrays_c) == {"a"} and not any(k.startswith("__") or k in ("key", "settings") for k in arrays_t)
     # the earlier layout: the header's entries among the arrays, without underscores
     np.savez(tuner, key=np.array(key), settings=head_t["settings"], **arrays_t)
-    assert TunerCheckpoint(tuner, key, ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))[0] == 3
+    assert TunerCheckpoint(tuner, stamp._replace(options=None), ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))[0] == 3

@@ -20,7 +20,7 @@ from ..model.params import gains_to_dict
 from ..model.controller import law_leaf_names
 from ..studies.config import plant_to_dict
 
-__all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_fingerprint", "LawCheckpoint", "law_fingerprint",
+__all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_settings", "LawCheckpoint", "law_settings",
            "checkpoint_options", "Stamp", "tree_arrays", "tree_from", "track_arrays",
            "restore_track"]
 
@@ -36,32 +36,14 @@ class TuningInterrupted(KeyboardInterrupt):
         self.checkpoint = checkpoint
 
 
-def tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics) -> str:
-    """A hash of everything that determines a tuning run (a checkpoint only resumes the same run)."""
-    doc = {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
-           "loss": {k: float(v) for k, v in loss._asdict().items()},
-           "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
-           "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
-           "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
-    h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
-    a = np.ascontiguousarray(ics, np.float64)
-    h.update(a.tobytes())
-    key = h.hexdigest()
-    # kept so that a checkpoint records its settings and a refusal can name those that differ
-    _SETTINGS[key] = json.loads(json.dumps({**doc, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]},
-                                           sort_keys=True, default=str))
-    return key
-
-
-#: fingerprint -> the settings it hashes (JSON), for `TunerCheckpoint`'s messages.
-_SETTINGS: dict = {}
-
-
-def _differences(old: dict, new: dict) -> str:
-    """``'config.steps 4 in the checkpoint vs 8 now; ...'``; '' when either side is unknown."""
-    if not old or not new:
-        return ""
-    return joined(setting_differences("", old, new, said={"ics": "other initial conditions"}))
+def tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts) -> dict:
+    """Everything that determines a `jaxsleigh.tuning.tune` run but its training starts, as JSON (`Stamp.of_run`
+    adds those: a checkpoint only resumes the same run)."""
+    return {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
+            "loss": {k: float(v) for k, v in loss._asdict().items()},
+            "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
+            "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
+            "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
 
 
 class Stamp(NamedTuple):
@@ -78,6 +60,16 @@ class Stamp(NamedTuple):
     def of(cls, key: str, settings: dict, options: Optional[dict] = None) -> "Stamp":
         """The settings as JSON reads them back (tuples become lists), so that a refusal compares like with like."""
         return cls(key, json.loads(json.dumps(settings or {}, sort_keys=True, default=str)), options)
+
+    @classmethod
+    def of_run(cls, settings: dict, ics, options: Optional[dict] = None) -> "Stamp":
+        """The stamp of a tuner's run of ``settings`` on the training starts ``ics``: the key a SHA-256 of the settings
+        (as sorted JSON) and the starts' float64 bytes; the settings recorded with a digest of the starts (``ics``), so
+        that a refusal says "other initial conditions"."""
+        a = np.ascontiguousarray(ics, np.float64)
+        h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+        h.update(a.tobytes())
+        return cls.of(h.hexdigest(), {**settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, options)
 
     def write(self, path, arrays: dict) -> None:
         options = None if self.options is None else json.dumps(self.options, sort_keys=True, default=str)
@@ -108,11 +100,8 @@ class TunerCheckpoint:
     wrapper, holds the last valid point), and the `jaxsleigh.tuning.optimizer.CandidateTrack` (`track_arrays`).
     """
 
-    def __init__(self, path, key: str, row_fields, options: dict | None = None):
-        self.path = Path(path)
-        self.key = key
-        self._row_fields = tuple(row_fields)
-        self.stamp = Stamp(key, _SETTINGS.get(key) or {}, options)
+    def __init__(self, path, stamp: Stamp, row_fields):
+        self.path, self.stamp, self._row_fields = Path(path), stamp, tuple(row_fields)
 
     def save(self, it, trainable, opt_state, track) -> None:
         self.stamp.write(self.path, {"it": np.int64(it), **tree_arrays("trainable", trainable),
@@ -195,17 +184,13 @@ def _header(path) -> tuple:
     return arrays, head
 
 
-def law_fingerprint(law, names, plant, loss, lr, x64, n_attempts, starts) -> tuple:
-    """``(key, settings)``: a hash of everything that determines a `jaxsleigh.tuning.tune_law` run but its number of
-    steps (a resumed run may go on for more), and those settings as JSON, for naming what differs."""
+def law_settings(law, names, plant, loss, lr, x64, n_attempts) -> dict:
+    """Everything that determines a `jaxsleigh.tuning.tune_law` run but its training starts (`Stamp.of_run` adds those)
+    and its number of steps (a resumed run may go on for more), as JSON."""
     leaves = {n: np.asarray(v, np.float64).tolist() for n, v in law_leaf_names(law).items()}
-    doc = {"law": str(jax.tree_util.tree_structure(law)), "leaves": leaves, "tuned": list(names),
-           "plant": plant_to_dict(plant), "loss": {k: float(v) for k, v in loss._asdict().items()}, "lr": float(lr),
-           "x64": bool(x64), "n_attempts": int(n_attempts)}
-    a = np.ascontiguousarray(starts, np.float64)
-    h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
-    h.update(a.tobytes())
-    return h.hexdigest(), {**doc, "starts": hashlib.sha256(a.tobytes()).hexdigest()[:16]}
+    return {"law": str(jax.tree_util.tree_structure(law)), "leaves": leaves, "tuned": list(names),
+            "plant": plant_to_dict(plant), "loss": {k: float(v) for k, v in loss._asdict().items()}, "lr": float(lr),
+            "x64": bool(x64), "n_attempts": int(n_attempts)}
 
 
 class LawCheckpoint:
@@ -213,8 +198,8 @@ class LawCheckpoint:
     step: the next step, the parameters and optimiser state, the best valid candidate, the history and whether
     the descent stopped (at an invalid candidate)."""
 
-    def __init__(self, path, key: str, settings: dict, options: dict | None = None):
-        self.path, self.key, self.stamp = Path(path), key, Stamp.of(key, settings, options)
+    def __init__(self, path, stamp: Stamp):
+        self.path, self.stamp = Path(path), stamp
 
     def save(self, it: int, params, opt_state, best, hist: dict, stopped: bool) -> None:
         arrays = {"it": np.int64(it), "stopped": np.bool_(stopped), "params": np.asarray(params),
@@ -239,6 +224,13 @@ class LawCheckpoint:
         hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
         return (int(a["it"]), jnp.asarray(a["params"], dtype), tree_from(a, "opt_state", opt_state), best, hist,
                 bool(a["stopped"]))
+
+
+def _differences(old: dict, new: dict) -> str:
+    """``'config.steps 4 in the checkpoint vs 8 now; ...'``; '' when either side is unknown."""
+    if not old or not new:
+        return ""
+    return joined(setting_differences("", old, new, said={"ics": "other initial conditions"}))
 
 
 def read_checkpoint(path: Path, key: str, settings: dict, what: str = "tuner checkpoint") -> Optional[dict]:

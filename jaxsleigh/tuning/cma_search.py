@@ -229,12 +229,6 @@ def _to_gains(x_full, d_floor, g0: Gains, names) -> Gains:
                       D if "D_hat" in names else g0.D_hat)
 
 
-def _fingerprint(settings: dict, ics) -> str:
-    h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
-    h.update(np.ascontiguousarray(ics, np.float64).tobytes())
-    return h.hexdigest()
-
-
 def _save(path: Path, stamp: Stamp, state: CMAState, rng, hist: list, top: list) -> None:
     arrays = {"rng": np.array(json.dumps(rng.bit_generator.state)),
               **{f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()},
@@ -280,12 +274,11 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     ics = _training_starts(starts, config, frontier)
     ev = _Evaluator(ics, plant, config.t_final, config.eps, x64, stepsize, pcts, frontier)
     guard = guard_starts()
-    settings, key = _search_settings(config, space, ev, reference, energy_budget, starts)
+    settings, stamp = _search_settings(config, space, ev, reference, energy_budget, starts, options)
     ckpt = None if checkpoint is None else Path(checkpoint)
     # the reference and the start in one ensemble; the start is candidate "generation -1"
     ref = ev.evaluate([reference, space.g0])
     budget = _budget(ref, energy_budget, config, pcts)
-    stamp = Stamp.of(key, settings, options)
     run = _start(space, ref, budget, config, ckpt if resume else None, stamp)
     try:
         _generations(run, space, ev, budget, config, ckpt, stamp, progress)
@@ -395,8 +388,8 @@ class _Evaluator(NamedTuple):
 
 
 def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, reference, energy_budget: Optional[float],
-                     starts) -> tuple[dict, str]:
-    """The run's settings (as recorded in its result) and the fingerprint a checkpoint must match."""
+                     starts, options: Optional[dict]) -> tuple[dict, Stamp]:
+    """The run's settings (as recorded in its result) and the `Stamp` a checkpoint must match."""
     settings = {"config": config._asdict(), "gains0": gains_to_dict(space.g0),
                 "reference": gains_to_dict(load_gains(reference)), "energy_budget": energy_budget,
                 "tuned": list(space.names), "x64": bool(ev.x64), "d_floor": float(space.d_floor),
@@ -413,11 +406,10 @@ def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, refere
     # (a generation does not depend on how many follow it)
     # (the percentiles are left out at their default: the fingerprints of earlier runs hold)
     # (and so is the objective at "time")
-    key = _fingerprint({**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"
-                                               and not (k == "energy_percentiles" and ev.pcts == (50.0,))
-                                               and not (k == "objective" and v == "time")}},
-                       ev.ics)
-    return settings, key
+    stamped = {**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"
+                                      and not (k == "energy_percentiles" and ev.pcts == (50.0,))
+                                      and not (k == "objective" and v == "time")}}
+    return settings, Stamp.of_run(stamped, ev.ics, options)
 
 
 class _Budget(NamedTuple):

@@ -23,7 +23,7 @@ from ..model.controller import as_controller, is_paper_law, law_leaf_names, posi
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
-from .checkpoint import LawCheckpoint, TuningInterrupted, law_fingerprint
+from .checkpoint import LawCheckpoint, Stamp, TuningInterrupted, law_settings
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
 from ..controllers.paper import PaperLaw
@@ -264,8 +264,8 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         coords = law_coordinates(law, tune, dtype=dtype)
         store = None
         if checkpoint is not None:
-            key, settings = law_fingerprint(law, coords.names, plant, loss, lr, x64, n_attempts, ics5)
-            store = LawCheckpoint(checkpoint, key, settings, options)
+            settings = law_settings(law, coords.names, plant, loss, lr, x64, n_attempts)
+            store = LawCheckpoint(checkpoint, Stamp.of_run(settings, ics5, options))
             if store.path.exists() and not resume:
                 raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
                                  "resume=True (--resume) to continue it, or delete it to start afresh")

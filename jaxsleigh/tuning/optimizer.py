@@ -22,7 +22,7 @@ import optax
 
 from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
-from .checkpoint import TunerCheckpoint, TuningInterrupted, tune_fingerprint
+from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, tune_settings
 from .gradients import GRADIENT_MODES, make_value_and_grad
 from .objective import LossConfig, make_training_set
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_params, parse_tune, params_from_gains, \
@@ -391,9 +391,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
                                              d_floor)
         ctx = run.ctx
         track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
-        store = None if checkpoint is None else TunerCheckpoint(
-            checkpoint, tune_fingerprint(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts, ics),
-            TuneHistory._fields, options)
+        store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(
+            tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts), ics, options),
+            TuneHistory._fields)
         it0, trainable, opt_state = _resume(store, resume, track, trainable, opt_state, ctx.groups)
         try:
             _iterate(run, track, trainable, opt_state, it0, steps, store, progress, callback, t_start)

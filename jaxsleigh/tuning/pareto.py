@@ -18,7 +18,6 @@ ways to compute the front (``method``):
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import math
 import time
@@ -302,9 +301,7 @@ class _FrontStore(NamedTuple):
 
     def stamp(self, ics):
         """The checkpoint's `jaxsleigh.tuning.checkpoint.Stamp` for the training starts ``ics``."""
-        a = np.ascontiguousarray(ics, np.float64)
-        key = hashlib.sha256(json.dumps(self.settings, sort_keys=True).encode() + a.tobytes()).hexdigest()
-        return Stamp.of(key, {**self.settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, self.options)
+        return Stamp.of_run(self.settings, ics, self.options)
 
 
 def _front_store(path, settings: dict, plant, d_floor: float, options: Optional[dict]) -> _FrontStore:
