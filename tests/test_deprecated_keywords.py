@@ -208,6 +208,12 @@ def test_tuning_and_its_checks_pass_no_deprecated_keyword(tmp_path, capsys):
                      "--validate", "2", "--no-progress", "--out", tmp_path / "g.json"]) == 0
         v = tu.validate("paper", START, t_final=2.0, progress=False, stepsize=js.StepSizeController(atol=1e-7))
     assert v.n == 1
+    # the held-out check is written under the names every tuner's file uses (`validation_dict`), audit included
+    rows = json.loads((tmp_path / "g.json").read_text())["meta"]["validation"]
+    assert set(rows) == {"initial", "tuned"}
+    for row in rows.values():
+        assert set(row) == set(tu.validation_dict(v)) | {"seed", "rtol", "atol"}
+        assert row["n"] == 2 and row["audit"]["rows"] == 2
 
 
 def _calls_with_old_keywords(source: str, where: str) -> list:

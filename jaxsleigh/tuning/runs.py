@@ -52,6 +52,7 @@ from .objective import LossConfig
 from .optimizer import TuneConfig
 from .starts import UniformStarts, draw_starts
 from .law_file import save_law
+from .validation import validation_dict
 from .pareto import finished_points, front_settings, load_front
 from ..files.npz import atomic_write
 from ..model.damping import damping_from_name
@@ -218,11 +219,7 @@ def tune_run(run, gains0="paper", *, config: TuneConfig = TuneConfig(), loss: Lo
         run.finished()
         rows = _held_out_rows(res.initial, res.gains, plant, x64, held_out, "tuned")
         if rows:
-            meta["validation"] = {k: {"n": v.n, "seed": held_out.seed, **held_out.tolerances(),
-                                      "median_T_0.05": _num(v.median), "median_se": _num(v.median_se),
-                                      "frac_converged_100s": v.frac_converged, "frac_se": v.frac_se,
-                                      "n_failed": v.n_failed} for k, v in rows.items()}
-            save_gains(res.gains, run.out, **meta)
+            save_gains(res.gains, run.out, **meta, validation=_validation(rows, held_out))
     return RunOutcome(res, tuple(written), False, wall, rows, None if met is None else energy, met)
 
 
@@ -273,8 +270,7 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
         run.finished()
         rows = _held_out_rows(res.initial, res.gains, plant, x64, held_out, "searched")
         if rows:
-            _write_search(run, res, record, wall_s=wall,
-                          validation={k: tu.validation_dict(v, seed=held_out.seed) for k, v in rows.items()})
+            _write_search(run, res, record, wall_s=wall, validation=_validation(rows, held_out))
     return RunOutcome(res, written, False, wall, rows)
 
 
@@ -325,8 +321,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
         run.finished()
         rows = _held_out_rows(law, res.law, plant, x64, held_out, "tuned")
         if rows:
-            written = _write_law(run, res, record, **extra, validation={
-                k: tu.validation_dict(v, seed=held_out.seed) for k, v in rows.items()})
+            written = _write_law(run, res, record, **extra, validation=_validation(rows, held_out))
     return RunOutcome(res, written, False, wall, rows, None if met is None else res.energy, met)
 
 
@@ -455,6 +450,12 @@ def _held_out_rows(initial, found, plant, x64: bool, held_out: Optional[HeldOut]
             label: tu.validate(found, ics, plant=plant, x64=x64, stepsize=held_out.stepsize)}
 
 
+def _validation(rows: dict, held_out: HeldOut) -> dict:
+    """``{label: figures}`` of the held-out check as every tuner's file records it (`jaxsleigh.tuning.validation_dict`,
+    with the seed and the tolerances of the check)."""
+    return {k: validation_dict(v, seed=held_out.seed, **held_out.tolerances()) for k, v in rows.items()}
+
+
 def _history(run: TuningRun, write) -> list:
     """``[path]`` after ``write(run.history)``, or ``[]`` when the run writes no history."""
     if run.history is None:
@@ -508,6 +509,3 @@ def _shown(v) -> str:
         return "on" if v else "off"
     return ",".join(map(str, v)) if isinstance(v, list) else str(v)
 
-
-def _num(x: float):
-    return x if math.isfinite(x) else str(x)
