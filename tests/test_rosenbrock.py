@@ -198,3 +198,10 @@ def test_a_slow_lane_that_does_not_fly_stays_explicit(monkeypatch):
     plain = js.run_ensemble(start, **kw)
     for f in ("q_final", "p_final", "T_eps", "n_steps", "u_energy"):
         np.testing.assert_array_equal(getattr(r, f), getattr(plain, f), err_msg=f)
+
+
+def test_the_budget_exhausted_description_names_the_flight_rules_attempts():
+    """`jaxsleigh.status` sits below the engine and writes the flight rule's count as text: the two change together."""
+    from jaxsleigh.status import DESCRIPTIONS
+
+    assert f"after {STIFF_AFTER:,} attempts" in DESCRIPTIONS[js.Status.BUDGET_EXHAUSTED]
