@@ -36,7 +36,7 @@ from .npz import atomic_write_text, write_npz_deterministic
 from .runlock import RunLock
 from ..validate import writable_dir
 
-__all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "starts_digest", "setting_differences", "joined"]
+__all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "run_key", "starts_digest", "setting_differences", "joined"]
 
 #: the fingerprint in every checkpoint file's header (`write_checkpoint`); a chunk's also holds ``__chunk__`` (its
 #: index and rows ``[index, lo, hi]``) and ``__starts__`` (the digest of the starts of those rows)
@@ -71,6 +71,14 @@ def starts_digest(starts) -> str:
     h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
     h.update(a.tobytes())
     return h.hexdigest()[:32]
+
+
+def run_key(settings: dict, starts) -> str:
+    """The fingerprint of a resumable run: a SHA-256 of ``settings`` (as sorted JSON, values that JSON cannot
+    write as their ``str``) followed by the starts' bytes, as given (cast them first to key on a dtype)."""
+    h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+    h.update(np.ascontiguousarray(starts).tobytes())
+    return h.hexdigest()
 
 
 def _afresh(folder: Path) -> str:

@@ -19,8 +19,6 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import contextlib
-import hashlib
-import json
 import threading
 import time
 from typing import Any, NamedTuple, Optional
@@ -32,7 +30,7 @@ import numpy as np
 from ..cache import kept_jit
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
-from ..files.chunks import ChunkStore, starts_digest
+from ..files.chunks import ChunkStore, run_key, starts_digest
 from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, front_options
 from .audit import audit_rows, audit_sample, resolve as resolve_audit
@@ -273,13 +271,6 @@ def _refuse_for_sampled(**given) -> None:
             raise ValueError(f"not available for a sampled law (controller=sampled(...)) yet: {what[name]}")
 
 
-def _settings_key(settings: dict, ics: np.ndarray) -> str:
-    h = hashlib.sha256(json.dumps({k: v for k, v in settings.items() if k not in ("wall_s", "devices")},
-                                  sort_keys=True, default=str).encode())
-    h.update(np.ascontiguousarray(ics).tobytes())
-    return h.hexdigest()
-
-
 def _checked_options(stepsize: StepSizeController, saveat: SaveAt, run: RunOptions) -> tuple:
     """The run options checked in turn (the first wrong one is refused): ``(chunk_size, shard, segment)``
     resolved (the default chunk size; whole numbers)."""
@@ -360,7 +351,7 @@ def _open_store(checkpoint_dir, resume, settings: dict, ics5: np.ndarray, chunk:
     """The checkpoint folder's store, opened (``None`` without ``checkpoint_dir``)."""
     if checkpoint_dir is None:
         return None
-    store = ChunkStore(checkpoint_dir, _settings_key(settings, ics5))
+    store = ChunkStore(checkpoint_dir, run_key({k: v for k, v in settings.items() if k not in ("wall_s", "devices")}, ics5))
     store.open(resume=bool(resume), manifest={"n": ics5.shape[0], "chunk": chunk, "starts": starts_digest(ics5),
                                               "settings": settings})
     return store

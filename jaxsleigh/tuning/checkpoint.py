@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..files.chunks import joined, read_checkpoint_file, setting_differences, write_checkpoint
+from ..files.chunks import joined, read_checkpoint_file, run_key, setting_differences, write_checkpoint
 from ..model.params import gains_to_dict
 from ..model.controller import law_leaf_names
 from ..studies.config import plant_to_dict
@@ -67,9 +67,7 @@ class Stamp(NamedTuple):
         (as sorted JSON) and the starts' float64 bytes; the settings recorded with a digest of the starts (``ics``), so
         that a refusal says "other initial conditions"."""
         a = np.ascontiguousarray(ics, np.float64)
-        h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
-        h.update(a.tobytes())
-        return cls.of(h.hexdigest(), {**settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, options)
+        return cls.of(run_key(settings, a), {**settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, options)
 
     def write(self, path, arrays: dict) -> None:
         options = None if self.options is None else json.dumps(self.options, sort_keys=True, default=str)
