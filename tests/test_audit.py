@@ -48,6 +48,19 @@ def test_a_row_off_its_reference_is_confirmed_at_the_tighter_tolerance():
     assert ok["passed"] and ok["rows_confirmed"] == 0 and "passed" in audit_line(ok)
 
 
+def test_a_reference_computed_ahead_is_not_counted_twice():
+    """``reference()`` hands over a reference that ran beside the run (its seconds are added by the caller, who
+    timed it): waiting for it is not the audit's own time."""
+    import time
+
+    def ahead():
+        time.sleep(0.5)
+        return _fake([1.0, 2.0])
+
+    rec = audit_rows(_fake([1.0, 2.0]), None, Audit(rows=2), reference=ahead)
+    assert rec["passed"] and rec["wall_s"] < 0.25
+
+
 def test_a_different_answer_fails_the_audit_but_unsettled_and_certified_unsettled_agree():
     result = _fake([1.0, 2.0, 3.0], status=[0, 0, js.Status.NOT_SETTLING], T=[5.0, np.inf, np.inf])
     def answer(status, T):

@@ -73,6 +73,44 @@ def test_an_accelerator_compacts_to_no_fewer_than_a_few_thousand_lanes():
     for backend in ("gpu", "cuda", "rocm", "tpu"):
         assert min_batch(np.float32, backend) == min_batch(np.float64, backend) == ACCELERATOR_MIN_BATCH == 8192
     assert min_batch(np.float32) == min_batch(np.float32, jax.default_backend())
+    # a run that gives up the lanes' last bits (the audit's reference) compacts to one lane, on CPU only
+    assert min_batch(np.float64, "cpu", bitwise=False) == min_batch(np.float32, "cpu", bitwise=False) == 1
+    assert min_batch(np.float64, "gpu", bitwise=False) == ACCELERATOR_MIN_BATCH
+
+
+def test_only_a_run_that_gives_up_bits_compacts_below_the_floor(monkeypatch):
+    """With ``bitwise=False`` a float64 batch of 16 gathers its last stragglers below `MIN_BATCH` (32) and ends
+    where the uncompacted batch ends; by default it never compacts below the floor. The accuracy audit's reference
+    asks for it, and no other run does."""
+    import jaxsleigh.integrate.engine as engine
+    import jaxsleigh.studies.ensemble as ensemble
+
+    sizes = []
+    compacted = engine._compacted
+    monkeypatch.setattr(engine, "_compacted", lambda *a: sizes.append(compacted(*a).idx.size) or compacted(*a))
+    ics5, st = check_ics(_ics(16, seed=2, theta_lo=0.05))
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+    hz = make_horizon(10.0, 0.01)
+    with jax.enable_x64(True):
+        y0 = initial_w(ics5, st, jnp.float64)
+        step = js.StepSizeController(rtol=1e-8, atol=1e-8, max_steps=10 ** 5, max_step=0.1)
+        kept = drive_final(y0, st, args, hz, step, eps=0.1, segment=50)
+        assert sizes == []
+        loose = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, bitwise=False)
+        whole = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, compact=False)
+    assert sizes and min(sizes) < 32
+    for x, y in zip(jax.tree_util.tree_leaves(kept), jax.tree_util.tree_leaves(whole)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # the gathered lanes' last bits differ, and an adaptive step's history with them: the same end at the tolerance
+    np.testing.assert_array_equal(loose.status, whole.status)
+    np.testing.assert_array_equal(loose.t, whole.t)
+    np.testing.assert_allclose(np.asarray(loose.y), np.asarray(whole.y), rtol=0, atol=1e-6)
+
+    asked = []
+    drive = ensemble.drive_final
+    monkeypatch.setattr(ensemble, "drive_final", lambda *a, **k: asked.append(k.get("bitwise")) or drive(*a, **k))
+    run_ensemble(ics5[:4, :3], t_final=2.0, run=js.RunOptions(progress=False, audit=js.Audit(rows=2)))
+    assert asked.count(False) == 1 and set(asked) == {True, False}
 
 
 def _T_eps_from_path(t, qn, eps):

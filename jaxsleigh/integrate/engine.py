@@ -376,11 +376,16 @@ MIN_BATCH = {"float32": 8, "float64": 32}
 ACCELERATOR_MIN_BATCH = 1 << 13
 
 
-def min_batch(dtype, backend: Optional[str] = None) -> int:
+def min_batch(dtype, backend: Optional[str] = None, *, bitwise: bool = True) -> int:
     """The smallest batch `drive_final` compacts to: `MIN_BATCH` of ``dtype`` on CPU, `ACCELERATOR_MIN_BATCH`
-    on any other ``backend`` (default JAX's)."""
+    on any other ``backend`` (default JAX's). Without ``bitwise``, 1 on CPU: compaction then changes the last bits
+    of the lanes it gathers, which only a run whose batches are always the same rows may accept (the accuracy audit's
+    reference, whose last straggler then steps alone instead of in a batch of 32)."""
+    cpu = (backend or jax.default_backend()) == "cpu"
+    if not bitwise and cpu:
+        return 1
     small = MIN_BATCH.get(np.dtype(dtype).name, 32)
-    return small if (backend or jax.default_backend()) == "cpu" else max(small, ACCELERATOR_MIN_BATCH)
+    return small if cpu else max(small, ACCELERATOR_MIN_BATCH)
 
 
 def bucket(n: int) -> int:
@@ -398,7 +403,7 @@ def _finish(full: StepState, t_final: float) -> StepState:
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
                 segment: int = 1000, compact: bool = True, progress=None, mesh=None,
                 observers=DEFAULT_OBSERVERS, state: Optional[StepState] = None, stop_at: int = 0,
-                finish: bool = True, certify: bool = False, stiff_after: int = 0) -> StepState:
+                finish: bool = True, certify: bool = False, stiff_after: int = 0, bitwise: bool = True) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
     (``observers``, `jaxsleigh.integrate.observers`), taking steps as ``step`` says (a resolved
     `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.step_controller`);
@@ -415,6 +420,9 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     ``stiff_after`` (adaptive only; 0: never, the ensembles use `STIFF_AFTER`): a lane still in a stiff flight
     after that many attempts takes the linearly implicit step of `jaxsleigh.integrate.rosenbrock` (`_segment`).
+
+    ``bitwise=False`` lets compaction go below `MIN_BATCH` (`min_batch`): cheaper for a lone straggler, at the cost
+    of the gathered lanes' last bits.
 
     Returns the final `StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
@@ -433,7 +441,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     """
     dtype = y0w.dtype if state is None else state.y.dtype
     n = y0w.shape[0] if state is None else state.t.shape[-1]
-    smallest = min_batch(dtype)
+    smallest = min_batch(dtype, bitwise=bitwise)
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = step_controls(horizon, dtype, step, eps)

@@ -378,7 +378,7 @@ class _Chunks:
     their stiff stragglers finished in one tail batch in the background)."""
 
     def __init__(self, cfg, *, step, observers, saveat: SaveAt, segment, dtype, devs, lane_args, ics5, status0, chunk,
-                 bar, tail_pool, certify=False):
+                 bar, tail_pool, certify=False, bitwise=True):
         self.cfg, self.horizon, self.eps, self.adaptive = cfg, cfg.horizon, cfg.eps, cfg.adaptive
         self.step, self.observers, (self.save_every, self.summaries) = step, observers, saveat
         self.segment, self.chart, self.dtype, self.devs = segment, chart_for(cfg.law), dtype, devs
@@ -388,6 +388,7 @@ class _Chunks:
         self._pool, self._pool_lock = None, threading.Lock()
         self.store = None                 # the checkpoint store, where chunks in progress are written
         self.certify = bool(certify)      # stop the lanes that cannot settle (jaxsleigh.integrate.stragglers)
+        self.bitwise = bool(bitwise)      # compaction keeps every lane's bits (engine.min_batch)
 
     def sampled_part(self, lo, hi):
         """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
@@ -461,7 +462,7 @@ class _Chunks:
         a = self._lanes_args(rows)
         horizon, step, segment, observers = self.horizon, self.step, self.segment, self.observers
         kw = dict(eps=self.eps, progress=sub, observers=observers)
-        fin = dict(certify=self.certify, stiff_after=STIFF_AFTER)
+        fin = dict(certify=self.certify, stiff_after=STIFF_AFTER, bitwise=self.bitwise)
         if not self.summaries:
             part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
                                     y0w, st, a, horizon)
@@ -731,7 +732,8 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
 
 def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
                           dt: float, eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController,
-                          saveat: SaveAt, run: RunOptions, certify: bool = False) -> Optional[EnsembleResult]:
+                          saveat: SaveAt, run: RunOptions, certify: bool = False,
+                          bitwise: bool = True) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
@@ -745,6 +747,10 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
 
     ``certify`` (a basin's question, does it settle?) stops the starts that cannot settle before the horizon, status
     ``NOT_SETTLING`` (`jaxsleigh.integrate.stragglers`; recorded in the settings).
+
+    ``bitwise=False`` lets the engine gather its last stragglers below the dtype's floor
+    (`jaxsleigh.integrate.engine.min_batch`), at the cost of their last bits: for a run of the same rows in the same
+    batch every time (the accuracy audit's reference), where a lone stiff row otherwise steps at a batch's cost.
 
     Returns:
       `EnsembleResult` (``None`` with ``run.shard``).
@@ -790,7 +796,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
                     concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
                 chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
                                  devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
-                                 tail_pool=tail_pool, certify=certify and cfg.adaptive)
+                                 tail_pool=tail_pool, certify=certify and cfg.adaptive, bitwise=bitwise)
                 parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
                                             sampled=sampled,
                                             after_parts=audit.begin if audit is not None and shard is None else None)
@@ -813,13 +819,15 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
 
 def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
     """``rerun(rows, rtol, atol)``: the same study of some rows of ``ics5``, in float64 at the tolerances given (the
-    accuracy audit's reference, `jaxsleigh.studies.audit`)."""
+    accuracy audit's reference, `jaxsleigh.studies.audit`). Its last stragglers are gathered down to one lane
+    (``bitwise=False``): the rows and their batch are the same in every run of the study, so the reference is too,
+    and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
     def rerun(rows, rtol, atol):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
         budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
         return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                      stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
-                                     saveat=SaveAt(), run=RunOptions(progress=False, audit=False))
+                                     saveat=SaveAt(), run=RunOptions(progress=False, audit=False), bitwise=False)
     return rerun
 
 
