@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, Optional, Sequence
 import numpy as np
 
 from .config import reject_traced
-from .ensemble import run_ensemble_resolved, summary_repr
+from .ensemble import LaneRules, run_ensemble_resolved, summary_repr
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
@@ -490,7 +490,7 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
         starts = array_starts(starts)
     res = run_ensemble_resolved(starts.ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt,
                                 eps=eps, x64=x64, observers=None, stepsize=stepsize, saveat=SaveAt(), run=run,
-                                certify=True)
+                                rules=LaneRules(certify=True))
     if res is None:                               # a shard of a multi-process run: chunks written
         return None
     settings = {k: v for k, v in res.settings.items() if k not in ("save_every",)}

@@ -730,10 +730,25 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
                           observed=observed or None, run_info=run_info)
 
 
+class LaneRules(NamedTuple):
+    """What the engine may do with lanes beyond what the options say: the questions of the run's caller.
+
+    Attributes:
+      certify: stop the starts that cannot settle before the horizon, status ``NOT_SETTLING``
+        (`jaxsleigh.integrate.stragglers`; recorded in the settings): a basin's question, does it settle?
+      bitwise: compaction keeps every lane's bits (`jaxsleigh.integrate.engine.min_batch`). ``False`` lets it gather
+        the last stragglers below the dtype's floor, at the cost of their last bits: for a run of the same rows in
+        the same batch every time (the accuracy audit's reference), where a lone stiff row otherwise steps at a
+        batch's cost.
+    """
+
+    certify: bool = False
+    bitwise: bool = True
+
+
 def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
                           dt: float, eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController,
-                          saveat: SaveAt, run: RunOptions, certify: bool = False,
-                          bitwise: bool = True) -> Optional[EnsembleResult]:
+                          saveat: SaveAt, run: RunOptions, rules: LaneRules = LaneRules()) -> Optional[EnsembleResult]:
     """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
@@ -745,12 +760,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
     ``i % count == index`` not already in ``run.checkpoint_dir``, write them there and return ``None``
     (`jaxsleigh.files.distributed`); a later call without it assembles the result.
 
-    ``certify`` (a basin's question, does it settle?) stops the starts that cannot settle before the horizon, status
-    ``NOT_SETTLING`` (`jaxsleigh.integrate.stragglers`; recorded in the settings).
-
-    ``bitwise=False`` lets the engine gather its last stragglers below the dtype's floor
-    (`jaxsleigh.integrate.engine.min_batch`), at the cost of their last bits: for a run of the same rows in the same
-    batch every time (the accuracy audit's reference), where a lone stiff row otherwise steps at a batch's cost.
+    ``rules`` (`LaneRules`): a basin stops the starts that cannot settle; the audit's reference gives up bits.
 
     Returns:
       `EnsembleResult` (``None`` with ``run.shard``).
@@ -775,7 +785,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
     with jax.enable_x64(cfg.x64):
         dtype = working_dtype()
         settings = _ensemble_settings(cfg, sampled, save_every, chunk_size, summaries, observers)
-        if certify:
+        if rules.certify:
             settings["stops_unsettled"] = True
         if step.method == "adaptive" and summaries:
             # the flight rule of the implicit step (`jaxsleigh.integrate.engine.flying`)
@@ -796,7 +806,8 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
                     concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
                 chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
                                  devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
-                                 tail_pool=tail_pool, certify=certify and cfg.adaptive, bitwise=bitwise)
+                                 tail_pool=tail_pool, certify=rules.certify and cfg.adaptive,
+                                 bitwise=rules.bitwise)
                 parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
                                             sampled=sampled,
                                             after_parts=audit.begin if audit is not None and shard is None else None)
@@ -820,14 +831,15 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
 def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
     """``rerun(rows, rtol, atol)``: the same study of some rows of ``ics5``, in float64 at the tolerances given (the
     accuracy audit's reference, `jaxsleigh.studies.audit`). Its last stragglers are gathered down to one lane
-    (``bitwise=False``): the rows and their batch are the same in every run of the study, so the reference is too,
+    (``LaneRules(bitwise=False)``): the rows and their batch are the same in every run of the study, so the reference is too,
     and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
     def rerun(rows, rtol, atol):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
         budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
         return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                      stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
-                                     saveat=SaveAt(), run=RunOptions(progress=False, audit=False), bitwise=False)
+                                     saveat=SaveAt(), run=RunOptions(progress=False, audit=False),
+                                     rules=LaneRules(bitwise=False))
     return rerun
 
 
