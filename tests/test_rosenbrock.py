@@ -121,21 +121,31 @@ def test_a_lane_on_the_implicit_step_has_the_same_bits_in_the_pools_batch_sizes(
 
 def test_the_flight_rule_reads_the_mean_step():
     """A lane flies once it has made the switch's attempts at a mean step below a tenth of the base step, stays
-    flying, and never with the switch off (0) or once it has stopped."""
-    from jaxsleigh.integrate.engine import FLIGHT_STEP, flying
+    flying, and never with the switch off (0) or once it has stopped. Tighter tolerances than the dtype's default
+    lower the bar as they shrink an accurate explicit step, by (tol / default)^(1/5)."""
+    from jaxsleigh.integrate.engine import FLIGHT_STEP, flight_step, flying
+    from jaxsleigh.integrate.stepper import controls
+
+    def ctl(tol=None):
+        return controls(js.StepSizeController(rtol=tol, atol=tol), np.float32, dt=0.01, eps=0.05, max_steps=10**6,
+                        xp=np)
 
     s = _segment(np.zeros(64), n=1)._replace(stiff=np.zeros(64, bool))
     n = 1000 + np.asarray(s.n_accept) + np.asarray(s.n_reject)
     slow = np.arange(64) % 3 == 0
     t = np.where(slow, 0.5, 2.0) * FLIGHT_STEP * 0.01 * n
     s = s._replace(n_reject=np.full(64, 1000, np.int32) + s.n_reject, t=t.astype(np.float32))
-    np.testing.assert_array_equal(flying(s, 0.01, 1000), slow)
-    np.testing.assert_array_equal(flying(s, 0.01, 2000), np.zeros(64, bool))
-    np.testing.assert_array_equal(flying(s, 0.01, 0), np.zeros(64, bool))
+    np.testing.assert_array_equal(flying(s, ctl(), 1000), slow)
+    np.testing.assert_array_equal(flying(s, ctl(1e-4), 1000), slow)       # looser than the default: the same bar
+    np.testing.assert_array_equal(flying(s, ctl(1e-6 * 0.25 ** 5), 1000), np.zeros(64, bool))   # bar / 4 < t / n
+    np.testing.assert_array_equal(flying(s, ctl(), 2000), np.zeros(64, bool))
+    np.testing.assert_array_equal(flying(s, ctl(), 0), np.zeros(64, bool))
     stopped = s._replace(status=np.where(slow, js.Status.NOT_SETTLING, s.status).astype(np.int32))
-    assert not flying(stopped, 0.01, 1000).any()
+    assert not flying(stopped, ctl(), 1000).any()
     was = s._replace(stiff=np.arange(64) == 1)
-    np.testing.assert_array_equal(flying(was, 0.01, 1000), slow | (np.arange(64) == 1))
+    np.testing.assert_array_equal(flying(was, ctl(), 1000), slow | (np.arange(64) == 1))
+    assert flight_step(1e-8, 1e-8, np.float64) == FLIGHT_STEP == flight_step(1e-6, 1e-6, np.float32)
+    assert flight_step(1e-10, 1e-8, np.float64) == pytest.approx(FLIGHT_STEP * 0.01 ** 0.2)
 
 
 def test_saved_trajectories_switch_a_flight_and_leave_every_other_lane_alone():
@@ -205,3 +215,16 @@ def test_the_budget_exhausted_description_names_the_flight_rules_attempts():
     from jaxsleigh.status import DESCRIPTIONS
 
     assert f"after {STIFF_AFTER:,} attempts" in DESCRIPTIONS[js.Status.BUDGET_EXHAUSTED]
+
+
+def test_a_tight_tolerance_is_not_taken_for_a_stiff_flight():
+    """A `tuned` lane whose theta keeps shrinking after it settles (to ~2e-3 by 100 s) takes small, accurate explicit
+    steps at rtol = atol = 1e-10 in float64: 4.8e-2 base steps on average, under the default bar of a tenth. With the
+    bar fixed it moved to the implicit step near t = 40 s and used up 10^6 attempts by t = 58 s; with the bar scaled
+    to the tolerance it stays explicit and reaches the horizon (the accuracy audit's reference of this row)."""
+    r = js.run_ensemble([[2.4191735301044286, -0.6299369384391906, 0.6509511783387154]], gains="tuned",
+                        t_final=100.0, x64=True, run=js.RunOptions(progress=False, audit=False),
+                        stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=1_000_994))
+    assert r.status[0] == js.Status.OK and r.n_steps[0] < 300_000
+    assert r.T_eps[0] == pytest.approx(10.4118, abs=1e-3)
+    assert r.settings["flight_step"] == pytest.approx(0.1 * 0.01 ** 0.2)

@@ -22,7 +22,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_
 from ..model.charts import chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
-from .stepsize import StepSizeController
+from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, StepSizeController
 from .stragglers import certify
 from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
                       run_saving)
@@ -266,16 +266,33 @@ def _segment_batch(state, target, args, ctl, n_attempts, adaptive, monitor=True,
                implicit=implicit)
 
 
-def flying(state, dt, stiff_after: int) -> np.ndarray:
+def flying(state, ctl: Controls, stiff_after: int) -> np.ndarray:
     """The lanes of a batch-last ``state`` that take the linearly implicit step from its next segment on (`_segment`):
     those that already do, and those still OK that have made ``stiff_after`` attempts (0: never) or more at a mean
-    step below `FLIGHT_STEP` base steps ``dt`` (``t < FLIGHT_STEP dt n`` after ``n`` attempts). Read on the host."""
+    step below `flight_step` base steps ``ctl.dt`` (``t < flight_step dt n`` after ``n`` attempts). Read on the
+    host."""
     was = np.asarray(state.stiff)
     if not stiff_after:
         return was
     n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
     ok = np.asarray(state.status) == Status.OK
-    return was | (ok & (n >= stiff_after) & (np.asarray(state.t, np.float64) < FLIGHT_STEP * float(dt) * n))
+    flight = flight_step(ctl.rtol, ctl.atol, np.asarray(ctl.rtol).dtype)
+    return was | (ok & (n >= stiff_after) & (np.asarray(state.t, np.float64) < flight * float(ctl.dt) * n))
+
+
+def flight_step(rtol, atol, dtype) -> float:
+    r"""The mean step, in base steps, below which a lane flies (`flying`): `FLIGHT_STEP` at the dtype's default
+    tolerances (`jaxsleigh.integrate.stepsize.DEFAULT_RTOL`) or looser, and for tighter ones
+
+    \[ \text{FLIGHT\_STEP} \cdot \left(\frac{\min(r, a)}{\min(r_0, a_0)}\right)^{1/5}, \]
+
+    the factor by which they shrink an explicit step that accuracy limits (the embedded RK4 estimate's local error
+    goes as \(h^5\)). A stiff flight's step is limited by stability, not accuracy, and does not shrink; a lane of the
+    `tuned` gains' settled phase at 1e-10 takes 4.8e-2 base steps on average over 100 s and, judged by
+    `FLIGHT_STEP` alone, moved to the implicit step, of lower order, which then spent 10^6 attempts by t = 58 s."""
+    name = np.dtype(dtype).name
+    base = min(DEFAULT_RTOL.get(name, 1e-6), DEFAULT_ATOL.get(name, 1e-6))
+    return FLIGHT_STEP * min(1.0, min(float(rtol), float(atol)) / base) ** 0.2
 
 
 def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
@@ -290,7 +307,7 @@ def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bo
 
     if not (adaptive and stiff_after):
         return step(state, False)[0]
-    return _by_kind(state, flying(state, ctl.dt, stiff_after), step, put)[0]
+    return _by_kind(state, flying(state, ctl, stiff_after), step, put)[0]
 
 
 def _by_kind(state, flies, step, put, merge=None):
@@ -359,8 +376,9 @@ def batch_mesh(devices=None):
 #: phase, ~2e-3 s steps) stays on the explicit step, which handles its oscillation better.
 STIFF_AFTER = 20_000
 
-#: a flight's mean step, in base steps: at 20,000 attempts the default basin's fliers had reached t = 0.02-12 s,
-#: the `tuned` gains' slow lanes 40 s or more (dt = 0.01)
+#: a flight's mean step, in base steps, at the dtype's default tolerances (`flight_step` lowers it for tighter ones):
+#: at 20,000 attempts the default basin's fliers had reached t = 0.02-12 s, the `tuned` gains' slow lanes 40 s or
+#: more (dt = 0.01)
 FLIGHT_STEP = 0.1
 
 #: the smallest batch compaction gathers the active lanes into (a power of two), per dtype. A few stiff
@@ -639,7 +657,7 @@ def _saving_block(state, times, args, ctl, monitor: bool, observers, stiff_after
     budget = int(ctl.max_steps)
     ys = None
     while True:
-        flies = flying(state, ctl.dt, stiff_after)
+        flies = flying(state, ctl, stiff_after)
         n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
         check = np.where(n < stiff_after, stiff_after, (n // segment + 1) * segment)
         cap = np.where(flies, budget, np.minimum(check, budget)).astype(np.int32)

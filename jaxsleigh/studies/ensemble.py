@@ -36,8 +36,8 @@ from .options import RunOptions, SaveAt, front_options
 from .audit import audit_rows, audit_sample, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import (FLIGHT_STEP, STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics,
-                                drive_final, drive_plain, drive_saving, finish_state, flying, initial_w, put_lanes,
+from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics, drive_final,
+                                drive_plain, drive_saving, finish_state, flight_step, flying, initial_w, put_lanes,
                                 step_controls, take_lanes_of, working_dtype)
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import Gains, PlantParams
@@ -523,7 +523,7 @@ class _Chunks:
         stopped (`jaxsleigh.integrate.engine.advance_lanes`)."""
         # the lanes on the implicit step (`jaxsleigh.integrate.engine.flying`) in batches of their own: a batch that
         # held both kinds would run both programs over all its lanes
-        flies = flying(lanes, np.asarray(self.horizon.dt, lanes.y.dtype), STIFF_AFTER)
+        flies = flying(lanes, step_controls(self.horizon, lanes.y.dtype, self.step, self.eps), STIFF_AFTER)
         kinds = [np.flatnonzero(~flies), np.flatnonzero(flies)]
         order = np.concatenate(kinds)
         out = []
@@ -789,7 +789,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
             settings["stops_unsettled"] = True
         if step.method == "adaptive" and summaries:
             # the flight rule of the implicit step (`jaxsleigh.integrate.engine.flying`)
-            settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, FLIGHT_STEP
+            settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, flight_step(step.rtol, step.atol, dtype)
         devices_used = [str(d) for d in devs]
         n = ics5.shape[0]
         chunk = int(min(chunk_size, n))

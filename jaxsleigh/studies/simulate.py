@@ -19,7 +19,7 @@ from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from .config import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, plant_to_dict, reject_traced, solve_config  # noqa: F401
 from ..model.w_laws import control_w_components
 from ..model.coordinates import w_to_q
-from ..integrate.engine import FLIGHT_STEP, STIFF_AFTER, check_ics, drive_saving, initial_w, working_dtype
+from ..integrate.engine import STIFF_AFTER, check_ics, drive_saving, flight_step, initial_w, working_dtype
 from ..integrate.stepsize import StepSizeController
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
@@ -227,7 +227,7 @@ def _solution_settings(cfg, args: ClosedLoop, n: int, adaptive: bool = False) ->
     ``check_passivity`` and ``eps``."""
     settings = {**cfg.settings(), "save_every": cfg.horizon.save_every}
     if adaptive:
-        settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, FLIGHT_STEP
+        settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, flight_step(cfg.rtol, cfg.atol, cfg.dtype)
     if cfg.lanes is not None:
         from ..model.lanes import lane_table
 
