@@ -46,14 +46,20 @@ def test_chunked_equals_unchunked():
     _assert_same(whole, chunked, rtol=1e-12)
 
 
-def test_compaction_equals_no_compaction():
-    """Gathering the still-active trajectories into a smaller batch must not change any of them."""
-    ics5, st = check_ics(_ics(200, seed=2, theta_lo=0.05))
-    args = ClosedLoop(js.paper_plant(), js.paper_gains())
-    hz = make_horizon(10.0, 0.01)
+def _float64_batch(n):
+    """``(ics5, status, args, horizon, step, y0)`` of ``n`` starts (some near theta = 0) for `drive_final`, in
+    float64 at 1e-8 over 10 s: their steps differ enough for compaction."""
+    ics5, st = check_ics(_ics(n, seed=2, theta_lo=0.05))
     with jax.enable_x64(True):
         y0 = initial_w(ics5, st, jnp.float64)
-        step = js.StepSizeController(rtol=1e-8, atol=1e-8, max_steps=10 ** 5, max_step=0.1)
+    step = js.StepSizeController(rtol=1e-8, atol=1e-8, max_steps=10 ** 5, max_step=0.1)
+    return ics5, st, ClosedLoop(js.paper_plant(), js.paper_gains()), make_horizon(10.0, 0.01), step, y0
+
+
+def test_compaction_equals_no_compaction():
+    """Gathering the still-active trajectories into a smaller batch must not change any of them."""
+    ics5, st, args, hz, step, y0 = _float64_batch(200)
+    with jax.enable_x64(True):
         a = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, compact=True)
         b = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, compact=False)
     # the starts need very different numbers of steps, so compaction really happened
@@ -88,12 +94,8 @@ def test_only_a_run_that_gives_up_bits_compacts_below_the_floor(monkeypatch):
     sizes = []
     compacted = engine._compacted
     monkeypatch.setattr(engine, "_compacted", lambda *a: sizes.append(compacted(*a).idx.size) or compacted(*a))
-    ics5, st = check_ics(_ics(16, seed=2, theta_lo=0.05))
-    args = ClosedLoop(js.paper_plant(), js.paper_gains())
-    hz = make_horizon(10.0, 0.01)
+    ics5, st, args, hz, step, y0 = _float64_batch(16)
     with jax.enable_x64(True):
-        y0 = initial_w(ics5, st, jnp.float64)
-        step = js.StepSizeController(rtol=1e-8, atol=1e-8, max_steps=10 ** 5, max_step=0.1)
         kept = drive_final(y0, st, args, hz, step, eps=0.1, segment=50)
         assert sizes == []
         loose = drive_final(y0, st, args, hz, step, eps=0.1, segment=50, bitwise=False)
