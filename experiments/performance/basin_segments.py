@@ -38,10 +38,10 @@ def recorded_basin(ics):
 
     rows, flying, t0 = [], engine.flying, [time.perf_counter()]
 
-    def recorded(state, dt, stiff_after):
+    def recorded(state, ctl, stiff_after):
         ok = np.asarray(state.status) == js.Status.OK
         n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
-        flies = flying(state, dt, stiff_after)
+        flies = flying(state, ctl, stiff_after)
         rows.append((time.perf_counter() - t0[0], int(ok.size), int(ok.sum()), int((ok & flies).sum()),
                      int(n[ok].max()) if ok.any() else 0))
         return flies
