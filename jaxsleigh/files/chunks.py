@@ -36,7 +36,8 @@ from .npz import atomic_write_text, write_npz_deterministic
 from .runlock import RunLock
 from ..validate import writable_dir
 
-__all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "run_key", "starts_digest", "setting_differences", "joined"]
+__all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "run_key", "starts_digest", "setting_differences",
+           "joined"]
 
 #: the fingerprint in every checkpoint file's header (`write_checkpoint`); a chunk's also holds ``__chunk__`` (its
 #: index and rows ``[index, lo, hi]``) and ``__starts__`` (the digest of the starts of those rows)

@@ -351,7 +351,8 @@ def _open_store(checkpoint_dir, resume, settings: dict, ics5: np.ndarray, chunk:
     """The checkpoint folder's store, opened (``None`` without ``checkpoint_dir``)."""
     if checkpoint_dir is None:
         return None
-    store = ChunkStore(checkpoint_dir, run_key({k: v for k, v in settings.items() if k not in ("wall_s", "devices")}, ics5))
+    keyed = {k: v for k, v in settings.items() if k not in ("wall_s", "devices")}
+    store = ChunkStore(checkpoint_dir, run_key(keyed, ics5))
     store.open(resume=bool(resume), manifest={"n": ics5.shape[0], "chunk": chunk, "starts": starts_digest(ics5),
                                               "settings": settings})
     return store
