@@ -290,6 +290,21 @@ def test_starts_off_the_singular_set_never_go_nonfinite():
     assert np.isnan(fixed.q_final[fixed.status != Status.OK]).all()
 
 
+def test_near_the_singular_set_a_tight_tolerance_never_goes_nonfinite_silently():
+    """At rtol = atol = 1e-10 in float64 the flight rule's bar is lower (`flight_step`), so a lane near theta = 0
+    stays longer on the explicit step: every start with theta0 in [1e-3, 1e-1] still ends OK and finite, or says
+    what stopped it (a non-OK status with a NaN final state), never a silent NaN or inf."""
+    rng = np.random.default_rng(11)
+    n = 8
+    ics = np.column_stack([rng.uniform(-3, 3, (n, 2)), rng.choice([-1, 1], n) * np.geomspace(1e-3, 1e-1, n)])
+    r = run_ensemble(ics, t_final=5.0, x64=True, run=js.RunOptions(progress=False, audit=False),
+                     stepsize=js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=200_000))
+    ok = r.status == Status.OK
+    assert ok.sum() >= n // 2, np.bincount(r.status)
+    assert np.isfinite(r.q_final[ok]).all() and np.isfinite(r.Hd_final[ok]).all()
+    assert np.isnan(r.q_final[~ok]).all()
+
+
 def test_plain_fixed_path_equals_the_checked_stepper():
     """run_ensemble(stepsize=StepSizeController(method='rk4'), saveat=SaveAt(summaries=False)) is plain RK4: same
     final states as the stepper's fixed mode, status judged at the end, summaries NaN; it refuses other combinations."""
