@@ -250,6 +250,23 @@ def test_locks_in_one_process_share_or_refuse(tmp_path):
     RunLock(tmp_path / "o.npz", "two").acquire().release()            # free again
 
 
+def test_a_dead_runs_lock_probed_by_another_newcomer_is_still_stale(tmp_path):
+    """Two processes of a resumed run start together and both find the lock file a killed run left: one
+    of them holding it while it probes must not make it look live to the other (a probe once held it
+    exclusively, and the other newcomer was refused, named the dead run)."""
+    import fcntl
+    dead = tmp_path / f".o.npz.lock.elsewhere.{os.getpid() + 1}"
+    dead.write_text(json.dumps({"fingerprint": "the-killed-run", "host": "elsewhere", "pid": 1}) + "\n")
+    fd = os.open(dead, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)                # the other newcomer, mid-probe
+        with RunLock(tmp_path / "o.npz", "the-resumed-run"):
+            assert not dead.exists()                                   # taken for what it is: stale
+    finally:
+        os.close(fd)
+    assert not list(tmp_path.glob(".o.npz.lock.*"))
+
+
 # ---------------------------------------------------------------------------------------------
 # 3. a full disk names the file and the way on
 # ---------------------------------------------------------------------------------------------

@@ -4,7 +4,9 @@ Each process that writes an output file or a checkpoint folder holds an exclusiv
 on its own lock file there (``.lock.<host>.<pid>`` in a folder, ``.<name>.lock.<host>.<pid>`` next
 to a file), which records the run's fingerprint, host, pid and start time. The operating system
 drops a ``flock`` when its process ends, however it ends (``kill -9`` included), so a newcomer
-tells live runs from dead ones by trying a non-blocking ``flock`` on every lock file it finds:
+tells live runs from dead ones by trying a non-blocking *shared* ``flock`` on every lock file it finds
+(shared, so that two newcomers probing one dead run's file at the same moment never take each other
+for its owner; an owner holds its file exclusively from before its name appears):
 
 * it gets the lock: the run that wrote the file is gone; the file is removed (never stale);
 * the lock is held with the newcomer's fingerprint: the same run (the processes of one
@@ -170,7 +172,7 @@ class RunLock:
                 continue
             try:
                 try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
                 except BlockingIOError:
                     rec = _read(fd)
                     if rec.get("fingerprint") != self.fingerprint:
