@@ -86,8 +86,12 @@ def test_what_a_run_did_not_measure_is_not_compared():
     assert rec["passed"] and rec["status_mismatch"] == 0 and rec["worst_T_eps_s"] == 0.0
     moved = _fake([1.0, 2.0, 3.0], T=[5.0, np.inf, np.inf])
     moved.q_final = np.full((3, 3), 0.1)
-    with pytest.warns(AccuracyWarning):
+    with pytest.warns(AccuracyWarning, match=r"x64=True and StepSizeController\(rtol=1e-10") as said:
         assert not audit_rows(result, lambda rows, rtol, atol: moved, Audit(rows=3))["passed"]
+    assert "fixed steps" not in str(said[0].message)
+    with pytest.warns(AccuracyWarning, match="fixed steps of dt, which no tolerance changes") as said:
+        audit_rows(result, lambda rows, rtol, atol: moved, Audit(rows=3), fixed_step=True)
+    assert "rtol=" not in str(said[0].message) and "--rtol" not in str(said[0].message)   # (nor would it help)
 
 
 def test_small_runs_say_they_were_not_audited():
@@ -108,7 +112,7 @@ def test_the_audit_passes_the_defaults_and_fails_loose_tolerances():
     run = dict(t_final=20.0, run=js.RunOptions(progress=False, audit=Audit(rows=4)))
     good = js.run_ensemble(ics, **run).run_info["audit"]
     assert good["passed"] and good["rows"] == 4 and good["worst_energy_rel"] < 1e-3
-    with pytest.warns(AccuracyWarning):
+    with pytest.warns(AccuracyWarning, match="adaptive method .* or a smaller dt"):
         bad = js.run_ensemble(ics, dt=0.05, stepsize=js.StepSizeController(method="rk4"), **run).run_info["audit"]
     assert not bad["passed"]
 

@@ -148,7 +148,8 @@ def audit_sample(audit: "Audit", n: int) -> np.ndarray:
 
 
 def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audit: "Audit", *,
-               what: str = "result", reference: Optional[Callable[[], object]] = None) -> dict:
+               what: str = "result", reference: Optional[Callable[[], object]] = None,
+               fixed_step: bool = False) -> dict:
     """Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
     ``rerun(rows, rtol, atol)``, the same study of the rows ``rows`` in float64 at those tolerances. Returns the
     record (also when nothing was re-run: ``{"rows": 0, "why": ...}``) and warns when it fails.
@@ -158,7 +159,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     float32 does at its defaults), and where the settled phase is unstable 1e-10 and 1e-12 can disagree with each
     other (``reference_unconverged`` counts those rows). ``reference()``, if given, returns what
     ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns, computed ahead (e.g. in a thread of its own
-    while the run finished its last lanes)."""
+    while the run finished its last lanes). ``fixed_step``: the result came from fixed steps of ``dt``, which no
+    tolerance changes, and the warning says so."""
     n = int(np.shape(result.status)[0])
     k = audit.count(n)
     if k == 0:
@@ -194,10 +196,12 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     if not rec["passed"]:
         from ..errors import AccuracyWarning
 
+        fix = ("it took fixed steps of dt, which no tolerance changes: run it with the adaptive method (the default; "
+               "--method adaptive) or a smaller dt" if fixed_step else
+               "run it with x64=True and StepSizeController(rtol=1e-10, atol=1e-10) (--x64 --rtol 1e-10 --atol 1e-10)")
         warnings.warn(f"the accuracy audit of this {what} failed: {audit_line(rec)}. What it reports is not what "
-                      "float64 gives for this law at these settings; run it with x64=True and "
-                      "StepSizeController(rtol=1e-10, atol=1e-10) (--x64 --rtol 1e-10 --atol 1e-10), or trust "
-                      "only what the audit confirms", AccuracyWarning, stacklevel=3)
+                      f"float64 gives for this law at these settings; {fix}, or trust only what the audit confirms",
+                      AccuracyWarning, stacklevel=3)
     return rec
 
 

@@ -379,7 +379,7 @@ class _Chunks:
     their stiff stragglers finished in one tail batch in the background)."""
 
     def __init__(self, cfg, *, step, observers, saveat: SaveAt, segment, dtype, devs, lane_args, ics5, status0, chunk,
-                 bar, tail_pool, certify=False, bitwise=True):
+                 bar, tail_pool, rules: "LaneRules"):
         self.cfg, self.horizon, self.eps, self.adaptive = cfg, cfg.horizon, cfg.eps, cfg.adaptive
         self.step, self.observers, (self.save_every, self.summaries) = step, observers, saveat
         self.segment, self.chart, self.dtype, self.devs = segment, chart_for(cfg.law), dtype, devs
@@ -388,8 +388,7 @@ class _Chunks:
         self.bar, self.tail_pool = bar, tail_pool
         self._pool, self._pool_lock = None, threading.Lock()
         self.store = None                 # the checkpoint store, where chunks in progress are written
-        self.certify = bool(certify)      # stop the lanes that cannot settle (jaxsleigh.integrate.stragglers)
-        self.bitwise = bool(bitwise)      # compaction keeps every lane's bits (engine.min_batch)
+        self.rules = rules._replace(certify=rules.certify and self.adaptive)   # (a fixed step certifies nothing)
 
     def sampled_part(self, lo, hi):
         """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
@@ -463,7 +462,7 @@ class _Chunks:
         a = self._lanes_args(rows)
         horizon, step, segment, observers = self.horizon, self.step, self.segment, self.observers
         kw = dict(eps=self.eps, progress=sub, observers=observers)
-        fin = dict(certify=self.certify, stiff_after=STIFF_AFTER, bitwise=self.bitwise)
+        fin = dict(certify=self.rules.certify, stiff_after=STIFF_AFTER, bitwise=self.rules.bitwise)
         if not self.summaries:
             part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
                                     y0w, st, a, horizon)
@@ -536,7 +535,7 @@ class _Chunks:
                 idle = np.where(np.arange(fill.size) < m, batch.status, Status.INVALID_INPUT)
                 batch = batch._replace(status=idle.astype(batch.status.dtype))
                 done = advance_lanes(batch, self._lanes_args(rows[fill]), self.horizon, self.step, eps=self.eps,
-                                     segment=self.segment, observers=self.observers, certify=self.certify,
+                                     segment=self.segment, observers=self.observers, certify=self.rules.certify,
                                      stiff_after=STIFF_AFTER)
                 out.append(take_lanes_of(done, np.arange(m)))
         return take_lanes_of(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1), *out), np.argsort(order))
@@ -800,15 +799,15 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
         audit = None if spec is None else _EarlyAudit(spec, n, _float64_rerun(
-            ics5, lane_args, cfg, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps))
+            ics5, lane_args, cfg, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps),
+            fixed_step=not cfg.adaptive)
         # the store's lock on the folder is held until the last chunk is written or read
         try:
             with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
                     concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
                 chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
                                  devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
-                                 tail_pool=tail_pool, certify=rules.certify and cfg.adaptive,
-                                 bitwise=rules.bitwise)
+                                 tail_pool=tail_pool, rules=rules)
                 parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
                                             sampled=sampled,
                                             after_parts=audit.begin if audit is not None and shard is None else None)
@@ -832,8 +831,8 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
 def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
     """``rerun(rows, rtol, atol)``: the same study of some rows of ``ics5``, in float64 at the tolerances given (the
     accuracy audit's reference, `jaxsleigh.studies.audit`). Its last stragglers are gathered down to one lane
-    (``LaneRules(bitwise=False)``): the rows and their batch are the same in every run of the study, so the reference is too,
-    and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
+    (``LaneRules(bitwise=False)``): the rows and their batch are the same in every run of the study, so the reference
+    is too, and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
     def rerun(rows, rtol, atol):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
         budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
@@ -849,8 +848,8 @@ class _EarlyAudit:
     own as soon as the chunks' parts are done (on the core the last stragglers leave free), and the result is
     audited against it once it is assembled."""
 
-    def __init__(self, spec, n: int, rerun):
-        self.spec, self.n, self.rerun = spec, n, rerun
+    def __init__(self, spec, n: int, rerun, *, fixed_step: bool):
+        self.spec, self.n, self.rerun, self.fixed_step = spec, n, rerun, fixed_step
         self.pool, self.ref = concurrent.futures.ThreadPoolExecutor(1), None
 
     def begin(self) -> None:
@@ -864,7 +863,7 @@ class _EarlyAudit:
 
     def record(self, result) -> dict:
         ahead = (lambda: self.ref.result()[0]) if self.ref is not None else None
-        rec = audit_rows(result, self.rerun, self.spec, what="ensemble", reference=ahead)
+        rec = audit_rows(result, self.rerun, self.spec, what="ensemble", reference=ahead, fixed_step=self.fixed_step)
         if self.ref is not None and rec.get("rows"):    # the reference's own seconds, spent beside the last stragglers
             rec["wall_s"] = round(rec["wall_s"] + self.ref.result()[1], 3)
         return rec
