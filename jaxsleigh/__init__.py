@@ -22,7 +22,7 @@ from .integrate.stepsize import StepSizeController
 from .studies.options import RunOptions, SaveAt
 from .studies.audit import Audit
 from .status import Status
-from .studies.optimum import OptimumOptions, OptimumResult, optimum
+from .studies.optimum import OptimumOptions, OptimumResult, load_optimum, optimum, save_optimum
 from .studies.sweep import SweepResult, load_sweep, save_sweep, sweep
 from .model import charts, controller  # noqa: F401
 from . import errors  # noqa: F401

@@ -184,3 +184,24 @@ def test_command_line_small_run_resumable_output_and_bad_input(tmp_path, capsys)
         assert main(cmd[:3] + bad + ["--out", str(out)]) == 2
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err
+
+
+def test_a_saved_optimum_reads_back_and_a_wrong_file_is_refused_by_name(tmp_path):
+    import jaxsleigh
+
+    res = optimum(np.array([[1.0, 1.0, 0.5]]), horizons=(10.0,),
+                  options=OptimumOptions(intervals=4, outer=2, inner=10, guesses=1))
+    path = jaxsleigh.save_optimum(tmp_path / "sub" / "opt", res)
+    assert path.name == "opt.npz" and path.read_bytes() == jaxsleigh.save_optimum(tmp_path / "again", res).read_bytes()
+    back = jaxsleigh.load_optimum(path)
+    np.testing.assert_array_equal(back.energy, res.energy)
+    np.testing.assert_array_equal(back.u, res.u)
+    assert back.settings == res.settings and back.eps == res.eps
+    basin = jaxsleigh.save_basin(tmp_path / "b.npz", jaxsleigh.run_basin(np.array([[1.0, 1.0, 0.5]]), t_final=1.0))
+    with pytest.raises(ValueError, match="is a basin result.*load_basin"):
+        jaxsleigh.load_optimum(basin)
+    with pytest.raises(ValueError, match="is a bound on the optimum.*read it with jaxsleigh.load_optimum"):
+        jaxsleigh.load_basin(path)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="cannot read .*junk.npz"):
+        jaxsleigh.load_optimum(tmp_path / "junk.npz")

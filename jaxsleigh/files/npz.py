@@ -20,7 +20,7 @@ from ..status import describe
 from ..validate import check_memory
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
-           "settings_arrays", "write_npz_deterministic", "read_npz", "npz_kind", "NPZ_KINDS", "FIELDS",
+           "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind", "NPZ_KINDS", "FIELDS",
            "check_fields"]
 
 
@@ -38,6 +38,7 @@ NPZ_KINDS = {
     "sweep": (("values", "names", "status_counts"), "a sweep result", "jaxsleigh.load_sweep"),
     "simulation": (("t", "q", "u", "Hd"), "a simulation (jaxsleigh simulate / paper)",
                    "jaxsleigh.plots.paper_figures.load_solution"),
+    "optimum": (("horizons", "frontier", "kkt"), "a bound on the optimum (jaxsleigh optimum)", "jaxsleigh.load_optimum"),
 }
 
 
@@ -115,6 +116,25 @@ def settings_arrays(s: dict) -> dict:
         **gains, params=np.array([plant["m"], plant["J"], plant["l"]], np.float64),
         damping=np.array(damping_name(plant["damping"])),
     )
+
+
+def write_result(path, arrays: dict, settings: dict) -> Path:
+    """Write a study's result file (``.npz`` appended when missing, its folder made): ``arrays``, then the settings
+    as JSON (``settings_json``, with the status legend) and as the scalars of `settings_arrays`; deterministic bytes
+    (`write_npz_deterministic`). Returns the path."""
+    path = npz_path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = json.dumps({**settings, "status_codes": describe()}, sort_keys=True, default=str)
+    return write_npz_deterministic(path, {**arrays, "settings_json": np.array(doc), **settings_arrays(settings)})
+
+
+def read_result(path, what: str, required=(), *, kind: str) -> tuple[dict, dict]:
+    """``(arrays, settings)`` of a file written by `write_result` (`read_npz`'s checks and messages; the settings
+    without the status legend)."""
+    data = read_npz(path, what, ("settings_json",) + tuple(required), kind=kind)
+    settings = json.loads(str(data["settings_json"]))
+    settings.pop("status_codes", None)
+    return data, settings
 
 
 #: Version of the result files' layout, written into every result file as ``format_version``. 1: files of

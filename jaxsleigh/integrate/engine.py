@@ -19,6 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..cache import kept_jit
 from ..cores import configure
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
+from ..model.lanes import broadcast_lanes, has_lanes, take_lanes
 from ..model.charts import chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
@@ -491,8 +492,6 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
     steps every lane exactly as `drive_final` alone would, at the same segment boundaries: what a pool of stragglers
     gathered from many batches runs (`jaxsleigh.studies.ensemble`). Per-lane ``args`` are given for the batch's
     lanes."""
-    from ..model.lanes import has_lanes
-
     dtype = state.y.dtype
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = step_controls(horizon, dtype, step, eps)
@@ -552,8 +551,6 @@ def _started(y0w, status0, start: bool, args: ClosedLoop, ctl, observers, n: int
     ``lane_host`` holds them on the host, one lane per trajectory, and ``args`` on the device (else ``None`` and
     ``args`` as given); ``state`` is the stepper's first state from ``y0w`` and ``status0`` if ``start``, else
     ``None``."""
-    from ..model.lanes import broadcast_lanes, has_lanes
-
     lane_host = None
     if has_lanes(args.plant, args.gains):    # per-lane parameters: one lane per trajectory of the batch
         lane_host = ClosedLoop(*broadcast_lanes(args.plant, args.gains, n))
@@ -573,8 +570,6 @@ def _merged(full, idx: np.ndarray, host: StepState) -> StepState:
 def _compacted(b: _Batch, act: np.ndarray, min_batch: int, mesh, dtype) -> _Batch:
     """``b``'s active lanes (``act``) gathered into a smaller batch: a power of two >= ``min_batch`` (a multiple
     of the mesh's devices), padded with copies of one active lane; the rows left behind go to ``full``."""
-    from ..model.lanes import take_lanes
-
     keep = np.flatnonzero(act)
     size = bucket(max(keep.size, min_batch))
     if mesh is not None:

@@ -31,6 +31,7 @@ from typing import Callable, NamedTuple, Optional
 import numpy as np
 
 from ..status import Status
+from ..errors import AccuracyWarning
 
 __all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve"]
 
@@ -194,8 +195,6 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
            "wall_s": round(time.perf_counter() - t0, 3)}
     rec["passed"] = bool(np.all(_agree(d, audit)))
     if not rec["passed"]:
-        from ..errors import AccuracyWarning
-
         fix = ("it took fixed steps of dt, which no tolerance changes: run it with the adaptive method (the default; "
                "--method adaptive) or a smaller dt" if fixed_step else
                "run it with x64=True and StepSizeController(rtol=1e-10, atol=1e-10) (--x64 --rtol 1e-10 --atol 1e-10)")

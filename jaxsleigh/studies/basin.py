@@ -31,7 +31,6 @@ with the slope's standard error) and `path_length` (of decimated paths).
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any, NamedTuple, Optional, Sequence
@@ -42,10 +41,10 @@ from .config import reject_traced
 from .ensemble import LaneRules, run_ensemble_resolved, summary_repr
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
-from ..files.npz import npz_path, read_npz, settings_arrays, write_npz_deterministic
+from ..files.npz import read_result, write_result
 from ..files.npz import parse_number as _number
 from ..model.params import Gains, PlantParams
-from ..status import CONVERGED, NOT_INTEGRATED, VALID, Status, describe
+from ..status import CONVERGED, NOT_INTEGRATED, VALID, Status
 from ..validate import check_memory, whole
 
 __all__ = [
@@ -561,13 +560,8 @@ def save_basin(path, result: BasinResult) -> Path:
     Nothing that varies between runs (wall time, devices) is written, and the zip members carry
     a fixed timestamp: the same inputs give the same bytes.
     """
-    path = npz_path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    r = result
-    s = r.settings
-    st = r.starts
+    r, st = result, result.starts
     summ = r.summary()
-    settings = {**s, "status_codes": describe()}
     arrays = {"ics": np.asarray(st.ics, np.float64)}
     arrays.update({k: np.asarray(getattr(r, k)) for k in _PER_START})
     arrays.update({k: np.asarray(getattr(r, k)) for k in _EFFORT if getattr(r, k) is not None})
@@ -586,17 +580,13 @@ def save_basin(path, result: BasinResult) -> Path:
     elif st.kind == "samples":
         arrays["box"] = np.asarray([st.spec[c] for c in COORDS], np.float64)
         arrays["seed"] = np.int64(st.spec["seed"])
-    arrays.update(settings_json=np.array(json.dumps(settings, sort_keys=True)), **settings_arrays(s))
-    write_npz_deterministic(path, arrays)
-    return path
+    return write_result(path, arrays, r.settings)
 
 
 def load_basin(path) -> BasinResult:
     """Read an ``.npz`` written by `save_basin` (or ``jaxsleigh basin``)."""
-    data = read_npz(path, "basin file (written by jaxsleigh basin / save_basin)",
-                    ("settings_json", "ics") + _PER_START, kind="basin")
-    settings = json.loads(str(data["settings_json"]))
-    settings.pop("status_codes", None)
+    data, settings = read_result(path, "basin file (written by jaxsleigh basin / save_basin)", ("ics",) + _PER_START,
+                                 kind="basin")
     ics = data["ics"]
     starts = starts_from_spec(ics, settings["starts"])
     ics5 = ics if ics.shape[1] == 5 else np.concatenate([ics, np.zeros((ics.shape[0], 2))], axis=1)

@@ -18,6 +18,7 @@ from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, St
 from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from ..validate import INT32_MAX, real, whole
+from ..model.lanes import check_lanes, lane_count, lanes_digest
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict",
            "reject_traced"]
@@ -77,8 +78,6 @@ class SolveConfig(NamedTuple):
         if self.controller is not None:
             out["controller"] = controller_record(self.controller)
         if self.lanes is not None:
-            from ..model.lanes import lanes_digest
-
             out["lanes"] = self.lanes
             out["lanes_sha256"] = lanes_digest(self.plant, self.gains)
         return out
@@ -155,8 +154,6 @@ def _check_switches(method, x64, check_passivity, f) -> bool:
 def _resolve_law(plant, gains, controller, f, flags):
     """The plant and the law, checked: either ``gains`` (the paper's law) or ``controller`` (a `Gains` there is
     the paper's law too), with or without per-trajectory lanes. Returns ``(plant, gains, controller, lanes)``."""
-    from ..model.lanes import check_lanes, lane_count
-
     if controller is not None:
         if gains is not None:
             raise ValueError(f"give either {f('gains')} (the paper's law) or {f('controller')} (any law u = law(q, v)), "

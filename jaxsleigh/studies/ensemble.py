@@ -47,6 +47,7 @@ from .sampled import sampled_settings, sampled_summaries
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
 from ..integrate.stepper import init_batch
+from ..model.lanes import broadcast_lanes, has_lanes, lane_table, take_lanes
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
@@ -198,8 +199,6 @@ def _hd_lanes(yw, args):
 
 def _hd_any(yw, args):
     """H_d of a batch ``yw`` (N, 5) under one plant or per-lane (canonical) ``args``."""
-    from ..model.lanes import has_lanes
-
     return _hd_lanes(yw, args) if has_lanes(args.plant, args.gains) else _hd_batch(yw, args)
 
 
@@ -208,27 +207,33 @@ def _to_q_batch(yw, chart=WChart()):
     return jax.vmap(chart.from_chart)(yw)
 
 
+def _ends(y, ok, y0w, status0, args) -> tuple:
+    """``(chart, invalid, q_final, p_final, Hd0)`` of a chunk's final chart states ``y`` (N, 5): NaN where the run
+    did not end OK (``ok``); ``Hd0`` NaN where the start was not integrated (``invalid``) and for a law without the
+    paper's H_d."""
+    chart = chart_for(args.controller)
+    yq = np.array(_to_q_batch(jnp.asarray(y), chart), np.float64)
+    yq[~ok] = np.nan
+    invalid = np.asarray(status0) != Status.OK
+    hd0 = np.array(_hd_any(y0w, args), np.float64) if chart.has_energy else np.full(len(ok), np.nan)
+    hd0[invalid] = np.nan
+    return chart, invalid, yq[:, :3], yq[:, 3:], hd0
+
+
 def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> dict:
     """Host-side summaries of one chunk from the final (batch-last) stepper state. Standard
     summaries that no observer provides are NaN; other observers' results are added by name.
     ``Hd0`` and ``Hd_final`` are NaN for a law without the paper's H_d."""
-    chart = chart_for(args.controller)
     status = np.asarray(final.status)
     ok = status == Status.OK
-    y = np.moveaxis(np.asarray(final.y), -1, 0)
-    yq = np.asarray(_to_q_batch(jnp.asarray(y), chart)).astype(np.float64)
-    failed = ~ok
-    yq[failed] = np.nan
-    invalid = np.asarray(status0) != Status.OK
-    hd0 = np.array(_hd_any(y0w, args), np.float64) if chart.has_energy else np.full(len(status), np.nan)
-    hd0[invalid] = np.nan
+    chart, invalid, q_final, p_final, hd0 = _ends(np.moveaxis(np.asarray(final.y), -1, 0), ok, y0w, status0, args)
     obs = collect(observers, final.obs, final.quad)
     n = status.shape[0]
     for k, shape in (("T_eps", ()), ("min_abs_theta", ()), ("max_excursion", ()), ("u_peak", (2,)),
                      ("u_norm_peak", ()), ("u_energy", ()), ("u_abs_int", ())):
         obs.setdefault(k, np.full((n,) + shape, np.nan))
     out = {
-        "q_final": yq[:, :3], "p_final": yq[:, 3:],
+        "q_final": q_final, "p_final": p_final,
         # certified not to settle (jaxsleigh.integrate.stragglers): not settled within the horizon, T_eps = inf
         "T_eps": np.where(ok, obs.pop("T_eps"), np.where(status == Status.NOT_SETTLING, np.inf, np.nan)),
         "Hd0": hd0,
@@ -245,17 +250,11 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
 
 def _plain_summaries(y, status, y0w, status0, args, horizon) -> dict:
     """Summaries of `drive_plain`: final state, H_d, status; no path data."""
-    chart = chart_for(args.controller)
     ok = status == Status.OK
-    yq = np.array(_to_q_batch(jnp.asarray(y), chart), np.float64)
-    yq[~ok] = np.nan
-    invalid = np.asarray(status0) != Status.OK
+    chart, invalid, q_final, p_final, hd0 = _ends(y, ok, y0w, status0, args)
     nan = np.full(len(status), np.nan)
-    hd0 = np.array(_hd_batch(y0w, args), np.float64) if chart.has_energy else nan.copy()
-    hd0[invalid] = np.nan
     hd = np.array(_hd_batch(jnp.asarray(y, y0w.dtype), args), np.float64) if chart.has_energy else nan
-    nan = np.full(len(status), np.nan)
-    return {"q_final": yq[:, :3], "p_final": yq[:, 3:], "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
+    return {"q_final": q_final, "p_final": p_final, "T_eps": nan, "min_abs_theta": nan, "max_excursion": nan,
             "Hd0": hd0, "Hd_final": np.where(ok, hd, np.nan), "t_reached": np.where(ok, horizon.t_final, np.nan),
             "n_steps": np.where(invalid, 0, horizon.n_steps).astype(np.int64),
             "n_rejected": np.zeros(len(status), np.int64), "status": status.astype(np.int32),
@@ -300,8 +299,6 @@ def _lane_args(cfg, ics5: np.ndarray, summaries) -> Optional[ClosedLoop]:
     """The per-trajectory parameters broadcast to one lane per start (``None``: one plant and one law)."""
     if cfg.lanes is None:
         return None
-    from ..model.lanes import broadcast_lanes
-
     if cfg.lanes not in (1, ics5.shape[0]):
         raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are {ics5.shape[0]} "
                          f"initial conditions; give one value per initial condition (or one for all)")
@@ -316,8 +313,6 @@ def _rows_law(lane_args: Optional[ClosedLoop], rows, **law) -> dict:
     parameters of those rows; the audit's re-run)."""
     if lane_args is None:
         return law
-    from ..model.lanes import take_lanes
-
     per_row = take_lanes(lane_args.controller, rows)
     paper = isinstance(per_row, Gains)
     return {"plant": take_lanes(lane_args.plant, rows), "gains": per_row if paper else None,
@@ -394,8 +389,6 @@ class _Chunks:
         """The sampled-data loop's summaries of rows lo:hi (their lanes, in a sweep)."""
         if self.lane_args is None:
             return sampled_summaries(self.cfg, self.ics5[lo:hi])
-        from ..model.lanes import take_lanes
-
         return sampled_summaries(self.cfg, self.ics5[lo:hi], take_lanes(self.lane_args, np.arange(lo, hi)))
 
     def engine_part(self, lo, hi, ci=None, pending=None):
@@ -452,8 +445,6 @@ class _Chunks:
         """The closed loop's ``args`` for ``rows`` (their lanes, with per-trajectory parameters)."""
         if self.lane_args is None:
             return self.args
-        from ..model.lanes import take_lanes
-
         return take_lanes(self.lane_args, rows)
 
     def _engine_rows(self, y0w, st, rows, sub, tails=False):
@@ -722,8 +713,6 @@ def _ensemble_result(out: dict, *, ics5, settings, horizon, save_every, lane_arg
     if save_every is not None:
         traj = {"t": horizon.t(), "q": out.pop("q_traj"), "p": out.pop("p_traj")}
     if lane_args is not None:
-        from ..model.lanes import lane_table
-
         traj["params"] = lane_table(lane_args.plant, lane_args.gains, ics5.shape[0])
     observed = {k: out[k] for k in out if k not in SUMMARY_FIELDS}
     return EnsembleResult(ics=ics5, settings=settings, **{k: out[k] for k in SUMMARY_FIELDS}, **traj,

@@ -51,7 +51,8 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple, Optional, Sequence
+from pathlib import Path
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -61,7 +62,7 @@ from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_p
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 from ..files.chunks import ChunkStore
-from ..files.npz import damping_name, write_npz_deterministic
+from ..files.npz import damping_name, npz_path, read_npz, write_npz_deterministic
 from ..progress import Progress
 
 __all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
@@ -668,8 +669,11 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
                          settings=settings, run_info={"chunks_reused": reused})
 
 
-def save_optimum(path, res: OptimumResult):
-    """Write an `OptimumResult` to ``path`` (.npz, deterministic bytes); returns the path."""
+def save_optimum(path, res: OptimumResult) -> Path:
+    """Write an `OptimumResult` to ``path`` (``.npz`` appended when missing, its folder made; deterministic bytes);
+    returns the path."""
+    path = npz_path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"starts": res.starts, "horizons": res.horizons, "eps": np.float64(res.eps), "energy": res.energy,
               "frontier": res.frontier(), "u": res.u, "status": res.status, "q_final": res.q_final,
               "p_final": res.p_final, "kkt": res.kkt, "guess": res.guess,
@@ -678,9 +682,11 @@ def save_optimum(path, res: OptimumResult):
 
 
 def load_optimum(path) -> OptimumResult:
-    """Read a file written by `save_optimum`."""
-    with np.load(path, allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
+    """Read a file written by `save_optimum` (or ``jaxsleigh optimum``); a ``ValueError`` naming the file when it
+    cannot be read or is another kind of result."""
+    d = read_npz(path, "optimum file (written by jaxsleigh optimum / save_optimum)",
+                 ("starts", "horizons", "eps", "energy", "u", "status", "q_final", "p_final", "kkt", "guess",
+                  "settings_json"), kind="optimum")
     return OptimumResult(starts=d["starts"], horizons=d["horizons"], eps=float(d["eps"]), energy=d["energy"],
                          u=d["u"], status=d["status"], q_final=d["q_final"], p_final=d["p_final"], kkt=d["kkt"],
                          guess=d["guess"], settings=json.loads(str(d["settings_json"])))

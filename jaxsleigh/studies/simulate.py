@@ -30,6 +30,7 @@ from ..progress import Progress
 from .sampled import sampled_solution
 from ..status import CONVERGED, VALID
 from .ensemble import summary_repr
+from ..model.lanes import broadcast_lanes, lane_table
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
@@ -204,8 +205,6 @@ def _loop_args(cfg, n: int) -> ClosedLoop:
     """The closed loop of ``cfg``; with per-trajectory parameters, broadcast to one lane per start (``n``)."""
     if cfg.lanes is None:
         return ClosedLoop(cfg.plant, cfg.law)
-    from ..model.lanes import broadcast_lanes
-
     if cfg.lanes not in (1, n):
         raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
                          f"{n} initial conditions; give one value per initial condition")
@@ -229,8 +228,6 @@ def _solution_settings(cfg, args: ClosedLoop, n: int, adaptive: bool = False) ->
     if adaptive:
         settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, flight_step(cfg.rtol, cfg.atol, cfg.dtype)
     if cfg.lanes is not None:
-        from ..model.lanes import lane_table
-
         settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, n).items()}
     settings.pop("check_passivity")
     settings.pop("eps")

@@ -27,7 +27,6 @@ crossed): sampled plants, as in ``experiments/studies/robustness.py``.
 from __future__ import annotations
 
 import itertools
-import json
 import math
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple, Optional, Sequence
@@ -38,14 +37,15 @@ import numpy as np
 from .basin import PERCENTILES, BasinStarts, array_starts, fraction_converged, starts_from_spec, t_eps_percentiles
 from ..model.damping import CoulombDamping, ViscousDamping, damping_from_name
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict
-from ..status import CONVERGED, VALID, Status, describe
+from ..status import CONVERGED, VALID, Status
 from ..validate import check_memory
 from .config import plant_to_dict, reject_traced
 from .options import RunOptions, SaveAt, front_options
 from ..integrate.stepsize import StepSizeController
 from .ensemble import run_ensemble_resolved, summary_repr
-from ..files.npz import npz_path, parse_number, read_npz, settings_arrays, write_npz_deterministic
-from ..model.controller import PerTrajectory, as_controller, law_leaf_names
+from ..files.npz import parse_number, read_result, write_result
+from ..model.controller import PerTrajectory, as_controller, controller_record, law_leaf_names
+from ..model.lanes import broadcast_lanes, check_lanes, take_lanes
 
 __all__ = ["PARAM_NAMES", "ParamAxis", "parse_param", "param_grid", "check_rows", "apply_params", "SweepResult", "sweep",
            "save_sweep", "load_sweep"]
@@ -195,8 +195,6 @@ def apply_params(names: Sequence[str], values, plant: Optional[PlantParams] = No
     law, `jaxsleigh.model.controller`) the second item is that law per lane
     (`jaxsleigh.model.controller.PerTrajectory`): names that are not plant parameters set its scalar
     parameters."""
-    from ..model.lanes import check_lanes
-
     names = tuple(names)
     values = _value_table(names, values)
     labels = dict(labels or {})
@@ -273,8 +271,6 @@ _GAIN_PARAMS = ("k", "l1", "l2", "l3", "d11", "d12", "d22")
 def _apply_law_params(names, values, plant: PlantParams, law, lab) -> tuple[PlantParams, Any]:
     """`apply_params` for a user's law: the plant's parameters (as for the paper's law) and the law's scalar
     parameters, per lane."""
-    from ..model.lanes import check_lanes
-
     law_names = _law_scalar_names(law)
     gain = [n for n in names if n in _GAIN_PARAMS and n not in law_names]
     if gain:
@@ -471,8 +467,6 @@ def _value_sets(params, n_starts: int, law_names: Sequence[str], labels: Optiona
 def _row_lanes(names, values: np.ndarray, plant, gains, controller, labels, n_starts: int) -> tuple:
     """``(base_plant, base_gains, plant, law)``: the base values and the per-row lanes of the plant and of the gains
     (or the user's law), row ``p * N + i`` under value set ``p``."""
-    from ..model.lanes import broadcast_lanes, take_lanes
-
     base_plant, base_gains = as_plant(plant), (as_gains(gains) if controller is None else None)
     lane_plant, lane_gains = apply_params(names, values, base_plant, base_gains, labels=labels, controller=controller)
     P = values.shape[0]
@@ -487,8 +481,6 @@ def _sweep_settings(run_settings: Mapping, controller, base_plant, base_gains, s
     gains, the starts and what was swept."""
     settings = {k: v for k, v in run_settings.items() if k not in ("save_every", "plant", "gains")}
     if controller is not None:
-        from ..model.controller import controller_record
-
         settings["controller"] = controller_record(controller)
     settings.update(plant=plant_to_dict(base_plant),
                     gains=gains_to_dict(base_gains) if controller is None else None, starts=st.spec,
@@ -584,9 +576,7 @@ def save_sweep(path, result: SweepResult) -> Path:
     legend) and as scalars ``eps, t_final, dt, method, dtype, max_steps``, the base ``gains_L,
     gains_k, gains_D_hat, params (m, J, l), damping``.
     """
-    path = npz_path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    r, s = result, result.settings
+    r = result
     S, se = r.fractions()
     codes, counts = r.status_counts()
     arrays = {
@@ -608,19 +598,14 @@ def save_sweep(path, result: SweepResult) -> Path:
         arrays[f"axis_{a.name}"] = a.values()
     if r.axes:
         arrays["axis_log"] = np.array([a.log for a in r.axes])
-    arrays.update(settings_json=np.array(json.dumps({**s, "status_codes": describe()}, sort_keys=True, default=str)),
-                  **settings_arrays(s))
-    write_npz_deterministic(path, arrays)
-    return path
+    return write_result(path, arrays, r.settings)
 
 
 def load_sweep(path) -> SweepResult:
     """Read an ``.npz`` written by `save_sweep` (or ``jaxsleigh sweep``)."""
-    d = read_npz(path, "sweep file (written by jaxsleigh sweep / save_sweep)",
-                 ("settings_json", "values", "names", "grid_shape", "ics", "T_eps", "status", "n_steps",
-                  "min_abs_theta", "Hd0"), kind="sweep")
-    settings = json.loads(str(d["settings_json"]))
-    settings.pop("status_codes", None)
+    d, settings = read_result(path, "sweep file (written by jaxsleigh sweep / save_sweep)",
+                              ("values", "names", "grid_shape", "ics", "T_eps", "status", "n_steps", "min_abs_theta",
+                               "Hd0"), kind="sweep")
     axes = tuple(parse_param(a, law_names=tuple(settings["sweep"]["names"])) for a in settings["sweep"]["axes"])
     recorded = {k: d[k] for k in ("u_energy", "u_abs_int", "u_norm_peak", *FINAL_FIELDS) if k in d}
     return SweepResult(names=tuple(str(n) for n in d["names"]), values=d["values"],
