@@ -499,3 +499,43 @@ def test_plot_history_draws_rejected_candidates_even_when_none_is_valid(valid, l
     np.testing.assert_array_equal(y, expect)
     assert np.all(np.isfinite(y))
     assert fig._suptitle.get_text() == "Gain tuning"
+
+
+def test_every_tuning_figure_draws_on_its_own_figure_and_into_given_axes():
+    """Each figure of `jaxsleigh.plots.tuning` makes its own figure of as many panels as it draws, draws into as many
+    axes given instead (and no other figure), and refuses a wrong number of axes by name."""
+    from types import SimpleNamespace
+
+    from jaxsleigh.plots import tuning as tp
+    from jaxsleigh.plots.base import new_figure
+
+    n = 4
+    effort = {"energy": np.linspace(2.0, 1.0, n), "soft_loss": np.linspace(0.5, 0.2, n), "multiplier": np.ones(n),
+              "probe_attempts": np.full(n, 50.0), "probe_active": np.array([False, True, False, False]),
+              "valid": np.array([True, False, True, True])}
+    search = {"generation": np.arange(n), "feasible": np.array([False, True, True, True]),
+              "median_T": np.linspace(30.0, 20.0, n), "median_energy": np.linspace(3.0, 2.0, n),
+              "sigma": np.linspace(0.5, 0.1, n)}
+    row = SimpleNamespace(median=20.0, median_se=1.0, frac_converged=0.9, frac_se=0.05)
+    fig_of = {
+        "history": (4, lambda axes: tp.plot_history(_history([True] * n, np.linspace(1, 0.5, n)), axes=axes)),
+        "effort": (3, lambda axes: tp.plot_effort_history(effort, budget=1.5, probe_budget=100.0, returned=2,
+                                                          axes=axes)),
+        "search": (3, lambda axes: tp.plot_search_history(search, reference={"median_T": 25.0, "median_energy": 2.5,
+                                                                             "energy_budget": 2.5}, axes=axes)),
+        "times": (2, lambda axes: tp.plot_convergence_times({"a": np.array([1.0, 2.0, np.inf, np.nan])}, axes=axes)),
+        "per plant": (2, lambda axes: tp.plot_per_plant({"paper plant": {"paper": row, "tuned": row}}, axes=axes)),
+    }
+    for name, (panels, draw) in fig_of.items():
+        own = draw(None)
+        assert len(own.axes) >= panels, name             # (a twin axis adds one)
+        given = new_figure((8.0, 6.0))
+        axes = given.subplots(panels, 1)
+        assert draw(list(axes)) is given, name
+        with pytest.raises(ValueError, match=f"need {panels} axes, got {panels - 1}"):
+            draw(list(axes)[:-1])
+    front = {"method": "warm", "evaluations": 2, "points": [
+        {"evaluation": {"median_energy": e, "median_T_0.05_s": t, "median_se_s": 0.5}} for e, t in ((1.0, 30.0),
+                                                                                                  (2.0, 20.0))]}
+    ax = new_figure((5.0, 4.0)).add_subplot(1, 1, 1)
+    assert tp.plot_front(front, ax=ax) is ax.figure and len(tp.plot_front(front).axes) == 1

@@ -43,13 +43,21 @@ def new_figure(figsize):
     return Figure(figsize=figsize, layout="constrained")
 
 
-def figure_and_axes(ax, figsize):
-    """``(fig, ax, own)``: a new figure with one axes (``own=True``) when ``ax`` is ``None``, else
-    ``ax`` and its figure."""
+def figure_and_axes(ax, figsize, shape=None, **subplots_kw):
+    """``(fig, ax, own)``: a new figure of ``figsize`` (``own=True``) when ``ax`` is ``None``, else the given axes
+    and their figure. One axes, or with ``shape = (rows, cols)`` a list of that many (``subplots_kw``: e.g.
+    ``sharex=True``); given axes must then be that many."""
     if ax is None:
         fig = new_figure(figsize)
-        return fig, fig.add_subplot(1, 1, 1), True
-    return ax.figure, ax, False
+        if shape is None:
+            return fig, fig.add_subplot(1, 1, 1), True
+        return fig, list(fig.subplots(*shape, squeeze=False, **subplots_kw).ravel()), True
+    if shape is None:
+        return ax.figure, ax, False
+    axes = list(ax)
+    if len(axes) != shape[0] * shape[1]:
+        raise ValueError(f"need {shape[0] * shape[1]} axes, got {len(axes)}")
+    return axes[0].figure, axes, False
 
 
 def save_figure(fig, path, *, dpi: int = 150) -> Path:

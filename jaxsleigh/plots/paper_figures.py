@@ -29,7 +29,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import base as _pb
-from .base import new_figure, provenance, save_figure, stamp  # noqa: F401 (stamp: public before)
+from .base import provenance, save_figure, stamp  # noqa: F401 (stamp: public before)
 from ..status import Status
 from ..files.npz import read_npz
 
@@ -204,26 +204,14 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
                  labels=None, legend=True, stamp=True):
     """Stacked time histories: ``series`` is a list of (N, T) arrays, one axis each."""
     t, q, status = _arrays(sol)
-    fig, axes, own = _stacked_axes(axes, len(series), figsize)
+    fig, axes, own = _pb.figure_and_axes(axes, figsize or (7.0, 1.9 * len(series) + 1.2), (len(series), 1),
+                                         sharex=True)
     names = _labels(sol, q, status, labels)
     _draw_series(axes, t, series, names, status, ylabels, yscales)
     _time_title(fig, axes, own, sol, title, stamp)
     if legend:
         _time_legend(fig, axes, own, status)
     return fig
-
-
-def _stacked_axes(axes, n_ax, figsize):
-    """``(fig, axes, own)``: ``n_ax`` stacked axes sharing x on a new figure (``own=True``) when ``axes`` is
-    ``None``, else the ``n_ax`` given axes and their figure."""
-    if axes is None:
-        fig = new_figure(figsize or (7.0, 1.9 * n_ax + 1.2))
-        axes = fig.subplots(n_ax, 1, sharex=True)
-        return fig, np.atleast_1d(axes), True
-    axes = list(axes)
-    if len(axes) != n_ax:
-        raise ValueError(f"need {n_ax} axes, got {len(axes)}")
-    return axes[0].figure, axes, False
 
 
 def _draw_series(axes, t, series, names, status, ylabels, yscales):

@@ -6,8 +6,7 @@ from typing import Optional
 
 import numpy as np
 
-from .base import T_EPS
-from .paper_figures import new_figure
+from .base import T_EPS, new_figure
 from ..studies.sweep import SweepResult
 
 __all__ = ["plot_sweep", "plot_sweep_line", "plot_sweep_grid"]

@@ -22,7 +22,7 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from .base import new_figure, save_figure
+from .base import figure_and_axes, save_figure
 from .paper_figures import plot_paths
 
 __all__ = ["plot_history", "plot_paths_before_after", "plot_convergence_times", "plot_per_plant",
@@ -39,16 +39,6 @@ def _field_arrays(obj, **dtypes):
     return [np.asarray(_field(obj, name), dtype) for name, dtype in dtypes.items()]
 
 
-def _side_by_side(axes, figsize, **subplots_kw):
-    """``(fig, axes)``: two axes side by side on a new figure of ``figsize`` when ``axes`` is ``None``, else the
-    given axes (as a list) and their figure."""
-    if axes is None:
-        fig = new_figure(figsize)
-        return fig, fig.subplots(1, 2, **subplots_kw)
-    axes = list(axes)
-    return axes[0].figure, axes
-
-
 def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget: Optional[float] = None):
     """Loss, gradient norm, integration cost (the probe's attempted steps) and gains per iteration.
 
@@ -63,7 +53,7 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     """
     loss, valid, best, gnorm, L, k, D, probe = _history_arrays(history)
     it = np.arange(loss.size)
-    fig, axes, own = _four_axes(axes)
+    fig, axes, own = figure_and_axes(axes, (7.0, 9.5), (4, 1), sharex=True)
     _draw_loss(axes[0], it, loss, valid, best)
     ax = axes[1]
     ax.semilogy(it, gnorm, color="C1", linewidth=1)
@@ -87,18 +77,6 @@ def _history_arrays(history):
     except (KeyError, AttributeError):
         probe = np.full(loss.size, np.nan)
     return loss, valid, best, gnorm, L, k, D, probe
-
-
-def _four_axes(axes):
-    """``(fig, axes, own)``: four stacked axes of a new figure (``own=True``) when ``axes`` is ``None``, else the
-    four given and their figure."""
-    if axes is None:
-        fig = new_figure((7.0, 9.5))
-        return fig, fig.subplots(4, 1, sharex=True), True
-    axes = list(axes)
-    if len(axes) != 4:
-        raise ValueError(f"need 4 axes, got {len(axes)}")
-    return axes[0].figure, axes, False
 
 
 def _draw_loss(ax, it, loss, valid, best):
@@ -147,7 +125,7 @@ def plot_paths_before_after(before, after, *, names: Sequence[str] = ("paper gai
                             axes=None, share: bool = True):
     """Paths of the contact point under two sets of gains (two `Solution`
     objects from the same starts), side by side; with ``share`` both panels get the same limits."""
-    fig, axes = _side_by_side(axes, (12.0, 6.6))
+    fig, axes, _ = figure_and_axes(axes, (12.0, 6.6), (1, 2))
     for ax, sol, name in zip(axes, (before, after), names):
         plot_paths(sol, ax=ax, legend=ax is axes[-1])
         ax.set_title(f"{name}: {ax.get_title()}", fontsize=9)
@@ -174,7 +152,7 @@ def plot_convergence_times(times: Mapping[str, np.ndarray], *, horizon: float = 
     counted as not settled). Left: the fraction settled by time t (empirical CDF), medians marked;
     right: histograms on a log time axis.
     """
-    fig, axes = _side_by_side(axes, (11.0, 4.2))
+    fig, axes, _ = figure_and_axes(axes, (11.0, 4.2), (1, 2))
     finite_all = np.concatenate([np.asarray(T, float)[np.isfinite(T)] for T in times.values()] + [[horizon]])
     lo = max(min(finite_all.min(), horizon) * 0.8, 1e-2)
     bins = np.geomspace(lo, horizon, 40)
@@ -213,7 +191,7 @@ def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, hori
     """
     plants = list(table)
     labels = list(next(iter(table.values())))
-    fig, axes = _side_by_side(axes, (11.0, 4.4), sharey=True)
+    fig, axes, _ = figure_and_axes(axes, (11.0, 4.4), (1, 2), sharey=True)
     y = np.arange(len(plants))
     h = 0.8 / len(labels)
     for j, lab in enumerate(labels):
@@ -251,13 +229,7 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
     energy, soft, lam, probe, active, valid = _field_arrays(
         history, energy=float, soft_loss=float, multiplier=float, probe_attempts=float, probe_active=bool, valid=bool)
     it = np.arange(energy.size)
-    if axes is None:
-        fig = new_figure((7.0, 7.5))
-        axes = fig.subplots(3, 1, sharex=True)
-        own = True
-    else:
-        axes = list(axes)
-        fig, own = axes[0].figure, False
+    fig, axes, own = figure_and_axes(axes, (7.0, 7.5), (3, 1), sharex=True)
     _draw_energy(axes[0], it, energy, valid, budget)
     _draw_soft_time(axes[1], it, soft, lam, valid)
     _draw_probe_activity(axes[2], it, probe, active, probe_budget)
@@ -310,10 +282,7 @@ def plot_search_history(history, *, reference: Mapping, returned: Optional[int] 
         ``energy_budget``).
       returned: the generation of the returned gains, marked.
     """
-    if axes is None:
-        fig = new_figure((11.0, 3.6))
-        axes = fig.subplots(1, 3)
-    fig = axes[0].figure
+    fig, axes, _ = figure_and_axes(axes, (11.0, 3.6), (1, 3))
     gen = np.asarray(_field(history, "generation"))
     feas = np.asarray(_field(history, "feasible"), bool)
     T, E = np.asarray(_field(history, "median_T"), float), np.asarray(_field(history, "median_energy"), float)
@@ -358,10 +327,7 @@ def plot_front(front: Mapping, *, baseline: Optional[Mapping] = None, references
         default: ``front["references"]``), drawn as labelled markers.
       highlight: ``{name: figures}`` to mark specially (e.g. the ``balanced`` preset).
     """
-    if ax is None:
-        fig = new_figure((7.0, 5.0))
-        ax = fig.add_subplot(1, 1, 1)
-    fig = ax.figure
+    fig, ax, _ = figure_and_axes(ax, (7.0, 5.0))
     pts = [p for p in front["points"] if "evaluation" in p]
     e, t, se = _front_xy(pts)
     ax.errorbar(e, t, yerr=se, fmt="o-", color="C0", markersize=4, capsize=2,
