@@ -6,10 +6,12 @@ updates it after every attempted step (only accepted steps count). An observer m
 weights, \(Q_{n+1} = Q_n + \tfrac{h}{6}(g_1 + 2 g_2 + 2 g_3 + g_4)\) over the stage states, i.e.
 to the integrator's fourth order (not a post-hoc sum of saved samples).
 
-An observer is a frozen dataclass (hashable: it is a static argument of the jitted stepper) with
+An observer is a frozen dataclass (hashable: it is a static argument of the jitted stepper; subclass `Observer`
+for the defaults below) with
 
 * ``fields``: the names of its results;
-* ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``;
+* ``n_quad``: how many quadrature rows it needs; ``needs_control``: whether it reads ``u``; ``needs_dense``:
+  whether it reads the step's dense output (`hermite`, which needs the derivative at the step's end);
 * ``init(t0, y, u, ctl, chart)`` -> tuple of arrays (its state at the start; ``chart``, from
   `jaxsleigh.model.charts`, gives \\(|q|^2\\) and \\(|\\theta|\\) of a state in the chart it is integrated in);
 * ``update(state, step, ctl)`` -> state after an attempted step; ``step`` is a `StepInfo`
@@ -33,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["StepInfo", "hermite", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
+__all__ = ["StepInfo", "hermite", "Observer", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
            "observer_fields", "collect", "collect_values"]
 
 
@@ -68,7 +70,22 @@ def _np(a) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class ConvergenceTime:
+class Observer:
+    """What an observer that does not say otherwise is (subclass it, as the built-ins do): no quadrature rows, no
+    control read, no dense output, so no integrand; ``fields``, ``init``, ``update``, ``values`` and ``results`` are
+    its own."""
+
+    fields: ClassVar[tuple] = ()
+    n_quad: ClassVar[int] = 0
+    needs_control: ClassVar[bool] = False
+    needs_dense: ClassVar[bool] = False
+
+    def integrand(self, y, u):
+        return ()
+
+
+@dataclass(frozen=True)
+class ConvergenceTime(Observer):
     r"""``T_eps``: the start of the last stay in the ball \(|q| \le \epsilon\) (``ctl.eps``), i.e.
     the first time after which the trajectory stays inside (``inf`` while it is outside).
 
@@ -82,8 +99,6 @@ class ConvergenceTime:
     bisections: int = 12
 
     fields: ClassVar[tuple] = ("T_eps",)
-    n_quad: ClassVar[int] = 0
-    needs_control: ClassVar[bool] = False
     needs_dense: ClassVar[bool] = True
 
     def init(self, t0, y, u, ctl, chart):
@@ -125,9 +140,6 @@ class ConvergenceTime:
         new = jnp.where(inside_end, jnp.where(entered, entry, t_enter), jnp.inf)
         return (jnp.where(step.acc, new, t_enter).astype(t_enter.dtype),)
 
-    def integrand(self, y, u):
-        return ()
-
     def values(self, state, quad):
         return {"T_eps": state[0]}
 
@@ -136,22 +148,16 @@ class ConvergenceTime:
 
 
 @dataclass(frozen=True)
-class ClosestApproach:
+class ClosestApproach(Observer):
     r"""``min_abs_theta``: \(\min_t |\theta(t)|\) over the accepted steps (the singular set)."""
 
     fields: ClassVar[tuple] = ("min_abs_theta",)
-    n_quad: ClassVar[int] = 0
-    needs_control: ClassVar[bool] = False
-    needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl, chart):
         return (chart.abs_theta(y),)
 
     def update(self, state, step, ctl):
         return (jnp.where(step.acc, jnp.minimum(state[0], step.chart.abs_theta(step.y_new)), state[0]),)
-
-    def integrand(self, y, u):
-        return ()
 
     def values(self, state, quad):
         return {"min_abs_theta": state[0]}
@@ -161,22 +167,16 @@ class ClosestApproach:
 
 
 @dataclass(frozen=True)
-class Excursion:
+class Excursion(Observer):
     r"""``max_excursion``: \(\max_t |q(t)|\) over the accepted steps."""
 
     fields: ClassVar[tuple] = ("max_excursion",)
-    n_quad: ClassVar[int] = 0
-    needs_control: ClassVar[bool] = False
-    needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl, chart):
         return (chart.q_norm2(y),)
 
     def update(self, state, step, ctl):
         return (jnp.where(step.acc, jnp.maximum(state[0], step.chart.q_norm2(step.y_new)), state[0]),)
-
-    def integrand(self, y, u):
-        return ()
 
     def values(self, state, quad):
         return {"max_excursion": jnp.sqrt(state[0])}
@@ -194,7 +194,7 @@ def _sqrt0(e):
 
 
 @dataclass(frozen=True)
-class ControlEffort:
+class ControlEffort(Observer):
     r"""Control effort over the horizon, in the paper's units (``u`` is a generalised force: the
     forward force in N and the turning moment in N m):
 
@@ -207,7 +207,6 @@ class ControlEffort:
     fields: ClassVar[tuple] = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int")
     n_quad: ClassVar[int] = 2
     needs_control: ClassVar[bool] = True
-    needs_dense: ClassVar[bool] = False
 
     def init(self, t0, y, u, ctl, chart):
         return (jnp.abs(u[0]), jnp.abs(u[1]), _sqrt0(u[0] * u[0] + u[1] * u[1]))
