@@ -18,7 +18,8 @@ from ..integrate.stepsize import DEFAULT_ATOL, DEFAULT_RTOL, MAX_STEP_FACTOR, St
 from ..integrate.engine import METHODS, Horizon, default_max_steps, make_horizon
 from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict, lane_record
 from ..validate import INT32_MAX, real, whole
-from ..model.lanes import check_lanes, lane_count, lanes_digest
+from ..model.closed_loop import ClosedLoop
+from ..model.lanes import broadcast_lanes, check_lanes, lane_count, lanes_digest
 
 __all__ = ["SolveConfig", "solve_config", "DEFAULT_RTOL", "DEFAULT_ATOL", "MAX_STEP_FACTOR", "plant_to_dict",
            "reject_traced"]
@@ -60,6 +61,16 @@ class SolveConfig(NamedTuple):
     @property
     def adaptive(self) -> bool:
         return self.method == "adaptive"
+
+    def lane_loop(self, n: int) -> Optional[ClosedLoop]:
+        """The closed loop with its per-trajectory parameters broadcast to one lane per start (``n``); ``None`` for
+        one plant and one law; a ``ValueError`` when the lanes are neither 1 nor ``n``."""
+        if self.lanes is None:
+            return None
+        if self.lanes not in (1, n):
+            raise ValueError(f"the per-trajectory parameters have {self.lanes} lanes but there are {n} initial "
+                             f"conditions; give one value per initial condition (or one for all)")
+        return ClosedLoop(*broadcast_lanes(self.plant, self.law, n))
 
     @property
     def dtype(self) -> str:

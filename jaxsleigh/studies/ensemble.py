@@ -47,7 +47,7 @@ from .sampled import sampled_settings, sampled_summaries
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
 from ..validate import check_memory, whole
 from ..integrate.stepper import init_batch
-from ..model.lanes import broadcast_lanes, has_lanes, lane_table, take_lanes
+from ..model.lanes import has_lanes, lane_table, take_lanes
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
@@ -297,15 +297,10 @@ def _checked_options(stepsize: StepSizeController, saveat: SaveAt, run: RunOptio
 
 def _lane_args(cfg, ics5: np.ndarray, summaries) -> Optional[ClosedLoop]:
     """The per-trajectory parameters broadcast to one lane per start (``None``: one plant and one law)."""
-    if cfg.lanes is None:
-        return None
-    if cfg.lanes not in (1, ics5.shape[0]):
-        raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are {ics5.shape[0]} "
-                         f"initial conditions; give one value per initial condition (or one for all)")
-    if not summaries:
+    if cfg.lanes is not None and not summaries:
         raise ValueError("summaries=False (the plain fixed-step path) runs one plant and one set of gains; "
                          "per-trajectory parameters need summaries=True")
-    return ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, ics5.shape[0]))
+    return cfg.lane_loop(ics5.shape[0])
 
 
 def _rows_law(lane_args: Optional[ClosedLoop], rows, **law) -> dict:

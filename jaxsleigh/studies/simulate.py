@@ -30,7 +30,7 @@ from ..progress import Progress
 from .sampled import sampled_solution
 from ..status import CONVERGED, VALID
 from .ensemble import summary_repr
-from ..model.lanes import broadcast_lanes, lane_table
+from ..model.lanes import lane_table
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
@@ -175,7 +175,7 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     with jax.enable_x64(cfg.x64):
         dtype = working_dtype()
-        args = _loop_args(cfg, ics5.shape[0])
+        args = cfg.lane_loop(ics5.shape[0]) or ClosedLoop(cfg.plant, cfg.law)
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
@@ -199,16 +199,6 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
                     settings=_solution_settings(cfg, args, ics5.shape[0], step.method == "adaptive"),
                     run_info=run_info,
                     **{k: effort[k] for k in SUMMARY_NAMES if k in effort})
-
-
-def _loop_args(cfg, n: int) -> ClosedLoop:
-    """The closed loop of ``cfg``; with per-trajectory parameters, broadcast to one lane per start (``n``)."""
-    if cfg.lanes is None:
-        return ClosedLoop(cfg.plant, cfg.law)
-    if cfg.lanes not in (1, n):
-        raise ValueError(f"the per-trajectory parameters have {cfg.lanes} lanes but there are "
-                         f"{n} initial conditions; give one value per initial condition")
-    return ClosedLoop(*broadcast_lanes(cfg.plant, cfg.law, n))
 
 
 def _trajectory_outputs(yw: np.ndarray, horizon, args: ClosedLoop, chart, *, lanes: bool):
