@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -179,11 +180,11 @@ def _frontier(args):
     if getattr(args, "frontier", None) is None:
         return None
 
+    if not Path(args.frontier).exists():         # (load_optimum would say "not found" in its own words)
+        raise ValueError(f"--frontier {args.frontier}: no such file; write one with 'jaxsleigh optimum --out "
+                         f"{args.frontier}'")
     try:
         res = load_optimum(args.frontier)
-    except FileNotFoundError:
-        raise ValueError(f"--frontier {args.frontier}: no such file; write one with 'jaxsleigh optimum --out "
-                         f"{args.frontier}'") from None
     except (OSError, ValueError, KeyError) as e:
         raise ValueError(f"--frontier {args.frontier} is not a file written by 'jaxsleigh optimum' "
                          f"({type(e).__name__}: {e})") from None
@@ -209,14 +210,12 @@ def _cmd_pareto(args) -> int:
         print(f"{PROG} tune: interrupted before the first point of the front was finished; nothing written",
               file=sys.stderr)
         return EXIT_INTERRUPTED
-    if o.interrupted and o.result.method == "vmap":
-        return _interrupted(o, "", lambda front: (
-            f"{front.settings['iterations_run']} of {args.steps} iterations; wrote the best candidate so far of "
-            f"{len(front.points)} of {args.pareto} budgets to {args.out} (\"interrupted\": true, not checked)"))
     if o.interrupted:
         return _interrupted(o, "", lambda front: (
-            f"{len(front.points)} of {args.pareto} points; wrote them to {args.out} (\"interrupted\": true, not "
-            f"evaluated on held-out starts)"))
+            f"{front.settings['iterations_run']} of {args.steps} iterations; wrote the best candidate so far of "
+            f"{len(front.points)} of {args.pareto} budgets to {args.out} (\"interrupted\": true, not checked)"
+            if front.method == "vmap" else f"{len(front.points)} of {args.pareto} points; wrote them to {args.out} "
+            f"(\"interrupted\": true, not evaluated on held-out starts)"))
     front = o.result
     print(f"{PROG} tune: {len(front.points)} points ({args.front_method}) in {front.wall_s:.1f} s, "
           f"{front.evaluations} objective evaluations")

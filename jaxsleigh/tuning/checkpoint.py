@@ -22,7 +22,7 @@ from ..studies.config import plant_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_settings", "LawCheckpoint", "law_settings",
            "checkpoint_options", "Stamp", "tree_arrays", "tree_from", "track_arrays",
-           "restore_track"]
+           "restore_track", "check_resume"]
 
 
 class TuningInterrupted(KeyboardInterrupt):
@@ -75,8 +75,38 @@ class Stamp(NamedTuple):
                          options=options)
 
     def read(self, path, what: str = "tuner checkpoint") -> Optional[dict]:
-        """The tuner's arrays (`read_checkpoint`), ``None`` if there is no file."""
-        return read_checkpoint(Path(path), self.key, self.settings, what)
+        """The tuner's (or search's, ``what``) checkpoint arrays, ``None`` if there is no file; a ``ValueError`` for a
+        damaged file or one written by a run with other settings than this stamp's (naming what differs)."""
+        path = Path(path)
+        if not path.exists():
+            return None
+        try:
+            a, head = _header(path)
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
+            raise ValueError(f"{what} {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
+                             "and start afresh (without --resume)") from None
+        if str(head.get("run_key")) != self.key:
+            try:
+                old = json.loads(str(head["settings"])) if "settings" in head else {}
+            except ValueError:
+                old = {}
+            # 'config.steps 4 in the checkpoint vs 8 now; ...'; nothing when either side is unknown
+            why = joined(setting_differences("", old, self.settings, said={"ics": "other initial conditions"})
+                         ) if old and self.settings else ""
+            raise ValueError(f"{what} {str(path)!r} was written by a run with other settings"
+                             + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
+                             "or move the checkpoint (or choose another --out) to start afresh")
+        return a
+
+
+def check_resume(checkpoint, resume: bool, what: str = "tuner checkpoint", run: str = "run") -> None:
+    """Refuse ``resume=True`` without a ``checkpoint`` file, and a ``checkpoint`` (``what``) left by an earlier run
+    without ``resume=True`` (nothing is written over it); ``run`` names what writes the file."""
+    if resume and checkpoint is None:
+        raise ValueError(f"resume=True needs checkpoint (the file the interrupted {run} wrote)")
+    if checkpoint is not None and not resume and Path(checkpoint).exists():
+        raise ValueError(f"{what} {str(Path(checkpoint))!r} exists from an earlier run; pass resume=True (--resume) "
+                         "to continue it, or delete it to start afresh")
 
 
 def tree_arrays(prefix: str, tree) -> dict:
@@ -95,24 +125,37 @@ class TunerCheckpoint:
     """The optimiser's whole state in one ``.npz`` (pytree leaves by position), written atomically.
 
     The state: the iteration, the current parameters and optax state (which, with the backtracking
-    wrapper, holds the last valid point), and the `jaxsleigh.tuning.optimizer.CandidateTrack` (`track_arrays`).
+    wrapper, holds the last valid point), the `jaxsleigh.tuning.optimizer.CandidateTrack` (`track_arrays`) and the
+    tuner's ``extra`` arrays. The vmapped Pareto front keeps a list of tracks, one per budget (``budget{b}/``), its
+    parameters batched over the budgets; ``what`` names the file in a refusal.
     """
 
-    def __init__(self, path, stamp: Stamp, row_fields):
-        self.path, self.stamp, self._row_fields = Path(path), stamp, tuple(row_fields)
+    def __init__(self, path, stamp: Stamp, row_fields, what: str = "tuner checkpoint"):
+        self.path, self.stamp, self._row_fields, self.what = Path(path), stamp, tuple(row_fields), what
 
-    def save(self, it, trainable, opt_state, track) -> None:
-        self.stamp.write(self.path, {"it": np.int64(it), **tree_arrays("trainable", trainable),
-                                     **tree_arrays("opt_state", opt_state), **track_arrays(track, self._row_fields)})
+    def save(self, it, trainable, opt_state, track, **extra) -> None:
+        arrays = {"it": np.int64(it), **extra, **tree_arrays("trainable", trainable),
+                  **tree_arrays("opt_state", opt_state)}
+        for prefix, t in _prefixed(track):
+            arrays.update(track_arrays(t, self._row_fields, prefix))
+        self.stamp.write(self.path, arrays)
 
     def load(self, trainable, opt_state, groups, track):
-        """``(it, trainable, opt_state)`` restructured like ``trainable`` / ``opt_state``, ``track`` restored
-        (`restore_track`); ``None`` if there is no file."""
-        a = self.stamp.read(self.path)
+        """``(it, trainable, opt_state, arrays)`` restructured like ``trainable`` / ``opt_state``, ``track`` restored
+        (`restore_track`; a list of tracks: like one budget's ``trainable``) and every array read (the ``extra``);
+        ``None`` if there is no file."""
+        a = self.stamp.read(self.path, self.what)
         if a is None:
             return None
-        restore_track(a, track, trainable, groups, self._row_fields)
-        return int(a["it"]), tree_from(a, "trainable", trainable), tree_from(a, "opt_state", opt_state)
+        one = jax.tree_util.tree_map(lambda x: x[0], trainable) if isinstance(track, list) else trainable
+        for prefix, t in _prefixed(track):
+            restore_track(a, t, one, groups, self._row_fields, prefix)
+        return int(a["it"]), tree_from(a, "trainable", trainable), tree_from(a, "opt_state", opt_state), a
+
+
+def _prefixed(track) -> list:
+    """``[(prefix, track)]``: one track at the top, a list of them one per budget (``budget{b}/``)."""
+    return [(f"budget{b}/", t) for b, t in enumerate(track)] if isinstance(track, list) else [("", track)]
 
 
 def track_arrays(track, row_fields, prefix: str = "") -> dict:
@@ -222,32 +265,3 @@ class LawCheckpoint:
         hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
         return (int(a["it"]), jnp.asarray(a["params"], dtype), tree_from(a, "opt_state", opt_state), best, hist,
                 bool(a["stopped"]))
-
-
-def _differences(old: dict, new: dict) -> str:
-    """``'config.steps 4 in the checkpoint vs 8 now; ...'``; '' when either side is unknown."""
-    if not old or not new:
-        return ""
-    return joined(setting_differences("", old, new, said={"ics": "other initial conditions"}))
-
-
-def read_checkpoint(path: Path, key: str, settings: dict, what: str = "tuner checkpoint") -> Optional[dict]:
-    """A tuner's (or search's, ``what``) checkpoint arrays, ``None`` if there is no file; a ``ValueError`` for a
-    damaged file or one written by a run with other settings than ``settings`` (naming what differs)."""
-    if not path.exists():
-        return None
-    try:
-        a, head = _header(path)
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
-        raise ValueError(f"{what} {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
-                         "and start afresh (without --resume)") from None
-    if str(head.get("run_key")) != key:
-        try:
-            old = json.loads(str(head["settings"])) if "settings" in head else {}
-        except ValueError:
-            old = {}
-        why = _differences(old, settings)
-        raise ValueError(f"{what} {str(path)!r} was written by a run with other settings"
-                         + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
-                         "or move the checkpoint (or choose another --out) to start afresh")
-    return a

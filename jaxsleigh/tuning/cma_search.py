@@ -240,17 +240,6 @@ def _save(path: Path, stamp: Stamp, state: CMAState, rng, hist: list, top: list)
     stamp.write(path, arrays)
 
 
-def _load(path: Path, stamp: Stamp, rng):
-    a = stamp.read(path, what="search checkpoint")
-    rng.bit_generator.state = json.loads(str(a["rng"]))
-    state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
-    n = len(a["hist/generation"])
-    hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY if f"hist/{f}" in a} for i in range(n)]
-    top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
-           zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]
-    return state, hist, top
-
-
 def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = SearchConfig(), reference="paper",
            energy_budget: Optional[float] = None, tune=None, plant: Optional[PlantParams] = None, x64: bool = False,
            d_floor: float = D_FLOOR, stepsize=None, progress: Any = None, checkpoint=None,
@@ -270,7 +259,9 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     ``starts`` replace ``starts`` and ``config.batch``; its ``eps`` must be ``config.eps``): the search minimises the
     median time ratio to that optimum instead of the median time."""
     pcts = _checked_search_inputs(config, energy_budget)
-    space = _search_space(gains0, tune, d_floor)
+    names, g0 = parse_tune(tune), load_gains(gains0)
+    space = _Space(np.concatenate([np.ravel(p) for p in params_from_gains(g0, d_floor=d_floor)]),
+                   np.concatenate([np.arange(7)[_SLICES[n]] for n in names]), d_floor, g0, names)
     ics = _training_starts(starts, config, frontier)
     ev = _Evaluator(ics, plant, config.t_final, config.eps, x64, stepsize, pcts, frontier)
     guard = guard_starts()
@@ -283,7 +274,8 @@ def search(gains0="paper", *, starts=UniformStarts(), config: SearchConfig = Sea
     try:
         _generations(run, space, ev, budget, config, ckpt, stamp, progress)
     except KeyboardInterrupt:
-        raise TuningInterrupted(_partial(run, space, budget, settings), ckpt) from None
+        # the best feasible candidate so far, unchecked
+        raise TuningInterrupted(_result(run, space, budget, settings, run.top[0]) if run.top else None, ckpt) from None
     return _verified(run, space, ev, guard, budget, settings)
 
 
@@ -357,15 +349,6 @@ class _Space(NamedTuple):
         v = self.full0.copy()
         v[self.free] = x
         return _to_gains(v, self.d_floor, self.g0, self.names)
-
-
-def _search_space(gains0, tune, d_floor: float) -> _Space:
-    """The starting gains and the coordinates of the gains named in ``tune`` (`_Space`)."""
-    names = parse_tune(tune)
-    g0 = load_gains(gains0)
-    full0 = np.concatenate([np.ravel(p) for p in params_from_gains(g0, d_floor=d_floor)])
-    free = np.concatenate([np.arange(7)[_SLICES[n]] for n in names])
-    return _Space(full0, free, d_floor, g0, names)
 
 
 class _Evaluator(NamedTuple):
@@ -445,6 +428,10 @@ class _SearchState:
     def __init__(self, state: CMAState, rng, hist: list, top: list, t0: float):
         self.state, self.rng, self.hist, self.top, self.t0 = state, rng, hist, top, t0
 
+    def history(self) -> dict:
+        """The history as arrays, one entry per generation (``_HISTORY``)."""
+        return {k: np.asarray([h[k] for h in self.hist]) for k in _HISTORY}
+
 
 def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: SearchConfig,
            resume_from: Optional[Path], stamp: Stamp) -> _SearchState:
@@ -456,7 +443,13 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
     if feasible0:
         top.append((float(s0), -1, space.full0[space.free].copy(), _scalars(ref, 1)))
     if resume_from is not None and resume_from.exists():
-        state, hist, top = _load(resume_from, stamp, rng)
+        a = stamp.read(resume_from, what="search checkpoint")
+        rng.bit_generator.state = json.loads(str(a["rng"]))
+        state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
+        hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY if f"hist/{f}" in a}
+                for i in range(len(a["hist/generation"]))]
+        top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
+               zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]
     return _SearchState(state, rng, hist, top, time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0))
 
 
@@ -494,42 +487,28 @@ def _generation(run: _SearchState, gen: int, space: _Space, ev: _Evaluator, budg
                      "median_gap": math.nan if figs.median_gap is None else float(figs.median_gap[b])})
 
 
-def _partial(run: _SearchState, space: _Space, budget: _Budget, settings: dict) -> Optional[SearchResult]:
-    """The best feasible candidate so far, unchecked (what Ctrl-C carries), or ``None``."""
-    if not run.top:
-        return None
-    s, gen, x, f = run.top[0]
-    return _result(space.gains(x), space.g0, f, budget.reference, run.hist, gen, settings)
-
-
 def _verified(run: _SearchState, space: _Space, ev: _Evaluator, guard, budget: _Budget, settings: dict) -> SearchResult:
     """The best of the kept candidates that passes the guard starts; raises `NoFeasibleCandidate` if none does."""
     why = []
-    for s, gen, x, f in run.top:
-        g = space.gains(x)
-        bad = _guard_failure(g, guard, ev.plant, ev.t_final, ev.x64, ev.stepsize)
-        if not bad:
-            return _result(g, space.g0, f, budget.reference, run.hist, gen, settings)
-        why.append(f"generation {gen}: guard starts {bad}")
+    for cand in run.top:
+        r = run_ensemble(guard, plant=ev.plant, gains=space.gains(cand[2]), t_final=ev.t_final, x64=ev.x64,
+                         stepsize=ev.stepsize, run=RunOptions(progress=False))
+        bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q_final)[:, 2]) != np.sign(guard[:, 2]))
+        if not bad.any():
+            return _result(run, space, budget, settings, cand)
+        why.append(f"generation {cand[1]}: guard starts {int(bad.sum())} of {bad.size} failed or crossed theta = 0")
     # the history is kept on the error: a caller (the command line) writes it, so the run is not lost
-    history = {k: np.asarray([h[k] for h in run.hist]) for k in _HISTORY}
     budgets = ", ".join(f"{b:.4g} at the {q:g}th percentile" for q, b in zip(ev.pcts, budget.e_max))
     raise NoFeasibleCandidate(
         "search: no feasible candidate" + (" passed the guard starts (" + "; ".join(why) + ")" if why
                                            else f" (energy <= {budgets} with converged >= {budget.f_min:.3f}); raise "
                                                 "the budget (energy_margin / energy_budget) or the generations"),
-        history=history, reference=budget.reference, settings={**settings, "generations_run": len(run.hist)},
+        history=run.history(), reference=budget.reference, settings={**settings, "generations_run": len(run.hist)},
         reason="guard" if why else "infeasible")
 
 
-def _guard_failure(g: Gains, guard, plant, t_final, x64, stepsize=None) -> str:
-    r = run_ensemble(guard, plant=plant, gains=g, t_final=t_final, x64=x64, stepsize=stepsize,
-                     run=RunOptions(progress=False))
-    bad = (r.status != Status.OK) | (np.sign(np.asarray(r.q_final)[:, 2]) != np.sign(guard[:, 2]))
-    return f"{int(bad.sum())} of {bad.size} failed or crossed theta = 0" if bad.any() else ""
-
-
-def _result(g, g0, f, reference, hist, gen, settings) -> SearchResult:
-    figures = dict(zip(SCALAR_FIGURES, (float(v) for v in f)))
-    history = {k: np.asarray([h[k] for h in hist]) for k in _HISTORY}
-    return SearchResult(g, g0, figures, reference, history, int(gen), {**settings, "generations_run": len(hist)})
+def _result(run: _SearchState, space: _Space, budget: _Budget, settings: dict, cand) -> SearchResult:
+    """The result of the kept candidate ``cand`` (``(score, generation, x, figures)``)."""
+    _, gen, x, f = cand
+    return SearchResult(space.gains(x), space.g0, dict(zip(SCALAR_FIGURES, (float(v) for v in f))),
+                        budget.reference, run.history(), int(gen), {**settings, "generations_run": len(run.hist)})

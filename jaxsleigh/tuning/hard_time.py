@@ -118,7 +118,12 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     `ShapedGains`, a literature law of `jaxsleigh.controllers`), moved in its coordinates
     (`jaxsleigh.tuning.law.law_coordinates`: the paper's gains in their 7 admissible numbers, another law's positive
     gains in logarithm)."""
-    ics5, status0 = _checked_inputs(law, starts)
+    if is_sampled(law):
+        raise ValueError("hard_time_problem tunes a law the adaptive engine integrates; a sampled law "
+                         "(jaxsleigh.controllers.actuators.Sampled) is tuned by jaxsleigh.tuning.tune_law")
+    ics5, status0 = check_ics(starts, name="training start")
+    if np.any(status0 != Status.OK):
+        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
     plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), as_plant(plant))
     coords = law_coordinates(law, dtype=dtype)
     ref = paper_gains() if reference is None else reference
@@ -128,7 +133,12 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
         return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps, max_steps=cfg.max_steps, reverse=True,
                         segment=cfg.segment)
 
-    budgets, floor = _reference_budgets(lambda c: run(c, y0_ref), ref, cfg, dtype)
+    # the budgets: the reference's energy quantiles times energy_margin; the floor: its settled fraction minus
+    # settled_margin
+    _, eq_ref, s_ref, _ = jax.jit(lambda c: _figures(run(c, y0_ref), cfg))(
+        jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), ref))
+    budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
+    floor = float(s_ref) - cfg.settled_margin
     objective = _objective(lambda x: run(coords.law_of(x), y0_law), budgets, floor, cfg, dtype)
     lam0 = _no_multipliers(cfg)
     value_lam = jax.jit(objective)
@@ -141,28 +151,6 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
         return vg_lam(x, lam)
 
     return HardTimeProblem(coords.x0, coords.law_of, value, value_and_grad, budgets, floor, int(ics5.shape[0]), cfg)
-
-
-def _checked_inputs(law, starts):
-    """``(ics5, status0)`` of the training ``starts`` (`check_ics`), after refusing a sampled ``law`` and refusing
-    starts that are not all valid."""
-    if is_sampled(law):
-        raise ValueError("hard_time_problem tunes a law the adaptive engine integrates; a sampled law "
-                         "(jaxsleigh.controllers.actuators.Sampled) is tuned by jaxsleigh.tuning.tune_law")
-    ics5, status0 = check_ics(starts, name="training start")
-    if np.any(status0 != Status.OK):
-        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
-    return ics5, status0
-
-
-def _reference_budgets(run_ref, ref, cfg: HardTimeConfig, dtype):
-    """``(budgets, settled floor)`` from the reference law ``ref`` (``run_ref(law)``: its settling run on the
-    starts): its energy quantiles times ``energy_margin``, its settled fraction minus ``settled_margin``."""
-    ref_run = jax.jit(lambda c: _figures(run_ref(c), cfg))
-    _, eq_ref, s_ref, _ = ref_run(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), ref))
-    budgets = np.asarray(eq_ref, np.float64) * cfg.energy_margin
-    floor = float(s_ref) - cfg.settled_margin
-    return budgets, floor
 
 
 def _objective(run_law, budgets, floor: float, cfg: HardTimeConfig, dtype):

@@ -23,7 +23,7 @@ from ..model.controller import as_controller, is_paper_law, law_leaf_names, posi
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
-from .checkpoint import LawCheckpoint, Stamp, TuningInterrupted, law_settings
+from .checkpoint import LawCheckpoint, Stamp, TuningInterrupted, check_resume, law_settings
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
 from ..controllers.paper import PaperLaw
@@ -249,26 +249,23 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     if is_paper_law(law):
         raise ValueError("the paper's law has its own tuner with admissible gains: jaxsleigh.tuning.tune")
     law = as_controller(law)
-    _check_steps_lr(steps, lr)
+    for name, v, ok in (("steps", steps, isinstance(steps, int) and steps >= 1),
+                        ("lr", lr, isinstance(lr, (int, float)) and np.isfinite(lr) and lr > 0)):
+        if not ok:
+            raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
     chart = chart_for(law)
     ics5, status0 = check_ics(starts, singular=chart.singular, name="training start")
     if np.any(status0 != Status.OK):
         raise ValueError("training starts must all be valid (finite; theta0 != 0 for a law with that singular set)")
-    if resume and checkpoint is None:
-        raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
+    check_resume(checkpoint, resume)
     plant = as_plant(plant)
     n_attempts = int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64
         coords = law_coordinates(law, tune, dtype=dtype)
-        store = None
-        if checkpoint is not None:
-            settings = law_settings(law, coords.names, plant, loss, lr, x64, n_attempts)
-            store = LawCheckpoint(checkpoint, Stamp.of_run(settings, ics5, options))
-            if store.path.exists() and not resume:
-                raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
-                                 "resume=True (--resume) to continue it, or delete it to start afresh")
+        store = None if checkpoint is None else LawCheckpoint(checkpoint, Stamp.of_run(
+            law_settings(law, coords.names, plant, loss, lr, x64, n_attempts), ics5, options))
 
         def f(x):
             return law_loss(coords.law_of(x), y0, plant, loss, n_attempts=n_attempts)
@@ -293,17 +290,13 @@ class InvalidStartingLaw(ValueError):
     """`tune_law`'s starting law is not a valid candidate (a training start failed or the loss is not finite)."""
 
 
-def _check_steps_lr(steps, lr) -> None:
-    """Refuse a number of Adam steps that is not a positive whole number, or a learning rate that is not positive."""
-    for name, v, ok in (("steps", steps, isinstance(steps, int) and steps >= 1),
-                        ("lr", lr, isinstance(lr, (int, float)) and np.isfinite(lr) and lr > 0)):
-        if not ok:
-            raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
-
-
 def _adam_descent(descent: "_Descent", step_fn, steps: int) -> None:
-    """The work of `tune_law`: ``descent``'s remaining steps (`_Descent.run`)."""
-    descent.run(step_fn, steps)
+    """The work of `tune_law`: ``descent``'s steps ``descent.it`` to ``steps`` (none once stopped);
+    ``step_fn(params) -> ((loss, aux), grads)``."""
+    for it in range(descent.it, steps):
+        if descent.stopped:
+            break
+        descent._step(step_fn, it)
 
 
 class _Descent:
@@ -321,13 +314,6 @@ class _Descent:
         saved = None if store is None else store.load(self.params, self.state)
         if saved is not None:
             self.it, self.params, self.state, self.best, self.hist, self.stopped = saved
-
-    def run(self, step_fn, steps: int) -> None:
-        """Steps ``self.it`` to ``steps`` (none once stopped); ``step_fn(params) -> ((loss, aux), grads)``."""
-        for it in range(self.it, steps):
-            if self.stopped:
-                break
-            self._step(step_fn, it)
 
     def _step(self, step_fn, it: int) -> None:
         (value, aux), grads = step_fn(self.params)

@@ -124,14 +124,6 @@ def _effort_rate(y, args: ClosedLoop, chart=WChart()):
     return u[0] * u[0] + u[1] * u[1]
 
 
-def _plant_axes(plant: PlantParams):
-    return jax.tree_util.tree_map(lambda x: 0 if np.ndim(x) >= 1 else None, plant)
-
-
-def _cast_plant(plant: PlantParams, dtype):
-    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), plant)
-
-
 def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final=None,
                      n_attempts: int, segment: int = 100, adaptive: bool = True) -> LaneSummary:
     r"""Integrate a batch from the w-chart starts ``y0w`` (N, 5) and accumulate the soft convergence
@@ -172,7 +164,7 @@ class _SoftTerms(NamedTuple):
 
 def _soft_setup(gains, plant, cfg: LossConfig, t_final, n_attempts, dtype):
     """The closed loop, the stepper's controls and the integrand's `_SoftTerms` of `soft_convergence`."""
-    plant = _cast_plant(plant, dtype)
+    plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), plant)
     chart = chart_for(gains)
     gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
     args = ClosedLoop(plant, gains)
@@ -188,7 +180,8 @@ def _soft_setup(gains, plant, cfg: LossConfig, t_final, n_attempts, dtype):
 def _initial_states(y0w, args: ClosedLoop, ctl: Controls, adaptive: bool) -> StepState:
     """The batch's stepper states (batch-last) at the starts ``y0w``, with the starting step when adaptive."""
     n = y0w.shape[0]
-    in_axes = (0, 0, ClosedLoop(_plant_axes(args.plant), None), None)
+    plant_axes = jax.tree_util.tree_map(lambda x: 0 if np.ndim(x) >= 1 else None, args.plant)   # per lane or shared
+    in_axes = (0, 0, ClosedLoop(plant_axes, None), None)
     s0 = jax.vmap(functools.partial(init_state, observers=_OBSERVERS), in_axes=in_axes,
                   out_axes=-1)(y0w, jnp.zeros(n, jnp.int32), args, ctl)
     if adaptive:

@@ -22,7 +22,7 @@ import optax
 
 from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
-from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, tune_settings
+from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, check_resume, tune_settings
 from .gradients import GRADIENT_MODES, make_value_and_grad
 from .objective import LossConfig, make_training_set
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_params, parse_tune, params_from_gains, \
@@ -140,8 +140,6 @@ class TuneResult(NamedTuple):
     best_iteration: int
     history: TuneHistory
     settings: dict
-
-
 
 
 #: ranks an infeasible candidate (over the effort budget) after every feasible one
@@ -270,6 +268,13 @@ class TuneContext(NamedTuple):
     names: tuple
     x64: bool
 
+    def checks(self, guard=None) -> list:
+        """The final check's ``(starts, plant)``: the training starts of each plant group, then the ``guard`` starts
+        (default `guard_starts`; none if empty) on the first group's plant."""
+        guard = guard_starts() if guard is None else np.asarray(guard, dtype=np.float64)
+        return ([(self.ics[idx], p0) for idx, _, p0 in self.groups]
+                + ([(guard, self.groups[0][2])] if guard.size else []))
+
 
 class CandidateTrack:
     """The tuner's bookkeeping of one optimisation run, shared by `tune` and the vmapped Pareto front.
@@ -382,6 +387,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         best valid gains so far (not re-checked with the accurate engine) and the history.
     """
     names, steps, batch = _checked_tune_inputs(tune, config, loss)
+    check_resume(checkpoint, resume)
     g0 = load_gains(gains0)
     ics = draw_starts(starts, batch, config.seed)
     theta0 = params_from_gains(g0, d_floor=d_floor)
@@ -394,7 +400,8 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(
             tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts), ics, options),
             TuneHistory._fields)
-        it0, trainable, opt_state = _resume(store, resume, track, trainable, opt_state, ctx.groups)
+        saved = store.load(trainable, opt_state, ctx.groups, track) if store is not None and resume else None
+        it0, trainable, opt_state = (0, trainable, opt_state) if saved is None else saved[:3]
         try:
             _iterate(run, track, trainable, opt_state, it0, steps, store, progress, callback, t_start)
         except KeyboardInterrupt:
@@ -451,23 +458,6 @@ def _prepare(g0, theta0, names, ics, steps, config: TuneConfig, loss: LossConfig
     return _Run(data, cfg, dtype, vg, opt, step, ctx), trainable, opt_state
 
 
-def _resume(store, resume: bool, track: CandidateTrack, trainable, opt_state, groups) -> tuple:
-    """``(first iteration, trainable, opt_state)``: the checkpoint's (restoring ``track``) when resuming one
-    that exists, else a fresh start; refuses to overwrite a checkpoint or to resume without one."""
-    it0 = 0
-    if store is not None:
-        if resume:
-            st = store.load(trainable, opt_state, groups, track)
-            if st is not None:
-                it0, trainable, opt_state = st
-        elif store.path.exists():
-            raise ValueError(f"tuner checkpoint {str(store.path)!r} exists from an earlier run; pass "
-                             "resume=True (--resume) to continue it, or delete it to start afresh")
-    if store is None and resume:
-        raise ValueError("resume=True needs checkpoint (the file the interrupted run wrote)")
-    return it0, trainable, opt_state
-
-
 def _iterate(run: _Run, track: CandidateTrack, trainable, opt_state, it0: int, steps: int, store, progress: Any,
              callback: Optional[Callable], t_start: float) -> None:
     """Iterations ``it0`` to ``steps`` (or until backtracking gives up), each checkpointed, reported and
@@ -513,11 +503,7 @@ def _final_check(track: CandidateTrack, ctx: TuneContext, guard, best, best_gain
     that passes the accurate engine on the training and guard starts (RuntimeError if none does)."""
     config, verified, probe_at_result = ctx.config, None, None
     if config.verify:
-        guard_ics = guard_starts() if guard is None else np.asarray(guard, dtype=np.float64)
-        checks = [(ctx.ics[idx], p0) for idx, _, p0 in ctx.groups]
-        if guard_ics.size:
-            checks.append((guard_ics, ctx.groups[0][2]))
-        cand, g, probe_at_result, why = track.verify(ctx, checks, int(config.verify))
+        cand, g, probe_at_result, why = track.verify(ctx, ctx.checks(guard), int(config.verify))
         if cand is None:
             raise RuntimeError(f"none of the {min(len(track.valid_points), int(config.verify))} best valid candidates "
                                f"passed the check with the accurate engine over {float(ctx.loss.probe_t_final):g} s "

@@ -33,11 +33,11 @@ from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dic
 from ..progress import Progress
 from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
-from .checkpoint import Stamp, TuningInterrupted, restore_track, track_arrays, tree_arrays, tree_from
+from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, check_resume
 from .optimizer import CandidateTrack, TuneConfig, TuneContext, TuneHistory, make_optimizer, optimizer_step, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
-from .starts import UniformStarts, draw_starts, guard_starts, plant_groups
+from .starts import UniformStarts, draw_starts, plant_groups
 from .validation import Validation, validate, validation_dict
 from ..files.npz import atomic_write
 from ..studies.config import plant_to_dict
@@ -91,13 +91,19 @@ def training_energy(gains, *, starts=UniformStarts(), config: TuneConfig = TuneC
     control energy, "soft_loss": f, "valid": bool}`` on the starts the tuner would train on."""
     ics = draw_starts(starts, config.batch, config.seed)
     with jax.enable_x64(bool(x64)):
-        dtype = jnp.zeros(()).dtype
-        data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
-        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss._replace(energy_budget=float("inf"), multiplier=0.0)))
-        theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(gains, d_floor=d_floor)))
-        tr, fr = split_params(theta, None)
-        _, aux = _value(config.n_attempts, config.segment, d_floor)(tr, fr, data, cfg)
+        dtype, f = _training_value(ics, config, loss, plant, d_floor)
+        _, aux = f(GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(gains, d_floor=d_floor))))
     return {"energy": float(aux["energy"]), "soft_loss": float(aux["soft"]), "valid": bool(aux["valid"])}
+
+
+def _training_value(ics, config: TuneConfig, loss: LossConfig, plant, d_floor: float) -> tuple:
+    """``(dtype, f)`` in the current precision: ``f(theta) -> (value, aux)``, the training objective without a
+    budget on the starts ``ics`` at the `GainParams` ``theta`` (one evaluation, no gradient)."""
+    dtype = jnp.zeros(()).dtype
+    data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
+    cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss._replace(energy_budget=float("inf"), multiplier=0.0)))
+    f = _value(config.n_attempts, config.segment, d_floor)
+    return dtype, lambda theta: f(*split_params(theta, None), data, cfg)
 
 
 @functools.lru_cache(maxsize=8)
@@ -150,20 +156,18 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     if method != "vmap" and (checkpoint is not None or resume):
         raise ValueError("checkpoint and resume are the vmapped front's; a warm front keeps its finished points "
                          "(on_point) and continues from them (done)")
-    if resume and checkpoint is None:
-        raise ValueError("resume=True needs checkpoint (the file the interrupted front wrote)")
+    check_resume(checkpoint, resume, "front checkpoint", "front")
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
     settings = front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
     if method == "warm":
-        points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, gains0=gains0, starts=starts,
+        points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, settings, gains0=gains0, starts=starts,
                                     config=config, loss=loss, tune_names=tune_names, plant=plant, x64=x64,
                                     d_floor=d_floor, progress=progress)
     else:
-        store = None if checkpoint is None else _front_store(checkpoint, settings, plant, d_floor, options)
         points, evals = _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress,
-                                    store, resume, settings)
+                                    checkpoint, resume, settings, options)
     return Front(points, method, time.perf_counter() - t0, evals, settings)
 
 
@@ -174,16 +178,16 @@ def _checked_budgets(method, budgets) -> np.ndarray:
     budgets = np.sort(np.asarray(budgets, np.float64).ravel())
     if budgets.size == 0 or not np.all(np.isfinite(budgets)) or np.any(budgets <= 0):
         raise ValueError(f"budgets must be finite and > 0, got {budgets.tolist()}")
-
     check_count("pareto_front: the number of budgets", budgets.size, maximum=MAX_FRONT_POINTS,
                 reason="every point is a whole tuning run (seconds to minutes each)",
                 fix="compute fewer points, or several fronts over narrower budget ranges")
     return budgets
 
 
-def _front_warm(budgets, t0, warm_steps, on_point, done, *, gains0, starts, config, loss, tune_names, plant, x64,
-                d_floor, progress):
-    """``(points, evaluations)`` of the ``"warm"`` chain (`pareto_front`); ``t0``: the front's start time."""
+def _front_warm(budgets, t0, warm_steps, on_point, done, settings, *, gains0, starts, config, loss, tune_names, plant,
+                x64, d_floor, progress):
+    """``(points, evaluations)`` of the ``"warm"`` chain (`pareto_front`); ``t0``: the front's start time, ``settings``
+    its `front_settings`."""
     # the chain starts at the budget nearest the starting gains' own energy (gains0 is feasible
     # there, nothing to undo), goes up the front, then down from its first point
     e0 = training_energy(gains0, starts=starts, config=config, loss=loss, plant=plant, x64=x64,
@@ -192,7 +196,6 @@ def _front_warm(budgets, t0, warm_steps, on_point, done, *, gains0, starts, conf
     order = list(range(j0, budgets.size)) + list(range(j0 - 1, -1, -1))
     found = dict(done or {})
     evals = 1 + sum(int(p.train.get("iterations_run", 0)) for p in found.values())
-    settings = front_settings("warm", budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
 
     def so_far():
         return Front([found[j] for j in sorted(found)], "warm", time.perf_counter() - t0, evals, settings)
@@ -201,9 +204,13 @@ def _front_warm(budgets, t0, warm_steps, on_point, done, *, gains0, starts, conf
         for j in order:
             if j in found:                     # finished by the interrupted run this one resumes
                 continue
-            res = _warm_tune(budgets[j], found.get(j - 1 if j > j0 else j + 1), warm_steps, gains0=gains0,
-                             starts=starts, config=config, loss=loss, tune_names=tune_names, plant=plant, x64=x64,
-                             d_floor=d_floor, progress=progress)
+            # from the neighbouring point (its gains and multiplier, warm_steps iterations), or from gains0 with
+            # config.steps iterations when there is none
+            src = found.get(j - 1 if j > j0 else j + 1)
+            g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
+            res = tune(g, starts=starts, config=config if src is None else config._replace(steps=warm_steps, warmup=1),
+                       loss=loss._replace(energy_budget=float(budgets[j]), multiplier=lam), tune=tune_names,
+                       plant=plant, x64=x64, d_floor=d_floor, progress=progress)
             evals += res.settings["iterations_run"]
             found[j] = _point(budgets[j], res.gains, res.history, res.best_iteration, res.settings)
             if on_point is not None:
@@ -211,15 +218,6 @@ def _front_warm(budgets, t0, warm_steps, on_point, done, *, gains0, starts, conf
     except KeyboardInterrupt:
         raise TuningInterrupted(so_far() if found else None, None) from None
     return [found[j] for j in range(budgets.size)], evals
-
-
-def _warm_tune(budget, src, warm_steps, *, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress):
-    """`tune` for ``budget`` started from the neighbouring point ``src`` (its gains and multiplier,
-    ``warm_steps`` iterations), or from ``gains0`` with ``config.steps`` iterations when there is none."""
-    g, lam = (gains0, float(loss.multiplier)) if src is None else (src.gains, src.train["final_multiplier"])
-    cfg_j = config if src is None else config._replace(steps=warm_steps, warmup=1)
-    return tune(g, starts=starts, config=cfg_j, loss=loss._replace(energy_budget=float(budget), multiplier=lam),
-                tune=tune_names, plant=plant, x64=x64, d_floor=d_floor, progress=progress)
 
 
 def front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts) -> dict:
@@ -235,7 +233,7 @@ def finished_points(doc: dict, front_settings: dict) -> dict:
     """``{budget index: FrontPoint}`` of an interrupted front's document (`front_dict` with
     ``interrupted``), for ``pareto_front(done=...)``; ``ValueError`` if it was computed with other
     settings than ``front_settings`` (those of the run that would resume it)."""
-    same = json.loads(json.dumps(front_settings, default=_json_default))
+    same = _as_json(front_settings)
     if doc.get("settings") != same:
         diff = sorted(k for k in set(same) | set(doc.get("settings") or {})
                       if (doc.get("settings") or {}).get(k) != same.get(k))
@@ -259,10 +257,12 @@ def _point(budget, gains, history, it, settings) -> FrontPoint:
     return FrontPoint(float(budget), gains, train, None, history)
 
 
-def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress, store=None,
-                resume: bool = False, settings: Optional[dict] = None):
+def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d_floor, progress, checkpoint=None,
+                resume: bool = False, settings: Optional[dict] = None, options: Optional[dict] = None):
     """The whole optimiser vmapped over budgets (same safety contract as `tune`), checkpointed after every iteration
-    in ``store`` (`_front_store`; ``None``: no checkpoint) and continued from it with ``resume``."""
+    in ``checkpoint`` (``None``: none; a `TunerCheckpoint` whose fingerprint hashes the training starts, the front's
+    ``settings``, the plant and the parameters' floor, with the command's ``options``) and continued from it with
+    ``resume``."""
     names = parse_tune(tune_names)
     g0 = load_gains(gains0)
     ics = draw_starts(starts, config.batch, config.seed)
@@ -279,77 +279,21 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
         ctx = TuneContext(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
-        run = _VmapRun(budgets, tracks, ctx, vgb, stepb, frozen, data, cfg, dtype, np.ones(nb, bool), store)
-        start = _VmapState(0, 0, trainable, opt_state)
-        if store is not None:
-            start = _vmap_resumed(run, start, resume, ics)
+        store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(_as_json(
+            {**settings, "plant": None if plant is None else plant_to_dict(plant), "d_floor": float(d_floor)}), ics,
+            options), TuneHistory._fields, "front checkpoint")
+        run = _VmapRun(budgets, tracks, ctx, vgb, stepb, data, cfg, dtype, np.ones(nb, bool), store)
+        it0, evals = 0, 0
+        saved = store.load(trainable, opt_state, groups, tracks) if store is not None and resume else None
+        if saved is not None:
+            it0, trainable, opt_state, a = saved
+            run.alive[:], evals = a["alive"], int(a["evals"])
         try:
-            evals = _vmap_iterations(run, start, progress)
+            evals = _vmap_iterations(run, it0, evals, trainable, opt_state, progress)
         except KeyboardInterrupt:
             raise TuningInterrupted(_vmap_so_far(run, settings, time.perf_counter() - t0),
                                     None if store is None else store.path) from None
-    return _verified_points(budgets, tracks, ctx, ics, groups), evals
-
-
-class _FrontStore(NamedTuple):
-    """Where a vmapped front keeps its checkpoint: the file, what its fingerprint hashes besides the training starts
-    (the front's settings, the plant, the parameters' floor) and the command's options."""
-
-    path: Path
-    settings: dict
-    options: Optional[dict]
-
-    def stamp(self, ics):
-        """The checkpoint's `jaxsleigh.tuning.checkpoint.Stamp` for the training starts ``ics``."""
-        return Stamp.of_run(self.settings, ics, self.options)
-
-
-def _front_store(path, settings: dict, plant, d_floor: float, options: Optional[dict]) -> _FrontStore:
-    """The `_FrontStore` of a vmapped front of ``settings`` (`front_settings`) on ``plant``."""
-    doc = json.loads(json.dumps({**settings, "plant": None if plant is None else plant_to_dict(plant),
-                                 "d_floor": float(d_floor)}, sort_keys=True, default=_json_default))
-    return _FrontStore(Path(path), doc, options)
-
-
-class _VmapState(NamedTuple):
-    """Where a vmapped front's iterations stand: the next iteration, the objective evaluations so far, and the
-    budgets' parameters and optax state (the tracks and ``alive`` are `_VmapRun`'s)."""
-
-    it: int
-    evals: int
-    trainable: Any
-    opt_state: Any
-
-
-def _vmap_resumed(run: "_VmapRun", start: _VmapState, resume: bool, ics) -> _VmapState:
-    """``start``, or with ``resume`` the state of the checkpoint (the tracks and ``alive`` restored in ``run``);
-    refuses a checkpoint written with other settings, and one that exists without ``resume``."""
-    path = run.store.path
-    if not resume:
-        if path.exists():
-            raise ValueError(f"front checkpoint {str(path)!r} exists from an earlier run; pass resume=True (--resume) "
-                             "to continue it, or delete it to start afresh")
-        return start
-    a = run.store.stamp(ics).read(path, "front checkpoint")
-    if a is None:
-        return start
-    one = jax.tree_util.tree_map(lambda x: x[0], start.trainable)
-    for b, track in enumerate(run.tracks):
-        restore_track(a, track, one, run.ctx.groups, TuneHistory._fields, prefix=f"budget{b}/")
-    run.alive[:] = a["alive"]
-    return _VmapState(int(a["it"]), int(a["evals"]), tree_from(a, "trainable", start.trainable),
-                      tree_from(a, "opt_state", start.opt_state))
-
-
-def _vmap_saved(run: "_VmapRun", state: _VmapState) -> None:
-    """Write the checkpoint of ``state`` and the tracks (nothing without a store)."""
-    if run.store is None:
-        return
-    arrays = {"it": np.int64(state.it), "evals": np.int64(state.evals), "alive": np.asarray(run.alive),
-              **tree_arrays("trainable", state.trainable), **tree_arrays("opt_state", state.opt_state)}
-    for b, track in enumerate(run.tracks):
-        arrays.update(track_arrays(track, TuneHistory._fields, prefix=f"budget{b}/"))
-    run.store.stamp(run.ctx.ics).write(run.store.path, arrays)
+    return _verified_points(budgets, tracks, ctx), evals
 
 
 def _vmap_so_far(run: "_VmapRun", settings: Optional[dict], wall: float) -> Optional["Front"]:
@@ -382,43 +326,44 @@ def _vmapped_optimiser(config, d_floor, trainable):
 class _VmapRun(NamedTuple):
     """One vmapped front run (`_front_vmap`): the budgets and each one's `CandidateTrack`, the candidates'
     `TuneContext`, the jitted vmapped objective and step (`_vmapped_optimiser`), the objective's fixed inputs
-    (frozen parameters, training set, `LossConfig`, dtype), and which budgets are still alive (updated in place)."""
+    (training set, `LossConfig`, dtype; the frozen parameters are the context's), and which budgets are still alive
+    (updated in place)."""
 
     budgets: np.ndarray
     tracks: list
     ctx: TuneContext
     vgb: Any
     stepb: Any
-    frozen: Any
     data: Any
     cfg: LossConfig
     dtype: Any
     alive: np.ndarray
-    store: Optional[_FrontStore] = None
+    store: Optional[TunerCheckpoint] = None
 
 
-def _vmap_iterations(run: _VmapRun, state: _VmapState, progress) -> int:
-    """Run the vmapped optimiser from ``state`` until ``config.steps`` iterations or every budget's track stops; the
-    tracks record each candidate, and the state is checkpointed after every iteration (`_vmap_saved`). Returns the
-    number of objective evaluations (of budgets still alive)."""
+def _vmap_iterations(run: _VmapRun, it0: int, evals: int, trainable, opt_state, progress) -> int:
+    """Run the vmapped optimiser from iteration ``it0`` (``evals`` objective evaluations so far; the budgets'
+    parameters and optax state) until ``config.steps`` iterations or every budget's track stops; the tracks record
+    each candidate, and the state is checkpointed after every iteration (``run.store``). Returns the number of
+    objective evaluations (of budgets still alive)."""
     config = run.ctx.config
     alive = run.alive
     t_start = time.perf_counter()
-    trainable, opt_state, evals = state.trainable, state.opt_state, state.evals
     with Progress(progress, desc=f"front (vmap x{run.budgets.size})") as bar:
-        for it in range(state.it, config.steps):
+        for it in range(it0, config.steps):
             if not alive.any():
                 break
             lam = np.array([t.lam for t in run.tracks])
             c = run.cfg._replace(energy_budget=jnp.asarray(run.budgets, run.dtype),
                                  multiplier=jnp.asarray(lam, run.dtype))
-            out = run.vgb(trainable, run.frozen, run.data, c)            # ((values, aux), grads)
+            out = run.vgb(trainable, run.ctx.frozen, run.data, c)            # ((values, aux), grads)
             evals += int(alive.sum())
             ok = _assess_candidates(run, it, out, trainable, opt_state, t_start)
             trainable, opt_state = run.stepb(trainable, opt_state, out[1], jnp.asarray(ok))
             rej = np.array([t.rejections for t in run.tracks])
             alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
-            _vmap_saved(run, _VmapState(it + 1, evals, trainable, opt_state))
+            if run.store is not None:
+                run.store.save(it + 1, trainable, opt_state, run.tracks, evals=np.int64(evals), alive=np.asarray(alive))
             bar.update((it + 1) / config.steps)
             bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in run.tracks if t.rows)))
     return evals
@@ -444,12 +389,10 @@ def _assess_candidates(run: _VmapRun, it, out, trainable, opt_state, t_start):
     return ok
 
 
-def _verified_points(budgets, tracks, ctx, ics, groups) -> list:
+def _verified_points(budgets, tracks, ctx) -> list:
     """Each budget's `FrontPoint`: its best candidate that passes the final check on the training and guard
     starts (``RuntimeError`` if none does)."""
-    points = []
-    guard_ics = guard_starts()
-    checks = [(ics[idx], p0) for idx, _, p0 in groups] + [(guard_ics, groups[0][2])]
+    points, checks = [], ctx.checks()
     for b, track in enumerate(tracks):
         cand, g, pa, _ = track.verify(ctx, checks, int(ctx.config.verify))
         if cand is None:
@@ -474,16 +417,11 @@ def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: Tune
     t0 = time.perf_counter()
     cands = []
     with jax.enable_x64(bool(x64)):
-        dtype = jnp.zeros(()).dtype
-        data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
-        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss._replace(energy_budget=float("inf"), multiplier=0.0)))
-        f = _value(config.n_attempts, config.segment, d_floor)
+        dtype, f = _training_value(ics, config, loss, plant, d_floor)
         with Progress(progress, desc="random search") as bar:
             for i in range(int(n_evals)):
                 v = rng.uniform(lo, hi)
-                theta = GainParams(jnp.asarray(v[:3], dtype), jnp.asarray(v[3], dtype), jnp.asarray(v[4:], dtype))
-                tr, fr = split_params(theta, None)
-                value, aux = f(tr, fr, data, cfg)
+                _, aux = f(GainParams(jnp.asarray(v[:3], dtype), jnp.asarray(v[3], dtype), jnp.asarray(v[4:], dtype)))
                 if bool(aux["valid"]):
                     cands.append((float(aux["soft"]), float(aux["energy"]), v))
                 bar.update((i + 1) / n_evals)
@@ -494,7 +432,6 @@ def random_search(budgets, n_evals: int, *, starts=UniformStarts(), config: Tune
             continue
         soft, energy, v = min(ok, key=lambda c: c[0])
         g = gains_from_params(GainParams(v[:3], v[3], v[4:]), d_floor=d_floor)
-
         g = make_gains(np.asarray(g.L, np.float64), float(g.k), np.asarray(g.D_hat, np.float64))
         points.append(FrontPoint(float(bgt), g, {"soft_loss": soft, "training_energy": energy, "feasible": True}))
     return Front(points, "random", time.perf_counter() - t0, int(n_evals),
@@ -524,11 +461,10 @@ def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> di
             d["evaluation"] = validation_dict(p.evaluation)
         return d
 
-    return json.loads(json.dumps(
+    return _as_json(
         {"method": front.method, "wall_s": front.wall_s, "evaluations": front.evaluations,
          "settings": front.settings, "points": [pdict(p) for p in front.points],
-         "references": {k: validation_dict(v) for k, v in (references or {}).items()}, **meta},
-        default=_json_default))
+         "references": {k: validation_dict(v) for k, v in (references or {}).items()}, **meta})
 
 
 def save_front(front: Front, path, *, references: Optional[dict] = None, **meta) -> Path:
@@ -546,12 +482,15 @@ def point_gains(point: dict) -> Gains:
     return make_gains(point["L"], point["k"], point["D_hat"])
 
 
-def _json_default(x):
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return str(x)
+def _as_json(doc):
+    """``doc`` as its JSON reads it back: NumPy numbers as numbers, arrays as lists, anything else JSON cannot write
+    as its ``str``."""
+    def default(x):
+        if isinstance(x, (np.floating, np.integer)):
+            return x.item()
+        return x.tolist() if isinstance(x, np.ndarray) else str(x)
+
+    return json.loads(json.dumps(doc, default=default))
 
 
 def load_front(path) -> dict:

@@ -118,9 +118,12 @@ class TuningRun:
     def __init__(self, out, *, history=None, resume: bool = False, options: Optional[dict] = None,
                  command: Optional[list] = None, words: Words = PYTHON_WORDS):
         self.out = Path(out)
-        self.history = None if history is None else _npz(history)
+        h = None if history is None else Path(history)
+        self.history = h if h is None or h.suffix == ".npz" else h.with_name(h.name + ".npz")
         self.resume = bool(resume)
-        self.options = None if options is None else {str(k): _jsonable(v) for k, v in options.items()}
+        # as they read back from the checkpoint's JSON (tuples as lists)
+        self.options = None if options is None else json.loads(json.dumps({str(k): v for k, v in options.items()},
+                                                                          default=str))
         self.command = command
         self.words = words
         self.run_id = uuid.uuid4().hex            # one process's run: no other run shares its output
@@ -195,44 +198,32 @@ def tune_run(run, gains0="paper", *, config: TuneConfig = TuneConfig(), loss: Lo
     from .. import tuning as tu
 
     run, names = as_run(run), tu.parse_tune(tune)
-    with run.owned("tuning run"):
-        t0 = time.perf_counter()
-        try:
-            res = tu.tune(gains0, config=config, loss=loss, tune=names, plant=None if robust is not None else plant,
-                          robust=robust, x64=x64, progress=progress, checkpoint=run.checkpoint, resume=run.resume,
-                          options=run.options)
-        except TuningInterrupted as stop:
-            return _gradient_interrupted(run, stop.partial, time.perf_counter() - t0)
-        wall = time.perf_counter() - t0
+
+    def budget(res) -> dict:
         energy = float(res.history.energy[res.best_iteration])
         met = _budget_met(loss.energy_budget, energy)
-        meta = {"how": f"jaxsleigh tune: {res.settings['method']}", "command": run.command, "tuned": list(names),
-                "initial_gains": gains_to_dict(res.initial), "initial_loss": res.initial_loss,
-                "best_loss": res.best_loss, "best_iteration": res.best_iteration,
-                "iterations_run": res.settings["iterations_run"], "seed": config.seed, "batch": config.batch,
-                "dtype": res.settings["dtype"], "plant": "sampled (robust)" if robust is not None else
-                _plant_record(plant), "objective": res.settings["loss"], "wall_s": wall}
-        if met is not None:
-            meta.update(energy_budget=float(loss.energy_budget), training_energy=energy, energy_budget_met=met)
-        save_gains(res.gains, run.out, **meta)          # before the held-out check, so that it cannot lose them
-        written = [run.out, *_history(run, lambda p: tu.save_history(res.history, p))]
-        run.finished()
-        rows = _held_out_rows(res.initial, res.gains, plant, x64, held_out, "tuned")
-        if rows:
-            save_gains(res.gains, run.out, **meta, validation=_validation(rows, held_out))
-    return RunOutcome(res, tuple(written), False, wall, rows, None if met is None else energy, met)
+        return {} if met is None else dict(energy_budget=float(loss.energy_budget), training_energy=energy,
+                                           energy_budget_met=met)
 
+    def write(res, interrupted: bool = False, **fields) -> tuple:
+        if interrupted:          # the best valid gains so far
+            save_gains(res.gains, run.out, how="jaxsleigh tune, INTERRUPTED: the best valid candidate so far, not "
+                       "re-checked with the accurate engine", command=run.command, interrupted=True,
+                       best_loss=res.best_loss, best_iteration=res.best_iteration,
+                       iterations_run=res.settings["iterations_run"])
+        else:
+            save_gains(res.gains, run.out, how=f"jaxsleigh tune: {res.settings['method']}", command=run.command,
+                       tuned=list(names), initial_gains=gains_to_dict(res.initial), initial_loss=res.initial_loss,
+                       best_loss=res.best_loss, best_iteration=res.best_iteration,
+                       iterations_run=res.settings["iterations_run"], seed=config.seed, batch=config.batch,
+                       dtype=res.settings["dtype"], plant="sampled (robust)" if robust is not None else
+                       _plant_record(plant), objective=res.settings["loss"], **fields)
+        return (run.out, *_history(run, lambda p: tu.save_history(res.history, p)))
 
-def _gradient_interrupted(run: TuningRun, part, wall: float) -> RunOutcome:
-    """Ctrl-C during gradient descent: the best valid gains so far (if any) and the history."""
-    from .. import tuning as tu
-
-    if part is None:
-        return RunOutcome(None, (), True, wall, {})
-    save_gains(part.gains, run.out, how="jaxsleigh tune, INTERRUPTED: the best valid candidate so far, not re-checked "
-               "with the accurate engine", command=run.command, interrupted=True, best_loss=part.best_loss,
-               best_iteration=part.best_iteration, iterations_run=part.settings["iterations_run"])
-    return RunOutcome(part, (run.out, *_history(run, lambda p: tu.save_history(part.history, p))), True, wall, {})
+    return _tuner_run(run, "tuning run", lambda: tu.tune(
+        gains0, config=config, loss=loss, tune=names, plant=None if robust is not None else plant, robust=robust,
+        x64=x64, progress=progress, checkpoint=run.checkpoint, resume=run.resume, options=run.options), write,
+        lambda r: _held_out_rows(r.initial, r.gains, plant, x64, held_out, "tuned"), held_out, budget)
 
 
 def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), reference=None,
@@ -247,45 +238,32 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
     from .. import tuning as tu
 
     run, names = as_run(run), tu.parse_tune(tune)
-    record = {"tuned": list(names), "tolerances": HeldOut(stepsize=stepsize).tolerances(), "config": config,
-              "plant": plant, "x64": x64}
-    with run.owned("search"):
-        t0 = time.perf_counter()
+    what = ("median gap to the optimum T_0.05 / T*(E)" if config.objective == "gap" else "median T_0.05")
+
+    def work():
         try:
-            res = tu.search(gains0, config=config, reference=gains0 if reference is None else reference,
-                            energy_budget=energy_budget, tune=names, plant=plant, x64=x64, stepsize=stepsize,
-                            progress=progress, checkpoint=run.checkpoint, resume=run.resume, options=run.options,
-                            frontier=frontier)
+            return tu.search(gains0, config=config, reference=gains0 if reference is None else reference,
+                             energy_budget=energy_budget, tune=names, plant=plant, x64=x64, stepsize=stepsize,
+                             progress=progress, checkpoint=run.checkpoint, resume=run.resume, options=run.options,
+                             frontier=frontier)
         except NoFeasibleCandidate as e:          # finished: its history is kept, and its checkpoint
             history = e.history
             _history(run, lambda p: _save_arrays(p, history))
             raise
-        except TuningInterrupted as stop:
-            wall = time.perf_counter() - t0
-            if stop.partial is None:
-                return RunOutcome(None, (), True, wall, {})
-            return RunOutcome(stop.partial, _write_search(run, stop.partial, record, interrupted=True), True, wall, {})
-        wall = time.perf_counter() - t0
-        written = _write_search(run, res, record, wall_s=wall)
-        run.finished()
-        rows = _held_out_rows(res.initial, res.gains, plant, x64, held_out, "searched")
-        if rows:
-            _write_search(run, res, record, wall_s=wall, validation=_validation(rows, held_out))
-    return RunOutcome(res, written, False, wall, rows)
 
+    def write(res, **fields) -> tuple:
+        save_gains(res.gains, run.out, how=f"jaxsleigh tune --search: CMA-ES on the accurate engine's {what} under "
+                   "a control-energy budget at the percentiles " + ", ".join(f"{q:g}" for q in
+                                                                             config.energy_percentiles),
+                   command=run.command, tuned=list(names), **HeldOut(stepsize=stepsize).tolerances(),
+                   initial_gains=gains_to_dict(res.initial), training_figures=res.figures,
+                   reference_figures=res.reference, best_generation=res.best_generation,
+                   generations_run=res.settings["generations_run"], seed=config.seed, batch=config.batch,
+                   population=config.population, plant=_plant_record(plant), x64=bool(x64), **fields)
+        return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
 
-def _write_search(run: TuningRun, res, record: dict, **extra) -> tuple:
-    """Write the searched gains, with their figures and how they were found, and the history; the paths written."""
-    cfg = record["config"]
-    what = ("median gap to the optimum T_0.05 / T*(E)" if cfg.objective == "gap" else "median T_0.05")
-    save_gains(res.gains, run.out, how=f"jaxsleigh tune --search: CMA-ES on the accurate engine's {what} under "
-               "a control-energy budget at the percentiles " + ", ".join(f"{q:g}" for q in cfg.energy_percentiles),
-               command=run.command, tuned=record["tuned"], **record["tolerances"],
-               initial_gains=gains_to_dict(res.initial), training_figures=res.figures, reference_figures=res.reference,
-               best_generation=res.best_generation, generations_run=res.settings["generations_run"], seed=cfg.seed,
-               batch=cfg.batch, population=cfg.population, plant=_plant_record(record["plant"]),
-               x64=bool(record["x64"]), **extra)
-    return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+    return _tuner_run(run, "search", work, write,
+                      lambda r: _held_out_rows(r.initial, r.gains, plant, x64, held_out, "searched"), held_out)
 
 
 def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, seed: int = 0, tune=None, plant=None,
@@ -302,38 +280,47 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
 
     run = as_run(run)
     names = tu.gain_names(law) if tune is None else list(tune)
-    record = {"name": name, "tuned": names, "loss": loss, "seed": seed, "batch": batch, "x64": x64, "plant": plant}
-    with run.owned("tuning run"):
+    budget = _budget(loss.energy_budget)
+
+    def write(res, **fields) -> tuple:
+        save_law(res.law, name, run.out, how="jaxsleigh tune --controller: Adam on the soft convergence time"
+                 + ("" if budget is None else f" under a training energy budget {budget:g}"), command=run.command,
+                 tuned=list(names), training_loss=res.loss, training_energy=res.energy, energy_budget=budget,
+                 seed=seed, batch=batch, x64=bool(x64), plant=_plant_record(plant),
+                 history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **fields)
+        return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+
+    met = (lambda r: _budget_met(loss.energy_budget, r.energy))
+    o = _tuner_run(run, "tuning run", lambda: tu.tune_law(
+        law, draw_starts(starts, batch, seed), tune=names, plant=plant, loss=loss, steps=steps, lr=lr, x64=x64,
+        n_attempts=n_attempts, checkpoint=run.checkpoint, resume=run.resume, options=run.options), write,
+        lambda r: _held_out_rows(law, r.law, plant, x64, held_out, "tuned"), held_out,
+        lambda r: {} if met(r) is None else {"energy_budget_met": met(r)})
+    return o if o.energy_budget_met is None else o._replace(energy=o.result.energy)
+
+
+def _tuner_run(run: TuningRun, what: str, work, write, check, held_out: Optional[HeldOut], budget=None) -> RunOutcome:
+    """The life of a tuner's run (module docstring) under the claim of ``run.out`` (``what`` names it in a refusal):
+    ``work()`` runs the tuner; ``write(result, **fields)`` writes the output and the history and returns the paths:
+    after Ctrl-C the best so far (if any) with ``interrupted=True``, else with ``wall_s`` and the fields of
+    ``budget(result)`` (with an energy budget: ``energy_budget_met``, and ``training_energy`` for the outcome), then
+    again with the ``held_out`` check's ``validation`` (``check(result)``: its rows, `_held_out_rows`)."""
+    with run.owned(what):
         t0 = time.perf_counter()
         try:
-            res = tu.tune_law(law, draw_starts(starts, batch, seed), tune=names, plant=plant, loss=loss, steps=steps,
-                              lr=lr, x64=x64, n_attempts=n_attempts, checkpoint=run.checkpoint, resume=run.resume,
-                              options=run.options)
+            res = work()
         except TuningInterrupted as stop:
-            wall = time.perf_counter() - t0
-            if stop.partial is None:
-                return RunOutcome(None, (), True, wall, {})
-            return RunOutcome(stop.partial, _write_law(run, stop.partial, record, interrupted=True), True, wall, {})
+            wall, part = time.perf_counter() - t0, stop.partial
+            return RunOutcome(part, () if part is None else write(part, interrupted=True), True, wall, {})
         wall = time.perf_counter() - t0
-        met = _budget_met(loss.energy_budget, res.energy)
-        extra = dict(wall_s=wall, **({} if met is None else {"energy_budget_met": met}))
-        written = _write_law(run, res, record, **extra)          # before the held-out check, so that it cannot lose it
+        fields = {"wall_s": wall, **(budget(res) if budget else {})}
+        written = write(res, **fields)          # before the held-out check, so that it cannot lose it
         run.finished()
-        rows = _held_out_rows(law, res.law, plant, x64, held_out, "tuned")
-        if rows:
-            written = _write_law(run, res, record, **extra, validation=_validation(rows, held_out))
-    return RunOutcome(res, written, False, wall, rows, None if met is None else res.energy, met)
-
-
-def _write_law(run: TuningRun, res, record: dict, **extra) -> tuple:
-    """Write the tuned law (`jaxsleigh.tuning.law_file.save_law`) with how it was found, and its history."""
-    budget = _budget(record["loss"].energy_budget)
-    save_law(res.law, record["name"], run.out, how="jaxsleigh tune --controller: Adam on the soft convergence time"
-             + ("" if budget is None else f" under a training energy budget {budget:g}"), command=run.command,
-             tuned=list(record["tuned"]), training_loss=res.loss, training_energy=res.energy, energy_budget=budget,
-             seed=record["seed"], batch=record["batch"], x64=bool(record["x64"]), plant=_plant_record(record["plant"]),
-             history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **extra)
-    return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+        rows = check(res)
+        if rows:          # as every tuner's file records it: with the seed and the tolerances of the check
+            write(res, **fields, validation={k: validation_dict(v, seed=held_out.seed, **held_out.tolerances())
+                                             for k, v in rows.items()})
+    return RunOutcome(res, written, False, wall, rows, fields.get("training_energy"), fields.get("energy_budget_met"))
 
 
 def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: TuneConfig = TuneConfig(),
@@ -450,12 +437,6 @@ def _held_out_rows(initial, found, plant, x64: bool, held_out: Optional[HeldOut]
             label: tu.validate(found, ics, plant=plant, x64=x64, stepsize=held_out.stepsize)}
 
 
-def _validation(rows: dict, held_out: HeldOut) -> dict:
-    """``{label: figures}`` of the held-out check as every tuner's file records it (`jaxsleigh.tuning.validation_dict`,
-    with the seed and the tolerances of the check)."""
-    return {k: validation_dict(v, seed=held_out.seed, **held_out.tolerances()) for k, v in rows.items()}
-
-
 def _history(run: TuningRun, write) -> list:
     """``[path]`` after ``write(run.history)``, or ``[]`` when the run writes no history."""
     if run.history is None:
@@ -466,11 +447,6 @@ def _history(run: TuningRun, write) -> list:
 def _save_arrays(path: Path, arrays: dict) -> Path:
     atomic_write(path, lambda fh: np.savez(fh, **{k: np.asarray(v) for k, v in arrays.items()}))
     return path
-
-
-def _npz(path) -> Path:
-    p = Path(path)
-    return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
 
 
 def _budget(energy_budget) -> Optional[float]:
@@ -494,11 +470,6 @@ def _plant_record(plant) -> dict:
              and all(np.array_equal(a, b) for a, b in zip(damping_from_name(n), d))]
     return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
             "damping": named[0] if named else type(d).__name__}
-
-
-def _jsonable(v):
-    """``v`` as it reads back from a checkpoint's JSON (tuples as lists)."""
-    return json.loads(json.dumps(v, default=str))
 
 
 def _shown(v) -> str:
