@@ -29,6 +29,8 @@ import threading
 import warnings
 from typing import Callable, Optional, Sequence
 
+import jax
+
 __all__ = ["available_cores", "configure", "workers", "run_parts", "default_chunk_size", "PART_SIZE", "CPU_CHUNK",
            "ACCELERATOR_CHUNK"]
 
@@ -83,8 +85,6 @@ def _user_chose() -> bool:
         return True
     if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
         return True
-    import jax
-
     return jax.config.jax_num_cpu_devices != -1
 
 
@@ -109,8 +109,6 @@ def _ask_for_cores() -> int:
     """`configure`'s request: the count set, or 0 where the program chose one or JAX had started."""
     if _user_chose():
         return 0
-    import jax
-
     n = min(available_cores(), _env_limit() or available_cores())
     try:
         jax.config.update("jax_num_cpu_devices", n)
@@ -123,8 +121,6 @@ def workers(devices: Optional[Sequence] = None, cores: Optional[int] = None) -> 
     """The devices a run splits its batches over: ``devices`` if given, else every local device of
     JAX's default backend (on CPU, one per core), limited to ``cores`` and ``JAXSLEIGH_CORES``.
     On CPU with fewer devices than cores (JAX started before jaxsleigh's first run), warns once."""
-    import jax
-
     configure()                                # a run begins: before the first device is asked for
     if devices is not None:
         devs = list(devices)
@@ -150,8 +146,6 @@ def default_chunk_size(cpu: int = CPU_CHUNK, devices: Optional[Sequence] = None)
     """Starts per chunk when the caller gives none: ``cpu`` on CPU (the cores split each chunk, so the
     chunks, and a checkpoint's files, do not depend on how many there are); on an accelerator
     `ACCELERATOR_CHUNK` per device (``devices``, default every local device)."""
-    import jax
-
     configure()                                # a run begins: before JAX is asked for its backend
     if jax.default_backend() == "cpu":
         return int(cpu)
@@ -164,8 +158,6 @@ def run_parts(fn: Callable, parts: Sequence, devices: Sequence) -> list:
     call under ``jax.default_device`` of the device that takes
     it (the next free one). With one device it is a plain loop on that device. The
     first exception is raised again (the other threads finish the part they hold and stop)."""
-    import jax
-
     parts = list(parts)
     if not parts:
         return []

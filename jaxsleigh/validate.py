@@ -10,13 +10,14 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import platform
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
 __all__ = ["INT32_MAX", "real", "whole", "check_memory", "check_count", "writable_path",
-           "writable_dir"]
+           "writable_dir", "host_label"]
 
 #: The largest step budget the engine's int32 counters hold.
 INT32_MAX = 2**31 - 1
@@ -121,6 +122,12 @@ def check_count(what: str, n: int, *, maximum: int, reason: str, fix: str) -> in
     return int(n)
 
 
+def host_label() -> str:
+    """This host's name as a file-name component (other characters than letters, digits, - and _ as ``_``; at most
+    64): with the pid, it keeps apart the files of processes on hosts that share a folder."""
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64]
+
+
 def writable_dir(path, what: str = "output folder") -> Path:
     """Create ``path`` (a folder) if needed and check that files can be written in it."""
     d = Path(path)
@@ -128,10 +135,7 @@ def writable_dir(path, what: str = "output folder") -> Path:
         raise ValueError(f"the {what} {str(d)!r} exists and is not a folder; choose another path")
     try:
         d.mkdir(parents=True, exist_ok=True)
-        import platform
-
-        host = "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64]
-        probe = d / f".jaxsleigh-write-test-{host}-{os.getpid()}"   # unique across hosts sharing d
+        probe = d / f".jaxsleigh-write-test-{host_label()}-{os.getpid()}"   # unique across hosts sharing d
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as e:

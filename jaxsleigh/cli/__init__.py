@@ -28,13 +28,13 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from . import clock  # first: its fallback origin is the earliest moment of the command line
-from .. import cores
-from ..cache import enable_compilation_cache
+from .. import __version__, cores
+from ..cache import compilation_cache_dir, enable_compilation_cache
 from .basin import add_basin
 from .optimum import add_optimum
 from .bench import add_bench
 from .compare import add_compare, add_controllers
-from .common import EXIT_USAGE, PROG, Parser, parse_ic, say_failure
+from .common import EXIT_CODES, EXIT_USAGE, PROG, Parser, parse_ic, say_failure
 from .paper import add_paper
 from .simulate import add_simulate
 from .sweep import add_sweep
@@ -48,9 +48,6 @@ SUBCOMMANDS = [add_simulate, add_paper, add_bench, add_basin, add_tune, add_swee
 
 def build_parser() -> Parser:
     """The top-level parser with every registered subcommand."""
-    from .. import __version__
-    from .common import EXIT_CODES
-
     parser = Parser(prog=PROG, description="Chaplygin sleigh under discontinuous energy-shaping control (JAX).",
                     epilog="exit codes:\n" + "\n".join(f"  {c} = {t}" for c, t in EXIT_CODES.items())
                     + "\n\n" + _cache_help(),
@@ -70,8 +67,6 @@ def build_parser() -> Parser:
 def _cache_help() -> str:
     """Where compiled programs are kept, as this process's environment has it (`jaxsleigh.cache.compilation_cache_dir`:
     JAXSLEIGH_CACHE_DIR, XDG_CACHE_HOME or ~/.cache)."""
-    from ..cache import compilation_cache_dir
-
     where = compilation_cache_dir()
     if where is None:
         return ("Compiled programs are not cached: JAXSLEIGH_NO_COMPILE_CACHE is set (unset it to keep them in\n"
@@ -130,8 +125,7 @@ def run() -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Run the command line; returns the exit code (0 ok, 2 bad input, 3 no trajectory OK, 4 disk full,
-    5 output in use by another run, 6 the processes of a multi-process run failed, 130 interrupted)."""
+    """Run the command line; returns the exit code (`jaxsleigh.cli.common.EXIT_CODES`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()

@@ -17,27 +17,17 @@ from __future__ import annotations
 import argparse
 import math
 import re
-import sys
 
-from ..errors import FlaggedStartsWarning
 from ..files.npz import load_ics, npz_path, parse_number as _number
-from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
-from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
-from .common import (FLAGS, PROG, add_distributed_options, add_horizon_options, add_model_options,
-                     add_sampler_options, check_outputs, check_tolerance_flags, exit_code, law_kwargs,
-                     model_from_args, status_epilog, status_line)
-from .common import number as _positive_float
-from .common import whole as _whole_flag
+from .chunked import add_run_options, audit_from_args, run_chunked_command, say_flagged, say_study_done
+from .common import (FLAGS, add_horizon_options, add_model_options, add_sampler_options, check_tolerance_flags,
+                     law_kwargs, model_from_args, number, status_epilog, whole)
 from .options import stepsize_from_args
 from ..studies.basin import array_starts, grid_starts, parse_axis, run_basin, sample_starts, save_basin
 from ..studies.config import solve_config
 
 __all__ = ["add_basin", "run_basin_command"]
-
-
-def _whole(flag: str, example: str, minimum: int, maximum: int = 2**62):
-    return _whole_flag(flag, example, minimum=minimum, maximum=maximum)
 
 
 def _epilog() -> str:
@@ -85,49 +75,36 @@ def add_basin(subparsers) -> argparse.ArgumentParser:
                       samples_help="N Monte-Carlo starts, uniform in the --x/--y/--theta box",
                       chunk_help="starts integrated (and checkpointed) at once (default 16384 per CPU device, "
                                  "2^22 per accelerator)",
-                      keep_help="keep FILE.npz.chunks/ after the .npz is written (default: delete it)")
-    o = p.add_argument_group("output")
-    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
-    o.add_argument("--plot", metavar="FILE.png",
-                   help="also draw the convergence-time map, the fraction against theta0 and the T_eps distribution")
-    add_distributed_options(p)
-    # "--x -3:3:64", "--theta -pi/2:pi/2:64": values, not options (argparse would read them as flags)
-    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
+                      keep_help="keep FILE.npz.chunks/ after the .npz is written (default: delete it)",
+                      plot_help="also draw the convergence-time map, the fraction against theta0 and the T_eps "
+                                "distribution")
     p.set_defaults(func=run_basin_command)
     return p
 
 
-def add_study_options(p, *, theta_help: str, samples_example: str, samples_help: str, chunk_help: str,
-                      keep_help: str) -> None:
+def add_study_options(p, *, theta_help: str, samples_example: str, samples_help: str, **run_help) -> None:
     """The option groups `jaxsleigh basin` and `jaxsleigh sweep` share: the starts (a grid, samples or a file;
-    the seed), the ball of T_eps, the horizon, the model and the sampler, and the run (chunks, resume,
-    progress); the help texts that differ between the two are given."""
+    the seed), the ball of T_eps, the horizon, the model and the sampler, then the run, the output and the
+    processes (`jaxsleigh.cli.chunked.add_run_options`); the help texts that differ between the two are given."""
+    # "--x -3:3:64", "--theta -pi/2:pi/2:64": values, not options (argparse would read them as flags)
+    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
     g = p.add_argument_group("starts")
     g.add_argument("--x", metavar="LO:HI:N|X", help="x range or fixed x [m]")
     g.add_argument("--y", metavar="LO:HI:N|Y", help="y range or fixed y [m]")
     g.add_argument("--theta", metavar="LO:HI:N|THETA", help=theta_help)
     src = g.add_mutually_exclusive_group()
     src.add_argument("--ics", metavar="FILE.npy", help="starts from a file, shape (N, 3) or (N, 5)")
-    src.add_argument("--samples", type=_whole("--samples", samples_example, 1), metavar="N", help=samples_help)
-    g.add_argument("--seed", type=_whole("--seed", "1", 0, 2**63 - 1), metavar="S",
+    src.add_argument("--samples", type=whole("--samples", samples_example, maximum=2**62), metavar="N",
+                     help=samples_help)
+    g.add_argument("--seed", type=whole("--seed", "1", minimum=0, maximum=2**63 - 1), metavar="S",
                    help="seed of --samples and of --noise (default 0)")
     c = p.add_argument_group("convergence")
-    c.add_argument("--eps", type=_positive_float("--eps", "0.05"), default=0.05, metavar="EPS",
+    c.add_argument("--eps", type=number("--eps", "0.05"), default=0.05, metavar="EPS",
                    help="radius of the ball |q| <= EPS that defines T_eps (default 0.05)")
     add_horizon_options(p, save_every=None)
     add_model_options(p)
     add_sampler_options(p, seed=False)          # --seed (above) also seeds the measurement noise
-    r = p.add_argument_group("run")
-    r.add_argument("--chunk-size", type=_whole("--chunk-size", "16384", 1, 2**31 - 1), default=None, metavar="N",
-                   help=chunk_help)
-    r.add_argument("--resume", action="store_true",
-                   help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
-    r.add_argument("--keep-chunks", action="store_true", help=keep_help)
-    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bar with ETA on stderr (default: only on a terminal)")
-    r.add_argument("--audit-rows", type=_whole("--audit-rows", "64", 0, 4096), default=None, metavar="K",
-                   help="accuracy audit: re-run K random rows in float64 at rtol = atol = 1e-10 and report the worst "
-                        "differences (default: 1%% of the rows, at most 64, from 500 rows on; 0: no audit)")
+    add_run_options(p, chunk_example="16384", chunk_default=None, audit=True, **run_help)
 
 
 def starts_from_args(args):
@@ -182,13 +159,12 @@ def run_basin_command(args) -> int:
     st = {}
 
     def check() -> None:
-        """Validate everything before any work; nothing is written (folders are created)."""
+        """Validate the options before any work (`run_chunked_command` then checks the outputs); nothing is written."""
         st["plant"], st["law"] = plant, law = model_from_args(args)
         check_tolerance_flags(args)
         solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
                      stepsize=stepsize_from_args(args), x64=args.x64, eps=args.eps, flags=FLAGS)
         st["starts"] = starts_from_args(args)
-        check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
 
     def study(checkpoint_dir, resume, shard):
         run = RunOptions(chunk_size=args.chunk_size, progress=args.progress, checkpoint_dir=checkpoint_dir,
@@ -197,22 +173,14 @@ def run_basin_command(args) -> int:
                          **law_kwargs(st["law"]), x64=args.x64, stepsize=stepsize_from_args(args), run=run)
 
     def finish(res, written, record, caught) -> int:
-        n_flag = int((~res.valid).sum())
-        if n_flag:
-            first = next((w.message for w in caught if isinstance(w.message, FlaggedStartsWarning)), None)
-            print(f"{PROG}: warning: {n_flag} of {res.status.size} starts flagged and not integrated; they are left "
-                  f"out of the fraction" + (f": {str(first).split(': ', 1)[-1]}" if first is not None else ""),
-                  file=sys.stderr)
+        say_flagged(int((~res.valid).sum()), res.status.size, caught=caught)
         if args.plot:
             from ..plots.basin import plot_basin
             from ..plots.base import save_figure
 
             written.append(str(save_figure(plot_basin(res), args.plot)))
         print(res.describe() if res.converged.any() else res.describe().splitlines()[0])
-        print(f"{PROG} basin: {status_line(res.status, res.T_eps, args.eps)}; {record['wall_s']:.1f} s wall "
-              f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
-        say_audit("basin", res)
-        return exit_code(res.status, res.T_eps, args.eps)
+        return say_study_done("basin", res, record, written, args.eps)
 
     return run_chunked_command(args, "basin", out, check=check, study=study, save=save_basin,
                                info=lambda res: {"summary": res.summary(), "audit": res.run_info.get("audit")},

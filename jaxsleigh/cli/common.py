@@ -2,17 +2,13 @@
 statuses and failures are reported; the parser class and value converters (`jaxsleigh.cli.values`) and
 the option groups (`jaxsleigh.cli.options`) are re-exported here.
 
-Exit codes (`EXIT_CODES`): 0 done (at least one trajectory ended OK); 2 bad input (nothing
-was computed); 3 the run finished but no trajectory ended OK; 4 the disk (or quota) is full (the
-message names the file; ``--resume`` continues a chunked command once there is space); 5 another
-run is writing the same output (the message names it); 6 the processes of a multi-process
-run failed together (a peer died or never came; finished chunks are kept); 130 interrupted (Ctrl-C; what was
-finished is kept, see ``--resume``).
+Exit codes: `EXIT_CODES`, each with what it means (``jaxsleigh --help`` lists them).
 """
 from __future__ import annotations
 
 import sys
 import textwrap
+import uuid
 from pathlib import Path
 from typing import Optional
 
@@ -20,6 +16,7 @@ import numpy as np
 
 from ..cache import compilation_cache_dir, enable_compilation_cache  # noqa: F401  (re-exported)
 from ..files.distributed import EXIT_CLUSTER
+from ..files.runlock import RunLock
 from .options import (add_distributed_options, add_horizon_options, add_model_options,  # noqa: F401
                       add_progress_option, add_sampler_options, add_tolerance_options, check_bound_fits,
                       check_delay, check_tolerance_flags, law_kwargs, model_from_args, processes_from_args,
@@ -29,7 +26,7 @@ from ..status import Status, converged, counts_in_words, describe
 from ..validate import writable_dir, writable_path
 
 __all__ = ["PROG", "say_failure", "EXIT_OK", "EXIT_USAGE", "EXIT_NONE_OK", "EXIT_DISK_FULL", "EXIT_LOCKED",
-           "EXIT_CLUSTER", "EXIT_INTERRUPTED", "EXIT_CODES", "FLAGS", "check_outputs", "check_figure",
+           "EXIT_CLUSTER", "EXIT_INTERRUPTED", "EXIT_CODES", "FLAGS", "check_outputs", "check_figure", "claim_output",
            "figure_formats", "report_warnings", "status_line", "settled_text", "exit_code", "status_epilog"]
 
 PROG = "jaxsleigh"
@@ -83,6 +80,13 @@ def check_outputs(*paths, folders=(), named=None, figures=None) -> None:
     for d in folders:
         if d is not None:
             writable_dir(d)
+
+
+def claim_output(path, *, folder: bool = False) -> RunLock:
+    """The claim of a command on its ``--out`` file (or ``folder``), to hold while it runs
+    (`jaxsleigh.files.runlock.RunLock`): meanwhile another run writing there is refused (exit code 5)."""
+    return RunLock(path, uuid.uuid4().hex, folder=folder, what="output folder" if folder else "output",
+                   hint="choose another --out")
 
 
 def figure_formats() -> list:

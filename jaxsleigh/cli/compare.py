@@ -4,17 +4,14 @@ from __future__ import annotations
 import json
 import math
 import time
-import uuid
-from pathlib import Path
 
 import jax
 
 from ..studies.audit import audit_line
 from .chunked import audit_from_args
-from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs, number,
-                     sampler_from_args, whole)
+from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs,
+                     claim_output, number, sampler_from_args, whole)
 from ..files.npz import atomic_write_text
-from ..files.runlock import RunLock
 from ..integrate.stepsize import StepSizeController
 
 __all__ = ["add_controllers", "add_compare"]
@@ -79,7 +76,11 @@ def add_compare(subparsers) -> None:
     p.add_argument("--saturation", type=number("--saturation", "50"), default=None, metavar="U",
                    help="actuator saturation: clip each component of u to |u_i| <= U (N, N m)")
     add_sampler_options(p, seed=False)
-    _say_substeps(p)
+    # compare has no --dt: its --sample-period help says how the plant is integrated between samples
+    next(a for a in p._actions if a.dest == "sample_period").help = (
+        "zero-order hold at period TS: the law evaluated once per sample and held, the plant integrated in between "
+        "by the adaptive RK4 to --rtol/--atol, landing on each sample instant; --t-final must be a whole number of "
+        "periods")
     g = p.add_argument_group(
         "equal energy", "tune each literature law to one energy budget before comparing: the paper's training "
                         "energy (geometric mean of the integral of |u|^2 dt over 30 s on the tuner's training "
@@ -100,14 +101,6 @@ def add_compare(subparsers) -> None:
                         "of T_eps (settled fraction against time) and of the control energy")
     add_progress_option(p)
     p.set_defaults(func=_cmd_compare)
-
-
-def _say_substeps(parser) -> None:
-    """compare has no --dt: its --sample-period help says how the plant is integrated between samples."""
-    action = next(a for a in parser._actions if a.dest == "sample_period")
-    action.help = ("zero-order hold at period TS: the law evaluated once per sample and held, the plant integrated "
-                   "in between by the adaptive RK4 to --rtol/--atol, landing on each sample instant; --t-final must "
-                   "be a whole number of periods")
 
 
 def _names(args):
@@ -186,8 +179,7 @@ def _cmd_compare(args) -> int:
     dt = check_horizon(args.t_final, sampler, flag="--t-final")
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
-    # the run owns its --out: while it runs, another run writing the same file is refused (exit code 5)
-    with RunLock(Path(args.out), uuid.uuid4().hex, what="output", hint="choose another --out"):
+    with claim_output(args.out):
         return _run_compare(args, names, dists, train, steps, sampler, dt)
 
 

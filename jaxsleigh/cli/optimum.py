@@ -19,12 +19,10 @@ import sys
 import numpy as np
 
 from ..files.npz import load_ics, npz_path
-from ..files.runner import chunk_dir, sidecar
-from .chunked import run_chunked_command
-from .common import PROG, check_outputs
+from .chunked import add_run_options, run_chunked_command
+from .common import PROG
 from .common import number as _number
 from .common import whole as _whole
-from .options import add_distributed_options
 from ..studies.optimum import OptimumOptions, OptimumStatus, as_horizons, optimum, save_optimum
 
 __all__ = ["add_optimum", "run_optimum_command"]
@@ -88,18 +86,9 @@ def add_optimum(subparsers) -> argparse.ArgumentParser:
                    help="L-BFGS iterations per round (default 30)")
     s.add_argument("--guesses", type=_whole("--guesses", "2", minimum=1, maximum=4), default=2, metavar="K",
                    help="turn-drive-turn initial guesses per problem, 1 to 4 (default 2)")
-    r = p.add_argument_group("run")
-    r.add_argument("--chunk-size", type=_whole("--chunk-size", "64", minimum=1, maximum=2**31 - 1), default=64,
-                   metavar="N", help="starts solved (and checkpointed) at once (default 64)")
-    r.add_argument("--resume", action="store_true",
-                   help="continue an interrupted run from the chunks in FILE.npz.chunks/ (same options)")
-    r.add_argument("--keep-chunks", action="store_true", help="keep FILE.npz.chunks/ after the .npz is written")
-    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bar with ETA on stderr (default: only on a terminal)")
-    o = p.add_argument_group("output")
-    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
-    o.add_argument("--plot", metavar="FILE.png", help="also draw the frontier E*(T) of every start")
-    add_distributed_options(p)
+    add_run_options(p, chunk_example="64", chunk_default=64, audit=False,
+                    chunk_help="starts solved (and checkpointed) at once (default 64)",
+                    plot_help="also draw the frontier E*(T) of every start")
     p._negative_number_matcher = re.compile(r"^-(\d|\.\d)")
     p.set_defaults(func=run_optimum_command)
     return p
@@ -139,7 +128,6 @@ def run_optimum_command(args) -> int:
             st["starts"] = UniformStarts()(np.random.default_rng(args.seed), args.samples)
         st["options"] = OptimumOptions(intervals=args.intervals, p_tol=args.p_tol, outer=args.outer,
                                        inner=args.inner, guesses=args.guesses).check()
-        check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
 
     def study(checkpoint_dir, resume, shard):
         return optimum(st["starts"], args.horizons, eps=args.eps, options=st["options"], chunk_size=args.chunk_size,

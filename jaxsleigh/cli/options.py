@@ -9,7 +9,7 @@ import numpy as np
 
 from ..files.distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from .values import number, parse_triple, whole
-from ..controllers.actuators import sampler
+from ..controllers.actuators import sampled, sampler, saturate
 from ..files.runner import Processes
 from ..integrate.sampled import sample_count
 from ..integrate.stepsize import StepSizeController
@@ -66,8 +66,6 @@ def model_from_args(args):
         law = make_controller(name, load_gains(args.gains)) if name == "paper" else make_controller(name)
     u_max = getattr(args, "saturation", None)
     if u_max is not None:
-        from ..controllers.actuators import saturate
-
         check_bound_fits(u_max, args.x64)
         try:
             law = saturate(law, u_max)
@@ -75,8 +73,6 @@ def model_from_args(args):
             raise ValueError(f"--saturation: {e}") from None
     smp = sampler_from_args(args) if hasattr(args, "sample_period") else None
     if smp is not None:
-        from ..controllers.actuators import sampled
-
         law = sampled(law, *smp)
     return plant, law
 

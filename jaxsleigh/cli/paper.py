@@ -3,11 +3,8 @@ from __future__ import annotations
 
 import argparse
 import time
-import uuid
-from pathlib import Path
 
-from .common import PROG, add_progress_option, check_outputs, number
-from ..files.runlock import RunLock
+from .common import PROG, add_progress_option, check_outputs, claim_output, number
 
 __all__ = ["add_paper"]
 
@@ -37,8 +34,7 @@ def _cmd_paper(args) -> int:
 
     check_outputs(folders=[args.out])
     t0 = time.perf_counter()
-    # the run owns its --out folder: while it runs, another run writing there is refused (exit code 5)
-    with RunLock(Path(args.out), uuid.uuid4().hex, folder=True, what="output folder", hint="choose another --out"):
+    with claim_output(args.out, folder=True):
         paths = run_paper(args.out, x64=args.x64, dt=args.dt, t_final=args.t_final, progress=args.progress,
                           command=[PROG, *args._argv], stamp=args.stamp)
     wall = time.perf_counter() - t0

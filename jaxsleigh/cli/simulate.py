@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import argparse
 import time
-import uuid
 import warnings
 
 from ..errors import FlaggedStartsWarning
-from ..files.runlock import RunLock
 from ..studies.options import RunOptions, SaveAt
 from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_progress_option, add_sampler_options,
-                     check_outputs, check_tolerance_flags, exit_code, ics_from_args, law_kwargs, model_from_args,
-                     report_warnings, status_epilog, status_line)
+                     check_outputs, check_tolerance_flags, claim_output, exit_code, ics_from_args, law_kwargs,
+                     model_from_args, report_warnings, status_epilog, status_line)
 from .options import stepsize_from_args
 from ..files.npz import npz_path, write_npz
 from ..studies.config import solve_config
@@ -82,8 +80,7 @@ def _cmd_simulate(args) -> int:
                        stepsize=stepsize, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": npz_path(args.out)})
-    # the run owns its --out: while it runs, another run writing the same file is refused (exit code 5)
-    with RunLock(npz_path(args.out), uuid.uuid4().hex, what="output", hint="choose another --out"):
+    with claim_output(npz_path(args.out)):
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

@@ -17,17 +17,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
-import sys
 
 import numpy as np
 
-from ..files.runner import chunk_dir, sidecar
 from ..studies.options import RunOptions
 from .basin import starts_from_args, add_study_options
-from .chunked import audit_from_args, how_it_ran, run_chunked_command, say_audit
-from .common import (FLAGS, PROG, add_distributed_options, check_outputs, check_tolerance_flags, exit_code,
-                     law_kwargs, model_from_args, status_epilog, status_line)
+from .chunked import audit_from_args, run_chunked_command, say_flagged, say_study_done
+from .common import FLAGS, check_tolerance_flags, law_kwargs, model_from_args, status_epilog
 from .options import stepsize_from_args
 from ..files.npz import npz_path
 from ..model.controller import law_leaf_names
@@ -87,24 +83,15 @@ def add_sweep(subparsers) -> argparse.ArgumentParser:
                                    "when no starts are given)",
                       chunk_help="rows (start x value) integrated and checkpointed at once (default 16384 "
                                  "per CPU device, 2^22 per accelerator); bounds the memory",
-                      keep_help="keep FILE.npz.chunks/ after the .npz is written")
-    o = p.add_argument_group("output")
-    o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
-    o.add_argument("--plot", metavar="FILE.png",
-                   help="also draw the fraction and T_eps percentiles against the parameter (a heat map for two)")
-    add_distributed_options(p)
-    p._negative_number_matcher = re.compile(r"^-(\d|\.\d|pi)")
+                      plot_help="also draw the fraction and T_eps percentiles against the parameter (a heat map "
+                                "for two)")
     p.set_defaults(func=run_sweep_command)
     return p
 
 
 def run_sweep_command(args) -> int:
-    """Handler of ``jaxsleigh sweep``; returns the exit code.
-
-    The run is `jaxsleigh.files.runner.run_to_file` (`jaxsleigh.cli.chunked.run_chunked_command`): with
-    ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process computes its
-    share of the chunks and process 0 writes the output, the same bytes as one process.
-    """
+    """Handler of ``jaxsleigh sweep``; returns the exit code. Run as `jaxsleigh.cli.basin.run_basin_command` is, in
+    one process or several (process 0 writes the output, the same bytes as one process)."""
     out = npz_path(args.out)
     st = {}
 
@@ -116,31 +103,26 @@ def run_sweep_command(args) -> int:
                      labels=st["labels"])
 
     def finish(res, written, record, caught) -> int:
-        n_flag = int((~res.valid[0]).sum())
-        if n_flag:
-            print(f"{PROG}: warning: {n_flag} of {res.ics.shape[0]} starts flagged and not integrated (theta0 = 0 "
-                  f"or not finite); they are left out of the fractions", file=sys.stderr)
+        say_flagged(int((~res.valid[0]).sum()), res.ics.shape[0], why=" (theta0 = 0 or not finite)",
+                    fraction="fractions")
         if args.plot:
             from ..plots.base import save_figure
             from ..plots.sweep import plot_sweep
 
             written.append(str(save_figure(plot_sweep(res), args.plot)))
         print(res.table())
-        print(f"{PROG} sweep: {res.values.shape[0]} values x {res.ics.shape[0]} starts, "
-              f"{status_line(res.status, res.T_eps, args.eps)}; {record['wall_s']:.1f} s wall "
-              f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
-        say_audit("sweep", res)
-        return exit_code(res.status, res.T_eps, args.eps)
+        return say_study_done("sweep", res, record, written, args.eps,
+                              head=f"{res.values.shape[0]} values x {res.ics.shape[0]} starts, ")
 
     def info(res) -> dict:
         S, se = res.fractions()
         return {"fraction": S.tolist(), "fraction_se": se.tolist(), "audit": res.run_info.get("audit")}
 
-    return run_chunked_command(args, "sweep", out, check=lambda: st.update(_check(args, out)), study=study,
+    return run_chunked_command(args, "sweep", out, check=lambda: st.update(_check(args)), study=study,
                                save=save_sweep, info=info, finish=finish)
 
 
-def _check(args, out) -> dict:
+def _check(args) -> dict:
     """Validate everything before any work (a bad range names its --param); nothing is written."""
     if len(args.param) > 2:
         raise ValueError(f"--param may be given once or twice (a line or a 2-D grid), got {len(args.param)}")
@@ -160,7 +142,6 @@ def _check(args, out) -> dict:
     check_tolerance_flags(args)
     solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt,
                  stepsize=stepsize_from_args(args), x64=args.x64, eps=args.eps, flags=FLAGS)
-    check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunk_dir(out)])
     return {"axes": axes, "labels": labels, "plant": plant, "law": law, "starts": starts}
 
 

@@ -64,8 +64,7 @@ def polar_coordinates(q):
 class AicardiLaw(NamedTuple):
     r"""Aicardi et al.'s globally convergent polar-coordinate law, lifted with a velocity loop.
 
-    Citation: M. Aicardi, G. Casalino, A. Bicchi, A. Balestrino, "Closed loop steering of unicycle-like
-    vehicles via Lyapunov techniques", *IEEE Robotics & Automation Magazine* 2(1):27-35, 1995.
+    Citation: that of `jaxsleigh.controllers.aicardi` (the module).
 
     **Coordinates.** Goal at the origin with heading 0. With \(e\) the distance to the goal,
     \(\vartheta\) the angle (in the goal frame) of the line from the vehicle to the goal and

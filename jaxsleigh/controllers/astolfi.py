@@ -30,9 +30,7 @@ def chained_form(q):
 class AstolfiLaw(NamedTuple):
     r"""Astolfi's \(\sigma\)-process law: exponential convergence from every start with \(\theta \ne 0\).
 
-    Citation: A. Astolfi, "Discontinuous control of nonholonomic systems", *Systems & Control Letters*
-    27(1):37-45, 1996 (and "Exponential stabilization of a wheeled mobile robot via discontinuous
-    control", *J. Dyn. Sys., Meas., Control* 121(1):121-126, 1999).
+    Citation: those of `jaxsleigh.controllers.astolfi` (the module).
 
     **Chained form.** With \(x_1 = \theta\), \(x_2 = x\cos\theta + y\sin\theta\),
     \(x_3 = x\sin\theta - y\cos\theta\) (`chained_form`; \(|q|^2 = x_1^2 + x_2^2 + x_3^2\)) the unicycle

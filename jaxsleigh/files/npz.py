@@ -8,7 +8,6 @@ import json
 import math
 import operator
 import os
-import platform
 import zipfile
 from pathlib import Path
 from typing import Optional, Sequence
@@ -17,7 +16,7 @@ import numpy as np
 
 from ..errors import DiskFullError
 from ..status import describe
-from ..validate import check_memory
+from ..validate import check_memory, host_label
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
            "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind", "NPZ_KINDS", "FIELDS",
@@ -364,27 +363,18 @@ def load_ics(path, *, hint: str = "") -> np.ndarray:
 
 def _load_table(p: Path) -> np.ndarray:
     """A ``.csv`` (commas) or ``.txt`` (blanks) table of numbers, ``ndmin=2``; a first line that is not numbers
-    (a header of names, ``x,y,theta``) is skipped."""
+    (a header of names, ``x,y,theta``) is skipped, with the blank or comment lines before it."""
     delimiter = "," if p.suffix.lower() == ".csv" else None
     with open(p, encoding="utf-8", errors="replace") as f:
-        first = next((line for line in f if line.strip() and not line.lstrip().startswith("#")), "")
+        lineno, first = next(((i, line) for i, line in enumerate(f, 1)
+                              if line.strip() and not line.lstrip().startswith("#")), (0, ""))
     skip = 0
     if first:
         try:
             [float(x) for x in first.split(delimiter) if x.strip()]
         except ValueError:
-            skip = _header_lines(p)
+            skip = lineno           # np.loadtxt(skiprows=...) counts every line up to the header
     return np.loadtxt(p, delimiter=delimiter, ndmin=2, skiprows=skip)
-
-
-def _header_lines(p: Path) -> int:
-    """How many lines ``np.loadtxt(skiprows=...)`` skips to pass the header line (and blank or comment lines
-    before it)."""
-    with open(p, encoding="utf-8", errors="replace") as f:
-        for i, line in enumerate(f, 1):
-            if line.strip() and not line.lstrip().startswith("#"):
-                return i
-    return 0
 
 
 def _check_npy_header(p: Path, name: str, fix: str) -> None:
@@ -427,13 +417,6 @@ def _looks_like_text(p: Path) -> bool:
 # atomic writes: a file is either complete or absent, never half-written
 # ---------------------------------------------------------------------------------------------
 
-def _tmp_name(path: Path) -> Path:
-    # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches; the host name
-    # keeps two processes of a multi-host run (same pid, shared folder) apart
-    host = "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64]
-    return path.with_name(f".{path.name}.{host}.{os.getpid()}.tmp")
-
-
 def _fsync_dir(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -460,7 +443,9 @@ def atomic_write(path, write, *, when_full: str = "") -> Path:
     file; ``when_full`` is appended to its message (what continues the work once there is space).
     """
     path = Path(path)
-    tmp = _tmp_name(path)
+    # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches; the host name
+    # keeps two processes of a multi-host run (same pid, shared folder) apart
+    tmp = path.with_name(f".{path.name}.{host_label()}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
             write(f)
@@ -473,17 +458,13 @@ def atomic_write(path, write, *, when_full: str = "") -> Path:
         except OSError:
             pass
         if isinstance(e, OSError) and e.errno in _FULL:
-            raise _disk_full(path, e, when_full) from None
+            what = "no space left on the device" if e.errno == errno.ENOSPC else "the disk quota is exceeded"
+            raise DiskFullError(e.errno, f"could not write {str(path)!r}: {what} ({os.strerror(e.errno)}); free some "
+                                         f"space there (or choose another location) and run the command again"
+                                + (f"; {when_full}" if when_full else ""), path=path) from None
         raise
     _fsync_dir(path.parent)
     return path
-
-
-def _disk_full(path: Path, e: OSError, when_full: str):
-    what = "no space left on the device" if e.errno == errno.ENOSPC else "the disk quota is exceeded"
-    return DiskFullError(e.errno, f"could not write {str(path)!r}: {what} ({os.strerror(e.errno)}); free some "
-                                  f"space there (or choose another location) and run the command again"
-                         + (f"; {when_full}" if when_full else ""), path=path)
 
 
 def atomic_write_text(path, text: str, *, when_full: str = "") -> Path:

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..errors import RunLockedError, RunLockWarning
+from ..validate import host_label
 
 __all__ = ["RunLock", "RunLockWarning"]
 
@@ -38,8 +39,7 @@ except ImportError:  # pragma: no cover - Windows
 
 
 def _host() -> str:
-    # the same sanitising as the atomic writer's temporary names: a safe file-name component
-    return "".join(c if c.isalnum() or c in "-_" else "_" for c in platform.node())[:64] or "host"
+    return host_label() or "host"
 
 
 #: Locks this process holds, by lock-file path: a second claim from the same process (the command

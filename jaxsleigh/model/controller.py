@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..cores import configure
-from .params import Gains
+from .params import Gains, lane_record
 
 __all__ = ["FunctionLaw", "PerTrajectory", "as_controller", "apply_law", "is_paper_law", "is_time_varying",
            "controller_record"]
@@ -193,13 +193,7 @@ def controller_record(law) -> dict:
     """JSON-ready record of a law that is not the paper's: its type and its numeric leaves."""
     inner = law.law if isinstance(law, PerTrajectory) else law
     leaves, _ = jax.tree_util.tree_flatten_with_path(inner)
-
-    def rec(x):
-        a = np.asarray(x, np.float64)
-        if isinstance(law, PerTrajectory):
-            return {"per_trajectory": int(a.shape[-1]), "min": float(a.min()), "max": float(a.max())}
-        return a.tolist()
-
+    rec = lane_record if isinstance(law, PerTrajectory) else (lambda x: np.asarray(x, np.float64).tolist())
     params = {jax.tree_util.keystr(path) or "value": rec(x) for path, x in leaves}
     kind = repr(inner) if isinstance(inner, FunctionLaw) else type(inner).__qualname__
     return {"type": kind, "params": params}

@@ -24,6 +24,7 @@ __all__ = [
     "CustomDamping",
     "BUILTIN_DAMPINGS",
     "damping_from_name",
+    "as_damping",
 ]
 
 
@@ -128,3 +129,15 @@ def damping_from_name(name: str):
         return table[name]
     except KeyError:
         raise ValueError(f"unknown damping {name!r}: choose one of {sorted(table)}") from None
+
+
+def as_damping(d):
+    """A damping model from a model (as it is), a name (`damping_from_name`) or a callable ``D(q, p) -> (2, 2)``
+    (wrapped in `CustomDamping`); ``ValueError`` for anything else."""
+    if isinstance(d, str):
+        return damping_from_name(d)
+    if isinstance(d, (*BUILTIN_DAMPINGS, CustomDamping)):
+        return d
+    if callable(d):
+        return CustomDamping(d)
+    raise ValueError(f"damping must be a damping model, a name or a callable, got {d!r}")

@@ -27,7 +27,7 @@ from typing import Any, Optional, Sequence
 import jax
 import numpy as np
 
-from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
+from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, as_damping, damping_from_name
 from .controller import PerTrajectory, as_controller, is_paper_law, law_leaf_names
 from .params import Gains, PlantParams, as_gains, as_plant
 
@@ -134,13 +134,16 @@ def check_lanes(plant: Any, gains: Any, *, flags: Optional[dict] = None) -> tupl
     """
     n = lane_count(plant, gains)
     plant, gains, law = _resolved(plant, gains)
-    d = _damping_model(plant)
+    d = as_damping(plant.damping)
     m, J, l = (_real(f"plant.{f}", getattr(plant, f), flags) for f in ("m", "J", "l"))
     for path, v, cond, need in (("plant.m", m, m > 0, "> 0"), ("plant.J", J, J >= 0, ">= 0"),
                                 ("plant.l", l, l >= 0, ">= 0 (l = 0 is the knife edge)")):
         _bad(path, np.atleast_1d(cond), np.atleast_1d(v), need, flags)
     d = _checked_damping(d, flags)
-    gains = Gains(_checked_L(gains.L, flags), _checked_k(gains.k, flags), _checked_D_hat(gains.D_hat, flags))
+    L = _checked_L(gains.L, flags)
+    k = _real("gains.k", gains.k, flags)
+    _bad("gains.k", np.atleast_1d(k > 0), np.atleast_1d(k), "> 0", flags)
+    gains = Gains(L, k, _checked_D_hat(gains.D_hat, flags))
     plant = PlantParams(m, J, l, d)
     if n is not None:
         mass = np.atleast_1d(J + m * l * l)
@@ -162,18 +165,6 @@ def _resolved(plant: Any, gains: Any) -> tuple[Any, Any, Any]:
     if not isinstance(plant, PlantParams):
         raise ValueError(f"plant must be a PlantParams, got {type(plant).__name__}")
     return plant, gains, law
-
-
-def _damping_model(plant: PlantParams):
-    """The plant's damping as a damping model (a name resolved, a plain callable wrapped in `CustomDamping`)."""
-    d = plant.damping
-    if isinstance(d, str):
-        d = damping_from_name(d)
-    elif callable(d) and not isinstance(d, (CoulombDamping, ViscousDamping, NoDamping, CustomDamping)):
-        d = CustomDamping(d)
-    if not isinstance(d, (CoulombDamping, ViscousDamping, NoDamping, CustomDamping)):
-        raise ValueError(f"damping must be a damping model, a name or a callable, got {d!r}")
-    return d
 
 
 def _checked_damping(d, flags):
@@ -199,13 +190,6 @@ def _checked_L(leaf, flags) -> np.ndarray:
         raise ValueError(f"gains.L must have shape (3,) or (3, N), got {L.shape}")
     _bad("gains.L", np.all((L > 0).reshape(3, -1), axis=0), L.reshape(3, -1), "> 0 in every entry", flags)
     return L
-
-
-def _checked_k(leaf, flags) -> np.ndarray:
-    """``gains.k`` as float64, checked ``> 0`` in every lane."""
-    k = _real("gains.k", leaf, flags)
-    _bad("gains.k", np.atleast_1d(k > 0), np.atleast_1d(k), "> 0", flags)
-    return k
 
 
 def _checked_D_hat(leaf, flags) -> np.ndarray:

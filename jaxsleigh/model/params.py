@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, damping_from_name
+from .damping import CoulombDamping, ViscousDamping, as_damping
 from ..validate import real
 from ..files.npz import atomic_write_text
 
@@ -117,23 +117,17 @@ def plant_params(m=2.0, J=1.0, l=1.0, damping="coulomb") -> PlantParams:
         raise ValueError(f"offset l must be >= 0 (l = 0 is the knife edge), got {l}. {hint}")
     if J + m * l * l <= 0:
         raise ValueError(f"J + m l^2 must be > 0, got {J + m * l * l}. {hint}")
-    if isinstance(damping, str):
-        damping = damping_from_name(damping)
-    elif isinstance(damping, (CoulombDamping, ViscousDamping, NoDamping, CustomDamping)):
-        if isinstance(damping, CoulombDamping):
-            eps_ = _finite_scalar("CoulombDamping.eps", damping.eps, hint="e.g. CoulombDamping(eps=0.1, scale=1.0)")
-            scale = _finite_scalar("CoulombDamping.scale", damping.scale, hint="e.g. CoulombDamping(eps=0.1, scale=1.0)")
-            if not (eps_ > 0 and scale >= 0):
-                raise ValueError(f"CoulombDamping needs eps > 0 and scale >= 0, got {damping}")
-        if isinstance(damping, ViscousDamping):
-            c1 = _finite_scalar("ViscousDamping.c1", damping.c1, hint="e.g. ViscousDamping(c1=1.0, c2=1.0)")
-            c2 = _finite_scalar("ViscousDamping.c2", damping.c2, hint="e.g. ViscousDamping(c1=1.0, c2=1.0)")
-            if not (c1 >= 0 and c2 >= 0):
-                raise ValueError(f"ViscousDamping needs c1, c2 >= 0, got {damping}")
-    elif callable(damping):
-        damping = CustomDamping(damping)
-    else:
-        raise ValueError(f"damping must be a damping model, a name or a callable, got {damping!r}")
+    damping = as_damping(damping)
+    if isinstance(damping, CoulombDamping):
+        eps_ = _finite_scalar("CoulombDamping.eps", damping.eps, hint="e.g. CoulombDamping(eps=0.1, scale=1.0)")
+        scale = _finite_scalar("CoulombDamping.scale", damping.scale, hint="e.g. CoulombDamping(eps=0.1, scale=1.0)")
+        if not (eps_ > 0 and scale >= 0):
+            raise ValueError(f"CoulombDamping needs eps > 0 and scale >= 0, got {damping}")
+    if isinstance(damping, ViscousDamping):
+        c1 = _finite_scalar("ViscousDamping.c1", damping.c1, hint="e.g. ViscousDamping(c1=1.0, c2=1.0)")
+        c2 = _finite_scalar("ViscousDamping.c2", damping.c2, hint="e.g. ViscousDamping(c1=1.0, c2=1.0)")
+        if not (c1 >= 0 and c2 >= 0):
+            raise ValueError(f"ViscousDamping needs c1, c2 >= 0, got {damping}")
     return PlantParams(m, J, l, damping)
 
 
