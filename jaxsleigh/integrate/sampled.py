@@ -199,14 +199,6 @@ def _step_policy(stepsize, rtol, atol) -> StepSizeController:
     return check_policy(ss)
 
 
-def _controls(ss: StepSizeController, dtype, *, period: float, substeps: int, eps: float) -> Controls:
-    """The stepper's traced numbers (`jaxsleigh.integrate.stepper.controls`) after checking the numbers given: the
-    base step, the first one tried, \\(T_s / \\text{substeps}\\); the tolerances (the dtype's defaults unless given),
-    the largest step (100 base steps unless given), the ball's radius and the policy's factors. The budget is set per
-    period (`_period_budget`)."""
-    return controls(ss, dtype, dt=period / substeps, eps=eps, max_steps=0)
-
-
 def _period_budget(ss: StepSizeController, K: int, substeps: int, dtype) -> int:
     """Attempted steps per period and start (static). Fixed RK4 takes ``substeps``. Adaptive: ``max_steps`` (per start,
     over the run) shared evenly between the ``K`` periods; by default, as in the continuous loop,
@@ -272,7 +264,9 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     K = sample_count(t_final, period)
     eps = real("eps", eps, positive=True)
     ss = _step_policy(stepsize, rtol, atol)
-    ctl = _controls(ss, dtype, period=period, substeps=substeps, eps=eps)
+    # the stepper's traced numbers after checking those given: the first step tried is T_s / substeps; the budget is
+    # set per period (_period_budget)
+    ctl = controls(ss, dtype, dt=period / substeps, eps=eps, max_steps=0)
     budget = _period_budget(ss, K, substeps, dtype)
     if is_paper_law(law):                        # the paper's gains: the law from measurements, as sampled
         law = PaperLaw(law)
