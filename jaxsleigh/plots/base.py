@@ -72,28 +72,30 @@ def save_figure(fig, path, *, dpi: int = 150) -> Path:
     return atomic_write(path, lambda f: fig.savefig(f, format=fmt, dpi=dpi))
 
 
-def _method(settings: Mapping) -> str:
-    method = settings.get("method")
-    if method is None:
-        return "method unknown"
-    return METHOD_NAMES.get(method, str(method))
-
-
 def provenance(settings: Mapping, *, fields: Sequence[str] = ("dt",)) -> str:
     """``'float32, adaptive RK4, dt = 0.01 s'`` from a result's settings (what produced a figure).
 
     ``fields`` picks the settings appended after dtype and method, in this order: ``"dt"``,
     ``"eps"``, ``"t_final"`` (each only when present).
     """
-    s = settings or {}
-    parts = [str(s.get("dtype", "dtype unknown")), _method(s)]
+    return ", ".join(_setting_parts(settings or {}, fields))
+
+
+def _setting_parts(s: Mapping, fields: Sequence[str]) -> list:
+    """The dtype, the method and those of ``fields`` that the settings ``s`` hold, in this order: ``"dt"``,
+    ``"rtol"`` (with ``atol``, for the adaptive method), ``"eps"``, ``"t_final"``."""
+    method = s.get("method")
+    parts = [str(s.get("dtype", "dtype unknown")),
+             "method unknown" if method is None else METHOD_NAMES.get(method, str(method))]
     if "dt" in fields and "dt" in s:
         parts.append(f"dt = {float(s['dt']):g} s")
+    if "rtol" in fields and method == "adaptive" and "rtol" in s and "atol" in s:
+        parts.append(f"rtol = {float(s['rtol']):g}, atol = {float(s['atol']):g}")
     if "eps" in fields and "eps" in s:
         parts.append(f"ε = {float(s['eps']):g}")
     if "t_final" in fields and "t_final" in s:
         parts.append(f"T = {float(s['t_final']):g} s")
-    return ", ".join(parts)
+    return parts
 
 
 def device_text(settings: Optional[Mapping], run_info: Optional[Mapping] = None) -> str:
@@ -127,15 +129,7 @@ def provenance_parts(settings: Optional[Mapping], run_info: Optional[Mapping] = 
     """The items of `provenance_line`: dtype, method, step, tolerances (adaptive), ``eps``, horizon, device and
     the jaxsleigh version."""
     s = settings or {}
-    parts = [str(s.get("dtype", "dtype unknown")), _method(s)]
-    if "dt" in s:
-        parts.append(f"dt = {float(s['dt']):g} s")
-    if s.get("method") == "adaptive" and "rtol" in s and "atol" in s:
-        parts.append(f"rtol = {float(s['rtol']):g}, atol = {float(s['atol']):g}")
-    if "eps" in s:
-        parts.append(f"ε = {float(s['eps']):g}")
-    if "t_final" in s:
-        parts.append(f"T = {float(s['t_final']):g} s")
+    parts = _setting_parts(s, ("dt", "rtol", "eps", "t_final"))
     device = device_text(s, run_info)
     parts.append(device if device == "device not recorded" else f"device {device}")
     from .. import __version__

@@ -69,14 +69,15 @@ def _stamp(fig, res: BasinResult, on: bool = True) -> None:
         stamp(fig, res.settings, res.run_info)
 
 
-def _titled(fig, ax, own: bool, title: str, res: BasinResult, stamp: bool):
+def _titled(fig, ax, own: bool, title: str, res: BasinResult, stamp: bool, *, fraction_on_axes: bool = False):
     """Finish a panel: on its own figure, ``title`` with the provenance and the fraction as the suptitle and the
-    stamp; on a caller's axes, ``title`` as the axes' title. Returns the figure."""
+    stamp; on a caller's axes, ``title`` as the axes' title (with the fraction when ``fraction_on_axes``). Returns
+    the figure."""
     if own:
         fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
         _stamp(fig, res, stamp)
     else:
-        ax.set_title(title, fontsize=9)
+        ax.set_title(f"{title}\n({_fraction_text(res)})" if fraction_on_axes else title, fontsize=9)
     return fig
 
 
@@ -101,20 +102,6 @@ def _categories(res: BasinResult) -> np.ndarray:
     cat[res.failed] = 2
     cat[~res.valid] = 3
     return cat
-
-
-def _legend_handles(present, singular_line: bool):
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-
-    names = ["not converged", "failed", "singular start"]
-    texts = {"not converged": f"not settled by T ({T_EPS} = ∞)", "failed": "failed (status ≥ 3)",
-             "singular start": "θ₀ = 0: not integrated"}
-    handles = [Patch(facecolor=CATEGORY_COLOURS[n], edgecolor="0.5", linewidth=0.5, label=texts[n])
-               for i, n in enumerate(names, start=1) if i in present]
-    if singular_line:
-        handles.append(Line2D([], [], color=_SINGULAR_LINE, linestyle="--", linewidth=1.4, label="singular set θ = 0"))
-    return handles
 
 
 def _check_map(res: BasinResult, field: str) -> None:
@@ -203,25 +190,22 @@ def _map_title(st, field: str) -> str:
     return f"{name} at {at}" if at else name
 
 
-def _title_map(fig, ax, own: bool, title: str, res: BasinResult, stamp: bool) -> None:
-    """On its own figure ``title`` with the provenance and the fraction as the suptitle, and the stamp; on a
-    caller's axes ``title`` with the fraction as the axes' title."""
-    if own:
-        fig.suptitle(f"{title}\n({_provenance(res)}; {_fraction_text(res)})", fontsize=10)
-        _stamp(fig, res, stamp)
-    else:
-        ax.set_title(f"{title}\n({_fraction_text(res)})", fontsize=9)
-
-
 def _map_legend(fig, ax, own: bool, cat_m: np.ma.MaskedArray, line: bool) -> None:
     """The legend of the flat colours present (and of the singular line): under its own figure, or in the axes."""
-    handles = _legend_handles(set(np.unique(cat_m.compressed()).tolist()), line)
-    if handles:
-        if own:
-            fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)), fontsize=8,
-                       frameon=False)
-        else:
-            ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    present = set(np.unique(cat_m.compressed()).tolist())
+    texts = {"not converged": f"not settled by T ({T_EPS} = ∞)", "failed": "failed (status ≥ 3)",
+             "singular start": "θ₀ = 0: not integrated"}
+    handles = [Patch(facecolor=CATEGORY_COLOURS[n], edgecolor="0.5", linewidth=0.5, label=text)
+               for i, (n, text) in enumerate(texts.items(), start=1) if i in present]
+    if line:
+        handles.append(Line2D([], [], color=_SINGULAR_LINE, linestyle="--", linewidth=1.4, label="singular set θ = 0"))
+    if handles and own:
+        fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)), fontsize=8, frameon=False)
+    elif handles:
+        ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
 
 
 def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str = "viridis",
@@ -249,7 +233,7 @@ def plot_basin_map(res: BasinResult, ax=None, *, field: str = "T_eps", cmap: str
     mesh = _draw_values(ax, he, ve, values, res, field, cmap)
     cat_m = _draw_categories(ax, he, ve, cat)
     line = _frame_map(ax, st, he, ve)
-    _title_map(fig, ax, own, _map_title(st, field), res, stamp)
+    _titled(fig, ax, own, _map_title(st, field), res, stamp, fraction_on_axes=True)
     if colorbar and mesh is not None:
         fig.colorbar(mesh, ax=ax, label=_FIELDS.get(field, field) + " (log scale)", shrink=0.9)
     if legend:
@@ -264,7 +248,6 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
     distinct values; otherwise (samples) 24 bins. ``log_abs=True`` plots against ``|theta0|`` on a
     log axis (log-spaced bins), which resolves the approach to the singular set.
     """
-    fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
     theta = res.ics[:, 2]
     x = np.abs(theta) if log_abs else theta
     ok = res.valid & np.isfinite(x) & ((x > 0) if log_abs else True)
@@ -273,37 +256,36 @@ def plot_fraction_vs_theta(res: BasinResult, ax=None, *, bins=None, log_abs: boo
     if bins is not None and log_abs and np.ndim(bins) == 0 and ok.any():
         lo, hi = float(x[ok].min()), float(x[ok].max())
         bins = np.geomspace(lo, hi * (1 + 1e-12), int(bins) + 1) if hi > lo else int(bins)
-    c, f, se, n = fraction_by(x, res.converged, ok, bins=bins)
-    ax.errorbar(c, f, yerr=se, fmt="o-", markersize=3, linewidth=1.0, capsize=2, color="C0",
-                label="fraction converged ± s.e.")
-    if log_abs:
-        ax.set_xscale("log")
-        ax.set_xlabel("|θ₀| [rad]")
-    else:
-        ax.axvline(0.0, color=_SINGULAR_LINE, linestyle="--", linewidth=1.2, label="singular set θ = 0")
-        ax.set_xlabel("θ₀ [rad]")
-    ax.set_ylim(-0.03, 1.03)
-    ax.set_ylabel("fraction converged")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
-    title = "Fraction converged against the initial heading"
-    return _titled(fig, ax, own, title, res, stamp)
+    return _fraction_figure(res, ax, x, ok, bins, "|θ₀| [rad]" if log_abs else "θ₀ [rad]",
+                            "Fraction converged against the initial heading", stamp, log_x=log_abs,
+                            singular_line=not log_abs)
 
 
 def plot_fraction_vs_distance(res: BasinResult, ax=None, *, bins: int = 16, stamp: bool = True):
     """Fraction converged against the initial distance \\(\\sqrt{x_0^2 + y_0^2}\\) (equal-width
     bins, ``± se`` bars): the view of an x-y slice at fixed heading."""
+    return _fraction_figure(res, ax, np.hypot(res.ics[:, 0], res.ics[:, 1]), res.valid, bins,
+                            "initial distance √(x₀² + y₀²) [m]", "Fraction converged against the initial distance",
+                            stamp)
+
+
+def _fraction_figure(res: BasinResult, ax, x, ok, bins, xlabel: str, title: str, stamp: bool, *,
+                     log_x: bool = False, singular_line: bool = False):
+    """The fraction of the starts ``ok`` converged against ``x`` in ``bins`` (`fraction_by`), with ``± se`` bars
+    (a log x-axis with ``log_x``; the singular set ``theta = 0`` dashed with ``singular_line``); the figure."""
     fig, ax, own = figure_and_axes(ax, (6.4, 4.2))
-    r = np.hypot(res.ics[:, 0], res.ics[:, 1])
-    c, f, se, n = fraction_by(r, res.converged, res.valid, bins=bins)
+    c, f, se, n = fraction_by(x, res.converged, ok, bins=bins)
     ax.errorbar(c, f, yerr=se, fmt="o-", markersize=3, linewidth=1.0, capsize=2, color="C0",
                 label="fraction converged ± s.e.")
+    if log_x:
+        ax.set_xscale("log")
+    if singular_line:
+        ax.axvline(0.0, color=_SINGULAR_LINE, linestyle="--", linewidth=1.2, label="singular set θ = 0")
+    ax.set_xlabel(xlabel)
     ax.set_ylim(-0.03, 1.03)
-    ax.set_xlabel("initial distance √(x₀² + y₀²) [m]")
     ax.set_ylabel("fraction converged")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="best")
-    title = "Fraction converged against the initial distance"
     return _titled(fig, ax, own, title, res, stamp)
 
 

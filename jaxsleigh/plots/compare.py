@@ -13,7 +13,7 @@ import textwrap
 
 import numpy as np
 
-from .base import T_EPS, new_figure, save_figure, stamp
+from .base import T_EPS, figure_and_axes, save_figure, stamp
 from ..controllers.registry import controller_names
 
 __all__ = ["plot_compare_ecdf", "ecdf_steps", "plot_against", "ENERGY_LABEL"]
@@ -114,9 +114,8 @@ def plot_compare_ecdf(record: dict, path=None, *, title: str = "Controllers on t
     t_final = float(s.get("t_final") or max((t for r in rows for t in r["per_start"]["T_eps"] if t is not None),
                                             default=1.0))
     described = s.get("starts") if isinstance(s.get("starts"), dict) else {}
-    fig = new_figure((11.0, 2.9 * len(dists) + 1.3))
-    axes = fig.subplots(len(dists), 2, squeeze=False)
-    for (ax_t, ax_e), d in zip(axes, dists):
+    fig, axes, _ = figure_and_axes(None, (11.0, 2.9 * len(dists) + 1.3), (len(dists), 2))
+    for ax_t, ax_e, d in zip(axes[::2], axes[1::2], dists):
         _draw_distribution(ax_t, ax_e, [r for r in rows if r["starts"] == d], styles, t_final)
         ax_t.set_title(f"{d} starts" + (f": {described[d]}" if d in described else ""), fontsize=9, loc="left")
     command = " ".join(str(c) for c in record.get("command", []))
@@ -134,8 +133,7 @@ def plot_against(curves: dict, xlabel: str, ylabel: str = "fraction settled", pa
                  log_x: bool = True, provenance: str = ""):
     """One curve per controller: ``curves = {name: (x, y)}``. Saved to ``path`` when given; returns the
     figure."""
-    fig = new_figure((5.6, 4.0))
-    ax = fig.subplots()
+    fig, ax, _ = figure_and_axes(None, (5.6, 4.0))
     for name, (x, y) in curves.items():
         ax.plot(x, y, "o-", label=name)
     if log_x:

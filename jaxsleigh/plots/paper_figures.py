@@ -91,10 +91,8 @@ def _settings(sol) -> dict:
 
 def _arrays(sol):
     t = np.asarray(_get(sol, "t"), dtype=float)
-    q = np.asarray(_get(sol, "q"), dtype=float)
+    q = _batched(_get(sol, "q"))                 # a single trajectory (T, 3) as (1, T, 3)
     status = np.asarray(_get(sol, "status")).astype(int).reshape(-1)
-    if q.ndim == 2:                  # a single trajectory (T, 3)
-        q = q[None]
     if q.shape[1] != t.shape[0]:
         raise ValueError(f"q has {q.shape[1]} time samples but t has {t.shape[0]}")
     return t, q, status
@@ -104,11 +102,6 @@ def _batched(a):
     """(T, k) for one trajectory -> (1, T, k)."""
     a = np.asarray(a, dtype=float)
     return a[None] if a.ndim == 2 else a
-
-
-def _provenance(sol) -> str:
-    """``'float32, adaptive RK4, dt = 0.01 s'`` from the settings (what produced the figure)."""
-    return provenance(_settings(sol))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,44 +143,39 @@ def format_start(q0, p0=None) -> str:
 def _starts(sol, q) -> list[np.ndarray]:
     """Initial (x, y, theta[, p1, p2]) of each run; from the settings' ``ics`` when q(0) is NaN."""
     ics = _settings(sol).get("ics")
-    out = []
-    for i in range(q.shape[0]):
-        if ics is not None and i < len(ics):
-            out.append(np.asarray(ics[i], dtype=float))
-        else:
-            out.append(q[i, 0])
-    return out
+    return [np.asarray(ics[i], dtype=float) if ics is not None and i < len(ics) else q[i, 0] for i in range(q.shape[0])]
 
 
 def _labels(sol, q, status, labels: Optional[Sequence[str]]) -> list[str]:
-    if labels is None:
-        labels = []
-        for i, s in enumerate(_starts(sol, q)):
-            if not np.any(np.isfinite(s)):       # flagged start, initial condition unknown
-                labels.append(f"run {i}")
-            else:
-                labels.append(format_start(s[:3], s[3:5] if s.size >= 5 else None))
+    if labels is None:                   # "run i" for a flagged start, whose initial condition is unknown
+        labels = [format_start(s[:3], s[3:5] if s.size >= 5 else None) if np.any(np.isfinite(s)) else f"run {i}"
+                  for i, s in enumerate(_starts(sol, q))]
     labels = [str(x) for x in labels]
     if len(labels) != q.shape[0]:
         raise ValueError(f"got {len(labels)} labels for {q.shape[0]} trajectories")
-    out = []
-    for lab, st in zip(labels, status):
-        if st != 0:
-            name = Status(st).name.lower() if st in Status._value2member_map_ else "unknown"
-            lab = f"{lab}  [status {st}: {name}]"
-        out.append(lab)
-    return out
+    return [lab if st == 0 else
+            f"{lab}  [status {st}: {Status(st).name.lower() if st in Status._value2member_map_ else 'unknown'}]"
+            for lab, st in zip(labels, status)]
 
 
 def _style(i: int, st: int) -> dict:
     return {"color": f"C{i % 10}", "linestyle": "-" if st == 0 else "--", "linewidth": 1.4}
 
 
-def _status_note(status) -> Optional[str]:
+def _status_note(status, marker: str = "None", more: str = "") -> tuple[list, list]:
+    """The legend entry of the runs drawn dashed (status not OK), ``more`` added to its text: ``([handle], [text])``,
+    or two empty lists when every run is OK."""
     n_bad = int(np.sum(status != 0))
     if not n_bad:
-        return None
-    return f"dashed: status ≠ 0 ({n_bad} run{'s' if n_bad > 1 else ''}, see jaxsleigh.status)"
+        return [], []
+    from matplotlib.lines import Line2D
+
+    return ([Line2D([], [], color="0.4", linestyle="--", marker=marker)],
+            [f"dashed: status ≠ 0 ({n_bad} run{'s' if n_bad > 1 else ''}, see jaxsleigh.status){more}"])
+
+
+#: The title of the runs' legend.
+_START_TITLE = "start (x₀ [m], y₀ [m], θ₀ [rad])"
 
 
 def _ncol(labels, width_chars: int = 110) -> int:
@@ -208,7 +196,7 @@ def _time_figure(sol, series, ylabels, title, *, axes=None, yscales=None, figsiz
                                          sharex=True)
     names = _labels(sol, q, status, labels)
     _draw_series(axes, t, series, names, status, ylabels, yscales)
-    _time_title(fig, axes, own, sol, title, stamp)
+    _title(fig, axes[0], own, sol, title, stamp)
     if legend:
         _time_legend(fig, axes, own, status)
     return fig
@@ -227,31 +215,28 @@ def _draw_series(axes, t, series, names, status, ylabels, yscales):
     axes[0].set_xlim(t[0], t[-1])
 
 
-def _time_title(fig, axes, own, sol, title, with_stamp):
-    """The title with the provenance: the figure's (and the stamp) when it is ``own``, else the top axis's."""
+def _title(fig, ax, own, sol, title, with_stamp, span=""):
+    """The title with the provenance (``'float32, adaptive RK4, dt = 0.01 s'``, and ``span``, e.g. the time interval):
+    the figure's (and the stamp) when it is ``own``, else that of the (top) axes ``ax``."""
+    what = provenance(_settings(sol))
     if own:
-        fig.suptitle(f"{title}\n({_provenance(sol)})", fontsize=11)
+        fig.suptitle(f"{title}\n({what}{span})", fontsize=11)
         if _pb.check_stamp(with_stamp):
             _pb.stamp(fig, _settings(sol), _run_info(sol))
     else:
-        axes[0].set_title(f"{title} ({_provenance(sol)})", fontsize=10)
+        ax.set_title(f"{title} ({what})", fontsize=10)
 
 
 def _time_legend(fig, axes, own, status):
     """The runs' legend with the status note: below the figure when it is ``own``, else on the top axis."""
     handles, labs = axes[0].get_legend_handles_labels()
-    note = _status_note(status)
-    if note:
-        from matplotlib.lines import Line2D
-
-        handles = handles + [Line2D([], [], color="0.4", linestyle="--")]
-        labs = labs + [note]
-    title_text = "start (x₀ [m], y₀ [m], θ₀ [rad])"
+    note_handles, note = _status_note(status)
+    handles, labs = handles + note_handles, labs + note
     if own:
         fig.legend(handles, labs, loc="outside lower center", ncol=min(_ncol(labs), len(labs)),
-                   fontsize=8, title=title_text, title_fontsize=8, frameon=False)
+                   fontsize=8, title=_START_TITLE, title_fontsize=8, frameon=False)
     else:
-        axes[0].legend(handles, labs, fontsize=7, title=title_text, title_fontsize=7)
+        axes[0].legend(handles, labs, fontsize=7, title=_START_TITLE, title_fontsize=7)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,7 +283,6 @@ def _draw_sleigh(ax, x, y, theta, *, size, color, alpha, zorder):
 
 def _default_glyph_size(q, l_val: float) -> float:
     """Glyph length: to scale (CoM at ``l``) but at most 7 % of the extent of the paths."""
-    # to scale (CoM at l) unless the sleigh would cover the paths: then at most 7 % of the extent
     finite = q[..., :2][np.all(np.isfinite(q[..., :2]), axis=-1)]
     extent = float(np.ptp(np.vstack([finite, [[0.0, 0.0]]]), axis=0).max()) if finite.size else 1.0
     return min(l_val if l_val > 0 else 0.5, 0.07 * max(extent, 1e-3))
@@ -327,19 +311,15 @@ def _glyph_scale_text(glyph_size: float, l_val: float) -> str:
 
 def _paths_legend(fig, ax, own, status, glyph_size, l_val):
     """Legend of the paths figure: runs, ghosted start sleigh, target and the status note."""
-    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
     handles, labs = ax.get_legend_handles_labels()
-    scale = _glyph_scale_text(glyph_size, l_val)
     handles += [Patch(facecolor="0.5", alpha=0.3, edgecolor="0.5"), Patch(facecolor="0.25")]
-    labs += [f"sleigh at start (ghosted, {scale})",
+    labs += [f"sleigh at start (ghosted, {_glyph_scale_text(glyph_size, l_val)})",
              "target (0, 0, 0); red dot: centre of mass"]
-    note = _status_note(status)
-    if note:
-        handles.append(Line2D([], [], color="0.4", linestyle="--", marker="x"))
-        labs.append(note + "; ×: where it stopped")
-    kw = dict(fontsize=7.5, title="start (x₀ [m], y₀ [m], θ₀ [rad])", title_fontsize=7.5)
+    note_handles, note = _status_note(status, marker="x", more="; ×: where it stopped")
+    handles, labs = handles + note_handles, labs + note
+    kw = dict(fontsize=7.5, title=_START_TITLE, title_fontsize=7.5)
     if own:
         fig.legend(handles, labs, loc="outside lower center", ncol=min(2, _ncol(labs, 115)),
                    frameon=False, **kw)
@@ -381,13 +361,7 @@ def plot_paths(sol, ax=None, *, labels: Optional[Sequence[str]] = None, glyph_si
     ax.set_ylabel("y [m]")
     ax.grid(True, alpha=0.3)
     ax.autoscale_view()
-    title = "Paths of the contact point (x, y)"
-    if own:
-        fig.suptitle(f"{title}\n({_provenance(sol)}, t ∈ [0, {t[-1]:g}] s)", fontsize=11)
-        if _pb.check_stamp(stamp):
-            _pb.stamp(fig, _settings(sol), _run_info(sol))
-    else:
-        ax.set_title(f"{title} ({_provenance(sol)})", fontsize=10)
+    _title(fig, ax, own, sol, "Paths of the contact point (x, y)", stamp, span=f", t ∈ [0, {t[-1]:g}] s")
     if legend:
         _paths_legend(fig, ax, own, status, glyph_size, l_val)
     return fig
@@ -416,15 +390,23 @@ def plot_momentum(sol, axes=None, *, labels: Optional[Sequence[str]] = None, sca
     ten); ``scale="linear"`` shows the spike at full height. ``stamp=False``: no provenance line.
     """
     p = _batched(_get(sol, "p"))
-    if scale == "symlog":
-        tf, suffix = _symlog(linthresh), " (symlog)"
-    elif scale == "linear":
-        tf, suffix = None, ""
-    else:
-        raise ValueError(f"scale must be 'symlog' or 'linear', got {scale!r}")
+    tf, suffix = _y_scale(scale, linthresh)
     return _time_figure(sol, [p[..., 0], p[..., 1]],
                         [f"p₁ [kg m/s]{suffix}", f"p₂ [kg m²/s]{suffix}"], "Momentum p = (p₁, p₂)",
                         axes=axes, labels=labels, yscales=[tf, tf], stamp=stamp)
+
+
+def _y_scale(scale, linthresh, t=None, clip_after=None):
+    """``(apply(ax, data) or None, y-label suffix)`` of ``scale``: ``"symlog"``, ``"linear"`` or, given the times
+    ``t``, ``"clip"`` (after ``clip_after`` seconds, default 2 % of the horizon)."""
+    if scale == "symlog":
+        return _symlog(linthresh), " (symlog)"
+    if scale == "clip" and t is not None:
+        return _clip(0.02 * float(t[-1] - t[0]) if clip_after is None else float(clip_after), t), " (clipped)"
+    if scale == "linear":
+        return None, ""
+    choices = "'symlog' or 'linear'" if t is None else "'symlog', 'clip' or 'linear'"
+    raise ValueError(f"scale must be {choices}, got {scale!r}")
 
 
 def _symlog(linthresh):
@@ -443,8 +425,8 @@ def _symlog(linthresh):
     return apply
 
 
-def _clip(after):
-    def apply(ax, data, t):
+def _clip(after, t):
+    def apply(ax, data):
         late = np.abs(data[:, t >= after])
         late = late[np.isfinite(late)]
         finite = np.abs(data[np.isfinite(data)])
@@ -471,35 +453,15 @@ def plot_control(sol, axes=None, *, labels: Optional[Sequence[str]] = None, scal
     everything. ``stamp=False``: no provenance line.
     """
     u = _batched(_get(sol, "u"))
-    t = np.asarray(_get(sol, "t"), dtype=float)
-    if scale == "symlog":
-        tf = _symlog(linthresh)
-        suffix = " (symlog)"
-    elif scale == "clip":
-        after = 0.02 * float(t[-1] - t[0]) if clip_after is None else float(clip_after)
-        clip = _clip(after)
-        tf = lambda ax, data: clip(ax, data, t)  # noqa: E731
-        suffix = " (clipped)"
-    elif scale == "linear":
-        tf = None
-        suffix = ""
-    else:
-        raise ValueError(f"scale must be 'symlog', 'clip' or 'linear', got {scale!r}")
+    tf, suffix = _y_scale(scale, linthresh, np.asarray(_get(sol, "t"), dtype=float), clip_after)
     return _time_figure(sol, [u[..., 0], u[..., 1]],
                         [f"u₁ [N]{suffix}", f"u₂ [N m]{suffix}"], "Control u = (u₁, u₂)",
                         axes=axes, labels=labels, yscales=[tf, tf], stamp=stamp)
 
 
-def _log_y(ax, data):
-    ax.set_yscale("log")
-
-
 def plot_hamiltonian(sol, ax=None, *, labels: Optional[Sequence[str]] = None, stamp: bool = True):
     """Closed-loop Hamiltonian ``H_d(t)`` on a log y-scale (non-increasing along the exact flow);
     ``stamp=False``: no provenance line."""
-    Hd = np.asarray(_get(sol, "Hd"), dtype=float)
-    if Hd.ndim == 1:
-        Hd = Hd[None]
-    return _time_figure(sol, [Hd], ["H_d [J]"], "Closed-loop Hamiltonian H_d",
-                        axes=None if ax is None else [ax], labels=labels, yscales=[_log_y],
-                        figsize=(7.0, 4.6), stamp=stamp)
+    Hd = np.atleast_2d(np.asarray(_get(sol, "Hd"), dtype=float))
+    return _time_figure(sol, [Hd], ["H_d [J]"], "Closed-loop Hamiltonian H_d", axes=None if ax is None else [ax],
+                        labels=labels, yscales=[lambda ax, data: ax.set_yscale("log")], figsize=(7.0, 4.6), stamp=stamp)

@@ -6,7 +6,7 @@ from typing import Optional
 
 import numpy as np
 
-from .base import T_EPS, new_figure
+from .base import T_EPS, figure_and_axes
 from ..studies.sweep import SweepResult
 
 __all__ = ["plot_sweep", "plot_sweep_line", "plot_sweep_grid"]
@@ -23,9 +23,13 @@ def _subtitle(res: SweepResult) -> str:
             f"from {T_EPS} to {s.get('t_final', 0):g} s; {s.get('dtype', '')}")
 
 
-def _has_effort(res: SweepResult) -> bool:
-    eff = res.effort_medians()
-    return bool(eff) and any(np.isfinite(v).any() for v in eff.values())
+def _panels(res: SweepResult, axes, width: float, height: float):
+    """``(fig, axes)``: the given axes, or a new row of ``width`` x ``height`` inch panels, three when the effort
+    was recorded (else two)."""
+    effort = axes is None and any(np.isfinite(v).any() for v in res.effort_medians().values())
+    n = len(axes) if axes is not None else 3 if effort else 2
+    fig, axes, _ = figure_and_axes(axes, (width * n, height), (1, n))
+    return fig, axes
 
 
 def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
@@ -33,12 +37,8 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
     ``T_eps`` percentiles 10/50/90 of the converged starts (25-75 shaded) and, when the effort was
     recorded, the median control energy and median peak ``||u||`` of the converged starts (a third
     panel; pass two ``axes`` to leave it out)."""
-    if axes is None:
-        n = 3 if _has_effort(res) else 2
-        fig = new_figure((5.4 * n, 4.2))
-        axes = fig.subplots(1, n)
+    fig, axes = _panels(res, axes, 5.4, 4.2)
     ax_f, ax_t = axes[0], axes[1]
-    fig = ax_f.figure
     x = res.values[:, column]
     order = np.argsort(x, kind="stable")
     x = x[order]
@@ -48,7 +48,6 @@ def plot_sweep_line(res: SweepResult, axes=None, *, column: int = 0):
         _draw_effort_medians(axes[2], x, order, res.effort_medians())
     _draw_fraction(ax_f, x, S, se)
     _draw_t_eps_percentiles(ax_t, x, pct)
-    axes = list(axes)
     log = _log_x(res, column, x)
     for ax in axes:
         ax.set_xlabel(_LABELS.get(res.names[column], res.names[column]))
@@ -105,11 +104,7 @@ def plot_sweep_grid(res: SweepResult, axes=None):
     first parameter, columns: the second; pass two ``axes`` to leave the third out)."""
     if len(res.grid_shape) != 2:
         raise ValueError("a heat map needs a sweep over two parameters (two --param)")
-    if axes is None:
-        n = 3 if _has_effort(res) else 2
-        fig = new_figure((5.75 * n, 4.6))
-        axes = fig.subplots(1, n)
-    fig = axes[0].figure
+    fig, axes = _panels(res, axes, 5.75, 4.6)
     n1, n2 = res.grid_shape
     a1, a2 = res.axes if res.axes else (None, None)
     v1 = res.values[::n2, 0]

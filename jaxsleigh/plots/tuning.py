@@ -55,11 +55,14 @@ def plot_history(history, axes=None, *, title: str = "Gain tuning", probe_budget
     it = np.arange(loss.size)
     fig, axes, own = figure_and_axes(axes, (7.0, 9.5), (4, 1), sharex=True)
     _draw_loss(axes[0], it, loss, valid, best)
-    ax = axes[1]
-    ax.semilogy(it, gnorm, color="C1", linewidth=1)
-    ax.set_ylabel("‖∇ loss‖ (log-gains)")
-    ax.grid(True, alpha=0.3, which="both")
-    _draw_probe(axes[2], it, probe, valid, probe_budget)
+    axes[1].semilogy(it, gnorm, color="C1", linewidth=1)
+    axes[1].set_ylabel("‖∇ loss‖ (log-gains)")
+    axes[1].grid(True, alpha=0.3, which="both")
+    shown = np.isfinite(probe)
+    _draw_probe(axes[2], it, probe, shown & valid, shown & ~valid, probe_budget, ("probe (valid)", "probe (rejected)"),
+                cross=4)
+    axes[2].legend(fontsize=8)
+    axes[2].grid(True, alpha=0.3, which="both")
     _draw_gains(axes[3], it, L, k, D)
     axes[0].set_xlim(0, max(1, loss.size - 1))
     if own:
@@ -94,17 +97,15 @@ def _draw_loss(ax, it, loss, valid, best):
     ax.grid(True, alpha=0.3)
 
 
-def _draw_probe(ax, it, probe, valid, probe_budget):
-    """The probe's most attempted steps per iteration (valid and rejected candidates), and its budget if given."""
-    shown = np.isfinite(probe)
-    ax.semilogy(it[shown & valid], probe[shown & valid], ".", color="C2", markersize=3, label="probe (valid)")
-    if np.any(shown & ~valid):
-        ax.semilogy(it[shown & ~valid], probe[shown & ~valid], "x", color="C3", markersize=4, label="probe (rejected)")
+def _draw_probe(ax, it, probe, kept, rejected, probe_budget, labels, *, cross: float):
+    """The probe's most attempted steps per iteration: dots where ``kept``, crosses (of size ``cross``) where
+    ``rejected`` (``labels``: their legend texts), and its budget if given."""
+    ax.semilogy(it[kept], probe[kept], ".", color="C2", markersize=3, label=labels[0])
+    if np.any(rejected):
+        ax.semilogy(it[rejected], probe[rejected], "x", color="C3", markersize=cross, label=labels[1])
     if probe_budget is not None:
         ax.axhline(probe_budget, color="k", linestyle="--", linewidth=1, label="probe budget")
     ax.set_ylabel("most attempted steps\nof a probe per 100 s")
-    ax.legend(fontsize=8)
-    ax.grid(True, alpha=0.3, which="both")
 
 
 def _draw_gains(ax, it, L, k, D):
@@ -195,18 +196,15 @@ def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, hori
     y = np.arange(len(plants))
     h = 0.8 / len(labels)
     for j, lab in enumerate(labels):
-        med = np.array([table[p][lab].median for p in plants], float)
-        se = np.array([table[p][lab].median_se for p in plants], float)
-        frac = np.array([table[p][lab].frac_converged for p in plants], float)
-        fse = np.array([table[p][lab].frac_se for p in plants], float)
+        med, se, frac, fse = (np.array([getattr(table[p][lab], name) for p in plants], float)
+                              for name in ("median", "median_se", "frac_converged", "frac_se"))
+        yj = y + (j - (len(labels) - 1) / 2) * h
         shown = np.where(np.isfinite(med), med, horizon)
-        axes[0].barh(y + (j - (len(labels) - 1) / 2) * h, shown, height=h, xerr=np.nan_to_num(se), color=f"C{j}",
-                     label=lab, hatch=None)
-        for yi, m in zip(y, med):
+        axes[0].barh(yj, shown, height=h, xerr=np.nan_to_num(se), color=f"C{j}", label=lab, hatch=None)
+        for yi, m in zip(yj, med):
             if not np.isfinite(m):
-                axes[0].text(horizon, yi + (j - (len(labels) - 1) / 2) * h, " > horizon", va="center", fontsize=7)
-        axes[1].barh(y + (j - (len(labels) - 1) / 2) * h, 100 * frac, height=h, xerr=100 * fse, color=f"C{j}",
-                     label=lab)
+                axes[0].text(horizon, yi, " > horizon", va="center", fontsize=7)
+        axes[1].barh(yj, 100 * frac, height=h, xerr=100 * fse, color=f"C{j}", label=lab)
     axes[0].set_yticks(y, plants, fontsize=8)
     axes[0].invert_yaxis()
     axes[0].set_xlabel("median T_0.05 [s]")
@@ -232,7 +230,10 @@ def plot_effort_history(history, *, budget: float, probe_budget: Optional[float]
     fig, axes, own = figure_and_axes(axes, (7.0, 7.5), (3, 1), sharex=True)
     _draw_energy(axes[0], it, energy, valid, budget)
     _draw_soft_time(axes[1], it, soft, lam, valid)
-    _draw_probe_activity(axes[2], it, probe, active, probe_budget)
+    # within its budget, and active: the candidate rejected
+    _draw_probe(axes[2], it, probe, np.isfinite(probe) & ~active, active, probe_budget,
+                ("probe within budget", "probe active (rejected)"), cross=5)
+    axes[2].set_xlabel("iteration")
     for a in axes:
         if returned is not None:
             a.axvline(returned, color="C3", linewidth=1, alpha=0.6, label="returned gains" if a is axes[0] else None)
@@ -259,18 +260,6 @@ def _draw_soft_time(ax, it, soft, lam, valid):
     ax2.set_ylabel("λ", color="C4")
 
 
-def _draw_probe_activity(ax, it, probe, active, probe_budget):
-    """The probe's most attempted steps per iteration (within its budget, and active: rejected) and the budget."""
-    shown = np.isfinite(probe)
-    ax.semilogy(it[shown & ~active], probe[shown & ~active], ".", color="C2", markersize=3, label="probe within budget")
-    if np.any(active):
-        ax.semilogy(it[active], probe[active], "x", color="C3", markersize=5, label="probe active (rejected)")
-    if probe_budget is not None:
-        ax.axhline(probe_budget, color="k", linestyle="--", linewidth=1, label="probe budget")
-    ax.set_ylabel("most attempted steps\nof a probe per 100 s")
-    ax.set_xlabel("iteration")
-
-
 def plot_search_history(history, *, reference: Mapping, returned: Optional[int] = None, axes=None,
                         title: str = "Derivative-free search (CMA-ES) of the gains"):
     """Per generation: the best candidate's median T_0.05 (feasible ones filled) with the reference
@@ -283,9 +272,8 @@ def plot_search_history(history, *, reference: Mapping, returned: Optional[int] 
       returned: the generation of the returned gains, marked.
     """
     fig, axes, _ = figure_and_axes(axes, (11.0, 3.6), (1, 3))
-    gen = np.asarray(_field(history, "generation"))
-    feas = np.asarray(_field(history, "feasible"), bool)
-    T, E = np.asarray(_field(history, "median_T"), float), np.asarray(_field(history, "median_energy"), float)
+    gen, feas, T, E, sigma = _field_arrays(history, generation=None, feasible=bool, median_T=float,
+                                           median_energy=float, sigma=float)
     for ax, y, ref, lab in ((axes[0], T, reference["median_T"], "median T_0.05 [s]"),
                             (axes[1], E, reference["median_energy"], "median energy ∫|u|² dt")):
         ax.plot(gen, y, "-", color="C0", lw=0.8)
@@ -300,7 +288,7 @@ def plot_search_history(history, *, reference: Mapping, returned: Optional[int] 
     axes[1].axhline(reference["energy_budget"], color="C3", ls="--", label="budget")
     axes[0].legend(fontsize=7)
     axes[1].legend(fontsize=7)
-    axes[2].semilogy(gen, np.asarray(_field(history, "sigma"), float), color="C2")
+    axes[2].semilogy(gen, sigma, color="C2")
     axes[2].set_xlabel("generation")
     axes[2].set_ylabel("step size σ")
     axes[2].grid(True, alpha=0.3, which="both")

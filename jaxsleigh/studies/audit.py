@@ -102,9 +102,8 @@ class _Rows(NamedTuple):
     @classmethod
     def of(cls, r, rows=None) -> "_Rows":
         sel = (lambda a: np.asarray(a)) if rows is None else (lambda a: np.asarray(a)[rows])  # noqa: E731
-        return cls(sel(r.status).astype(np.int64), sel(r.T_eps).astype(np.float64),
-                   sel(r.u_energy).astype(np.float64),
-                   sel(r.q_final).astype(np.float64))
+        return cls(sel(r.status).astype(np.int64),
+                   *(sel(a).astype(np.float64) for a in (r.T_eps, r.u_energy, r.q_final)))
 
     def take(self, idx) -> "_Rows":
         return _Rows(*(a[idx] for a in self))
@@ -131,8 +130,7 @@ def _differences(a: _Rows, ref: _Rows) -> dict:
     # a reference that did not finish (its budget, its step size) answers nothing: the row is not judged
     judged = np.isin(ref.status, [Status.OK, Status.NOT_SETTLING])
     same = ~judged | (_answers(a.status, a.T_eps) == _answers(ref.status, ref.T_eps)) | unmeasured
-    return {"same": same, "both": both,
-            "judged": judged,
+    return {"same": same, "both": both, "judged": judged,
             "dT": np.where(both, dT, 0.0), "dE": np.where(both, dE, 0.0), "dy": np.where(both, dy, 0.0)}
 
 

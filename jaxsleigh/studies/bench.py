@@ -90,8 +90,7 @@ def machine() -> dict:
 
 def _timed(fn, repeats: int = 1):
     fn()                                   # compile and warm up on the same shapes
-    best = np.inf
-    out = None
+    best, out = np.inf, None
     for _ in range(repeats):
         t0 = time.perf_counter()
         out = fn()
@@ -224,7 +223,10 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
     steps = horizon.n_steps
     kw = dict(t_final=t_final, dt=dt, stepsize=StepSizeController(method="rk4", check_passivity=False),
               saveat=SaveAt(summaries=False), run=RunOptions(progress=False))
-    cores, c_threads = _c_limit_threads(c_threads)
+    cores = len(workers())
+    if c_threads is None:       # on an accelerator the C program gets every core of the host
+        c_threads = cores if jax.default_backend() == "cpu" else available_cores()
+    c_threads = int(c_threads)
 
     def run_c(c_lib=lib, n_threads=c_threads):
         return c_reference_run(c_lib, y0w, args, dt, steps, n_threads)
@@ -239,8 +241,7 @@ def c_limit(ics, *, t_final: float = 100.0, dt: float = 0.01, repeats: int = 5, 
            "timed_call": "run_ensemble(ics, stepsize=StepSizeController(method='rk4', check_passivity=False), "
                          f"saveat=SaveAt(summaries=False), t_final={t_final:g}, dt={dt:g}, "
                          "run=RunOptions(progress=False))"}
-    out.update(_throughputs(rec, n * steps))
-    out.update(_ratios(rec, c_libs, variants))
+    out.update(_rates(rec, n * steps, c_libs, variants))
     out["agreement"] = _agreement(run_c(), {cv: run_c(vl, 1) for cv, vl in c_libs.items()},
                                   y0w, status0, args, horizon)
     return out
@@ -273,15 +274,6 @@ def _w_chart_starts(ics, t_final, dt):
     return horizon, args, status0, y0w
 
 
-def _c_limit_threads(c_threads):
-    """``(cores of the JAX call, threads of the C program)``; ``c_threads`` None: as many as those cores on
-    CPU, every core of the host on an accelerator."""
-    cores = len(workers())
-    if c_threads is None:       # on an accelerator the C program gets every core of the host
-        c_threads = cores if jax.default_backend() == "cpu" else available_cores()
-    return cores, int(c_threads)
-
-
 def _contestants(run_c, c_libs: dict, ics, kw, variants: dict) -> list:
     """``[(name, fn)]`` timed by `c_limit`: the C reference, the JAX call, the C builds ``c_libs``
     (``run_c(lib)``) and the kernel variants ``{name: drive_plain keywords}``."""
@@ -293,22 +285,18 @@ def _contestants(run_c, c_libs: dict, ics, kw, variants: dict) -> list:
     return contestants
 
 
-def _throughputs(rec: dict, work: int) -> dict:
-    """Trajectory-steps (``work``) per CPU and per wall second of each contestant in ``rec``."""
+def _rates(rec: dict, work: int, c_libs: dict, variants: dict) -> dict:
+    """Trajectory-steps (``work``) per CPU and per wall second of each contestant in ``rec``, then the
+    per-repetition throughput ratios (a C program's time over a JAX call's): JAX / C, JAX / each C build in
+    ``c_libs`` (with its divider ops), and each kernel variant / C."""
+    def ratio(c_name, jax_name, kind):
+        return _summary([c / j for c, j in zip(rec[c_name][kind], rec[jax_name][kind])])
+
     out = {}
     for name in rec:
         out[f"{name}_traj_steps_per_cpu_s"] = _summary([work / c for c in rec[name]["cpu"]])
         out[f"{name}_traj_steps_per_wall_s"] = _summary([work / w for w in rec[name]["wall"]])
-    return out
-
-
-def _ratios(rec: dict, c_libs: dict, variants: dict) -> dict:
-    """Per-repetition throughput ratios (a C program's time over a JAX call's): JAX / C, JAX / each C build
-    in ``c_libs`` (with its divider ops), and each kernel variant / C."""
-    def ratio(c_name, jax_name, kind):
-        return _summary([c / j for c, j in zip(rec[c_name][kind], rec[jax_name][kind])])
-
-    out = {"ratio_cpu": ratio("c", "jax", "cpu"), "ratio_wall": ratio("c", "jax", "wall")}
+    out.update(ratio_cpu=ratio("c", "jax", "cpu"), ratio_wall=ratio("c", "jax", "wall"))
     for cv, vl in c_libs.items():
         out[f"c_{cv}_divider_ops_per_evaluation"] = _divider_ops(vl)
         out[f"ratio_cpu_vs_c_{cv}"] = ratio(f"c_{cv}", "jax", "cpu")
@@ -386,12 +374,8 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
     ics = workload(n_ics, seed)
     steps = int(round(t_final / dt))
     ref = reference_final(ics, t_final=t_final, cache_dir=cache_dir)
-    chunk = max(n_ics, 1)
-    common = dict(t_final=t_final, dt=dt, x64=x64, run=RunOptions(chunk_size=chunk, progress=False))
-    runs = _timed_runs(ics, common, repeats)
-    r_acc = runs["accurate"][1]
-    fixed_step = _fixed_step_figures(runs, ref, n_ics * steps)
-    accurate = _accurate_figures(runs["accurate"], ref)
+    common = dict(t_final=t_final, dt=dt, x64=x64, run=RunOptions(chunk_size=max(n_ics, 1), progress=False))
+    figures, r_acc = _timed_runs(ics, common, repeats, ref, n_ics * steps)
     lim = _bench_c_limit(ics, t_final=t_final, dt=dt, x64=x64, repeats=repeats)
     ok_lim = lim.get("available", False)
     return {
@@ -400,9 +384,7 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
         # the cores the runs used (jaxsleigh.cores) and the C reference's threads in the same comparison
         "cores": len(r_acc.run_info["devices"]), "c_threads": lim.get("c_threads") if ok_lim else None,
         "load_average": [round(x, 2) for x in os.getloadavg()],
-        **fixed_step,
-        **accurate,
-        "rk4_wall_s": runs["rk4"][0],
+        **figures,
         "peak_rss_mb": peak_rss_mb(),
         **_c_limit_figures(lim),
         "c_limit": lim,
@@ -410,49 +392,40 @@ def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool
     }
 
 
-def _timed_runs(ics, common: dict, repeats: int) -> dict:
-    """The calls `bench` times, each warm and best of ``repeats``: ``{name: (wall s, result)}``."""
+def _timed_runs(ics, common: dict, repeats: int, ref, work: int):
+    """The calls `bench` times, each warm and best of ``repeats``, and their figures: throughput (``work``
+    trajectory-steps over the best wall time) and wrong counts of the fixed-step runs; correct trajectories per
+    second (status OK, final-state error <= `CORRECT_TOL`), error and step counts of the adaptive run.
+    Returns ``(figures, adaptive result)``."""
     def fixed(check, summaries=True):
         return lambda: run_ensemble(ics, stepsize=StepSizeController(method="rk4", check_passivity=check),
                                     saveat=SaveAt(summaries=summaries), **common)
 
-    return {
-        "rk4": _timed(fixed(False, summaries=False), repeats),      # plain RK4, final state only
-        "rk4_summaries": _timed(fixed(False), repeats),             # + per-step summaries
-        "rk4_checked": _timed(fixed(True), repeats),                # + passivity monitor
-        "accurate": _timed(lambda: run_ensemble(ics, **common), repeats),
-    }
+    def wrong(r):
+        return final_state_error(r.q_final, r.p_final, ref) > CORRECT_TOL
 
-
-def _fixed_step_figures(runs: dict, ref, work: int) -> dict:
-    """Throughput (``work`` trajectory-steps over the best wall time) and wrong counts of the fixed-step runs."""
-    (wall_rk4, r_rk4), (wall_rk4s, _), (wall_rk4m, r_rk4m) = runs["rk4"], runs["rk4_summaries"], runs["rk4_checked"]
-    err_rk4 = final_state_error(r_rk4.q_final, r_rk4.p_final, ref)
+    wall_rk4, r_rk4 = _timed(fixed(False, summaries=False), repeats)      # plain RK4, final state only
+    wall_rk4s, _ = _timed(fixed(False), repeats)                          # + per-step summaries
+    wall_rk4m, r_rk4m = _timed(fixed(True), repeats)                      # + passivity monitor
+    wall_acc, r_acc = _timed(lambda: run_ensemble(ics, **common), repeats)
+    err_acc = final_state_error(r_acc.q_final, r_acc.p_final, ref)
+    correct = (r_acc.status == Status.OK) & (err_acc <= CORRECT_TOL)
     return {
         "traj_steps_per_s": work / wall_rk4,
         "traj_steps_per_s_with_summaries": work / wall_rk4s,
         "traj_steps_per_s_with_passivity_check": work / wall_rk4m,
-        "rk4_wrong_or_nonfinite": int(np.sum(err_rk4 > CORRECT_TOL)),
-        "rk4_checked_wrong_or_nonfinite": int(np.sum(final_state_error(r_rk4m.q_final, r_rk4m.p_final, ref) > CORRECT_TOL)),
+        "rk4_wrong_or_nonfinite": int(np.sum(wrong(r_rk4))),
+        "rk4_checked_wrong_or_nonfinite": int(np.sum(wrong(r_rk4m))),
         "rk4_checked_flagged": int(np.sum(r_rk4m.status != Status.OK)),
         "rk4_checked_wall_s": wall_rk4m,
-    }
-
-
-def _accurate_figures(timed_acc, ref) -> dict:
-    """Correct trajectories per second (status OK, final-state error <= `CORRECT_TOL`) and the error and
-    step counts of the adaptive run ``timed_acc = (wall s, result)``."""
-    wall_acc, r_acc = timed_acc
-    err_acc = final_state_error(r_acc.q_final, r_acc.p_final, ref)
-    correct = (r_acc.status == Status.OK) & (err_acc <= CORRECT_TOL)
-    return {
         "correct_traj_per_s": float(correct.sum() / wall_acc),
         "wrong_or_nonfinite": int(np.sum(~correct)),
         "accurate_max_error": float(err_acc.max()),
         "accurate_mean_steps": float(r_acc.n_steps.mean()),
         "accurate_max_steps": int(r_acc.n_steps.max()),
         "accurate_wall_s": wall_acc,
-    }
+        "rk4_wall_s": wall_rk4,
+    }, r_acc
 
 
 def _bench_c_limit(ics, *, t_final, dt, x64, repeats) -> dict:

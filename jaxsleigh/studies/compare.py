@@ -197,14 +197,6 @@ class EqualEnergy(NamedTuple):
         return json_ready({"budget": self.budget, "settings": self.settings, "laws": self.laws_info})
 
 
-def _kept_as(name: str) -> Optional[str]:
-    """``"published"`` for the paper's gains, ``"preset"`` for a law that ships a tuned preset, else ``None``
-    (the law is tuned)."""
-    if name == "paper":
-        return "published"
-    return "preset" if hasattr(controller_class(name), "preset") else None
-
-
 def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr: float = 0.1, seed: int = 0,
                    t_train: float = 30.0, budget: Optional[float] = None,
                    log: Optional[Callable[[str], None]] = None) -> EqualEnergy:
@@ -230,7 +222,9 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
     budget = float(budget)
     laws, info = {}, {}
     for name in names:
-        law, kept = make_controller(name), _kept_as(name)
+        law = make_controller(name)
+        # the paper's gains stay as published and a law that ships a tuned preset keeps it; the others are tuned
+        kept = "published" if name == "paper" else "preset" if hasattr(controller_class(name), "preset") else None
         if kept is not None:
             laws[name], info[name] = law, {"as": kept, "law": controller_record(law)}
             continue

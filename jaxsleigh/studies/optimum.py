@@ -178,8 +178,9 @@ def initial_guesses(start, T: float, intervals: int, plant: Optional[PlantParams
 
 
 # ------------------------------------------------------------------------------------------------- the solver
-def _substeps(T: float, opts: OptimumOptions) -> int:
-    return max(1, int(math.ceil(T / (opts.intervals * opts.max_dt) - 1e-9)))
+def _substeps(T: float, intervals: int, max_dt: float) -> int:
+    """RK4 steps per interval: ``ceil(T / (intervals max_dt))``, at least 1."""
+    return max(1, int(math.ceil(T / (intervals * max_dt) - 1e-9)))
 
 
 def rollout(start, u, T: float, plant: Optional[PlantParams] = None, *, max_dt: float = 0.1, path: bool = False):
@@ -187,10 +188,10 @@ def rollout(start, u, T: float, plant: Optional[PlantParams] = None, *, max_dt: 
     the final state (5,), or with ``path=True`` the states at the interval ends (N + 1, 5)."""
     plant = as_plant(plant)
     u = np.asarray(u, np.float64)
-    sub = max(1, int(math.ceil(T / (u.shape[0] * max_dt) - 1e-9)))
     fn = piecewise_constant_path if path else piecewise_constant_final
     with jax.enable_x64(True):
-        return np.asarray(fn(jnp.asarray(start, jnp.float64), jnp.asarray(u), T, plant, substeps=sub))
+        return np.asarray(fn(jnp.asarray(start, jnp.float64), jnp.asarray(u), T, plant,
+                             substeps=_substeps(T, u.shape[0], max_dt)))
 
 
 _ALPHAS = tuple(10.0 ** (-k / 2) for k in range(13))     # 1 down to 1e-6
@@ -456,9 +457,22 @@ class OptimumResult:
         return "\n".join(lines)
 
 
-def _interp_monotone(x_known, y_known, x):
-    """Piecewise linear interpolation of log y against log x between known points (x increasing)."""
-    return np.exp(np.interp(np.log(x), np.log(x_known), np.log(y_known)))
+def _per_start(horizons, frontier, x, lookup, unknown: int) -> tuple:
+    """``(values, where)`` per start: ``lookup(h, e, x_i) -> (value, where)`` on the start's solved horizons ``h``
+    and frontier values ``e`` (``x`` broadcast to the starts); NaN with ``where`` 2 when nothing was solved, and
+    ``unknown`` for a non-finite ``x_i``."""
+    horizons = np.asarray(horizons, float)
+    frontier = np.atleast_2d(frontier)
+    x = np.broadcast_to(np.asarray(x, float), frontier.shape[:1])
+    out = np.full(x.shape, np.nan)
+    where = np.zeros(x.shape, np.int8)
+    for i in range(x.size):
+        ok = np.isfinite(frontier[i])
+        if not ok.any() or not np.isfinite(x[i]):
+            where[i] = 2 if not ok.any() else unknown
+        else:
+            out[i], where[i] = lookup(horizons[ok], frontier[i][ok], x[i])
+    return out, where
 
 
 def energy_for_time(horizons, frontier, T) -> tuple:
@@ -466,24 +480,14 @@ def energy_for_time(horizons, frontier, T) -> tuple:
     solved points of the non-increasing ``frontier`` (S, H). Returns ``(E, where)`` with ``where`` = 0 inside
     the solved horizons, -1 for \(T\) below the shortest (E is then NaN: \(E^*(T) \ge E^*(T_{min})\), the
     caller may use that bound), +1 above the longest (E NaN; \(E^*(T) \le E^*(T_{max})\))."""
-    horizons = np.asarray(horizons, float)
-    frontier = np.atleast_2d(frontier)
-    T = np.broadcast_to(np.asarray(T, float), frontier.shape[:1])
-    E = np.full(T.shape, np.nan)
-    where = np.zeros(T.shape, np.int8)
-    for i in range(T.size):
-        ok = np.isfinite(frontier[i])
-        if not ok.any() or not np.isfinite(T[i]):
-            where[i] = 2 if not ok.any() else 0
-            continue
-        h, e = horizons[ok], frontier[i][ok]
-        if T[i] < h[0] - 1e-12:
-            where[i] = -1
-        elif T[i] > h[-1] + 1e-12:
-            where[i] = 1
-        else:
-            E[i] = _interp_monotone(h, e, T[i])
-    return E, where
+    def lookup(h, e, t):
+        if t < h[0] - 1e-12:
+            return np.nan, -1
+        if t > h[-1] + 1e-12:
+            return np.nan, 1
+        return np.exp(np.interp(np.log(t), np.log(h), np.log(e))), 0     # piecewise linear in (log T, log E)
+
+    return _per_start(horizons, frontier, T, lookup, unknown=0)
 
 
 def time_for_energy(horizons, frontier, energy) -> tuple:
@@ -492,30 +496,19 @@ def time_for_energy(horizons, frontier, energy) -> tuple:
     horizon saves nothing, give their shortest horizon). Returns ``(T, where)``: ``where`` = 0 inside,
     -1 when \(E\) exceeds \(E^*\) at the shortest solved horizon (\(T^* \le T_{min}\); T NaN), +1 when \(E\) is
     below \(E^*\) at the longest (\(T^* > T_{max}\), or no horizon suffices; T NaN), 2 when nothing was solved."""
-    horizons = np.asarray(horizons, float)
-    frontier = np.atleast_2d(frontier)
-    energy = np.broadcast_to(np.asarray(energy, float), frontier.shape[:1])
-    Tout = np.full(energy.shape, np.nan)
-    where = np.zeros(energy.shape, np.int8)
-    for i in range(energy.size):
-        ok = np.isfinite(frontier[i])
-        if not ok.any() or not np.isfinite(energy[i]):
-            where[i] = 2
-            continue
-        h, e = horizons[ok], frontier[i][ok]
-        if energy[i] > e[0]:
-            where[i] = -1
-        elif energy[i] < e[-1]:
-            where[i] = 1
-        else:
-            # first solved horizon whose frontier is at or below E, then interpolate within the step before it
-            j = int(np.argmax(e <= energy[i]))
-            if j == 0 or e[j - 1] == e[j]:
-                Tout[i] = h[j]
-            else:
-                s = (np.log(energy[i]) - np.log(e[j - 1])) / (np.log(e[j]) - np.log(e[j - 1]))
-                Tout[i] = float(np.exp(np.log(h[j - 1]) + s * (np.log(h[j]) - np.log(h[j - 1]))))
-    return Tout, where
+    def lookup(h, e, E):
+        if E > e[0]:
+            return np.nan, -1
+        if E < e[-1]:
+            return np.nan, 1
+        # first solved horizon whose frontier is at or below E, then interpolate within the step before it
+        j = int(np.argmax(e <= E))
+        if j == 0 or e[j - 1] == e[j]:
+            return h[j], 0
+        s = (np.log(E) - np.log(e[j - 1])) / (np.log(e[j]) - np.log(e[j - 1]))
+        return float(np.exp(np.log(h[j - 1]) + s * (np.log(h[j]) - np.log(h[j - 1])))), 0
+
+    return _per_start(horizons, frontier, energy, lookup, unknown=2)
 
 
 # ------------------------------------------------------------------------------------------------ the front door
@@ -564,7 +557,7 @@ def _solve_starts(starts, horizons, plant, eps, opts, progress=None):
         return out
     with jax.enable_x64(True):
         for j, T in enumerate(horizons):
-            sub = _substeps(float(T), opts)
+            sub = _substeps(float(T), opts.intervals, opts.max_dt)
             h = T / N
             z0 = np.stack([initial_guesses(starts[i], float(T), N, plant, K) for i in idx]) * math.sqrt(h)
             B = idx.size * K
@@ -663,10 +656,9 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
     if shard is not None:
         return None
     arrays = {k: np.concatenate([parts[i][k] for i in range(len(bounds))]) for k in _fields(0, H, N)}
-    return OptimumResult(starts=starts, horizons=horizons, eps=eps, energy=arrays["energy"], u=arrays["u"],
-                         status=arrays["status"].astype(np.int32), q_final=arrays["q_final"],
-                         p_final=arrays["p_final"], kkt=arrays["kkt"], guess=arrays["guess"].astype(np.int32),
-                         settings=settings, run_info={"chunks_reused": reused})
+    arrays.update(status=arrays["status"].astype(np.int32), guess=arrays["guess"].astype(np.int32))
+    return OptimumResult(starts=starts, horizons=horizons, eps=eps, **arrays, settings=settings,
+                         run_info={"chunks_reused": reused})
 
 
 def save_optimum(path, res: OptimumResult) -> Path:
