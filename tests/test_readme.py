@@ -43,12 +43,12 @@ def _run(line: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProc
     return proc
 
 
-def test_readme_python_example_runs(monkeypatch):
+def test_readme_python_example_runs():
     blocks = _blocks("python")
     assert len(blocks) == 1, "README should have exactly one Python example"
-    # its enable_compilation_cache() would turn JAX's persistent cache on for the rest of this test
-    # session (tests/test_compilation_cache.py checks it in a process of its own)
-    monkeypatch.setenv("JAXSLEIGH_NO_COMPILE_CACHE", "1")
+    # its enable_compilation_cache() turns on the cache that tests/conftest.py turned on already (the same folder,
+    # the same settings), so it changes nothing for the later tests, and the example reuses the programs they kept
+    # (tests/test_compilation_cache.py checks the call in a process of its own)
     exec(compile(blocks[0], "README.md", "exec"), {})
 
 
