@@ -29,10 +29,11 @@ import jax
 import jax.numpy as jnp
 
 from ..integrate.observers import ControlEffort, ConvergenceTime, hermite
-from ..integrate.stepper import Checkpointed, WhileActive, controls, init_state, run, starting_step
+from ..integrate.stepper import Checkpointed, WhileActive, controls, run
 from ..integrate.stepsize import StepSizeController
 from ..model.closed_loop import ClosedLoop
 from ..status import Status
+from .objective import _initial_states
 
 __all__ = ["EntryState", "Settling", "settling"]
 
@@ -103,10 +104,7 @@ def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.0
     dtype = y0w.dtype
     ctl = controls(StepSizeController(rtol=rtol, atol=atol), dtype, dt=dt, eps=eps, max_steps=max_steps)
     args = ClosedLoop(plant, controller)
-    n = y0w.shape[0]
-    s = jax.vmap(lambda y, st: init_state(y, st, args, ctl, observers=_OBSERVERS), out_axes=-1)(
-        y0w, jnp.zeros(n, jnp.int32))
-    s = starting_step(s, ctl)
+    s = _initial_states(y0w, args, ctl, True, _OBSERVERS)
     T_end = jnp.asarray(t_final, dtype)
     if reverse:
         s = run(s, T_end, args, ctl, Checkpointed(int(max_steps), int(segment)), adaptive=True, observers=_OBSERVERS)

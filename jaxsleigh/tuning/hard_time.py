@@ -44,13 +44,14 @@ import numpy as np
 import optax
 
 from ..controllers.actuators import is_sampled
-from ..integrate.engine import check_ics, initial_w
+from ..integrate.engine import initial_w
 from ..model.charts import chart_for
 from ..model.params import PlantParams, as_plant, paper_gains
 from ..status import Status
 from .cmaes import cma_ask, cma_init, cma_tell
 from .event_time import settling
 from .law import law_coordinates
+from .objective import valid_starts
 
 __all__ = ["HardTimeConfig", "HardTimeProblem", "hard_time_problem", "tune_by_gradient", "tune_by_cma", "TuneRun"]
 
@@ -121,9 +122,7 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     if is_sampled(law):
         raise ValueError("hard_time_problem tunes a law the adaptive engine integrates; a sampled law "
                          "(jaxsleigh.controllers.actuators.Sampled) is tuned by jaxsleigh.tuning.tune_law")
-    ics5, status0 = check_ics(starts, name="training start")
-    if np.any(status0 != Status.OK):
-        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
+    ics5, status0 = valid_starts(starts, name="training start")
     plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), as_plant(plant))
     coords = law_coordinates(law, dtype=dtype)
     ref = paper_gains() if reference is None else reference

@@ -20,12 +20,12 @@ import optax
 from ..controllers.actuators import NormSaturation, Sampled, Saturation, is_sampled
 from ..model.charts import chart_for, physical_chart_for
 from ..model.controller import as_controller, is_paper_law, law_leaf_names, positive_names
-from ..integrate.engine import check_ics, initial_w
+from ..integrate.engine import initial_w
 from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
 from .checkpoint import LawCheckpoint, Stamp, TuningInterrupted, check_resume, law_settings
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
-from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator
+from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, valid_starts
 from ..controllers.paper import PaperLaw
 from ..integrate.sampled import solve_sampled
 from ..studies.sampled import plain_sampler, substeps_for
@@ -152,28 +152,21 @@ def _wrapped_paper_coordinates(leaves, tree, names, idx, prefix: str, dtype) -> 
     at = {f: names.index(prefix + f) for f in fields}
     p0 = params_from_gains(Gains(*(np.asarray(leaves[at[f]], np.float64) for f in fields)))
     chosen = [f for f in fields if at[f] in idx]
-    parts, labels = [], []
-    for f in chosen:
-        v = np.asarray(getattr(p0, TUNABLE[f]))
-        parts.append(np.ravel(v))
-        labels += [TUNABLE[f] + (f"[{j}]" if v.ndim else "") for j in range(v.size)]
+    starts = [np.asarray(getattr(p0, TUNABLE[f])) for f in chosen]
 
     def law_of(x):
         x = jnp.asarray(x, dtype)
-        vals, o = {}, 0
-        for f in fields:
-            start = np.asarray(getattr(p0, TUNABLE[f]))
-            if f in chosen:
-                vals[TUNABLE[f]], o = x[o:o + start.size].reshape(start.shape), o + start.size
-            else:
-                vals[TUNABLE[f]] = jnp.asarray(start, dtype)
+        vals, o = {c: jnp.asarray(np.asarray(v), dtype) for c, v in p0._asdict().items()}, 0
+        for f, v in zip(chosen, starts):            # the tuned ones from x, in order
+            vals[TUNABLE[f]], o = x[o:o + v.size].reshape(v.shape), o + v.size
         g = gains_from_params(GainParams(**vals))
         full = list(leaves)
         for f in chosen:
             full[at[f]] = getattr(g, f)
         return jax.tree_util.tree_unflatten(tree, full)
 
-    return LawCoordinates(np.concatenate(parts), law_of, tuple(labels))
+    labels = [TUNABLE[f] + (f"[{j}]" if v.ndim else "") for f, v in zip(chosen, starts) for j in range(v.size)]
+    return LawCoordinates(np.concatenate([np.ravel(v) for v in starts]), law_of, tuple(labels))
 
 
 def _host_law(start, law, tune):
@@ -254,9 +247,8 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         if not ok:
             raise ValueError(f"{name} must be a positive {'whole ' if name == 'steps' else ''}number, got {v!r}")
     chart = chart_for(law)
-    ics5, status0 = check_ics(starts, singular=chart.singular, name="training start")
-    if np.any(status0 != Status.OK):
-        raise ValueError("training starts must all be valid (finite; theta0 != 0 for a law with that singular set)")
+    ics5, status0 = valid_starts(starts, why="finite; theta0 != 0 for a law with that singular set",
+                                 singular=chart.singular, name="training start")
     check_resume(checkpoint, resume)
     plant = as_plant(plant)
     n_attempts = int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)

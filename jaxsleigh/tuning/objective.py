@@ -24,8 +24,8 @@ from ..integrate.stepsize import StepSizeController
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups
 
-__all__ = ["LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "soft_convergence", "objective",
-           "loss_from_lanes"]
+__all__ = ["LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "valid_starts", "soft_convergence",
+           "objective", "loss_from_lanes"]
 
 #: The stepper's observers inside the differentiated objective: only what LaneSummary reports.
 _OBSERVERS = (ClosestApproach(), Excursion())
@@ -177,12 +177,13 @@ def _soft_setup(gains, plant, cfg: LossConfig, t_final, n_attempts, dtype):
     return args, ctl, _SoftTerms(chart, T, eps, tau, theta_b, r_stop2)
 
 
-def _initial_states(y0w, args: ClosedLoop, ctl: Controls, adaptive: bool) -> StepState:
-    """The batch's stepper states (batch-last) at the starts ``y0w``, with the starting step when adaptive."""
+def _initial_states(y0w, args: ClosedLoop, ctl: Controls, adaptive: bool, observers=_OBSERVERS) -> StepState:
+    """The batch's stepper states (batch-last) at the starts ``y0w`` with ``observers``, with the starting step when
+    adaptive (`soft_convergence`; `jaxsleigh.tuning.event_time.settling`)."""
     n = y0w.shape[0]
     plant_axes = jax.tree_util.tree_map(lambda x: 0 if np.ndim(x) >= 1 else None, args.plant)   # per lane or shared
     in_axes = (0, 0, ClosedLoop(plant_axes, None), None)
-    s0 = jax.vmap(functools.partial(init_state, observers=_OBSERVERS), in_axes=in_axes,
+    s0 = jax.vmap(functools.partial(init_state, observers=observers), in_axes=in_axes,
                   out_axes=-1)(y0w, jnp.zeros(n, jnp.int32), args, ctl)
     if adaptive:
         s0 = starting_step(s0, ctl)
@@ -270,20 +271,21 @@ def make_training_set(ics, *, plant: Optional[PlantParams] = None, robust: Optio
     array for none.
     """
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
-    ics5, status0 = check_ics(ics)
-    if np.any(status0 != Status.OK):
-        raise ValueError("training starts must all be valid (finite, theta0 != 0)")
+    ics5, status0 = valid_starts(ics)
     guard = guard_starts() if guard is None else np.asarray(guard, dtype=np.float64)
-    if guard.size:
-        g5, gs = check_ics(guard)
-        if np.any(gs != Status.OK):
-            raise ValueError("guard starts must all be valid (finite, theta0 != 0)")
-        guard_w = initial_w(g5, gs, dtype)
-    else:
-        guard_w = jnp.zeros((0, 5), dtype)
+    guard_w = initial_w(*valid_starts(guard, "guard starts"), dtype) if guard.size else jnp.zeros((0, 5), dtype)
     groups = tuple((initial_w(ics5[idx], status0[idx], dtype), p)
                    for idx, p, _ in plant_groups(ics5.shape[0], plant, robust, seed))
     return TrainingSet(groups, guard_w)
+
+
+def valid_starts(starts, what: str = "training starts", why: str = "finite, theta0 != 0", **check) -> tuple:
+    """``(ics5, status)`` of ``starts`` (`jaxsleigh.integrate.engine.check_ics`, ``check`` its keywords), refusing any
+    start that is not valid (``ValueError``: "``what`` must all be valid (``why``)")."""
+    ics5, status = check_ics(starts, **check)
+    if np.any(status != Status.OK):
+        raise ValueError(f"{what} must all be valid ({why})")
+    return ics5, status
 
 
 def objective(trainable: dict, frozen: GainParams, data: TrainingSet, cfg: LossConfig, *, n_attempts: int,

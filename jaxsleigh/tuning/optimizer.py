@@ -390,11 +390,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
     check_resume(checkpoint, resume)
     g0 = load_gains(gains0)
     ics = draw_starts(starts, batch, config.seed)
-    theta0 = params_from_gains(g0, d_floor=d_floor)
     t_start = time.perf_counter()
     with jax.enable_x64(bool(x64)):
-        run, trainable, opt_state = _prepare(g0, theta0, names, ics, steps, config, loss, plant, robust, guard, x64,
-                                             d_floor)
+        run, trainable, opt_state = prepare_run(g0, names, ics, steps, config, loss, plant, robust, guard, x64, d_floor)
         ctx = run.ctx
         track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
         store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(
@@ -407,9 +405,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         except KeyboardInterrupt:
             raise TuningInterrupted(_interrupted(track, ctx), None if store is None else store.path) from None
         history = track.history()
-        best = track.best
-        best_gains = gains_numpy(best[2], ctx.frozen, d_floor, g0, names)
-    best, best_gains, verified, probe_at_result = _final_check(track, ctx, guard, best, best_gains)
+    best, best_gains, verified, probe_at_result = _final_check(track, ctx, guard)
     settings = _tune_settings(run, track, robust, starts, t_start, verified, probe_at_result)
     return TuneResult(best_gains, g0, float(best[0]), float(track.rows[0]["loss"]), int(best[1]), history, settings)
 
@@ -427,38 +423,46 @@ def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig) -> tuple:
     return names, steps, batch
 
 
-class _Run(NamedTuple):
-    """The fixed parts of one tuning run, built in its precision: the training set, the objective's
-    settings, the value-and-gradient function, the optimiser and its jitted step, and the `TuneContext`."""
+class GradientRun(NamedTuple):
+    """The fixed parts of one gradient run, built in its precision: the training set, the objective's settings, the
+    value-and-gradient function, the optimiser's jitted step ``step(trainable, opt_state, grad, valid)`` and the
+    `TuneContext` (the vmapped Pareto front's function and step are vmapped over its budgets)."""
 
     data: Any
     cfg: LossConfig
     dtype: Any
     vg: Callable
-    opt: Any
     step: Callable
     ctx: TuneContext
 
 
-def _prepare(g0, theta0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64,
-             d_floor) -> tuple:
-    """Build the run (`_Run`, in the current precision) and the starting ``(trainable, opt_state)``."""
+def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64, d_floor,
+                lanes: int = 0) -> tuple:
+    """Build the run (`GradientRun`, in the current precision) and the starting ``(trainable, opt_state)``. With
+    ``lanes`` > 0 (the vmapped Pareto front: one lane per energy budget) the parameters are broadcast over the lanes,
+    and the objective (its energy budget and multiplier mapped) and the step are jitted and vmapped."""
     dtype = jnp.zeros(()).dtype
     data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
     cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
-    theta = GainParams(*(jnp.asarray(x, dtype) for x in theta0))
+    theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
     trainable, frozen = split_params(theta, names)
     vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
                              d_floor=d_floor)
-    opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
-                                    float(config.final_lr))
-    opt_state = opt.init(trainable)
-    groups = plant_groups(ics.shape[0], plant, robust, config.seed + 1)
-    ctx = TuneContext(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
-    return _Run(data, cfg, dtype, vg, opt, step, ctx), trainable, opt_state
+    ctx = TuneContext(config, loss, ics, plant_groups(ics.shape[0], plant, robust, config.seed + 1), frozen, d_floor,
+                      g0, names, x64)
+    if not lanes:
+        opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
+                                        float(config.final_lr))
+        return GradientRun(data, cfg, dtype, vg, functools.partial(step, opt), ctx), trainable, opt.init(trainable)
+    trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (lanes,) + jnp.shape(x)), trainable)
+    cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
+    opt = make_optimizer(config.lr, steps, clip=config.clip, warmup=config.warmup, final_lr=config.final_lr)
+    stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: optimizer_step(opt, tr, st, gr, v)))
+    vgb = jax.jit(jax.vmap(vg, in_axes=(0, None, None, cfg_axes)))
+    return GradientRun(data, cfg, dtype, vgb, stepb, ctx), trainable, jax.vmap(opt.init)(trainable)
 
 
-def _iterate(run: _Run, track: CandidateTrack, trainable, opt_state, it0: int, steps: int, store, progress: Any,
+def _iterate(run: GradientRun, track: CandidateTrack, trainable, opt_state, it0: int, steps: int, store, progress: Any,
              callback: Optional[Callable], t_start: float) -> None:
     """Iterations ``it0`` to ``steps`` (or until backtracking gives up), each checkpointed, reported and
     passed to ``callback``; ``track`` records them."""
@@ -474,7 +478,7 @@ def _iterate(run: _Run, track: CandidateTrack, trainable, opt_state, it0: int, s
                                  float(opt_state.scale), run.ctx, time.perf_counter() - t_start,
                                  lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
             row = track.rows[-1]
-            trainable, opt_state = run.step(run.opt, trainable, opt_state, grad, jnp.asarray(valid))
+            trainable, opt_state = run.step(trainable, opt_state, grad, jnp.asarray(valid))
             stop = (track.rejections >= config.max_rejections
                     or float(opt_state.scale) < config.min_scale)
             if store is not None:
@@ -498,22 +502,20 @@ def _interrupted(track: CandidateTrack, ctx: TuneContext) -> Optional[TuneResult
                        "method": "interrupted; best valid candidate so far, not re-checked"})
 
 
-def _final_check(track: CandidateTrack, ctx: TuneContext, guard, best, best_gains) -> tuple:
-    """``(best, best_gains, verified_iteration, probe_at_result)``: with ``config.verify``, the best candidate
-    that passes the accurate engine on the training and guard starts (RuntimeError if none does)."""
-    config, verified, probe_at_result = ctx.config, None, None
-    if config.verify:
-        cand, g, probe_at_result, why = track.verify(ctx, ctx.checks(guard), int(config.verify))
-        if cand is None:
-            raise RuntimeError(f"none of the {min(len(track.valid_points), int(config.verify))} best valid candidates "
-                               f"passed the check with the accurate engine over {float(ctx.loss.probe_t_final):g} s "
-                               f"on the training and guard starts (last: {why}); tune with a smaller learning rate, "
-                               f"fewer steps or a smaller probe_budget")
-        best, best_gains, verified = cand, g, cand[1]
-    return best, best_gains, verified, probe_at_result
+def _final_check(track: CandidateTrack, ctx: TuneContext, guard) -> tuple:
+    """``(best, best_gains, verified_iteration, probe_at_result)``: the best valid candidate, or with ``config.verify``
+    the best that passes the accurate engine on the training and guard starts (RuntimeError if none does)."""
+    n = int(ctx.config.verify)
+    cand, g, probe_at_result, why = track.verify(ctx, ctx.checks(guard) if n else [], n)
+    if cand is None:
+        raise RuntimeError(f"none of the {min(len(track.valid_points), n)} best valid candidates passed the check "
+                           f"with the accurate engine over {float(ctx.loss.probe_t_final):g} s on the training and "
+                           f"guard starts (last: {why}); tune with a smaller learning rate, fewer steps or a smaller "
+                           f"probe_budget")
+    return cand, g, cand[1] if n else None, probe_at_result
 
 
-def _tune_settings(run: _Run, track: CandidateTrack, robust, starts, t_start: float, verified,
+def _tune_settings(run: GradientRun, track: CandidateTrack, robust, starts, t_start: float, verified,
                    probe_at_result) -> dict:
     """Everything that produced the result (`TuneResult.settings`)."""
     ctx = run.ctx

@@ -31,13 +31,12 @@ import optax
 
 from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
-from .gradients import make_value_and_grad
 from .objective import LossConfig, make_training_set, objective
 from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, check_resume
-from .optimizer import CandidateTrack, TuneConfig, TuneContext, TuneHistory, make_optimizer, optimizer_step, tune
+from .optimizer import CandidateTrack, GradientRun, TuneConfig, TuneHistory, prepare_run, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
-from .starts import UniformStarts, draw_starts, plant_groups
+from .starts import UniformStarts, draw_starts
 from .validation import Validation, validate, validation_dict
 from ..files.npz import atomic_write
 from ..studies.config import plant_to_dict
@@ -263,28 +262,19 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
     in ``checkpoint`` (``None``: none; a `TunerCheckpoint` whose fingerprint hashes the training starts, the front's
     ``settings``, the plant and the parameters' floor, with the command's ``options``) and continued from it with
     ``resume``."""
-    names = parse_tune(tune_names)
-    g0 = load_gains(gains0)
     ics = draw_starts(starts, config.batch, config.seed)
     nb = budgets.size
     t0 = time.perf_counter()
     with jax.enable_x64(bool(x64)):
-        dtype = jnp.zeros(()).dtype
-        data = make_training_set(ics, plant=plant, guard=None, seed=config.seed + 1, dtype=dtype)
-        cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
-        theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
-        trainable, frozen = split_params(theta, names)
-        trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (nb,) + jnp.shape(x)), trainable)
-        vgb, opt_state, stepb = _vmapped_optimiser(config, d_floor, trainable)
-        groups = plant_groups(ics.shape[0], plant, None, config.seed + 1)
-        ctx = TuneContext(config, loss, ics, groups, frozen, d_floor, g0, names, x64)
+        base, trainable, opt_state = prepare_run(load_gains(gains0), parse_tune(tune_names), ics, config.steps, config,
+                                              loss, plant, None, None, x64, d_floor, lanes=nb)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
         store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(_as_json(
             {**settings, "plant": None if plant is None else plant_to_dict(plant), "d_floor": float(d_floor)}), ics,
             options), TuneHistory._fields, "front checkpoint")
-        run = _VmapRun(budgets, tracks, ctx, vgb, stepb, data, cfg, dtype, np.ones(nb, bool), store)
+        run = _VmapRun(budgets, tracks, base, np.ones(nb, bool), store)
         it0, evals = 0, 0
-        saved = store.load(trainable, opt_state, groups, tracks) if store is not None and resume else None
+        saved = store.load(trainable, opt_state, base.ctx.groups, tracks) if store is not None and resume else None
         if saved is not None:
             it0, trainable, opt_state, a = saved
             run.alive[:], evals = a["alive"], int(a["evals"])
@@ -293,13 +283,13 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         except KeyboardInterrupt:
             raise TuningInterrupted(_vmap_so_far(run, settings, time.perf_counter() - t0),
                                     None if store is None else store.path) from None
-    return _verified_points(budgets, tracks, ctx), evals
+    return _verified_points(budgets, tracks, base.ctx), evals
 
 
 def _vmap_so_far(run: "_VmapRun", settings: Optional[dict], wall: float) -> Optional["Front"]:
     """The `Front` a Ctrl-C of the vmapped front carries: each budget's best valid candidate so far, not re-checked
     (``None``: no budget has one)."""
-    ctx, points = run.ctx, []
+    ctx, points = run.base.ctx, []
     for b, track in enumerate(run.tracks):
         if track.best is not None:
             g = gains_numpy(track.best[2], ctx.frozen, ctx.d_floor, ctx.g0, ctx.names)
@@ -308,35 +298,14 @@ def _vmap_so_far(run: "_VmapRun", settings: Optional[dict], wall: float) -> Opti
     return Front(points, "vmap", wall, 0, {**(settings or {}), "iterations_run": done}) if points else None
 
 
-def _vmapped_optimiser(config, d_floor, trainable):
-    """``(vgb, opt_state, stepb)``: the objective's value and gradient, jitted and vmapped over the budgets (the
-    energy budget and the multiplier of the `LossConfig` mapped), the optimiser's state for the budgets'
-    ``trainable``, and its step, jitted and vmapped."""
-    vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
-                             d_floor=d_floor)
-    cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
-    vgb = jax.jit(jax.vmap(vg, in_axes=(0, None, None, cfg_axes)))
-    opt = make_optimizer(config.lr, config.steps, clip=config.clip, warmup=config.warmup,
-                         final_lr=config.final_lr)
-    opt_state = jax.vmap(opt.init)(trainable)
-    stepb = jax.jit(jax.vmap(lambda tr, st, gr, v: optimizer_step(opt, tr, st, gr, v)))
-    return vgb, opt_state, stepb
-
-
 class _VmapRun(NamedTuple):
-    """One vmapped front run (`_front_vmap`): the budgets and each one's `CandidateTrack`, the candidates'
-    `TuneContext`, the jitted vmapped objective and step (`_vmapped_optimiser`), the objective's fixed inputs
-    (training set, `LossConfig`, dtype; the frozen parameters are the context's), and which budgets are still alive
-    (updated in place)."""
+    """One vmapped front run (`_front_vmap`): the budgets and each one's `CandidateTrack`, the run's fixed parts
+    (``base``, `jaxsleigh.tuning.optimizer.GradientRun`: its objective and step vmapped over the budgets), which
+    budgets are still alive (updated in place) and the checkpoint."""
 
     budgets: np.ndarray
     tracks: list
-    ctx: TuneContext
-    vgb: Any
-    stepb: Any
-    data: Any
-    cfg: LossConfig
-    dtype: Any
+    base: GradientRun
     alive: np.ndarray
     store: Optional[TunerCheckpoint] = None
 
@@ -346,20 +315,20 @@ def _vmap_iterations(run: _VmapRun, it0: int, evals: int, trainable, opt_state, 
     parameters and optax state) until ``config.steps`` iterations or every budget's track stops; the tracks record
     each candidate, and the state is checkpointed after every iteration (``run.store``). Returns the number of
     objective evaluations (of budgets still alive)."""
-    config = run.ctx.config
-    alive = run.alive
+    base, alive = run.base, run.alive
+    config = base.ctx.config
     t_start = time.perf_counter()
     with Progress(progress, desc=f"front (vmap x{run.budgets.size})") as bar:
         for it in range(it0, config.steps):
             if not alive.any():
                 break
             lam = np.array([t.lam for t in run.tracks])
-            c = run.cfg._replace(energy_budget=jnp.asarray(run.budgets, run.dtype),
-                                 multiplier=jnp.asarray(lam, run.dtype))
-            out = run.vgb(trainable, run.ctx.frozen, run.data, c)            # ((values, aux), grads)
+            c = base.cfg._replace(energy_budget=jnp.asarray(run.budgets, base.dtype),
+                                  multiplier=jnp.asarray(lam, base.dtype))
+            out = base.vg(trainable, base.ctx.frozen, base.data, c)          # ((values, aux), grads)
             evals += int(alive.sum())
             ok = _assess_candidates(run, it, out, trainable, opt_state, t_start)
-            trainable, opt_state = run.stepb(trainable, opt_state, out[1], jnp.asarray(ok))
+            trainable, opt_state = base.step(trainable, opt_state, out[1], jnp.asarray(ok))
             rej = np.array([t.rejections for t in run.tracks])
             alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
             if run.store is not None:
@@ -371,7 +340,7 @@ def _vmap_iterations(run: _VmapRun, it0: int, evals: int, trainable, opt_state, 
 
 def _assess_candidates(run: _VmapRun, it, out, trainable, opt_state, t_start):
     """``ok`` (per budget) after each alive budget's track has assessed its candidate of iteration ``it``
-    (``out``: the budgets' ``((values, aux), grads)`` from ``run.vgb``); a stopped budget's is ``False``."""
+    (``out``: the budgets' ``((values, aux), grads)`` from ``run.base.vg``); a stopped budget's is ``False``."""
     (values, aux), grads = out
     gn = np.asarray(jax.vmap(optax.tree.norm)(grads))
     ok = np.asarray(aux["valid"]) & np.isfinite(gn)
@@ -383,7 +352,7 @@ def _assess_candidates(run: _VmapRun, it, out, trainable, opt_state, t_start):
         tr_b = jax.tree_util.tree_map(lambda x: x[b], trainable)
         aux_b = jax.tree_util.tree_map(lambda x: x[b], aux)
         ok[b] = track.assess(it, float(values[b]), float(gn[b]), bool(ok[b]), tr_b, aux_b, float(scales[b]),
-                             run.ctx, time.perf_counter() - t_start,
+                             run.base.ctx, time.perf_counter() - t_start,
                              lambda *_, b=b: f"the starting gains are not a valid candidate for budget "
                                              f"{run.budgets[b]:.4g}")
     return ok
