@@ -19,8 +19,8 @@ from ..status import describe
 from ..validate import check_memory, host_label
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
-           "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind", "NPZ_KINDS", "FIELDS",
-           "check_fields"]
+           "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind",
+           "NPZ_KINDS", "FIELDS", "check_fields"]
 
 
 def npz_path(path) -> Path:
@@ -37,7 +37,8 @@ NPZ_KINDS = {
     "sweep": (("values", "names", "status_counts"), "a sweep result", "jaxsleigh.load_sweep"),
     "simulation": (("t", "q", "u", "Hd"), "a simulation (jaxsleigh simulate / paper)",
                    "jaxsleigh.plots.paper_figures.load_solution"),
-    "optimum": (("horizons", "frontier", "kkt"), "a bound on the optimum (jaxsleigh optimum)", "jaxsleigh.load_optimum"),
+    "optimum": (("horizons", "frontier", "kkt"), "a bound on the optimum (jaxsleigh optimum)",
+                "jaxsleigh.load_optimum"),
 }
 
 

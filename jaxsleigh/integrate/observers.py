@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["StepInfo", "hermite", "Observer", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort", "DEFAULT_OBSERVERS",
+__all__ = ["StepInfo", "hermite", "Observer", "ConvergenceTime", "ClosestApproach", "Excursion", "ControlEffort",
+           "DEFAULT_OBSERVERS",
            "observer_fields", "collect", "collect_values"]
 
 
