@@ -2,8 +2,6 @@
 against a feedback law's own trajectory, its gradients against finite differences, its inverse and its
 refusals."""
 import math
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
