@@ -31,6 +31,7 @@ from .tune_flags import (GRADIENT_FLAGS, LAW_FLAGS, PARETO_FLAGS, SEARCH_FLAGS, 
                          tuning_run)
 from .tune_options import EPILOG, add_tune_options
 from ..model.params import Gains
+from ..files.npz import npz_path
 from ..studies.optimum import load_optimum
 
 __all__ = ["add_tune"]
@@ -180,7 +181,7 @@ def _frontier(args):
     if getattr(args, "frontier", None) is None:
         return None
 
-    if not Path(args.frontier).exists():         # (load_optimum would say "not found" in its own words)
+    if not (Path(args.frontier).exists() or npz_path(args.frontier).exists()):    # as a reader finds it (.npz added)
         raise ValueError(f"--frontier {args.frontier}: no such file; write one with 'jaxsleigh optimum --out "
                          f"{args.frontier}'")
     try:
