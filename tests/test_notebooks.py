@@ -22,7 +22,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
-TIMEOUT_S = 600          # per cell; each notebook is meant to run in well under a minute
+TIMEOUT_S = 600          # per cell; a whole notebook takes one to three minutes from a fresh kernel on 2 cores
 
 
 def _float(pattern, text):
