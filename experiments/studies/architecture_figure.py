@@ -44,12 +44,16 @@ def imports() -> list[tuple[str, str]]:
         mod = ".".join(path.relative_to(ROOT.parent).with_suffix("").parts)
         pkg = mod.rsplit(".", 1)[0] if path.name != "__init__.py" else mod.rsplit(".", 1)[0]
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.level:
-                base = pkg.split(".")[: len(pkg.split(".")) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-                pairs.append((mod, target))
-            elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxsleigh"):
-                pairs.append((mod, node.module))
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("jaxsleigh")):
+                if node.level:
+                    base = pkg.split(".")[: len(pkg.split(".")) - (node.level - 1)]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module
+                # ``from .. import tuning`` imports the sub-package ``tuning``: the names are the targets
+                pairs.extend((mod, f"{target}.{a.name}") for a in node.names)
+            elif isinstance(node, ast.Import):
+                pairs.extend((mod, a.name) for a in node.names if a.name.startswith("jaxsleigh"))
     return pairs
 
 

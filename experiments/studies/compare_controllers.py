@@ -1,7 +1,7 @@
 """The literature's controllers against the paper's, at equal control energy, on held-out starts.
 
 1. **Equal effort.** Each literature law (`jaxsleigh controllers`) is tuned by the library's tuner
-   (`jaxsleigh.studies.compare.tune_to_budget`, which runs `jaxsleigh.tuning.tune_law`: Adam on the soft
+   (`jaxsleigh.tuning.tune_to_budget`, which runs `jaxsleigh.tuning.tune_law`: Adam on the soft
    convergence time, augmented Lagrangian on the geometric-mean control energy) on the same training starts
    (``UniformStarts()``, seed ``--seed``), to the energy budget of the paper's gains there
    (``jaxsleigh compare --equal-energy`` does the same). The paper's gains stay as published, and the preset
@@ -37,7 +37,8 @@ import jaxsleigh as js
 from jaxsleigh.controllers.actuators import sampler
 from jaxsleigh.controllers.registry import controller_names
 from jaxsleigh.plots.compare import plot_against, plot_compare_ecdf
-from jaxsleigh.studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts, json_ready, tune_to_budget
+from jaxsleigh.studies.compare import START_DISTRIBUTIONS, compare, draw_compare_starts, json_ready
+from jaxsleigh.tuning import tune_to_budget
 
 
 def main() -> int:

@@ -185,7 +185,8 @@ def _cmd_compare(args) -> int:
 
 def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     from ..controllers.registry import make_controller
-    from ..studies.compare import compare, draw_compare_starts, json_ready, tune_to_budget
+    from ..studies.compare import compare, draw_compare_starts, json_ready
+    from ..tuning.budget import tune_to_budget
 
     t0 = time.perf_counter()
     equal = None

@@ -16,10 +16,8 @@ with the measures a reviewer asks for, judged on the whole distribution and not 
   or failed) and energy (``nan``: failed), in the order of the starts (what the ECDF figure draws,
   `jaxsleigh.plots.compare.plot_compare_ecdf`). `json_ready` writes ``inf`` and ``nan`` as ``null``.
 
-**Equal effort.** `tune_to_budget` tunes the literature's laws (`jaxsleigh.tuning.tune_law`) to one energy budget,
-by default the paper's training energy \(E_{paper} = \exp(\overline{\log E_i})\), \(E_i = \int_0^{30} \|u\|^2 dt\)
-on the tuner's training starts (`jaxsleigh.tuning.training_energy`), so that the laws are compared at equal
-effort; the paper's gains stay as published and a law that ships a tuned preset (``shaped``) keeps it.
+**Equal effort.** `compare` takes the laws as they are given; `jaxsleigh.tuning.tune_to_budget` tunes the
+literature's laws to one energy budget first, so that they are compared at equal effort.
 
 Actuators: ``saturation`` clips each component, \(|u_i| \le U\) (`jaxsleigh.controllers.actuators.Saturation`);
 ``sampler`` runs the sampled-data loop (zero-order hold, delay, noise:
@@ -29,8 +27,7 @@ evaluated from the measured q and v (`jaxsleigh.controllers.paper.PaperLaw`), as
 from __future__ import annotations
 
 import math
-import time
-from typing import Any, Callable, Mapping, NamedTuple, Optional, Sequence
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
@@ -38,12 +35,10 @@ from ..controllers.actuators import sampled, saturate
 from ..status import Status, converged
 from .ensemble import run_ensemble
 from .options import RunOptions
-from ..controllers.registry import controller_class, make_controller
 from ..integrate.engine import MAX_BASE_STEPS
-from ..model.controller import controller_record
 
 __all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS", "BASE_STEP", "SUBSTEPS", "base_step",
-           "check_horizon", "json_ready", "EqualEnergy", "tune_to_budget"]
+           "check_horizon", "json_ready"]
 
 #: The held-out start distributions (name -> description): near the singular set, the training box, and
 #: a wider box with momentum.
@@ -173,75 +168,3 @@ def json_ready(obj):
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(obj) else None
     return obj
-
-
-class EqualEnergy(NamedTuple):
-    r"""The laws of `tune_to_budget`, ready for `compare`, and what was done to each.
-
-    Attributes:
-      laws: name -> law, in the order asked for.
-      budget: the energy budget [N^2 s, (N m)^2 s]: geometric mean of \(\int_0^{30} \|u\|^2 dt\) over the
-        training starts.
-      laws_info: name -> ``{"as": "published" | "preset" | "tuned" | "untuned", "law": record, ...}``; a tuned
-        law adds its ``training_energy``, ``training_loss``, ``steps`` and ``wall_s``, an untuned one ``why``.
-      settings: the training starts' count and seed, the tuner's steps and learning rate, the horizon.
-    """
-
-    laws: dict
-    budget: float
-    laws_info: dict
-    settings: dict
-
-    def record(self) -> dict:
-        """JSON-ready: budget, settings and each law's record."""
-        return json_ready({"budget": self.budget, "settings": self.settings, "laws": self.laws_info})
-
-
-def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr: float = 0.1, seed: int = 0,
-                   t_train: float = 30.0, budget: Optional[float] = None,
-                   log: Optional[Callable[[str], None]] = None) -> EqualEnergy:
-    r"""The laws called ``names`` (`jaxsleigh.controllers.registry`) at one energy budget.
-
-    The budget is ``budget`` or the paper's training energy,
-    \(E_{paper} = \exp\big(\tfrac1N \sum_i \log \int_0^{T} \|u_i\|^2 dt\big)\) over the tuner's ``train``
-    training starts (``UniformStarts()``, ``seed``; \(T\) = ``t_train``), `jaxsleigh.tuning.training_energy`.
-    Each literature law is tuned on those starts by `jaxsleigh.tuning.tune_law` (Adam, ``steps`` iterations at
-    learning rate ``lr``, augmented Lagrangian on "energy \(\le\) budget"); the paper's gains stay as published
-    and a law with a tuned preset (``shaped``) keeps it. A law whose default is not a valid candidate on the
-    training starts is compared untuned (``laws_info[name]["as"] == "untuned"``, with the reason). ``log`` gets
-    one line per law.
-    """
-    from .. import tuning
-
-    say = log or (lambda msg: None)
-    loss = tuning.LossConfig(t_final=float(t_train))
-    starts = tuning.draw_starts(tuning.UniformStarts(), train, seed)
-    if budget is None:
-        budget = tuning.training_energy("paper", config=tuning.TuneConfig(batch=train, seed=seed),
-                                        loss=loss)["energy"]
-    budget = float(budget)
-    laws, info = {}, {}
-    for name in names:
-        law = make_controller(name)
-        # the paper's gains stay as published and a law that ships a tuned preset keeps it; the others are tuned
-        kept = "published" if name == "paper" else "preset" if hasattr(controller_class(name), "preset") else None
-        if kept is not None:
-            laws[name], info[name] = law, {"as": kept, "law": controller_record(law)}
-            continue
-        t0 = time.perf_counter()
-        try:
-            res = tuning.tune_law(law, starts, loss=loss._replace(energy_budget=budget), steps=steps, lr=lr)
-        except ValueError as e:                 # the default law is not a valid candidate there
-            laws[name], info[name] = law, {"as": "untuned", "why": str(e), "law": controller_record(law)}
-            say(f"{name}: compared untuned ({e})")
-            continue
-        laws[name] = res.law
-        info[name] = {"as": "tuned", "law": controller_record(res.law), "training_energy": res.energy,
-                      "training_loss": res.loss, "steps": len(res.history["loss"]),
-                      "wall_s": time.perf_counter() - t0}
-        say(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g}, "
-            f"{res.energy / budget:.2f}x the budget {budget:.4g}"
-            + (" (more tuner steps bring it closer)" if res.energy > 1.05 * budget else ""))
-    settings = {"train": int(train), "seed": int(seed), "steps": int(steps), "lr": float(lr),
-                "t_train": float(t_train), "starts": "tuning.UniformStarts()"}
-    return EqualEnergy(laws, budget, info, settings)

@@ -71,7 +71,8 @@ it wins from roughly a dozen of them.
 `checkpoint`, `history`, `law_file` (a tuned law on disk),
 `validation`, `pareto` (the time-effort front), `cmaes` (CMA-ES, ask / tell) and
 `cma_search` (derivative-free search of the gains on the accurate engine's median figures under an energy budget:
-where the ``balanced`` preset comes from).
+where the ``balanced`` preset comes from), `budget` (laws tuned to one energy budget, for comparisons at equal
+effort).
 Everything public is re-exported here.
 """
 from __future__ import annotations
@@ -84,6 +85,7 @@ from .optimizer import BacktrackState, TuneConfig, TuneHistory, TuneResult, back
 from .pareto import (FRONT_METHODS, Front, FrontPoint, budgets_between, default_budgets, evaluate_front, front_dict,
                      load_front, pareto_front, point_gains, random_search, save_front, training_energy)
 from .law import LawTuneResult, gain_names, tune_law
+from .budget import EqualEnergy, tune_to_budget
 from .law_file import load_controller_record, save_law
 from .cma_search import PopulationFigures, SearchConfig, SearchResult, evaluate_population, search
 from .params import (D_FLOOR, TUNABLE, GainParams, gains_from_params, merge_params, params_from_gains, parse_tune,
@@ -106,4 +108,5 @@ __all__ = [
     "random_search", "evaluate_front", "front_dict", "save_front", "load_front", "point_gains",
     "SearchConfig", "SearchResult", "PopulationFigures", "evaluate_population", "search",
     "LawTuneResult", "tune_law", "gain_names", "save_law", "load_controller_record",
+    "EqualEnergy", "tune_to_budget",
 ]
