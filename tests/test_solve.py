@@ -96,6 +96,21 @@ def test_solve_reports_an_exhausted_budget():
     assert int(out.status) == js.Status.BUDGET_EXHAUSTED and float(out.t_reached) < 10.0
 
 
+def test_solve_carries_a_stiff_flight_as_simulate_does():
+    """A start 2e-4 rad from the singular set flies off stiffly: `solve` takes the same step budget and the same
+    flight rule (the implicit step after 20,000 attempts at a tiny mean step) as `simulate`, and ends like it: OK at
+    100 s, some 3e5 m away, the final states within the tolerances' reach (before, solve's own 4x budget and its
+    explicit-only step left it BUDGET_EXHAUSTED at t = 0.096 s)."""
+    y0 = np.array([1.9, -0.04, 2e-4], np.float32)
+    out = solve(js.paper_gains(), jnp.asarray(y0), t_final=100.0)
+    sol = js.simulate(y0[None], t_final=100.0)
+    assert int(out.status) == sol.status[0] == js.Status.OK and float(out.t_reached) == 100.0
+    assert abs(sol.q_final[0, 0]) > 1e5
+    np.testing.assert_allclose(np.asarray(out.q_final), sol.q_final[0], rtol=1e-4)
+    # the implicit step took over: an explicit-only run needs far more than the 24,255 accepted steps of the host
+    assert int(out.n_steps) < 2 * sol.n_steps[0]
+
+
 @pytest.mark.parametrize("kw, says", [({"t_final": -1.0}, "t_final must be > 0"),
                                       ({"t_final": float("nan")}, "t_final must be finite"),
                                       ({"dt": 0.0}, "dt must be > 0"),

@@ -7,7 +7,6 @@ state and on-line summaries, host loop over segments with batch compaction) and
 from __future__ import annotations
 
 import functools
-import math
 import warnings
 from typing import NamedTuple, Optional
 
@@ -23,7 +22,9 @@ from ..model.lanes import broadcast_lanes, has_lanes, take_lanes
 from ..model.charts import chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
-from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, StepSizeController
+from .stepsize import StepSizeController
+from .horizon import (BUDGET_FACTOR, FLIGHT_STEP, MAX_BASE_STEPS, STIFF_AFTER, Horizon,  # noqa: F401  (re-exported)
+                      default_max_steps, flight_step, make_horizon)
 from .stragglers import certify
 from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
                       run_saving)
@@ -42,64 +43,6 @@ def working_dtype():
     """float64 where x64 is enabled (``jax.enable_x64``), else float32 (no computation: an array made
     to ask would be a program of its own)."""
     return np.dtype(jax.dtypes.canonicalize_dtype(np.float64))
-
-
-class Horizon(NamedTuple):
-    """Time grid of a run: ``n_steps`` base steps of ``dt``, saved every ``save_every``."""
-
-    t_final: float
-    dt: float
-    n_steps: int
-    save_every: int
-
-    @property
-    def n_out(self) -> int:
-        return self.n_steps // self.save_every
-
-    def save_times(self) -> np.ndarray:
-        """Save times after t = 0, float64, shape (n_out,)."""
-        return self.dt * self.save_every * np.arange(1, self.n_out + 1, dtype=np.float64)
-
-    def t(self) -> np.ndarray:
-        """Saved times including t = 0, shape (n_out + 1,)."""
-        return np.concatenate([[0.0], self.save_times()])
-
-
-#: Most base steps (t_final / dt) of one run: the step budget (30x that at most, adaptive) must fit the
-#: engine's int32 counters.
-MAX_BASE_STEPS = 50_000_000
-
-
-def make_horizon(t_final, dt, save_every=None, *, flags=None) -> Horizon:
-    """Validated horizon; ``save_every=None`` saves the final state only. ``flags`` maps the
-    keywords ``t_final``, ``dt``, ``save_every`` to the names used in messages (command-line flags)."""
-    f = (lambda n: (flags or {}).get(n, n))
-    try:
-        t_final, dt = float(t_final), float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"{f('t_final')} and {f('dt')} must be numbers, got {t_final!r}, {dt!r}") from None
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"{f('dt')} must be a finite number > 0, got {dt}")
-    if not (math.isfinite(t_final) and t_final > 0):
-        raise ValueError(f"{f('t_final')} must be a finite number > 0, got {t_final}")
-    ratio = t_final / dt
-    if not ratio <= MAX_BASE_STEPS + 0.5:
-        raise ValueError(f"{f('t_final')} / {f('dt')} = {ratio:.3g} base steps is more than one run can take "
-                         f"({MAX_BASE_STEPS:.0e}); use a larger {f('dt')} (the adaptive method grows its step "
-                         f"by itself) or a shorter {f('t_final')}")
-    n_steps = int(round(ratio))
-    if n_steps < 1 or abs(n_steps * dt - t_final) > 1e-9 * max(1.0, t_final):
-        raise ValueError(f"{f('t_final')} {t_final:g} must be a whole multiple of {f('dt')} {dt:g} "
-                         f"(e.g. {f('t_final')} {max(1, n_steps) * dt:g} or {f('dt')} {t_final / max(1, n_steps):g})")
-    if save_every is None:
-        save_every = n_steps
-    if isinstance(save_every, bool) or int(save_every) != save_every or save_every < 1:
-        raise ValueError(f"{f('save_every')} must be a whole number >= 1, got {save_every}")
-    save_every = int(save_every)
-    if n_steps % save_every:
-        raise ValueError(f"the {n_steps} base steps ({f('t_final')} / {f('dt')}) are not a multiple of "
-                         f"{f('save_every')} {save_every}; use a {f('save_every')} that divides {n_steps} (e.g. 1)")
-    return Horizon(t_final, dt, n_steps, save_every)
 
 
 _WHY = {
@@ -281,20 +224,6 @@ def flying(state, ctl: Controls, stiff_after: int) -> np.ndarray:
     return was | (ok & (n >= stiff_after) & (np.asarray(state.t, np.float64) < flight * float(ctl.dt) * n))
 
 
-def flight_step(rtol, atol, dtype) -> float:
-    r"""The mean step, in base steps, below which a lane flies (`flying`): `FLIGHT_STEP` at the dtype's default
-    tolerances (`jaxsleigh.integrate.stepsize.DEFAULT_RTOL`) or looser, and for tighter ones
-
-    \[ \text{FLIGHT\_STEP} \cdot \left(\frac{\min(r, a)}{\min(r_0, a_0)}\right)^{1/5}, \]
-
-    the factor by which they shrink an explicit step that accuracy limits (the embedded RK4 estimate's local error
-    goes as \(h^5\)). A stiff flight's step is limited by stability, not accuracy, and does not shrink; a lane of the
-    `tuned` gains' settled phase at 1e-10 takes 4.8e-2 base steps on average over 100 s and, judged by
-    `FLIGHT_STEP` alone, moved to the implicit step, of lower order, which then spent 10^6 attempts by t = 58 s."""
-    name = np.dtype(dtype).name
-    base = min(DEFAULT_RTOL.get(name, 1e-6), DEFAULT_ATOL.get(name, 1e-6))
-    return FLIGHT_STEP * min(1.0, min(float(rtol), float(atol)) / base) ** 0.2
-
 
 def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
              mesh=None):
@@ -370,17 +299,6 @@ def batch_mesh(devices=None):
     return Mesh(np.array(devices), ("batch",)) if len(devices) > 1 else None
 
 
-#: attempts after which the ensembles' adaptive engine steps a lane that is still in a stiff flight (its mean step
-#: below `FLIGHT_STEP` base steps: a straggler near the singular set) with the linearly implicit Rosenbrock step
-#: (`jaxsleigh.integrate.rosenbrock`), for the rest of its run (`_segment`). A lane's own state decides, so where it
-#: runs (a part, the pool of stragglers) never does. A lane that is slow but not stiff (the `tuned` gains' settled
-#: phase, ~2e-3 s steps) stays on the explicit step, which handles its oscillation better.
-STIFF_AFTER = 20_000
-
-#: a flight's mean step, in base steps, at the dtype's default tolerances (`flight_step` lowers it for tighter ones):
-#: at 20,000 attempts the default basin's fliers had reached t = 0.02-12 s, the `tuned` gains' slow lanes 40 s or
-#: more (dt = 0.01)
-FLIGHT_STEP = 0.1
 
 #: the smallest batch compaction gathers the active lanes into (a power of two), per dtype. A few stiff
 #: stragglers (starts near theta = 0) can take 100x the median's steps, and small batches make them cheaper. In float64 a batch of
@@ -853,16 +771,3 @@ def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
     real = idx >= 0
     out[..., idx[real]] = part[..., real]
     return out
-
-
-#: room of the adaptive budget, in base steps, per dtype: float64's 100x tighter tolerances need ~20% more
-#: attempts than 20x out of the stiffest starts (theta0 = 1e-2 took 25,387 attempts for a 10 s run's 1,008 base
-#: steps; python experiments/performance/engine_defaults.py)
-BUDGET_FACTOR = {"float32": 20, "float64": 30}
-
-
-def default_max_steps(horizon: Horizon, adaptive: bool, dtype="float32") -> int:
-    """Per-trajectory budget of attempted steps: the base steps, plus `BUDGET_FACTOR` times room when
-    adaptive. A start that uses it up (one near theta = 0 that does not settle) ends ``BUDGET_EXHAUSTED``."""
-    base = horizon.n_steps + horizon.n_out + 8
-    return min(BUDGET_FACTOR.get(np.dtype(dtype).name, 30) * base if adaptive else base, 2**31 - 2)

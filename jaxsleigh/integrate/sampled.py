@@ -83,7 +83,7 @@ from ..model.controller import FunctionLaw, PerTrajectory, apply_law, is_paper_l
 from ..model.params import PlantParams, is_concrete, plant_params
 from ..model.plant import velocity
 from ..status import Status
-from .engine import BUDGET_FACTOR, MAX_BASE_STEPS
+from .horizon import BUDGET_FACTOR, MAX_BASE_STEPS
 from .observers import DEFAULT_OBSERVERS, collect_values
 from .stepper import Checkpointed, Controls, StepState, controls, init_state, run
 from .stepsize import StepSizeController, check_policy

@@ -28,16 +28,15 @@ import jax.numpy as jnp
 
 from ..controllers.actuators import Sampled, is_sampled
 from ..cores import configure
-from ..deprecation import warn_deprecated
 from ..model.charts import chart_for
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
 from ..model.params import is_concrete, paper_plant
 from ..status import Status
 from .sampled import solve_sampled, substeps_for
-from .engine import make_horizon
+from .horizon import default_max_steps, make_horizon
 from .saveat import SaveAt
-from .stepper import Checkpointed, Scan, controls, init_state, run
+from .stepper import Checkpointed, FlightSwitch, controls, init_state, run
 from .stepsize import StepSizeController, check_policy
 from ..validate import real
 
@@ -93,13 +92,13 @@ class SolveOutput(NamedTuple):
         return (self.status == Status.OK) & jnp.isfinite(self.T_eps)
 
 
-#: The keywords `solve` took before its options were a `jaxsleigh.StepSizeController`: ``(object, field)`` of each.
-SOLVE_KEYWORDS = {"method": ("stepsize", "method"), "max_attempts": ("stepsize", "max_steps")}
+#: The keywords `solve` took before jaxsleigh 0.4, and the field of `jaxsleigh.StepSizeController` that holds each now.
+SOLVE_KEYWORDS = {"method": "method", "max_attempts": "max_steps"}
 
 
 def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01,
           stepsize: Optional[StepSizeController] = None, eps: float = 0.05, observers: Any = DEFAULT_OBSERVERS,
-          saveat: Optional[SaveAt] = None, **options) -> SolveOutput:
+          saveat: Optional[SaveAt] = None) -> SolveOutput:
     r"""Integrate one start ``y0`` ((3,) or (5,), physical state) to ``t_final`` under ``controller``.
 
     Args:
@@ -113,13 +112,16 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       t_final, dt: horizon and base step (the fixed step of ``"rk4"``, the first step of ``"adaptive"``).
       stepsize: `jaxsleigh.StepSizeController`, static (a constant of the traced function, or a static
         argument of ``jit``; its numbers may also be traced): ``method`` ``"adaptive"`` or ``"rk4"``, the
-        adaptive policy (tolerances per dtype by default), ``check_passivity``, and ``max_steps``, the attempted
-        steps \(n\) of the ``lax.scan`` (default: the base steps \(t_{final}/dt + 8\) for ``"rk4"``, 4x that for
+        adaptive policy (tolerances per dtype by default), ``check_passivity``, and ``max_steps``, the most
+        attempted steps (default: the budget of every front, `jaxsleigh.integrate.horizon.default_max_steps`: the
+        base steps \(t_{final}/dt\) plus the saves and 8 for ``"rk4"``, 20x that in float32 and 30x in float64 for
         ``"adaptive"``); a start that needs more ends ``BUDGET_EXHAUSTED`` (its summaries are then up to
-        ``t_reached``). A stiff flight near \(\theta = 0\) stays on the explicit step here, which crosses it
-        only at its stability limit: `jaxsleigh.simulate` switches such a start to the implicit step of
-        `jaxsleigh.integrate.rosenbrock` (from ``(1.9, -0.04, 2e-4)`` in float32 it reaches 100 s in 28,000
-        attempts, where `solve` ends ``BUDGET_EXHAUSTED`` at 0.1 s).
+        ``t_reached``). The attempts run in checkpointed segments, and a segment after the lane is done is
+        skipped, so a large budget costs a lone start nothing it does not use; under ``vmap`` every segment runs
+        for every start (the skip becomes a select), so there a budget near what the starts need is cheaper. A
+        stiff flight near \(\theta = 0\) moves to the implicit step of `jaxsleigh.integrate.rosenbrock` by the
+        flight rule of every front (`jaxsleigh.integrate.stepper.FlightSwitch`): from ``(1.9, -0.04, 2e-4)`` in
+        float32 `solve` carries it to 100 s as `jaxsleigh.simulate` does.
       eps: radius of the ball of ``T_eps``.
       observers: the summaries to carry (static).
       saveat: `jaxsleigh.SaveAt`: ``SaveAt(every=n)`` also returns the trajectory at \(t_j = j\,n\,dt\) (``t``, ``q``,
@@ -127,8 +129,6 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         the save times and ``max_steps`` is shared evenly between the save intervals (as between a sampled loop's
         periods), a stretch of the scan in which the lane is done skipped; the results differ from a run without
         saving within the tolerances. Under a sampled law the samples are saved: ``n dt`` must be the period.
-      **options: the deprecated ``method=`` and ``max_attempts=`` (one `DeprecationWarning`): now
-        ``stepsize.method`` and ``stepsize.max_steps``.
 
     Returns:
       `SolveOutput` (its ``t``, ``q``, ``p``, ``u`` ``None`` without ``saveat``). Concrete settings are checked
@@ -138,7 +138,7 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
       whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
     """
-    ss = _stepsize(stepsize, options)
+    ss = check_policy(stepsize)
     configure()              # a run begins: one JAX CPU device per core, if JAX has not started (jaxsleigh.cores)
     y0 = _checked_start(controller, y0, t_final=t_final, dt=dt, eps=eps)
     every, observers = _save_every(saveat), tuple(observers)
@@ -148,14 +148,17 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     adaptive = ss.method == "adaptive"
     max_attempts = ss.max_steps
     if max_attempts is None:
-        base = int(round(float(t_final) / float(dt))) + 8
-        max_attempts = 4 * base if adaptive else base
+        if not is_concrete((t_final, dt)):
+            raise ValueError("the default step budget comes from t_final / dt: give them as concrete numbers, or give "
+                             "stepsize=jaxsleigh.StepSizeController(max_steps=...)")
+        max_attempts = default_max_steps(make_horizon(t_final, dt, every), adaptive, dtype)
     args = ClosedLoop(paper_plant() if plant is None else plant, controller)
     chart = chart_for(controller)
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
     yc, status0 = _start_in_chart(y0, chart)
     s0 = init_state(yc, status0, args, ctl, observers=observers)
-    how = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers)
+    how = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers,
+               implicit=FlightSwitch() if adaptive else False)
     traj = {}
     if every is None:
         s = _scan(s0, jnp.asarray(t_final, dtype), args, ctl, int(max_attempts), **how)
@@ -167,11 +170,15 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     return _output(s, s0, status0, chart, t_final, observers, traj)
 
 
-@functools.partial(jax.jit, static_argnames=("n", "adaptive", "monitor", "observers"))
+#: attempts per checkpointed segment, and segments per block, of `solve` without saving (`stepper.Checkpointed`)
+SEGMENT, BLOCK = 64, 32
+
+
+@functools.partial(jax.jit, static_argnames=("n", "adaptive", "monitor", "observers", "implicit"))
 def _scan(s0, target, args, ctl, n: int, **how):
-    """`run` of ``n`` attempted steps (a ``lax.scan``), jitted: a second `solve` of the same law, shapes and options
-    compiles nothing (called outside ``jit``, each call of the bare loop traced and compiled it again)."""
-    return run(s0, target, args, ctl, Scan(n), **how)
+    """`run` of at most ``n`` attempted steps in checkpointed segments, those after the lane is done skipped, jitted:
+    a second `solve` of the same law, shapes and options compiles nothing."""
+    return run(s0, target, args, ctl, Checkpointed(n, min(SEGMENT, n), BLOCK), **how)
 
 
 def _checked_start(controller, y0, **numbers) -> jax.Array:
@@ -232,7 +239,7 @@ def _save_every(saveat) -> Optional[int]:
 
 
 @functools.partial(jax.jit, static_argnames=("chart", "t_final", "dt", "every", "max_attempts", "adaptive", "monitor",
-                                             "observers"))
+                                             "observers", "implicit"))
 def _run_saving(s0, y0, status0, args, ctl, chart, t_final: float, dt: float, every: int, max_attempts: int, **how):
     """The stepper's final state and the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of ``every`` base
     steps: one ``lax.scan`` over the save intervals, each at most its share of ``max_attempts`` attempts
@@ -287,27 +294,6 @@ def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps,
     return SolveOutput(q_final=out.q_final[0], p_final=out.p_final[0], status=out.status[0],
                        t_reached=out.t_reached[0], n_steps=out.n_steps[0], n_rejected=out.n_rejected[0],
                        summaries={k: v[0] for k, v in out.summaries.items()}, Hd0=nan, Hd_final=nan, **traj)
-
-
-def _stepsize(stepsize, options: dict) -> StepSizeController:
-    """The `StepSizeController` of a `solve` call: ``stepsize`` (default `StepSizeController()`, checked) with the
-    deprecated ``method=`` / ``max_attempts=`` of ``options`` put in (one `DeprecationWarning` naming both, at the
-    caller of `solve`). An unknown keyword is a ``TypeError``; a keyword that contradicts a field the object sets
-    (not at its default) is a ``ValueError``."""
-    unknown = sorted(set(options) - set(SOLVE_KEYWORDS))
-    if unknown:
-        raise TypeError(f"solve() got an unexpected keyword argument {unknown[0]!r}; its options are "
-                        f"stepsize=jaxsleigh.StepSizeController(...)")
-    ss = check_policy(stepsize)
-    warn_deprecated("solve", ((k,) + SOLVE_KEYWORDS[k] for k in options), stacklevel=3)
-    for key, value in options.items():
-        field = SOLVE_KEYWORDS[key][1]
-        mine, default = getattr(ss, field), StepSizeController._field_defaults[field]
-        if mine != default and mine != value:
-            raise ValueError(f"solve(): {key}={value!r} contradicts stepsize.{field} = {mine!r}; give it once, "
-                             f"as stepsize.{field}")
-        ss = ss._replace(**{field: value})
-    return check_policy(ss)
 
 
 def _start_in_chart(y0: jax.Array, chart) -> tuple[jax.Array, jax.Array]:

@@ -60,12 +60,14 @@ from .observers import DEFAULT_OBSERVERS, StepInfo
 from .etd import etd_stages
 from .guard import oscillation_guard
 from .rk4 import rk4_stages, rk4_steps
+from .horizon import FLIGHT_STEP, STIFF_AFTER, default_tolerance
 from .rosenbrock import rosenbrock_stages
 from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt",
-           "run", "Scan", "Count", "WhileActive", "Checkpointed", "run_saving", "run_plain", "q_norm2_w"]
+           "run", "Scan", "Count", "WhileActive", "Checkpointed", "run_saving", "run_plain", "q_norm2_w",
+           "FlightSwitch"]
 
 #: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
 GUARD_EVERY = 8
@@ -127,7 +129,20 @@ class StepState(NamedTuple):
     g1: jax.Array         # (m,) the observers' integrands at y (FSAL, like k1)
     err_prev: jax.Array   # error ratio of the last accepted step (the PI controller's memory)
     guard: tuple = ()     # (cap, atol) of jaxsleigh.integrate.guard in a chart with the pair; () elsewhere
-    stiff: jax.Array = False  # bool: the lane steps implicitly (set by the host: jaxsleigh.integrate.engine.flying)
+    stiff: jax.Array = False  # bool: the lane steps implicitly (the host's engine.flying, or a traced FlightSwitch)
+
+
+class FlightSwitch(NamedTuple):
+    r"""The implicit switch as a declared policy of a traced loop (``implicit=FlightSwitch()`` in `attempt` / `run`):
+    each lane carries its own ``stiff`` flag; a lane still OK after ``after`` attempts at a mean step below
+    ``flight`` base steps (scaled for tolerances tighter than the dtype's default as `jaxsleigh.integrate.horizon.
+    flight_step` scales it) takes the linearly implicit step from then on, the others the explicit one. It is the
+    rule the host's engine applies between segments (`jaxsleigh.integrate.engine.flying`), applied after every
+    attempt, so that `jaxsleigh.solve` carries a stiff flight near \(\theta = 0\) as `jaxsleigh.simulate` does.
+    Both steps are compiled; one lane runs one of them (``lax.cond``), a batch both (selected per lane)."""
+
+    after: int = STIFF_AFTER
+    flight: float = FLIGHT_STEP
 
 
 def _integrands(observers, y, u, dtype):
@@ -379,8 +394,14 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
     `jaxsleigh.integrate.rosenbrock` instead (for a stiff flight near the singular set, which the explicit step
     crosses only at its stability limit; `jaxsleigh.integrate.engine.STIFF_AFTER`).
 
+    ``implicit=FlightSwitch(...)`` (adaptive): each lane's ``stiff`` flag chooses, and the flight rule sets it
+    (`FlightSwitch`).
+
     Written for one trajectory (``y`` of shape (5,)) but every operation broadcasts over a
     trailing batch axis, so it also steps a batch-last batch (``y`` (5, N), scalars (N,))."""
+    if isinstance(implicit, FlightSwitch):
+        return _switched_attempt(s, target, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers,
+                                 switch=implicit)
     chart = chart_for(args.controller)
     dtype = s.y.dtype
     target = jnp.asarray(target, dtype)
@@ -420,6 +441,28 @@ def attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: 
         err_prev=jnp.where(acc, jnp.maximum(err, 1e-4), s.err_prev).astype(dtype) if adaptive else s.err_prev,
         guard=guard if adaptive else s.guard, stiff=s.stiff,
     )
+
+
+def _switched_attempt(s: StepState, target, args: ClosedLoop, ctl: Controls, *, adaptive: bool, monitor: bool,
+                      observers, switch: FlightSwitch) -> StepState:
+    """`attempt` under a `FlightSwitch`: the lane's own ``stiff`` flag picks the explicit or the implicit step (one
+    lane: ``lax.cond``; a batch: both, selected per lane), then the flight rule may set the flag."""
+    how = dict(adaptive=adaptive, monitor=monitor, observers=observers)
+    if not adaptive:
+        return attempt(s, target, args, ctl, implicit=False, **how)
+    if jnp.ndim(s.stiff) == 0:
+        new = jax.lax.cond(s.stiff, lambda c: attempt(c, target, args, ctl, implicit=True, **how),
+                           lambda c: attempt(c, target, args, ctl, implicit=False, **how), s)
+    else:
+        explicit = attempt(s, target, args, ctl, implicit=False, **how)
+        implicit = attempt(s, target, args, ctl, implicit=True, **how)
+        new = jax.tree_util.tree_map(lambda a, b: jnp.where(s.stiff, b, a), explicit, implicit)
+    n = new.n_accept + new.n_reject
+    dtype = new.y.dtype
+    # the flight bar of jaxsleigh.integrate.horizon.flight_step, with the tolerances traced
+    bar = switch.flight * jnp.minimum(1.0, jnp.minimum(ctl.rtol, ctl.atol) / default_tolerance(dtype)) ** 0.2
+    flies = (new.status == Status.OK) & (n >= switch.after) & (new.t < bar * ctl.dt * n.astype(dtype))
+    return new._replace(stiff=jnp.logical_or(new.stiff, flies))
 
 
 def init_batch(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=DEFAULT_OBSERVERS) -> StepState:
