@@ -1,15 +1,13 @@
-"""The deprecation of the keyword options of jaxsleigh 0.1.
+"""The deprecation of `jaxsleigh.solve`'s keyword options ``method=`` and ``max_attempts=``.
 
-The fronts (`jaxsleigh.simulate`, `jaxsleigh.run_ensemble`, `jaxsleigh.run_basin`, `jaxsleigh.sweep`,
-`jaxsleigh.solve`) take their options as objects: ``stepsize=jaxsleigh.StepSizeController(...)``,
-``saveat=jaxsleigh.SaveAt(...)``, ``run=jaxsleigh.RunOptions(...)``. The keywords they took before
-(``rtol=``, ``chunk_size=``, ``save_every=``, ... and `jaxsleigh.solve`'s ``method=``, ``max_attempts=``) work
-until 0.4; each call that gives any emits one `DeprecationWarning`, at the caller's line, that names every such
-keyword and the object and field it belongs to::
+`jaxsleigh.solve` takes its step policy as ``stepsize=jaxsleigh.StepSizeController(method=..., max_steps=...)``;
+the two keywords it took before still work, and each call that gives any emits one `DeprecationWarning`, at the
+caller's line, that names every such keyword and the object and field it belongs to::
 
-    run_basin(rtol=..., chunk_size=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(rtol=...),
-    run=jaxsleigh.RunOptions(chunk_size=...) (these keywords work until jaxsleigh 0.4)
+    solve(method=..., max_attempts=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(method=...,
+    max_steps=...) (these keywords work until jaxsleigh 0.4)
 
+(The studies' keywords of jaxsleigh 0.1 were removed in 0.4: `jaxsleigh.studies.options` refuses them by name.)
 A filter on these warnings alone matches `DEPRECATED_SAYS`::
 
     warnings.filterwarnings("error", message=".*" + jaxsleigh.deprecation.DEPRECATED_SAYS, category=DeprecationWarning)

@@ -1,10 +1,13 @@
-"""The fronts take their options as objects; the keywords of jaxsleigh 0.1 still work, each call with one
-`DeprecationWarning` that names the object and field of every keyword given, at the caller's line; and the library
-itself (its code, its experiments, the README, the pages and the notebooks) never passes one."""
+"""The fronts take their options as objects only: each keyword of jaxsleigh 0.1 given to `simulate`,
+`run_ensemble`, `run_basin`, `sweep` or `optimum` is a ``TypeError`` that names the object and field that hold it
+now (or says that the front has no use for it). `jaxsleigh.solve`'s own ``method=`` and ``max_attempts=`` still work,
+each call with one `DeprecationWarning` naming the object and field, at the caller's line. The library itself (its
+code, its experiments, the README, the pages and the notebooks) passes none of them."""
 from __future__ import annotations
 
 import ast
 import contextlib
+import inspect
 import json
 import re
 import warnings
@@ -19,67 +22,122 @@ from jaxsleigh.integrate.solve import SOLVE_KEYWORDS, solve
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([[1.0, 1.0, 0.5]])
-#: the keywords of jaxsleigh 0.1 (every front's) and solve's own
-OLD_KEYWORDS = frozenset({"rtol", "atol", "method", "max_steps", "max_step", "check_passivity", "save_every",
-                          "summaries", "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume",
-                          "progress", "shard"})
+#: each keyword of jaxsleigh 0.1 and the object and field that hold it now
+NOW = {**{k: ("stepsize", "StepSizeController", k) for k in ("rtol", "atol", "method", "max_steps", "max_step",
+                                                             "check_passivity")},
+       "save_every": ("saveat", "SaveAt", "every"), "summaries": ("saveat", "SaveAt", "summaries"),
+       **{k: ("run", "RunOptions", k) for k in ("chunk_size", "segment", "devices", "cores", "checkpoint_dir",
+                                                "resume", "progress", "shard")}}
+OLD_KEYWORDS = frozenset(NOW)
+#: the keywords each front took: its own removed ones (a call of the library with one fails), and solve's
+#: deprecated ones
 FRONTS = {"simulate": OLD_KEYWORDS, "run_ensemble": OLD_KEYWORDS, "run_basin": OLD_KEYWORDS,
-          "sweep": OLD_KEYWORDS, "solve": frozenset(SOLVE_KEYWORDS)}
+          "sweep": OLD_KEYWORDS, "optimum": frozenset({"chunk_size", "progress", "checkpoint_dir", "resume", "shard"}),
+          "solve": frozenset(SOLVE_KEYWORDS)}
+#: the fields of the objects each front has a use for (the others: "has no use for")
+USED = {"simulate": {"rtol", "atol", "method", "max_steps", "max_step", "save_every", "progress"},
+        "run_ensemble": set(OLD_KEYWORDS),
+        "run_basin": set(OLD_KEYWORDS) - {"save_every", "summaries", "segment"},
+        "sweep": set(OLD_KEYWORDS) - {"save_every", "summaries", "segment"},
+        "optimum": set(FRONTS["optimum"])}
 #: only jaxsleigh's own deprecations of keyword options (not JAX's, not NumPy's)
 OWN = f".*{DEPRECATED_SAYS}"
 
 
 def _front(name):
     return {"simulate": js.simulate, "run_ensemble": js.run_ensemble, "run_basin": js.run_basin,
-            "sweep": lambda s, **kw: js.sweep(s, ["k=0.1:0.2:2"], **kw), "solve": lambda s, **kw: solve(
-                js.paper_gains(), s[0], **kw)}[name]
+            "sweep": lambda s, **kw: js.sweep(s, ["k=0.1:0.2:2"], **kw), "optimum": js.optimum,
+            "solve": lambda s, **kw: solve(js.paper_gains(), s[0], **kw)}[name]
 
 
 def _deprecations(caught):
     return [w for w in caught if issubclass(w.category, DeprecationWarning) and DEPRECATED_SAYS in str(w.message)]
 
 
-@pytest.mark.parametrize("name, keywords, says", [
-    ("simulate", {"save_every": 5, "rtol": 1e-7, "progress": False},
-     "simulate(save_every=..., rtol=..., progress=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController("
-     "rtol=...), saveat=jaxsleigh.SaveAt(every=...), run=jaxsleigh.RunOptions(progress=...)"),
-    ("run_ensemble", {"summaries": True, "method": "adaptive", "chunk_size": 4, "max_steps": 10**5},
-     "run_ensemble(summaries=..., method=..., chunk_size=..., max_steps=...) is deprecated: pass "
+#: a value of the right kind for each keyword (refused by its name, not by its value)
+VALUE = {"rtol": 1e-7, "atol": 1e-7, "method": "rk4", "max_steps": 1000, "max_step": 0.5, "check_passivity": False,
+         "save_every": 5, "summaries": False, "chunk_size": 4, "segment": 100, "devices": None, "cores": 1,
+         "checkpoint_dir": None, "resume": False, "progress": False, "shard": None}
+
+
+@pytest.mark.parametrize("name, keyword", [(n, k) for n in sorted(USED) for k in sorted(FRONTS[n])])
+def test_each_old_keyword_is_a_type_error_naming_its_object_and_field(name, keyword):
+    """Before anything runs (a horizon that cannot run would be refused next) and without a warning."""
+    home, cls, field = NOW[keyword]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        with pytest.raises(TypeError) as e:
+            _front(name)(START, t_final=-1.0, **{keyword: VALUE[keyword]}) if name != "optimum" else \
+                js.optimum(START, horizons=(-1.0,), **{keyword: VALUE[keyword]})
+    msg = str(e.value)
+    assert msg.startswith(f"{name}() got an unexpected keyword argument {keyword!r}: "), msg
+    if keyword in USED[name]:
+        assert f"pass {home}=jaxsleigh.{cls}({field}=...)" in msg, msg
+    else:
+        assert f"{name}() has no use for jaxsleigh.{cls}.{field}" in msg, msg
+    assert "removed in 0.4" in msg
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda: js.run_basin(START, rtol=1e-6, chunk_size=4096),
+     "run_basin() got unexpected keyword arguments 'rtol', 'chunk_size': pass "
+     "stepsize=jaxsleigh.StepSizeController(rtol=...), run=jaxsleigh.RunOptions(chunk_size=...)"),
+    (lambda: js.run_ensemble(START, progress=False, summaries=True, method="rk4", max_steps=10),
+     "run_ensemble() got unexpected keyword arguments 'progress', 'summaries', 'method', 'max_steps': pass "
      "stepsize=jaxsleigh.StepSizeController(method=..., max_steps=...), saveat=jaxsleigh.SaveAt(summaries=...), "
-     "run=jaxsleigh.RunOptions(chunk_size=...)"),
-    ("run_basin", {"rtol": 1e-7}, "run_basin(rtol=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(rtol=...)"),
-    ("sweep", {"checkpoint_dir": None, "atol": 1e-7},
-     "sweep(checkpoint_dir=..., atol=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(atol=...), "
-     "run=jaxsleigh.RunOptions(checkpoint_dir=...)"),
-    ("solve", {"method": "rk4", "max_attempts": 50},
-     "solve(method=..., max_attempts=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(method=..., "
-     "max_steps=...)"),
+     "run=jaxsleigh.RunOptions(progress=...)"),
+    (lambda: js.simulate(START, save_every=5, chunk_size=4),
+     "simulate() got unexpected keyword arguments 'save_every', 'chunk_size': pass saveat=jaxsleigh.SaveAt(every=...); "
+     "simulate() has no use for jaxsleigh.RunOptions.chunk_size"),
+    (lambda: js.optimum(START, chunk_size=8, resume=True),
+     "optimum() got unexpected keyword arguments 'chunk_size', 'resume': pass "
+     "run=jaxsleigh.RunOptions(chunk_size=..., resume=...)"),
 ])
-def test_one_warning_per_call_names_every_keyword_its_object_and_field_at_the_callers_line(name, keywords, says):
+def test_one_message_names_every_old_keyword_of_a_call_by_object(call, says):
+    with pytest.raises(TypeError) as e:
+        call()
+    assert str(e.value).startswith(says), str(e.value)
+
+
+@pytest.mark.parametrize("name", sorted(USED))
+def test_the_fronts_take_no_loose_keywords(name):
+    """No ``**options``: a keyword that is no parameter and no keyword of jaxsleigh 0.1 gets Python's own error."""
+    front = getattr(js, name)
+    assert not [p for p in inspect.signature(front).parameters.values() if p.kind is p.VAR_KEYWORD]
+    assert "run" in inspect.signature(front).parameters
+    with pytest.raises(TypeError, match=rf"^{name}\(\) got an unexpected keyword argument 'rtoll'$"):
+        _front(name)(START, rtoll=1e-6)
+
+
+@pytest.mark.parametrize("run, says", [
+    (js.RunOptions(segment=500), "optimum() has no use for run.segment = 500"),
+    (js.RunOptions(audit=False), "optimum() has no use for run.audit = False"),
+    (js.RunOptions(cores=1), "optimum() has no use for run.cores = 1"),
+    (js.RunOptions(chunk_size=0), "chunk_size must be a whole number >= 1"),
+    ({"chunk_size": 4}, "run must be a jaxsleigh.RunOptions, got dict"),
+])
+def test_optimum_refuses_what_it_has_no_use_for(run, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        js.optimum(START, run=run)
+
+
+def test_solve_warns_once_per_call_naming_every_keyword_its_object_and_field():
     """Checked before anything runs: a horizon that cannot run is refused after the warning."""
     with warnings.catch_warnings(record=True) as caught, pytest.raises(ValueError, match="t_final"):
         warnings.simplefilter("always")
-        _front(name)(START, t_final=-1.0, **keywords)
+        _front("solve")(START, t_final=-1.0, method="rk4", max_attempts=50)
     got = _deprecations(caught)
     assert len(got) == 1, [str(w.message) for w in got]
-    assert str(got[0].message).startswith(says), str(got[0].message)
+    assert str(got[0].message).startswith(
+        "solve(method=..., max_attempts=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(method=..., "
+        "max_steps=...)"), str(got[0].message)
 
 
-@pytest.mark.parametrize("name", sorted(FRONTS))
-def test_the_warning_points_at_the_users_call(name):
-    """``stacklevel``: the warning's file is the caller's (this one), not jaxsleigh's."""
-    keyword = {"solve": {"max_attempts": 10}}.get(name, {"rtol": 1e-7})
-    with pytest.warns(DeprecationWarning, match=OWN) as record, pytest.raises(ValueError):
-        _front(name)(START, dt=0.0, **keyword)
-    assert [w.filename for w in record if DEPRECATED_SAYS in str(w.message)] == [__file__]
-
-
-def test_the_warning_names_the_line_of_the_call():
-    import inspect
-
+def test_solves_warning_points_at_the_line_of_the_users_call():
+    """``stacklevel``: the warning's file and line are the caller's (this one), not jaxsleigh's."""
     with pytest.warns(DeprecationWarning, match=OWN) as record, pytest.raises(ValueError):
         line = inspect.currentframe().f_lineno + 1
-        js.run_basin(START, dt=0.0, chunk_size=4)
+        solve(js.paper_gains(), START[0], dt=0.0, max_attempts=10)
     assert [(w.filename, w.lineno) for w in record if DEPRECATED_SAYS in str(w.message)] == [(__file__, line)]
 
 
@@ -89,13 +147,15 @@ def test_arguments_that_are_not_options_do_not_warn(name):
     physics = {"t_final": -1.0, "dt": 0.01, "plant": js.paper_plant(), "stepsize": js.StepSizeController(rtol=1e-7)}
     if name != "simulate":
         physics["eps"] = 0.05
-    if name != "solve":
+    if name not in ("solve", "optimum"):
         physics.update(x64=False, gains=js.paper_gains())
     if name == "sweep":
         physics["labels"] = {"k": "--param k"}
+    if name == "optimum":
+        physics = {"horizons": (-1.0,), "plant": js.paper_plant(), "eps": 0.05, "run": js.RunOptions(progress=False)}
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message=OWN, category=DeprecationWarning)
-        with pytest.raises(ValueError, match="t_final"):
+        with pytest.raises(ValueError, match="t_final|horizons"):
             _front(name)(START, **physics)
 
 
