@@ -635,22 +635,21 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
         raise ValueError(f"eps must be a finite number > 0 (the ball's radius), got {eps}")
     opts = (options or OptimumOptions()).check()
     run = study_options("optimum", run=run).run
-    chunk_size, progress, checkpoint_dir, resume, shard = (
-        OPTIMUM_CHUNK if run.chunk_size is None else run.chunk_size, run.progress, run.checkpoint_dir, run.resume,
-        run.shard)
+    chunk_size = OPTIMUM_CHUNK if run.chunk_size is None else run.chunk_size
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
     settings = _settings(plant, eps, opts, horizons)
     S, H, N = starts.shape[0], horizons.size, opts.intervals
     bounds = [(lo, min(lo + chunk_size, S)) for lo in range(0, S, chunk_size)]
+    shard = run.shard
     mine = range(len(bounds)) if shard is None else [i for i in range(len(bounds)) if i % shard[1] == shard[0]]
     key = hashlib.sha256(json.dumps([settings, chunk_size, starts.tobytes().hex()]).encode()).hexdigest()[:32]
-    store = ChunkStore(checkpoint_dir, key) if checkpoint_dir is not None else None
+    store = ChunkStore(run.checkpoint_dir, key) if run.checkpoint_dir is not None else None
     parts, reused = {}, 0
     try:
         if store is not None:
-            store.open(resume=resume, manifest={"settings": settings, "chunk_size": chunk_size, "starts": S})
-        with Progress(progress, desc="optimum") as bar:
+            store.open(resume=run.resume, manifest={"settings": settings, "chunk_size": chunk_size, "starts": S})
+        with Progress(run.progress, desc="optimum") as bar:
             for n, i in enumerate(mine):
                 lo, hi = bounds[i]
                 fields = _fields(hi - lo, H, N)
