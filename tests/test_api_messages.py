@@ -50,7 +50,7 @@ def run_cli(argv, capsys):
 # ---------------------------------------------------------------------------------------------
 
 def _settings() -> dict:
-    return solve_config(t_final=2.0, dt=0.05, method="rk4").settings()
+    return solve_config(t_final=2.0, dt=0.05, stepsize=js.StepSizeController(method="rk4")).settings()
 
 
 def _per_start(status, T_eps, Hd0=None, u_energy=None):

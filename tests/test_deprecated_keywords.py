@@ -1,10 +1,12 @@
-"""The fronts take their options as objects; the keywords of jaxsleigh 0.1 still work, each call with one
-`DeprecationWarning` that names the object and field of every keyword given, at the caller's line; and the library
-itself (its code, its experiments, the README, the pages and the notebooks) never passes one."""
+"""The fronts take their options as objects only: each keyword of jaxsleigh 0.1 given to `simulate`,
+`run_ensemble`, `run_basin`, `sweep` or `optimum` is a ``TypeError`` that names the object and field that hold it
+now (or says that the front has no use for it); `jaxsleigh.solve`'s ``method=`` and ``max_attempts=`` likewise name
+the `StepSizeController` field. The library itself (its code, its experiments, the README, the pages and the
+notebooks) passes none of them."""
 from __future__ import annotations
 
 import ast
-import contextlib
+import inspect
 import json
 import re
 import warnings
@@ -14,111 +16,134 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
-from jaxsleigh.deprecation import DEPRECATED_SAYS
 from jaxsleigh.integrate.solve import SOLVE_KEYWORDS, solve
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([[1.0, 1.0, 0.5]])
-#: the keywords of jaxsleigh 0.1 (every front's) and solve's own
-OLD_KEYWORDS = frozenset({"rtol", "atol", "method", "max_steps", "max_step", "check_passivity", "save_every",
-                          "summaries", "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume",
-                          "progress", "shard"})
+#: each keyword of jaxsleigh 0.1 and the object and field that hold it now
+NOW = {**{k: ("stepsize", "StepSizeController", k) for k in ("rtol", "atol", "method", "max_steps", "max_step",
+                                                             "check_passivity")},
+       "save_every": ("saveat", "SaveAt", "every"), "summaries": ("saveat", "SaveAt", "summaries"),
+       **{k: ("run", "RunOptions", k) for k in ("chunk_size", "segment", "devices", "cores", "checkpoint_dir",
+                                                "resume", "progress", "shard")}}
+OLD_KEYWORDS = frozenset(NOW)
+#: the keywords each front took: its own removed ones (a call of the library with one fails), and solve's
+#: deprecated ones
 FRONTS = {"simulate": OLD_KEYWORDS, "run_ensemble": OLD_KEYWORDS, "run_basin": OLD_KEYWORDS,
-          "sweep": OLD_KEYWORDS, "solve": frozenset(SOLVE_KEYWORDS)}
-#: only jaxsleigh's own deprecations of keyword options (not JAX's, not NumPy's)
-OWN = f".*{DEPRECATED_SAYS}"
+          "sweep": OLD_KEYWORDS, "optimum": frozenset({"chunk_size", "progress", "checkpoint_dir", "resume", "shard"}),
+          "solve": frozenset(SOLVE_KEYWORDS)}
+#: the fields of the objects each front has a use for (the others: "has no use for")
+USED = {"simulate": {"rtol", "atol", "method", "max_steps", "max_step", "save_every", "progress"},
+        "run_ensemble": set(OLD_KEYWORDS),
+        "run_basin": set(OLD_KEYWORDS) - {"save_every", "summaries", "segment"},
+        "sweep": set(OLD_KEYWORDS) - {"save_every", "summaries", "segment"},
+        "optimum": set(FRONTS["optimum"])}
 
 
 def _front(name):
     return {"simulate": js.simulate, "run_ensemble": js.run_ensemble, "run_basin": js.run_basin,
-            "sweep": lambda s, **kw: js.sweep(s, ["k=0.1:0.2:2"], **kw), "solve": lambda s, **kw: solve(
-                js.paper_gains(), s[0], **kw)}[name]
+            "sweep": lambda s, **kw: js.sweep(s, ["k=0.1:0.2:2"], **kw), "optimum": js.optimum,
+            "solve": lambda s, **kw: solve(js.paper_gains(), s[0], **kw)}[name]
 
 
-def _deprecations(caught):
-    return [w for w in caught if issubclass(w.category, DeprecationWarning) and DEPRECATED_SAYS in str(w.message)]
+#: a value of the right kind for each keyword (refused by its name, not by its value)
+VALUE = {"rtol": 1e-7, "atol": 1e-7, "method": "rk4", "max_steps": 1000, "max_step": 0.5, "check_passivity": False,
+         "save_every": 5, "summaries": False, "chunk_size": 4, "segment": 100, "devices": None, "cores": 1,
+         "checkpoint_dir": None, "resume": False, "progress": False, "shard": None}
 
 
-@pytest.mark.parametrize("name, keywords, says", [
-    ("simulate", {"save_every": 5, "rtol": 1e-7, "progress": False},
-     "simulate(save_every=..., rtol=..., progress=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController("
-     "rtol=...), saveat=jaxsleigh.SaveAt(every=...), run=jaxsleigh.RunOptions(progress=...)"),
-    ("run_ensemble", {"summaries": True, "method": "adaptive", "chunk_size": 4, "max_steps": 10**5},
-     "run_ensemble(summaries=..., method=..., chunk_size=..., max_steps=...) is deprecated: pass "
+@pytest.mark.parametrize("name, keyword", [(n, k) for n in sorted(USED) for k in sorted(FRONTS[n])])
+def test_each_old_keyword_is_a_type_error_naming_its_object_and_field(name, keyword):
+    """Before anything runs (a horizon that cannot run would be refused next) and without a warning."""
+    home, cls, field = NOW[keyword]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        with pytest.raises(TypeError) as e:
+            _front(name)(START, t_final=-1.0, **{keyword: VALUE[keyword]}) if name != "optimum" else \
+                js.optimum(START, horizons=(-1.0,), **{keyword: VALUE[keyword]})
+    msg = str(e.value)
+    assert msg.startswith(f"{name}() got an unexpected keyword argument {keyword!r}: "), msg
+    if keyword in USED[name]:
+        assert f"pass {home}=jaxsleigh.{cls}({field}=...)" in msg, msg
+    else:
+        assert f"{name}() has no use for jaxsleigh.{cls}.{field}" in msg, msg
+    assert "removed in 0.4" in msg
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda: js.run_basin(START, rtol=1e-6, chunk_size=4096),
+     "run_basin() got unexpected keyword arguments 'rtol', 'chunk_size': pass "
+     "stepsize=jaxsleigh.StepSizeController(rtol=...), run=jaxsleigh.RunOptions(chunk_size=...)"),
+    (lambda: js.run_ensemble(START, progress=False, summaries=True, method="rk4", max_steps=10),
+     "run_ensemble() got unexpected keyword arguments 'progress', 'summaries', 'method', 'max_steps': pass "
      "stepsize=jaxsleigh.StepSizeController(method=..., max_steps=...), saveat=jaxsleigh.SaveAt(summaries=...), "
-     "run=jaxsleigh.RunOptions(chunk_size=...)"),
-    ("run_basin", {"rtol": 1e-7}, "run_basin(rtol=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(rtol=...)"),
-    ("sweep", {"checkpoint_dir": None, "atol": 1e-7},
-     "sweep(checkpoint_dir=..., atol=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(atol=...), "
-     "run=jaxsleigh.RunOptions(checkpoint_dir=...)"),
-    ("solve", {"method": "rk4", "max_attempts": 50},
-     "solve(method=..., max_attempts=...) is deprecated: pass stepsize=jaxsleigh.StepSizeController(method=..., "
-     "max_steps=...)"),
+     "run=jaxsleigh.RunOptions(progress=...)"),
+    (lambda: js.simulate(START, save_every=5, chunk_size=4),
+     "simulate() got unexpected keyword arguments 'save_every', 'chunk_size': pass saveat=jaxsleigh.SaveAt(every=...); "
+     "simulate() has no use for jaxsleigh.RunOptions.chunk_size"),
+    (lambda: js.optimum(START, chunk_size=8, resume=True),
+     "optimum() got unexpected keyword arguments 'chunk_size', 'resume': pass "
+     "run=jaxsleigh.RunOptions(chunk_size=..., resume=...)"),
 ])
-def test_one_warning_per_call_names_every_keyword_its_object_and_field_at_the_callers_line(name, keywords, says):
-    """Checked before anything runs: a horizon that cannot run is refused after the warning."""
-    with warnings.catch_warnings(record=True) as caught, pytest.raises(ValueError, match="t_final"):
-        warnings.simplefilter("always")
-        _front(name)(START, t_final=-1.0, **keywords)
-    got = _deprecations(caught)
-    assert len(got) == 1, [str(w.message) for w in got]
-    assert str(got[0].message).startswith(says), str(got[0].message)
+def test_one_message_names_every_old_keyword_of_a_call_by_object(call, says):
+    with pytest.raises(TypeError) as e:
+        call()
+    assert str(e.value).startswith(says), str(e.value)
+
+
+@pytest.mark.parametrize("name", sorted(USED))
+def test_the_fronts_take_no_loose_keywords(name):
+    """No ``**options``: a keyword that is no parameter and no keyword of jaxsleigh 0.1 gets Python's own error."""
+    front = getattr(js, name)
+    assert not [p for p in inspect.signature(front).parameters.values() if p.kind is p.VAR_KEYWORD]
+    assert "run" in inspect.signature(front).parameters
+    with pytest.raises(TypeError, match=rf"^{name}\(\) got an unexpected keyword argument 'rtoll'$"):
+        _front(name)(START, rtoll=1e-6)
+
+
+@pytest.mark.parametrize("run, says", [
+    (js.RunOptions(segment=500), "optimum() has no use for run.segment = 500"),
+    (js.RunOptions(audit=False), "optimum() has no use for run.audit = False"),
+    (js.RunOptions(cores=1), "optimum() has no use for run.cores = 1"),
+    (js.RunOptions(chunk_size=0), "chunk_size must be a whole number >= 1"),
+    ({"chunk_size": 4}, "run must be a jaxsleigh.RunOptions, got dict"),
+])
+def test_optimum_refuses_what_it_has_no_use_for(run, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        js.optimum(START, run=run)
+
+
+def test_solve_refuses_its_removed_keywords_naming_the_field():
+    """Refused before anything runs (a horizon that cannot run is not what is reported)."""
+    with pytest.raises(TypeError, match=re.escape(
+            "solve() got an unexpected keyword argument 'method': pass stepsize=jaxsleigh.StepSizeController("
+            "method=..., max_steps=...)")):
+        _front("solve")(START, t_final=-1.0, method="rk4", max_attempts=50)
 
 
 @pytest.mark.parametrize("name", sorted(FRONTS))
-def test_the_warning_points_at_the_users_call(name):
-    """``stacklevel``: the warning's file is the caller's (this one), not jaxsleigh's."""
-    keyword = {"solve": {"max_attempts": 10}}.get(name, {"rtol": 1e-7})
-    with pytest.warns(DeprecationWarning, match=OWN) as record, pytest.raises(ValueError):
-        _front(name)(START, dt=0.0, **keyword)
-    assert [w.filename for w in record if DEPRECATED_SAYS in str(w.message)] == [__file__]
-
-
-def test_the_warning_names_the_line_of_the_call():
-    import inspect
-
-    with pytest.warns(DeprecationWarning, match=OWN) as record, pytest.raises(ValueError):
-        line = inspect.currentframe().f_lineno + 1
-        js.run_basin(START, dt=0.0, chunk_size=4)
-    assert [(w.filename, w.lineno) for w in record if DEPRECATED_SAYS in str(w.message)] == [(__file__, line)]
-
-
-@pytest.mark.parametrize("name", sorted(FRONTS))
-def test_arguments_that_are_not_options_do_not_warn(name):
-    """``t_final``, ``dt``, ``eps``, ``x64``, ``plant``, ``gains``, ``labels`` and the objects themselves: no warning."""
+def test_arguments_that_are_not_options_are_taken(name):
+    """``t_final``, ``dt``, ``eps``, ``x64``, ``plant``, ``gains``, ``labels`` and the objects themselves: taken, and
+    checked (the horizon that cannot run is what is refused), with no warning."""
     physics = {"t_final": -1.0, "dt": 0.01, "plant": js.paper_plant(), "stepsize": js.StepSizeController(rtol=1e-7)}
     if name != "simulate":
         physics["eps"] = 0.05
-    if name != "solve":
+    if name not in ("solve", "optimum"):
         physics.update(x64=False, gains=js.paper_gains())
     if name == "sweep":
         physics["labels"] = {"k": "--param k"}
+    if name == "optimum":
+        physics = {"horizons": (-1.0,), "plant": js.paper_plant(), "eps": 0.05, "run": js.RunOptions(progress=False)}
     with warnings.catch_warnings():
-        warnings.filterwarnings("error", message=OWN, category=DeprecationWarning)
-        with pytest.raises(ValueError, match="t_final"):
+        warnings.simplefilter("error", DeprecationWarning)
+        with pytest.raises(ValueError, match="t_final|horizons"):
             _front(name)(START, **physics)
-
-
-def test_solve_keywords_and_the_object_give_the_same_numbers():
-    import jax.numpy as jnp
-
-    y0 = jnp.asarray([1.0, 1.0, 0.5, 0.1, -0.2], jnp.float32)
-    new = solve(js.paper_gains(), y0, t_final=2.0, stepsize=js.StepSizeController(method="rk4", max_steps=150))
-    with pytest.warns(DeprecationWarning, match=OWN):
-        old = solve(js.paper_gains(), y0, t_final=2.0, method="rk4", max_attempts=150)
-    assert int(new.status) == int(old.status) == js.Status.BUDGET_EXHAUSTED    # 150 of the 200 base steps
-    np.testing.assert_array_equal(np.asarray(new.q_final), np.asarray(old.q_final))
-    assert int(new.n_steps) == int(old.n_steps) == 150
 
 
 @pytest.mark.parametrize("call, err, match", [
     (lambda: solve(js.paper_gains(), START[0], rtol=1e-6), TypeError, "unexpected keyword argument 'rtol'"),
-    (lambda: solve(js.paper_gains(), START[0], method="rk4", stepsize=js.StepSizeController(method="adaptive",
-                                                                                            max_steps=5,
-                                                                                            rtol=1e-5)),
-     None, None),
     (lambda: solve(js.paper_gains(), START[0], max_attempts=7, stepsize=js.StepSizeController(max_steps=9)),
-     ValueError, "max_attempts=7 contradicts stepsize.max_steps = 9"),
+     TypeError, re.escape("pass stepsize=jaxsleigh.StepSizeController(max_steps=...)")),
     (lambda: solve(js.paper_gains(), START[0], stepsize={"method": "rk4"}), ValueError, "StepSizeController"),
     (lambda: solve(js.paper_gains(), START[0], stepsize=js.StepSizeController(method="euler")), ValueError,
      "stepsize.method must be 'adaptive' or 'rk4'"),
@@ -126,17 +151,9 @@ def test_solve_keywords_and_the_object_give_the_same_numbers():
      "stepsize.max_steps must be a whole number"),
 ])
 def test_solve_names_what_is_wrong(call, err, match):
-    """An unknown keyword, a keyword against the object's own field, an object of the wrong kind; a keyword
-    over a field the object leaves at its default (``method``) is taken, as ``solve`` took it before."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=OWN, category=DeprecationWarning)
-        if err is None:
-            out = call()
-            assert int(out.n_steps) + int(out.n_rejected) == 5          # rk4: its 5 attempts all accepted
-            assert int(out.n_rejected) == 0
-            return
-        with pytest.raises(err, match=match):
-            call()
+    """An unknown keyword, a removed one, an object of the wrong kind or with a wrong field."""
+    with pytest.raises(err, match=match):
+        call()
 
 
 def test_solve_with_a_static_stepsize_jits_and_differentiates():
@@ -163,58 +180,6 @@ def test_solve_with_a_static_stepsize_jits_and_differentiates():
 # ------------------------------------------------------------------------------------------------------------
 # the library itself passes none
 # ------------------------------------------------------------------------------------------------------------
-
-@contextlib.contextmanager
-def own_deprecations_are_errors(capsys):
-    """jaxsleigh's own deprecations of keyword options raise inside; the command line, which catches the warnings
-    of a run to print them as ``jaxsleigh: warning: ...``, must not have printed one either."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("error", message=OWN, category=DeprecationWarning)
-        yield
-    out, err = capsys.readouterr()
-    assert DEPRECATED_SAYS not in out + err, err
-
-
-def _cli(argv) -> int:
-    from jaxsleigh.cli import main
-
-    return main([str(a) for a in argv])
-
-
-def test_the_command_line_passes_no_deprecated_keyword(tmp_path, capsys):
-    """simulate, basin (grid; a resumed run: the runner's checkpoint_dir, resume and shard become the study's
-    RunOptions), sweep and compare, each on a tiny input."""
-    small = ["--t-final", "2", "--no-progress"]
-    basin = ["basin", "--x", "-2:2:3", "--y", "1", "--theta", "0.9", "--atol", "1e-7", "--chunk-size", "2", *small,
-             "--keep-chunks"]
-    with own_deprecations_are_errors(capsys):
-        assert _cli(["simulate", "--ic", "1,1,0.5", "--method", "rk4", "--max-steps", "400", *small, "--out",
-                     tmp_path / "s.npz"]) == 0
-        assert _cli([*basin, "--out", tmp_path / "b.npz"]) == 0
-        assert _cli([*basin, "--resume", "--out", tmp_path / "b.npz"]) == 0
-        assert _cli(["sweep", "--param", "k=0.05:0.4:2", "--samples", "3", "--seed", "3", "--rtol", "1e-5",
-                     "--chunk-size", "4", *small, "--out", tmp_path / "w.npz"]) == 0
-        assert _cli(["compare", "--controllers", "paper", "--starts", "uniform", "--samples", "2", "--t-final", "2",
-                     "--seed", "1", "--out", tmp_path / "c.json"]) == 0
-
-
-def test_tuning_and_its_checks_pass_no_deprecated_keyword(tmp_path, capsys):
-    """A tiny gradient tuning (its integration-cost probe and final check run the ensemble), its held-out
-    validation, and `jaxsleigh.tuning.validate` from Python."""
-    from jaxsleigh import tuning as tu
-
-    with own_deprecations_are_errors(capsys):
-        assert _cli(["tune", "--steps", "1", "--batch", "4", "--t-final", "5", "--n-attempts", "2000", "--tune", "k",
-                     "--validate", "2", "--no-progress", "--out", tmp_path / "g.json"]) == 0
-        v = tu.validate("paper", START, t_final=2.0, progress=False, stepsize=js.StepSizeController(atol=1e-7))
-    assert v.n == 1
-    # the held-out check is written under the names every tuner's file uses (`validation_dict`), audit included
-    rows = json.loads((tmp_path / "g.json").read_text())["meta"]["validation"]
-    assert set(rows) == {"initial", "tuned"}
-    for row in rows.values():
-        assert set(row) == set(tu.validation_dict(v)) | {"seed", "rtol", "atol"}
-        assert row["n"] == 2 and row["audit"]["rows"] == 2
-
 
 def _calls_with_old_keywords(source: str, where: str) -> list:
     """``where:line front(keyword=...)`` for each call of a front with a keyword of `FRONTS` in ``source``; a

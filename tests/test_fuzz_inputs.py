@@ -62,8 +62,9 @@ def test_simulate_answers_any_input_with_a_message_or_flagged_rows(ics, L, k, D)
 def test_solve_config_accepts_exactly_the_valid_options(t_final, dt, save_every, method, rtol, max_step, max_steps,
                                                          x64, eps):
     try:
-        cfg = solve_config(t_final=t_final, dt=dt, save_every=save_every, method=method, rtol=rtol,
-                           max_step=max_step, max_steps=max_steps, x64=x64, eps=eps)
+        cfg = solve_config(t_final=t_final, dt=dt, save_every=save_every, x64=x64, eps=eps,
+                           stepsize=js.StepSizeController(method=method, rtol=rtol, max_step=max_step,
+                                                          max_steps=max_steps))
     except ValueError as e:
         assert len(str(e)) > 10
         return

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxsleigh import paper_plant
+from jaxsleigh import RunOptions, paper_plant
 from jaxsleigh.studies.optimum import (OptimumOptions, OptimumStatus, energy_for_time, initial_guesses, optimum,
                                        rollout, time_for_energy)
 
@@ -66,7 +66,8 @@ def test_frontier_inverse_is_monotone_and_says_where_it_is_outside():
     ({"eps": -1.0}, "eps"),
     ({"options": OptimumOptions(intervals=0)}, "intervals"),
     ({"options": OptimumOptions(guesses=5)}, "guesses"),
-    ({"chunk_size": 0}, "chunk_size"),
+    ({"run": RunOptions(chunk_size=0)}, "chunk_size"),
+    ({"run": RunOptions(segment=10)}, "optimum.. has no use for run.segment"),
 ])
 def test_bad_input_is_a_value_error_that_says_what_to_change(kwargs, words):
     with pytest.raises(ValueError, match=words):
@@ -146,7 +147,7 @@ def test_scipy_slsqp_on_an_independent_integration_finds_the_same_optimum():
 def test_never_above_a_feedback_law_that_ends_at_rest_in_the_ball():
     """The paper's law from the same starts, float64, 100 s: where it ends at rest in the ball, its trajectory is
     a feasible point of the problem at T = 100, so E*(100) (24 intervals) must not exceed its energy."""
-    from jaxsleigh import RunOptions, run_ensemble
+    from jaxsleigh import run_ensemble
 
     T = 100.0
     law = run_ensemble(STARTS[:1, :3], t_final=T, eps=EPS, x64=True, run=RunOptions(progress=False))

@@ -1,5 +1,5 @@
-"""The studies' options as small objects: every front takes at most 13 parameters, the objects and the
-keywords of jaxsleigh 0.1 give the same numbers, and what is wrong is named."""
+"""The studies' options as small objects: every front takes at most 13 parameters, the objects go down to the
+engine whole, and what is wrong is named (the keywords of jaxsleigh 0.1 are refused: test_deprecated_keywords.py)."""
 import inspect
 
 import numpy as np
@@ -15,7 +15,7 @@ def test_every_front_takes_at_most_13_parameters(front):
     assert len(inspect.signature(front).parameters) <= 13, inspect.signature(front)
 
 
-#: the keywords of jaxsleigh 0.1: each lives in one of the three objects, and only the fronts take them loose
+#: the keywords of jaxsleigh 0.1: each lives in one of the three objects, and no front or engine takes them loose
 OLD_KEYWORDS = {"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "save_every", "summaries",
                 "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume", "progress", "shard", "policy"}
 
@@ -34,22 +34,21 @@ def test_the_engine_behind_each_front_takes_the_option_objects_whole(engine):
     assert len(params) <= 13, list(params)
 
 
-def test_objects_and_old_keywords_give_the_same_numbers():
-    a = js.run_ensemble(STARTS, t_final=5.0, stepsize=js.StepSizeController(rtol=1e-7, atol=1e-7, max_step=0.5),
-                        saveat=js.SaveAt(every=100), run=js.RunOptions(chunk_size=2, segment=200))
-    with pytest.warns(DeprecationWarning, match="run_ensemble.rtol=..., atol=..., max_step=..., save_every=..., "
-                                                 "chunk_size=..., segment=.... is deprecated: pass"):
-        b = js.run_ensemble(STARTS, t_final=5.0, rtol=1e-7, atol=1e-7, max_step=0.5, save_every=100, chunk_size=2,
-                            segment=200)
+def test_the_objects_reach_the_engine_whole():
+    """Tolerances, step cap, saved steps, chunk and segment given as objects: the same numbers as the engine run
+    on the same objects (`run_ensemble_resolved`), and the settings record them."""
+    from jaxsleigh.studies.ensemble import run_ensemble_resolved
+
+    ss, at, run = (js.StepSizeController(rtol=1e-7, atol=1e-7, max_step=0.5), js.SaveAt(every=100),
+                   js.RunOptions(chunk_size=2, segment=200))
+    a = js.run_ensemble(STARTS, t_final=5.0, stepsize=ss, saveat=at, run=run)
+    b = run_ensemble_resolved(STARTS, plant=None, gains=None, controller=None, t_final=5.0, dt=0.01, eps=0.05,
+                              x64=False, observers=None, stepsize=ss, saveat=at, run=run)
     for k in ("q_final", "T_eps", "u_energy", "n_steps", "status"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
     np.testing.assert_array_equal(a.q, b.q)
-    s1 = js.simulate(STARTS, t_final=2.0, stepsize=js.StepSizeController(method="rk4"), saveat=js.SaveAt(every=50))
-    with pytest.warns(DeprecationWarning, match=r"simulate\(method=..., save_every=...\) is deprecated: pass "
-                                                 r"stepsize=jaxsleigh.StepSizeController\(method=...\), "
-                                                 r"saveat=jaxsleigh.SaveAt\(every=...\)"):
-        s2 = js.simulate(STARTS, t_final=2.0, method="rk4", save_every=50)
-    np.testing.assert_array_equal(s1.q, s2.q)
+    assert (a.settings["rtol"], a.settings["max_step"], a.settings["save_every"], a.settings["chunk_size"]) == \
+        (1e-7, 0.5, 100, 2)
 
 
 def test_the_policy_reaches_the_stepper():
@@ -64,13 +63,16 @@ def test_the_policy_reaches_the_stepper():
     assert np.all(c.n_steps[~ran] <= b.n_steps[~ran])
 
 
-@pytest.mark.filterwarnings("ignore:.*is deprecated. pass:DeprecationWarning")     # rtol= below, on purpose
 @pytest.mark.parametrize("call, err, match", [
-    (lambda: js.run_ensemble(STARTS, rtoll=1e-6), TypeError, "unexpected keyword argument 'rtoll'; its options are "
-                                                              "stepsize=jaxsleigh.StepSizeController"),
-    (lambda: js.run_ensemble(STARTS, rtol=1e-6, stepsize=js.StepSizeController(rtol=1e-7)), ValueError,
-     "rtol given twice"),
+    (lambda: js.run_ensemble(STARTS, rtoll=1e-6), TypeError, "unexpected keyword argument 'rtoll'"),
+    (lambda: js.run_ensemble(STARTS, rtol=1e-6, stepsize=js.StepSizeController(rtol=1e-7)), TypeError,
+     r"unexpected keyword argument 'rtol': pass stepsize=jaxsleigh.StepSizeController\(rtol=...\)"),
     (lambda: js.simulate(STARTS, run=js.RunOptions(chunk_size=4)), ValueError, "no use for run.chunk_size"),
+    (lambda: js.simulate(STARTS, saveat=js.SaveAt(summaries=False)), ValueError, "no use for saveat.summaries"),
+    (lambda: js.simulate(STARTS, run=js.RunOptions(audit=False)), ValueError, "no use for run.audit"),
+    (lambda: js.run_basin(STARTS, run=js.RunOptions(segment=500)), ValueError, "no use for run.segment"),
+    (lambda: js.sweep(STARTS, ["k=0.1:0.2:2"], run=[4]), ValueError, "run must be a jaxsleigh.RunOptions, got list"),
+    (lambda: js.simulate(STARTS, saveat=js.SaveAt), ValueError, "saveat must be a jaxsleigh.SaveAt, got type"),
     (lambda: js.run_ensemble(STARTS, stepsize=js.StepSizeController(safety=1.5)), ValueError,
      "stepsize.safety must be in"),
     (lambda: js.run_ensemble(STARTS, stepsize=js.StepSizeController(factor_max=0.5)), ValueError,

@@ -106,6 +106,23 @@ def test_a_tuned_law_is_checked_on_held_out_starts_by_the_accurate_engine_and_au
     assert "| initial |" in printed and "| tuned |" in printed
 
 
+def test_gradient_tuning_records_its_held_out_check_under_every_tuners_names(tmp_path, capsys):
+    """A tiny gradient tuning's held-out validation is written under the names of `jaxsleigh.tuning.validation_dict`
+    that the search and a tuned law's file use too, audit included."""
+    from jaxsleigh import tuning as tu
+
+    out = tmp_path / "g.json"
+    rc, _, err = _run(["tune", "--steps", "1", "--batch", "4", "--t-final", "5", "--n-attempts", "2000", "--tune", "k",
+                       "--validate", "2", "--no-progress", "--out", out], capsys)
+    assert rc == 0, err
+    v = tu.validate("paper", np.array([[1.0, 1.0, 0.5]]), t_final=2.0, progress=False,
+                    stepsize=js.StepSizeController(atol=1e-7))
+    rows = json.loads(out.read_text())["meta"]["validation"]
+    assert set(rows) == {"initial", "tuned"}
+    for row in rows.values():
+        assert set(row) == set(tu.validation_dict(v)) | {"seed", "rtol", "atol"}
+
+
 def test_gradient_tuning_that_misses_its_budget_says_so(tmp_path, capsys):
     out = tmp_path / "g.json"
     rc, _, err = _run(["tune", "--out", out, "--steps", "2", "--batch", "4", "--t-final", "5", "--n-attempts", "2000",

@@ -35,13 +35,13 @@ def main(argv=None) -> None:
     horizons = tuple(float(v) for v in args.horizons.split(","))
 
 
-    from jaxsleigh import optimum
+    from jaxsleigh import RunOptions, optimum
     from jaxsleigh.tuning.starts import UniformStarts
 
     starts = UniformStarts()(np.random.default_rng(1), args.n)
     load_start = load()
     t0 = time.perf_counter()
-    res = optimum(starts, horizons, chunk_size=args.chunk_size, progress=None)
+    res = optimum(starts, horizons, run=RunOptions(chunk_size=args.chunk_size))
     wall = time.perf_counter() - t0
     counts = res.counts()
     out = {"command": "python experiments/performance/optimum_bench.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])),

@@ -17,7 +17,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2] / "jaxsleigh"
 #: floors from the ground up; a floor may import only floors below it (and itself)
 FLOORS = [
-    ("base", ["errors", "deprecation", "validate", "progress", "status", "cache", "cores", "jax_private"]),
+    ("base", ["errors", "validate", "progress", "status", "cache", "cores", "jax_private"]),
     ("files", ["files"]),
     ("model", ["model", "controllers"]),
     ("integrate", ["integrate"]),

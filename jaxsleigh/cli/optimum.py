@@ -24,6 +24,7 @@ from .common import PROG
 from .common import number as _number
 from .common import whole as _whole
 from ..studies.optimum import OptimumOptions, OptimumStatus, as_horizons, optimum, save_optimum
+from ..studies.options import RunOptions
 
 __all__ = ["add_optimum", "run_optimum_command"]
 
@@ -130,8 +131,9 @@ def run_optimum_command(args) -> int:
                                        inner=args.inner, guesses=args.guesses).check()
 
     def study(checkpoint_dir, resume, shard):
-        return optimum(st["starts"], args.horizons, eps=args.eps, options=st["options"], chunk_size=args.chunk_size,
-                       progress=args.progress, checkpoint_dir=checkpoint_dir, resume=resume, shard=shard)
+        return optimum(st["starts"], args.horizons, eps=args.eps, options=st["options"],
+                       run=RunOptions(chunk_size=args.chunk_size, progress=args.progress,
+                                      checkpoint_dir=checkpoint_dir, resume=resume, shard=shard))
 
     def finish(res, written, record, caught) -> int:
         if args.plot:

@@ -696,7 +696,7 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
 
     Status is judged at the end: ``NONFINITE`` if the state is not finite, ``CROSSED_SINGULAR`` if
     theta ends with the other sign (an even number of crossings goes unseen; the stepper's
-    per-step checks and summaries cost about 2x on CPU, see ``run_ensemble(summaries=True)``).
+    per-step checks and summaries cost about 2x on CPU: ``run_ensemble``'s default, ``SaveAt(summaries=True)``).
 
     The kernel steps cache blocks of ``block`` trajectories (`run_plain`;
     ``None``: the whole batch per step, the earlier form; both give bitwise the same states for

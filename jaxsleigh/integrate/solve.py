@@ -96,6 +96,23 @@ class SolveOutput(NamedTuple):
 SOLVE_KEYWORDS = {"method": "method", "max_attempts": "max_steps"}
 
 
+def _refuses_removed_keywords(front):
+    """A ``TypeError`` that names the `jaxsleigh.StepSizeController` field for a keyword of `SOLVE_KEYWORDS` given to
+    ``front`` (any other unexpected keyword gets Python's own); the signature and docstring are ``front``'s."""
+    @functools.wraps(front)
+    def call(*args, **kwargs):
+        removed = [k for k in kwargs if k in SOLVE_KEYWORDS]
+        if removed:
+            fields = ", ".join(f"{SOLVE_KEYWORDS[k]}=..." for k in removed)
+            raise TypeError(f"solve() got an unexpected keyword argument {removed[0]!r}: pass "
+                            f"stepsize=jaxsleigh.StepSizeController({fields}) (solve's keywords method= and "
+                            f"max_attempts= were removed in jaxsleigh 0.4)")
+        return front(*args, **kwargs)
+
+    return call
+
+
+@_refuses_removed_keywords
 def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01,
           stepsize: Optional[StepSizeController] = None, eps: float = 0.05, observers: Any = DEFAULT_OBSERVERS,
           saveat: Optional[SaveAt] = None) -> SolveOutput:
@@ -151,7 +168,8 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         if not is_concrete((t_final, dt)):
             raise ValueError("the default step budget comes from t_final / dt: give them as concrete numbers, or give "
                              "stepsize=jaxsleigh.StepSizeController(max_steps=...)")
-        max_attempts = default_max_steps(make_horizon(t_final, dt, every), adaptive, dtype)
+        max_attempts = default_max_steps(make_horizon(t_final, dt, every, flags={"save_every": "saveat.every"}),
+                                         adaptive, dtype)
     args = ClosedLoop(paper_plant() if plant is None else plant, controller)
     chart = chart_for(controller)
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)

@@ -618,7 +618,8 @@ def _plain_scan(y, args: ClosedLoop, dt, n_steps: int, unroll: int = 1):
 def run_plain(y, args: ClosedLoop, dt, *, n_steps: int, unroll: int = 1, block: int | None = PLAIN_BLOCK):
     """Plain classical RK4 on a batch-last w-chart state ``y`` (5, N): ``n_steps`` steps of ``dt``,
     nothing else (no masks, no summaries, no status). The fast path behind
-    ``run_ensemble(method="rk4", summaries=False)``, which judges each trajectory at the end.
+    ``run_ensemble(stepsize=StepSizeController(method="rk4", check_passivity=False), saveat=SaveAt(summaries=False))``,
+    which judges each trajectory at the end.
 
     The batch is cut into cache blocks of ``block`` trajectories (the C reference's structure,
     ``jaxsleigh/studies/c_reference/rk4_w.c``): each block takes all ``n_steps`` steps while its state

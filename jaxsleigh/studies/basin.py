@@ -39,7 +39,7 @@ import numpy as np
 
 from .config import reject_traced
 from .ensemble import LaneRules, run_ensemble_resolved, summary_repr
-from .options import RunOptions, SaveAt, front_options
+from .options import RunOptions, SaveAt, study_options, takes_objects
 from ..integrate.stepsize import StepSizeController
 from ..files.npz import read_result, write_result
 from ..files.npz import parse_number as _number
@@ -480,7 +480,7 @@ class BasinResult(NamedTuple):
 def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], controller: Any, t_final: float,
                dt: float, eps: float, x64: bool, stepsize: StepSizeController,
                run: RunOptions) -> Optional[BasinResult]:
-    r"""`run_basin` (see there) with its options resolved into the objects (`front_options`): integrate the
+    r"""`run_basin` (see there) with its option objects checked (`study_options`): integrate the
     closed loop from every start (``starts``: a `BasinStarts` or an ``(N, 3)`` / ``(N, 5)`` array) and summarise
     convergence. ``run.chunk_size`` defaults to 16384 on CPU (2^22 per device on accelerators,
     `jaxsleigh.cores.default_chunk_size`). Returns a `BasinResult` (``None`` with ``run.shard``)."""
@@ -500,15 +500,11 @@ def _run_basin(starts, *, plant: Optional[PlantParams], gains: Optional[Gains], 
                        **{k: getattr(res, k) for k in BasinResult._fields if k not in ("starts", "settings", "run_info")})
 
 
-#: The keywords of jaxsleigh 0.1 that `run_basin` maps onto its option objects.
-BASIN_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "chunk_size",
-                            "devices", "cores", "checkpoint_dir", "resume", "progress", "shard"})
-
-
+@takes_objects
 def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Gains] = None, controller: Any = None,
               t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
-              stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None,
-              **options) -> Optional[BasinResult]:
+              stepsize: Optional[StepSizeController] = None,
+              run: Optional[RunOptions] = None) -> Optional[BasinResult]:
     r"""Integrate the closed loop from every start and summarise convergence (settled within the horizon).
 
     A start that cannot settle before the horizon any more (far from the target with too little \(H_d\) left to
@@ -521,16 +517,17 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
         plant and law, 100 s, float32).
       eps: radius of the ball \(|q| \le \epsilon\) of ``T_eps``.
       stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4).
-      run: `jaxsleigh.RunOptions`; its ``chunk_size`` defaults to 16384 on CPU, 2^22 per device on
-        accelerators); ``checkpoint_dir`` and ``resume`` continue an interrupted run.
-      **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
-        ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
-        ``shard``), mapped onto the objects.
+      run: `jaxsleigh.RunOptions` (its ``chunk_size`` defaults to 16384 on CPU, 2^22 per device on
+        accelerators; ``checkpoint_dir`` and ``resume`` continue an interrupted run; ``segment`` does not apply).
 
     Returns:
       `BasinResult` (``None`` for one share of a multi-process run).
+
+    Raises:
+      TypeError: a keyword of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...), naming the object that holds it now.
+      ValueError: an option object of the wrong type or with a bad value.
     """
-    stepsize, _, run = front_options("run_basin", BASIN_KEYWORDS, stepsize, None, run, options)
+    stepsize, _, run = study_options("run_basin", stepsize, None, run)
     return _run_basin(starts, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
                       x64=x64, stepsize=stepsize, run=run)
 

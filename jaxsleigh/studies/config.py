@@ -133,21 +133,8 @@ def reject_traced(front: str, **inputs) -> None:
                     f"differentiate, use {DIFFERENTIABLE_PATHS}")
 
 
-#: The step-size keywords `solve_config` also takes one by one (the command line passes a `StepSizeController`).
-_STEP_KEYWORDS = ("method", "rtol", "atol", "max_step", "max_steps", "check_passivity")
-
-
 def _flag(name: str, flags: Optional[dict]) -> str:
     return (flags or {}).get(name, name)
-
-
-def _step_options(stepsize: Optional[StepSizeController], step: dict) -> StepSizeController:
-    """``stepsize`` (default: `StepSizeController()`) with the step-size keywords given one by one put in;
-    ``TypeError`` for a keyword that is not one of them."""
-    unknown = sorted(set(step) - set(_STEP_KEYWORDS))
-    if unknown:
-        raise TypeError(f"solve_config() got an unexpected keyword argument {unknown[0]!r}")
-    return (stepsize or StepSizeController())._replace(**step)
 
 
 def _check_switches(method, x64, check_passivity, f) -> bool:
@@ -217,20 +204,19 @@ def _resolve_steps(stepsize: StepSizeController, horizon: Horizon, dtype: str, f
 
 def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None, t_final: Any = 100.0,
                  dt: Any = 0.01, save_every: Any = None, eps: Any = 0.05, x64: Any = False,
-                 stepsize: Optional[StepSizeController] = None, flags: Optional[dict] = None,
-                 **step) -> SolveConfig:
+                 stepsize: Optional[StepSizeController] = None, flags: Optional[dict] = None) -> SolveConfig:
     """Resolve defaults and check every option; raises ``ValueError`` naming the option to change.
 
     Args mean the same as in `jaxsleigh.simulate`. ``stepsize`` is a `jaxsleigh.StepSizeController` (its
-    ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here);
-    those six may also come as keywords (``**step``). ``gains`` may be a `Gains`, a preset
+    ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here;
+    default: ``StepSizeController()``). ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
     `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
     (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
     flags to name in messages (e.g. ``{"max_steps": "--max-steps"}``).
     """
     f = lambda n: _flag(n, flags)  # noqa: E731
-    stepsize = _step_options(stepsize, step)
+    stepsize = StepSizeController() if stepsize is None else stepsize
     reject_traced("solve_config", plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=save_every,
                   rtol=stepsize.rtol, atol=stepsize.atol, max_step=stepsize.max_step, max_steps=stepsize.max_steps,
                   eps=eps)

@@ -32,7 +32,7 @@ from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
 from ..files.chunks import ChunkStore, run_key, starts_digest
 from .config import reject_traced, solve_config
-from .options import RunOptions, SaveAt, front_options
+from .options import RunOptions, SaveAt, study_options, takes_objects
 from .audit import audit_rows, audit_sample, resolve as resolve_audit
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
@@ -733,7 +733,7 @@ class LaneRules(NamedTuple):
 def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
                           dt: float, eps: float, x64: bool, observers: Optional[tuple], stepsize: StepSizeController,
                           saveat: SaveAt, run: RunOptions, rules: LaneRules = LaneRules()) -> Optional[EnsembleResult]:
-    """`run_ensemble` (see there) with its options resolved into the three objects (`front_options`).
+    """`run_ensemble` (see there) with its three option objects checked (`study_options`).
 
     The per-trajectory leaves of ``plant`` / ``gains`` (`jaxsleigh.model.lanes`) come back in ``params``;
     ``saveat.summaries=False`` (with ``StepSizeController(method="rk4", check_passivity=False)``, no
@@ -859,17 +859,12 @@ def _timed(fn, *args):
     return fn(*args), time.perf_counter() - t0
 
 
-#: The keywords of jaxsleigh 0.1 that `run_ensemble` maps onto its option objects.
-ENSEMBLE_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "save_every",
-                               "summaries", "chunk_size", "segment", "devices", "cores", "checkpoint_dir", "resume",
-                               "progress", "shard"})
-
-
+@takes_objects
 def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
                  t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
                  stepsize: Optional[StepSizeController] = None, saveat: Optional[SaveAt] = None,
-                 run: Optional[RunOptions] = None, observers: Optional[tuple] = None,
-                 **options) -> Optional[EnsembleResult]:
+                 run: Optional[RunOptions] = None,
+                 observers: Optional[tuple] = None) -> Optional[EnsembleResult]:
     """Integrate the closed loop from many initial conditions; keep final states and summaries.
 
     Args:
@@ -892,13 +887,14 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
         run stops the run with a `CheckpointError`, a damaged one is recomputed.
       observers: the on-line summaries (`jaxsleigh.integrate.observers`; default `DEFAULT_OBSERVERS`); the
         standard fields that no given observer provides are NaN, other observers' results are in ``observed``.
-      **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
-        ``check_passivity``, ``save_every``, ``summaries``, ``chunk_size``, ``segment``, ``devices``,
-        ``checkpoint_dir``, ``resume``, ``progress``, ``shard``), mapped onto the objects.
 
     Returns:
       `EnsembleResult` (``None`` for one share of a multi-process run).
+
+    Raises:
+      TypeError: a keyword of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...), naming the object that holds it now.
+      ValueError: an option object of the wrong type or with a bad value.
     """
-    stepsize, saveat, run = front_options("run_ensemble", ENSEMBLE_KEYWORDS, stepsize, saveat, run, options)
+    stepsize, saveat, run = study_options("run_ensemble", stepsize, saveat, run)
     return run_ensemble_resolved(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt,
                                  eps=eps, x64=x64, observers=observers, stepsize=stepsize, saveat=saveat, run=run)

@@ -64,6 +64,7 @@ from ..model.plant import momentum_rhs
 from ..files.chunks import ChunkStore
 from ..files.npz import damping_name, npz_path, read_npz, write_npz_deterministic
 from ..progress import Progress
+from .options import RunOptions, study_options, takes_objects
 
 __all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
            "time_for_energy", "save_optimum", "load_optimum", "rollout"]
@@ -594,9 +595,13 @@ def _settings(plant, eps, opts, horizons) -> dict:
             "dtype": "float64"}
 
 
+#: Starts solved (and checkpointed) at once when ``run.chunk_size`` is ``None``.
+OPTIMUM_CHUNK = 64
+
+
+@takes_objects
 def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantParams] = None, eps: float = 0.05,
-            options: Optional[OptimumOptions] = None, chunk_size: int = 64, progress: Optional[bool] = False,
-            checkpoint_dir=None, resume: bool = False, shard=None) -> Optional[OptimumResult]:
+            options: Optional[OptimumOptions] = None, run: Optional[RunOptions] = None) -> Optional[OptimumResult]:
     r"""The energy-optimal frontier: per start and horizon \(T\), the least-energy piecewise-constant input that
     brings the plant to rest in the ball \(|q| \le \epsilon\) by \(T\) (module docstring: problem, grid, solver,
     statuses). Always float64.
@@ -607,15 +612,20 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
       plant: `jaxsleigh.PlantParams` (the paper's, Coulomb damping, by default: what the laws' runs use).
       eps: radius of the terminal ball (that of the laws' \(T_\epsilon\)).
       options: `OptimumOptions`.
-      chunk_size: starts solved (and checkpointed) at once.
-      progress: a progress bar on stderr (``None``: on a terminal).
-      checkpoint_dir, resume, shard: chunk files of an interrupted run to continue, and a process's share
-        ``(index, count)`` of the chunks (then ``None`` is returned), as `jaxsleigh.files.runner.run_to_file`
-        passes them.
+      run: `jaxsleigh.RunOptions`: ``chunk_size``, the starts solved (and checkpointed) at once (``None``: 64);
+        ``progress``, a progress bar on stderr (``None``: on a terminal); ``checkpoint_dir``, ``resume`` and
+        ``shard``, the chunk files of an interrupted run to continue and a process's share ``(index, count)`` of
+        the chunks (then ``None`` is returned), as `jaxsleigh.files.runner.run_to_file` passes them. Its other
+        fields (``segment``, ``devices``, ``cores``, ``audit``) do not apply and must keep their defaults.
 
     Returns:
       `OptimumResult`; its ``frontier()``, ``time_for_energy(E)`` and ``energy_for_time(T)`` give \(E^*(T)\)
       and its inverse.
+
+    Raises:
+      TypeError: a loose ``chunk_size=``, ``progress=``, ``checkpoint_dir=``, ``resume=`` or ``shard=`` (they are
+        ``run``'s fields now).
+      ValueError: a bad input or option, naming it.
     """
     plant = as_plant(plant)
     starts = _as_starts(starts)
@@ -624,19 +634,22 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
     if not (math.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be a finite number > 0 (the ball's radius), got {eps}")
     opts = (options or OptimumOptions()).check()
+    run = study_options("optimum", run=run).run
+    chunk_size = OPTIMUM_CHUNK if run.chunk_size is None else run.chunk_size
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
     settings = _settings(plant, eps, opts, horizons)
     S, H, N = starts.shape[0], horizons.size, opts.intervals
     bounds = [(lo, min(lo + chunk_size, S)) for lo in range(0, S, chunk_size)]
+    shard = run.shard
     mine = range(len(bounds)) if shard is None else [i for i in range(len(bounds)) if i % shard[1] == shard[0]]
     key = hashlib.sha256(json.dumps([settings, chunk_size, starts.tobytes().hex()]).encode()).hexdigest()[:32]
-    store = ChunkStore(checkpoint_dir, key) if checkpoint_dir is not None else None
+    store = ChunkStore(run.checkpoint_dir, key) if run.checkpoint_dir is not None else None
     parts, reused = {}, 0
     try:
         if store is not None:
-            store.open(resume=resume, manifest={"settings": settings, "chunk_size": chunk_size, "starts": S})
-        with Progress(progress, desc="optimum") as bar:
+            store.open(resume=run.resume, manifest={"settings": settings, "chunk_size": chunk_size, "starts": S})
+        with Progress(run.progress, desc="optimum") as bar:
             for n, i in enumerate(mine):
                 lo, hi = bounds[i]
                 fields = _fields(hi - lo, H, N)

@@ -7,21 +7,22 @@
 * `RunOptions`: how to run (chunks, segments, devices, checkpoint, resume, progress, the share of a
   multi-process run).
 
-The fronts take their options as these objects. The keywords of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``,
-``save_every=``, ...) are deprecated: they work until 0.4, each call that gives any with one `DeprecationWarning`
-naming the object and field of each (`jaxsleigh.deprecation`). `front_options` folds them into the three
-objects (`StudyOptions`), which the studies then pass down whole: a front takes at most a dozen parameters, the
-engine behind it as many.
+The fronts take their options as these objects only and pass them down whole: a front takes at most a dozen
+parameters, the engine behind it as many. `study_options` checks the objects a front is given (their types, the
+step policy, and that no field the front has no use for differs from its default). The loose keywords of
+jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ``save_every=``, ...) were removed in 0.4: `takes_objects` refuses each
+with a ``TypeError`` that names the object and field that hold it now (`REMOVED_KEYWORDS`).
 """
 from __future__ import annotations
 
+import functools
+import inspect
 from typing import Any, NamedTuple, Optional
 
-from ..deprecation import OBJECT_CLASS, warn_deprecated
 from ..integrate.saveat import SaveAt
 from ..integrate.stepsize import StepSizeController, check_policy
 
-__all__ = ["SaveAt", "RunOptions", "StudyOptions", "front_options"]
+__all__ = ["SaveAt", "RunOptions", "StudyOptions", "study_options", "takes_objects", "REMOVED_KEYWORDS"]
 
 
 class RunOptions(NamedTuple):
@@ -52,94 +53,111 @@ class RunOptions(NamedTuple):
 
 
 class StudyOptions(NamedTuple):
-    """The three option objects of a study, every 0.1 keyword folded in (what `front_options` returns)."""
+    """The three option objects of a study, checked and defaulted (what `study_options` returns)."""
 
     stepsize: StepSizeController
     saveat: SaveAt
     run: RunOptions
 
 
-#: Where each keyword of jaxsleigh 0.1 lives: ``(object, field)``; the one table both ways (`front_options`).
-_KEYWORD_HOME = {**{k: ("stepsize", k) for k in ("rtol", "atol", "max_step", "max_steps", "method",
-                                                  "check_passivity")},
-                 "save_every": ("saveat", "every"), "summaries": ("saveat", "summaries"),
-                 **{k: ("run", k) for k in RunOptions._fields if k != "audit"}}
-#: the fronts that audit (``RunOptions.audit`` is not a keyword of jaxsleigh 0.1: it goes through as it is)
-_AUDITED = frozenset({"run_ensemble", "run_basin", "sweep"})
-#: fields put even at their default: an object's ``method="adaptive"`` clashes with ``method="rk4"`` given by itself
-_ALWAYS_PUT = frozenset({"method", "check_passivity", "summaries"})
+#: The class of the option object each front's parameter takes.
+OBJECTS = {"stepsize": StepSizeController, "saveat": SaveAt, "run": RunOptions}
+_ALL = {home: frozenset(cls._fields) for home, cls in OBJECTS.items()}
+#: The fields of each option object that a front uses (an object the front does not take is absent); any other
+#: field must keep its default (``run.audit``, say, is for the fronts that audit: ensembles, basins and sweeps).
+USES = {
+    "simulate": {"stepsize": _ALL["stepsize"] - {"check_passivity"}, "saveat": frozenset({"every"}),
+                 "run": frozenset({"progress"})},
+    "run_ensemble": dict(_ALL),
+    "run_basin": {"stepsize": _ALL["stepsize"], "run": _ALL["run"] - {"segment"}},
+    "sweep": {"stepsize": _ALL["stepsize"], "run": _ALL["run"] - {"segment"}},
+    "optimum": {"run": frozenset({"chunk_size", "progress", "checkpoint_dir", "resume", "shard"})},
+}
+#: The keywords of jaxsleigh 0.1, removed in 0.4: ``keyword -> (parameter, field)`` of the object that holds it now.
+#: Only the message that refuses one reads it.
+REMOVED_KEYWORDS = {**{k: ("stepsize", k) for k in ("rtol", "atol", "max_step", "max_steps", "method",
+                                                    "check_passivity")},
+                    "save_every": ("saveat", "every"), "summaries": ("saveat", "summaries"),
+                    **{k: ("run", k) for k in ("chunk_size", "segment", "devices", "cores", "checkpoint_dir",
+                                               "resume", "progress", "shard")}}
 
 
-def front_options(front: str, allowed: frozenset, stepsize=None, saveat=None, run=None, options=None, *,
-                  saveat_default: SaveAt = SaveAt(), stacklevel: int = 3) -> StudyOptions:
-    """The option objects of a study, with the 0.1 keywords in ``options`` folded in.
+def _differs(value, default) -> bool:
+    """Whether an object's field was changed from its default (an array or a device list is a change)."""
+    if value is default:
+        return False
+    try:
+        return bool(value != default)
+    except (TypeError, ValueError):
+        return True
 
-    An unknown keyword is a ``TypeError`` naming the valid ones; the known ones are deprecated, and one
-    `DeprecationWarning` (`jaxsleigh.deprecation.warn_deprecated`) names them all, pointing at the frame ``stacklevel`` levels up
-    (3: the caller of the front that calls this). A keyword given both as an object's field and by itself
-    (with another value) is a ``ValueError``; an object's field the front has no use for (a chunk size for
-    `jaxsleigh.simulate`) is a ``ValueError`` naming it. ``saveat_default``: what an unset ``SaveAt`` field
-    means for this front (`jaxsleigh.simulate` keeps every 10th step).
+
+def study_options(front: str, stepsize=None, saveat=None, run=None, *,
+                  saveat_default: SaveAt = SaveAt()) -> StudyOptions:
+    """The option objects of ``front`` (a key of `USES`), checked, the missing ones at their defaults.
+
+    Each must be its class (``ValueError`` naming the parameter and the class), the step policy passes
+    `jaxsleigh.integrate.stepsize.check_policy`, and a field the front has no use for (a chunk size for
+    `jaxsleigh.simulate`, an audit for `jaxsleigh.optimum`) is a ``ValueError`` naming it unless it keeps its
+    default. ``saveat_default``: the ``SaveAt`` of a front given none, and its ``every`` where the one given
+    leaves it unset (`jaxsleigh.simulate` keeps every 10th step).
     """
-    _refuse_unknown(front, allowed, dict(options or {}))
-    audit = None if run is None else getattr(run, "audit", None)
-    if audit is not None and front not in _AUDITED:
-        raise ValueError(f"{front}() has no use for run.audit = {audit!r} (drop it; run_ensemble, run_basin and "
-                         f"sweep audit)")
-    warn_deprecated(front, ((k,) + _KEYWORD_HOME[k] for k in options or {}), stacklevel=stacklevel)
-    out = _merged_keywords(front, allowed, stepsize, saveat, run, options)
-    ss = stepsize if stepsize is not None else StepSizeController()
-    fields = {"stepsize": {"safety": float(ss.safety), "factor_min": float(ss.factor_min),
-                           "factor_max": float(ss.factor_max)}, "saveat": {}, "run": {}}
-    for key, value in out.items():
-        home, field = _KEYWORD_HOME[key]
-        fields[home][field] = value
-    return StudyOptions(StepSizeController(**fields["stepsize"]), saveat_default._replace(**fields["saveat"]),
-                        RunOptions(**fields["run"], audit=audit))
-
-
-def _refuse_unknown(front: str, allowed: frozenset, options: dict) -> None:
-    """A ``TypeError`` naming the keywords of ``options`` that ``front`` does not know, and the objects it takes."""
-    unknown = sorted(set(options) - allowed)
-    if unknown:
-        homes = [h for h in OBJECT_CLASS if any(_KEYWORD_HOME.get(k, ("",))[0] == h for k in allowed)]
-        raise TypeError(f"{front}() got unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
-                        f"{', '.join(repr(k) for k in unknown)}; its options are "
-                        f"{', '.join(f'{h}=jaxsleigh.{OBJECT_CLASS[h]}(...)' for h in homes)}")
-
-
-def _fields_put(home: str, cls, obj):
-    """``(keyword, value, default)`` for each field of the option object ``obj`` (given as ``home``, checked to be
-    a ``cls``) that goes into the keywords: those that differ from their defaults, and `_ALWAYS_PUT`."""
-    if not isinstance(obj, cls):
-        raise ValueError(f"{home} must be a jaxsleigh.{cls.__name__}, got {type(obj).__name__}")
-    if cls is StepSizeController:
-        check_policy(obj)
-    for key, field in ((k, f) for k, (h, f) in _KEYWORD_HOME.items() if h == home):
-        value, default = getattr(obj, field), cls._field_defaults[field]
-        if value != default or key in _ALWAYS_PUT:
-            yield key, value, default
-
-
-def _merged_keywords(front: str, allowed: frozenset, stepsize, saveat, run, options) -> dict:
-    """The 0.1 keywords given, with the objects' fields that differ from their defaults put in (checked)."""
-    options = dict(options or {})
-    _refuse_unknown(front, allowed, options)
-    out = dict(options)
-
-    def put(key, value, source, default=None):
-        if key not in allowed:
-            if value != default:
-                raise ValueError(f"{front}() has no use for {source}.{key} = {value!r} (drop it)")
-            return
-        if key in out and out[key] != value:
-            raise ValueError(f"{front}(): {key} given twice, {source}.{key} = {value!r} and {key}={out[key]!r}; "
-                             f"give it once")
-        out[key] = value
-
+    uses = USES[front]
     given = {"stepsize": stepsize, "saveat": saveat, "run": run}
-    for home, cls in (("stepsize", StepSizeController), ("saveat", SaveAt), ("run", RunOptions)):
-        if given[home] is not None:
-            for key, value, default in _fields_put(home, cls, given[home]):
-                put(key, value, home, default)
-    return out
+    out = {}
+    for home, cls in OBJECTS.items():
+        obj = given[home]
+        if obj is None:
+            out[home] = saveat_default if home == "saveat" else cls()
+            continue
+        if not isinstance(obj, cls):
+            raise ValueError(f"{home} must be a jaxsleigh.{cls.__name__}, got {type(obj).__name__}")
+        for field in cls._fields:
+            value = getattr(obj, field)
+            if field not in uses.get(home, ()) and _differs(value, cls._field_defaults[field]):
+                raise ValueError(f"{front}() has no use for {home}.{field} = {value!r} (drop it)")
+        out[home] = check_policy(obj) if home == "stepsize" else obj
+    if out["saveat"].every is None:
+        out["saveat"] = out["saveat"]._replace(every=saveat_default.every)
+    return StudyOptions(out["stepsize"], out["saveat"], out["run"])
+
+
+def takes_objects(front):
+    """Decorate a front (a function whose name is a key of `USES`) so that a keyword of jaxsleigh 0.1 it is given
+    (`REMOVED_KEYWORDS`) is a ``TypeError`` naming the object and field to pass instead, e.g.
+    ``run_basin() got an unexpected keyword argument 'rtol': pass stepsize=jaxsleigh.StepSizeController(rtol=...)``.
+    Any other unexpected keyword gets Python's own ``TypeError``. The signature, name and docstring are the
+    front's."""
+    params = inspect.signature(front).parameters
+    uses = USES[front.__name__]
+
+    @functools.wraps(front)
+    def call(*args, **kwargs):
+        removed = [k for k in kwargs if k in REMOVED_KEYWORDS and k not in params]
+        if removed:
+            raise TypeError(removed_message(front.__name__, removed, uses))
+        return front(*args, **kwargs)
+
+    return call
+
+
+def removed_message(front: str, removed, uses: dict) -> str:
+    """What a ``TypeError`` says of the keywords of jaxsleigh 0.1 in ``removed`` given to ``front``: the object and
+    field of each that ``front`` uses, and those it has no use for."""
+    fields, unused = {}, []
+    for key in removed:
+        home, field = REMOVED_KEYWORDS[key]
+        if field in uses.get(home, ()):
+            fields.setdefault(home, []).append(field)
+        else:
+            unused.append(f"jaxsleigh.{OBJECTS[home].__name__}.{field}")
+    says = []
+    if fields:
+        says.append("pass " + ", ".join(f"{home}=jaxsleigh.{OBJECTS[home].__name__}("
+                                        f"{', '.join(f'{f}=...' for f in fields[home])})"
+                                        for home in OBJECTS if home in fields))
+    if unused:
+        says.append(f"{front}() has no use for {', '.join(unused)}")
+    got = "an unexpected keyword argument" if len(removed) == 1 else "unexpected keyword arguments"
+    return (f"{front}() got {got} {', '.join(repr(k) for k in removed)}: "
+            f"{'; '.join(says)} (the keywords of jaxsleigh 0.1 were removed in 0.4)")

@@ -21,7 +21,7 @@ from ..model.w_laws import control_w_components
 from ..model.coordinates import w_to_q
 from ..integrate.engine import STIFF_AFTER, check_ics, drive_saving, flight_step, initial_w, working_dtype
 from ..integrate.stepsize import StepSizeController
-from .options import RunOptions, SaveAt, front_options
+from .options import RunOptions, SaveAt, study_options, takes_objects
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..model.params import PlantParams
 from ..model.plant import velocity
@@ -154,7 +154,7 @@ def _outputs_lanes(yw, t, args: ClosedLoop, chart=WChart()):
 
 def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
               x64: bool, stepsize: StepSizeController, saveat: SaveAt, run: RunOptions) -> Solution:
-    """`simulate` (see there) with its options resolved into the objects (`front_options`; ``saveat.every``
+    """`simulate` (see there) with its option objects checked (`study_options`; ``saveat.every``
     already defaulted to 10): simulate the closed loop (plant eq. 1 + control law eq. 13, or any law).
 
     Raises:
@@ -224,14 +224,11 @@ def _solution_settings(cfg, args: ClosedLoop, n: int, adaptive: bool = False) ->
     return settings
 
 
-#: The keywords of jaxsleigh 0.1 that `simulate` maps onto its option objects.
-SIMULATE_KEYWORDS = frozenset({"save_every", "method", "rtol", "atol", "max_step", "max_steps", "progress"})
-
-
+@takes_objects
 def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
              t_final: float = 100.0, dt: float = 0.01, x64: bool = False,
              stepsize: Optional[StepSizeController] = None, saveat: Optional[SaveAt] = None,
-             run: Optional[RunOptions] = None, **options) -> Solution:
+             run: Optional[RunOptions] = None) -> Solution:
     """Simulate the closed loop (plant eq. 1 + control law eq. 13, or any law) and keep decimated trajectories.
 
     Args:
@@ -242,24 +239,24 @@ def simulate(ics, *, plant: Optional[PlantParams] = None, gains: Any = None, con
       controller: any feedback law ``u = law(q, v)`` instead of the paper's (`jaxsleigh.model.controller`);
         integrated in the physical chart, and ``Hd`` is NaN (H_d belongs to the paper's law).
       t_final, dt: horizon and base step (``t_final`` a multiple of ``dt``); x64: compute in float64.
-      stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4, tolerances per dtype, step cap 100 dt).
+      stepsize: `jaxsleigh.StepSizeController` (default: adaptive RK4, tolerances per dtype, step cap 100 dt; its
+        ``check_passivity`` does not apply).
         Adaptive, a start still in a stiff flight after `jaxsleigh.integrate.engine.STIFF_AFTER` attempts (a mean
         step below a tenth of ``dt``: within ~1e-3 rad of theta = 0) goes on with the linearly implicit step
         (`jaxsleigh.integrate.rosenbrock`), as in ensembles and basins; every other start is stepped as without it.
-      saveat: `jaxsleigh.SaveAt` (``every``: keep every ``every``-th base step, default 10).
+      saveat: `jaxsleigh.SaveAt` (``every``: keep every ``every``-th base step, default 10; ``summaries`` does not
+        apply).
       run: `jaxsleigh.RunOptions` (only ``progress`` applies).
-      **options: the keywords of jaxsleigh 0.1 (``save_every``, ``method``, ``rtol``, ``atol``, ``max_step``,
-        ``max_steps``, ``progress``), mapped onto the objects.
 
     Returns:
       `Solution`, as NumPy arrays; its ``settings`` record the flight rule (``stiff_after``, ``flight_step``).
 
     Raises:
-      ValueError: any bad option, or a single start (or every start of a batch) that cannot be integrated. A
-        bad row of a larger batch is flagged in ``status`` (outputs NaN) and named in a
-        `FlaggedStartsWarning`; the other rows are computed.
+      ValueError: any bad option (an object's field that does not apply, changed from its default, included), or a
+        single start (or every start of a batch) that cannot be integrated. A bad row of a larger batch is flagged
+        in ``status`` (outputs NaN) and named in a `FlaggedStartsWarning`; the other rows are computed.
+      TypeError: a keyword of jaxsleigh 0.1 (``rtol=``, ``save_every=``, ...), naming the object that holds it now.
     """
-    stepsize, saveat, run = front_options("simulate", SIMULATE_KEYWORDS, stepsize, saveat, run, options,
-                                          saveat_default=SaveAt(every=10))
+    stepsize, saveat, run = study_options("simulate", stepsize, saveat, run, saveat_default=SaveAt(every=10))
     return _simulate(ics, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, x64=x64,
                      stepsize=stepsize, saveat=saveat, run=run)

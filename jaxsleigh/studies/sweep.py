@@ -40,7 +40,7 @@ from ..model.params import Gains, PlantParams, as_gains, as_plant, gains_to_dict
 from ..status import CONVERGED, VALID, Status
 from ..validate import check_memory
 from .config import plant_to_dict, reject_traced
-from .options import RunOptions, SaveAt, front_options
+from .options import RunOptions, SaveAt, study_options, takes_objects
 from ..integrate.stepsize import StepSizeController
 from .ensemble import run_ensemble_resolved, summary_repr
 from ..files.npz import parse_number, read_result, write_result
@@ -505,7 +505,7 @@ def _sweep_result(res, names, values: np.ndarray, shape, axes, st: BasinStarts, 
 def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
            dt: float, eps: float, x64: bool, labels: Optional[Mapping[str, str]], stepsize: StepSizeController,
            run: RunOptions) -> Optional[SweepResult]:
-    r"""`sweep` (see there) with its options resolved into the objects (`front_options`): run every start under
+    r"""`sweep` (see there) with its option objects checked (`study_options`): run every start under
     every parameter value set, as one ensemble of ``P * N`` rows, and summarise per value set. ``labels``:
     parameter name -> text naming it in error messages (the CLI passes its ``--param``). ``run.chunk_size``
     counts rows (default as `run_basin`). Returns a `SweepResult` (``None`` with ``run.shard``)."""
@@ -525,15 +525,11 @@ def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controll
     return _sweep_result(res, names, values, shape, axes, st, settings)
 
 
-#: The keywords of jaxsleigh 0.1 that `sweep` maps onto its option objects.
-SWEEP_KEYWORDS = frozenset({"method", "rtol", "atol", "max_step", "max_steps", "check_passivity", "chunk_size",
-                            "devices", "cores", "checkpoint_dir", "resume", "progress", "shard", "labels"})
-
-
+@takes_objects
 def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = None, controller: Any = None,
           t_final: float = 100.0, dt: float = 0.01, eps: float = 0.05, x64: bool = False,
           stepsize: Optional[StepSizeController] = None, run: Optional[RunOptions] = None,
-          **options) -> Optional[SweepResult]:
+          labels: Optional[Mapping[str, str]] = None) -> Optional[SweepResult]:
     r"""Run every start under every parameter value set, as one ensemble, and summarise per value set.
 
     Args:
@@ -544,15 +540,16 @@ def sweep(starts, params, *, plant: Optional[PlantParams] = None, gains: Any = N
       plant, gains, controller: the base values of everything not swept (default: the paper's).
       t_final, dt, eps, x64, stepsize, run: as in `jaxsleigh.run_basin`; ``run.chunk_size`` counts rows
         (start x value set): memory is bounded by the chunk, not by ``P * N``.
-      **options: the keywords of jaxsleigh 0.1 (``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps``,
-        ``check_passivity``, ``chunk_size``, ``devices``, ``checkpoint_dir``, ``resume``, ``progress``,
-        ``shard``) and ``labels`` (parameter name -> text naming it in messages).
+      labels: parameter name -> text naming it in error messages (the command line passes its ``--param``).
 
     Returns:
       `SweepResult` (``None`` for one share of a multi-process run).
+
+    Raises:
+      TypeError: a keyword of jaxsleigh 0.1 (``rtol=``, ``chunk_size=``, ...), naming the object that holds it now.
+      ValueError: an option object of the wrong type or with a bad value.
     """
-    labels = options.pop("labels", None)
-    stepsize, _, run = front_options("sweep", SWEEP_KEYWORDS, stepsize, None, run, options)
+    stepsize, _, run = study_options("sweep", stepsize, None, run)
     return _sweep(starts, params, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps,
                   x64=x64, labels=labels, stepsize=stepsize, run=run)
 
