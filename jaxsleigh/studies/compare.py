@@ -11,7 +11,7 @@ with the measures a reviewer asks for, judged on the whole distribution and not 
   that ran (not only the settled ones: a law that spends and fails is charged);
 * ``u_peak_p50``, ``u_peak_max``: median and largest \(\max_t \|u(t)\|\);
 * ``min_abs_theta``: the closest approach to \(\theta = 0\) over all starts; ``failed``: starts whose
-  integration did not reach the horizon;
+  integration did not reach the horizon, and ``failed_statuses`` how many of them ended with each status, by name;
 * ``per_start``: ``{"T_eps": [...], "energy": [...]}``, each start's \(T_\varepsilon\) (``inf``: did not settle
   or failed) and energy (``nan``: failed), in the order of the starts (what the ECDF figure draws,
   `jaxsleigh.plots.compare.plot_compare_ecdf`). `json_ready` writes ``inf`` and ``nan`` as ``null``.
@@ -19,7 +19,8 @@ with the measures a reviewer asks for, judged on the whole distribution and not 
 **Equal effort.** `tune_to_budget` tunes the literature's laws (`jaxsleigh.tuning.tune_law`) to one energy budget,
 by default the paper's training energy \(E_{paper} = \exp(\overline{\log E_i})\), \(E_i = \int_0^{30} \|u\|^2 dt\)
 on the tuner's training starts (`jaxsleigh.tuning.training_energy`), so that the laws are compared at equal
-effort; the paper's gains stay as published and a law that ships a tuned preset (``shaped``) keeps it.
+effort; the paper's gains stay as published and a law that ships a tuned preset (``shaped``) keeps it. A tuned law
+whose training energy stays outside `BUDGET_BAND` of the budget is recorded (``budget_reached`` false) and named.
 
 Actuators: ``saturation`` clips each component, \(|u_i| \le U\) (`jaxsleigh.controllers.actuators.Saturation`);
 ``sampler`` runs the sampled-data loop (zero-order hold, delay, noise:
@@ -43,7 +44,7 @@ from ..integrate.engine import MAX_BASE_STEPS
 from ..model.controller import controller_record
 
 __all__ = ["START_DISTRIBUTIONS", "draw_compare_starts", "compare", "METRICS", "BASE_STEP", "SUBSTEPS", "base_step",
-           "check_horizon", "json_ready", "EqualEnergy", "tune_to_budget"]
+           "check_horizon", "json_ready", "EqualEnergy", "tune_to_budget", "BUDGET_BAND", "budget_note"]
 
 #: The held-out start distributions (name -> description): near the singular set, the training box, and
 #: a wider box with momentum.
@@ -91,6 +92,9 @@ def _row(T_eps, status, energy, u_peak, min_theta) -> dict:
             "u_peak_max": float(np.nanmax(np.where(ran, u_peak, np.nan))) if ran.any() else float("nan"),
             "min_abs_theta": float(np.nanmin(min_theta)) if np.isfinite(min_theta).any() else float("nan"),
             "failed": int(np.sum(~ran)),
+            # how many ended with each status other than OK, by name ({"nonfinite": 16}): what failed them
+            "failed_statuses": {Status(int(c)).name.lower(): int(k)
+                                for c, k in zip(*np.unique(status[~ran], return_counts=True))},
             "per_start": {"T_eps": [float(t) if k else math.inf for t, k in zip(T, ok)],
                           "energy": [float(e) for e in E]}}
 
@@ -197,6 +201,24 @@ class EqualEnergy(NamedTuple):
         return json_ready({"budget": self.budget, "settings": self.settings, "laws": self.laws_info})
 
 
+#: The band of training energy / budget in which a tuned law counts as at the budget (``budget_reached``).
+BUDGET_BAND = (0.95, 1.05)
+
+
+def budget_note(ratio: float) -> str:
+    """What a tuned law's training energy / budget ``ratio`` means for an equal-energy comparison: ``''`` within
+    `BUDGET_BAND`; above it the budget is exceeded, below it not reached (the law is compared at less energy than
+    the others, not at equal energy)."""
+    if not math.isfinite(ratio):
+        return "; its training energy is not finite: the budget was not reached"
+    if ratio > BUDGET_BAND[1]:
+        return " (above the budget: more tuner steps bring it closer)"
+    if ratio < BUDGET_BAND[0]:
+        return (f"; the budget was NOT reached: it is compared at {ratio:.2f}x the energy of the others, not at "
+                f"equal energy (more tuner steps, or a law that cannot use more energy there)")
+    return ""
+
+
 def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr: float = 0.1, seed: int = 0,
                    t_train: float = 30.0, budget: Optional[float] = None,
                    log: Optional[Callable[[str], None]] = None) -> EqualEnergy:
@@ -208,8 +230,10 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
     Each literature law is tuned on those starts by `jaxsleigh.tuning.tune_law` (Adam, ``steps`` iterations at
     learning rate ``lr``, augmented Lagrangian on "energy \(\le\) budget"); the paper's gains stay as published
     and a law with a tuned preset (``shaped``) keeps it. A law whose default is not a valid candidate on the
-    training starts is compared untuned (``laws_info[name]["as"] == "untuned"``, with the reason). ``log`` gets
-    one line per law.
+    training starts is compared untuned (``laws_info[name]["as"] == "untuned"``, with the reason). A tuned law
+    records its ``energy_ratio`` (training energy / budget) and ``budget_reached`` (the ratio within
+    `BUDGET_BAND`): a law below the band was not brought to the budget and is compared at less energy. ``log``
+    gets one line per law, which says so.
     """
     from .. import tuning
 
@@ -236,12 +260,13 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
             say(f"{name}: compared untuned ({e})")
             continue
         laws[name] = res.law
+        ratio = res.energy / budget
         info[name] = {"as": "tuned", "law": controller_record(res.law), "training_energy": res.energy,
                       "training_loss": res.loss, "steps": len(res.history["loss"]),
-                      "wall_s": time.perf_counter() - t0}
+                      "wall_s": time.perf_counter() - t0, "energy_ratio": ratio,
+                      "budget_reached": bool(BUDGET_BAND[0] <= ratio <= BUDGET_BAND[1])}
         say(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g}, "
-            f"{res.energy / budget:.2f}x the budget {budget:.4g}"
-            + (" (more tuner steps bring it closer)" if res.energy > 1.05 * budget else ""))
+            f"{ratio:.2f}x the budget {budget:.4g}" + budget_note(ratio))
     settings = {"train": int(train), "seed": int(seed), "steps": int(steps), "lr": float(lr),
                 "t_train": float(t_train), "starts": "tuning.UniformStarts()"}
     return EqualEnergy(laws, budget, info, settings)
