@@ -49,7 +49,8 @@ class SolveOutput(NamedTuple):
     front's result uses.
 
     Attributes:
-      q_final, p_final: final configuration (3,) and momentum (2,).
+      q_final, p_final: final configuration (3,) and momentum (2,) (NaN for a status of
+        `jaxsleigh.status.NO_RESULT`, as the summaries).
       status: `jaxsleigh.Status` code (``BUDGET_EXHAUSTED`` when the attempts ran out first).
       t_reached: time reached.
       n_steps, n_rejected: accepted and rejected attempts.
@@ -136,7 +137,10 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       may be traced): validate them with `jaxsleigh.gains` /
       `jaxsleigh.plant_params` first. A start that cannot be integrated is reported as data, as in every
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
-      whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
+      whose chart state, vector field, H_d or effort integrand \(|u|^2\) overflows the precision
+      ``OUT_OF_RANGE``; its outputs are NaN. So are those of a run that failed while stepping (``NONFINITE``,
+      ``STEP_UNDERFLOW``, ...: `jaxsleigh.status.NO_RESULT`): final state and summaries NaN, never its start nor
+      the integrals up to the failure.
     """
     ss = _stepsize(stepsize, options)
     configure()              # a run begins: one JAX CPU device per core, if JAX has not started (jaxsleigh.cores)
