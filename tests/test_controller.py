@@ -277,7 +277,7 @@ def test_results_of_a_user_law_are_saved_and_loaded(tmp_path):
 def test_a_law_that_is_nan_far_out_ends_nonfinite_with_nan_outputs_in_every_front():
     """The adaptive step shrank to its floor on NaN trials and the run was reported ``STEP_UNDERFLOW`` with the
     start as its final state and 0 as its energy; a NaN field is ``NONFINITE``, and a failed row's outputs are NaN
-    in `solve`, `simulate` and `run_ensemble` alike."""
+    in `solve`, `simulate`, `run_ensemble` and `run_basin` alike."""
     law = _NaNFarOut()
     out = js.solve(law, jnp.asarray([3.0, 0.0, 0.3]), t_final=1.0)
     assert int(out.status) == js.Status.NONFINITE
@@ -285,7 +285,8 @@ def test_a_law_that_is_nan_far_out_ends_nonfinite_with_nan_outputs_in_every_fron
     assert all(np.all(np.isnan(np.asarray(v))) for v in out.summaries.values())
     ics = np.array([[3.0, 0.0, 0.3], [0.1, 0.0, 0.3]])
     for res in (js.run_ensemble(ics, controller=law, t_final=1.0, run=js.RunOptions(progress=False)),
-                js.simulate(ics, controller=law, t_final=1.0)):
+                js.simulate(ics, controller=law, t_final=1.0),
+                js.run_basin(ics, controller=law, t_final=1.0, run=js.RunOptions(progress=False))):
         assert res.status.tolist() == [js.Status.NONFINITE, js.Status.OK]
         for name in ("q_final", "T_eps", "u_energy", "u_abs_int", "u_norm_peak", "max_excursion"):
             value = np.asarray(getattr(res, name), np.float64)
