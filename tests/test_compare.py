@@ -359,3 +359,70 @@ def test_tuning_keeps_declared_positive_gains_positive():
     assert all(float(getattr(res.law, n)) > 0 for n in ("gamma", "k", "h", "K"))
     with pytest.raises(ValueError, match="must be > 0"):
         tune_law(law._replace(k=-1.0), starts, loss=LossConfig(t_final=5.0), steps=1)
+
+
+def _failing_rows(laws, starts, **_):
+    """`compare`'s rows where every start of ``samson`` ended NONFINITE and the others OK (no run)."""
+    from jaxsleigh.studies.compare import _row
+
+    rows = []
+    for name in laws:
+        for sname, ics in starts.items():
+            n = len(ics)
+            status = np.full(n, js.Status.NONFINITE if name == "samson" else js.Status.OK)
+            T = np.full(n, np.nan if name == "samson" else 3.0)
+            E = np.full(n, np.nan if name == "samson" else 2.0)
+            rows.append({"controller": name, "starts": sname, "n": n,
+                         **_row(T, status, E, E, np.full(n, 0.1)), "audit": None})
+    return rows
+
+
+def test_compare_says_how_many_starts_failed_by_status_and_exits_3_when_a_law_failed_everywhere(
+        capsys, tmp_path, monkeypatch):
+    """Rows whose every start failed printed "settled 0/4 ... energy n/a" and exited 0; the line now says how many
+    failed and with which status, the JSON counts them by status, and the exit code is 3 when every start of a law
+    failed."""
+    import jaxsleigh.studies.compare as study
+
+    monkeypatch.setattr(study, "compare", _failing_rows)
+    argv = ["compare", "--starts", "near,uniform", "--samples", "4", "--t-final", "5"]
+    code, out, err = _run([*argv, "--controllers", "paper,samson", "--out", str(tmp_path / "f.json")], capsys)
+    lines = [ln for ln in out.splitlines() if ln.startswith("samson")]
+    assert code == 3 and len(lines) == 2 and all("failed 4/4 (4 nonfinite)" in ln for ln in lines)
+    assert "every start of samson failed" in err
+    assert not any("failed" in ln for ln in out.splitlines() if ln.startswith("paper"))
+    rec = json.loads((tmp_path / "f.json").read_text())
+    assert [r["failed_statuses"] for r in rec["rows"] if r["controller"] == "samson"] == [{"nonfinite": 4}] * 2
+    code, _, err = _run([*argv, "--controllers", "paper", "--out", str(tmp_path / "g.json")], capsys)
+    assert code == 0 and "failed" not in err
+
+
+def test_equal_energy_says_when_a_law_did_not_reach_the_budget(capsys, tmp_path, monkeypatch):
+    """A law tuned to 0.53x the budget was reported as tuned, compared as at equal energy; its record says
+    ``budget_reached: false`` with the ratio, and its printed lines say that it is not at equal energy."""
+    import jaxsleigh.studies.compare as study
+    from jaxsleigh import tuning
+    from jaxsleigh.tuning.law import LawTuneResult
+
+    def fake_tune(law, starts, *, loss, **_):
+        energy = 0.53 * loss.energy_budget if type(law).__name__.lower().startswith("samson") else loss.energy_budget
+        return LawTuneResult(*([None] * len(LawTuneResult._fields)))._replace(
+            law=law, energy=energy, loss=1.0, history={"loss": [1.0, 1.0]})
+
+    monkeypatch.setattr(tuning, "tune_law", fake_tune)
+    said = []
+    eq = study.tune_to_budget(["samson", "astolfi"], train=2, steps=2, budget=10.0, log=said.append)
+    assert eq.laws_info["samson"]["budget_reached"] is False and eq.laws_info["samson"]["energy_ratio"] == 0.53
+    assert eq.laws_info["astolfi"]["budget_reached"] is True
+    (samson,) = [s for s in said if s.startswith("samson")]
+    assert "0.53x the budget" in samson and "NOT reached" in samson and "not at equal energy" in samson
+    real = study.tune_to_budget
+    monkeypatch.setattr(study, "tune_to_budget", lambda names, **k: real(names, **{**k, "budget": 10.0}))
+    monkeypatch.setattr(study, "compare", _failing_rows)
+    code, out, _ = _run(["compare", "--equal-energy", "--train", "2", "--steps", "2", "--controllers", "astolfi,samson",
+                         "--starts", "near", "--samples", "2", "--t-final", "5", "--out", str(tmp_path / "e.json")],
+                        capsys)
+    rec = json.loads((tmp_path / "e.json").read_text())
+    assert rec["equal_energy"]["laws"]["samson"]["budget_reached"] is False
+    assert "samson: not at equal energy: its training energy is 0.53x the budget" in out
+    assert "astolfi: not at equal energy" not in out

@@ -264,16 +264,26 @@ def test_tiny_theta0_budget_is_reported_then_raised():
 
 
 def test_an_effort_that_overflows_ends_the_lane_at_once_not_at_the_budget():
-    """theta0 = 2e-4 in float32 (the defaults): |u|^2 ~ 1e38 overflows, so every step's error estimate is
-    inf - inf = NaN. A NaN ratio is a failed step: the step shrinks until it underflows and the lane ends
-    STEP_UNDERFLOW within a few dozen attempts, its final state NaN. (It used to become a NaN step size that
-    every later attempt kept, so the lane burnt its whole budget, 2e5 rejections, and ended BUDGET_EXHAUSTED.)
-    The neighbouring start at 4e-4 is integrated and still runs out of budget, honestly, with steps accepted."""
-    r = run_ensemble(np.array([[1.0, 1.0, 2e-4], [2.0, -1.0, -2e-4], [1.0, 1.0, 4e-4]]), t_final=5.0)
-    assert r.status[:2].tolist() == [Status.STEP_UNDERFLOW] * 2, r.status
-    assert (r.n_steps[:2] + r.n_rejected[:2] < 100).all(), (r.n_steps, r.n_rejected)
-    assert np.isnan(r.q_final[:2]).all()
+    """theta0 = 2e-4 in float32 (the defaults): |u|^2 ~ 1e39 overflows, so every step's error estimate would be
+    inf - inf = NaN. The start check computes |u|^2 and flags such a start ``OUT_OF_RANGE`` (it ended
+    ``STEP_UNDERFLOW``, a status that named no cause): not integrated, every output NaN. The neighbouring start at
+    4e-4 is integrated and still runs out of budget, honestly, with steps accepted. A law the start check does not
+    cover whose effort overflows fails fast too: a NaN ratio is a failed step, the step shrinks until it underflows
+    and the lane ends ``NONFINITE`` (its effort is not finite) within a few dozen attempts. (A NaN step size once
+    burnt the whole budget, 2e5 rejections, and ended BUDGET_EXHAUSTED.)"""
+    with pytest.warns(FlaggedStartsWarning, match="effort integrand"):
+        r = run_ensemble(np.array([[1.0, 1.0, 2e-4], [2.0, -1.0, -2e-4], [1.0, 1.0, 4e-4]]), t_final=5.0)
+    assert r.status[:2].tolist() == [Status.OUT_OF_RANGE] * 2, r.status
+    assert np.isnan(r.q_final[:2]).all() and np.isnan(r.u_energy[:2]).all() and np.isnan(r.T_eps[:2]).all()
     assert r.status[2] in (Status.OK, Status.BUDGET_EXHAUSTED) and r.n_steps[2] > 1000, (r.status, r.n_steps)
+
+    def loud(q, v):                          # |u| ~ 1e20: |u|^2 overflows float32, the state does not
+        return 1e20 * jnp.stack([-v[0] - q[0], -v[1] - q[2]])
+
+    r = run_ensemble(np.array([[1.0, 1.0, 0.5]]), controller=loud, t_final=5.0)
+    assert r.status[0] == Status.NONFINITE, r.status
+    assert r.n_steps[0] + r.n_rejected[0] < 100, (r.n_steps, r.n_rejected)
+    assert np.isnan(r.q_final[0]).all() and np.isnan(r.u_energy[0])
 
 
 def test_starts_off_the_singular_set_never_go_nonfinite():

@@ -210,6 +210,20 @@ def test_one_unrepresentable_row_is_flagged_and_named(tmp_path, capsys):
     assert rc == 0 and "row 1" in err and "left out of the fraction" in err, err
 
 
+def test_an_out_of_range_start_is_named_by_what_overflows_and_why():
+    """A start far from the origin overflows float32 through its H_d (~|q|^2), not through a small theta0; the
+    message said "|theta0| is so small" for (1e30, 1e30, 0.5). It names the quantities that overflow and the
+    coordinates that make them; a start near theta = 0 is still named by its theta0."""
+    with pytest.raises(ValueError, match="invalid") as far:
+        js.simulate([1e30, 1e30, 0.5], t_final=0.5)
+    text = str(far.value)
+    assert "theta0" not in text and "H_d" in text and "|x| = 1e+30, |y| = 1e+30" in text and "x64" in text
+    with pytest.warns(FlaggedStartsWarning) as rec:
+        js.simulate([[1.0, 1.0, 0.5], [1.0, 1.0, 1e-30]], t_final=0.5, saveat=js.SaveAt(every=10))
+    text = str(rec[0].message)
+    assert "|theta0| = 1e-30 is so close to theta = 0" in text and "|x|" not in text
+
+
 def test_the_plain_region_needs_no_compiled_check(monkeypatch):
     """`_representable` skips its float64 program for starts with |theta0| >= 1e-2 and |x|, |y|, |p| <= 1e2: every
     corner of that region (and random points in it) passes the full check in float32, so skipping it changes no

@@ -144,6 +144,22 @@ def test_solve_reports_a_start_that_cannot_be_integrated():
     assert int(solve(js.paper_gains(), np.array([1.0, 1.0, 0.0]), t_final=1.0).status) == S.SINGULAR_START
 
 
+def test_a_float32_start_too_close_to_theta_zero_is_out_of_range_with_nan_outputs():
+    """theta0 = 1e-7 in float32: its w-chart state is finite but its |u|^2 (~1e41) overflows, so no step could be
+    accepted; it ended ``STEP_UNDERFLOW`` with the start as its final state and 0 as its energy. It is
+    ``OUT_OF_RANGE`` now, as the host fronts flag it, every output NaN; a start whose H_d overflows too."""
+    for y0 in ([1.0, 0.0, 1e-7], [1e30, 1e30, 0.5]):
+        out = solve(js.paper_gains(), jnp.asarray(y0, jnp.float32), t_final=1.0)
+        assert int(out.status) == js.Status.OUT_OF_RANGE, y0
+        assert np.all(np.isnan(np.asarray(out.q_final))) and np.all(np.isnan(np.asarray(out.p_final)))
+        for name in ("T_eps", "u_energy", "u_abs_int", "u_norm_peak", "min_abs_theta", "max_excursion"):
+            assert np.isnan(float(getattr(out, name))), (y0, name)
+    with pytest.warns(js.errors.FlaggedStartsWarning, match="row 0 .*out_of_range.*effort integrand"):
+        res = js.run_ensemble(np.array([[1.0, 0.0, 1e-7], [1.0, 0.0, 0.5]]), t_final=1.0,
+                              run=js.RunOptions(progress=False))
+    assert res.status.tolist() == [js.Status.OUT_OF_RANGE, js.Status.OK] and np.isnan(res.u_energy[0])
+
+
 def test_saveat_gives_the_trajectory_of_the_host_front():
     """``saveat=SaveAt(every=n)``: the traced trajectory at the save times, as `js.simulate` saves it (float64, the
     same steps landing on the same save times: equal to rounding), the input there too, and its final state."""

@@ -11,7 +11,7 @@
 3. Held out: the starts of ``optimum_gap.py`` (the first ``--n`` of each distribution), their frontier read from
    ``out/optimum_gap.npz`` when that study has been run with the same ``--n`` (solved again otherwise); ``balanced``
    and the searched gains run 100 s there and their time ratios T_law / T*(E_law) are compared (median over the
-   starts each settles; censored ratios as that study uses them).
+   starts each settles whose ratio the frontier's horizons cover; a censored ratio is a bound, left out).
 
 Writes ``docs/figures/gap_search.json`` (dtype, machine, load, command, the gains, the figures).
 """

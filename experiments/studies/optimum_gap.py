@@ -110,7 +110,8 @@ def main(argv=None) -> None:
             okr = np.asarray(r.status) == Status.OK
             T_law = np.where(okr & np.isfinite(r.T_eps), r.T_eps, np.nan)
             E_law = np.where(okr, np.asarray(r.u_energy, float), np.nan)
-            t_ratio, e_ratio, wT, wE = res.gap(T_law, E_law)
+            g = res.gap(T_law, E_law)            # outside the horizons a ratio is a bound (g.*_at_least), NaN here
+            t_ratio, e_ratio, wT, wE = g.time, g.energy, g.time_where, g.energy_where
             ok = np.isfinite(T_law) & np.isfinite(E_law)
             rows[lname] = summary(t_ratio, e_ratio, wT, wE, ok, near)
             pts[lname] = (T_law, E_law, t_ratio, e_ratio)

@@ -39,7 +39,8 @@ EXIT_LOCKED = 5
 EXIT_INTERRUPTED = 130
 EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
               EXIT_USAGE: "bad input; nothing was computed (the message says what to change)",
-              EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts), or tune --search "
+              EXIT_NONE_OK: "the run finished but no trajectory ended OK (see the status counts; compare: every "
+                            "start of a law failed), or tune --search "
                             "found no feasible gains (its history is written), or tune's result does not meet "
                             "--energy-budget (the file is written, flagged)",
               EXIT_DISK_FULL: "the disk or quota is full (the file is named; --resume continues a chunked run "

@@ -3,14 +3,15 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 
 import jax
 
 from ..studies.audit import audit_line
 from .chunked import audit_from_args
-from .common import (PROG, add_progress_option, add_sampler_options, add_tolerance_options, check_outputs,
-                     claim_output, number, sampler_from_args, whole)
+from .common import (EXIT_NONE_OK, PROG, add_progress_option, add_sampler_options, add_tolerance_options,
+                     check_outputs, claim_output, number, sampler_from_args, whole)
 from ..files.npz import atomic_write_text
 from ..integrate.stepsize import StepSizeController
 
@@ -154,9 +155,25 @@ def _amount(v: float) -> str:
     return "n/a" if math.isnan(v) else f"{v:.3g}"
 
 
+def _failed(r) -> str:
+    """``'  failed 16/16 (16 nonfinite)'``: how many starts of a row did not reach the horizon, by status;
+    ``''`` when none."""
+    if not r.get("failed"):
+        return ""
+    by = r.get("failed_statuses") or {}
+    return f"  failed {r['failed']}/{r['n']}" + (f" ({', '.join(f'{k} {n}' for n, k in by.items())})" if by else "")
+
+
+def failed_laws(rows) -> list:
+    """The laws every start of whose every row failed (no start reached the horizon)."""
+    laws = dict.fromkeys(r["controller"] for r in rows)
+    return [law for law in laws if all(r.get("failed", 0) >= r["n"] for r in rows if r["controller"] == law)]
+
+
 def row_lines(rows, *, eps: float, t_final: float) -> list:
     """One line per row: the law, the distribution, the settled share ('settled 241/256 (94.1%) by 100 s'),
-    median and 90th-percentile T_eps, energy percentiles and peak |u|."""
+    median and 90th-percentile T_eps, energy percentiles and peak |u|, and the starts that failed, by status
+    ('failed 3/256 (3 budget_exhausted)')."""
     width = max(len(r["controller"]) for r in rows)
     swidth = max(len(r["starts"]) for r in rows)
     lines = []
@@ -166,7 +183,7 @@ def row_lines(rows, *, eps: float, t_final: float) -> list:
         lines.append(f"{r['controller']:{width}s} {r['starts']:{swidth}s}  settled {k}/{n} ({100 * r['settled']:.1f}%) "
                      f"by {t_final:g} s  median T_{eps:g} {_time(r['median_T'], t_final)}  p90 T_{eps:g} "
                      f"{_time(r['p90_T'], t_final)}  energy p50/p90 {_amount(r['energy_p50'])} / "
-                     f"{_amount(r['energy_p90'])} N² s  peak |u| {_amount(r['u_peak_max'])}")
+                     f"{_amount(r['energy_p90'])} N² s  peak |u| {_amount(r['u_peak_max'])}{_failed(r)}")
     return lines
 
 
@@ -186,7 +203,7 @@ def _cmd_compare(args) -> int:
 def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     from ..controllers.registry import make_controller
     from ..studies.compare import compare, draw_compare_starts, json_ready
-    from ..tuning.budget import tune_to_budget
+    from ..tuning.budget import budget_note, tune_to_budget
 
     t0 = time.perf_counter()
     equal = None
@@ -213,5 +230,15 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     for r in rows:
         if (r.get("audit") or {}).get("rows"):
             print(f"{PROG} compare: {r['controller']} on {r['starts']}: {audit_line(r['audit'])}")
+    if equal is not None:
+        for name, info in equal.laws_info.items():
+            if info.get("budget_reached") is False:
+                print(f"{PROG} compare: {name}: not at equal energy: its training energy is "
+                      f"{info['energy_ratio']:.2f}x the budget{budget_note(info['energy_ratio'])}")
     print(f"{PROG} compare: wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
+    dead = failed_laws(rows)
+    if dead:
+        print(f"{PROG}: error: every start of {', '.join(dead)} failed (see the statuses above and in --help); "
+              f"exit code {EXIT_NONE_OK}", file=sys.stderr)
+        return EXIT_NONE_OK
     return 0

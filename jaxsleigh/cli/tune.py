@@ -20,6 +20,7 @@ that owns ``--out`` (`jaxsleigh.tuning.runs`: lock, checkpoint, resume, the file
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -169,8 +170,9 @@ def _cmd_search(args) -> int:
           f"{r['energy_budget']:.4g}), converged {r['frac_converged']:.3f} -> {f['frac_converged']:.3f}; "
           f"generation {res.best_generation} of {res.settings['generations_run']}, {o.wall_s:.1f} s wall")
     if frontier is not None:
-        print(f"{PROG} tune --search: median gap to the optimum T_0.05 / T*(E) {r['median_gap']:.3g} -> "
-              f"{f['median_gap']:.3g} (1 is the optimum)")
+        print(f"{PROG} tune --search: median gap to the optimum T_0.05 / T*(E) "
+              f"{r.get('median_gap', math.inf):.3g} -> {f['median_gap']:.3g} (1 is the optimum; a start whose ratio "
+              f"the frontier's horizons only bound counts as inf)")
     _print_held_out(o)
     _print_written_gains(args, res.gains)
     return 0

@@ -17,9 +17,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..cache import kept_jit
 from ..cores import configure
-from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w, vector_field_w
+from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w, state_to_w
 from ..model.lanes import broadcast_lanes, has_lanes, take_lanes
-from ..model.charts import chart_for
+from ..model.charts import WChart, chart_for
 from ..status import Status
 from .observers import DEFAULT_OBSERVERS
 from .stepsize import StepSizeController
@@ -49,8 +49,8 @@ _WHY = {
     Status.SINGULAR_START: "theta0 = 0 is on the singular set, where the control law is undefined; "
                            "start with theta0 != 0 (e.g. 1e-3)",
     Status.INVALID_INPUT: "it has a non-finite entry",
-    Status.OUT_OF_RANGE: "|theta0| is so small that the start overflows the working precision (w ~ 1/theta0^2); "
-                         "use float64 (x64=True, --x64) or a larger |theta0|",
+    Status.OUT_OF_RANGE: "the start overflows the working precision (its w-chart state, H_d, vector field or "
+                         "|u|^2); use float64 (x64=True, --x64)",
 }
 
 
@@ -73,23 +73,54 @@ def _representable(ics5: np.ndarray, dtype, block: int = 1 << 16) -> np.ndarray:
     rest = np.flatnonzero(~ok)
     if rest.size == 0:
         return ok
-    big = float(np.finfo(np.dtype(dtype)).max) * 1e-4
-    args = ClosedLoop(paper_plant(), paper_gains())
     ics5 = ics5[rest]
-    with jax.enable_x64(True):
-        for lo in range(0, ics5.shape[0], block):
-            yw, hd, fw = _w_check(jnp.asarray(ics5[lo:lo + block], jnp.float64), args)
-            yw, hd, fw = np.asarray(yw), np.asarray(hd), np.asarray(fw)
-            ok[rest[lo:lo + block]] = (np.all(np.abs(yw) < big, axis=1) & (np.abs(hd) < big)
-                                       & np.all(np.abs(fw) < big, axis=1))
+    for lo in range(0, ics5.shape[0], block):
+        ok[rest[lo:lo + block]] = ~np.any(_start_sizes(ics5[lo:lo + block], dtype), axis=0)
     return ok
+
+
+#: what `_representable` checks at a start, in order: its w-chart state, H_d and vector field must stay below
+#: 1e-4 of the dtype's largest number; the effort integrand |u|^2 (the observers' quadrature rows) below 1/16 of it
+_SIZES = ("w-chart state", "shaped energy H_d", "vector field", "effort integrand |u|^2")
+
+
+def _start_sizes(ics5: np.ndarray, dtype) -> np.ndarray:
+    """(4, N) booleans, one row per quantity of `_SIZES`: whether it overflows ``dtype`` at each start (computed in
+    float64)."""
+    top = float(np.finfo(np.dtype(dtype)).max)
+    big = top * 1e-4
+    with jax.enable_x64(True):
+        yw, hd, fw, u2 = (np.asarray(a) for a in _w_check(jnp.asarray(ics5, jnp.float64),
+                                                          ClosedLoop(paper_plant(), paper_gains())))
+    return np.stack([~np.all(np.abs(yw) < big, axis=1), ~(np.abs(hd) < big), ~np.all(np.abs(fw) < big, axis=1),
+                     ~(u2 < top / 16)])
+
+
+def _out_of_range_why(row: np.ndarray, dtype) -> str:
+    """Why the start ``row`` (5,) is ``OUT_OF_RANGE`` in ``dtype``: which quantity of `_SIZES` overflows, and the
+    start's cause: |theta0| so small (w ~ 1/theta0^2), or |x|, |y|, |p| so large (H_d grows as their square)."""
+    over = _start_sizes(np.asarray(row, np.float64)[None], dtype)[:, 0]
+    names = [n for n, o in zip(_SIZES, over) if o] or ["state"]
+    what = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    big = [f"|{n}| = {abs(v):.3g}" for n, v in zip(("x", "y", "p1", "p2"), row[[0, 1, 3, 4]]) if abs(v) > _PLAIN_REACH]
+    causes, remedies = [], []
+    if abs(row[2]) < _PLAIN_THETA:
+        causes.append(f"|theta0| = {abs(row[2]):.3g} is so close to theta = 0 (w ~ 1/theta0^2)")
+        remedies.append("a larger |theta0|")
+    if big or not causes:
+        causes.append(f"{', '.join(big) or 'the start'} {'is' if len(big) < 2 else 'are'} so large (H_d grows as "
+                      f"the square of the distance to the origin)")
+        remedies.append("a start nearer the origin")
+    return (f"its {what} overflow{'s' if len(names) == 1 else ''} {np.dtype(dtype).name} because "
+            f"{' and '.join(causes)}; use float64 (x64=True, --x64) or {' or '.join(remedies)}")
 
 
 @kept_jit()
 def _w_check(ics, args):
     def one(y):
         yw = state_to_w(y)
-        return yw, closed_loop_hamiltonian_w(yw, args), vector_field_w(0.0, yw, args)
+        f, u = WChart().field_and_control(0.0, yw, args)
+        return yw, closed_loop_hamiltonian_w(yw, args), f, u[0] * u[0] + u[1] * u[1]
 
     return jax.vmap(one)(ics)
 
@@ -114,7 +145,8 @@ def check_ics(ics, dtype=None, *, name: str = "initial condition", singular: boo
     status = _start_status(arr, dtype, singular)
     bad = np.flatnonzero(status)
     if bad.size:
-        warnings.warn(FlaggedStartsWarning(_flagged_message(arr, status, bad, name), rows=bad, status=status[bad]),
+        warnings.warn(FlaggedStartsWarning(_flagged_message(arr, status, bad, name, dtype), rows=bad,
+                                           status=status[bad]),
                       stacklevel=3)
     return arr, status
 
@@ -153,10 +185,17 @@ def _start_status(arr: np.ndarray, dtype, singular: bool) -> np.ndarray:
     return status
 
 
-def _flagged_message(arr: np.ndarray, status: np.ndarray, bad: np.ndarray, name: str) -> str:
-    """The warning text naming the flagged rows ``bad`` by status; a ``ValueError`` if no row is left."""
+def _flagged_message(arr: np.ndarray, status: np.ndarray, bad: np.ndarray, name: str, dtype=None) -> str:
+    """The warning text naming the flagged rows ``bad`` by status (an ``OUT_OF_RANGE`` row by what overflows
+    ``dtype`` and why, `_out_of_range_why`); a ``ValueError`` if no row is left."""
+    def why(row: int) -> str:
+        code = Status(int(status[row]))
+        if code == Status.OUT_OF_RANGE and dtype is not None:
+            return _out_of_range_why(arr[row], dtype)
+        return _WHY[code]
+
     first = int(bad[0])
-    msg = f"{name} {first} {arr[first].tolist()} is invalid: {_WHY[Status(int(status[first]))]}"
+    msg = f"{name} {first} {arr[first].tolist()} is invalid: {why(first)}"
     if bad.size == arr.shape[0]:
         if arr.shape[0] == 1:
             raise ValueError(msg)
@@ -165,7 +204,7 @@ def _flagged_message(arr: np.ndarray, status: np.ndarray, bad: np.ndarray, name:
     for code in np.unique(status[bad]):
         idx = np.flatnonzero(status == code)
         parts.append(f"{_rows(idx)} (status {int(code)} {Status(int(code)).name.lower()}: "
-                     f"{_WHY[Status(int(code))]})")
+                     f"{'' if idx.size == 1 else f'row {int(idx[0])}: '}{why(int(idx[0]))})")
     return (f"{bad.size} of {arr.shape[0]} {name}s flagged and not integrated (outputs NaN, the rest are "
             f"computed): " + "; ".join(parts))
 

@@ -32,7 +32,7 @@ from ..model.charts import chart_for
 from ..model.closed_loop import ClosedLoop
 from .observers import DEFAULT_OBSERVERS, collect_values
 from ..model.params import is_concrete, paper_plant
-from ..status import Status
+from ..status import NO_RESULT, Status
 from .sampled import solve_sampled, substeps_for
 from .horizon import default_max_steps, make_horizon
 from .saveat import SaveAt
@@ -48,7 +48,8 @@ class SolveOutput(NamedTuple):
     front's result uses.
 
     Attributes:
-      q_final, p_final: final configuration (3,) and momentum (2,).
+      q_final, p_final: final configuration (3,) and momentum (2,) (NaN for a status of
+        `jaxsleigh.status.NO_RESULT`, as the summaries).
       status: `jaxsleigh.Status` code (``BUDGET_EXHAUSTED`` when the attempts ran out first).
       t_reached: time reached.
       n_steps, n_rejected: accepted and rejected attempts.
@@ -153,7 +154,10 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
       may be traced): validate them with `jaxsleigh.gains` /
       `jaxsleigh.plant_params` first. A start that cannot be integrated is reported as data, as in every
       front: non-finite ``INVALID_INPUT``, ``theta0 = 0`` under a law singular there ``SINGULAR_START``, one
-      whose chart state overflows the precision ``OUT_OF_RANGE``; its outputs are NaN.
+      whose chart state, vector field, H_d or effort integrand \(|u|^2\) overflows the precision
+      ``OUT_OF_RANGE``; its outputs are NaN. So are those of a run that failed while stepping (``NONFINITE``,
+      ``STEP_UNDERFLOW``, ...: `jaxsleigh.status.NO_RESULT`): final state and summaries NaN, never its start nor
+      the integrals up to the failure.
     """
     ss = check_policy(stepsize)
     configure()              # a run begins: one JAX CPU device per core, if JAX has not started (jaxsleigh.cores)
@@ -173,7 +177,7 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     args = ClosedLoop(paper_plant() if plant is None else plant, controller)
     chart = chart_for(controller)
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
-    yc, status0 = _start_in_chart(y0, chart)
+    yc, status0 = _start_in_chart(y0, chart, args)
     s0 = init_state(yc, status0, args, ctl, observers=observers)
     how = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers,
                implicit=FlightSwitch() if adaptive else False)
@@ -223,13 +227,15 @@ def _checked_start(controller, y0, **numbers) -> jax.Array:
 
 def _output(s, s0, status0, chart, t_final, observers, traj: dict) -> SolveOutput:
     r"""The `SolveOutput` of the stepper's last state ``s`` (first ``s0``): a lane still OK short of ``t_final`` ran
-    out of budget; a start that could not be integrated (``status0`` not OK) has NaN outputs and summaries, and
-    \(H_d\) is NaN under a law without it."""
+    out of budget; a start that could not be integrated (``status0`` not OK) or a run that failed (a status of
+    `jaxsleigh.status.NO_RESULT`: ``STEP_UNDERFLOW``, ``NONFINITE``, ...) has NaN final state and summaries (not
+    its start, not the integrals up to the failure), and \(H_d\) is NaN under a law without it."""
     status = jnp.where((s.status == Status.OK) & (s.t < jnp.asarray(t_final, s.t.dtype)), Status.BUDGET_EXHAUSTED,
                        s.status)
     valid, energy = status0 == Status.OK, chart.has_energy
-    y = jnp.where(valid, chart.from_chart(s.y), jnp.nan)
-    summaries = jax.tree_util.tree_map(lambda v: jnp.where(valid, v, jnp.nan),
+    ran = valid & ~jnp.isin(status, jnp.asarray([int(c) for c in NO_RESULT], status.dtype))
+    y = jnp.where(ran, chart.from_chart(s.y), jnp.nan)
+    summaries = jax.tree_util.tree_map(lambda v: jnp.where(ran, v, jnp.nan),
                                        collect_values(observers, s.obs, s.quad))
     return SolveOutput(q_final=y[:3], p_final=y[3:], status=status, t_reached=s.t, n_steps=s.n_accept,
                        n_rejected=s.n_reject, summaries=summaries,
@@ -316,10 +322,22 @@ def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps,
                        summaries={k: v[0] for k, v in out.summaries.items()}, Hd0=nan, Hd_final=nan, **traj)
 
 
-def _start_in_chart(y0: jax.Array, chart) -> tuple[jax.Array, jax.Array]:
-    """``y0`` in ``chart`` and its starting status, traced (``y0`` may be a tracer under ``grad``/``vmap``):
+def _overflows_at(chart, y, args) -> jax.Array:
+    r"""Whether the chart's vector field, its H_d or the effort integrand \(|u|^2\) is infinite at the chart state
+    ``y`` (finite): an overflow of the dtype, which no step can resolve (a NaN is the law's, not an overflow, and
+    ends the run ``NONFINITE``)."""
+    f, u = chart.field_and_control(jnp.zeros((), y.dtype), y, args)
+    u2 = u[0] * u[0] + u[1] * u[1]
+    inf = jnp.any(jnp.isinf(f)) | jnp.isinf(u2)
+    return inf | jnp.isinf(chart.energy(y, args)) if chart.has_energy else inf
+
+
+def _start_in_chart(y0: jax.Array, chart, args) -> tuple[jax.Array, jax.Array]:
+    r"""``y0`` in ``chart`` and its starting status, traced (``y0`` may be a tracer under ``grad``/``vmap``):
     ``INVALID_INPUT`` for a non-finite start, ``SINGULAR_START`` for ``theta0 = 0`` in a chart singular there,
-    ``OUT_OF_RANGE`` where the chart's state overflows the dtype. Such a start is replaced by a harmless
+    ``OUT_OF_RANGE`` where the chart's state, its vector field, H_d or the effort integrand \(|u|^2\) overflows
+    the dtype (`_overflows_at`: in float32 from ``theta0 = 1e-7``, whose \(|u|^2 \sim 10^{41}\), or from
+    ``x = y = 1e30``, whose H_d overflows). Such a start is replaced by a harmless
     placeholder, which is never stepped (its status is not OK), so no NaN reaches the step or its gradient."""
     placeholder = jnp.asarray([1.0, 0.0, 1.0, 0.0, 0.0], y0.dtype)
     finite = jnp.all(jnp.isfinite(y0))
@@ -327,5 +345,6 @@ def _start_in_chart(y0: jax.Array, chart) -> tuple[jax.Array, jax.Array]:
     status = jnp.where(~finite, Status.INVALID_INPUT, jnp.where(singular, Status.SINGULAR_START, Status.OK))
     probe = chart.to_chart(jax.lax.stop_gradient(jnp.where(status == Status.OK, y0, placeholder)))
     status = jnp.where((status == Status.OK) & ~jnp.all(jnp.isfinite(probe)), Status.OUT_OF_RANGE, status)
+    status = jnp.where((status == Status.OK) & _overflows_at(chart, probe, args), Status.OUT_OF_RANGE, status)
     # mapped again from the start or the placeholder: an overflowing start's inf never meets the gradient
     return chart.to_chart(jnp.where(status == Status.OK, y0, placeholder)), status.astype(jnp.int32)

@@ -332,7 +332,9 @@ def _judge(chart, s: StepState, trial: _Trial, args, *, adaptive: bool, monitor:
 def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose, ctl: Controls, guard=None,
                       implicit: bool = False):
     """``(ok, h_next, status, err)`` of an adaptive step: good and within tolerance (error ratio ``err``), the next
-    step to try, and ``STEP_UNDERFLOW`` where a rejected step leaves a vanishing next step. ``guard``: the
+    step to try, and where a rejected step leaves a vanishing next step ``NONFINITE`` if that step's end, the field
+    there or its error estimate was not finite (the field is NaN or overflows where the run is, or the effort
+    integrand does), else ``STEP_UNDERFLOW``. ``guard``: the
     `jaxsleigh.integrate.guard` of the step's start, ``(cap, atol)``: the largest next step and the state's
     absolute tolerance there. ``implicit``: the step was the second-order Rosenbrock step (the next one from the
     error's power -1/3)."""
@@ -346,7 +348,8 @@ def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose
     good = finite & ~crossed & ~rose
     # a NaN ratio (an overflowing estimate: inf - inf) is a failed step, not a step size: NaN there made every
     # later step NaN and burnt the lane's whole budget in rejections
-    err = jnp.where(good & ~jnp.isnan(err), err, jnp.inf)
+    overflow = jnp.isnan(err)
+    err = jnp.where(good & ~overflow, err, jnp.inf)
     ok = good & (err <= 1.0)
     h_next = next_step(h, err, ctl, order=2) if implicit else next_step(h, err, ctl, err_prev=s.err_prev)
     h_next = jnp.where(ok & trial.hit, jnp.maximum(h_next, s.h), h_next)
@@ -354,7 +357,11 @@ def _adaptive_outcome(s: StepState, trial: _Trial, active, finite, crossed, rose
     # compensated time keeps tiny steps meaningful in float32 too; starts near theta = 0
     # need h ~ 1e-8 s at first from theta0 = 1e-2 (|dp/dt| ~ 1e12) and
     # need h ~ 1e-12 s at first from theta0 = 1e-3 (Jacobian eigenvalues ~ 1e10 i)
-    status = jnp.where(active & ~ok & (h_next < 1e-18 * ctl.dt), Status.STEP_UNDERFLOW, s.status)
+    # a step that shrank to nothing because the field is not finite there (a law returning NaN, an overflow) or its
+    # error estimate overflows (the effort integrand |u|^2 beyond the dtype) is a diverging run, NONFINITE: only a
+    # finite trial rejected for its error is a step-size underflow
+    status = jnp.where(active & ~ok & (h_next < 1e-18 * ctl.dt),
+                       jnp.where(finite & ~overflow, Status.STEP_UNDERFLOW, Status.NONFINITE), s.status)
     return ok, h_next, status, err
 
 

@@ -126,7 +126,21 @@ def apply_law(law, q, v, t=0.0):
             u = jax.vmap(call, in_axes=(-1, 1, 1, 0), out_axes=1)(law.law, q, v, tb)
         else:
             u = jax.vmap(lambda qi, vi, ti: call(law, qi, vi, ti), in_axes=(1, 1, 0), out_axes=1)(q, v, tb)
+    if not _real_dtype(u.dtype):            # a static property of the law: refused where it is traced, not data
+        raise ValueError(_not_real("controller", u.dtype, ""))
     return u[0].astype(q.dtype), u[1].astype(q.dtype)
+
+
+def _real_dtype(dtype) -> bool:
+    """Whether a law's output dtype is real (floating, integer): not complex, bool or object."""
+    d = np.dtype(dtype)
+    return d != np.bool_ and (np.issubdtype(d, np.floating) or np.issubdtype(d, np.integer))
+
+
+def _not_real(name: str, dtype, where: str) -> str:
+    return (f"the {name} must return a real u (forward force, turning moment), got dtype {np.dtype(dtype).name}"
+            f"{where}; a complex u's imaginary part would be dropped: return the real part (jnp.real(u)) if that "
+            f"is what is meant")
 
 
 def _is_number_leaf(x) -> bool:
@@ -143,8 +157,8 @@ def as_controller(law: Any, name: str = "controller"):
     """Check a user's law eagerly; returns it (a plain function wrapped in `FunctionLaw`).
 
     The law must be callable as ``law(q, v)``, its leaves real numbers or arrays, and at a test point
-    (``q = (1, 0.5, 0.3)``, ``v = (0.1, -0.2)``, float64) it must return two finite numbers. Raises
-    ``ValueError`` saying what is wrong.
+    (``q = (1, 0.5, 0.3)``, ``v = (0.1, -0.2)``, float64) it must return two finite real numbers (a complex ``u``
+    is refused: its imaginary part would be dropped without a word). Raises ``ValueError`` saying what is wrong.
     """
     if isinstance(law, Gains):
         return law
@@ -183,6 +197,8 @@ def as_controller(law: Any, name: str = "controller"):
     if u.shape != (2,):
         raise ValueError(f"the {name} must return u of shape (2,) (forward force, turning moment), got shape "
                          f"{u.shape}")
+    if not _real_dtype(u.dtype):
+        raise ValueError(_not_real(name, u.dtype, f" = {u.tolist()} at q = (1, 0.5, 0.3), v = (0.1, -0.2)"))
     if not np.all(np.isfinite(u)):
         raise ValueError(f"the {name} returned a non-finite u = {u.tolist()} at q = (1, 0.5, 0.3), "
                          f"v = (0.1, -0.2)")

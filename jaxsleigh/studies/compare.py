@@ -11,7 +11,7 @@ with the measures a reviewer asks for, judged on the whole distribution and not 
   that ran (not only the settled ones: a law that spends and fails is charged);
 * ``u_peak_p50``, ``u_peak_max``: median and largest \(\max_t \|u(t)\|\);
 * ``min_abs_theta``: the closest approach to \(\theta = 0\) over all starts; ``failed``: starts whose
-  integration did not reach the horizon;
+  integration did not reach the horizon, and ``failed_statuses`` how many of them ended with each status, by name;
 * ``per_start``: ``{"T_eps": [...], "energy": [...]}``, each start's \(T_\varepsilon\) (``inf``: did not settle
   or failed) and energy (``nan``: failed), in the order of the starts (what the ECDF figure draws,
   `jaxsleigh.plots.compare.plot_compare_ecdf`). `json_ready` writes ``inf`` and ``nan`` as ``null``.
@@ -86,6 +86,9 @@ def _row(T_eps, status, energy, u_peak, min_theta) -> dict:
             "u_peak_max": float(np.nanmax(np.where(ran, u_peak, np.nan))) if ran.any() else float("nan"),
             "min_abs_theta": float(np.nanmin(min_theta)) if np.isfinite(min_theta).any() else float("nan"),
             "failed": int(np.sum(~ran)),
+            # how many ended with each status other than OK, by name ({"nonfinite": 16}): what failed them
+            "failed_statuses": {Status(int(c)).name.lower(): int(k)
+                                for c, k in zip(*np.unique(status[~ran], return_counts=True))},
             "per_start": {"T_eps": [float(t) if k else math.inf for t, k in zip(T, ok)],
                           "energy": [float(e) for e in E]}}
 

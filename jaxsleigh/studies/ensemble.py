@@ -44,7 +44,7 @@ from ..model.params import Gains, PlantParams
 from ..controllers.actuators import is_sampled
 from ..progress import Progress
 from .sampled import sampled_settings, sampled_summaries
-from ..status import CONVERGED, VALID, Status, converged, counts_in_words, integrated
+from ..status import CONVERGED, VALID, Status, converged, counts_in_words, has_result, integrated
 from ..validate import check_memory, whole
 from ..integrate.stepper import init_batch
 from ..model.lanes import has_lanes, lane_table, take_lanes
@@ -243,8 +243,11 @@ def _chunk_summaries(final, y0w, status0, args, observers=DEFAULT_OBSERVERS) -> 
         "n_rejected": np.asarray(final.n_reject, np.int64),
         "status": status.astype(np.int32),
     }
+    # a row without a result (not integrated, or failed while stepping: jaxsleigh.status.NO_RESULT) has NaN
+    # summaries, not the integrals up to its failure
+    none = invalid | ~has_result(status)
     for k, v in obs.items():
-        out[k] = np.where(invalid.reshape((-1,) + (1,) * (v.ndim - 1)), np.nan, v)
+        out[k] = np.where(none.reshape((-1,) + (1,) * (v.ndim - 1)), np.nan, v)
     return out
 
 

@@ -358,14 +358,19 @@ def _status(c, g, kkt, zn, yT, eps, opts):
 # ------------------------------------------------------------------------------------------------ the result
 class Gap(NamedTuple):
     r"""A law's distance from the optimum per start (`OptimumResult.gap`): ``time`` \(T_{law} / T^*(E_{law})\),
-    ``energy`` \(E_{law} / E^*(T_{law})\), and where each was a bound rather than a value (``time_where`` -1: a
-    lower bound, the law's energy exceeds the shortest horizon's; ``energy_where`` +1: a lower bound, the law is
-    slower than the longest horizon; 0: interpolated)."""
+    ``energy`` \(E_{law} / E^*(T_{law})\), values only where the frontier's solved horizons cover the law (NaN
+    elsewhere), and where each was a bound rather than a value (``time_where`` -1: a lower bound, the law's energy
+    exceeds the shortest horizon's; ``energy_where`` +1: a lower bound, the law is slower than the longest horizon;
+    0: interpolated). ``time_at_least`` / ``energy_at_least``: the lower bound where the ratio is one (never below
+    1, the ratio's physical limit; NaN elsewhere). A bound is never a value: a search that minimised it as one drove
+    a gain to 1317 to spend more energy than the shortest horizon needs and report a time ratio of 0.17."""
 
     time: np.ndarray
     energy: np.ndarray
     time_where: np.ndarray
     energy_where: np.ndarray
+    time_at_least: Optional[np.ndarray] = None
+    energy_at_least: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -422,12 +427,14 @@ class OptimumResult:
         early as the law needs). Both are \(\ge 1\) up to the grid's and the solver's error, since the optimum is
         the least over every input and a law's run is one of them.
 
-        Outside the solved horizons the ratios are *bounds*, used as their values and flagged in ``time_where`` /
-        ``energy_where`` (as `time_for_energy` / `energy_for_time`): where \(E_{law} > E^*(T_{min})\),
-        \(T^* < T_{min}\) and the time ratio is at least \(T_{law} / T_{min}\) (``-1``); where
-        \(T_{law} > T_{max}\) the energy ratio is at least \(E_{law} / E^*(T_{max})\) (``+1``); where the law's
-        energy buys no solved horizon (``+1``) or nothing was solved (``2``) the time ratio is NaN. A start the law
-        did not settle (``T_law`` NaN or inf) has NaN ratios.
+        Outside the solved horizons the ratios are *bounds*, never values: ``time`` / ``energy`` are NaN there, the
+        bound is in ``time_at_least`` / ``energy_at_least`` and the case in ``time_where`` / ``energy_where`` (as
+        `time_for_energy` / `energy_for_time`): where \(E_{law} > E^*(T_{min})\), \(T^* < T_{min}\) and the time
+        ratio is at least \(\max(1, T_{law} / T_{min})\) (``-1``); where \(T_{law} > T_{max}\) the energy ratio is
+        at least \(\max(1, E_{law} / E^*(T_{max}))\) (``+1``); where the law's energy buys no solved horizon
+        (``+1``) or nothing was solved (``2``) the time ratio is unknown (NaN, no bound). A start the law did not
+        settle (``T_law`` NaN or inf) has NaN ratios. To judge a law on such starts, solve the frontier at
+        horizons that cover its times and energies.
 
         Args:
           T_law, E_law: (S,) the law's \(T_\epsilon\) (of this result's ``eps``) and control energy per start.
@@ -439,10 +446,17 @@ class OptimumResult:
         E_star, wE = energy_for_time(self.horizons, fr, T_law)
         last = np.array([f[np.isfinite(f)][-1] if np.isfinite(f).any() else np.nan for f in fr])
         ok = np.isfinite(T_law) & np.isfinite(E_law)
+        first = np.array([h[np.isfinite(f)][0] if np.isfinite(f).any() else np.nan
+                          for h, f in zip(np.broadcast_to(self.horizons, fr.shape), fr)])
         with np.errstate(invalid="ignore", divide="ignore"):
-            t = np.where(wT == 0, T_law / T_star, np.where(wT == -1, T_law / self.horizons[0], np.nan))
-            e = np.where(wE == 0, E_law / E_star, np.where(wE == 1, E_law / last, np.nan))
-        return Gap(np.where(ok, t, np.nan), np.where(ok, e, np.nan), wT, wE)
+            t = np.where(wT == 0, T_law / T_star, np.nan)
+            e = np.where(wE == 0, E_law / E_star, np.nan)
+            # a bound is at least the ratio's physical limit, 1: the optimum is the least over every input
+            t_low = np.where(wT == -1, np.maximum(T_law / first, 1.0), np.nan)
+            e_low = np.where(wE == 1, np.maximum(E_law / last, 1.0), np.nan)
+        nan = np.nan
+        return Gap(np.where(ok, t, nan), np.where(ok, e, nan), wT, wE, np.where(ok, t_low, nan),
+                   np.where(ok, e_low, nan))
 
     def counts(self) -> dict:
         return {s.name.lower(): int(np.sum(self.status == s)) for s in OptimumStatus}

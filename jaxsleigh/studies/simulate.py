@@ -28,7 +28,7 @@ from ..model.plant import velocity
 from ..controllers.actuators import is_sampled
 from ..progress import Progress
 from .sampled import sampled_solution
-from ..status import CONVERGED, VALID
+from ..status import CONVERGED, VALID, has_result
 from .ensemble import summary_repr
 from ..model.lanes import lane_table
 
@@ -191,8 +191,9 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     # restore the exact initial state (the w chart round trip rounds it in float32)
     q[:, 0] = np.where(bad[:, None], np.nan, ics5[:, :3])
     effort = collect(DEFAULT_OBSERVERS, final.obs, final.quad)
+    none = bad | ~has_result(np.asarray(final.status))      # not integrated or failed: NaN, not a partial integral
     for k, v in effort.items():
-        v[bad] = np.nan
+        v[none] = np.nan
     effort["T_eps"] = np.where(np.asarray(final.status) == 0, effort["T_eps"], np.nan)
     return Solution(t=horizon.t(), q=q, p=yw[..., 3:], u=u, Hd=Hd, status=np.asarray(final.status),
                     n_steps=np.asarray(final.n_accept), n_rejected=np.asarray(final.n_reject),

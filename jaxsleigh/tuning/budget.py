@@ -3,10 +3,12 @@ r"""Laws tuned to one energy budget, so that `jaxsleigh.studies.compare` sets th
 The budget is by default the paper's training energy \(E_{paper} = \exp(\overline{\log E_i})\),
 \(E_i = \int_0^{30} \|u\|^2 dt\) on the tuner's training starts (`jaxsleigh.tuning.training_energy`); each
 literature law is tuned to it by `jaxsleigh.tuning.tune_law`; the paper's gains stay as published and a law that
-ships a tuned preset (``shaped``) keeps it.
+ships a tuned preset (``shaped``) keeps it. A tuned law whose training energy stays outside `BUDGET_BAND` of the
+budget is recorded (``budget_reached`` false) and named.
 """
 from __future__ import annotations
 
+import math
 import time
 from typing import Callable, NamedTuple, Optional, Sequence
 
@@ -19,7 +21,7 @@ from .optimizer import TuneConfig
 from .pareto import training_energy
 from .starts import UniformStarts, draw_starts
 
-__all__ = ["EqualEnergy", "tune_to_budget"]
+__all__ = ["EqualEnergy", "tune_to_budget", "BUDGET_BAND", "budget_note"]
 
 
 class EqualEnergy(NamedTuple):
@@ -44,6 +46,24 @@ class EqualEnergy(NamedTuple):
         return json_ready({"budget": self.budget, "settings": self.settings, "laws": self.laws_info})
 
 
+#: The band of training energy / budget in which a tuned law counts as at the budget (``budget_reached``).
+BUDGET_BAND = (0.95, 1.05)
+
+
+def budget_note(ratio: float) -> str:
+    """What a tuned law's training energy / budget ``ratio`` means for an equal-energy comparison: ``''`` within
+    `BUDGET_BAND`; above it the budget is exceeded, below it not reached (the law is compared at less energy than
+    the others, not at equal energy)."""
+    if not math.isfinite(ratio):
+        return "; its training energy is not finite: the budget was not reached"
+    if ratio > BUDGET_BAND[1]:
+        return " (above the budget: more tuner steps bring it closer)"
+    if ratio < BUDGET_BAND[0]:
+        return (f"; the budget was NOT reached: it is compared at {ratio:.2f}x the energy of the others, not at "
+                f"equal energy (more tuner steps, or a law that cannot use more energy there)")
+    return ""
+
+
 def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr: float = 0.1, seed: int = 0,
                    t_train: float = 30.0, budget: Optional[float] = None,
                    log: Optional[Callable[[str], None]] = None) -> EqualEnergy:
@@ -55,8 +75,10 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
     Each literature law is tuned on those starts by `jaxsleigh.tuning.tune_law` (Adam, ``steps`` iterations at
     learning rate ``lr``, augmented Lagrangian on "energy \(\le\) budget"); the paper's gains stay as published
     and a law with a tuned preset (``shaped``) keeps it. A law whose default is not a valid candidate on the
-    training starts is compared untuned (``laws_info[name]["as"] == "untuned"``, with the reason). ``log`` gets
-    one line per law.
+    training starts is compared untuned (``laws_info[name]["as"] == "untuned"``, with the reason). A tuned law
+    records its ``energy_ratio`` (training energy / budget) and ``budget_reached`` (the ratio within
+    `BUDGET_BAND`): a law below the band was not brought to the budget and is compared at less energy. ``log``
+    gets one line per law, which says so.
     """
     say = log or (lambda msg: None)
     loss = LossConfig(t_final=float(t_train))
@@ -81,12 +103,13 @@ def tune_to_budget(names: Sequence[str], *, train: int = 32, steps: int = 60, lr
             say(f"{name}: compared untuned ({e})")
             continue
         laws[name] = res.law
+        ratio = res.energy / budget
         info[name] = {"as": "tuned", "law": controller_record(res.law), "training_energy": res.energy,
                       "training_loss": res.loss, "steps": len(res.history["loss"]),
-                      "wall_s": time.perf_counter() - t0}
+                      "wall_s": time.perf_counter() - t0, "energy_ratio": ratio,
+                      "budget_reached": bool(BUDGET_BAND[0] <= ratio <= BUDGET_BAND[1])}
         say(f"{name}: tuned in {time.perf_counter() - t0:.0f} s; training energy {res.energy:.4g}, "
-            f"{res.energy / budget:.2f}x the budget {budget:.4g}"
-            + (" (more tuner steps bring it closer)" if res.energy > 1.05 * budget else ""))
+            f"{ratio:.2f}x the budget {budget:.4g}" + budget_note(ratio))
     settings = {"train": int(train), "seed": int(seed), "steps": int(steps), "lr": float(lr),
                 "t_train": float(t_train), "starts": "UniformStarts()"}
     return EqualEnergy(laws, budget, info, settings)

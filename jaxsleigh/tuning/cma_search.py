@@ -104,7 +104,8 @@ class SearchConfig(NamedTuple):
       objective: ``"time"``: the median \\(T_{0.05}\\) (the module docstring); ``"gap"``: the median over the starts
         of the time ratio to the optimum, \\(T_{law} / T^*(E_{law})\\) (`jaxsleigh.OptimumResult.gap`: how much
         longer than the earliest rest in the ball that the law's own energy could buy), under the same energy
-        budget; it needs ``search(frontier=...)``, whose starts are the training starts.
+        budget; it needs ``search(frontier=...)``, whose starts are the training starts. A start whose ratio the
+        frontier's horizons only bound (the law spends more than the shortest horizon needs) counts as inf.
       penalty: \\(\\rho\\) of the exact penalty (module docstring).
       t_final: horizon [s] (the validation's 100 s). eps: radius of the ball of \\(T_\\epsilon\\).
       verify: feasible candidates tried against the guard starts, best first.
@@ -199,6 +200,8 @@ def evaluate_population(gains_list, ics, *, plant: Optional[PlantParams] = None,
                    for i in range(P)]).reshape(P, len(percentiles))
     gap = np.full(P, np.nan)
     if frontier is not None:
+        # the ratio's value only: where the frontier's horizons merely bound it (Gap.time_at_least) it is NaN and
+        # counts as inf, so that no candidate can buy a small ratio by spending beyond the frontier
         ratio = np.stack([frontier.gap(T[i], E[i]).time for i in range(P)])
         gap = np.median(np.where(np.isnan(ratio), np.inf, ratio), axis=1)
     return PopulationFigures(np.median(T, axis=1), med_E, np.isfinite(T).mean(axis=1),
