@@ -246,7 +246,7 @@ def write_npz_deterministic(path, arrays: dict, *, compress: bool = True, when_f
     return atomic_write(path, write, when_full=when_full)
 
 
-def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dict:
+def read_npz(path, what: str, required=(), *, kind: Optional[str] = None, check=None) -> dict:
     """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
     or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``).
 
@@ -256,7 +256,8 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
 
     What is read is checked before it is used, each failure a `jaxsleigh.errors.DamagedFileError` (a ``ValueError``)
     naming the file and what is wrong: the file is a zip archive of arrays (a JSON, text or ``.npy`` file is named as
-    such); for a ``kind``, `check_fields`: every field's kind of number, shape and values; last, its content digest
+    such); for a ``kind``, `check_fields`: every field's kind of number, shape and values, and ``check(path, data)`` (a reader's own checks of the values: they name the field a hand edit broke);
+    last, its content digest
     (``__digest__``, `check_digest`) matches its arrays, which catches any edit the field checks let through (files
     of jaxsleigh 0.3 and earlier record none and are read without it).
     """
@@ -292,6 +293,8 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
         raise ValueError(f"{str(p)!r} is not a {what}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
     if kind is not None:
         check_fields(p, data, kind)
+    if check is not None:
+        check(p, data)
     check_digest(p, data, "write it again (rerun the command that made it)")
     return data
 

@@ -674,17 +674,10 @@ def save_optimum(path, res: OptimumResult) -> Path:
     return write_npz_deterministic(path, arrays)
 
 
-def load_optimum(path) -> OptimumResult:
-    """Read a file written by `save_optimum` (or ``jaxsleigh optimum``); a ``ValueError`` naming the file when it
-    cannot be read or is another kind of result, a `jaxsleigh.errors.DamagedFileError` (a ``ValueError``) naming it and
-    the field when what it holds is not what `save_optimum` writes: the checks of `jaxsleigh.files.npz.read_npz` (the
-    content digest, the kinds and shapes of `jaxsleigh.files.npz.FIELDS` ``["optimum"]``), then the values:
-    ``status`` known `OptimumStatus` codes, ``horizons`` finite, > 0 and strictly increasing (as `optimum` requires
-    them), ``eps`` finite and > 0."""
-    d = read_npz(path, "optimum file (written by jaxsleigh optimum / save_optimum)",
-                 ("starts", "horizons", "eps", "energy", "u", "status", "q_final", "p_final", "kkt", "guess",
-                  "settings_json"), kind="optimum")
-    p = npz_path(path) if not Path(path).exists() else Path(path)
+def _check_values(p, d: dict) -> None:
+    """The values of an optimum file: ``status`` known `OptimumStatus` codes, ``horizons`` finite, > 0 and strictly
+    increasing (as `optimum` and the command line require them), ``eps`` finite and > 0; else a `DamagedFileError`
+    naming the file and the field."""
     fix = "the file is damaged or was not written by jaxsleigh: write it again (jaxsleigh optimum --out)"
     why = value_problem({"status": d["status"]}, tuple(OptimumStatus))
     if why:
@@ -694,6 +687,17 @@ def load_optimum(path) -> OptimumResult:
         raise damaged(p, f"field horizons must be finite, > 0 and strictly increasing, got {h.tolist()}", fix)
     if not (np.isfinite(d["eps"]) and d["eps"] > 0):
         raise damaged(p, f"field eps must be finite and > 0, got {d['eps'].tolist()}", fix)
+
+
+def load_optimum(path) -> OptimumResult:
+    """Read a file written by `save_optimum` (or ``jaxsleigh optimum``); a ``ValueError`` naming the file when it
+    cannot be read or is another kind of result, a `jaxsleigh.errors.DamagedFileError` (a ``ValueError``) naming it and
+    the field when what it holds is not what `save_optimum` writes: the checks of `jaxsleigh.files.npz.read_npz` (the
+    kinds and shapes of `jaxsleigh.files.npz.FIELDS` ``["optimum"]``, the content digest) and the values
+    (`_check_values`)."""
+    d = read_npz(path, "optimum file (written by jaxsleigh optimum / save_optimum)",
+                 ("starts", "horizons", "eps", "energy", "u", "status", "q_final", "p_final", "kkt", "guess",
+                  "settings_json"), kind="optimum", check=_check_values)
     return OptimumResult(starts=d["starts"], horizons=d["horizons"], eps=float(d["eps"]), energy=d["energy"],
                          u=d["u"], status=d["status"], q_final=d["q_final"], p_final=d["p_final"], kkt=d["kkt"],
                          guess=d["guess"], settings=json.loads(str(d["settings_json"])))
