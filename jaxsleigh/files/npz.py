@@ -256,8 +256,8 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None, check=
 
     What is read is checked before it is used, each failure a `jaxsleigh.errors.DamagedFileError` (a ``ValueError``)
     naming the file and what is wrong: the file is a zip archive of arrays (a JSON, text or ``.npy`` file is named as
-    such); for a ``kind``, `check_fields`: every field's kind of number, shape and values, and ``check(path, data)`` (a reader's own checks of the values: they name the field a hand edit broke);
-    last, its content digest
+    such); for a ``kind``, `check_fields`: every field's kind of number, shape and values; ``check(path, data)``: a
+    reader's own checks of the values (they name the field a hand edit broke); last, its content digest
     (``__digest__``, `check_digest`) matches its arrays, which catches any edit the field checks let through (files
     of jaxsleigh 0.3 and earlier record none and are read without it).
     """
@@ -398,19 +398,20 @@ def _check_shape(p, name: str, got: tuple, want: tuple, sizes: dict) -> None:
         return "(" + ", ".join(str(w) if not isinstance(w, tuple) else " or ".join(map(str, w)) for w in want) \
             + ("," if len(want) == 1 else "") + ")"
 
-    bad = f"{str(p)!r}: field {name} has shape {tuple(got)}, expected {wanted()}"
+    what = f"field {name} has shape {tuple(got)}, expected {wanted()}"
+    bad = f"{str(p)!r}: {what}"
     if len(got) != len(want):
         raise DamagedFileError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again", path=p,
-                               problem=bad)
+                               problem=what)
     for n, w in zip(got, want):
         if isinstance(w, int) and n != w or isinstance(w, tuple) and n not in w:
-            raise DamagedFileError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again", path=p,
-                               problem=bad)
+            raise DamagedFileError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again",
+                                   path=p, problem=what)
         if isinstance(w, str):
             if w in sizes and sizes[w][0] != n:
                 raise DamagedFileError(f"{bad} with {w} = {sizes[w][0]} as in field {sizes[w][1]} (shape "
                                        f"{sizes[w][2]}); the file is truncated or damaged: write it again", path=p,
-                                       problem=bad)
+                                       problem=what)
             sizes.setdefault(w, (n, name, tuple(got)))
 
 
