@@ -137,6 +137,17 @@ def test_an_unknown_status_code_in_a_result_file_names_the_file(tmp_path, basin_
     assert str(path) in str(e.value) and "unknown status code" in str(e.value) and "99" in str(e.value)
 
 
+@pytest.mark.parametrize("kind, status", [("sweep", np.array([[0, 99]], np.int32)),
+                                          ("simulation", np.array([0, -1], np.int32)),
+                                          ("basin", np.array([0.0, 1.0]))])
+def test_every_result_kind_checks_its_status_codes(tmp_path, kind, status):
+    from jaxsleigh.files.npz import check_fields
+
+    with pytest.raises(DamagedFileError) as e:
+        check_fields(tmp_path / "r.npz", {"status": status}, kind)
+    assert "r.npz" in str(e.value) and "status" in e.value.problem
+
+
 # ---------------------------------------------------------------------------------------------
 # 3. tuner checkpoints: a missing field, NaN parameters, a huge counter
 # ---------------------------------------------------------------------------------------------
