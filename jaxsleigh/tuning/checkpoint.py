@@ -205,9 +205,9 @@ class TunerCheckpoint:
         """``(it, trainable, opt_state, arrays)`` restructured like ``trainable`` / ``opt_state``, ``track`` restored
         (`restore_track`; a list of tracks: like one budget's ``trainable``) and every array read (the ``extra``);
         ``None`` if there is no file. ``budget``: the run's iterations (``steps``), the most ``it`` can be (``None``: no
-        bound, for a caller that does not know it). A file
-        that lacks a field, holds one of another shape or kind, non-finite parameters or a counter outside
-        ``0..budget`` is refused (`jaxsleigh.errors.DamagedFileError`, naming it)."""
+        bound, for a caller that does not know it). A file that lacks a field, holds one of another shape or kind,
+        non-finite parameters or a counter outside ``0..budget`` is refused (`jaxsleigh.errors.DamagedFileError`,
+        naming it)."""
         a = self.stamp.read(self.path, self.what)
         if a is None:
             return None
@@ -324,7 +324,9 @@ class LawCheckpoint:
 
     def load(self, params, opt_state):
         """``(it, params, opt_state, best, hist, stopped)`` shaped like ``params`` / ``opt_state``; ``None`` if there is
-        no file. Refuses a damaged file or one written with other settings (naming what differs)."""
+        no file. Refuses a damaged file or one written with other settings (naming what differs), and one whose
+        parameters are not finite or of the run's shape, or whose counter ``it`` is not 0 to the steps its history
+        records (`jaxsleigh.errors.DamagedFileError`, naming it)."""
         a = self.stamp.read(self.path)
         if a is None:
             return None
