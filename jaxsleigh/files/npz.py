@@ -267,7 +267,8 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None, check=
     fix = f"the path must be a .npz written by jaxsleigh: give the {what}"
     not_zip = _not_a_zip(p)
     if not_zip:
-        raise damaged(p, f"it is {not_zip}, not an .npz archive", fix)
+        problem = f"it is {not_zip}, not an .npz archive"
+        raise DamagedFileError(f"cannot read {str(p)!r}: {problem}; {fix}", path=p, problem=problem)
     try:
         z = np.load(p, allow_pickle=False)
         if not hasattr(z, "files"):            # a .npy array, not an archive of named arrays
