@@ -11,7 +11,7 @@ type, not by their text::
 from __future__ import annotations
 
 __all__ = ["JaxsleighWarning", "FlaggedStartsWarning", "DamagedCheckpointWarning", "AccuracyWarning", "CheckpointError",
-           "RunLockedError", "RunLockWarning", "DiskFullError"]
+           "RunLockedError", "RunLockWarning", "DiskFullError", "DamagedFileError"]
 
 
 class JaxsleighWarning(UserWarning):
@@ -44,6 +44,25 @@ class AccuracyWarning(JaxsleighWarning):
 class CheckpointError(ValueError):
     """A checkpoint directory cannot be used for this run (it belongs to another run, or its
     manifest is damaged); the message names the file and what to do."""
+
+
+class DamagedFileError(ValueError):
+    """A file jaxsleigh wrote and reads back (a result, a checkpoint chunk, a tuner's checkpoint, a frontier) does not
+    hold what it wrote: its content digest does not match (it was edited or damaged after it was written), a field is
+    missing, of another dtype or shape, or holds values no run writes (an unknown status code, a non-finite parameter,
+    an iteration counter past the run's budget, decreasing horizons). The message names the file and what is wrong;
+    the command line prints it and exits with code 2. A damaged checkpoint *chunk* is not refused but recomputed (with
+    a `DamagedCheckpointWarning` naming it).
+
+    Attributes:
+      path: the file.
+      problem: what is wrong with it, in words.
+    """
+
+    def __init__(self, message: str, path=None, problem: str = ""):
+        super().__init__(message)
+        self.path = path
+        self.problem = problem
 
 
 class RunLockedError(CheckpointError):

@@ -70,9 +70,10 @@ def runs(tmp_path_factory):
 
 
 def _strip_identity(path: Path) -> None:
-    """Rewrite a chunk as the earlier format wrote it: fingerprint, but no index, rows or digest."""
+    """Rewrite a chunk as the earlier format wrote it: fingerprint, but no index, rows, digest of the starts or
+    content digest."""
     with np.load(path) as z:
-        data = {k: z[k] for k in z.files if k not in ("__chunk__", "__starts__")}
+        data = {k: z[k] for k in z.files if k not in ("__chunk__", "__starts__", "__digest__")}
     buf = _io.BytesIO()
     np.savez(buf, **data)
     path.write_bytes(buf.getvalue())
@@ -433,8 +434,8 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     ck.save(3, {"a": np.ones(1)}, (), CandidateTrack(0.0, False))
     assert tuner.read_bytes() == first
     (arrays_c, head_c), (arrays_t, head_t) = read_checkpoint_file(chunk), read_checkpoint_file(tuner)
-    assert set(head_c) == {"run_key", "chunk", "starts"} and str(head_c["run_key"]) == "k"
-    assert set(head_t) == {"run_key", "settings", "options"} and str(head_t["run_key"]) == key
+    assert set(head_c) == {"run_key", "chunk", "starts", "digest"} and str(head_c["run_key"]) == "k"
+    assert set(head_t) == {"run_key", "settings", "options", "digest"} and str(head_t["run_key"]) == key
     assert set(arrays_c) == {"a"} and not any(k.startswith("__") or k in ("key", "settings") for k in arrays_t)
     # the earlier layout: the header's entries among the arrays, without underscores
     np.savez(tuner, key=np.array(key), settings=head_t["settings"], **arrays_t)

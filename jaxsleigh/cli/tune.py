@@ -188,7 +188,9 @@ def _frontier(args):
                          f"{args.frontier}'")
     try:
         res = load_optimum(args.frontier)
-    except (OSError, ValueError, KeyError) as e:
+    except ValueError as e:           # the reader's message names the file and what is wrong with it
+        raise ValueError(f"--frontier: {e}") from None
+    except (OSError, KeyError) as e:
         raise ValueError(f"--frontier {args.frontier} is not a file written by 'jaxsleigh optimum' "
                          f"({type(e).__name__}: {e})") from None
     n = int(res.starts.shape[0])

@@ -13,6 +13,13 @@ rows), and is checked on reuse whether or not the manifest exists:
   bounds) or a chunk of the earlier format that does not record its index is named in a
   `DamagedCheckpointWarning` and recomputed, as is a damaged one (empty, truncated, corrupt,
   wrong length);
+* a chunk's content is checked before it is used: its content digest (``__digest__``, the SHA-256 of every array's
+  name, dtype, shape and bytes, `jaxsleigh.files.npz.content_digest`) must match, so a chunk edited by hand (values,
+  dtypes, a field replaced by text) or damaged in place is caught, and a chunk that records no digest (jaxsleigh 0.3
+  and earlier) is not trusted; its fields must be the run's, with its rows, holding numbers, known status codes of a
+  whole-number dtype, ``T_eps`` real (>= 0, inf or NaN) and counts >= 0 (`jaxsleigh.files.npz.value_problem`). A chunk
+  that fails is named in a `DamagedCheckpointWarning` and recomputed, never used: recomputing costs one chunk's
+  time and gives the bytes of an uninterrupted run, where refusing would stop a long run for a file it can remake;
 * a manifest of another run is refused with the settings that differ, by name, with both values;
 * while a run works, it holds a lock in the folder (`jaxsleigh.files.runlock.RunLock`): a second run
   with other settings is refused at once, naming the first;
@@ -31,8 +38,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import CheckpointError, DamagedCheckpointWarning
-from .npz import atomic_write_text, write_npz_deterministic
+from ..errors import CheckpointError, DamagedCheckpointWarning, DamagedFileError
+from ..status import Status
+from .npz import DIGEST_KEY, atomic_write_text, check_digest, value_problem, write_npz_deterministic
 from .runlock import RunLock
 from ..validate import writable_dir
 
@@ -52,17 +60,26 @@ def write_checkpoint(path, arrays: dict, *, key: str, when_full: str = "", **hea
     tuner's state): ``arrays`` next to a header, the run's fingerprint ``key`` and the ``header`` entries given
     (``chunk``, ``starts``, ``settings``, ``options``; ``None`` left out), stored as ``__key__``-style names;
     uncompressed, with fixed timestamps (equal state, equal bytes), written atomically (``when_full``: what continues
-    the work once a full disk has space)."""
+    the work once a full disk has space); last, the content digest of all of it (``__digest__``,
+    `jaxsleigh.files.npz.content_digest`), which `read_checkpoint_file` verifies."""
     head = {f"__{k}__": np.asarray(v) for k, v in header.items() if v is not None}
     return write_npz_deterministic(path, {**arrays, _KEY: np.array(key), **head}, compress=False, when_full=when_full)
 
 
 def read_checkpoint_file(path) -> tuple:
     """``(arrays, header)`` of a checkpoint file (`write_checkpoint`), the header by name (``run_key``, ``chunk``,
-    ``starts``, ``settings``, ``options``); raises what `numpy.load` raises for a damaged file."""
+    ``starts``, ``settings``, ``options`` and ``digest``, the content digest verified; no ``digest`` for a file that
+    records none, written by jaxsleigh 0.3 or earlier); raises what `numpy.load` raises for a damaged file and a
+    `jaxsleigh.errors.DamagedFileError` naming it when its contents do not match its digest (edited or damaged after
+    it was written)."""
     with np.load(io.BytesIO(Path(path).read_bytes()), allow_pickle=False) as z:
         data = {k: z[k] for k in z.files}
+    digest = data.get(DIGEST_KEY)
+    if not check_digest(path, data, "delete it and start afresh (without --resume)"):
+        digest = None
     data.pop("format_version", None)
+    if digest is not None:
+        data[DIGEST_KEY] = digest
     return data, {k[2:-2]: data.pop(k) for k in list(data) if k.startswith("__") and k.endswith("__")}
 
 
@@ -188,11 +205,12 @@ class ChunkStore:
         index, its rows ``[lo, lo + len(starts))`` and the digest of their ``starts``."""
         return self._write(self.path(index), index, arrays, lo, starts)
 
-    def load(self, index: int, rows: int, fields=None, *, lo: int, starts) -> Optional[dict]:
+    def load(self, index: int, rows: int, fields=None, *, lo: int, starts, codes=tuple(Status)) -> Optional[dict]:
         """Chunk ``index`` if it exists, belongs to this run and is this very chunk (index, rows
-        ``[lo, lo + rows)``, digest of ``starts``) with ``rows`` rows; ``None`` if it is missing,
-        damaged or another chunk under this one's name (then it is recomputed, with a
-        `DamagedCheckpointWarning`); `CheckpointError` if another run wrote it. ``fields``: the
+        ``[lo, lo + rows)``, digest of ``starts``) with ``rows`` rows, its content digest verified and its values
+        those a run writes (`jaxsleigh.files.npz.value_problem`; ``codes``: the status codes its ``status`` may
+        hold); ``None`` if it is missing, damaged, edited or another chunk under this one's name (then it is
+        recomputed, with a `DamagedCheckpointWarning`); `CheckpointError` if another run wrote it. ``fields``: the
         names the chunk must hold (all of them, no others)."""
         path = self.path(index)
         data = self._read(path, index, rows, lo, starts)
@@ -203,6 +221,10 @@ class ChunkStore:
             return None
         if not data or any(np.ndim(v) < 1 or np.shape(v)[0] != rows for v in data.values()):
             self._damaged(path, f"expected {rows} rows per field")
+            return None
+        why = value_problem(data, codes)
+        if why:
+            self._damaged(path, why)
             return None
         return data
 
@@ -231,6 +253,9 @@ class ChunkStore:
             return None
         try:
             data, head = read_checkpoint_file(path)
+        except DamagedFileError as e:
+            self._damaged(path, e.problem)
+            return None
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
             self._damaged(path, f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
             return None
@@ -249,6 +274,10 @@ class ChunkStore:
             return None
         if str(digest) != starts_digest(starts):
             self._damaged(path, f"its rows {lo}-{lo + rows - 1} were computed from other starts")
+            return None
+        if "digest" not in head:
+            self._damaged(path, "it records no content digest (written by jaxsleigh 0.3 or earlier, or rewritten by "
+                                "hand), so what it holds cannot be checked")
             return None
         return data
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import ast
 import errno
+import hashlib
 import io as _io
 import json
 import math
@@ -14,13 +15,14 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..errors import DiskFullError
-from ..status import describe
+from ..errors import DamagedFileError, DiskFullError
+from ..status import Status, describe
 from ..validate import check_memory, host_label
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
            "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind",
-           "NPZ_KINDS", "FIELDS", "check_fields"]
+           "NPZ_KINDS", "FIELDS", "check_fields", "DIGEST_KEY", "content_digest", "check_digest", "value_problem",
+           "damaged"]
 
 
 def npz_path(path) -> Path:
@@ -137,6 +139,82 @@ def read_result(path, what: str, required=(), *, kind: str) -> tuple[dict, dict]
     return data, settings
 
 
+#: The key of the content digest in every file `write_npz_deterministic` writes (results and checkpoints alike).
+DIGEST_KEY = "__digest__"
+
+
+def content_digest(arrays: dict) -> str:
+    """The SHA-256 (hex) of a file's arrays as they are written: for each name in sorted order (`DIGEST_KEY` left
+    out) the name, the dtype (``<f8``), the shape and the bytes (C order). Equal arrays, equal digest; a value, a
+    dtype, a shape or a name changed, another digest."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        if name == DIGEST_KEY:
+            continue
+        a = np.asanyarray(arrays[name])
+        h.update(f"{name}\0{a.dtype.str}\0{a.shape}\0".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def damaged(path, problem: str, fix: str = "write it again") -> DamagedFileError:
+    """The `DamagedFileError` of ``path``: its name, ``problem`` and ``fix``."""
+    return DamagedFileError(f"{str(path)!r}: {problem}; {fix}", path=path, problem=problem)
+
+
+def check_digest(path, data: dict, fix: str = "write it again") -> bool:
+    """Verify the content digest of a file's arrays ``data`` (as read) and take it out of ``data``: ``True`` when it
+    matches, ``False`` when the file records none (written by an earlier jaxsleigh, or by hand); a `DamagedFileError`
+    naming the file when it does not match (the file was edited or damaged after it was written) or is no digest."""
+    if DIGEST_KEY not in data:
+        return False
+    rec = data.pop(DIGEST_KEY)
+    if rec.ndim != 0 or not np.issubdtype(rec.dtype, np.str_) or len(str(rec)) != 64:
+        raise damaged(path, f"its content digest ({DIGEST_KEY}) is not a SHA-256 but {rec.dtype} of shape "
+                            f"{rec.shape}: the file was edited or damaged after jaxsleigh wrote it", fix)
+    got = content_digest(data)
+    if str(rec) != got:
+        raise damaged(path, f"its contents do not match the digest recorded when jaxsleigh wrote it (sha256 "
+                            f"{str(rec)[:12]}..., its arrays now give {got[:12]}...): it was edited or damaged after "
+                            f"it was written", fix)
+    return True
+
+
+def value_problem(data: dict, codes=tuple(Status)) -> Optional[str]:
+    """What is wrong with the values of a file's per-start arrays, in words (``None``: nothing): every field holds
+    numbers or booleans (no text, no objects); ``status`` whole numbers among ``codes`` (`jaxsleigh.status.Status`);
+    ``T_eps`` real numbers >= 0, ``inf`` (not settled) or NaN (not integrated); ``n_steps`` and ``n_rejected`` whole
+    numbers >= 0. Used on checkpoint chunks (`jaxsleigh.files.chunks.ChunkStore.load`) and, text fields left out,
+    on result files (`check_fields`)."""
+    for name, a in data.items():
+        a = np.asarray(a)
+        if a.dtype.kind not in "biuf":
+            return f"field {name} holds {a.dtype}, not numbers"
+    if "status" in data:
+        a = np.asarray(data["status"])
+        if not np.issubdtype(a.dtype, np.integer):
+            return f"field status holds {a.dtype}, not whole-number status codes"
+        known = [int(c) for c in codes]
+        bad = np.setdiff1d(np.unique(a), np.asarray(known))
+        if bad.size:
+            return (f"field status holds {bad.size} unknown status code(s) ({', '.join(map(str, bad[:5].tolist()))}"
+                    f"{', ...' if bad.size > 5 else ''}; the codes are {min(known)}-{max(known)})")
+    if "T_eps" in data:
+        a = np.asarray(data["T_eps"])
+        if not np.issubdtype(a.dtype, np.floating):
+            return f"field T_eps holds {a.dtype}, not real numbers (seconds, inf or NaN)"
+        if np.any(a < 0):
+            return "field T_eps holds negative times"
+    for name in ("n_steps", "n_rejected"):
+        if name in data:
+            a = np.asarray(data[name])
+            if not np.issubdtype(a.dtype, np.integer):
+                return f"field {name} holds {a.dtype}, not whole numbers"
+            if np.any(a < 0):
+                return f"field {name} holds negative counts"
+    return None
+
+
 #: Version of the result files' layout, written into every result file as ``format_version``. 1: files of
 #: jaxsleigh 0.1 (no ``format_version`` key), still read; 2: the same arrays, versioned.
 FORMAT_VERSION = 2
@@ -144,11 +222,14 @@ FORMAT_VERSION = 2
 
 def write_npz_deterministic(path, arrays: dict, *, compress: bool = True, when_full: str = "") -> Path:
     """Like ``np.savez_compressed`` but with fixed zip timestamps (equal inputs, equal bytes),
-    written atomically (:func:`atomic_write`); the file carries ``format_version`` (`FORMAT_VERSION`).
+    written atomically (:func:`atomic_write`); the file carries ``format_version`` (`FORMAT_VERSION`) and, last,
+    ``__digest__`` (`DIGEST_KEY`): the `content_digest` of every other array, which every reader verifies
+    (`check_digest`): a file edited or damaged after it was written is refused (a checkpoint chunk recomputed).
     Compressed at zlib's level 1: a 10^5-start basin's 16.6 MB of arrays in 0.4 s instead of 1.4 s at the default
     level 6, for a file 6% larger; ``compress=False`` stores them as they are (checkpoints, written often).
     ``when_full``: as in `atomic_write`."""
     arrays = {"format_version": np.int64(FORMAT_VERSION), **arrays}
+    arrays[DIGEST_KEY] = np.array(content_digest(arrays))
 
     def write(f):
         method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
@@ -165,17 +246,29 @@ def write_npz_deterministic(path, arrays: dict, *, compress: bool = True, when_f
     return atomic_write(path, write, when_full=when_full)
 
 
-def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dict:
+def read_npz(path, what: str, required=(), *, kind: Optional[str] = None, check=None) -> dict:
     """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
     or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``).
 
     ``kind`` (a key of `NPZ_KINDS`): the file must be that kind of result; a result of another
     kind is refused with its name and the function that reads it ("x.npz is a sweep result; read it
     with jaxsleigh.load_sweep").
+
+    What is read is checked before it is used, each failure a `jaxsleigh.errors.DamagedFileError` (a ``ValueError``)
+    naming the file and what is wrong: the file is a zip archive of arrays (a JSON, text or ``.npy`` file is named as
+    such); for a ``kind``, `check_fields`: every field's kind of number, shape and values; ``check(path, data)``: a
+    reader's own checks of the values (they name the field a hand edit broke); last, its content digest
+    (``__digest__``, `check_digest`) matches its arrays, which catches any edit the field checks let through (files
+    of jaxsleigh 0.3 and earlier record none and are read without it).
     """
     p = _npz_to_read(path, what)
     if p.is_dir():
         raise ValueError(f"{str(p)!r} is a folder; the path must be a .npz written by jaxsleigh: give the {what}")
+    fix = f"the path must be a .npz written by jaxsleigh: give the {what}"
+    not_zip = _not_a_zip(p)
+    if not_zip:
+        problem = f"it is {not_zip}, not an .npz archive"
+        raise DamagedFileError(f"cannot read {str(p)!r}: {problem}; {fix}", path=p, problem=problem)
     try:
         z = np.load(p, allow_pickle=False)
         if not hasattr(z, "files"):            # a .npy array, not an archive of named arrays
@@ -201,7 +294,32 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
         raise ValueError(f"{str(p)!r} is not a {what}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
     if kind is not None:
         check_fields(p, data, kind)
+    if check is not None:
+        check(p, data)
+    check_digest(p, data, "write it again (rerun the command that made it)")
     return data
+
+
+def _not_a_zip(p: Path) -> str:
+    """What ``p`` is in words when it is not a zip archive (an ``.npz``): ``"a JSON file"``, ``"text"``, ``"a single
+    .npy array"``, ``"an empty file"``, ``"not a zip archive"``; ``""`` when it is one (or cannot be opened: the
+    reader then says why)."""
+    try:
+        with open(p, "rb") as f:
+            head = f.read(512)
+    except OSError:
+        return ""
+    if head[:2] == b"PK":
+        return ""
+    if not head:
+        return "an empty file"
+    if head.startswith(b"\x93NUMPY"):
+        return "a single .npy array"
+    try:
+        text = head.decode("utf-8").lstrip()
+    except UnicodeDecodeError:
+        return "not a zip archive"
+    return "a JSON file" if text[:1] in "{[" and text else "text"
 
 
 def _format_version(p: Path, data: dict) -> int:
@@ -238,7 +356,14 @@ FIELDS = {
                    "u": ("real", (_N, _T, 2)), "Hd": ("real", (_N, _T)), "status": ("int", (_N,)),
                    "n_steps": ("int", (_N,)), "n_rejected": ("int", (_N,)), "ics": ("real", (_N, (3, 5))),
                    "T_eps": ("real", (_N,)), "settings_json": ("text", ())},
+    "optimum": {"starts": ("real", ("S", 5)), "horizons": ("real", ("H",)), "eps": ("real", ()),
+                "energy": ("real", ("S", "H")), "frontier": ("real", ("S", "H")), "u": ("real", ("S", "H", "I", 2)),
+                "status": ("int", ("S", "H")), "q_final": ("real", ("S", "H", 3)), "p_final": ("real", ("S", "H", 2)),
+                "kkt": ("real", ("S", "H")), "guess": ("int", ("S", "H")), "settings_json": ("text", ())},
 }
+#: The status codes a result file of each kind may hold (an optimum's, `jaxsleigh.studies.optimum.OptimumStatus`, are
+#: checked by `jaxsleigh.load_optimum`).
+STATUS_CODES = {"basin": tuple(Status), "sweep": tuple(Status), "simulation": tuple(Status)}
 _KIND_TEST = {"int": lambda d: np.issubdtype(d, np.integer),
               "real": lambda d: np.issubdtype(d, np.integer) or np.issubdtype(d, np.floating),
               "text": lambda d: np.issubdtype(d, np.str_)}
@@ -246,17 +371,25 @@ _KIND_WORDS = {"int": "whole numbers", "real": "real numbers", "text": "text"}
 
 
 def check_fields(p, data: dict, kind: str) -> None:
-    """Every field of `FIELDS` [kind] that ``data`` holds has its kind of number and its shape, and fields that
-    share an axis agree on its length; else a ``ValueError`` naming the file and the field."""
+    """Every field of `FIELDS` [kind] that ``data`` holds has its kind of number and its shape, fields that share an
+    axis agree on its length, and the per-start fields hold values a run writes (`value_problem`: known status codes,
+    ``T_eps`` >= 0, inf or NaN, counts >= 0; the status codes of `STATUS_CODES` [kind]); else a
+    `jaxsleigh.errors.DamagedFileError` (a ``ValueError``) naming the file and the field."""
     sizes: dict = {}
     for name, (num, shape) in FIELDS.get(kind, {}).items():
         if name not in data:
             continue
         a = data[name]
         if not _KIND_TEST[num](a.dtype):
-            raise ValueError(f"{str(p)!r}: field {name} must hold {_KIND_WORDS[num]}, but it holds {a.dtype}; the "
-                             f"file is damaged or was not written by jaxsleigh: write it again")
+            raise damaged(p, f"field {name} must hold {_KIND_WORDS[num]}, but it holds {a.dtype}",
+                          "the file is damaged or was not written by jaxsleigh: write it again")
         _check_shape(p, name, a.shape, shape, sizes)
+    codes = STATUS_CODES.get(kind)
+    if codes is not None:
+        per_start = {k: data[k] for k in ("status", "T_eps", "n_steps", "n_rejected") if k in data}
+        why = value_problem(per_start, codes)
+        if why:
+            raise damaged(p, why, "the file is damaged or was not written by jaxsleigh: write it again")
 
 
 def _check_shape(p, name: str, got: tuple, want: tuple, sizes: dict) -> None:
@@ -266,16 +399,20 @@ def _check_shape(p, name: str, got: tuple, want: tuple, sizes: dict) -> None:
         return "(" + ", ".join(str(w) if not isinstance(w, tuple) else " or ".join(map(str, w)) for w in want) \
             + ("," if len(want) == 1 else "") + ")"
 
-    bad = f"{str(p)!r}: field {name} has shape {tuple(got)}, expected {wanted()}"
+    what = f"field {name} has shape {tuple(got)}, expected {wanted()}"
+    bad = f"{str(p)!r}: {what}"
     if len(got) != len(want):
-        raise ValueError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again")
+        raise DamagedFileError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again", path=p,
+                               problem=what)
     for n, w in zip(got, want):
         if isinstance(w, int) and n != w or isinstance(w, tuple) and n not in w:
-            raise ValueError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again")
+            raise DamagedFileError(f"{bad}; the file is damaged or was not written by jaxsleigh: write it again",
+                                   path=p, problem=what)
         if isinstance(w, str):
             if w in sizes and sizes[w][0] != n:
-                raise ValueError(f"{bad} with {w} = {sizes[w][0]} as in field {sizes[w][1]} (shape "
-                                 f"{sizes[w][2]}); the file is truncated or damaged: write it again")
+                raise DamagedFileError(f"{bad} with {w} = {sizes[w][0]} as in field {sizes[w][1]} (shape "
+                                       f"{sizes[w][2]}); the file is truncated or damaged: write it again", path=p,
+                                       problem=what)
             sizes.setdefault(w, (n, name, tuple(got)))
 
 

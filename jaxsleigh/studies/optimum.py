@@ -62,7 +62,7 @@ from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_p
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 from ..files.chunks import ChunkStore
-from ..files.npz import damping_name, npz_path, read_npz, write_npz_deterministic
+from ..files.npz import damaged, damping_name, npz_path, read_npz, value_problem, write_npz_deterministic
 from ..progress import Progress
 from .options import RunOptions, study_options, takes_objects
 
@@ -667,7 +667,8 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
             for n, i in enumerate(mine):
                 lo, hi = bounds[i]
                 fields = _fields(hi - lo, H, N)
-                got = store.load(i, hi - lo, list(fields), lo=lo, starts=starts[lo:hi]) if store is not None else None
+                got = (store.load(i, hi - lo, list(fields), lo=lo, starts=starts[lo:hi], codes=tuple(OptimumStatus))
+                       if store is not None else None)
                 if got is None:
                     rep = lambda f, c, n=n: (bar.update((n + f) / len(mine)), bar.postfix(converged=f"{c:.0%}"))  # noqa: E731
                     got = _solve_starts(starts[lo:hi], horizons, plant, eps, opts, rep)
@@ -700,12 +701,30 @@ def save_optimum(path, res: OptimumResult) -> Path:
     return write_npz_deterministic(path, arrays)
 
 
+def _check_values(p, d: dict) -> None:
+    """The values of an optimum file: ``status`` known `OptimumStatus` codes, ``horizons`` finite, > 0 and strictly
+    increasing (as `optimum` and the command line require them), ``eps`` finite and > 0; else a `DamagedFileError`
+    naming the file and the field."""
+    fix = "the file is damaged or was not written by jaxsleigh: write it again (jaxsleigh optimum --out)"
+    why = value_problem({"status": d["status"]}, tuple(OptimumStatus))
+    if why:
+        raise damaged(p, why, fix)
+    h = d["horizons"]
+    if not (np.all(np.isfinite(h)) and np.all(h > 0) and np.all(np.diff(h) > 0)):
+        raise damaged(p, f"field horizons must be finite, > 0 and strictly increasing, got {h.tolist()}", fix)
+    if not (np.isfinite(d["eps"]) and d["eps"] > 0):
+        raise damaged(p, f"field eps must be finite and > 0, got {d['eps'].tolist()}", fix)
+
+
 def load_optimum(path) -> OptimumResult:
     """Read a file written by `save_optimum` (or ``jaxsleigh optimum``); a ``ValueError`` naming the file when it
-    cannot be read or is another kind of result."""
+    cannot be read or is another kind of result, a `jaxsleigh.errors.DamagedFileError` (a ``ValueError``) naming it and
+    the field when what it holds is not what `save_optimum` writes: the checks of `jaxsleigh.files.npz.read_npz` (the
+    kinds and shapes of `jaxsleigh.files.npz.FIELDS` ``["optimum"]``, the content digest) and the values
+    (`_check_values`)."""
     d = read_npz(path, "optimum file (written by jaxsleigh optimum / save_optimum)",
                  ("starts", "horizons", "eps", "energy", "u", "status", "q_final", "p_final", "kkt", "guess",
-                  "settings_json"), kind="optimum")
+                  "settings_json"), kind="optimum", check=_check_values)
     return OptimumResult(starts=d["starts"], horizons=d["horizons"], eps=float(d["eps"]), energy=d["energy"],
                          u=d["u"], status=d["status"], q_final=d["q_final"], p_final=d["p_final"], kkt=d["kkt"],
                          guess=d["guess"], settings=json.loads(str(d["settings_json"])))

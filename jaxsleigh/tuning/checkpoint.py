@@ -2,7 +2,16 @@
 atomically after every iteration in the layout of every resumable run's checkpoints, the chunk store's too
 (`Stamp`: `TunerCheckpoint` for the paper's gains, `LawCheckpoint` for any law, the CMA-ES search's generations), and
 `TuningInterrupted` (Ctrl-C keeps the best so far). A checkpoint may also carry the options of the command that
-wrote it (`checkpoint_options`), so that a refused resume can name the option first."""
+wrote it (`checkpoint_options`), so that a refused resume can name the option first.
+
+A checkpoint is checked before a resume uses it, and refused with a `jaxsleigh.errors.DamagedFileError` naming the
+file and what is wrong (the command line prints it and exits with code 2): its content digest (``__digest__``, over
+every array's name, dtype, shape and bytes) must match what was written, so any edit or damage after writing is
+caught (a checkpoint of jaxsleigh 0.3 or earlier records none and is read with the checks below only); every field
+the tuner needs must be there, of the shape and kind of number of the run's state; the parameters (the current ones,
+the best and every valid candidate) must be finite; the iteration counter a whole number from 0 to the run's budget
+(``steps``; for `tune_law`, the number of steps its history records). A refused checkpoint is never used: the tuner's
+state is one file, nothing can be recomputed in its place, so the fix is to delete it and start afresh."""
 from __future__ import annotations
 
 import hashlib
@@ -15,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import DamagedFileError
 from ..files.chunks import joined, read_checkpoint_file, run_key, setting_differences, write_checkpoint
 from ..model.params import gains_to_dict
 from ..model.controller import law_leaf_names
@@ -22,7 +32,7 @@ from ..studies.config import plant_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_settings", "LawCheckpoint", "law_settings",
            "checkpoint_options", "Stamp", "tree_arrays", "tree_from", "track_arrays",
-           "restore_track", "check_resume"]
+           "restore_track", "check_resume", "refused", "checked_state", "check_counter"]
 
 
 class TuningInterrupted(KeyboardInterrupt):
@@ -82,6 +92,8 @@ class Stamp(NamedTuple):
             return None
         try:
             a, head = _header(path)
+        except DamagedFileError as e:
+            raise refused(what, path, e.problem) from None
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
             raise ValueError(f"{what} {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
                              "and start afresh (without --resume)") from None
@@ -109,16 +121,65 @@ def check_resume(checkpoint, resume: bool, what: str = "tuner checkpoint", run: 
                          "to continue it, or delete it to start afresh")
 
 
+class _Content(Exception):
+    """A field of a checkpoint that is not what the run wrote (its message says how)."""
+
+
+def refused(what: str, path, problem: str) -> DamagedFileError:
+    """The `DamagedFileError` of a tuner's checkpoint (``what``) at ``path``: the file, ``problem`` and the fix."""
+    return DamagedFileError(f"{what} {str(path)!r} cannot be resumed: {problem}; delete it and start afresh (without "
+                            f"--resume)", path=Path(path), problem=problem)
+
+
+def checked_state(what: str, path, restore):
+    """``restore()`` (which reads a checkpoint's arrays into the run's state), a missing field or one not of the run's
+    shape, kind or range (`tree_from`, `check_counter`) turned into the `refused` error naming the file."""
+    try:
+        return restore()
+    except KeyError as e:
+        raise refused(what, path, f"it lacks the field {e.args[0]!r}") from None
+    except _Content as e:
+        raise refused(what, path, str(e)) from None
+    except (TypeError, ValueError) as e:
+        raise refused(what, path, f"a field cannot be read as the run's state ({type(e).__name__}: {e})") from None
+
+
+def check_counter(a: dict, name: str, top: int, says: str) -> int:
+    """``a[name]`` as an int: a whole number from 0 to ``top`` (``says``: what ``top`` is), else `_Content`."""
+    v = np.asarray(a[name])
+    if v.ndim != 0 or not np.issubdtype(v.dtype, np.integer):
+        raise _Content(f"its iteration counter {name} is {v.dtype} of shape {v.shape}, not a whole number")
+    if not 0 <= int(v) <= top:
+        raise _Content(f"its iteration counter {name} is {int(v)}, outside 0-{top} ({says})")
+    return int(v)
+
+
+def _finite(prefix: str, x) -> None:
+    if not np.all(np.isfinite(np.asarray(x, np.float64))):
+        raise _Content(f"its parameters {prefix} are not all finite (NaN or inf); no run writes those")
+
+
 def tree_arrays(prefix: str, tree) -> dict:
     """``{prefix/i: leaf i}`` of a pytree, for `Stamp.write`."""
     return {f"{prefix}/{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree_util.tree_leaves(tree))}
 
 
-def tree_from(a: dict, prefix: str, like):
-    """The pytree shaped (and typed) like ``like`` from the arrays `tree_arrays` wrote."""
+def tree_from(a: dict, prefix: str, like, finite: bool = False):
+    """The pytree shaped (and typed) like ``like`` from the arrays `tree_arrays` wrote; a `KeyError` for a missing
+    leaf, `_Content` for one of another shape, one that is not numbers or (``finite``: parameters) is not finite."""
     leaves, tdef = jax.tree_util.tree_flatten(like)
-    return jax.tree_util.tree_unflatten(
-        tdef, [jnp.asarray(a[f"{prefix}/{i}"], jnp.asarray(leaf).dtype) for i, leaf in enumerate(leaves)])
+    out = []
+    for i, leaf in enumerate(leaves):
+        name, want = f"{prefix}/{i}", np.shape(leaf)
+        x = np.asarray(a[name])
+        if x.dtype.kind not in "biuf":
+            raise _Content(f"its field {name!r} holds {x.dtype}, not numbers")
+        if x.shape != want:
+            raise _Content(f"its field {name!r} has shape {x.shape}, the run's state {want}")
+        if finite:
+            _finite(repr(name), x)
+        out.append(jnp.asarray(x, jnp.asarray(leaf).dtype))
+    return jax.tree_util.tree_unflatten(tdef, out)
 
 
 class TunerCheckpoint:
@@ -140,17 +201,25 @@ class TunerCheckpoint:
             arrays.update(track_arrays(t, self._row_fields, prefix))
         self.stamp.write(self.path, arrays)
 
-    def load(self, trainable, opt_state, groups, track):
+    def load(self, trainable, opt_state, groups, track, budget: Optional[int] = None):
         """``(it, trainable, opt_state, arrays)`` restructured like ``trainable`` / ``opt_state``, ``track`` restored
         (`restore_track`; a list of tracks: like one budget's ``trainable``) and every array read (the ``extra``);
-        ``None`` if there is no file."""
+        ``None`` if there is no file. ``budget``: the run's iterations (``steps``), the most ``it`` can be (``None``: no
+        bound, for a caller that does not know it). A file that lacks a field, holds one of another shape or kind,
+        non-finite parameters or a counter outside ``0..budget`` is refused (`jaxsleigh.errors.DamagedFileError`,
+        naming it)."""
         a = self.stamp.read(self.path, self.what)
         if a is None:
             return None
-        one = jax.tree_util.tree_map(lambda x: x[0], trainable) if isinstance(track, list) else trainable
-        for prefix, t in _prefixed(track):
-            restore_track(a, t, one, groups, self._row_fields, prefix)
-        return int(a["it"]), tree_from(a, "trainable", trainable), tree_from(a, "opt_state", opt_state), a
+
+        def restore():
+            it = check_counter(a, "it", np.iinfo(np.int64).max if budget is None else int(budget), "the run's steps")
+            one = jax.tree_util.tree_map(lambda x: x[0], trainable) if isinstance(track, list) else trainable
+            for prefix, t in _prefixed(track):
+                restore_track(a, t, one, groups, self._row_fields, prefix)
+            return it, tree_from(a, "trainable", trainable, finite=True), tree_from(a, "opt_state", opt_state), a
+
+        return checked_state(self.what, self.path, restore)
 
 
 def _prefixed(track) -> list:
@@ -184,8 +253,9 @@ def restore_track(a: dict, track, trainable, groups, row_fields, prefix: str = "
     p = prefix
     track.best = None
     if f"{p}best/value" in a:
-        track.best = (float(a[f"{p}best/value"]), int(a[f"{p}best/it"]), tree_from(a, f"{p}best/trainable", trainable))
-    track.valid_points = [(float(v), int(i), tree_from(a, f"{p}valid/{j}", trainable))
+        track.best = (float(a[f"{p}best/value"]), int(a[f"{p}best/it"]),
+                      tree_from(a, f"{p}best/trainable", trainable, finite=True))
+    track.valid_points = [(float(v), int(i), tree_from(a, f"{p}valid/{j}", trainable, finite=True))
                           for j, (v, i) in enumerate(zip(a[f"{p}valid/value"], a[f"{p}valid/it"]))]
     n_rows = len(a[f"{p}rows/{row_fields[0]}"])
     track.rows = [{f: _scalar(a[f"{p}rows/{f}"][r]) for f in row_fields} for r in range(n_rows)]
@@ -240,7 +310,7 @@ class LawCheckpoint:
     the descent stopped (at an invalid candidate)."""
 
     def __init__(self, path, stamp: Stamp):
-        self.path, self.stamp = Path(path), stamp
+        self.path, self.stamp, self.what = Path(path), stamp, "tuner checkpoint"
 
     def save(self, it: int, params, opt_state, best, hist: dict, stopped: bool) -> None:
         arrays = {"it": np.int64(it), "stopped": np.bool_(stopped), "params": np.asarray(params),
@@ -254,14 +324,27 @@ class LawCheckpoint:
 
     def load(self, params, opt_state):
         """``(it, params, opt_state, best, hist, stopped)`` shaped like ``params`` / ``opt_state``; ``None`` if there is
-        no file. Refuses a damaged file or one written with other settings (naming what differs)."""
+        no file. Refuses a damaged file or one written with other settings (naming what differs), and one whose
+        parameters are not finite or of the run's shape, or whose counter ``it`` is not 0 to the steps its history
+        records (`jaxsleigh.errors.DamagedFileError`, naming it)."""
         a = self.stamp.read(self.path)
         if a is None:
             return None
-        dtype = jnp.asarray(params).dtype
-        best = None
-        if "best/params" in a:
-            best = (jnp.asarray(a["best/params"], dtype), float(a["best/loss"]), float(a["best/energy"]))
-        hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
-        return (int(a["it"]), jnp.asarray(a["params"], dtype), tree_from(a, "opt_state", opt_state), best, hist,
-                bool(a["stopped"]))
+        dtype, shape = jnp.asarray(params).dtype, np.shape(params)
+
+        def vector(name):
+            x = np.asarray(a[name])
+            if x.dtype.kind not in "biuf" or x.shape != shape:
+                raise _Content(f"its field {name!r} is {x.dtype} of shape {x.shape}, the run's parameters {shape}")
+            _finite(repr(name), x)
+            return jnp.asarray(x, dtype)
+
+        def restore():
+            hist = {k.split("/", 1)[1]: [_scalar(x) for x in v] for k, v in a.items() if k.startswith("hist/")}
+            it = check_counter(a, "it", len(hist.get("loss", ())), "the steps its history records")
+            best = None
+            if "best/params" in a:
+                best = (vector("best/params"), float(a["best/loss"]), float(a["best/energy"]))
+            return it, vector("params"), tree_from(a, "opt_state", opt_state), best, hist, bool(a["stopped"])
+
+        return checked_state(self.what, self.path, restore)

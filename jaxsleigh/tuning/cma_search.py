@@ -53,7 +53,7 @@ from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dic
 from ..progress import Progress
 from ..status import Status
 from ..studies.options import RunOptions
-from .checkpoint import Stamp, TuningInterrupted
+from .checkpoint import Stamp, TuningInterrupted, checked_state
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
@@ -447,12 +447,17 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
         top.append((float(s0), -1, space.full0[space.free].copy(), _scalars(ref, 1)))
     if resume_from is not None and resume_from.exists():
         a = stamp.read(resume_from, what="search checkpoint")
-        rng.bit_generator.state = json.loads(str(a["rng"]))
-        state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
-        hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY if f"hist/{f}" in a}
-                for i in range(len(a["hist/generation"]))]
-        top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
-               zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]
+
+        def restore():
+            rng.bit_generator.state = json.loads(str(a["rng"]))
+            state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
+            hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY if f"hist/{f}" in a}
+                    for i in range(len(a["hist/generation"]))]
+            top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
+                   zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]
+            return state, hist, top
+
+        state, hist, top = checked_state("search checkpoint", resume_from, restore)
     return _SearchState(state, rng, hist, top, time.perf_counter() - (hist[-1]["wall_s"] if hist else 0.0))
 
 

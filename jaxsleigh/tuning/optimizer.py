@@ -398,7 +398,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(
             tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts), ics, options),
             TuneHistory._fields)
-        saved = store.load(trainable, opt_state, ctx.groups, track) if store is not None and resume else None
+        saved = store.load(trainable, opt_state, ctx.groups, track, steps) if store is not None and resume else None
         it0, trainable, opt_state = (0, trainable, opt_state) if saved is None else saved[:3]
         try:
             _iterate(run, track, trainable, opt_state, it0, steps, store, progress, callback, t_start)

@@ -274,7 +274,8 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
             options), TuneHistory._fields, "front checkpoint")
         run = _VmapRun(budgets, tracks, base, np.ones(nb, bool), store)
         it0, evals = 0, 0
-        saved = store.load(trainable, opt_state, base.ctx.groups, tracks) if store is not None and resume else None
+        saved = (store.load(trainable, opt_state, base.ctx.groups, tracks, config.steps)
+                 if store is not None and resume else None)
         if saved is not None:
             it0, trainable, opt_state, a = saved
             run.alive[:], evals = a["alive"], int(a["evals"])
