@@ -516,7 +516,7 @@ def test_every_tuning_figure_draws_on_its_own_figure_and_into_given_axes():
     search = {"generation": np.arange(n), "feasible": np.array([False, True, True, True]),
               "median_T": np.linspace(30.0, 20.0, n), "median_energy": np.linspace(3.0, 2.0, n),
               "sigma": np.linspace(0.5, 0.1, n)}
-    row = SimpleNamespace(median=20.0, median_se=1.0, frac_converged=0.9, frac_se=0.05)
+    row = SimpleNamespace(median_T=20.0, median_se=1.0, frac_converged=0.9, frac_se=0.05)
     fig_of = {
         "history": (4, lambda axes: tp.plot_history(_history([True] * n, np.linspace(1, 0.5, n)), axes=axes)),
         "effort": (3, lambda axes: tp.plot_effort_history(effort, budget=1.5, probe_budget=100.0, returned=2,

@@ -401,7 +401,7 @@ def test_equal_energy_says_when_a_law_did_not_reach_the_budget(capsys, tmp_path,
     """A law tuned to 0.53x the budget was reported as tuned, compared as at equal energy; its record says
     ``budget_reached: false`` with the ratio, and its printed lines say that it is not at equal energy."""
     import jaxsleigh.studies.compare as study
-    from jaxsleigh import tuning
+    import jaxsleigh.tuning.budget as budget
     from jaxsleigh.tuning.law import LawTuneResult
 
     def fake_tune(law, starts, *, loss, **_):
@@ -409,15 +409,15 @@ def test_equal_energy_says_when_a_law_did_not_reach_the_budget(capsys, tmp_path,
         return LawTuneResult(*([None] * len(LawTuneResult._fields)))._replace(
             law=law, energy=energy, loss=1.0, history={"loss": [1.0, 1.0]})
 
-    monkeypatch.setattr(tuning, "tune_law", fake_tune)
+    monkeypatch.setattr(budget, "tune_law", fake_tune)
     said = []
-    eq = study.tune_to_budget(["samson", "astolfi"], train=2, steps=2, budget=10.0, log=said.append)
+    eq = budget.tune_to_budget(["samson", "astolfi"], train=2, steps=2, budget=10.0, log=said.append)
     assert eq.laws_info["samson"]["budget_reached"] is False and eq.laws_info["samson"]["energy_ratio"] == 0.53
     assert eq.laws_info["astolfi"]["budget_reached"] is True
     (samson,) = [s for s in said if s.startswith("samson")]
     assert "0.53x the budget" in samson and "NOT reached" in samson and "not at equal energy" in samson
-    real = study.tune_to_budget
-    monkeypatch.setattr(study, "tune_to_budget", lambda names, **k: real(names, **{**k, "budget": 10.0}))
+    real = budget.tune_to_budget
+    monkeypatch.setattr(budget, "tune_to_budget", lambda names, **k: real(names, **{**k, "budget": 10.0}))
     monkeypatch.setattr(study, "compare", _failing_rows)
     code, out, _ = _run(["compare", "--equal-energy", "--train", "2", "--steps", "2", "--controllers", "astolfi,samson",
                          "--starts", "near", "--samples", "2", "--t-final", "5", "--out", str(tmp_path / "e.json")],

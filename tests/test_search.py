@@ -60,7 +60,7 @@ def test_population_as_lanes_equals_the_candidates_run_one_by_one():
     figs = tu.evaluate_population(cands, ics, t_final=60.0)
     for i, g in enumerate(cands):
         v = tu.validate(g, ics, t_final=60.0)
-        np.testing.assert_allclose(figs.median_T[i], v.median, rtol=1e-4)
+        np.testing.assert_allclose(figs.median_T[i], v.median_T, rtol=1e-4)
         np.testing.assert_allclose(figs.median_energy[i], v.median_energy, rtol=1e-4)
         assert figs.frac_converged[i] == v.frac_converged
         assert figs.n_bad[i] == v.n_crossed

@@ -99,7 +99,7 @@ def test_fixed_step_gradients_equal_central_differences():
     data, cfg, trainable, frozen = _fd_setup(t_final=2.0, rtol=1e-9)
     kw = dict(n_attempts=220, adaptive=False)
     (value, aux), grad = tu.make_value_and_grad(mode="reverse", **kw)(trainable, frozen, data, cfg)
-    assert bool(aux["valid"]) and np.all(np.asarray(aux["lanes"].t) == 2.0)
+    assert bool(aux["valid"]) and np.all(np.asarray(aux["lanes"].t_reached) == 2.0)
     flat, unravel = ravel_pytree(trainable)
     fd = _central_differences(lambda v: tu.objective(unravel(v), frozen, data, cfg, **kw)[0], flat)
     g = np.asarray(ravel_pytree(grad)[0])
@@ -222,7 +222,7 @@ def test_tuned_preset_meets_the_target_on_held_out_starts():
     paper = tu.validate("paper", ics)
     tuned = tu.validate(g, ics)
     assert paper.n_failed == 0 and tuned.n_failed == 0
-    assert tuned.median * 5 <= paper.median
+    assert tuned.median_T * 5 <= paper.median_T
     assert tuned.frac_converged >= paper.frac_converged
     guard = tu.validate(g, np.concatenate([tu.guard_starts(), [[0.5, -0.5, 0.05], [-1.0, 2.0, -0.05]]]), t_final=20.0)
     assert guard.n_failed == 0

@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _fmt(v: tu.Validation) -> str:
-    return (f"median T {v.median:.2f} ± {v.median_se:.2f} s, converged {100 * v.frac_converged:.1f}%, "
+    return (f"median T {v.median_T:.2f} ± {v.median_se:.2f} s, converged {100 * v.frac_converged:.1f}%, "
             f"median E {v.median_energy:.4g}, peak |u| {v.median_peak_u:.3g}, steps {v.mean_steps:,.0f}, "
             f"not OK {v.n_failed}, crossed {v.n_crossed}")
 
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     # paper's training energy and 0.9 of it (gradient descent is local: a start from faster gains
     # lands in another basin than the one reached from the paper's gains)
     paper = refs["paper"]
-    fastest = sorted(evaluated["warm"].points, key=lambda p: p.evaluation.median)[:2]
+    fastest = sorted(evaluated["warm"].points, key=lambda p: p.evaluation.median_T)[:2]
     refined = []
     for src in fastest:
         for b in (e_paper["energy"], 0.9 * e_paper["energy"]):
@@ -147,7 +147,7 @@ def main(argv=None) -> int:
              if p.evaluation.median_energy <= args.energy_margin * paper.median_energy
              and p.evaluation.frac_converged >= paper.frac_converged
              and p.evaluation.n_failed == 0 and p.evaluation.n_crossed == 0]
-    balanced = min(cands, key=lambda p: p.evaluation.median) if cands else None
+    balanced = min(cands, key=lambda p: p.evaluation.median_T) if cands else None
 
     meta = {"command": command,
             "held_out": {"n": args.val_n, "seed": args.val_seed, "starts": repr(tu.UniformStarts()), "atol": args.atol},
@@ -183,8 +183,8 @@ def main(argv=None) -> int:
         lines.append(f"- front by `{m}`: {f.wall_s:.0f} s wall, {f.evaluations} objective evaluations")
     if balanced is not None:
         b = balanced.evaluation
-        lines += ["", f"gradient point within the paper's energy: median T_0.05 {b.median:.2f} s vs the paper's {paper.median:.2f} s "
-                      f"({paper.median / b.median:.2f}x shorter) at median energy {b.median_energy:.4g} "
+        lines += ["", f"gradient point within the paper's energy: median T_0.05 {b.median_T:.2f} s vs the paper's {paper.median_T:.2f} s "
+                      f"({paper.median_T / b.median_T:.2f}x shorter) at median energy {b.median_energy:.4g} "
                       f"(paper {paper.median_energy:.4g})"]
     (out / "results.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines), flush=True)

@@ -41,7 +41,7 @@ def _fmt_gains(g) -> str:
 
 
 def _validation_dict(v: tu.Validation, seed: int) -> dict:
-    return {"n": v.n, "seed": seed, "median_T_0.05_s": v.median, "median_se_s": v.median_se,
+    return {"n": v.n, "seed": seed, "median_T_0.05_s": v.median_T, "median_se_s": v.median_se,
             "frac_converged_100s": v.frac_converged, "frac_se": v.frac_se, "n_status_not_ok": v.n_failed,
             "mean_adaptive_steps": v.mean_steps, "max_attempts": v.max_attempts,
             "median_energy": v.median_energy, "median_peak_u": v.median_peak_u, "n_crossed_theta0": v.n_crossed,
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
         rows[name] = tu.validate(g, held, progress=True)
         hard_rows[name] = tu.validate(g, hard)
     p, t = rows["paper"], rows["tuned"]
-    speedup = p.median / t.median
+    speedup = p.median_T / t.median_T
     lines = [
         f"Held-out starts: N = {args.val_n}, seed {args.val_seed} (training: N = {args.batch}, seed {args.seed}), "
         f"|x|, |y| <= 3, |theta0| in (0.3, pi); accurate engine run_ensemble (adaptive RK4, float32, "
@@ -97,14 +97,14 @@ def main(argv=None) -> int:
         "|---|---|---|---|---|",
     ]
     for name, v in rows.items():
-        lines.append(f"| {name} | {v.median:.2f} ± {v.median_se:.2f} | {100 * v.frac_converged:.2f}% ± "
+        lines.append(f"| {name} | {v.median_T:.2f} ± {v.median_se:.2f} | {100 * v.frac_converged:.2f}% ± "
                      f"{100 * v.frac_se:.2f}% | {v.n_failed} / {v.n} | {v.mean_steps:.0f}, {v.max_attempts} |")
     lines += ["", f"Speed-up of the median: {speedup:.2f}x (target >= 5x); fraction converged "
                   f"{100 * p.frac_converged:.2f}% -> {100 * t.frac_converged:.2f}%.", "",
               f"Held-out hard starts, |theta0| in (0.05, 0.3), N = 512, seed {args.val_seed + 1}:", "",
               "| gains | median T_0.05 [s] | converged by 100 s | status not OK |", "|---|---|---|---|"]
     for name, v in hard_rows.items():
-        lines.append(f"| {name} | {v.median:.2f} ± {v.median_se:.2f} | {100 * v.frac_converged:.2f}% ± "
+        lines.append(f"| {name} | {v.median_T:.2f} ± {v.median_se:.2f} | {100 * v.frac_converged:.2f}% ± "
                      f"{100 * v.frac_se:.2f}% | {v.n_failed} / {v.n} |")
     lines += ["", f"Tuned gains: {_fmt_gains(res.gains)} (paper: {_fmt_gains(js.paper_gains())}).", ""]
     print("\n".join(lines), flush=True)
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
                  "| plant | gains | median T_0.05 [s] | converged by 100 s | status not OK |", "|---|---|---|---|---|"]
         for plant_name, by_gains in table.items():
             for name, v in by_gains.items():
-                lines.append(f"| {plant_name} | {name} | {v.median:.2f} ± {v.median_se:.2f} | "
+                lines.append(f"| {plant_name} | {name} | {v.median_T:.2f} ± {v.median_se:.2f} | "
                              f"{100 * v.frac_converged:.2f}% ± {100 * v.frac_se:.2f}% | {v.n_failed} |")
         lines += ["", f"Robust-tuned gains: {_fmt_gains(robust_res.gains)}.", ""]
         print("\n".join(lines), flush=True)

@@ -197,7 +197,7 @@ def plot_per_plant(table: Mapping[str, Mapping[str, object]], *, axes=None, hori
     h = 0.8 / len(labels)
     for j, lab in enumerate(labels):
         med, se, frac, fse = (np.array([getattr(table[p][lab], name) for p in plants], float)
-                              for name in ("median", "median_se", "frac_converged", "frac_se"))
+                              for name in ("median_T", "median_se", "frac_converged", "frac_se"))
         yj = y + (j - (len(labels) - 1) / 2) * h
         shown = np.where(np.isfinite(med), med, horizon)
         axes[0].barh(yj, shown, height=h, xerr=np.nan_to_num(se), color=f"C{j}", label=lab, hatch=None)

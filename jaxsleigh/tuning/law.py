@@ -198,7 +198,7 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     soft = smp.period * (jnp.sum(phi, axis=-1) - 0.5 * (phi[..., 0] + phi[..., -1]))
     T = jnp.asarray(cfg.t_final, q.dtype)
     zero = jnp.zeros_like(soft)
-    return LaneSummary(soft_time=jnp.where(ok, soft, T), barrier=zero, ok=ok, stopped=jnp.zeros_like(ok), t=zero + T,
+    return LaneSummary(soft_time=jnp.where(ok, soft, T), barrier=zero, ok=ok, stopped=jnp.zeros_like(ok), t_reached=zero + T,
                        status=r.status, n_attempts=jnp.zeros_like(r.status), min_abs_theta=r.min_abs_theta,
                        max_excursion=r.max_excursion, u_energy=jnp.where(ok, r.u_energy, 1.0),
                        u_norm_peak=r.u_norm_peak)

@@ -80,7 +80,7 @@ class LaneSummary(NamedTuple):
       barrier: the singular-set term \(B\) [s].
       ok: reached the horizon or stopped in the ball, with status OK.
       stopped: stopped in the ball (``|q| <= stop_fraction * eps``).
-      t: time reached; for stopped lanes the first passage into the stopping ball.
+      t_reached: time reached; for stopped lanes the first passage into the stopping ball.
       status, n_attempts, min_abs_theta, max_excursion: as the stepper reports them.
       u_energy: control energy \(\int |u|^2 dt\) over the lane's integration (trapezoid on the
         accepted steps, differentiable) [N^2 s]; u_norm_peak: largest \(|u|\) at a step's end [N]
@@ -91,7 +91,7 @@ class LaneSummary(NamedTuple):
     barrier: jax.Array
     ok: jax.Array
     stopped: jax.Array
-    t: jax.Array
+    t_reached: jax.Array
     status: jax.Array
     n_attempts: jax.Array
     min_abs_theta: jax.Array

@@ -542,7 +542,7 @@ def _row(value, gnorm, valid, trainable, frozen, aux, scale, d_floor, wall) -> d
     att = np.asarray(lanes.n_attempts)
     if aux["guard"] is not None:
         att = np.concatenate([att, np.asarray(aux["guard"].n_attempts)])
-    passage = np.where(np.asarray(lanes.stopped), np.asarray(lanes.t, np.float64), np.inf)
+    passage = np.where(np.asarray(lanes.stopped), np.asarray(lanes.t_reached, np.float64), np.inf)
     return {"loss": value, "grad_norm": gnorm, "L": np.asarray(g.L, np.float64), "k": float(g.k),
             "probe_attempts": float("nan"),
             "D_hat": np.asarray(g.D_hat, np.float64), "valid": valid,

@@ -33,7 +33,7 @@ class Validation(NamedTuple):
 
     Attributes:
       T_eps: (N,) convergence times (inf: not settled by the horizon; nan: failed).
-      median, median_se: median ``T_eps`` over all starts (inf if half did not settle) and its
+      median_T, median_se: median ``T_eps`` over all starts (inf if half did not settle) and its
         bootstrap standard error.
       frac_converged, frac_se: fraction settled within the horizon, binomial standard error.
       n, n_failed: starts and starts whose status is not OK; status: (N,) codes.
@@ -49,7 +49,7 @@ class Validation(NamedTuple):
     """
 
     T_eps: np.ndarray
-    median: float
+    median_T: float
     median_se: float
     frac_converged: float
     frac_se: float
@@ -148,7 +148,7 @@ def markdown_table(rows: dict) -> str:
              "median peak \\|u\\| | mean adaptive steps | status not OK |",
              "|---|---|---|---|---|---|---|---|"]
     for name, v in rows.items():
-        lines.append(f"| {name} | {v.n} | {v.median:.2f} ± {v.median_se:.2f} | "
+        lines.append(f"| {name} | {v.n} | {v.median_T:.2f} ± {v.median_se:.2f} | "
                      f"{100 * v.frac_converged:.1f}% ± {100 * v.frac_se:.1f}% | {v.median_energy:.4g} | "
                      f"{v.median_peak_u:.3g} | {v.mean_steps:,.0f} | {v.n_failed} |")
     return "\n".join(lines)
@@ -160,7 +160,7 @@ def validation_dict(v: Validation, **extra) -> dict:
         x = float(x)
         return x if math.isfinite(x) else str(x)
 
-    return {"n": v.n, "median_T_0.05_s": num(v.median), "median_se_s": num(v.median_se),
+    return {"n": v.n, "median_T_0.05_s": num(v.median_T), "median_se_s": num(v.median_se),
             "frac_converged": v.frac_converged, "frac_se": v.frac_se, "median_energy": num(v.median_energy),
             "median_peak_u": num(v.median_peak_u), "mean_adaptive_steps": v.mean_steps,
             "max_attempts": v.max_attempts, "n_status_not_ok": v.n_failed, "n_crossed_theta0": v.n_crossed,
