@@ -97,7 +97,8 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
 
     def checked() -> None:
         check()
-        check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
+        check_outputs(sidecar(out), named={"--out": args.out}, figures={"--plot": args.plot}, folders=[chunks],
+                      suffix=out.suffix or None)
 
     try:
         cluster = start_processes(processes_from_args(args))

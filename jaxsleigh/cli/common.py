@@ -60,20 +60,23 @@ FLAGS = {"t_final": "--t-final", "dt": "--dt", "save_every": "--save-every", "me
 # outputs, warnings, statuses
 # ---------------------------------------------------------------------------------------------
 
-def check_outputs(*paths, folders=(), named=None, figures=None) -> None:
-    """Before any work: every output file can be written (its folder is created if needed) and
-    every output folder is writable. Raises ``ValueError`` naming the path.
+def check_outputs(*paths, folders=(), named=None, figures=None, suffix=None) -> None:
+    """Before any work: every output file can be written (its folder is created if needed) and is not
+    a folder, device, named pipe or socket (`jaxsleigh.validate.writable_path`), and every output folder
+    is writable. Raises ``ValueError`` naming the path and what it is.
 
-    ``named`` (``{flag: path}``): output files named by their flag in the messages (``--out``);
-    ``figures`` (``{flag: path}``): figure files (``--plot``), whose extension must also be a format
-    matplotlib writes (`check_figure`). ``None`` paths are skipped.
+    ``named`` (``{flag: path}``): output files named by their flag in the messages (``--out``), as the
+    user typed them: with ``suffix`` (``".npz"``), the extension the command appends to a name without
+    it, both that name and the name given are checked; ``figures`` (``{flag: path}``): figure files
+    (``--plot``), whose extension must also be a format matplotlib writes (`check_figure`). ``None``
+    paths are skipped.
     """
     for flag, p in (figures or {}).items():
         if p is not None:
             check_figure(p, flag)
     for flag, p in (named or {}).items():
         if p is not None:
-            writable_path(p, what=f"{flag} file")
+            writable_path(p, what=f"{flag} file", suffix=suffix)
     for p in paths:
         if p is not None:
             writable_path(p)

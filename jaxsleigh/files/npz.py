@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import DiskFullError
 from ..status import describe
-from ..validate import check_memory, host_label
+from ..validate import check_memory, host_label, output_file
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
            "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind",
@@ -73,9 +73,10 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     ``dt, t_final, save_every, method, dtype, gains_L, gains_k, gains_D_hat, params (m, J, l),
     damping``; and the per-trajectory summaries of `Solution.effort` (``u_peak (N, 2)``,
     ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
-    Returns the path written (``.npz`` appended when missing).
+    Returns the path written (``.npz`` appended when missing; a name that is, or whose ``.npz`` is, a folder,
+    device or named pipe is refused: `jaxsleigh.validate.output_file`).
     """
-    path = npz_path(path)
+    path = output_file(path, suffix=".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     ics = np.asarray(ics, dtype=np.float64)
     if ics.ndim == 1:
@@ -121,8 +122,9 @@ def settings_arrays(s: dict) -> dict:
 def write_result(path, arrays: dict, settings: dict) -> Path:
     """Write a study's result file (``.npz`` appended when missing, its folder made): ``arrays``, then the settings
     as JSON (``settings_json``, with the status legend) and as the scalars of `settings_arrays`; deterministic bytes
-    (`write_npz_deterministic`). Returns the path."""
-    path = npz_path(path)
+    (`write_npz_deterministic`). Returns the path. A name that is, or whose ``.npz`` is, not a regular file (a folder,
+    a device, a named pipe) is refused (`jaxsleigh.validate.output_file`)."""
+    path = output_file(path, suffix=".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = json.dumps({**settings, "status_codes": describe()}, sort_keys=True, default=str)
     return write_npz_deterministic(path, {**arrays, "settings_json": np.array(doc), **settings_arrays(settings)})
@@ -442,8 +444,10 @@ def atomic_write(path, write, *, when_full: str = "") -> Path:
 
     A full disk or quota (ENOSPC, EDQUOT) raises `jaxsleigh.errors.DiskFullError` naming the
     file; ``when_full`` is appended to its message (what continues the work once there is space).
+    A ``path`` that exists and is not a regular file (a folder, a device such as ``/dev/full``, a named pipe)
+    is refused with a ``ValueError`` before anything is written: the rename would replace it.
     """
-    path = Path(path)
+    path = output_file(path)
     # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches; the host name
     # keeps two processes of a multi-host run (same pid, shared folder) apart
     tmp = path.with_name(f".{path.name}.{host_label()}.{os.getpid()}.tmp")

@@ -50,6 +50,7 @@ from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
 from .npz import atomic_write_text
 from .runlock import RunLock
 from ..errors import CheckpointError, DiskFullError, RunLockedError
+from ..validate import output_file
 
 __all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
            "sidecar", "options_differ", "load_average", "start_processes", "leave"]
@@ -259,10 +260,16 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
       command: the command line recorded in the sidecar.
       cluster: the cluster already joined (`start_processes`) for ``processes``.
 
-    Returns a `Finished`; in a multi-process run end every process with `leave`.
+    Returns a `Finished`; in a multi-process run end every process with `leave`. An ``out`` that is not a
+    regular file (a folder, a device such as ``/dev/full``, a named pipe), or whose ``.npz`` (which jaxsleigh's
+    savers append to a name without it) or sidecar is, is refused with a ``ValueError`` before any work
+    (`jaxsleigh.validate.output_file`).
     """
     out = Path(out)
     chunks, side = chunk_dir(out), sidecar(out)
+    what = "output file" if words.out == PYTHON_WORDS.out else f"{words.out} file"
+    output_file(out, what, suffix=".npz")
+    output_file(side, "run record file")
     options = json.loads(json.dumps(options or {}, default=str))
     if cluster is None:
         cluster = start_processes(processes)

@@ -62,8 +62,9 @@ from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_p
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 from ..files.chunks import ChunkStore
-from ..files.npz import damping_name, npz_path, read_npz, write_npz_deterministic
+from ..files.npz import damping_name, read_npz, write_npz_deterministic
 from ..progress import Progress
+from ..validate import output_file
 
 __all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
            "time_for_energy", "save_optimum", "load_optimum", "rollout"]
@@ -663,8 +664,9 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
 
 def save_optimum(path, res: OptimumResult) -> Path:
     """Write an `OptimumResult` to ``path`` (``.npz`` appended when missing, its folder made; deterministic bytes);
-    returns the path."""
-    path = npz_path(path)
+    returns the path. A name that is, or whose ``.npz`` is, not a regular file (a folder, a device, a named pipe) is
+    refused (`jaxsleigh.validate.output_file`)."""
+    path = output_file(path, suffix=".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"starts": res.starts, "horizons": res.horizons, "eps": np.float64(res.eps), "energy": res.energy,
               "frontier": res.frontier(), "u": res.u, "status": res.status, "q_final": res.q_final,

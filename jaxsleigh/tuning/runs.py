@@ -119,6 +119,7 @@ class TuningRun:
                  command: Optional[list] = None, words: Words = PYTHON_WORDS):
         self.out = Path(out)
         h = None if history is None else Path(history)
+        self._history_given = h
         self.history = h if h is None or h.suffix == ".npz" else h.with_name(h.name + ".npz")
         self.resume = bool(resume)
         # as they read back from the checkpoint's JSON (tuples as lists)
@@ -138,7 +139,11 @@ class TuningRun:
         """Hold the output for the body of a ``with``: every output (and ``also``) writable, the output claimed, the
         checkpoint matching ``resume`` (``what`` names the run in the refusals, e.g. ``"search"``); released however
         the body ends."""
-        for p in (self.out, self.history, *(self.checkpoint,) * checkpointed, *also):
+        named = "output file" if self.words.out == PYTHON_WORDS.out else f"{self.words.out} file"
+        writable_path(self.out, named)          # not a folder, device or named pipe, nor any file beside it
+        if self._history_given is not None:
+            writable_path(self._history_given, "history file", suffix=".npz")
+        for p in (*(self.checkpoint,) * checkpointed, *also):
             if p is not None:
                 writable_path(p)
         lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}").acquire()
