@@ -13,7 +13,7 @@ from ..controllers.actuators import sampled, sampler, saturate
 from ..files.runner import Processes
 from ..integrate.sampled import sample_count
 from ..integrate.stepsize import StepSizeController
-from ..model.params import Gains, load_gains, plant_params, preset_names
+from ..model.params import Gains, check_not_controller, load_gains, plant_params, preset_names
 
 __all__ = ["add_model_options", "model_from_args", "check_bound_fits", "add_sampler_options", "sampler_from_args",
            "check_delay", "law_kwargs", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags",
@@ -56,6 +56,7 @@ def model_from_args(args):
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
     plant = plant_params(m, J, l, damping=args.damping)
     name = getattr(args, "controller", "paper")
+    check_not_controller(str(args.gains), "--gains")          # --gains shaped: the way to --controller shaped
     if name != "paper" and args.gains != "paper":
         raise ValueError(f"--gains sets the paper's law; it does not apply to --controller {name}")
     if name.endswith(".json"):                   # a law written by `jaxsleigh tune --controller NAME --out F.json`
