@@ -211,6 +211,6 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     for r in rows:
         if (r.get("audit") or {}).get("rows"):
-            print(f"{PROG} compare: {r['controller']} on {r['starts']}: {audit_line(r['audit'])}")
+            print(f"{PROG} compare: {r['controller']} on {r['starts']}: {audit_line(r['audit'], flag='--audit-rows')}")
     print(f"{PROG} compare: wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
     return 0
