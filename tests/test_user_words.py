@@ -79,3 +79,78 @@ def test_python_keeps_the_python_advice_for_a_small_run():
                              "to audit a small run)"}
     assert audit_line(old, flag="--audit-rows") == ("accuracy audit: not run (fewer than 500 starts; --audit-rows K "
                                                     "audits a small run)")
+
+
+# ---------------------------------------------------------------------------------------------
+# the same run twice at once: told it is the same run, not one with other settings
+# ---------------------------------------------------------------------------------------------
+
+HOLDER = """
+import sys, time
+from jaxsleigh.files.runlock import RunLock
+RunLock(sys.argv[1], sys.argv[2]).acquire()
+print("ready", flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.fixture
+def holder():
+    """``holder(target, fingerprint)``: a real process holding the lock on ``target`` with that fingerprint."""
+    import os
+    import subprocess
+    import sys
+
+    procs = []
+
+    def start(target, fingerprint):
+        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        p = subprocess.Popen([sys.executable, "-c", HOLDER, str(target), fingerprint], stdout=subprocess.PIPE,
+                             env=env, text=True)
+        procs.append(p)
+        assert p.stdout.readline().strip() == "ready"
+        return p
+
+    yield start
+    for p in procs:
+        p.kill()
+        p.wait(timeout=30)
+        p.stdout.close()
+
+
+def test_the_same_simulate_twice_on_one_out_is_told_the_same_run_is_in_progress(tmp_path, capsys, holder):
+    from jaxsleigh.cli import build_parser
+    from jaxsleigh.cli.common import EXIT_LOCKED, run_fingerprint
+
+    argv = ["simulate", "--ic", "1,1,0.5", "--t-final", "0.1", "--out", str(tmp_path / "r.npz")]
+    p = holder(tmp_path / "r.npz", run_fingerprint(build_parser().parse_args(argv)))
+    rc, _, err = run_cli(argv, capsys)
+    assert rc == EXIT_LOCKED and "the same run is in progress" in err and f"pid {p.pid}" in err, err
+    assert "other settings" not in err
+    rc, _, err = run_cli(argv[:-2] + ["--t-final", "0.2", "--out", tmp_path / "r.npz"], capsys)
+    assert rc == EXIT_LOCKED and "other settings" in err, err          # other settings: said so
+
+
+def test_the_fingerprint_is_the_settings_not_the_look():
+    from jaxsleigh.cli import build_parser
+    from jaxsleigh.cli.common import run_fingerprint
+
+    parse = build_parser().parse_args
+    base = ["simulate", "--ic", "1,1,0.5", "--out", "r.npz"]
+    assert run_fingerprint(parse(base)) == run_fingerprint(parse(base))
+    assert run_fingerprint(parse(base)) == run_fingerprint(parse(base + ["--no-progress"]))
+    assert run_fingerprint(parse(base)) != run_fingerprint(parse(base + ["--t-final", "5"]))
+
+
+def test_run_to_file_twice_with_the_same_options_is_told_the_same_run_is_in_progress(tmp_path, holder):
+    from jaxsleigh.errors import RunLockedError
+    from jaxsleigh.files.runner import _single_run_id, run_to_file
+
+    out, options = tmp_path / "mc.npz", {"samples": 4, "seed": 1}
+    holder(out, _single_run_id([str(out), options]))
+
+    def study(**kw):
+        raise AssertionError("computed while the same run held the output")
+
+    with pytest.raises(RunLockedError, match="the same run is in progress"):
+        run_to_file(out, study, js.save_basin, options=options)

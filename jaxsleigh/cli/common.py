@@ -6,6 +6,8 @@ Exit codes: `EXIT_CODES`, each with what it means (``jaxsleigh --help`` lists th
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import sys
 import textwrap
 import uuid
@@ -85,11 +87,26 @@ def check_outputs(*paths, folders=(), named=None, figures=None, suffix=None) -> 
             writable_dir(d)
 
 
-def claim_output(path, *, folder: bool = False) -> RunLock:
+#: Flags that change how a run looks, not what it writes: left out of its fingerprint (`run_fingerprint`).
+_NOT_SETTINGS = {"progress", "cores", "no_compile_cache", "func"}
+
+
+def run_fingerprint(args) -> str:
+    """What identifies a command's run: its parsed flags (the command's name included; those of
+    `_NOT_SETTINGS` and private ones left out), hashed. Equal settings, equal fingerprints in every process."""
+    settings = {k: v for k, v in vars(args).items() if not k.startswith("_") and k not in _NOT_SETTINGS
+                and (v is None or isinstance(v, (str, int, float, bool, list, tuple)))}
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def claim_output(path, args=None, *, folder: bool = False) -> RunLock:
     """The claim of a command on its ``--out`` file (or ``folder``), to hold while it runs
-    (`jaxsleigh.files.runlock.RunLock`): meanwhile another run writing there is refused (exit code 5)."""
-    return RunLock(path, uuid.uuid4().hex, folder=folder, what="output folder" if folder else "output",
-                   hint="choose another --out")
+    (`jaxsleigh.files.runlock.RunLock`): meanwhile another run writing there is refused (exit code 5),
+    as "the same run is in progress" when its settings (``args``, `run_fingerprint`) are these, else as a
+    run with other settings."""
+    fingerprint = run_fingerprint(args) if args is not None else uuid.uuid4().hex
+    return RunLock(path, fingerprint, folder=folder, what="output folder" if folder else "output",
+                   hint="choose another --out", shared=False)
 
 
 def figure_formats() -> list:

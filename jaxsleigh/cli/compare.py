@@ -179,7 +179,7 @@ def _cmd_compare(args) -> int:
     dt = check_horizon(args.t_final, sampler, flag="--t-final")
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
-    with claim_output(args.out):
+    with claim_output(args.out, args):
         return _run_compare(args, names, dists, train, steps, sampler, dt)
 
 

@@ -80,7 +80,7 @@ def _cmd_simulate(args) -> int:
                        stepsize=stepsize, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
     check_outputs(named={"--out": args.out}, suffix=".npz")
-    with claim_output(npz_path(args.out)):
+    with claim_output(npz_path(args.out), args):
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

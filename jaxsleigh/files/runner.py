@@ -112,9 +112,13 @@ def load_average() -> list:
         return []
 
 
-def _single_run_id() -> str:
-    """A single-process run is its own run: no other process shares its output."""
-    return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
+def _single_run_id(options: Optional[dict] = None) -> str:
+    """The fingerprint of a single-process run: its options (what defines the result) hashed, so that the same run
+    started twice on one output is told "the same run is in progress"; without options, one of its own. No other
+    process shares its output (its lock is not shared)."""
+    if options is None:
+        return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
+    return "single:" + hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
@@ -125,11 +129,16 @@ def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
     return hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
 
 
-def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS) -> tuple:
+def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS,
+               shared: Optional[bool] = None) -> tuple:
     """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to ``out``
     (`RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
-    Returns ``(lock, the chunk files found)``; the caller releases the lock."""
-    lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}").acquire()
+    ``run_id``: the run's fingerprint (``None``: one of its own); ``shared``: other processes with the same
+    fingerprint share the output (default: when ``run_id`` is given). Returns ``(lock, the chunk files found)``;
+    the caller releases the lock."""
+    shared = run_id is not None if shared is None else shared
+    lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}",
+                   shared=shared).acquire()
     try:
         have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
         if have and not resume:
@@ -273,14 +282,14 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
     options = json.loads(json.dumps(options or {}, default=str))
     if cluster is None:
         cluster = start_processes(processes)
-    run_id = _cluster_run_id(processes, cluster) if cluster is not None else None
+    run_id = _cluster_run_id(processes, cluster) if cluster is not None else _single_run_id([str(out), options])
     t0, load_start, kept = time.perf_counter(), load_average(), {}
 
     def owned() -> dict:
         if check is not None:
             check()
         chunks.mkdir(parents=True, exist_ok=True)
-        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words)
+        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=cluster is not None)
         return {"chunks": chunks, "lock": lock, "had": len(have)}
 
     def compute(state, shard):

@@ -33,6 +33,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import time
@@ -127,7 +128,10 @@ class TuningRun:
                                                                           default=str))
         self.command = command
         self.words = words
-        self.run_id = uuid.uuid4().hex            # one process's run: no other run shares its output
+        # one process's run, no other shares its output; known options make it the run's settings, so that the same
+        # run started twice is told it is in progress (`jaxsleigh.files.runlock.RunLock`)
+        self.run_id = uuid.uuid4().hex if self.options is None else hashlib.sha256(json.dumps(
+            [str(self.out), self.options], sort_keys=True, default=str).encode()).hexdigest()
 
     @property
     def checkpoint(self) -> Path:
@@ -146,7 +150,8 @@ class TuningRun:
         for p in (*(self.checkpoint,) * checkpointed, *also):
             if p is not None:
                 writable_path(p)
-        lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}").acquire()
+        lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}",
+                       shared=False).acquire()
         try:
             if checkpointed:
                 self._check_checkpoint(what)
