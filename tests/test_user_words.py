@@ -154,3 +154,46 @@ def test_run_to_file_twice_with_the_same_options_is_told_the_same_run_is_in_prog
 
     with pytest.raises(RunLockedError, match="the same run is in progress"):
         run_to_file(out, study, js.save_basin, options=options)
+
+
+# ---------------------------------------------------------------------------------------------
+# kept chunks of a finished run are a finished run's
+# ---------------------------------------------------------------------------------------------
+
+def _chunk_study(fail=False):
+    def study(checkpoint_dir, resume, shard):
+        (checkpoint_dir / "chunk_000000.npz").write_bytes(b"a chunk")
+        if fail:
+            raise KeyboardInterrupt
+        return {"done": True}
+    return study
+
+
+def _save(path, result):
+    path.write_text("result")
+    return path
+
+
+def test_the_kept_chunks_of_a_finished_run_are_said_to_be_finished(tmp_path):
+    from jaxsleigh.files.runner import run_to_file
+
+    out = tmp_path / "o.npz"
+    run_to_file(out, _chunk_study(), _save, options={"a": 1}, keep_chunks=True)
+    with pytest.raises(ValueError, match="kept chunks of a finished run") as said:
+        run_to_file(out, _chunk_study(), _save, options={"a": 1})
+    assert "unfinished" not in str(said.value) and "resume=True" in str(said.value)
+    # a run that starts there and is interrupted leaves an unfinished run's chunks, and is told so
+    with pytest.raises(KeyboardInterrupt):
+        run_to_file(out, _chunk_study(fail=True), _save, options={"a": 1}, resume=True, keep_chunks=True)
+    with pytest.raises(ValueError, match="an earlier, unfinished run"):
+        run_to_file(out, _chunk_study(), _save, options={"a": 1})
+
+
+def test_the_command_line_tells_a_kept_finished_run_in_its_words(tmp_path, capsys):
+    argv = ["optimum", "--samples", "1", "--horizons", "2", "--out", tmp_path / "o.npz", "--no-progress"]
+    chunks = tmp_path / "o.npz.chunks"
+    chunks.mkdir()
+    (chunks / "chunk_000000.npz").write_bytes(b"a chunk")
+    (chunks / "finished.json").write_text("{}")
+    rc, _, err = run_cli(argv, capsys)
+    assert rc == 2 and "kept chunks of a finished run" in err and "add --resume" in err, err

@@ -15,7 +15,8 @@ sweep`` are `run_to_file` with their own checks and printing):
    (`jaxsleigh.files.distributed.run_shared`);
 3. **assemble** (process 0, or the only process): the result read from the chunks (a missing chunk is
    computed), saved to ``out`` atomically, a sidecar ``out.run.json`` of what varies between runs (wall
-   time, devices, load, processes, the command), the chunk folder removed unless ``keep_chunks``;
+   time, devices, load, processes, the command), the chunk folder removed unless ``keep_chunks`` (then marked
+   finished, `FINISHED`: a later run is told it holds a finished run);
 4. **leave**: every process gets process 0's result code (`leave`).
 
 An interrupted run (Ctrl-C, a killed process, a full disk) keeps its finished chunks; the same call
@@ -53,7 +54,7 @@ from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
 __all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
-           "sidecar", "options_differ", "load_average", "start_processes", "leave"]
+           "FINISHED", "sidecar", "options_differ", "load_average", "start_processes", "leave"]
 
 
 @dataclass(frozen=True)
@@ -141,6 +142,11 @@ def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words
                    shared=shared).acquire()
     try:
         have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
+        if have and not resume and (Path(chunks) / FINISHED).is_file():
+            raise ValueError(f"{str(chunks)!r} holds the kept chunks of a finished run for {str(out)!r} (kept after it "
+                             f"wrote its output); add {words.resume} (with the same options) to write the output again "
+                             f"from them, or delete or move that folder (or choose another {words.out}) to start "
+                             f"afresh")
         if have and not resume:
             raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; add "
                              f"{words.resume} (with the same options) to continue it, or delete or move that folder "
@@ -149,6 +155,11 @@ def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words
         lock.release()
         raise
     return lock, have
+
+
+#: The mark a run leaves in the chunk folder it keeps (``keep_chunks``) once its output is written: the next run
+#: is told the folder holds a finished run, not an unfinished one. A run that starts there removes it first.
+FINISHED = "finished.json"
 
 
 def _record_options(chunks, options: dict, resume: bool) -> None:
@@ -290,6 +301,7 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
             check()
         chunks.mkdir(parents=True, exist_ok=True)
         lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=cluster is not None)
+        (chunks / FINISHED).unlink(missing_ok=True)       # this run is not finished until it says so
         return {"chunks": chunks, "lock": lock, "had": len(have)}
 
     def compute(state, shard):
@@ -309,6 +321,8 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
         code = int(finish(result, written, record)) if finish is not None else 0
         if not keep_chunks:                     # after the figure: a full disk there leaves resume to finish
             shutil.rmtree(chunks, ignore_errors=True)
+        else:
+            atomic_write_text(chunks / FINISHED, json.dumps({"out": str(out), "written": written}, indent=1) + "\n")
         kept.update(result=result, written=tuple(written))
         return code
 
