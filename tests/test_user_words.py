@@ -197,3 +197,19 @@ def test_the_command_line_tells_a_kept_finished_run_in_its_words(tmp_path, capsy
     (chunks / "finished.json").write_text("{}")
     rc, _, err = run_cli(argv, capsys)
     assert rc == 2 and "kept chunks of a finished run" in err and "add --resume" in err, err
+
+
+def test_resume_on_another_commands_chunks_says_so_in_one_line(tmp_path, capsys):
+    import json
+
+    chunks = tmp_path / "b.npz.chunks"
+    chunks.mkdir()
+    (chunks / "chunk_000000.npz").write_bytes(b"a chunk")
+    recorded = {"command": "optimum", "samples": 16, "horizons": [5.0, 10.0], "p_tol": 0.001, "seed": 0,
+                **{f"option_{i}": i for i in range(40)}}
+    (chunks / "options.json").write_text(json.dumps(recorded))
+    argv = ["basin", "--x", "1", "--y", "0.5", "--theta", "0.5", "--t-final", "0.1", "--no-progress", "--resume",
+            "--out", tmp_path / "b.npz"]
+    rc, _, err = run_cli(argv, capsys)
+    assert rc == 2 and "holds the chunks of a 'jaxsleigh optimum' run, not of 'jaxsleigh basin'" in err, err
+    assert "option_1" not in err and len(err.splitlines()) <= 2 and len(err) < 400, err

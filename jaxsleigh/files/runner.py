@@ -54,7 +54,7 @@ from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
 __all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
-           "FINISHED", "sidecar", "options_differ", "load_average", "start_processes", "leave"]
+           "FINISHED", "other_command", "sidecar", "options_differ", "load_average", "start_processes", "leave"]
 
 
 @dataclass(frozen=True)
@@ -191,6 +191,22 @@ def options_differ(chunks, options: dict, words: Words = PYTHON_WORDS) -> str:
                      for k in sorted(set(old) | set(options)) if old.get(k) != options.get(k))
 
 
+def other_command(chunks, options: dict, words: Words = PYTHON_WORDS) -> Optional[CheckpointError]:
+    """The refusal of a chunk folder that another command made (``chunks/options.json`` records another
+    ``"command"`` than ``options``'): one line naming it, instead of every option that differs; ``None`` otherwise
+    (also where either does not record a command)."""
+    try:
+        old = json.loads((Path(chunks) / "options.json").read_text())
+    except (OSError, ValueError):
+        return None
+    then, now = (old.get("command") if isinstance(old, dict) else None), options.get("command")
+    if not then or not now or then == now:
+        return None
+    return CheckpointError(f"{str(chunks)!r} holds the chunks of a 'jaxsleigh {then}' run, not of 'jaxsleigh {now}': "
+                           f"continue it with 'jaxsleigh {then}' and its options with {words.resume}, or delete or "
+                           f"move that folder (or choose another {words.out}) to start afresh")
+
+
 def _explained(e, chunks, options: dict, words: Words):
     """A full disk or a refused checkpoint told with what to do (where the finished chunks are, which options
     differ from the interrupted run's); ``None`` where there is nothing to add."""
@@ -201,8 +217,13 @@ def _explained(e, chunks, options: dict, words: Words):
             return None
         return DiskFullError(e.errno, f"{e}; the finished chunks are kept in {str(chunks)!r}: once there is space, "
                                       f"{words.again} with {words.resume} continues", path=e.path)
+    if isinstance(e, RunLockedError):
+        return None
+    other = other_command(chunks, options, words) if chunks is not None else None
+    if other is not None:
+        return other
     why = options_differ(chunks, options, words) if chunks is not None else ""
-    if not why or isinstance(e, RunLockedError):
+    if not why:
         return None
     return CheckpointError(f"{why}: {str(chunks)!r} holds the chunks of a run with other options; to continue it, "
                            f"give its options with {words.resume}, or delete or move {str(chunks)!r} (or choose "
@@ -301,6 +322,10 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
             check()
         chunks.mkdir(parents=True, exist_ok=True)
         lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=cluster is not None)
+        other = other_command(chunks, options, words) if resume else None
+        if other is not None:                   # another command's folder: said in one line, before any work
+            lock.release()
+            raise other
         (chunks / FINISHED).unlink(missing_ok=True)       # this run is not finished until it says so
         return {"chunks": chunks, "lock": lock, "had": len(have)}
 
