@@ -213,3 +213,34 @@ def test_resume_on_another_commands_chunks_says_so_in_one_line(tmp_path, capsys)
     rc, _, err = run_cli(argv, capsys)
     assert rc == 2 and "holds the chunks of a 'jaxsleigh optimum' run, not of 'jaxsleigh basin'" in err, err
     assert "option_1" not in err and len(err.splitlines()) <= 2 and len(err) < 400, err
+
+
+# ---------------------------------------------------------------------------------------------
+# results print short
+# ---------------------------------------------------------------------------------------------
+
+def _optimum_result(S=300, H=12, N=40):
+    rng = np.random.default_rng(0)
+    return js.OptimumResult(starts=np.zeros((S, 5)), horizons=np.linspace(1.0, 12.0, H), eps=0.05,
+                            energy=rng.random((S, H)), u=np.zeros((S, H, N, 2)), status=np.zeros((S, H), np.int32),
+                            q_final=np.zeros((S, H, 3)), p_final=np.zeros((S, H, 2)), kkt=np.zeros((S, H)),
+                            guess=np.zeros((S, H), np.int32))
+
+
+def test_an_optimum_result_prints_its_summary_and_shapes_not_its_arrays():
+    text = repr(_optimum_result())
+    assert text.startswith("OptimumResult(3600 problems (300 starts x 12 horizons): 3600 converged"), text
+    assert "u (300, 12, 40, 2)" in text and "eps = 0.05" in text and "T = 1: median E* = " in text
+    assert "array(" not in text and "..., " not in text
+    assert "... and 4 more horizons" in text and len(text.splitlines()) <= 13 and len(text) < 1000
+    assert str(_optimum_result()) == text
+
+
+def test_the_other_public_results_print_in_a_few_lines():
+    n = 5000
+    outs = [js.sample_starts(n, seed=1),
+            js.SolveOutput(q_final=np.zeros((n, 3)), p_final=np.zeros((n, 2)), status=np.zeros(n, np.int32),
+                           t_reached=np.zeros(n), n_steps=np.zeros(n), n_rejected=np.zeros(n),
+                           summaries={"T_eps": np.zeros(n), "u_energy": np.zeros(n)}, Hd0=np.zeros(n))]
+    for r in outs:
+        assert len(repr(r)) < 2000 and len(repr(r).splitlines()) < 40, type(r).__name__

@@ -447,6 +447,18 @@ class OptimumResult:
     def counts(self) -> dict:
         return {s.name.lower(): int(np.sum(self.status == s)) for s in OptimumStatus}
 
+    def __repr__(self) -> str:
+        # a summary, not every array (print(result) of many starts dumped u, energy, ... whole): `describe`'s lines
+        # (at most 8 horizons), eps and the arrays' shapes
+        lines = self.describe().splitlines()
+        if len(lines) > 9:
+            lines = lines[:9] + [f"  ... and {len(lines) - 9} more horizons (describe() lists them all)"]
+        arrays = ", ".join(f"{f} {tuple(np.shape(getattr(self, f)))}"
+                           for f in ("starts", "horizons", "energy", "u", "status", "q_final", "p_final", "kkt",
+                                     "guess"))
+        return "\n".join([f"OptimumResult({lines[0]}", *lines[1:], f"  eps = {self.eps:g}",
+                          f"  arrays: {arrays})"])
+
     def describe(self) -> str:
         """A few lines: how many problems converged, and the median E*(T) per horizon."""
         lines = [f"{self.status.size} problems ({self.starts.shape[0]} starts x {self.horizons.size} horizons): "
