@@ -244,3 +244,32 @@ def test_the_other_public_results_print_in_a_few_lines():
                            summaries={"T_eps": np.zeros(n), "u_energy": np.zeros(n)}, Hd0=np.zeros(n))]
     for r in outs:
         assert len(repr(r)) < 2000 and len(repr(r).splitlines()) < 40, type(r).__name__
+
+
+# ---------------------------------------------------------------------------------------------
+# grammar
+# ---------------------------------------------------------------------------------------------
+
+def test_a_basin_file_given_as_an_optimum_file_says_an_optimum_file(tmp_path):
+    np.savez(tmp_path / "x.npz", something=np.zeros(2))
+    with pytest.raises(ValueError, match=r"is not an optimum file") as said:
+        js.load_optimum(tmp_path / "x.npz")
+    assert "a optimum" not in str(said.value)
+
+
+def test_one_search_flag_belongs_to_search(tmp_path, capsys):
+    rc, _, err = run_cli(["tune", "--steps", "1", "--population", "8", "--out", tmp_path / "g.json"], capsys)
+    assert rc == 2 and "--population belongs to --search; add --search or drop it" in err, err
+    rc, _, err = run_cli(["tune", "--steps", "1", "--population", "8", "--energy-margin", "0.9", "--out",
+                          tmp_path / "g.json"], capsys)
+    assert rc == 2 and "--population, --energy-margin belong to --search; add --search or drop them" in err, err
+
+
+def test_a_map_of_sampled_starts_is_refused_in_plain_words():
+    from jaxsleigh.plots.basin import _check_map
+
+    class Result:
+        starts = js.BasinStarts(np.zeros((2, 3)), "array", (2,), (), {})
+
+    with pytest.raises(ValueError, match="these starts are an array varying no grid axis"):
+        _check_map(Result(), "T_eps")

@@ -167,6 +167,11 @@ def write_npz_deterministic(path, arrays: dict, *, compress: bool = True, when_f
     return atomic_write(path, write, when_full=when_full)
 
 
+def _a(what: str) -> str:
+    """``what`` with its article: "a basin file", "an optimum file"."""
+    return ("an " if what[:1].lower() in "aeiou" else "a ") + what
+
+
 def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dict:
     """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
     or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``).
@@ -196,11 +201,11 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None) -> dic
     found = npz_kind(data)
     if kind is not None and found is not None and found != kind:
         _, name, reader = NPZ_KINDS[found]
-        raise ValueError(f"{str(p)!r} is {name}, not a {what}; read it with {reader}")
+        raise ValueError(f"{str(p)!r} is {name}, not {_a(what)}; read it with {reader}")
     missing = [k for k in required if k not in data]
     if missing:
         keys = ", ".join(sorted(data)[:12]) + (", ..." if len(data) > 12 else "")
-        raise ValueError(f"{str(p)!r} is not a {what}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
+        raise ValueError(f"{str(p)!r} is not {_a(what)}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
     if kind is not None:
         check_fields(p, data, kind)
     return data
