@@ -28,4 +28,4 @@ from .model import charts, controller  # noqa: F401
 from . import errors  # noqa: F401
 from .integrate import observers  # noqa: F401
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
