@@ -273,3 +273,32 @@ def test_a_map_of_sampled_starts_is_refused_in_plain_words():
 
     with pytest.raises(ValueError, match="these starts are an array varying no grid axis"):
         _check_map(Result(), "T_eps")
+
+
+# ---------------------------------------------------------------------------------------------
+# no code, test or page names an issue number
+# ---------------------------------------------------------------------------------------------
+
+#: An issue's number ("issue" and a number, "issue" and a number in a name, or "#" and a number after a space or an
+#: opening bracket): a number of the project's tracker, which a reader cannot look up.
+ISSUE_NUMBER = r"\bissues?\s*#?\s*\d|\bissue_?\d|(?<=[\s(\[])#\d+\b"
+
+
+def test_no_code_test_or_page_names_an_issue_number():
+    import re
+
+    n = "12"                                   # put together: this file names no issue number itself
+    assert re.search(ISSUE_NUMBER, f"see issue {n}", re.I) and re.search(ISSUE_NUMBER, f"fixed (#{n})", re.I)
+    assert re.search(ISSUE_NUMBER, f"experiments/issue{n}_x.py", re.I)
+    assert not re.search(ISSUE_NUMBER, 'color="#333", "&#39;", tissue 3', re.I)
+    found = []
+    for folder in ("jaxsleigh", "tests", "docs", "experiments", "notebooks"):
+        for path in sorted((ROOT / folder).rglob("*")):
+            if path.suffix not in (".py", ".md", ".ipynb", ".txt", ".yml", ".toml", ".cfg") or not path.is_file():
+                continue
+            text = path.read_text(errors="replace")
+            found += [f"{path.relative_to(ROOT)}:{text.count(chr(10), 0, m.start()) + 1}: {m.group(0)!r}"
+                      for m in re.finditer(ISSUE_NUMBER, text, re.I)]
+    for name in ("README.md", "CHANGELOG.md", "pyproject.toml", "mkdocs.yml"):
+        found += [f"{name}: {m.group(0)!r}" for m in re.finditer(ISSUE_NUMBER, (ROOT / name).read_text(), re.I)]
+    assert not found, "issue numbers named:\n" + "\n".join(found)
