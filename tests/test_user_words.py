@@ -37,7 +37,7 @@ def test_load_gains_of_a_controller_name_says_how_python_takes_it():
 
 def test_the_readme_presets_say_shaped_is_a_controller_not_gains():
     text = " ".join((ROOT / "README.md").read_text().split())
-    assert "`--controller shaped` for the shaped law" in text
+    assert "the shaped law: `--controller shaped`" in text and "(`--controller shaped`) |" in text
     assert "**Gain presets** (`--gains NAME`" not in text
 
 
@@ -302,3 +302,28 @@ def test_no_code_test_or_page_names_an_issue_number():
     for name in ("README.md", "CHANGELOG.md", "pyproject.toml", "mkdocs.yml"):
         found += [f"{name}: {m.group(0)!r}" for m in re.finditer(ISSUE_NUMBER, (ROOT / name).read_text(), re.I)]
     assert not found, "issue numbers named:\n" + "\n".join(found)
+
+
+# ---------------------------------------------------------------------------------------------
+# the times a reader is told: measured, with the machine named
+# ---------------------------------------------------------------------------------------------
+
+MACHINE = "2-core x86_64 machine"
+
+
+def test_the_readme_times_are_the_measured_ones_with_the_machine_named():
+    text = " ".join((ROOT / "README.md").read_text().split())
+    # the quick tier, the comparison at equal energy, the Python example: measured with an empty compilation cache
+    assert f"quick tier for every change (8 min on a {MACHINE} at load 4, empty compilation cache" in text
+    assert f"float32; 200 s on a {MACHINE}, empty compilation cache)" in text
+    assert "this example took 111 s cold (2-core x86_64, empty cache)" in text
+    for stale in ("about 3 min cold", "2-core x86_64, about a minute"):
+        assert stale not in text, stale
+
+
+def test_the_command_line_tour_times_the_readme_basin():
+    text = " ".join((ROOT / "docs" / "how-to" / "command-line.md").read_text().split())
+    assert f"took 41 s on a {MACHINE} with an empty compilation cache" in text
+    assert "others take seconds" not in text
+    readme = (ROOT / "README.md").read_text()
+    assert "jaxsleigh basin --x -3:3:32 --y -3:3:32 --theta 0.5 --t-final 100" in readme   # the basin timed
