@@ -48,7 +48,7 @@ def no_work(monkeypatch):
     for mod, name in [("jaxsleigh.studies.simulate", "drive_saving"), ("jaxsleigh.studies.ensemble", "drive_final"),
                       ("jaxsleigh.tuning.optimizer", "make_training_set"), ("jaxsleigh.studies.compare", "compare"),
                       ("jaxsleigh.studies.compare", "draw_compare_starts"),
-                      ("jaxsleigh.studies.compare", "tune_to_budget")]:
+                      ("jaxsleigh.studies.compare", "tune_to_budget"), ("jaxsleigh.plots.paper_run", "simulate")]:
         monkeypatch.setattr(importlib.import_module(mod), name, work)
 
 
@@ -170,3 +170,13 @@ def test_the_check_only_looks(tmp_path):
     if os.path.exists("/dev/full"):
         with pytest.raises(ValueError, match="'/dev/full' is a character device"):
             output_file("/dev/full", "--out file", suffix=".npz")
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo", "device"])
+def test_paper_refuses_a_figure_or_data_file_that_is_not_a_regular_file(tmp_path, capsys, no_work, kind):
+    out = tmp_path / "paper"
+    out.mkdir()
+    target = make(out / "fig2_paths.png", kind)
+    rc, _, err = run_cli(["paper", "--t-final", "1", "--out", out], capsys)
+    assert rc == 2 and f"'{target}' {WORDS[kind]}" in err, err
+    assert untouched(target, kind) and not (out / "paper.npz").exists()
