@@ -113,7 +113,7 @@ def load_average() -> list:
         return []
 
 
-def _single_run_id(options: Optional[dict] = None) -> str:
+def _single_run_id(options: Any = None) -> str:
     """The fingerprint of a single-process run: its options (what defines the result) hashed, so that the same run
     started twice on one output is told "the same run is in progress"; without options, one of its own. No other
     process shares its output (its lock is not shared)."""
@@ -128,6 +128,11 @@ def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
     where = (processes.coordinator if processes is not None else None) or os.environ.get(
         "SLURM_JOB_ID") or os.environ.get("OMPI_MCA_orte_hnp_uri", "")
     return hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
+
+
+#: The mark a run leaves in the chunk folder it keeps (``keep_chunks``) once its output is written: the next run
+#: is told the folder holds a finished run, not an unfinished one. A run that starts there removes it first.
+FINISHED = "finished.json"
 
 
 def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS,
@@ -155,11 +160,6 @@ def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words
         lock.release()
         raise
     return lock, have
-
-
-#: The mark a run leaves in the chunk folder it keeps (``keep_chunks``) once its output is written: the next run
-#: is told the folder holds a finished run, not an unfinished one. A run that starts there removes it first.
-FINISHED = "finished.json"
 
 
 def _record_options(chunks, options: dict, resume: bool) -> None:
