@@ -327,3 +327,20 @@ def test_the_command_line_tour_times_the_readme_basin():
     assert "others take seconds" not in text
     readme = (ROOT / "README.md").read_text()
     assert "jaxsleigh basin --x -3:3:32 --y -3:3:32 --theta 0.5 --t-final 100" in readme   # the basin timed
+
+
+def test_a_tuning_run_with_the_same_options_is_told_the_same_run_is_in_progress(tmp_path, holder):
+    from jaxsleigh.errors import RunLockedError
+    from jaxsleigh.tuning.runs import TuningRun
+
+    out = tmp_path / "g.json"
+    first = TuningRun(out, options={"steps": 4, "seed": 1})
+    assert first.run_id == TuningRun(out, options={"steps": 4, "seed": 1}).run_id
+    assert first.run_id != TuningRun(out, options={"steps": 8, "seed": 1}).run_id
+    holder(out, first.run_id)
+    with pytest.raises(RunLockedError, match="the same run is in progress"):
+        with TuningRun(out, options={"steps": 4, "seed": 1}).owned("tuning", checkpointed=False):
+            pytest.fail("claimed an output the same run holds")
+    with pytest.raises(RunLockedError, match="other settings"):
+        with TuningRun(out, options={"steps": 8, "seed": 1}).owned("tuning", checkpointed=False):
+            pytest.fail("claimed an output another run holds")

@@ -13,7 +13,7 @@ from ..controllers.actuators import sampled, sampler, saturate
 from ..files.runner import Processes
 from ..integrate.sampled import sample_count
 from ..integrate.stepsize import StepSizeController
-from ..model.params import Gains, check_not_controller, load_gains, plant_params, preset_names
+from ..model.params import Gains, load_gains, plant_params, preset_names
 
 __all__ = ["add_model_options", "model_from_args", "check_bound_fits", "add_sampler_options", "sampler_from_args",
            "check_delay", "law_kwargs", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags",
@@ -51,7 +51,7 @@ def model_from_args(args):
     """(plant, law) from the options of `add_model_options` (and `add_sampler_options` where the command has them):
     ``law`` is the paper's `Gains` (``--gains``) unless ``--controller`` names another law, or ``--saturation`` or
     ``--sample-period`` wrap it in an actuator (then a law ``u = law(q, v)``)."""
-    from ..controllers.registry import make_controller
+    from ..controllers.registry import check_not_controller, make_controller
 
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
     plant = plant_params(m, J, l, damping=args.damping)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -216,7 +216,11 @@ def load_gains(spec) -> Gains:
     if spec not in presets:
         path = Path(spec)
         if not path.is_file():
-            check_not_controller(spec)
+            if (Path(__file__).parent.parent / "presets" / "controllers" / f"{spec}.json").is_file():
+                # a law's preset ("shaped"), not gains (the command line says --controller: controllers.registry)
+                raise ValueError(f"{spec!r} is a controller of its own, not gains of the paper's law; pass "
+                                 f"controller=make_controller({spec!r}) (jaxsleigh.controllers.registry) instead of "
+                                 f"gains")
             what = "is a folder" if path.is_dir() else "not found"
             raise ValueError(f"gains file {spec!r} {what}; give a JSON gains file or a preset "
                              f"({', '.join(repr(n) for n in presets)})")
@@ -228,20 +232,6 @@ def load_gains(spec) -> Gains:
     except OSError as e:
         raise ValueError(f"cannot read gains file {str(path)!r} ({e.strerror or e})") from None
     return gains_from_dict(d, source=f"gains file {str(path)!r}")
-
-
-def check_not_controller(spec: str, flag: Optional[str] = None) -> None:
-    """Refuse, with the way on, a controller's name (``"shaped"``, ``"astolfi"``) given where gains of the paper's law
-    are wanted: ``flag`` (``"--gains"``) speaks to the command line, ``None`` to Python."""
-    from ..controllers.registry import CONTROLLERS
-
-    if spec == "paper" or spec not in CONTROLLERS:
-        return
-    if flag is not None:
-        raise ValueError(f"{flag} {spec}: {spec!r} is a controller of its own, not gains of the paper's law; use "
-                         f"--controller {spec} (and no {flag})")
-    raise ValueError(f"{spec!r} is a controller of its own, not gains of the paper's law; pass "
-                     f"controller=make_controller({spec!r}) (jaxsleigh.controllers.registry) instead of gains")
 
 
 def save_gains(g: Gains, path, **meta) -> None:
