@@ -316,7 +316,7 @@ def test_the_readme_times_are_the_measured_ones_with_the_machine_named():
     # the quick tier, the comparison at equal energy, the Python example: measured with an empty compilation cache
     assert f"quick tier for every change (8 min on a {MACHINE} at load 4, empty compilation cache" in text
     assert f"float32; 200 s on a {MACHINE}, empty compilation cache)" in text
-    assert "this example took 111 s cold (2-core x86_64, empty cache)" in text
+    assert "(this example: 111 s cold, 2-core x86_64)" in text
     for stale in ("about 3 min cold", "2-core x86_64, about a minute"):
         assert stale not in text, stale
 
