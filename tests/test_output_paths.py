@@ -167,6 +167,16 @@ def test_the_check_only_looks(tmp_path):
     assert not_a_file(tmp_path / "f") is None
     assert output_file(tmp_path / "f", suffix=".npz") == tmp_path / "f.npz"
     assert writable_path(tmp_path / "new.npz") == tmp_path / "new.npz"
+    import socket
+
+    sock = socket.socket(socket.AF_UNIX)
+    try:
+        sock.bind(str(tmp_path / "s"))
+        assert not_a_file(tmp_path / "s") == "a socket"
+        with pytest.raises(ValueError, match="is a socket, not a regular file"):
+            output_file(tmp_path / "s")
+    finally:
+        sock.close()
     if os.path.exists("/dev/full"):
         with pytest.raises(ValueError, match="'/dev/full' is a character device"):
             output_file("/dev/full", "--out file", suffix=".npz")
