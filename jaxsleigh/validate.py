@@ -11,13 +11,14 @@ import math
 import numbers
 import os
 import platform
+import stat
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
 __all__ = ["INT32_MAX", "real", "whole", "check_memory", "check_count", "writable_path",
-           "writable_dir", "host_label"]
+           "writable_dir", "output_file", "not_a_file", "host_label"]
 
 #: The largest step budget the engine's int32 counters hold.
 INT32_MAX = 2**31 - 1
@@ -144,12 +145,53 @@ def writable_dir(path, what: str = "output folder") -> Path:
     return d
 
 
-def writable_path(path, what: str = "output file") -> Path:
-    """Check, before any work, that ``path`` can be written: its folder is created if needed and
-    must be writable, and the path must not be a folder. Returns it as a ``Path``."""
-    p = Path(path)
-    if p.is_dir():
-        raise ValueError(f"the {what} {str(p)!r} is a folder; give a file name (e.g. {str(p / 'out')!r})")
+def not_a_file(path) -> Optional[str]:
+    """What ``path`` is when it exists and is not a regular file, in words ("a folder", "a named pipe (FIFO)",
+    "a character device", ...; a symbolic link is followed, so a link to ``/dev/null`` is a character
+    device); ``None`` when it is a regular file or does not exist. Only looks (``stat``): never opens it."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):              # absent, a dangling link, a name the system refuses
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    for test, words in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                        (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return words
+    return "not a regular file"                # pragma: no cover - door, port, ...
+
+
+def output_file(path, what: str = "output file", *, suffix: Optional[str] = None) -> Path:
+    """The file a writer writes for the name ``path``, refused if writing it would replace or open something
+    that is not a regular file.
+
+    ``suffix`` (``".npz"``): the extension the writer appends to a name without it; then the name as given is
+    checked too (``--out /dev/full`` is refused, not written as ``/dev/full.npz``). A name that exists and is a
+    folder, a device (``/dev/full``, ``/dev/null``), a named pipe or a socket raises ``ValueError`` naming the
+    path and what it is. Only looks at the names (nothing is created or opened); returns the name written.
+    """
+    given = Path(path)
+    written = given if suffix is None or given.suffix == suffix else given.with_name(given.name + suffix)
+    for p in dict.fromkeys((given, written)):
+        kind = not_a_file(p)
+        if kind is None:
+            continue
+        if kind == "a folder":
+            raise ValueError(f"the {what} {str(p)!r} is a folder; give a file name (e.g. {str(p / 'out')!r})")
+        also = f" (the file written would be {str(written)!r})" if p != written else ""
+        raise ValueError(f"the {what} {str(p)!r} is {kind}, not a regular file{also}; jaxsleigh writes its "
+                         f"outputs to regular files only: give the name of a file")
+    return written
+
+
+def writable_path(path, what: str = "output file", *, suffix: Optional[str] = None) -> Path:
+    """Check, before any work, that ``path`` can be written: not a folder, device, named pipe or socket
+    (`output_file`; with ``suffix``, neither the name given nor the name with ``suffix`` appended), its
+    folder created if needed and writable, the file itself writable if it exists. Returns the name written
+    (``path``, or with ``suffix`` appended)."""
+    p = output_file(path, what, suffix=suffix)
     writable_dir(p.parent if str(p.parent) else Path("."), what=f"folder of the {what}")
     if p.exists() and not os.access(p, os.W_OK):
         raise ValueError(f"the {what} {str(p)!r} exists and is not writable; choose another path")

@@ -1,4 +1,4 @@
-"""The Python API's rough edges and the command line's late refusals (issue 17, slice H4).
+"""The Python API's rough edges and the command line's late refusals.
 
 * every loader says what kind of result file it got and which function reads it, and never
   speaks of ``run.json.npz``;

@@ -1,6 +1,6 @@
 """Chunks that know who they are, runs that own their output, a full disk that says what to do.
 
-Issue 17, slice H1: a chunk file under another chunk's name is never trusted; two runs never write
+A chunk file under another chunk's name is never trusted; two runs never write
 the same output (a killed run leaves no stale lock); a full disk names the file and the way on;
 a refused resume names the options that differ, with both values, and every hint says what works.
 """

@@ -1,8 +1,8 @@
-"""Multi-process runs (issue 11): several local CPU processes joined by ``jax.distributed`` write the
+"""Multi-process runs: several local CPU processes joined by ``jax.distributed`` write the
 same ``.npz``, byte for byte, as one process; a killed process loses only its unfinished chunks and
 ``--resume`` by another number of processes recomputes exactly those; bad or inconsistent
 options and stale checkpoint folders are refused by every process before anything is written; a
-2-process ``jaxsleigh sweep`` writes the single-process bytes too. Issue 17: nothing waits silently
+2-process ``jaxsleigh sweep`` writes the single-process bytes too. Nothing waits silently
 (a missing coordinator, a port in use, a dead peer or a dead process 0 are named within
 ``--cluster-timeout``, exit code 6, and process 0 finishes a dead peer's share).
 
@@ -235,7 +235,7 @@ def test_processes_with_different_options_are_refused_before_any_write(tmp_path)
 
 
 # ---------------------------------------------------------------------------------------------
-# clusters that never hang silently (issue 17): short --cluster-timeout, real processes
+# clusters that never hang silently: short --cluster-timeout, real processes
 # ---------------------------------------------------------------------------------------------
 
 def _alone(i, port, out, timeout=3):

@@ -1,4 +1,4 @@
-"""The ensemble engine (issue 3): chunking, sharding, on-line summaries, the singular set."""
+"""The ensemble engine: chunking, sharding, on-line summaries, the singular set."""
 from __future__ import annotations
 
 import json

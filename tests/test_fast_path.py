@@ -1,8 +1,8 @@
 """The plain fixed-step path (``run_ensemble(stepsize=StepSizeController(method="rk4"), saveat=SaveAt(summaries=False))``)
 in cache blocks.
 
-``run_plain`` steps blocks of ``PLAIN_BLOCK`` trajectories through all steps before moving on
-(issue 12). These tests hold it to the earlier form (one scan over the whole batch, ``block=None``):
+``run_plain`` steps blocks of ``PLAIN_BLOCK`` trajectories through all steps before moving on.
+These tests hold it to the earlier form (one scan over the whole batch, ``block=None``):
 the same final states, bitwise, and the same status logic; to the per-step stepper path
 (``summaries=True``) to float32 rounding; and, where a C compiler exists, to the C reference.
 """

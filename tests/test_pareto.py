@@ -213,7 +213,7 @@ def test_balanced_preset_meets_its_criteria_on_starts_it_never_saw(balanced_vs_p
 
 
 def test_balanced_preset_is_faster_than_the_papers_gains(balanced_vs_paper):
-    """Median T_0.05 at least 1.2x shorter than the paper's gains' (1.24x on these starts; issue 9 asked for 2x, which
+    """Median T_0.05 at least 1.2x shorter than the paper's gains' (1.24x on these starts; 2x was the aim, which
     the previous preset met only where float32 missed the energy it spent after settling: docs/how-to/tuning.md)."""
     paper, bal = balanced_vs_paper
     assert 1.2 * bal.median_T <= paper.median_T

@@ -1,4 +1,4 @@
-"""Nothing lost, nothing mixed: every case of issue 8 as a regression test.
+"""Nothing lost, nothing mixed: every way a run could lose or mix results, as a regression test.
 
 Checkpoints that cannot mix runs, damaged files named and recomputed, outputs checked before any
 work, an interrupted tuner that keeps its best gains and resumes to the same answer, one bad row

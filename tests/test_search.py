@@ -235,10 +235,10 @@ def test_cli_search_writes_gains_with_their_figures(tmp_path, capsys):
 @pytest.mark.parametrize("argv, msg", [
     (["--search", "--lr", "0.1"], "drop --lr"),
     (["--search", "--pareto", "3"], "drop --pareto"),
-    (["--population", "4"], "belong to --search"),
+    (["--population", "4"], "--population belongs to --search; add --search or drop it"),
     (["--search", "--population", "1"], "--population"),
     (["--search", "--energy-budget", "8", "--energy-margin", "0.9"], "not both"),
-    (["--energy-percentiles", "50,90"], "belong to --search"),
+    (["--energy-percentiles", "50,90"], "--energy-percentiles belongs to --search"),
     (["--atol", "1e-8", "--validate", "0"], "--validate 0 skips it"),
     (["--pareto", "2", "--rtol", "1e-7", "--validate", "0"], "drop --rtol"),
     (["--search", "--energy-percentiles", "50,100"], "in (0, 100)"),
@@ -404,4 +404,4 @@ def test_cli_search_on_the_gap_to_a_frontier_file(tmp_path, capsys):
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err, err
     assert cli_main(["tune", "--out", str(tmp_path / "h.json"), "--frontier", str(front)]) == 2
-    assert "belong to --search" in capsys.readouterr().err
+    assert "--frontier belongs to --search" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""Per-trajectory parameters and parameter sweeps (issue 10).
+"""Per-trajectory parameters and parameter sweeps.
 
 * a sweep equals the separate runs it replaces (same status, same T_eps to rounding, per start and
   value), across chunk boundaries, for gains and plant parameters (knife edge included);

@@ -97,7 +97,8 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
 
     def checked() -> None:
         check()
-        check_outputs(sidecar(out), named={"--out": out}, figures={"--plot": args.plot}, folders=[chunks])
+        check_outputs(sidecar(out), named={"--out": args.out}, figures={"--plot": args.plot}, folders=[chunks],
+                      suffix=out.suffix or None)
 
     try:
         cluster = start_processes(processes_from_args(args))
@@ -154,5 +155,5 @@ def say_study_done(command: str, res, record: dict, written: list, eps: float, h
     do, is on stderr already); `jaxsleigh.cli.common.exit_code`."""
     print(f"{PROG} {command}: {head}{status_line(res.status, res.T_eps, eps)}; {record['wall_s']:.1f} s wall "
           f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
-    print(f"{PROG} {command}: {audit_line((res.run_info or {}).get('audit'))}")
+    print(f"{PROG} {command}: {audit_line((res.run_info or {}).get('audit'), flag='--audit-rows')}")
     return exit_code(res.status, res.T_eps, eps)

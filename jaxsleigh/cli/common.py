@@ -6,6 +6,8 @@ Exit codes: `EXIT_CODES`, each with what it means (``jaxsleigh --help`` lists th
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import sys
 import textwrap
 import uuid
@@ -61,20 +63,23 @@ FLAGS = {"t_final": "--t-final", "dt": "--dt", "save_every": "--save-every", "me
 # outputs, warnings, statuses
 # ---------------------------------------------------------------------------------------------
 
-def check_outputs(*paths, folders=(), named=None, figures=None) -> None:
-    """Before any work: every output file can be written (its folder is created if needed) and
-    every output folder is writable. Raises ``ValueError`` naming the path.
+def check_outputs(*paths, folders=(), named=None, figures=None, suffix=None) -> None:
+    """Before any work: every output file can be written (its folder is created if needed) and is not
+    a folder, device, named pipe or socket (`jaxsleigh.validate.writable_path`), and every output folder
+    is writable. Raises ``ValueError`` naming the path and what it is.
 
-    ``named`` (``{flag: path}``): output files named by their flag in the messages (``--out``);
-    ``figures`` (``{flag: path}``): figure files (``--plot``), whose extension must also be a format
-    matplotlib writes (`check_figure`). ``None`` paths are skipped.
+    ``named`` (``{flag: path}``): output files named by their flag in the messages (``--out``), as the
+    user typed them: with ``suffix`` (``".npz"``), the extension the command appends to a name without
+    it, both that name and the name given are checked; ``figures`` (``{flag: path}``): figure files
+    (``--plot``), whose extension must also be a format matplotlib writes (`check_figure`). ``None``
+    paths are skipped.
     """
     for flag, p in (figures or {}).items():
         if p is not None:
             check_figure(p, flag)
     for flag, p in (named or {}).items():
         if p is not None:
-            writable_path(p, what=f"{flag} file")
+            writable_path(p, what=f"{flag} file", suffix=suffix)
     for p in paths:
         if p is not None:
             writable_path(p)
@@ -83,11 +88,26 @@ def check_outputs(*paths, folders=(), named=None, figures=None) -> None:
             writable_dir(d)
 
 
-def claim_output(path, *, folder: bool = False) -> RunLock:
+#: Flags that change how a run looks, not what it writes: left out of its fingerprint (`run_fingerprint`).
+_NOT_SETTINGS = {"progress", "cores", "no_compile_cache", "func"}
+
+
+def run_fingerprint(args) -> str:
+    """What identifies a command's run: its parsed flags (the command's name included; those of
+    `_NOT_SETTINGS` and private ones left out), hashed. Equal settings, equal fingerprints in every process."""
+    settings = {k: v for k, v in vars(args).items() if not k.startswith("_") and k not in _NOT_SETTINGS
+                and (v is None or isinstance(v, (str, int, float, bool, list, tuple)))}
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def claim_output(path, args=None, *, folder: bool = False) -> RunLock:
     """The claim of a command on its ``--out`` file (or ``folder``), to hold while it runs
-    (`jaxsleigh.files.runlock.RunLock`): meanwhile another run writing there is refused (exit code 5)."""
-    return RunLock(path, uuid.uuid4().hex, folder=folder, what="output folder" if folder else "output",
-                   hint="choose another --out")
+    (`jaxsleigh.files.runlock.RunLock`): meanwhile another run writing there is refused (exit code 5),
+    as "the same run is in progress" when its settings (``args``, `run_fingerprint`) are these, else as a
+    run with other settings."""
+    fingerprint = run_fingerprint(args) if args is not None else uuid.uuid4().hex
+    return RunLock(path, fingerprint, folder=folder, what="output folder" if folder else "output",
+                   hint="choose another --out", shared=False)
 
 
 def figure_formats() -> list:

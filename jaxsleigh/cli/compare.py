@@ -196,7 +196,7 @@ def _cmd_compare(args) -> int:
     dt = check_horizon(args.t_final, sampler, flag="--t-final")
     figures = {"--plot": args.plot} if args.plot else {}
     check_outputs(named={"--out": args.out}, figures=figures)
-    with claim_output(args.out):
+    with claim_output(args.out, args):
         return _run_compare(args, names, dists, train, steps, sampler, dt)
 
 
@@ -229,7 +229,7 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     for r in rows:
         if (r.get("audit") or {}).get("rows"):
-            print(f"{PROG} compare: {r['controller']} on {r['starts']}: {audit_line(r['audit'])}")
+            print(f"{PROG} compare: {r['controller']} on {r['starts']}: {audit_line(r['audit'], flag='--audit-rows')}")
     if equal is not None:
         for name, info in equal.laws_info.items():
             if info.get("budget_reached") is False:

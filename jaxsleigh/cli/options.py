@@ -51,11 +51,12 @@ def model_from_args(args):
     """(plant, law) from the options of `add_model_options` (and `add_sampler_options` where the command has them):
     ``law`` is the paper's `Gains` (``--gains``) unless ``--controller`` names another law, or ``--saturation`` or
     ``--sample-period`` wrap it in an actuator (then a law ``u = law(q, v)``)."""
-    from ..controllers.registry import make_controller
+    from ..controllers.registry import check_not_controller, make_controller
 
     m, J, l = parse_triple(args.params, "--params", "2,1,1")
     plant = plant_params(m, J, l, damping=args.damping)
     name = getattr(args, "controller", "paper")
+    check_not_controller(str(args.gains), "--gains")          # --gains shaped: the way to --controller shaped
     if name != "paper" and args.gains != "paper":
         raise ValueError(f"--gains sets the paper's law; it does not apply to --controller {name}")
     if name.endswith(".json"):                   # a law written by `jaxsleigh tune --controller NAME --out F.json`

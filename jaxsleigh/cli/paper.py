@@ -34,7 +34,7 @@ def _cmd_paper(args) -> int:
 
     check_outputs(folders=[args.out])
     t0 = time.perf_counter()
-    with claim_output(args.out, folder=True):
+    with claim_output(args.out, args, folder=True):
         paths = run_paper(args.out, x64=args.x64, dt=args.dt, t_final=args.t_final, progress=args.progress,
                           command=[PROG, *args._argv], stamp=args.stamp)
     wall = time.perf_counter() - t0

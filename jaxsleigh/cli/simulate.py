@@ -79,8 +79,8 @@ def _cmd_simulate(args) -> int:
     cfg = solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=save_every,
                        stepsize=stepsize, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
-    check_outputs(named={"--out": npz_path(args.out)})
-    with claim_output(npz_path(args.out)):
+    check_outputs(named={"--out": args.out}, suffix=".npz")
+    with claim_output(npz_path(args.out), args):
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

@@ -77,7 +77,8 @@ def _tune_mode(args) -> int:
         return _cmd_search(args)
     used = ["--" + k.replace("_", "-") for k, v in SEARCH_ONLY.items() if getattr(args, k) != v]
     if used:
-        raise ValueError(f"{', '.join(used)} belong to --search; add --search or drop them")
+        verb, them = ("belongs", "it") if len(used) == 1 else ("belong", "them")   # --frontier belongs to --search
+        raise ValueError(f"{', '.join(used)} {verb} to --search; add --search or drop {them}")
     stepsize(args)
     if args.pareto is not None:
         return _cmd_pareto(args)

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import importlib
 
-__all__ = ["CONTROLLERS", "controller_names", "controller_class", "make_controller", "describe_controllers"]
+__all__ = ["CONTROLLERS", "controller_names", "controller_class", "make_controller", "describe_controllers",
+           "check_not_controller"]
 
 #: name -> (module, class): the laws in the order ``jaxsleigh controllers`` lists them.
 CONTROLLERS = {
@@ -45,6 +46,14 @@ def make_controller(name: str, gains=None):
 
         return as_gains(gains)
     return cls.preset() if hasattr(cls, "preset") else cls()
+
+
+def check_not_controller(spec: str, flag: str = "--gains") -> None:
+    """Refuse, with the way on, a controller's name (``--gains shaped``) given to ``flag``, which takes gains of the
+    paper's law: the refusal says to use ``--controller NAME``."""
+    if spec != "paper" and spec in CONTROLLERS:
+        raise ValueError(f"{flag} {spec}: {spec!r} is a controller of its own, not gains of the paper's law; use "
+                         f"--controller {spec} (and no {flag})")
 
 
 def describe_controllers() -> list[str]:

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DamagedFileError, DiskFullError
 from ..status import Status, describe
-from ..validate import check_memory, host_label
+from ..validate import check_memory, host_label, output_file
 
 __all__ = ["write_npz", "npz_path", "damping_name", "parse_number", "load_ics", "atomic_write", "atomic_write_text",
            "settings_arrays", "write_npz_deterministic", "write_result", "read_result", "read_npz", "npz_kind",
@@ -75,9 +75,10 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
     ``dt, t_final, save_every, method, dtype, gains_L, gains_k, gains_D_hat, params (m, J, l),
     damping``; and the per-trajectory summaries of `Solution.effort` (``u_peak (N, 2)``,
     ``u_norm_peak``, ``u_energy``, ``u_abs_int``, ``T_eps``, ``min_abs_theta``, ``max_excursion``).
-    Returns the path written (``.npz`` appended when missing).
+    Returns the path written (``.npz`` appended when missing; a name that is, or whose ``.npz`` is, a folder,
+    device or named pipe is refused: `jaxsleigh.validate.output_file`).
     """
-    path = npz_path(path)
+    path = output_file(path, suffix=".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     ics = np.asarray(ics, dtype=np.float64)
     if ics.ndim == 1:
@@ -123,8 +124,9 @@ def settings_arrays(s: dict) -> dict:
 def write_result(path, arrays: dict, settings: dict) -> Path:
     """Write a study's result file (``.npz`` appended when missing, its folder made): ``arrays``, then the settings
     as JSON (``settings_json``, with the status legend) and as the scalars of `settings_arrays`; deterministic bytes
-    (`write_npz_deterministic`). Returns the path."""
-    path = npz_path(path)
+    (`write_npz_deterministic`). Returns the path. A name that is, or whose ``.npz`` is, not a regular file (a folder,
+    a device, a named pipe) is refused (`jaxsleigh.validate.output_file`)."""
+    path = output_file(path, suffix=".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = json.dumps({**settings, "status_codes": describe()}, sort_keys=True, default=str)
     return write_npz_deterministic(path, {**arrays, "settings_json": np.array(doc), **settings_arrays(settings)})
@@ -246,6 +248,11 @@ def write_npz_deterministic(path, arrays: dict, *, compress: bool = True, when_f
     return atomic_write(path, write, when_full=when_full)
 
 
+def _a(what: str) -> str:
+    """``what`` with its article: "a basin file", "an optimum file"."""
+    return ("an " if what[:1].lower() in "aeiou" else "a ") + what
+
+
 def read_npz(path, what: str, required=(), *, kind: Optional[str] = None, check=None) -> dict:
     """Every array of an ``.npz`` result file; ``ValueError`` naming the file if it cannot be read
     or lacks a ``required`` key (``what``: e.g. ``"basin file (written by jaxsleigh basin / save_basin)"``).
@@ -287,11 +294,11 @@ def read_npz(path, what: str, required=(), *, kind: Optional[str] = None, check=
     found = npz_kind(data)
     if kind is not None and found is not None and found != kind:
         _, name, reader = NPZ_KINDS[found]
-        raise ValueError(f"{str(p)!r} is {name}, not a {what}; read it with {reader}")
+        raise ValueError(f"{str(p)!r} is {name}, not {_a(what)}; read it with {reader}")
     missing = [k for k in required if k not in data]
     if missing:
         keys = ", ".join(sorted(data)[:12]) + (", ..." if len(data) > 12 else "")
-        raise ValueError(f"{str(p)!r} is not a {what}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
+        raise ValueError(f"{str(p)!r} is not {_a(what)}: it lacks {', '.join(missing)} (its keys: {keys or 'none'})")
     if kind is not None:
         check_fields(p, data, kind)
     if check is not None:
@@ -579,8 +586,10 @@ def atomic_write(path, write, *, when_full: str = "") -> Path:
 
     A full disk or quota (ENOSPC, EDQUOT) raises `jaxsleigh.errors.DiskFullError` naming the
     file; ``when_full`` is appended to its message (what continues the work once there is space).
+    A ``path`` that exists and is not a regular file (a folder, a device such as ``/dev/full``, a named pipe)
+    is refused with a ``ValueError`` before anything is written: the rename would replace it.
     """
-    path = Path(path)
+    path = output_file(path)
     # a hidden name that no glob of finished files ("chunk_*.npz", "*.json") matches; the host name
     # keeps two processes of a multi-host run (same pid, shared folder) apart
     tmp = path.with_name(f".{path.name}.{host_label()}.{os.getpid()}.tmp")

@@ -11,7 +11,10 @@ for its owner; an owner holds its file exclusively from before its name appears)
 * it gets the lock: the run that wrote the file is gone; the file is removed (never stale);
 * the lock is held with the newcomer's fingerprint: the same run (the processes of one
   multi-process run share a checkpoint folder): allowed;
-* held with another fingerprint: refused at once with `RunLockedError` naming the other run.
+* held with another fingerprint: refused at once with `RunLockedError` naming the other run;
+* held with the same fingerprint by a lock that is not ``shared`` (a single-process command: its
+  fingerprint is its settings, so the same command started twice is told the same run is in
+  progress, not that a run with other settings is).
 
 A newcomer publishes its own lock *before* it looks at the others, so of two runs started at the
 same moment at least one is refused: never both accepted. Where the filesystem has no ``flock``
@@ -56,11 +59,15 @@ class RunLock:
       fingerprint: identifies the run; processes with equal fingerprints may share ``target``.
       what: how messages call it ("output", "checkpoint folder").
       hint: what the refused run should do instead (appended to the refusal).
+      shared: another process with the same fingerprint may hold ``target`` too (the processes of one
+        multi-process run); ``False``: it is refused as the same run, in progress.
     """
 
-    def __init__(self, target, fingerprint: str, *, folder: bool = False, what: str = "output", hint: str = ""):
+    def __init__(self, target, fingerprint: str, *, folder: bool = False, what: str = "output", hint: str = "",
+                 shared: bool = True):
         self.target = Path(target)
         self.fingerprint = str(fingerprint)
+        self.shared = bool(shared)
         self.what = what
         self.hint = hint
         if folder:
@@ -175,7 +182,7 @@ class RunLock:
                     fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
                 except BlockingIOError:
                     rec = _read(fd)
-                    if rec.get("fingerprint") != self.fingerprint:
+                    if rec.get("fingerprint") != self.fingerprint or not self.shared:
                         raise self._refusal(other, rec) from None
                     continue
                 # acquirable: its process is gone (killed, crashed); the file is stale
@@ -186,6 +193,10 @@ class RunLock:
     def _refusal(self, other: Path, rec: dict) -> RunLockedError:
         who = (f"host {rec.get('host', '?')}, pid {rec.get('pid', '?')}, started {rec.get('started', '?')}"
                if rec else f"lock file {other.name}")
+        if rec.get("fingerprint") == self.fingerprint:
+            return RunLockedError(f"the same run is in progress: {self.what} {str(self.target)!r} is being written by "
+                                  f"a run with the same settings ({who}); wait for it to finish (or stop it)"
+                                  f"{self._tail()}", path=self.target, holder=rec)
         return RunLockedError(f"{self.what} {str(self.target)!r} is being written by another run ({who}) with "
                               f"other settings; two runs never write the same {self.what}: wait for that run to "
                               f"finish (or stop it){self._tail()}", path=self.target, holder=rec)

@@ -15,7 +15,8 @@ sweep`` are `run_to_file` with their own checks and printing):
    (`jaxsleigh.files.distributed.run_shared`);
 3. **assemble** (process 0, or the only process): the result read from the chunks (a missing chunk is
    computed), saved to ``out`` atomically, a sidecar ``out.run.json`` of what varies between runs (wall
-   time, devices, load, processes, the command), the chunk folder removed unless ``keep_chunks``;
+   time, devices, load, processes, the command), the chunk folder removed unless ``keep_chunks`` (then marked
+   finished, `FINISHED`: a later run is told it holds a finished run);
 4. **leave**: every process gets process 0's result code (`leave`).
 
 An interrupted run (Ctrl-C, a killed process, a full disk) keeps its finished chunks; the same call
@@ -50,9 +51,10 @@ from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
 from .npz import atomic_write_text
 from .runlock import RunLock
 from ..errors import CheckpointError, DiskFullError, RunLockedError
+from ..validate import output_file
 
 __all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
-           "sidecar", "options_differ", "load_average", "start_processes", "leave"]
+           "FINISHED", "other_command", "sidecar", "options_differ", "load_average", "start_processes", "leave"]
 
 
 @dataclass(frozen=True)
@@ -111,9 +113,13 @@ def load_average() -> list:
         return []
 
 
-def _single_run_id() -> str:
-    """A single-process run is its own run: no other process shares its output."""
-    return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
+def _single_run_id(options: Any = None) -> str:
+    """The fingerprint of a single-process run: its options (what defines the result) hashed, so that the same run
+    started twice on one output is told "the same run is in progress"; without options, one of its own. No other
+    process shares its output (its lock is not shared)."""
+    if options is None:
+        return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
+    return "single:" + hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
@@ -124,13 +130,28 @@ def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
     return hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
 
 
-def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS) -> tuple:
+#: The mark a run leaves in the chunk folder it keeps (``keep_chunks``) once its output is written: the next run
+#: is told the folder holds a finished run, not an unfinished one. A run that starts there removes it first.
+FINISHED = "finished.json"
+
+
+def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS,
+               shared: Optional[bool] = None) -> tuple:
     """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to ``out``
     (`RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
-    Returns ``(lock, the chunk files found)``; the caller releases the lock."""
-    lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}").acquire()
+    ``run_id``: the run's fingerprint (``None``: one of its own); ``shared``: other processes with the same
+    fingerprint share the output (default: when ``run_id`` is given). Returns ``(lock, the chunk files found)``;
+    the caller releases the lock."""
+    shared = run_id is not None if shared is None else shared
+    lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}",
+                   shared=shared).acquire()
     try:
         have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
+        if have and not resume and (Path(chunks) / FINISHED).is_file():
+            raise ValueError(f"{str(chunks)!r} holds the kept chunks of a finished run for {str(out)!r} (kept after it "
+                             f"wrote its output); add {words.resume} (with the same options) to write the output again "
+                             f"from them, or delete or move that folder (or choose another {words.out}) to start "
+                             f"afresh")
         if have and not resume:
             raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; add "
                              f"{words.resume} (with the same options) to continue it, or delete or move that folder "
@@ -170,6 +191,22 @@ def options_differ(chunks, options: dict, words: Words = PYTHON_WORDS) -> str:
                      for k in sorted(set(old) | set(options)) if old.get(k) != options.get(k))
 
 
+def other_command(chunks, options: dict, words: Words = PYTHON_WORDS) -> Optional[CheckpointError]:
+    """The refusal of a chunk folder that another command made (``chunks/options.json`` records another
+    ``"command"`` than ``options``'): one line naming it, instead of every option that differs; ``None`` otherwise
+    (also where either does not record a command)."""
+    try:
+        old = json.loads((Path(chunks) / "options.json").read_text())
+    except (OSError, ValueError):
+        return None
+    then, now = (old.get("command") if isinstance(old, dict) else None), options.get("command")
+    if not then or not now or then == now:
+        return None
+    return CheckpointError(f"{str(chunks)!r} holds the chunks of a 'jaxsleigh {then}' run, not of 'jaxsleigh {now}': "
+                           f"continue it with 'jaxsleigh {then}' and its options with {words.resume}, or delete or "
+                           f"move that folder (or choose another {words.out}) to start afresh")
+
+
 def _explained(e, chunks, options: dict, words: Words):
     """A full disk or a refused checkpoint told with what to do (where the finished chunks are, which options
     differ from the interrupted run's); ``None`` where there is nothing to add."""
@@ -180,8 +217,13 @@ def _explained(e, chunks, options: dict, words: Words):
             return None
         return DiskFullError(e.errno, f"{e}; the finished chunks are kept in {str(chunks)!r}: once there is space, "
                                       f"{words.again} with {words.resume} continues", path=e.path)
+    if isinstance(e, RunLockedError):
+        return None
+    other = other_command(chunks, options, words) if chunks is not None else None
+    if other is not None:
+        return other
     why = options_differ(chunks, options, words) if chunks is not None else ""
-    if not why or isinstance(e, RunLockedError):
+    if not why:
         return None
     return CheckpointError(f"{why}: {str(chunks)!r} holds the chunks of a run with other options; to continue it, "
                            f"give its options with {words.resume}, or delete or move {str(chunks)!r} (or choose "
@@ -259,21 +301,32 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
       command: the command line recorded in the sidecar.
       cluster: the cluster already joined (`start_processes`) for ``processes``.
 
-    Returns a `Finished`; in a multi-process run end every process with `leave`.
+    Returns a `Finished`; in a multi-process run end every process with `leave`. An ``out`` that is not a
+    regular file (a folder, a device such as ``/dev/full``, a named pipe), or whose ``.npz`` (which jaxsleigh's
+    savers append to a name without it) or sidecar is, is refused with a ``ValueError`` before any work
+    (`jaxsleigh.validate.output_file`).
     """
     out = Path(out)
     chunks, side = chunk_dir(out), sidecar(out)
+    what = "output file" if words.out == PYTHON_WORDS.out else f"{words.out} file"
+    output_file(out, what, suffix=".npz")
+    output_file(side, "run record file")
     options = json.loads(json.dumps(options or {}, default=str))
     if cluster is None:
         cluster = start_processes(processes)
-    run_id = _cluster_run_id(processes, cluster) if cluster is not None else None
+    run_id = _cluster_run_id(processes, cluster) if cluster is not None else _single_run_id([str(out), options])
     t0, load_start, kept = time.perf_counter(), load_average(), {}
 
     def owned() -> dict:
         if check is not None:
             check()
         chunks.mkdir(parents=True, exist_ok=True)
-        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words)
+        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=cluster is not None)
+        other = other_command(chunks, options, words) if resume else None
+        if other is not None:                   # another command's folder: said in one line, before any work
+            lock.release()
+            raise other
+        (chunks / FINISHED).unlink(missing_ok=True)       # this run is not finished until it says so
         return {"chunks": chunks, "lock": lock, "had": len(have)}
 
     def compute(state, shard):
@@ -293,6 +346,8 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
         code = int(finish(result, written, record)) if finish is not None else 0
         if not keep_chunks:                     # after the figure: a full disk there leaves resume to finish
             shutil.rmtree(chunks, ignore_errors=True)
+        else:
+            atomic_write_text(chunks / FINISHED, json.dumps({"out": str(out), "written": written}, indent=1) + "\n")
         kept.update(result=result, written=tuple(written))
         return code
 

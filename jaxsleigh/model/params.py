@@ -216,6 +216,11 @@ def load_gains(spec) -> Gains:
     if spec not in presets:
         path = Path(spec)
         if not path.is_file():
+            if (Path(__file__).parent.parent / "presets" / "controllers" / f"{spec}.json").is_file():
+                # a law's preset ("shaped"), not gains (the command line says --controller: controllers.registry)
+                raise ValueError(f"{spec!r} is a controller of its own, not gains of the paper's law; pass "
+                                 f"controller=make_controller({spec!r}) (jaxsleigh.controllers.registry) instead of "
+                                 f"gains")
             what = "is a folder" if path.is_dir() else "not found"
             raise ValueError(f"gains file {spec!r} {what}; give a JSON gains file or a preset "
                              f"({', '.join(repr(n) for n in presets)})")

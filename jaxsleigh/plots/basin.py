@@ -104,12 +104,17 @@ def _categories(res: BasinResult) -> np.ndarray:
     return cat
 
 
+#: The kinds of `jaxsleigh.BasinStarts`, with their article, for messages.
+_KIND_WORDS = {"grid": "a grid", "samples": "samples", "array": "an array"}
+
+
 def _check_map(res: BasinResult, field: str) -> None:
     """Refuse starts that are not a grid with two varying coordinates, and an unknown ``field``."""
     st = res.starts
     if st.kind != "grid" or len(st.axes) != 2:
         raise ValueError(f"a map needs a grid with two varying coordinates (e.g. --x -3:3:64 --y -3:3:64); "
-                         f"these starts are a {st.kind} varying {list(st.axes) or 'no grid axis'}: use "
+                         f"these starts are {_KIND_WORDS.get(st.kind, repr(st.kind))} varying "
+                         f"{list(st.axes) or 'no grid axis'}: use "
                          f"plot_t_eps_scatter or plot_fraction_vs_theta")
     if field not in _FIELDS and not hasattr(res, field):
         raise ValueError(f"unknown field {field!r}; choose one of {sorted(_FIELDS)}")

@@ -21,6 +21,7 @@ from ..studies.options import RunOptions, SaveAt
 from ..studies.simulate import simulate
 from ..files.npz import write_npz
 from ..status import Status
+from ..validate import output_file
 
 __all__ = ["PAPER_ICS", "PAPER_T_FINAL", "FIGURES", "run_paper", "summary_table"]
 
@@ -84,6 +85,8 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    for name in ("paper.npz", *(f"{stem}.png" for stem in FIGURES)):     # regular files only, before any work
+        output_file(out / name)
     ics = PAPER_ICS if ics is None else np.asarray(ics, dtype=np.float64)
     sol = simulate(ics, plant=paper_plant(), gains=paper_gains(), t_final=t_final, dt=dt, x64=x64,
                    stepsize=StepSizeController(method=method), saveat=SaveAt(every=_save_every(t_final, dt)),

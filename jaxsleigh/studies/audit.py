@@ -163,8 +163,7 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     n = int(np.shape(result.status)[0])
     k = audit.count(n)
     if k == 0:
-        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts (pass run=jaxsleigh.RunOptions(audit="
-                                  f"jaxsleigh.Audit(rows=k)) to audit a small run)"}
+        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON}
     rows = audit_sample(audit, n)
     if reference is not None:               # computed ahead: its own seconds are for the caller to add, not the wait
         first = reference()
@@ -202,12 +201,23 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     return rec
 
 
-def audit_line(rec: Optional[dict]) -> str:
-    """One line for the command line: what the audit found (or why it did not run)."""
+#: How Python audits a run too small for the default audit (``run_info["audit"]["how"]`` of such a run).
+_SMALL_RUN_PYTHON = "run=jaxsleigh.RunOptions(audit=jaxsleigh.Audit(rows=k)) audits a small run"
+
+
+def audit_line(rec: Optional[dict], *, flag: Optional[str] = None) -> str:
+    """One line: what the audit found (or why it did not run, and how to audit a small run anyway). ``flag`` (the
+    command line's ``"--audit-rows"``) words that advice as the flag; without it, as Python's ``RunOptions``."""
     if not rec:
         return "accuracy audit: not run"
     if not rec.get("rows"):
-        return f"accuracy audit: not run ({rec.get('why', 'no rows')})"
+        why = rec.get("why", "no rows")
+        how = rec.get("how")
+        if how and flag is not None:
+            how = f"{flag} K audits a small run"
+        elif how is None and flag is not None and "RunOptions(" in why:   # a record written before "how" existed
+            why, how = why.split(" (", 1)[0], f"{flag} K audits a small run"
+        return f"accuracy audit: not run ({why}{'; ' + how if how else ''})"
     f = lambda v, fmt: "n/a" if v is None else format(v, fmt)  # noqa: E731
     again = (f", {rec['rows_confirmed']} re-run at {rec['confirmed_at']}" if rec.get("rows_confirmed") else "")
     return (f"accuracy audit ({rec['rows']} rows against {rec['reference']}{again}): "

@@ -62,9 +62,10 @@ from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_p
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 from ..files.chunks import ChunkStore
-from ..files.npz import damaged, damping_name, npz_path, read_npz, value_problem, write_npz_deterministic
+from ..files.npz import damaged, damping_name, read_npz, value_problem, write_npz_deterministic
 from ..progress import Progress
 from .options import RunOptions, study_options, takes_objects
+from ..validate import output_file
 
 __all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
            "time_for_energy", "save_optimum", "load_optimum", "rollout"]
@@ -461,6 +462,18 @@ class OptimumResult:
     def counts(self) -> dict:
         return {s.name.lower(): int(np.sum(self.status == s)) for s in OptimumStatus}
 
+    def __repr__(self) -> str:
+        # a summary, not every array (print(result) of many starts dumped u, energy, ... whole): `describe`'s lines
+        # (at most 8 horizons), eps and the arrays' shapes
+        lines = self.describe().splitlines()
+        if len(lines) > 9:
+            lines = lines[:9] + [f"  ... and {len(lines) - 9} more horizons (describe() lists them all)"]
+        arrays = ", ".join(f"{f} {tuple(np.shape(getattr(self, f)))}"
+                           for f in ("starts", "horizons", "energy", "u", "status", "q_final", "p_final", "kkt",
+                                     "guess"))
+        return "\n".join([f"OptimumResult({lines[0]}", *lines[1:], f"  eps = {self.eps:g}",
+                          f"  arrays: {arrays})"])
+
     def describe(self) -> str:
         """A few lines: how many problems converged, and the median E*(T) per horizon."""
         lines = [f"{self.status.size} problems ({self.starts.shape[0]} starts x {self.horizons.size} horizons): "
@@ -691,8 +704,9 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
 
 def save_optimum(path, res: OptimumResult) -> Path:
     """Write an `OptimumResult` to ``path`` (``.npz`` appended when missing, its folder made; deterministic bytes);
-    returns the path."""
-    path = npz_path(path)
+    returns the path. A name that is, or whose ``.npz`` is, not a regular file (a folder, a device, a named pipe) is
+    refused (`jaxsleigh.validate.output_file`)."""
+    path = output_file(path, suffix=".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"starts": res.starts, "horizons": res.horizons, "eps": np.float64(res.eps), "energy": res.energy,
               "frontier": res.frontier(), "u": res.u, "status": res.status, "q_final": res.q_final,

@@ -7,15 +7,14 @@ import numpy as np
 
 from .optimizer import TuneHistory
 from ..files.npz import atomic_write
+from ..validate import output_file
 
 __all__ = ["save_history", "load_history"]
 
 
 def save_history(history: TuneHistory, path, **extra) -> Path:
     """Write the history as ``.npz`` (one key per field, plus ``extra`` arrays)."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_name(path.name + ".npz")
+    path = output_file(path, "history file", suffix=".npz")     # not a folder, device or named pipe
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda f: np.savez(f, **history._asdict(), **{k: np.asarray(v) for k, v in extra.items()}))
     return path

@@ -33,6 +33,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import time
@@ -119,6 +120,7 @@ class TuningRun:
                  command: Optional[list] = None, words: Words = PYTHON_WORDS):
         self.out = Path(out)
         h = None if history is None else Path(history)
+        self._history_given = h
         self.history = h if h is None or h.suffix == ".npz" else h.with_name(h.name + ".npz")
         self.resume = bool(resume)
         # as they read back from the checkpoint's JSON (tuples as lists)
@@ -126,7 +128,10 @@ class TuningRun:
                                                                           default=str))
         self.command = command
         self.words = words
-        self.run_id = uuid.uuid4().hex            # one process's run: no other run shares its output
+        # one process's run, no other shares its output; known options make it the run's settings, so that the same
+        # run started twice is told it is in progress (`jaxsleigh.files.runlock.RunLock`)
+        self.run_id = uuid.uuid4().hex if self.options is None else hashlib.sha256(json.dumps(
+            [str(self.out), self.options], sort_keys=True, default=str).encode()).hexdigest()
 
     @property
     def checkpoint(self) -> Path:
@@ -138,10 +143,15 @@ class TuningRun:
         """Hold the output for the body of a ``with``: every output (and ``also``) writable, the output claimed, the
         checkpoint matching ``resume`` (``what`` names the run in the refusals, e.g. ``"search"``); released however
         the body ends."""
-        for p in (self.out, self.history, *(self.checkpoint,) * checkpointed, *also):
+        named = "output file" if self.words.out == PYTHON_WORDS.out else f"{self.words.out} file"
+        writable_path(self.out, named)          # not a folder, device or named pipe, nor any file beside it
+        if self._history_given is not None:
+            writable_path(self._history_given, "history file", suffix=".npz")
+        for p in (*(self.checkpoint,) * checkpointed, *also):
             if p is not None:
                 writable_path(p)
-        lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}").acquire()
+        lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}",
+                       shared=False).acquire()
         try:
             if checkpointed:
                 self._check_checkpoint(what)
