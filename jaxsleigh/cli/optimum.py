@@ -139,7 +139,7 @@ def run_optimum_command(args) -> int:
         if args.plot:
             written.append(str(_plot(res, args.plot)))
         print(res.describe())
-        print(f"{PROG} optimum: {int(res.converged.sum())} of {res.status.size} problems converged; "
+        print(f"{PROG} optimum: {int(res.certified.sum())} of {res.status.size} problems converged (certified optima); "
               f"{record['wall_s']:.1f} s wall; wrote {', '.join(written)}")
         if not np.any(res.status <= OptimumStatus.NOT_STATIONARY):
             print(f"{PROG}: error: no problem was solved; raise --outer/--inner or the horizons", file=sys.stderr)

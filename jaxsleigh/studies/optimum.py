@@ -402,7 +402,9 @@ class OptimumResult:
     run_info: dict = field(default_factory=dict)
 
     @property
-    def converged(self) -> np.ndarray:
+    def certified(self) -> np.ndarray:
+        """(S, H) bool: the optimiser converged to a certified local optimum (status ``CONVERGED``; a start's
+        ``converged`` in every trajectory result means settled, another quantity)."""
         return self.status == OptimumStatus.CONVERGED
 
     def frontier(self) -> np.ndarray:
@@ -481,7 +483,7 @@ class OptimumResult:
         for j, T in enumerate(self.horizons):
             e = self.energy[:, j][np.isfinite(self.energy[:, j])]
             med = f"{np.median(e):.4g}" if e.size else "none solved"
-            lines.append(f"  T = {T:g}: median E* = {med} ({int(np.sum(self.converged[:, j]))} converged)")
+            lines.append(f"  T = {T:g}: median E* = {med} ({int(np.sum(self.certified[:, j]))} certified)")
         return "\n".join(lines)
 
 
