@@ -48,7 +48,7 @@ def no_work(monkeypatch):
     for mod, name in [("jaxsleigh.studies.simulate", "drive_saving"), ("jaxsleigh.studies.ensemble", "drive_final"),
                       ("jaxsleigh.tuning.optimizer", "make_training_set"), ("jaxsleigh.studies.compare", "compare"),
                       ("jaxsleigh.studies.compare", "draw_compare_starts"),
-                      ("jaxsleigh.studies.compare", "tune_to_budget"), ("jaxsleigh.plots.paper_run", "simulate")]:
+                      ("jaxsleigh.tuning.budget", "tune_to_budget"), ("jaxsleigh.plots.paper_run", "simulate")]:
         monkeypatch.setattr(importlib.import_module(mod), name, work)
 
 
