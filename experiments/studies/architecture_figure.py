@@ -1,5 +1,5 @@
 """Draw the layers of the package (docs/figures/architecture.png) from the package itself: one band per
-floor, the modules of each sub-package, and how many imports each floor makes of the floors below.
+floor, the modules of each sub-package, and how many names each floor imports from the floors below.
 
     python experiments/studies/architecture_figure.py [--out docs/figures/architecture.png]
 
@@ -87,17 +87,17 @@ def main() -> int:
                 mods.append(f"{m}.py")
         if name == "base":
             mods = ["  ".join(mods)]
-        lines = [ln for m in mods for ln in textwrap.wrap(m, 88, subsequent_indent="    ")]
+        lines = [ln for m in mods for ln in textwrap.wrap(m, 100, subsequent_indent="    ")]
         below = ", ".join(f"{FLOORS[d][0]} {c}" for (sf, d), c in sorted(counts.items()) if sf == i and d < i)
         ax.add_patch(plt.Rectangle((0, y + 0.06), 10, 0.86, facecolor="#e8eef8", edgecolor="#4a5d8a"))
         ax.text(0.15, y + 0.82, name, fontsize=12, fontweight="bold", va="top")
         ax.text(0.15, y + 0.56, "\n".join(lines), fontsize=7.5, va="top", family="monospace")
-        ax.text(10.15, y + 0.5, ("imports: " + below) if below else "imports nothing of the package",
+        ax.text(10.15, y + 0.5, ("names imported: " + below) if below else "imports nothing of the package",
                 fontsize=7.5, va="center", color="#333")
     ax.set_xlim(0, 13)
     ax.set_ylim(0, n)
     ax.set_title("jaxsleigh's layers: each floor imports only the floors below it"
-                 f" ({len(pairs)} imports inside the package, {len(upward)} upward)", fontsize=11)
+                 f" ({len(pairs)} names imported inside the package, {len(upward)} upward)", fontsize=11)
     fig.text(0.01, 0.01, "python experiments/studies/architecture_figure.py (drawn from the package's own imports)",
              fontsize=7, color="0.4")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
