@@ -38,7 +38,8 @@ Entries (``--only``; ``notebooks`` names all five; sizes with ``--quick`` in bra
 ``compare``     `jaxsleigh.studies.compare.compare` of every registered law on 256 starts of each distribution,
                 100 s, as ``jaxsleigh compare`` by default [two laws, 16 uniform starts, 10 s];
 ``notebook_*``  each notebook (a copy of ``notebooks/`` in a temporary folder) in a fresh ``python3`` kernel
-                (nbclient); the kernel start is in ``first_s``; the kernel counts the programs itself.
+                (nbclient); the kernel start is in ``first_s``; the kernel counts the programs itself; its second
+                call is every cell again in the same kernel [the notebooks as they are].
 
 Printed: a Markdown table with the ratios of ``first_s`` and of the programs to the diffrax peer's (when it
 ran). Written to ``--out``: the machine (CPU model, cores), JAX's version, the dtype, the command line, the commit,
@@ -164,10 +165,15 @@ def _entry(name: str, quick: bool, x64: bool, scratch: Path):
         def run(starts=0, gains_=0, horizon_=0, tolerances=0):
             y0 = np.zeros((n, 5), dtype)
             y0[:, :3] = _starts(n, starts)
-            args = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), js.ClosedLoop(js.paper_plant(), gains[gains_]))
             rtol, atol = (1e-5, 1e-6) if tolerances == 0 else (2e-5, 2e-6) if tolerances == 1 else (3e-5, 3e-6)
-            return jax.block_until_ready(f(jnp.asarray(y0), args, jnp.asarray(T * horizon[horizon_], dtype),
-                                           jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)))
+            with jax.enable_x64(x64):                  # float64 arrays stay float64 only with x64 on
+                args = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype),
+                                              js.ClosedLoop(js.paper_plant(), gains[gains_]))
+                out = jax.block_until_ready(f(jnp.asarray(y0), args, jnp.asarray(T * horizon[horizon_], dtype),
+                                              jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)))
+            if out[0].dtype != dtype:
+                raise RuntimeError(f"the diffrax peer ran in {out[0].dtype}, not {np.dtype(dtype).name}")
+            return out
 
         return _knobs(run), KNOBS
     if name == "paper":
