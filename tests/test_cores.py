@@ -25,7 +25,7 @@ def _python(code: str, **env) -> str:
     return r.stdout.strip().splitlines()[-1]
 
 
-ONE = "[[1.0, 1.0, 0.5]], t_final=0.1, progress=False"
+ONE = "[[1.0, 1.0, 0.5]], t_final=0.1, run=js.RunOptions(progress=False)"
 FIRST_RUNS = {
     "run_ensemble": f"r = js.run_ensemble({ONE}); used = len(r.run_info['devices'])",
     "ensemble_of_a_law": "from jaxsleigh.controllers.registry import make_controller; "
