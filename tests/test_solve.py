@@ -111,6 +111,28 @@ def test_solve_carries_a_stiff_flight_as_simulate_does():
     assert int(out.n_steps) < 2 * sol.n_steps[0]
 
 
+def test_near_the_singular_set_solve_never_lets_a_nan_through_silently():
+    """Starts from 1e-2 down to 1e-7 rad of theta = 0 (both signs, with and without momentum, float32, where the
+    flight switch and the overflow checks act): each ends OK with every output finite, or with a status that is not
+    OK and NaN outputs; an OK row never carries a NaN or an inf."""
+    thetas = [1e-2, -3e-3, 1e-3, -2e-4, 1e-5, 1e-7]
+    starts = [[1.0, 1.0, th, 0.0, 0.0] for th in thetas] + [[1.9, -0.04, 2e-4, 0.0, 0.0], [-2.0, 1.0, 1e-3, 0.5, -0.3]]
+    seen = set()
+    for y in starts:
+        out = solve(js.paper_gains(), jnp.asarray(y, jnp.float32), t_final=2.0)
+        status = int(out.status)
+        seen.add(status)
+        values = [np.asarray(out.q_final), np.asarray(out.p_final), np.asarray(out.summaries["u_energy"]),
+                  np.asarray(out.summaries["min_abs_theta"])]
+        if status == js.Status.OK:
+            assert all(np.all(np.isfinite(v)) for v in values), (y, values)
+        elif status in js.status.NO_RESULT:
+            assert all(np.all(np.isnan(v)) for v in values), (y, status, values)
+        else:                                   # out of budget: summaries up to the time reached, never inf
+            assert status == js.Status.BUDGET_EXHAUSTED and not any(np.any(np.isinf(v)) for v in values), (y, status)
+    assert js.Status.OK in seen and seen - {js.Status.OK}, seen   # both kinds of ending are exercised
+
+
 @pytest.mark.parametrize("kw, says", [({"t_final": -1.0}, "t_final must be > 0"),
                                       ({"t_final": float("nan")}, "t_final must be finite"),
                                       ({"dt": 0.0}, "dt must be > 0"),
