@@ -7,6 +7,8 @@ converted.
 """
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 import numbers
 import os
@@ -17,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["INT32_MAX", "real", "whole", "check_memory", "check_count", "writable_path",
+__all__ = ["INT32_MAX", "refuses_removed_keywords", "real", "whole", "check_memory", "check_count", "writable_path",
            "writable_dir", "output_file", "not_a_file", "host_label"]
 
 #: The largest step budget the engine's int32 counters hold.
@@ -196,3 +198,43 @@ def writable_path(path, what: str = "output file", *, suffix: Optional[str] = No
     if p.exists() and not os.access(p, os.W_OK):
         raise ValueError(f"the {what} {str(p)!r} exists and is not writable; choose another path")
     return p
+
+
+#: The class each option parameter of a front takes, by the parameter's name (what a refusal names).
+OPTION_CLASSES = {"stepsize": "StepSizeController", "saveat": "SaveAt", "run": "RunOptions"}
+
+
+def refuses_removed_keywords(removed: dict, uses: dict, since: str):
+    """A decorator: a keyword of ``removed`` (``keyword -> (parameter, field)`` of the option object that holds it
+    now) given to the decorated front is a ``TypeError`` naming that object and field, e.g. ``run_basin() got an
+    unexpected keyword argument 'rtol': pass stepsize=jaxsleigh.StepSizeController(rtol=...)``, or saying that the
+    front has no use for it (a field not in ``uses``, ``parameter -> fields``); ``since`` ends the message (which
+    keywords, removed when). Any other unexpected keyword gets Python's own ``TypeError``; the signature, name and
+    docstring are the front's."""
+    def decorate(front):
+        params = inspect.signature(front).parameters
+        name = front.__name__
+
+        @functools.wraps(front)
+        def call(*args, **kwargs):
+            given = [k for k in kwargs if k in removed and k not in params]
+            if not given:
+                return front(*args, **kwargs)
+            fields, unused = {}, []
+            for key in given:
+                home, field = removed[key]
+                if field in uses.get(home, ()):
+                    fields.setdefault(home, []).append(field)
+                else:
+                    unused.append(f"jaxsleigh.{OPTION_CLASSES[home]}.{field}")
+            objects = [f"{h}=jaxsleigh.{OPTION_CLASSES[h]}({', '.join(f + '=...' for f in fields[h])})"
+                       for h in OPTION_CLASSES if h in fields]
+            says = ["pass " + ", ".join(objects)] if objects else []
+            if unused:
+                says.append(f"{name}() has no use for {', '.join(unused)}")
+            got = "an unexpected keyword argument" if len(given) == 1 else "unexpected keyword arguments"
+            raise TypeError(f"{name}() got {got} {', '.join(repr(k) for k in given)}: {'; '.join(says)} ({since})")
+
+        return call
+
+    return decorate

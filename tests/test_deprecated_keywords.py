@@ -116,8 +116,8 @@ def test_optimum_refuses_what_it_has_no_use_for(run, says):
 def test_solve_refuses_its_removed_keywords_naming_the_field():
     """Refused before anything runs (a horizon that cannot run is not what is reported)."""
     with pytest.raises(TypeError, match=re.escape(
-            "solve() got an unexpected keyword argument 'method': pass stepsize=jaxsleigh.StepSizeController("
-            "method=..., max_steps=...)")):
+            "solve() got unexpected keyword arguments 'method', 'max_attempts': pass stepsize=jaxsleigh."
+            "StepSizeController(method=..., max_steps=...)")):
         _front("solve")(START, t_final=-1.0, method="rk4", max_attempts=50)
 
 

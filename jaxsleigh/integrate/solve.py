@@ -38,7 +38,7 @@ from .horizon import default_max_steps, make_horizon
 from .saveat import SaveAt
 from .stepper import Checkpointed, FlightSwitch, controls, init_state, run
 from .stepsize import StepSizeController, check_policy
-from ..validate import real
+from ..validate import real, refuses_removed_keywords
 
 __all__ = ["solve", "SolveOutput"]
 
@@ -93,27 +93,12 @@ class SolveOutput(NamedTuple):
         return (self.status == Status.OK) & jnp.isfinite(self.T_eps)
 
 
-#: The keywords `solve` took before jaxsleigh 0.4, and the field of `jaxsleigh.StepSizeController` that holds each now.
-SOLVE_KEYWORDS = {"method": "method", "max_attempts": "max_steps"}
+#: The keywords `solve` took before jaxsleigh 0.4: ``keyword -> ("stepsize", field)`` of the object that holds it now.
+SOLVE_KEYWORDS = {"method": ("stepsize", "method"), "max_attempts": ("stepsize", "max_steps")}
 
 
-def _refuses_removed_keywords(front):
-    """A ``TypeError`` that names the `jaxsleigh.StepSizeController` field for a keyword of `SOLVE_KEYWORDS` given to
-    ``front`` (any other unexpected keyword gets Python's own); the signature and docstring are ``front``'s."""
-    @functools.wraps(front)
-    def call(*args, **kwargs):
-        removed = [k for k in kwargs if k in SOLVE_KEYWORDS]
-        if removed:
-            fields = ", ".join(f"{SOLVE_KEYWORDS[k]}=..." for k in removed)
-            raise TypeError(f"solve() got an unexpected keyword argument {removed[0]!r}: pass "
-                            f"stepsize=jaxsleigh.StepSizeController({fields}) (solve's keywords method= and "
-                            f"max_attempts= were removed in jaxsleigh 0.4)")
-        return front(*args, **kwargs)
-
-    return call
-
-
-@_refuses_removed_keywords
+@refuses_removed_keywords(SOLVE_KEYWORDS, {"stepsize": frozenset(StepSizeController._fields)},
+                          "solve's method= and max_attempts= were removed in jaxsleigh 0.4")
 def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.01,
           stepsize: Optional[StepSizeController] = None, eps: float = 0.05, observers: Any = DEFAULT_OBSERVERS,
           saveat: Optional[SaveAt] = None) -> SolveOutput:

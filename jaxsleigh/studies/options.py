@@ -15,12 +15,11 @@ with a ``TypeError`` that names the object and field that hold it now (`REMOVED_
 """
 from __future__ import annotations
 
-import functools
-import inspect
 from typing import Any, NamedTuple, Optional
 
 from ..integrate.saveat import SaveAt
 from ..integrate.stepsize import StepSizeController, check_policy
+from ..validate import refuses_removed_keywords
 
 __all__ = ["SaveAt", "RunOptions", "StudyOptions", "study_options", "takes_objects", "REMOVED_KEYWORDS"]
 
@@ -123,41 +122,8 @@ def study_options(front: str, stepsize=None, saveat=None, run=None, *,
 
 
 def takes_objects(front):
-    """Decorate a front (a function whose name is a key of `USES`) so that a keyword of jaxsleigh 0.1 it is given
-    (`REMOVED_KEYWORDS`) is a ``TypeError`` naming the object and field to pass instead, e.g.
-    ``run_basin() got an unexpected keyword argument 'rtol': pass stepsize=jaxsleigh.StepSizeController(rtol=...)``.
-    Any other unexpected keyword gets Python's own ``TypeError``. The signature, name and docstring are the
-    front's."""
-    params = inspect.signature(front).parameters
-    uses = USES[front.__name__]
-
-    @functools.wraps(front)
-    def call(*args, **kwargs):
-        removed = [k for k in kwargs if k in REMOVED_KEYWORDS and k not in params]
-        if removed:
-            raise TypeError(removed_message(front.__name__, removed, uses))
-        return front(*args, **kwargs)
-
-    return call
-
-
-def removed_message(front: str, removed, uses: dict) -> str:
-    """What a ``TypeError`` says of the keywords of jaxsleigh 0.1 in ``removed`` given to ``front``: the object and
-    field of each that ``front`` uses, and those it has no use for."""
-    fields, unused = {}, []
-    for key in removed:
-        home, field = REMOVED_KEYWORDS[key]
-        if field in uses.get(home, ()):
-            fields.setdefault(home, []).append(field)
-        else:
-            unused.append(f"jaxsleigh.{OBJECTS[home].__name__}.{field}")
-    says = []
-    if fields:
-        says.append("pass " + ", ".join(f"{home}=jaxsleigh.{OBJECTS[home].__name__}("
-                                        f"{', '.join(f'{f}=...' for f in fields[home])})"
-                                        for home in OBJECTS if home in fields))
-    if unused:
-        says.append(f"{front}() has no use for {', '.join(unused)}")
-    got = "an unexpected keyword argument" if len(removed) == 1 else "unexpected keyword arguments"
-    return (f"{front}() got {got} {', '.join(repr(k) for k in removed)}: "
-            f"{'; '.join(says)} (the keywords of jaxsleigh 0.1 were removed in 0.4)")
+    """Decorate a front (a function whose name is a key of `USES`): a keyword of jaxsleigh 0.1 it is given
+    (`REMOVED_KEYWORDS`) is a ``TypeError`` naming the object and field to pass instead
+    (`jaxsleigh.validate.refuses_removed_keywords`)."""
+    return refuses_removed_keywords(REMOVED_KEYWORDS, USES[front.__name__],
+                                    "the keywords of jaxsleigh 0.1 were removed in 0.4")(front)
