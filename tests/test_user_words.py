@@ -314,17 +314,18 @@ MACHINE = "2-core x86_64 machine"
 def test_the_readme_times_are_the_measured_ones_with_the_machine_named():
     text = " ".join((ROOT / "README.md").read_text().split())
     # the quick tier, the comparison at equal energy, the Python example: measured with an empty compilation cache
-    assert f"quick tier for every change (2 min 20 s on an idle {MACHINE}, empty compilation cache; 8 min at load 4" in text
-    assert f"24 min on a {MACHINE}, empty compilation cache" in text
-    assert f"float32; 200 s on a {MACHINE}, empty compilation cache)" in text
-    assert "(this example: 111 s cold, 2-core x86_64)" in text
+    # (each measured by experiments/performance/fresh_machine.py, which writes docs/figures/fresh_machine.json)
+    assert f"25 min on a {MACHINE}, empty compilation cache" in text
+    assert "quick tier for every change (2 min 44 s there; both from a fresh clone" in text
+    assert f"float32; 115 s on a {MACHINE}, empty compilation cache)" in text
+    assert "(this example: 65 s cold, 2-core x86_64)" in text
     for stale in ("about 3 min cold", "2-core x86_64, about a minute"):
         assert stale not in text, stale
 
 
 def test_the_command_line_tour_times_the_readme_basin():
     text = " ".join((ROOT / "docs" / "how-to" / "command-line.md").read_text().split())
-    assert f"took 41 s on a {MACHINE} with an empty compilation cache" in text
+    assert f"took 25 s on a {MACHINE} with an empty compilation cache" in text
     assert "others take seconds" not in text
     readme = (ROOT / "README.md").read_text()
     assert "jaxsleigh basin --x -3:3:32 --y -3:3:32 --theta 0.5 --t-final 100" in readme   # the basin timed
