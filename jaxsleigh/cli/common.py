@@ -6,8 +6,6 @@ Exit codes: `EXIT_CODES`, each with what it means (``jaxsleigh --help`` lists th
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import sys
 import textwrap
 import uuid
@@ -18,7 +16,7 @@ import numpy as np
 
 from ..cache import compilation_cache_dir, enable_compilation_cache  # noqa: F401  (re-exported)
 from ..files.distributed import EXIT_CLUSTER
-from ..files.runlock import RunLock
+from ..files.runlock import RunLock, settings_fingerprint
 from .options import (add_distributed_options, add_horizon_options, add_model_options,  # noqa: F401
                       add_progress_option, add_sampler_options, add_tolerance_options, check_bound_fits,
                       check_delay, check_tolerance_flags, law_kwargs, model_from_args, processes_from_args,
@@ -97,7 +95,7 @@ def run_fingerprint(args) -> str:
     `_NOT_SETTINGS` and private ones left out), hashed. Equal settings, equal fingerprints in every process."""
     settings = {k: v for k, v in vars(args).items() if not k.startswith("_") and k not in _NOT_SETTINGS
                 and (v is None or isinstance(v, (str, int, float, bool, list, tuple)))}
-    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+    return settings_fingerprint(settings)
 
 
 def claim_output(path, args=None, *, folder: bool = False) -> RunLock:

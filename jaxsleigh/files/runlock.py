@@ -22,6 +22,7 @@ same moment at least one is refused: never both accepted. Where the filesystem h
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -33,7 +34,14 @@ from typing import Optional
 from ..errors import RunLockedError, RunLockWarning
 from ..validate import host_label
 
-__all__ = ["RunLock", "RunLockWarning"]
+
+def settings_fingerprint(settings) -> str:
+    """What identifies a run to its lock when its settings define it: ``settings`` as sorted JSON (values JSON cannot
+    write as their ``str``), SHA-256 in hex. Equal settings, equal fingerprints in every process, so the same run
+    started twice is told it is in progress."""
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+
+__all__ = ["RunLock", "RunLockWarning", "settings_fingerprint"]
 
 try:
     import fcntl

@@ -49,7 +49,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
 from .npz import atomic_write_text
-from .runlock import RunLock
+from .runlock import RunLock, settings_fingerprint
 from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
@@ -119,7 +119,7 @@ def _single_run_id(options: Any = None) -> str:
     process shares its output (its lock is not shared)."""
     if options is None:
         return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
-    return "single:" + hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()
+    return "single:" + settings_fingerprint(options)
 
 
 def _cluster_run_id(processes: Optional[Processes], cluster) -> str:

@@ -33,7 +33,6 @@ Example::
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import math
 import time
@@ -43,7 +42,7 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
-from ..files.runlock import RunLock
+from ..files.runlock import RunLock, settings_fingerprint
 from ..files.runner import PYTHON_WORDS, Words
 from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
 from ..validate import writable_path
@@ -130,8 +129,8 @@ class TuningRun:
         self.words = words
         # one process's run, no other shares its output; known options make it the run's settings, so that the same
         # run started twice is told it is in progress (`jaxsleigh.files.runlock.RunLock`)
-        self.run_id = uuid.uuid4().hex if self.options is None else hashlib.sha256(json.dumps(
-            [str(self.out), self.options], sort_keys=True, default=str).encode()).hexdigest()
+        self.run_id = (uuid.uuid4().hex if self.options is None
+                       else settings_fingerprint([str(self.out), self.options]))
 
     @property
     def checkpoint(self) -> Path:
