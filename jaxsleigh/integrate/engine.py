@@ -27,7 +27,7 @@ from .horizon import (BUDGET_FACTOR, FLIGHT_STEP, MAX_BASE_STEPS, STIFF_AFTER, H
                       default_max_steps, flight_step, make_horizon)
 from .stragglers import certify
 from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
-                      run_saving)
+                      run_stops)
 from ..errors import FlaggedStartsWarning
 from ..model.params import paper_gains, paper_plant
 
@@ -305,7 +305,7 @@ def _by_kind(state, flies, step, put, merge=None):
 
 @kept_jit(static_argnames=("adaptive", "monitor", "observers", "implicit"), donate_argnums=(0,))
 def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS, implicit=False):
-    return run_saving(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers,
+    return run_stops(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers,
                       implicit=implicit)
 
 

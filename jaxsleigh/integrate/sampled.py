@@ -85,7 +85,7 @@ from ..model.plant import velocity
 from ..status import Status
 from .horizon import BUDGET_FACTOR, MAX_BASE_STEPS
 from .observers import DEFAULT_OBSERVERS, collect_values
-from .stepper import Checkpointed, Controls, StepState, controls, init_state, run
+from .stepper import Controls, StepState, controls, init_state, integrands, run_stops
 from .stepsize import StepSizeController, check_policy
 from ..validate import real, whole
 
@@ -324,12 +324,6 @@ def _held_loop(plant, held: type, u) -> ClosedLoop:
     return ClosedLoop(plant, PerTrajectory(held(u.T)))
 
 
-def _integrands(y, u, dtype, observers):
-    """The observers' quadrature integrands at ``y`` under ``u`` (as the stepper stacks them)."""
-    rows = [g for o in observers for g in o.integrand(y, u)]
-    return jnp.stack(rows).astype(dtype) if rows else jnp.zeros((0,) + y.shape[1:], dtype)
-
-
 def _hold(s: StepState, u, plant, held: type, observers):
     """The stepper's state ``s`` (batch-last) made ready for a period with ``u`` (N, 2) held: a row whose input is not
     finite becomes ``NONFINITE`` (and idles, its input set to 0 so that no inf enters the program); the first slope
@@ -341,7 +335,7 @@ def _hold(s: StepState, u, plant, held: type, observers):
     u = jnp.where(finite[:, None], u, jnp.zeros((), dtype))
     args = _held_loop(plant, held, u)
     k1, u_at = held.chart.field_and_control(s.t, s.y, args)
-    return s._replace(status=status, k1=k1, g1=_integrands(s.y, u_at, dtype, observers)), args, u
+    return s._replace(status=status, k1=k1, g1=integrands(observers, s.y, u_at, dtype)), args, u
 
 
 def _start(y0, plant, ctl: Controls, held: type, observers):
@@ -402,19 +396,17 @@ def _solve(law, plant, y0, period, noise, seed, ctl, *, K, delay, save, adaptive
     valid, s0 = _start(y0, plant, ctl, held, observers)
     buf0 = jnp.zeros((max(delay, 1), y0.shape[0], 2), dtype)
 
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def sample(carry, k):
-        s, buf = carry
-        u, buf = _control(law, plant, s.y.T, buf, s.status, k, key0, noise, period, delay)
+    def sample(s, extra, k):                      # at t_k: measure, evaluate the law, hold its input
+        u, buf = _control(law, plant, s.y.T, extra[0], s.status, k, key0, noise, period, delay)
         s, args, u = _hold(s, u, plant, held, observers)
-        target = (k + 1).astype(dtype) * period
-        per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)      # this period's share of attempts
-        s = run(s, target, args, per, Checkpointed(budget, segment, BLOCK), adaptive=adaptive, monitor=False,
-                observers=observers)
-        short = (s.status == int(Status.OK)) & (s.t < target)
-        s = s._replace(status=jnp.where(short, int(Status.BUDGET_EXHAUSTED), s.status).astype(jnp.int32))
-        good = (s.status == int(Status.OK))[:, None]
-        return (s, buf), ((_nan_unless(good, s.y.T), _nan_unless(good, u)) if save else None)
+        return s, args, (buf, u)
 
-    (s, _), saved = jax.lax.scan(sample, (s0, buf0), jnp.arange(K))
+    def record(s, args, target, extra):
+        good = (s.status == int(Status.OK))[:, None]
+        return (_nan_unless(good, s.y.T), _nan_unless(good, extra[1])) if save else None
+
+    stops = (jnp.arange(K) + 1).astype(dtype) * period
+    s, _, saved = run_stops(s0, stops, None, ctl, adaptive=adaptive, monitor=False, observers=observers,
+                            share=budget, segment=segment, block=BLOCK, hook=sample,
+                            extra=(buf0, jnp.zeros((y0.shape[0], 2), dtype)), record=record)
     return _finish(s, valid, y0, saved, period, K, save, observers)

@@ -36,7 +36,7 @@ from ..status import NO_RESULT, Status
 from .sampled import solve_sampled, substeps_for
 from .horizon import default_max_steps, make_horizon
 from .saveat import SaveAt
-from .stepper import Checkpointed, FlightSwitch, controls, init_state, run
+from .stepper import Checkpointed, FlightSwitch, controls, init_state, run, run_stops
 from .stepsize import StepSizeController, check_policy
 from ..validate import real, refuses_removed_keywords
 
@@ -253,25 +253,20 @@ def _save_every(saveat) -> Optional[int]:
                                              "observers", "implicit"))
 def _run_saving(s0, y0, status0, args, ctl, chart, t_final: float, dt: float, every: int, max_attempts: int, **how):
     """The stepper's final state and the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of ``every`` base
-    steps: one ``lax.scan`` over the save intervals, each at most its share of ``max_attempts`` attempts
-    (`jaxsleigh.integrate.stepper.Checkpointed`), landing on its save time. A state the lane did not reach (it stopped,
-    or its share ran out: ``BUDGET_EXHAUSTED``) is NaN. Jitted, as `_scan`."""
+    steps: `jaxsleigh.integrate.stepper.run_stops` through them, each interval at most its share of ``max_attempts``
+    attempts. A state the lane did not reach (it stopped, or its share ran out: ``BUDGET_EXHAUSTED``) is NaN.
+    Jitted, as `_scan`."""
     horizon = make_horizon(t_final, dt, every, flags={"save_every": "saveat.every"})
     dtype = s0.y.dtype
-    times = jnp.asarray(horizon.save_times(), dtype)
-    budget = -(-max_attempts // horizon.n_out)
 
-    def interval(s, target):
-        per = ctl._replace(max_steps=s.n_accept + s.n_reject + budget)
-        s = run(s, target, args, per, Checkpointed(budget, min(SAVE_SEGMENT, budget), SAVE_BLOCK), **how)
-        short = (s.status == Status.OK) & (s.t < target)
-        s = s._replace(status=jnp.where(short, Status.BUDGET_EXHAUSTED, s.status).astype(s.status.dtype))
+    def record(s, a, target, extra):
         good = s.status == Status.OK
         y = jnp.where(good, chart.from_chart(s.y), jnp.nan)
-        u = jnp.where(good, jnp.stack(chart.field_and_control(s.t, s.y, args)[1]), jnp.nan)
-        return s, (y, u)
+        return y, jnp.where(good, jnp.stack(chart.field_and_control(s.t, s.y, a)[1]), jnp.nan)
 
-    s, (ys, us) = jax.lax.scan(jax.checkpoint(interval, prevent_cse=False), s0, times)
+    s, (ys, us) = run_stops(s0, jnp.asarray(horizon.save_times(), dtype), args, ctl,
+                            share=-(-max_attempts // horizon.n_out), segment=SAVE_SEGMENT, block=SAVE_BLOCK,
+                            record=record, **how)
     ok0 = status0 == Status.OK
     y_first = jnp.where(ok0, y0, jnp.nan)
     u_first = jnp.where(ok0, jnp.stack(chart.field_and_control(s0.t, s0.y, args)[1]), jnp.nan)

@@ -39,8 +39,9 @@ trajectory that has reached its target time, failed, or used its budget idles. E
 batch heads for the same target time, so nothing is gathered or scattered per step:
 `run` is the one loop over time, in four kinds (`Scan`: a fixed number of attempts; `Count`: a traced number, the
 segments between which ensembles compact the batch on the host, one program for every horizon; `WhileActive`: until
-every lane is done; `Checkpointed`: a bounded number in checkpointed segments, for reverse mode); `run_saving`
-walks a grid of save times (decimated trajectories) with it, and `run_plain` is the fast path's plain fixed-step RK4
+every lane is done; `Checkpointed`: a bounded number in checkpointed segments, for reverse mode); `run_stops`
+walks a grid of stop times with it (the host's decimated trajectories, `jaxsleigh.solve`'s saves, the sampled loop's
+periods), and `run_plain` is the fast path's plain fixed-step RK4
 (no masks, no summaries).
 
 Time is accumulated with compensated (two-sum) addition, so float32 runs keep time exact to
@@ -66,7 +67,7 @@ from ..status import Status
 from .stepsize import StepSizeController, error_ratio, next_step
 
 __all__ = ["Controls", "StepState", "init_state", "init_batch", "init_batch_lanes", "is_active", "attempt",
-           "run", "Scan", "Count", "WhileActive", "Checkpointed", "run_saving", "run_plain", "q_norm2_w",
+           "run", "Scan", "Count", "WhileActive", "Checkpointed", "run_stops", "run_plain", "integrands", "q_norm2_w",
            "FlightSwitch"]
 
 #: attempts between two refreshes of the oscillation guard (jaxsleigh.integrate.guard)
@@ -145,7 +146,8 @@ class FlightSwitch(NamedTuple):
     flight: float = FLIGHT_STEP
 
 
-def _integrands(observers, y, u, dtype):
+def integrands(observers, y, u, dtype):
+    """The observers' quadrature integrands at ``y`` under ``u``, stacked in rows (cast to ``dtype``)."""
     rows = [g for o in observers for g in o.integrand(y, u)]
     return jnp.stack(rows).astype(dtype) if rows else jnp.zeros((0,) + y.shape[1:], dtype)
 
@@ -168,7 +170,7 @@ def init_state(y0w, status0, args: ClosedLoop, ctl: Controls, t0=0.0, observers=
     y0w = jnp.where(ok, y0w, jnp.array([1.0, 0.0, 0.0, 0.0, 0.0], dtype))
     t0 = jnp.asarray(t0, dtype)
     k1, u0 = chart.field_and_control(t0, y0w, args)
-    g1 = _integrands(observers, y0w, u0, dtype)
+    g1 = integrands(observers, y0w, u0, dtype)
     return StepState(
         t=t0, t_lo=jnp.zeros((), dtype), y=y0w,
         k1=k1, h=jnp.asarray(ctl.dt, dtype),
@@ -205,7 +207,7 @@ def _stage_quadrature(observers, h, g1, stages, dtype):
     r"""The observers' integrands over a step's stages ``((y2, u2), (y3, u3), (y4, u4))`` with RK4's
     weights: ``(dq, g4)``, the rows' increment and their integrands at the last stage (for the error estimate
     \(h (g_4 - g_5) / 6\) of the rows, as of the state, `_adaptive_outcome`)."""
-    g2, g3, g4 = (_integrands(observers, yi, ui, dtype) for yi, ui in stages)
+    g2, g3, g4 = (integrands(observers, yi, ui, dtype) for yi, ui in stages)
     return (h / 6.0) * (g1 + 2.0 * g2 + 2.0 * g3 + g4), g4
 
 
@@ -294,7 +296,7 @@ def _trial_step(chart, s: StepState, target, active, args, observers, *, adaptiv
     dy, k4, (dq, g4), error = _increment(chart, s, h, args, k1, observers, adaptive)
     y_new = s.y + dy
     k5, u_new = chart.field_and_control(s.t + h, y_new, args) if fsal else (s.k1, None)
-    g5 = _integrands(observers, y_new, u_new, s.y.dtype) if s.quad.shape[0] else g4
+    g5 = integrands(observers, y_new, u_new, s.y.dtype) if s.quad.shape[0] else g4
     return _Trial(h, hit, k1, dy, k4, dq, g4, g5, error, y_new, k5, u_new)
 
 
@@ -306,8 +308,8 @@ def _implicit_trial(chart, s: StepState, target, active, args, observers) -> _Tr
     dy, k5, u_new, e, (y_mid, u_mid, f_mid) = rosenbrock_stages(chart.field_and_control, s.t, s.y, h, args, s.k1)
     y_new = s.y + dy
     if s.quad.shape[0]:
-        g_mid = _integrands(observers, y_mid, u_mid, s.y.dtype)
-        g5 = _integrands(observers, y_new, u_new, s.y.dtype)
+        g_mid = integrands(observers, y_mid, u_mid, s.y.dtype)
+        g5 = integrands(observers, y_new, u_new, s.y.dtype)
         dq = (h / 6.0) * (s.g1 + 4.0 * g_mid + g5)
         e_q = dq - (0.5 * h) * (s.g1 + g5)
     else:
@@ -594,19 +596,49 @@ def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive
     return out if accumulate is None else (out, acc)
 
 
-def run_saving(s: StepState, save_times, args: ClosedLoop, ctl: Controls, *, adaptive: bool,
-               monitor: bool = True, observers=DEFAULT_OBSERVERS, implicit: bool = False):
-    """Step a batch through ``save_times`` (shape (K,)), returning ``(state, ys)`` with ``ys`` of
-    shape (K, 5, N): the states at the save times (NaN where a trajectory never got there). ``implicit`` as in
-    `attempt`."""
+def _reached(c: StepState, args, target, extra):
+    """`run_stops`' default record of a stop: each lane's state where it got there, NaN elsewhere."""
+    return jnp.where(c.t >= target.astype(c.t.dtype), c.y, jnp.nan)
 
-    def body(c, target):
-        c = run(c, target, args, ctl, WhileActive(), adaptive=adaptive, monitor=monitor, observers=observers,
-                implicit=implicit)
-        there = c.t >= target.astype(c.t.dtype)
-        return c, jnp.where(there, c.y, jnp.nan)
 
-    return jax.lax.scan(body, s, save_times)
+def run_stops(s: StepState, stops, args: ClosedLoop, ctl: Controls, *, adaptive: bool, monitor: bool = True,
+              observers=DEFAULT_OBSERVERS, implicit=False, share: Optional[int] = None, segment: int = 8,
+              block: Optional[int] = 8, hook=None, extra=None, record=_reached):
+    r"""The stepper's one walk through stop times: from each stop \(t_k\) of ``stops`` (shape (K,)) to the next,
+    `run` the batch to it, and ``record`` it there; returns ``(state, records)``, the records stacked on a first axis
+    of K (``(state, extra, records)`` when ``extra`` is given).
+
+    ``share``: ``None``: each stop is run to until no lane is active (`WhileActive`, forward mode: the host's
+    decimated trajectories). A number: at most ``share`` attempts per interval (its share of the run's budget), in
+    checkpointed segments of ``segment`` attempts gathered in blocks of ``block`` (`Checkpointed`), each interval
+    checkpointed as a whole, so reverse mode holds one interval's steps; a lane still OK short of the stop ends
+    ``BUDGET_EXHAUSTED`` (`jaxsleigh.solve`'s saves, the sampled loop's periods).
+
+    ``hook(s, extra, k) -> (s, args, extra)`` runs at each stop before the batch steps on, with the carried pytree
+    ``extra``: a sampled law measures there and holds its input over the interval (`jaxsleigh.integrate.sampled`),
+    returning the closed loop of the held input; without it every interval runs under ``args``.
+    ``record(s, args, target, extra)`` gives a stop's record (default: the state where the lane got there, NaN
+    where it did not). ``implicit`` as in `attempt`."""
+    how = dict(adaptive=adaptive, monitor=monitor, observers=observers, implicit=implicit)
+
+    def interval(carry, xs):
+        c, ex = carry
+        k, target = xs
+        a = args
+        if hook is not None:
+            c, a, ex = hook(c, ex, k)
+        if share is None:
+            c = run(c, target, a, ctl, WhileActive(), **how)
+        else:
+            per = ctl._replace(max_steps=c.n_accept + c.n_reject + share)
+            c = run(c, target, a, per, Checkpointed(share, min(segment, share), block), **how)
+            short = (c.status == int(Status.OK)) & (c.t < target)
+            c = c._replace(status=jnp.where(short, int(Status.BUDGET_EXHAUSTED), c.status).astype(c.status.dtype))
+        return (c, ex), record(c, a, target, ex)
+
+    body = interval if share is None else functools.partial(jax.checkpoint, prevent_cse=False)(interval)
+    (s, extra_out), records = jax.lax.scan(body, (s, extra), (jnp.arange(jnp.shape(stops)[0]), stops))
+    return (s, records) if extra is None else (s, extra_out, records)
 
 
 # Trajectories per cache block of the plain fixed-step path (run_plain). Measured on a 2-core
