@@ -42,6 +42,7 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
+from ..files.checkpoint import differences
 from ..files.runlock import RunLock, settings_fingerprint
 from ..files.runner import PYTHON_WORDS, Words
 from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
@@ -178,13 +179,11 @@ class TuningRun:
         if old is None:
             return
         old = {k.lstrip("-").replace("-", "_"): v for k, v in old.items()}     # earlier versions recorded flags
-        for name, now in self.options.items():
-            then = old.get(name)
-            if then != now:
-                raise ValueError(f"{self.words.option(name).rstrip('=')} differs from the checkpoint's ({_shown(then)} "
-                                 f"in the checkpoint vs {_shown(now)} now): rerun with the same options and "
-                                 f"{self.words.resume} to continue it, or choose another {self.words.out} to start "
-                                 f"afresh")
+        diffs = differences({k: old.get(k) for k in self.options}, self.options, show=self.words.shown, sort=False,
+                            flat=True)
+        if diffs:
+            raise ValueError(f"{diffs[0]}: rerun with the same options and {self.words.resume} to continue it, or "
+                             f"choose another {self.words.out} to start afresh")
 
 
 def as_run(run) -> TuningRun:
@@ -479,13 +478,3 @@ def _plant_record(plant) -> dict:
              and all(np.array_equal(a, b) for a, b in zip(damping_from_name(n), d))]
     return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
             "damping": named[0] if named else type(d).__name__}
-
-
-def _shown(v) -> str:
-    """An option's value in a message: ``none`` when unset, ``on`` / ``off`` for a switch."""
-    if v is None:
-        return "none"
-    if isinstance(v, bool):
-        return "on" if v else "off"
-    return ",".join(map(str, v)) if isinstance(v, list) else str(v)
-
