@@ -21,8 +21,9 @@ rows), and is checked on reuse whether or not the manifest exists:
   that fails is named in a `DamagedCheckpointWarning` and recomputed, never used: recomputing costs one chunk's
   time and gives the bytes of an uninterrupted run, where refusing would stop a long run for a file it can remake;
 * a manifest of another run is refused with the settings that differ, by name, with both values;
-* while a run works, it holds a lock in the folder (`jaxsleigh.files.runlock.RunLock`): a second run
-  with other settings is refused at once, naming the first;
+* while a run works, the folder is locked (`jaxsleigh.files.runlock.RunLock`; by the lock of the run's output,
+  which covers its chunk folder, or, for a store used on its own, by a lock in the folder): a second run with other
+  settings is refused at once, naming the first;
 * files are written atomically (temporary file, fsync, rename): a kill leaves either the complete
   chunk or none, and leftover temporary files are hidden names that are never read as chunks.
 """
@@ -92,11 +93,12 @@ class ChunkStore:
         Without ``resume`` a folder that already holds chunks is refused (they would be
         overwritten); with it, a manifest of another run is refused (naming the settings that
         differ), a damaged manifest is replaced (the chunks identify themselves). The folder stays
-        locked (`jaxsleigh.files.runlock.RunLock`) until `close`.
+        locked (`jaxsleigh.files.runlock.RunLock`) until `close`: by the lock of the run that owns an output and
+        covers this folder (`RunLock.over`, one lock per run), else by a lock of its own.
         """
         writable_dir(self.folder, what="checkpoint folder")
-        self._lock = RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
-                             hint="choose another --out / checkpoint folder").acquire()
+        self._lock = RunLock.over(self.folder) or RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
+                                                          hint="choose another --out / checkpoint folder").acquire()
         try:
             self._check(resume, manifest)
         except BaseException:

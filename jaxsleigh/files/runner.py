@@ -5,8 +5,8 @@ takes the runner's ``checkpoint_dir``, ``resume`` and ``shard``, e.g. into `jaxs
 ``out`` in four steps, the same from Python and from the command line (``jaxsleigh basin`` and ``jaxsleigh
 sweep`` are `run_to_file` with their own checks and printing):
 
-1. **own** ``out``: a lock next to it (`jaxsleigh.files.runlock.RunLock`; another live run on the same
-   file is refused with `jaxsleigh.errors.RunLockedError`, exit code 5 on the command line), then refuse
+1. **own** ``out``: one lock next to it, which covers ``out.chunks/`` too (`jaxsleigh.files.runlock.RunLock`;
+   another live run on the same file is refused with `jaxsleigh.errors.RunLockedError`, exit code 5 on the command line), then refuse
    a chunk folder ``out.chunks/`` that holds the chunks of an earlier run unless ``resume=True``; a
    fresh run records its options in the folder's one record file, ``out.chunks/manifest.json``
    (`jaxsleigh.files.checkpoint.record`, next to what the chunk store records there), so that a refused
@@ -151,14 +151,14 @@ FINISHED = "finished.json"
 
 def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS,
                shared: Optional[bool] = None) -> tuple:
-    """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to ``out``
-    (`RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
+    """Claim ``out`` and its chunk folder for this run, before looking at the folder: one lock next to ``out``, which
+    covers the folder (its chunk store shares it; `RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
     ``run_id``: the run's fingerprint (``None``: one of its own); ``shared``: other processes with the same
     fingerprint share the output (default: when ``run_id`` is given). Returns ``(lock, the chunk files found)``;
     the caller releases the lock."""
     shared = run_id is not None if shared is None else shared
     lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}",
-                   shared=shared).acquire()
+                   shared=shared, covers=(chunks,)).acquire()
     try:
         have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
         if have and not resume and (Path(chunks) / FINISHED).is_file():
