@@ -390,30 +390,29 @@ def test_a_refused_resume_from_python_names_the_leaf_of_a_law_that_differs(tmp_p
 
 def test_a_refused_tuner_checkpoint_names_the_setting_and_both_values(tmp_path):
     from jaxsleigh import tuning as tu
-    from jaxsleigh.tuning.checkpoint import Stamp, TunerCheckpoint, tune_settings
+    from jaxsleigh.tuning.checkpoint import Checkpoint, TunerCheckpoint, tune_settings
     from jaxsleigh.tuning.optimizer import CandidateTrack
 
     g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
     settings = lambda steps: tune_settings(g0, ("L",), tu.TuneConfig(steps=steps), tu.LossConfig(), None, None,  # noqa
                                            None, False, 0.0, None)
-    key = lambda steps: Stamp.of_run(settings(steps), ics)  # noqa
+    key = lambda steps: Checkpoint.of_run(settings(steps), ics)  # noqa
     path = tmp_path / "t.ckpt.npz"
     TunerCheckpoint(path, key(4), ("loss",)).save(0, {"a": np.zeros(1)}, (), CandidateTrack(0.0, False))
     with pytest.raises(ValueError, match=r"config\.steps 4 in the checkpoint vs 8 now") as info:
         TunerCheckpoint(path, key(8), ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))
     assert "{" not in str(info.value) and "delete or move" in str(info.value)
-    other = Stamp.of_run(settings(4), ics + 1.0)
+    other = Checkpoint.of_run(settings(4), ics + 1.0)
     with pytest.raises(ValueError, match=r"other settings \(other initial conditions\);"):   # not two digests
         TunerCheckpoint(path, other, ("loss",)).load({"a": np.zeros(1)}, (), [], CandidateTrack(0.0, False))
 
 
 def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
-    """A basin's chunk and a tuner's state are one layout (`jaxsleigh.files.chunks.write_checkpoint`): the run's arrays
+    """A basin's chunk and a tuner's state are written by one class (`jaxsleigh.files.checkpoint.Checkpoint`): the run's arrays
     and a header under ``__name__`` keys, the fingerprint first; the same state gives the same bytes; a tuner file of
     the earlier layout (``key``/``settings`` among the arrays) still resumes."""
     from jaxsleigh import tuning as tu
-    from jaxsleigh.files.chunks import read_checkpoint_file
-    from jaxsleigh.tuning.checkpoint import Stamp, TunerCheckpoint, tune_settings
+    from jaxsleigh.tuning.checkpoint import Checkpoint, TunerCheckpoint, tune_settings
     from jaxsleigh.tuning.optimizer import CandidateTrack
 
     s = ChunkStore(tmp_path / "ck", "k")
@@ -424,8 +423,8 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     finally:
         s.close()
     g0, ics = js.gains(), js.sample_starts(4, seed=1).ics
-    stamp = Stamp.of_run(tune_settings(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None, False,
-                                       0.0, None), ics, {"--steps": 4})
+    stamp = Checkpoint.of_run(tune_settings(g0, ("L",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None,
+                                            False, 0.0, None), ics, {"--steps": 4})
     key = stamp.key
     tuner = tmp_path / "t.ckpt.npz"
     ck = TunerCheckpoint(tuner, stamp, ("loss",))
@@ -433,7 +432,7 @@ def test_every_resumable_run_writes_one_checkpoint_layout(tmp_path):
     first = tuner.read_bytes()
     ck.save(3, {"a": np.ones(1)}, (), CandidateTrack(0.0, False))
     assert tuner.read_bytes() == first
-    (arrays_c, head_c), (arrays_t, head_t) = read_checkpoint_file(chunk), read_checkpoint_file(tuner)
+    (arrays_c, head_c), (arrays_t, head_t) = Checkpoint.read_file(chunk), Checkpoint.read_file(tuner)
     assert set(head_c) == {"run_key", "chunk", "starts", "digest"} and str(head_c["run_key"]) == "k"
     assert set(head_t) == {"run_key", "settings", "options", "digest"} and str(head_t["run_key"]) == key
     assert set(arrays_c) == {"a"} and not any(k.startswith("__") or k in ("key", "settings") for k in arrays_t)

@@ -154,10 +154,10 @@ def test_every_result_kind_checks_its_status_codes(tmp_path, kind, status):
 
 def _tuner(tmp_path):
     from jaxsleigh import tuning as tu
-    from jaxsleigh.tuning.checkpoint import Stamp, TunerCheckpoint, tune_settings
+    from jaxsleigh.tuning.checkpoint import Checkpoint, TunerCheckpoint, tune_settings
     from jaxsleigh.tuning.optimizer import CandidateTrack
 
-    stamp = Stamp.of_run(tune_settings(js.gains(), ("k",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None,
+    stamp = Checkpoint.of_run(tune_settings(js.gains(), ("k",), tu.TuneConfig(steps=4), tu.LossConfig(), None, None, None,
                                        False, 0.0, None), js.sample_starts(4, seed=1).ics)
     path = tmp_path / "t.ckpt.npz"
     TunerCheckpoint(path, stamp, ("loss",)).save(2, {"k": np.ones(1)}, (), CandidateTrack(0.0, False))
@@ -197,9 +197,9 @@ def test_an_edited_law_checkpoint_is_refused_naming_it(tmp_path):
     import jax.numpy as jnp
     import optax
 
-    from jaxsleigh.tuning.checkpoint import LawCheckpoint, Stamp
+    from jaxsleigh.tuning.checkpoint import LawCheckpoint, Checkpoint
 
-    stamp = Stamp.of("k", {"law": "x"})
+    stamp = Checkpoint.of("k", {"law": "x"})
     path = tmp_path / "law.ckpt.npz"
     params = jnp.ones(3)
     opt = optax.adam(0.1)

@@ -37,7 +37,8 @@ BASIN = ["--samples", "64", "--t-final", "0.5", "--dt", "0.05", "--chunk-size", 
 # ---------------------------------------------------------------------------------------------
 
 def test_resume_without_manifest_never_mixes_runs(tmp_path, capsys):
-    """Chunks of a seed-3 run, manifest deleted, resumed with seed 4: refused."""
+    """Chunks of a seed-3 run, manifest (the folder's one record) deleted, resumed with seed 4: refused by the chunks'
+    own fingerprints."""
     out = tmp_path / "mm.npz"
     rc, _, err = run_cli(["basin", *BASIN, "--seed", "3", "--out", out, "--keep-chunks"], capsys)
     assert rc == 0, err
@@ -45,7 +46,7 @@ def test_resume_without_manifest_never_mixes_runs(tmp_path, capsys):
     (chunks / "manifest.json").unlink()
     out.unlink()
     rc, _, err = run_cli(["basin", *BASIN, "--seed", "4", "--resume", "--out", out], capsys)
-    assert rc == 2 and "--seed 3 in the checkpoint vs --seed 4 now" in err and "mm.npz.chunks" in err, err
+    assert rc == 2 and "written by a different run" in err and "mm.npz.chunks" in err, err
     assert not out.exists()
     # the original command resumes from its own chunks and gives the same file as a fresh run
     rc, out_text, err = run_cli(["basin", *BASIN, "--seed", "3", "--resume", "--out", out], capsys)

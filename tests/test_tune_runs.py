@@ -84,115 +84,9 @@ def _interrupt_and_resume(tmp_path, capsys, argv, interrupt, *, history=True):
 
 
 # ---------------------------------------------------------------------------------------------
-# 1. Ctrl-C keeps the progress of every mode, and --resume ends where an uninterrupted run ends
+# 1. Ctrl-C keeps the progress of every mode, and --resume ends where an uninterrupted run ends: one test of every
+#    tuner mode, tests/test_interrupt_resume.py
 # ---------------------------------------------------------------------------------------------
-# each runs its tuner three times (whole, interrupted, resumed): the full suite's, not the quick tier's
-
-@pytest.mark.slow
-def test_gradient_tuning_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, capsys):
-    from jaxsleigh.tuning import optimizer
-
-    real = optimizer._Bar.update
-
-    def interrupt(m):
-        def update(self, it, row):
-            real(self, it, row)
-            if it == 1:                                  # two iterations done and checkpointed
-                raise KeyboardInterrupt
-        m.setattr(optimizer._Bar, "update", update)
-
-    whole, out, said = _interrupt_and_resume(tmp_path, capsys, GRADIENT, interrupt)
-    assert "interrupted after 2 iterations" in said, said
-    assert _doc(whole) == _doc(out) and "interrupted" not in _doc(out)["meta"]
-    _same_arrays(_arrays(tmp_path / "whole.npz"), _arrays(tmp_path / "out.npz"))
-
-
-@pytest.mark.slow
-def test_search_resumes_to_the_gains_of_an_uninterrupted_run(tmp_path, capsys):
-    from jaxsleigh.tuning import cma_search
-
-    real = cma_search.evaluate_population
-
-    def interrupt(m):
-        calls = []
-
-        def evaluate(*a, **k):
-            calls.append(1)
-            if len(calls) == 4:                          # the reference, generations 0 and 1 done; Ctrl-C in 2
-                raise KeyboardInterrupt
-            return real(*a, **k)
-        m.setattr(cma_search, "evaluate_population", evaluate)
-
-    whole, out, said = _interrupt_and_resume(tmp_path, capsys, SEARCH, interrupt)
-    assert "interrupted after 2 generations" in said, said
-    a, b = _doc(whole), _doc(out)
-    assert a == b and a["meta"]["generations_run"] == 3 and "interrupted" not in b["meta"]
-    _same_arrays(_arrays(tmp_path / "whole.npz"), _arrays(tmp_path / "out.npz"))
-
-
-@pytest.mark.slow
-def test_a_front_resumes_to_the_front_of_an_uninterrupted_run(tmp_path, capsys):
-    from jaxsleigh.tuning import pareto
-
-    real = pareto.tune
-
-    def interrupt(m):
-        calls = []
-
-        def tune(*a, **k):
-            calls.append(1)
-            if len(calls) == 2:                          # the first point finished and kept; Ctrl-C in the second
-                raise KeyboardInterrupt
-            return real(*a, **k)
-        m.setattr(pareto, "tune", tune)
-
-    whole, out, said = _interrupt_and_resume(tmp_path, capsys, FRONT, interrupt, history=False)
-    assert "interrupted after 1 of 2 points" in said, said
-    a, b = _doc(whole), _doc(out)
-    assert a == b and len(b["points"]) == 2 and "interrupted" not in b
-
-
-@pytest.mark.slow
-def test_a_vmapped_front_resumes_to_the_front_of_an_uninterrupted_run(tmp_path, capsys):
-    from jaxsleigh.tuning import pareto
-
-    real = pareto._assess_candidates
-
-    def interrupt(m):
-        calls = []
-
-        def assess(*a, **k):
-            calls.append(1)
-            if len(calls) == 3:                          # two iterations checkpointed; Ctrl-C in the third
-                raise KeyboardInterrupt
-            return real(*a, **k)
-        m.setattr(pareto, "_assess_candidates", assess)
-
-    whole, out, said = _interrupt_and_resume(tmp_path, capsys, FRONT_VMAP, interrupt, history=False)
-    assert "interrupted after 2 of 3 iterations; wrote the best candidate so far of 2 of 2 budgets" in said, said
-    a, b = _doc(whole), _doc(out)
-    assert a == b and len(b["points"]) == 2 and "interrupted" not in b and b["method"] == "vmap"
-
-
-@pytest.mark.slow
-def test_a_literature_law_resumes_to_the_law_of_an_uninterrupted_run(tmp_path, capsys):
-    from jaxsleigh.tuning import law as law_mod
-
-    real = law_mod._Descent._step
-
-    def interrupt(m):
-        def step(self, step_fn, it):
-            if it == 2:                                  # two steps done and checkpointed
-                raise KeyboardInterrupt
-            return real(self, step_fn, it)
-        m.setattr(law_mod._Descent, "_step", step)
-
-    whole, out, said = _interrupt_and_resume(tmp_path, capsys, LAW, interrupt)
-    assert "interrupted after 2 steps" in said, said
-    a, b = _doc(whole), _doc(out)
-    assert a == b and a["controller"] == "astolfi" and "interrupted" not in b["meta"]
-    _same_arrays(_arrays(tmp_path / "whole.npz"), _arrays(tmp_path / "out.npz"))
-
 
 # ---------------------------------------------------------------------------------------------
 # 2. a run owns its --out: another live run on it is refused, exit code 5, naming it
@@ -279,10 +173,10 @@ def test_the_library_run_refuses_a_held_out_a_stale_checkpoint_and_other_options
     np.savez(run.checkpoint, options=np.array(json.dumps({"seed": 0, "steps": 2})))
     with pytest.raises(ValueError, match=r"interrupted tuning run .*add resume=True"):
         tune_run(run, config=TuneConfig(steps=1, batch=2))
-    with pytest.raises(ValueError, match=r"^steps differs from the checkpoint's \(2 in the checkpoint vs 3 now\)"):
+    with pytest.raises(ValueError, match=r"^steps=2 in the checkpoint vs steps=3 now: "):
         tune_run(TuningRun(out, options={"seed": 0, "steps": 3}, resume=True), config=TuneConfig(steps=1, batch=2))
     np.savez(run.checkpoint, options=np.array(json.dumps({"--seed": 1})))       # as earlier versions named them
-    with pytest.raises(ValueError, match=r"^seed differs from the checkpoint's \(1 in the checkpoint vs 0 now\)"):
+    with pytest.raises(ValueError, match=r"^seed=1 in the checkpoint vs seed=0 now: "):
         tune_run(TuningRun(out, options={"seed": 0}, resume=True), config=TuneConfig(steps=1, batch=2))
     run.checkpoint.unlink()
     with pytest.raises(ValueError, match="resume=True: no checkpoint"):

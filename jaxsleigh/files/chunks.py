@@ -21,15 +21,15 @@ rows), and is checked on reuse whether or not the manifest exists:
   that fails is named in a `DamagedCheckpointWarning` and recomputed, never used: recomputing costs one chunk's
   time and gives the bytes of an uninterrupted run, where refusing would stop a long run for a file it can remake;
 * a manifest of another run is refused with the settings that differ, by name, with both values;
-* while a run works, it holds a lock in the folder (`jaxsleigh.files.runlock.RunLock`): a second run
-  with other settings is refused at once, naming the first;
+* while a run works, the folder is locked (`jaxsleigh.files.runlock.RunLock`; by the lock of the run's output,
+  which covers its chunk folder, or, for a store used on its own, by a lock in the folder): a second run with other
+  settings is refused at once, naming the first;
 * files are written atomically (temporary file, fsync, rename): a kill leaves either the complete
   chunk or none, and leftover temporary files are hidden names that are never read as chunks.
 """
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import warnings
 import zipfile
@@ -40,47 +40,19 @@ import numpy as np
 
 from ..errors import CheckpointError, DamagedCheckpointWarning, DamagedFileError
 from ..status import Status
-from .npz import DIGEST_KEY, atomic_write_text, check_digest, value_problem, write_npz_deterministic
+from .checkpoint import MANIFEST, Checkpoint, differences, joined, record, recorded
+from .npz import value_problem
 from .runlock import RunLock
 from ..validate import writable_dir
 
-__all__ = ["ChunkStore", "write_checkpoint", "read_checkpoint_file", "run_key", "starts_digest", "setting_differences",
-           "joined"]
+__all__ = ["ChunkStore", "starts_digest"]
 
-#: the fingerprint in every checkpoint file's header (`write_checkpoint`); a chunk's also holds ``__chunk__`` (its
-#: index and rows ``[index, lo, hi]``) and ``__starts__`` (the digest of the starts of those rows)
+#: the fingerprint in every checkpoint file's header (`jaxsleigh.files.checkpoint.Checkpoint`); a chunk's also holds
+#: ``__chunk__`` (its index and rows ``[index, lo, hi]``) and ``__starts__`` (the digest of the starts of those rows)
 _KEY = "__run_key__"
 
 #: Settings that vary between equal runs (never a reason to refuse a checkpoint).
 _VOLATILE = {"devices", "wall_s", "chunks_reused"}
-
-
-def write_checkpoint(path, arrays: dict, *, key: str, when_full: str = "", **header) -> Path:
-    """One checkpoint file, the layout of every resumable run's (the chunk store's chunks and work in progress, every
-    tuner's state): ``arrays`` next to a header, the run's fingerprint ``key`` and the ``header`` entries given
-    (``chunk``, ``starts``, ``settings``, ``options``; ``None`` left out), stored as ``__key__``-style names;
-    uncompressed, with fixed timestamps (equal state, equal bytes), written atomically (``when_full``: what continues
-    the work once a full disk has space); last, the content digest of all of it (``__digest__``,
-    `jaxsleigh.files.npz.content_digest`), which `read_checkpoint_file` verifies."""
-    head = {f"__{k}__": np.asarray(v) for k, v in header.items() if v is not None}
-    return write_npz_deterministic(path, {**arrays, _KEY: np.array(key), **head}, compress=False, when_full=when_full)
-
-
-def read_checkpoint_file(path) -> tuple:
-    """``(arrays, header)`` of a checkpoint file (`write_checkpoint`), the header by name (``run_key``, ``chunk``,
-    ``starts``, ``settings``, ``options`` and ``digest``, the content digest verified; no ``digest`` for a file that
-    records none, written by jaxsleigh 0.3 or earlier); raises what `numpy.load` raises for a damaged file and a
-    `jaxsleigh.errors.DamagedFileError` naming it when its contents do not match its digest (edited or damaged after
-    it was written)."""
-    with np.load(io.BytesIO(Path(path).read_bytes()), allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
-    digest = data.get(DIGEST_KEY)
-    if not check_digest(path, data, "delete it and start afresh (without --resume)"):
-        digest = None
-    data.pop("format_version", None)
-    if digest is not None:
-        data[DIGEST_KEY] = digest
-    return data, {k[2:-2]: data.pop(k) for k in list(data) if k.startswith("__") and k.endswith("__")}
 
 
 def starts_digest(starts) -> str:
@@ -89,14 +61,6 @@ def starts_digest(starts) -> str:
     h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
     h.update(a.tobytes())
     return h.hexdigest()[:32]
-
-
-def run_key(settings: dict, starts) -> str:
-    """The fingerprint of a resumable run: a SHA-256 of ``settings`` (as sorted JSON, values that JSON cannot
-    write as their ``str``) followed by the starts' bytes, as given (cast them first to key on a dtype)."""
-    h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
-    h.update(np.ascontiguousarray(starts).tobytes())
-    return h.hexdigest()
 
 
 def _afresh(folder: Path) -> str:
@@ -113,7 +77,7 @@ class ChunkStore:
 
     @property
     def manifest(self) -> Path:
-        return self.folder / "manifest.json"
+        return self.folder / MANIFEST
 
     def path(self, index: int) -> Path:
         return self.folder / f"chunk_{index:06d}.npz"
@@ -129,11 +93,12 @@ class ChunkStore:
         Without ``resume`` a folder that already holds chunks is refused (they would be
         overwritten); with it, a manifest of another run is refused (naming the settings that
         differ), a damaged manifest is replaced (the chunks identify themselves). The folder stays
-        locked (`jaxsleigh.files.runlock.RunLock`) until `close`.
+        locked (`jaxsleigh.files.runlock.RunLock`) until `close`: by the lock of the run that owns an output and
+        covers this folder (`RunLock.over`, one lock per run), else by a lock of its own.
         """
         writable_dir(self.folder, what="checkpoint folder")
-        self._lock = RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
-                             hint="choose another --out / checkpoint folder").acquire()
+        self._lock = RunLock.over(self.folder) or RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
+                                                          hint="choose another --out / checkpoint folder").acquire()
         try:
             self._check(resume, manifest)
         except BaseException:
@@ -159,27 +124,23 @@ class ChunkStore:
                                   f"earlier run; pass resume=True (--resume) with the same settings to continue "
                                   f"it, or {_afresh(self.folder)}")
         new = {"key": self.key, **manifest}
-        if resume and self.manifest.exists():
-            try:
-                old = json.loads(self.manifest.read_text())
-                old_key = old.get("key") if isinstance(old, dict) else None
-            except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
-                warnings.warn(DamagedCheckpointWarning(
-                    f"checkpoint manifest {str(self.manifest)!r} is damaged ({e}); it is rewritten and every "
-                    "chunk is checked on its own"), stacklevel=4)
-                old, old_key = None, self.key
-            if old_key != self.key:
-                why = _differences(old, json.loads(json.dumps(new, default=str)))
-                raise CheckpointError(f"checkpoint {str(self.folder)!r} was made with other settings or initial "
-                                      f"conditions than this run"
-                                      + ("" if why.startswith("other settings") else f" ({why})")
-                                      + f"; rerun the original command with --resume, or {_afresh(self.folder)}")
+        old = recorded(self.folder) if resume and self.manifest.exists() else {}
+        if old is None:
+            warnings.warn(DamagedCheckpointWarning(
+                f"checkpoint manifest {str(self.manifest)!r} is damaged; it is rewritten and every chunk is checked "
+                "on its own"), stacklevel=4)
+        elif "key" in old and old["key"] != self.key:     # a record without a key: the runner's options only
+            why = _differences(old, json.loads(json.dumps(new, default=str)))
+            raise CheckpointError(f"checkpoint {str(self.folder)!r} was made with other settings or initial "
+                                  f"conditions than this run"
+                                  + ("" if why.startswith("other settings") else f" ({why})")
+                                  + f"; rerun the original command with --resume, or {_afresh(self.folder)}")
         if resume:
             for path in have:                 # before anything is written: never adopt another run's folder
                 key = self._key_of(path)
                 if key is not None and key != self.key:
                     raise self._foreign(path)
-        atomic_write_text(self.manifest, json.dumps(new, indent=1, default=str) + "\n", when_full=self._when_full())
+        record(self.folder, new, when_full=self._when_full())
 
     def _when_full(self) -> str:
         return (f"the finished chunks are kept in {str(self.folder)!r}: once there is space, the same command "
@@ -242,8 +203,9 @@ class ChunkStore:
         return self._read(self.pending_path(index), index, rows, lo, starts)
 
     def _write(self, path: Path, index: int, arrays: dict, lo: int, starts) -> Path:
-        return write_checkpoint(path, arrays, key=self.key, when_full=self._when_full(),
-                                chunk=np.array([index, lo, lo + len(starts)], np.int64), starts=starts_digest(starts))
+        return Checkpoint(self.key).write(path, arrays, when_full=self._when_full(),
+                                          chunk=np.array([index, lo, lo + len(starts)], np.int64),
+                                          starts=starts_digest(starts))
 
     def _read(self, path: Path, index: int, rows: int, lo: int, starts) -> Optional[dict]:
         """The arrays of ``path`` if it is there, of this run, and chunk ``index``'s (rows ``[lo, lo + rows)`` of
@@ -252,7 +214,7 @@ class ChunkStore:
         if not path.exists():
             return None
         try:
-            data, head = read_checkpoint_file(path)
+            data, head = Checkpoint.read_file(path)
         except DamagedFileError as e:
             self._damaged(path, e.problem)
             return None
@@ -294,39 +256,6 @@ class ChunkStore:
             f"checkpoint chunk {str(path)!r} is damaged ({why}); recomputing it"), stacklevel=4)
 
 
-def _leaves(value, prefix: str = "") -> dict:
-    """``{path: value}`` of the numbers and texts in nested dicts (a controller's record: its type and params)."""
-    if not isinstance(value, dict):
-        return {prefix: value}
-    out = {}
-    for k, v in value.items():
-        key = str(k) if k != "params" else ""
-        out.update(_leaves(v, f"{prefix}.{key}".strip(".").replace("..", ".") if key else prefix))
-    return out
-
-
-def setting_differences(name: str, old, new, *, said: Optional[dict] = None) -> list:
-    """``['controller.u_max 2.0 in the checkpoint vs 3.0 now']``: how a setting of a checkpoint differs from this run's,
-    leaf by leaf when it is a record (never a whole dict); ``said`` gives the words for a leaf whose values mean
-    nothing to a reader (``{"ics": "other initial conditions"}``). Every resumable run refuses in these words."""
-    if not (isinstance(old, dict) and isinstance(new, dict)):
-        return [f"{name} {old!r} in the checkpoint vs {new!r} now"]
-    a, b = _leaves(old), _leaves(new)
-    out = []
-    for k in sorted(set(a) | set(b), key=str):
-        if a.get(k) != b.get(k):
-            label = ".".join(part for part in (name, str(k).lstrip(".")) if part)
-            out.append((said or {}).get(k) or f"{label} {a.get(k, '(unset)')!r} in the checkpoint vs "
-                                              f"{b.get(k, '(unset)')!r} now")
-    return out
-
-
-def joined(diffs: list, limit: int = 6) -> str:
-    """The first ``limit`` differences, and how many more."""
-    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
-    return "; ".join(diffs[:limit]) + more
-
-
 def _differences(old, new: dict, limit: int = 6) -> str:
     """The settings in which two manifests differ, by name with both values (checkpoint vs this run)."""
     if not isinstance(old, dict):
@@ -337,7 +266,7 @@ def _differences(old, new: dict, limit: int = 6) -> str:
         for k in sorted(set(o_set) | set(n_set)):
             if k in _VOLATILE or o_set.get(k) == n_set.get(k):
                 continue
-            diffs.extend(setting_differences(k, o_set.get(k, "(unset)"), n_set.get(k, "(unset)")))
+            diffs.extend(differences(o_set.get(k, "(unset)"), n_set.get(k, "(unset)"), k))
     if old.get("n") != new.get("n"):
         diffs.append(f"{old.get('n')} starts in the checkpoint vs {new.get('n')} now")
     elif "starts" in old and old.get("starts") != new.get("starts"):

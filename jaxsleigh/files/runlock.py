@@ -16,6 +16,10 @@ for its owner; an owner holds its file exclusively from before its name appears)
   fingerprint is its settings, so the same command started twice is told the same run is in
   progress, not that a run with other settings is).
 
+One run holds one lock: the lock of a run's output covers the folder of its chunks (``covers``), and the chunk store
+of that folder shares it (`RunLock.over`) instead of taking a second one; a chunk store used on its own (a
+``checkpoint_dir`` outside a run that owns an output) locks its folder itself.
+
 A newcomer publishes its own lock *before* it looks at the others, so of two runs started at the
 same moment at least one is refused: never both accepted. Where the filesystem has no ``flock``
 (some network filesystems), a `RunLockWarning` says so and the run goes on unguarded.
@@ -58,6 +62,9 @@ def _host() -> str:
 #: call inside another one is not) shares the lock instead of fighting over it.
 _HELD: dict = {}
 
+#: Folders covered by a lock this process holds (`RunLock` ``covers``): resolved folder -> the lock's key in `_HELD`.
+_COVERED: dict = {}
+
 
 class RunLock:
     """An exclusive claim of ``target`` (an output file or a folder) by this process.
@@ -69,10 +76,12 @@ class RunLock:
       hint: what the refused run should do instead (appended to the refusal).
       shared: another process with the same fingerprint may hold ``target`` too (the processes of one
         multi-process run); ``False``: it is refused as the same run, in progress.
+      covers: folders the run writes besides ``target`` (its chunks), held with it: the code that writes there shares
+        this lock (`over`) rather than taking its own.
     """
 
     def __init__(self, target, fingerprint: str, *, folder: bool = False, what: str = "output", hint: str = "",
-                 shared: bool = True):
+                 shared: bool = True, covers=()):
         self.target = Path(target)
         self.fingerprint = str(fingerprint)
         self.shared = bool(shared)
@@ -83,6 +92,7 @@ class RunLock:
         else:
             self.dir, self.prefix = self.target.parent, f".{self.target.name}.lock."
         self.path = self.dir / f"{self.prefix}{_host()}.{os.getpid()}"
+        self.covers = tuple(str(Path(c).resolve()) for c in covers)
         self._fd: Optional[int] = None
         self._shared: Optional[RunLock] = None
 
@@ -113,7 +123,21 @@ class RunLock:
             self._drop()
             raise
         _HELD[key] = [self, 1]
+        _COVERED.update(dict.fromkeys(self.covers, key))
         return self
+
+    @classmethod
+    def over(cls, folder) -> Optional["RunLock"]:
+        """The lock of the run in this process whose output's lock covers ``folder`` (``covers``), shared like a
+        nested claim (release it when done; the run's own release gives the lock back); ``None`` where no run
+        covers it."""
+        entry = _HELD.get(_COVERED.get(str(Path(folder).resolve()), ""))
+        if entry is None:
+            return None
+        held = entry[0]
+        mine = cls(held.target, held.fingerprint, what=held.what, hint=held.hint, shared=held.shared)
+        mine.dir, mine.prefix, mine.path = held.dir, held.prefix, held.path
+        return mine.acquire()
 
     def release(self) -> None:
         """Give ``target`` back (removes the lock file). Safe to call twice."""
@@ -127,7 +151,10 @@ class RunLock:
             return
         if self._fd is None:
             return
-        _HELD.pop(str(self.path.resolve()), None)
+        key = str(self.path.resolve())
+        _HELD.pop(key, None)
+        for folder in [f for f, k in _COVERED.items() if k == key]:
+            del _COVERED[folder]
         self._drop()
 
     def __enter__(self) -> "RunLock":

@@ -5,11 +5,12 @@ takes the runner's ``checkpoint_dir``, ``resume`` and ``shard``, e.g. into `jaxs
 ``out`` in four steps, the same from Python and from the command line (``jaxsleigh basin`` and ``jaxsleigh
 sweep`` are `run_to_file` with their own checks and printing):
 
-1. **own** ``out``: a lock next to it (`jaxsleigh.files.runlock.RunLock`; another live run on the same
-   file is refused with `jaxsleigh.errors.RunLockedError`, exit code 5 on the command line), then refuse
+1. **own** ``out``: one lock next to it, which covers ``out.chunks/`` too (`jaxsleigh.files.runlock.RunLock`;
+   another live run on the same file is refused with `jaxsleigh.errors.RunLockedError`, exit code 5 on the command line), then refuse
    a chunk folder ``out.chunks/`` that holds the chunks of an earlier run unless ``resume=True``; a
-   fresh run records its options in ``out.chunks/options.json``, so that a refused resume can name the
-   options that differ;
+   fresh run records its options in the folder's one record file, ``out.chunks/manifest.json``
+   (`jaxsleigh.files.checkpoint.record`, next to what the chunk store records there), so that a refused
+   resume can name the options that differ;
 2. **compute** the chunks: one process does them all; in a multi-process run (`Processes`, or detected
    under SLURM / Open MPI) every process computes the chunks ``i`` with ``i % count == index``
    (`jaxsleigh.files.distributed.run_shared`);
@@ -47,6 +48,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Optional
 
+from . import checkpoint
+from .checkpoint import MANIFEST, differences, recorded
 from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
 from .npz import atomic_write_text
 from .runlock import RunLock, settings_fingerprint
@@ -77,6 +80,17 @@ class Words(NamedTuple):
     out: str = "out"
     option: Callable[[str], str] = lambda k: f"{k}="
     again: str = "the same call"
+
+    def shown(self, name: str, value) -> str:
+        """An option with its value as the caller writes it: ``'seed=3'``, ``'--seed 3'``, ``'--x64'``, ``'no
+        --plot'`` (unset or off), a list's values one after the other."""
+        flag = self.option(name)
+        if value is None or value is False:
+            return f"no {flag.rstrip('=')}"
+        if value is True:
+            return flag.rstrip("=")
+        v = " ".join(map(str, value)) if isinstance(value, list) else value
+        return f"{flag}{v}" if flag.endswith("=") else f"{flag} {v}"
 
 
 PYTHON_WORDS = Words()
@@ -137,14 +151,14 @@ FINISHED = "finished.json"
 
 def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS,
                shared: Optional[bool] = None) -> tuple:
-    """Claim ``out`` and its chunk folder for this run, before looking at the folder: a lock next to ``out``
-    (`RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
+    """Claim ``out`` and its chunk folder for this run, before looking at the folder: one lock next to ``out``, which
+    covers the folder (its chunk store shares it; `RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
     ``run_id``: the run's fingerprint (``None``: one of its own); ``shared``: other processes with the same
     fingerprint share the output (default: when ``run_id`` is given). Returns ``(lock, the chunk files found)``;
     the caller releases the lock."""
     shared = run_id is not None if shared is None else shared
     lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}",
-                   shared=shared).acquire()
+                   shared=shared, covers=(chunks,)).acquire()
     try:
         have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
         if have and not resume and (Path(chunks) / FINISHED).is_file():
@@ -163,43 +177,36 @@ def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words
 
 
 def _record_options(chunks, options: dict, resume: bool) -> None:
-    """A fresh run records its options in ``chunks/options.json`` (after the checks: a refused run writes nothing)."""
-    rec = Path(chunks) / "options.json"
-    if not resume or not rec.exists():
-        atomic_write_text(rec, json.dumps(options, indent=1, sort_keys=True) + "\n")
+    """A fresh run records its options in the chunk folder's record (``manifest.json``; after the checks: a refused
+    run writes nothing); a resumed run keeps those of the run it continues (once its chunk store has recorded its key
+    there: before, a refused resume may have written them)."""
+    old = recorded(chunks)
+    if not resume or (old is not None and ("options" not in old or "key" not in old)):
+        checkpoint.record(chunks, {"options": options}, fresh=not resume)
+
+
+def _recorded_options(chunks) -> Optional[dict]:
+    """The options the chunk folder's record holds (``None``: none, or a record that cannot be read)."""
+    old = (recorded(chunks) or {}).get("options")
+    return old if isinstance(old, dict) else None
 
 
 def options_differ(chunks, options: dict, words: Words = PYTHON_WORDS) -> str:
-    """``'seed=3 in the checkpoint vs seed=4 now; ...'`` from ``chunks/options.json``; '' if unknown."""
-    try:
-        old = json.loads((Path(chunks) / "options.json").read_text())
-    except (OSError, ValueError):
+    """``'seed=3 in the checkpoint vs seed=4 now; ...'`` from the chunk folder's record; '' if unknown."""
+    old = _recorded_options(chunks)
+    if old is None:
         return ""
-    if not isinstance(old, dict):
-        return ""
-
-    def show(k, v):
-        name = words.option(k)
-        if v is None or v is False:
-            return f"no {name.rstrip('=')}"
-        if v is True:
-            return name.rstrip("=")
-        shown = " ".join(map(str, v)) if isinstance(v, list) else v
-        return f"{name}{shown}" if name.endswith("=") else f"{name} {shown}"
-
-    return "; ".join(f"{show(k, old.get(k))} in the checkpoint vs {show(k, options.get(k))} now"
-                     for k in sorted(set(old) | set(options)) if old.get(k) != options.get(k))
+    keys = {*old, *options}
+    return "; ".join(differences({k: old.get(k) for k in keys}, {k: options.get(k) for k in keys}, show=words.shown,
+                                 flat=True))
 
 
 def other_command(chunks, options: dict, words: Words = PYTHON_WORDS) -> Optional[CheckpointError]:
-    """The refusal of a chunk folder that another command made (``chunks/options.json`` records another
-    ``"command"`` than ``options``'): one line naming it, instead of every option that differs; ``None`` otherwise
-    (also where either does not record a command)."""
-    try:
-        old = json.loads((Path(chunks) / "options.json").read_text())
-    except (OSError, ValueError):
-        return None
-    then, now = (old.get("command") if isinstance(old, dict) else None), options.get("command")
+    """The refusal of a chunk folder that another command made (its record holds another ``"command"`` than
+    ``options``'): one line naming it, instead of every option that differs; ``None`` otherwise (also where either
+    does not record a command)."""
+    old = _recorded_options(chunks)
+    then, now = (old or {}).get("command"), options.get("command")
     if not then or not now or then == now:
         return None
     return CheckpointError(f"{str(chunks)!r} holds the chunks of a 'jaxsleigh {then}' run, not of 'jaxsleigh {now}': "
@@ -353,7 +360,7 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
 
     def prepare(state):                         # a fresh multi-process run: no stale manifest
         if not resume:
-            (chunks / "manifest.json").unlink(missing_ok=True)
+            (chunks / MANIFEST).unlink(missing_ok=True)
 
     code = run_owned(owned, compute, assemble, cluster=cluster, options=options,
                      recorded={k: v for k, v in options.items() if k not in _NOT_RECORDED}, resume=resume,

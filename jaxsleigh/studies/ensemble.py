@@ -30,7 +30,8 @@ import numpy as np
 from ..cache import kept_jit
 from ..model.charts import WChart, chart_for
 from ..model.closed_loop import ClosedLoop, closed_loop_hamiltonian_w
-from ..files.chunks import ChunkStore, run_key, starts_digest
+from ..files.checkpoint import run_key
+from ..files.chunks import ChunkStore, starts_digest
 from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, study_options, takes_objects
 from .audit import audit_rows, audit_sample, resolve as resolve_audit

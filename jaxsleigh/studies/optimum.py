@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import enum
 import functools
-import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -61,6 +60,7 @@ import numpy as np
 from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_path
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
+from ..files.checkpoint import run_key
 from ..files.chunks import ChunkStore
 from ..files.npz import damaged, damping_name, read_npz, value_problem, write_npz_deterministic
 from ..progress import Progress
@@ -672,7 +672,7 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
     bounds = [(lo, min(lo + chunk_size, S)) for lo in range(0, S, chunk_size)]
     shard = run.shard
     mine = range(len(bounds)) if shard is None else [i for i in range(len(bounds)) if i % shard[1] == shard[0]]
-    key = hashlib.sha256(json.dumps([settings, chunk_size, starts.tobytes().hex()]).encode()).hexdigest()[:32]
+    key = run_key({"settings": settings, "chunk_size": chunk_size}, starts)
     store = ChunkStore(run.checkpoint_dir, key) if run.checkpoint_dir is not None else None
     parts, reused = {}, 0
     try:

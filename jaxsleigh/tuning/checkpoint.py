@@ -1,6 +1,7 @@
 """Checkpoint and resume of the tuners: the optimiser's whole state in one fingerprinted ``.npz``, written
-atomically after every iteration in the layout of every resumable run's checkpoints, the chunk store's too
-(`Stamp`: `TunerCheckpoint` for the paper's gains, `LawCheckpoint` for any law, the CMA-ES search's generations), and
+atomically after every iteration by the one class that writes every resumable run's checkpoints, the chunk store's
+too (`jaxsleigh.files.checkpoint.Checkpoint`; how each tuner lays out its state in it: `TunerCheckpoint` for the
+paper's gains, `LawCheckpoint` for any law, the CMA-ES search's generations), and
 `TuningInterrupted` (Ctrl-C keeps the best so far). A checkpoint may also carry the options of the command that
 wrote it (`checkpoint_options`), so that a refused resume can name the option first.
 
@@ -14,24 +15,20 @@ the best and every valid candidate) must be finite; the iteration counter a whol
 state is one file, nothing can be recomputed in its place, so the fix is to delete it and start afresh."""
 from __future__ import annotations
 
-import hashlib
-import json
-import zipfile
 from pathlib import Path
-from typing import NamedTuple, Optional
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import DamagedFileError
-from ..files.chunks import joined, read_checkpoint_file, run_key, setting_differences, write_checkpoint
+from ..files.checkpoint import Checkpoint, refused
 from ..model.params import gains_to_dict
 from ..model.controller import law_leaf_names
 from ..studies.config import plant_to_dict
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_settings", "LawCheckpoint", "law_settings",
-           "checkpoint_options", "Stamp", "tree_arrays", "tree_from", "track_arrays",
+           "checkpoint_options", "Checkpoint", "tree_arrays", "tree_from", "track_arrays",
            "restore_track", "check_resume", "refused", "checked_state", "check_counter"]
 
 
@@ -47,68 +44,13 @@ class TuningInterrupted(KeyboardInterrupt):
 
 
 def tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts) -> dict:
-    """Everything that determines a `jaxsleigh.tuning.tune` run but its training starts, as JSON (`Stamp.of_run`
+    """Everything that determines a `jaxsleigh.tuning.tune` run but its training starts, as JSON (`Checkpoint.of_run`
     adds those: a checkpoint only resumes the same run)."""
     return {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
             "loss": {k: float(v) for k, v in loss._asdict().items()},
             "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
             "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
             "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
-
-
-class Stamp(NamedTuple):
-    """What identifies a tuner's checkpoint (the gradient tuner, `tune_law`, the CMA-ES search), written in the layout
-    of every resumable run's checkpoints (`jaxsleigh.files.chunks.write_checkpoint`): the tuner's own arrays and a
-    header of ``key`` (the run's fingerprint), ``settings`` (what the fingerprint hashes, as JSON: a refused resume
-    names what differs) and ``options`` (the command line's, if given)."""
-
-    key: str
-    settings: dict
-    options: Optional[dict] = None
-
-    @classmethod
-    def of(cls, key: str, settings: dict, options: Optional[dict] = None) -> "Stamp":
-        """The settings as JSON reads them back (tuples become lists), so that a refusal compares like with like."""
-        return cls(key, json.loads(json.dumps(settings or {}, sort_keys=True, default=str)), options)
-
-    @classmethod
-    def of_run(cls, settings: dict, ics, options: Optional[dict] = None) -> "Stamp":
-        """The stamp of a tuner's run of ``settings`` on the training starts ``ics``: the key a SHA-256 of the settings
-        (as sorted JSON) and the starts' float64 bytes; the settings recorded with a digest of the starts (``ics``), so
-        that a refusal says "other initial conditions"."""
-        a = np.ascontiguousarray(ics, np.float64)
-        return cls.of(run_key(settings, a), {**settings, "ics": hashlib.sha256(a.tobytes()).hexdigest()[:16]}, options)
-
-    def write(self, path, arrays: dict) -> None:
-        options = None if self.options is None else json.dumps(self.options, sort_keys=True, default=str)
-        write_checkpoint(Path(path), arrays, key=self.key, settings=json.dumps(self.settings, sort_keys=True),
-                         options=options)
-
-    def read(self, path, what: str = "tuner checkpoint") -> Optional[dict]:
-        """The tuner's (or search's, ``what``) checkpoint arrays, ``None`` if there is no file; a ``ValueError`` for a
-        damaged file or one written by a run with other settings than this stamp's (naming what differs)."""
-        path = Path(path)
-        if not path.exists():
-            return None
-        try:
-            a, head = _header(path)
-        except DamagedFileError as e:
-            raise refused(what, path, e.problem) from None
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as e:
-            raise ValueError(f"{what} {str(path)!r} is damaged ({type(e).__name__}: {e}); delete it "
-                             "and start afresh (without --resume)") from None
-        if str(head.get("run_key")) != self.key:
-            try:
-                old = json.loads(str(head["settings"])) if "settings" in head else {}
-            except ValueError:
-                old = {}
-            # 'config.steps 4 in the checkpoint vs 8 now; ...'; nothing when either side is unknown
-            why = joined(setting_differences("", old, self.settings, said={"ics": "other initial conditions"})
-                         ) if old and self.settings else ""
-            raise ValueError(f"{what} {str(path)!r} was written by a run with other settings"
-                             + (f" ({why})" if why else "") + "; rerun that command with --resume, or delete "
-                             "or move the checkpoint (or choose another --out) to start afresh")
-        return a
 
 
 def check_resume(checkpoint, resume: bool, what: str = "tuner checkpoint", run: str = "run") -> None:
@@ -123,12 +65,6 @@ def check_resume(checkpoint, resume: bool, what: str = "tuner checkpoint", run: 
 
 class _Content(Exception):
     """A field of a checkpoint that is not what the run wrote (its message says how)."""
-
-
-def refused(what: str, path, problem: str) -> DamagedFileError:
-    """The `DamagedFileError` of a tuner's checkpoint (``what``) at ``path``: the file, ``problem`` and the fix."""
-    return DamagedFileError(f"{what} {str(path)!r} cannot be resumed: {problem}; delete it and start afresh (without "
-                            f"--resume)", path=Path(path), problem=problem)
 
 
 def checked_state(what: str, path, restore):
@@ -160,7 +96,7 @@ def _finite(prefix: str, x) -> None:
 
 
 def tree_arrays(prefix: str, tree) -> dict:
-    """``{prefix/i: leaf i}`` of a pytree, for `Stamp.write`."""
+    """``{prefix/i: leaf i}`` of a pytree, for `Checkpoint.write`."""
     return {f"{prefix}/{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree_util.tree_leaves(tree))}
 
 
@@ -191,7 +127,7 @@ class TunerCheckpoint:
     parameters batched over the budgets; ``what`` names the file in a refusal.
     """
 
-    def __init__(self, path, stamp: Stamp, row_fields, what: str = "tuner checkpoint"):
+    def __init__(self, path, stamp: Checkpoint, row_fields, what: str = "tuner checkpoint"):
         self.path, self.stamp, self._row_fields, self.what = Path(path), stamp, tuple(row_fields), what
 
     def save(self, it, trainable, opt_state, track, **extra) -> None:
@@ -278,25 +214,11 @@ def _scalar(x):
 def checkpoint_options(path) -> dict | None:
     """The options (``{flag: value}``) a checkpoint was written with, as its writer passed them (``options=``);
     ``None`` for a file without them or one that cannot be read (its loader then says what is wrong)."""
-    try:
-        text = _header(path)[1].get("options")
-        doc = None if text is None else json.loads(str(text))
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError):
-        return None
-    return doc if isinstance(doc, dict) else None
-
-
-def _header(path) -> tuple:
-    """``(arrays, header)`` of a tuner's checkpoint (`jaxsleigh.files.chunks.read_checkpoint_file`); a file of the
-    earlier layout (``key``, ``settings``, ``options`` among the arrays) read the same way."""
-    arrays, head = read_checkpoint_file(path)
-    if not head:
-        head = {"run_key" if k == "key" else k: arrays.pop(k) for k in ("key", "settings", "options") if k in arrays}
-    return arrays, head
+    return Checkpoint.options_of(path)
 
 
 def law_settings(law, names, plant, loss, lr, x64, n_attempts) -> dict:
-    """Everything that determines a `jaxsleigh.tuning.tune_law` run but its training starts (`Stamp.of_run` adds those)
+    """Everything that determines a `jaxsleigh.tuning.tune_law` run but its training starts (`Checkpoint.of_run` adds those)
     and its number of steps (a resumed run may go on for more), as JSON."""
     leaves = {n: np.asarray(v, np.float64).tolist() for n, v in law_leaf_names(law).items()}
     return {"law": str(jax.tree_util.tree_structure(law)), "leaves": leaves, "tuned": list(names),
@@ -309,7 +231,7 @@ class LawCheckpoint:
     step: the next step, the parameters and optimiser state, the best valid candidate, the history and whether
     the descent stopped (at an invalid candidate)."""
 
-    def __init__(self, path, stamp: Stamp):
+    def __init__(self, path, stamp: Checkpoint):
         self.path, self.stamp, self.what = Path(path), stamp, "tuner checkpoint"
 
     def save(self, it: int, params, opt_state, best, hist: dict, stopped: bool) -> None:

@@ -53,7 +53,7 @@ from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dic
 from ..progress import Progress
 from ..status import Status
 from ..studies.options import RunOptions
-from .checkpoint import Stamp, TuningInterrupted, checked_state
+from .checkpoint import Checkpoint, TuningInterrupted, checked_state
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
@@ -232,7 +232,7 @@ def _to_gains(x_full, d_floor, g0: Gains, names) -> Gains:
                       D if "D_hat" in names else g0.D_hat)
 
 
-def _save(path: Path, stamp: Stamp, state: CMAState, rng, hist: list, top: list) -> None:
+def _save(path: Path, stamp: Checkpoint, state: CMAState, rng, hist: list, top: list) -> None:
     arrays = {"rng": np.array(json.dumps(rng.bit_generator.state)),
               **{f"cma/{f}": np.asarray(v) for f, v in state._asdict().items()},
               **{f"hist/{f}": np.asarray([h.get(f, math.nan) for h in hist], np.float64) for f in _HISTORY}}
@@ -374,8 +374,8 @@ class _Evaluator(NamedTuple):
 
 
 def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, reference, energy_budget: Optional[float],
-                     starts, options: Optional[dict]) -> tuple[dict, Stamp]:
-    """The run's settings (as recorded in its result) and the `Stamp` a checkpoint must match."""
+                     starts, options: Optional[dict]) -> tuple[dict, Checkpoint]:
+    """The run's settings (as recorded in its result) and the `Checkpoint` a checkpoint must match."""
     settings = {"config": config._asdict(), "gains0": gains_to_dict(space.g0),
                 "reference": gains_to_dict(load_gains(reference)), "energy_budget": energy_budget,
                 "tuned": list(space.names), "x64": bool(ev.x64), "d_floor": float(space.d_floor),
@@ -395,7 +395,7 @@ def _search_settings(config: SearchConfig, space: _Space, ev: _Evaluator, refere
     stamped = {**settings, "config": {k: v for k, v in config._asdict().items() if k != "generations"
                                       and not (k == "energy_percentiles" and ev.pcts == (50.0,))
                                       and not (k == "objective" and v == "time")}}
-    return settings, Stamp.of_run(stamped, ev.ics, options)
+    return settings, Checkpoint.of_run(stamped, ev.ics, options)
 
 
 class _Budget(NamedTuple):
@@ -437,7 +437,7 @@ class _SearchState:
 
 
 def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: SearchConfig,
-           resume_from: Optional[Path], stamp: Stamp) -> _SearchState:
+           resume_from: Optional[Path], stamp: Checkpoint) -> _SearchState:
     """A fresh run from the starting gains (candidate 1 of ``ref``, kept if feasible), or the one
     checkpointed at ``resume_from`` if that file exists."""
     rng = np.random.default_rng(config.seed)
@@ -462,7 +462,7 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
 
 
 def _generations(run: _SearchState, space: _Space, ev: _Evaluator, budget: _Budget, config: SearchConfig,
-                 ckpt: Optional[Path], stamp: Stamp, progress: Any) -> None:
+                 ckpt: Optional[Path], stamp: Checkpoint, progress: Any) -> None:
     """The remaining generations of ``run`` (updated in place), each checkpointed and reported."""
     with Progress(progress, desc="search (CMA-ES)") as bar:
         while int(run.state.generation) < config.generations:

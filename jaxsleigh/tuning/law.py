@@ -23,7 +23,7 @@ from ..model.controller import as_controller, is_paper_law, law_leaf_names, posi
 from ..integrate.engine import initial_w
 from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
-from .checkpoint import LawCheckpoint, Stamp, TuningInterrupted, check_resume, law_settings
+from .checkpoint import LawCheckpoint, Checkpoint, TuningInterrupted, check_resume, law_settings
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, valid_starts
 from ..controllers.paper import PaperLaw
@@ -256,7 +256,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64
         coords = law_coordinates(law, tune, dtype=dtype)
-        store = None if checkpoint is None else LawCheckpoint(checkpoint, Stamp.of_run(
+        store = None if checkpoint is None else LawCheckpoint(checkpoint, Checkpoint.of_run(
             law_settings(law, coords.names, plant, loss, lr, x64, n_attempts), ics5, options))
 
         def f(x):

@@ -22,7 +22,7 @@ import optax
 
 from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
-from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, check_resume, tune_settings
+from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume, tune_settings
 from .gradients import GRADIENT_MODES, make_value_and_grad
 from .objective import LossConfig, make_training_set
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_params, parse_tune, params_from_gains, \
@@ -395,7 +395,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
         run, trainable, opt_state = prepare_run(g0, names, ics, steps, config, loss, plant, robust, guard, x64, d_floor)
         ctx = run.ctx
         track = CandidateTrack(float(loss.multiplier), math.isfinite(float(loss.energy_budget)))
-        store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(
+        store = None if checkpoint is None else TunerCheckpoint(checkpoint, Checkpoint.of_run(
             tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, starts), ics, options),
             TuneHistory._fields)
         saved = store.load(trainable, opt_state, ctx.groups, track, steps) if store is not None and resume else None

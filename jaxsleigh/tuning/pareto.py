@@ -32,7 +32,7 @@ import optax
 from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
 from .objective import LossConfig, make_training_set, objective
-from .checkpoint import Stamp, TunerCheckpoint, TuningInterrupted, check_resume
+from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume
 from .optimizer import CandidateTrack, GradientRun, TuneConfig, TuneHistory, prepare_run, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
@@ -143,7 +143,7 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
         settings (`finished_points`); they are kept, not recomputed.
       checkpoint: ``"vmap"``: a file for the whole vmapped optimiser's state (every budget's parameters, optax
         state, multiplier and candidates), written atomically after every iteration in the layout of every
-        resumable run (`jaxsleigh.tuning.checkpoint.Stamp`); ``resume=True`` continues from it to the front an
+        resumable run (`jaxsleigh.tuning.checkpoint.Checkpoint`); ``resume=True`` continues from it to the front an
         uninterrupted run computes, bit for bit, and refuses one written with other settings (naming them);
         ``options`` (the command's) are recorded in it.
 
@@ -269,7 +269,7 @@ def _front_vmap(budgets, gains0, starts, config, loss, tune_names, plant, x64, d
         base, trainable, opt_state = prepare_run(load_gains(gains0), parse_tune(tune_names), ics, config.steps, config,
                                               loss, plant, None, None, x64, d_floor, lanes=nb)
         tracks = [CandidateTrack(float(loss.multiplier), True) for _ in range(nb)]
-        store = None if checkpoint is None else TunerCheckpoint(checkpoint, Stamp.of_run(_as_json(
+        store = None if checkpoint is None else TunerCheckpoint(checkpoint, Checkpoint.of_run(_as_json(
             {**settings, "plant": None if plant is None else plant_to_dict(plant), "d_floor": float(d_floor)}), ics,
             options), TuneHistory._fields, "front checkpoint")
         run = _VmapRun(budgets, tracks, base, np.ones(nb, bool), store)

@@ -42,11 +42,13 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
+from ..files.checkpoint import differences
 from ..files.runlock import RunLock, settings_fingerprint
 from ..files.runner import PYTHON_WORDS, Words
 from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
 from ..validate import writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
+from .history import save_arrays
 from .cma_search import NoFeasibleCandidate, SearchConfig
 from .objective import LossConfig
 from .optimizer import TuneConfig
@@ -54,7 +56,6 @@ from .starts import UniformStarts, draw_starts
 from .law_file import save_law
 from .validation import validation_dict
 from .pareto import finished_points, front_settings, load_front
-from ..files.npz import atomic_write
 from ..model.damping import damping_from_name
 
 __all__ = ["TuningRun", "RunOutcome", "HeldOut", "tune_run", "search_run", "law_run", "front_run"]
@@ -178,13 +179,11 @@ class TuningRun:
         if old is None:
             return
         old = {k.lstrip("-").replace("-", "_"): v for k, v in old.items()}     # earlier versions recorded flags
-        for name, now in self.options.items():
-            then = old.get(name)
-            if then != now:
-                raise ValueError(f"{self.words.option(name).rstrip('=')} differs from the checkpoint's ({_shown(then)} "
-                                 f"in the checkpoint vs {_shown(now)} now): rerun with the same options and "
-                                 f"{self.words.resume} to continue it, or choose another {self.words.out} to start "
-                                 f"afresh")
+        diffs = differences({k: old.get(k) for k in self.options}, self.options, show=self.words.shown, sort=False,
+                            flat=True)
+        if diffs:
+            raise ValueError(f"{diffs[0]}: rerun with the same options and {self.words.resume} to continue it, or "
+                             f"choose another {self.words.out} to start afresh")
 
 
 def as_run(run) -> TuningRun:
@@ -257,7 +256,7 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
                              frontier=frontier)
         except NoFeasibleCandidate as e:          # finished: its history is kept, and its checkpoint
             history = e.history
-            _history(run, lambda p: _save_arrays(p, history))
+            _history(run, lambda p: save_arrays(p, history))
             raise
 
     def write(res, **fields) -> tuple:
@@ -269,7 +268,7 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
                    reference_figures=res.reference, best_generation=res.best_generation,
                    generations_run=res.settings["generations_run"], seed=config.seed, batch=config.batch,
                    population=config.population, plant=_plant_record(plant), x64=bool(x64), **fields)
-        return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+        return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
     return _tuner_run(run, "search", work, write,
                       lambda r: _held_out_rows(r.initial, r.gains, plant, x64, held_out, "searched"), held_out)
@@ -297,7 +296,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
                  tuned=list(names), training_loss=res.loss, training_energy=res.energy, energy_budget=budget,
                  seed=seed, batch=batch, x64=bool(x64), plant=_plant_record(plant),
                  history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **fields)
-        return (run.out, *_history(run, lambda p: _save_arrays(p, res.history)))
+        return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
     met = (lambda r: _budget_met(loss.energy_budget, r.energy))
     o = _tuner_run(run, "tuning run", lambda: tu.tune_law(
@@ -453,11 +452,6 @@ def _history(run: TuningRun, write) -> list:
     return [Path(write(run.history) or run.history)]
 
 
-def _save_arrays(path: Path, arrays: dict) -> Path:
-    atomic_write(path, lambda fh: np.savez(fh, **{k: np.asarray(v) for k, v in arrays.items()}))
-    return path
-
-
 def _budget(energy_budget) -> Optional[float]:
     """The energy budget as a number, ``None`` for none (``inf``)."""
     b = float(energy_budget)
@@ -479,13 +473,3 @@ def _plant_record(plant) -> dict:
              and all(np.array_equal(a, b) for a, b in zip(damping_from_name(n), d))]
     return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
             "damping": named[0] if named else type(d).__name__}
-
-
-def _shown(v) -> str:
-    """An option's value in a message: ``none`` when unset, ``on`` / ``off`` for a switch."""
-    if v is None:
-        return "none"
-    if isinstance(v, bool):
-        return "on" if v else "off"
-    return ",".join(map(str, v)) if isinstance(v, list) else str(v)
-
