@@ -226,3 +226,58 @@ def test_a_front_compiles_the_optimiser_step_once_per_setting_not_per_point():
     # optimiser per point added a compiled step (kept for good) per point, and memory grew with the points
     assert info.currsize == 2 and info.hits == 2
     assert compiled() - before == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# optimum, tune, bench, simulate: every size is estimated before any work, on the command line and in Python
+# ---------------------------------------------------------------------------------------------
+
+def _no_work(monkeypatch, target, name):
+    def refused(*a, **k):
+        raise AssertionError(f"{name} ran before the size check")
+
+    monkeypatch.setattr(target, name, refused)
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--samples", "4", "--horizons", "1e9"],
+     ("--horizons up to 1e+09 s: 80,000,000,064 RK4 steps held for the gradient (8 problems at once x "
+      "10,000,000,008 steps of at most 0.1 s) need about 40,233.1 GiB of host memory, more than the 4.0 GiB "
+      "available")),
+    (["--samples", "1000000000"], "--samples: 1,000,000,000 starts need about 3,434.7 GiB"),
+    (["--samples", "4", "--horizons", "5,1e12"], "--horizons up to 1e+12 s: 80,000,000,000,064 RK4 steps"),
+    (["--samples", "1", "--guesses", "1", "--horizons", "1e4", "--inner", "100000"],
+     ("--horizons up to 10000 s (100,008 RK4 steps) x --outer 20 x --inner 100,000: the steps of one problem's "
+      "iterations 200,016,000,000 is more than the 600,000,000 allowed")),
+    (["--samples", "4", "--inner", "100000"], "--inner 100,000: the steps of one problem's iterations 816,000,000"),
+])
+def test_cli_optimum_refuses_sizes_before_drawing_or_solving(four_gib, tmp_path, capsys, monkeypatch, argv, msg):
+    from jaxsleigh.studies import optimum
+    from jaxsleigh.tuning.starts import UniformStarts
+
+    _no_work(monkeypatch, optimum, "_solve_starts")
+    _no_work(monkeypatch, UniformStarts, "__call__")
+    out = tmp_path / "opt.npz"
+    rc = cli.main(["optimum", *argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err, err
+    assert not out.exists() and not (tmp_path / "opt.npz.chunks").exists()
+
+
+def test_optimum_refuses_sizes_in_python(four_gib, monkeypatch):
+    import jaxsleigh as js
+    from jaxsleigh.studies import optimum
+
+    _no_work(monkeypatch, optimum, "_solve_starts")
+    start = np.array([[1.0, 1.0, 0.5]])
+    with pytest.raises(ValueError, match=r"^horizons up to 1e\+09 s: 20,000,000,016 RK4 steps held for the gradient "
+                                         r".* use shorter horizons, or solve fewer problems at once \(a smaller "
+                                         r"run.chunk_size, options.guesses 1\)"):
+        js.optimum(start, horizons=(5.0, 1e9))
+    with pytest.raises(ValueError, match=r"^starts: 100,000 starts need about .* GiB .* give fewer starts, fewer "
+                                         r"horizons or fewer options.intervals"):
+        js.optimum(np.tile(start, (100_000, 1)), horizons=np.arange(1.0, 101.0),
+                   options=js.OptimumOptions(intervals=4096))
+    with pytest.raises(ValueError, match=r"options.inner 100,000: the steps of one problem's iterations .* more than "
+                                         r"the 600,000,000 allowed"):
+        js.optimum(start, options=js.OptimumOptions(inner=100_000))
