@@ -281,3 +281,54 @@ def test_optimum_refuses_sizes_in_python(four_gib, monkeypatch):
     with pytest.raises(ValueError, match=r"options.inner 100,000: the steps of one problem's iterations .* more than "
                                          r"the 600,000,000 allowed"):
         js.optimum(start, options=js.OptimumOptions(inner=100_000))
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--batch", "1000000000"], ("--batch: 1,000,000,000 training starts need about 18,626.5 GiB of host memory, "
+                                 "more than the 4.0 GiB available; use a smaller --batch")),
+    (["--batch", "1099511627776"], "--batch must be <= 2147483646"),
+    (["--validate", "1000000000"], "--validate: 1,000,000,000 starts need about 372.5 GiB"),
+    (["--search", "--validate", "10000000000"], "--validate must be <= 2147483646"),
+    (["--search", "--validate", "20000000"], "--validate: 20,000,000 starts need about 7.5 GiB"),
+    (["--t-final", "1e9"], ("--t-final 1e+09 s needs at least 10,000,000,000 steps of at most the step cap "
+                            "(10 x --dt) 0.1 s, more than the 4,000 attempted steps a start may take (--n-attempts)")),
+    (["--t-final", "1e12", "--n-attempts", "5000"], "use --t-final 500 or less, or raise --n-attempts"),
+    (["--steps", "100000000"], "--steps 100,000,000 is more than the 10,000 allowed"),
+    (["--steps", "20000", "--controller", "sontag"], "--steps 20,000 is more than the 10,000 allowed"),
+    (["--pareto", "50", "--front-method", "vmap", "--batch", "100000"],
+     "--batch x --pareto: 5,000,000 training starts need about 93.1 GiB"),
+])
+def test_cli_tune_refuses_sizes_before_tuning(four_gib, tmp_path, capsys, monkeypatch, argv, msg):
+    from jaxsleigh.tuning import cma_search, optimizer, pareto
+    from jaxsleigh.tuning.starts import UniformStarts
+
+    for module, name in ((optimizer, "prepare_run"), (UniformStarts, "__call__"), (cma_search, "search"),
+                         (pareto, "training_energy")):
+        _no_work(monkeypatch, module, name)
+    out = tmp_path / "g.json"
+    rc = cli.main(["tune", *argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_tuners_refuse_sizes_in_python(four_gib, tmp_path, monkeypatch):
+    from jaxsleigh import tuning as tu
+    from jaxsleigh.tuning import optimizer
+    from jaxsleigh.tuning.runs import HeldOut, tune_run
+    from jaxsleigh.tuning.starts import UniformStarts
+
+    _no_work(monkeypatch, optimizer, "prepare_run")
+    _no_work(monkeypatch, UniformStarts, "__call__")
+    with pytest.raises(ValueError, match=r"^steps 20,000 is more than the 10,000 allowed"):
+        tu.tune(config=tu.TuneConfig(steps=20_000))
+    with pytest.raises(ValueError, match=r"^batch: 1,000,000,000 training starts need about 18,626\.5 GiB"):
+        tu.tune(config=tu.TuneConfig(batch=10**9))
+    with pytest.raises(ValueError, match=r"^t_final 1e\+09 s needs at least 10,000,000,000 steps of at most max_step "
+                                         r"0\.1 s, more than the 4,000 attempted steps a start may take \(n_attempts\)"):
+        tu.tune(loss=tu.LossConfig(t_final=1e9))
+    with pytest.raises(ValueError, match=r"^t_final 1e\+12 s"):
+        tu.pareto_front(3, loss=tu.LossConfig(t_final=1e12))
+    with pytest.raises(ValueError, match=r"^held_out.n: 1,000,000,000 starts need about 372\.5 GiB"):
+        tune_run(tmp_path / "g.json", config=tu.TuneConfig(steps=1, batch=2), held_out=HeldOut(n=10**9))
+    assert list(tmp_path.iterdir()) == []
