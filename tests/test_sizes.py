@@ -332,3 +332,20 @@ def test_tuners_refuse_sizes_in_python(four_gib, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"^held_out.n: 1,000,000,000 starts need about 372\.5 GiB"):
         tune_run(tmp_path / "g.json", config=tu.TuneConfig(steps=1, batch=2), held_out=HeldOut(n=10**9))
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--n-ics", "1000000000"], "--n-ics: 1,000,000,000 starts need about 1,862.6 GiB"),
+    (["--n-ics", "100000", "--t-final", "10000"],
+     ("--n-ics 100,000 x 1,000,000 base steps (--t-final / --dt): the trajectory-steps 100,000,000,000 is more "
+      "than the 10,485,760,000 allowed")),
+])
+def test_bench_refuses_sizes_before_drawing_the_workload(four_gib, capsys, monkeypatch, argv, msg):
+    from jaxsleigh.studies import bench
+
+    _no_work(monkeypatch, bench, "workload")
+    rc = cli.main(["bench", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err and "compiling" not in err, err
+    with pytest.raises(ValueError, match=r"^n_ics: 1,000,000,000 starts"):
+        bench.bench(n_ics=10**9)
