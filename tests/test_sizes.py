@@ -349,3 +349,25 @@ def test_bench_refuses_sizes_before_drawing_the_workload(four_gib, capsys, monke
     assert rc == 2 and msg in err and "Traceback" not in err and "compiling" not in err, err
     with pytest.raises(ValueError, match=r"^n_ics: 1,000,000,000 starts"):
         bench.bench(n_ics=10**9)
+
+
+def test_simulate_refuses_saved_points_that_do_not_fit(four_gib, tmp_path, capsys, monkeypatch):
+    import jaxsleigh as js
+    from jaxsleigh.studies import simulate
+
+    _no_work(monkeypatch, simulate, "drive_saving")
+    starts = np.tile([[1.0, 1.0, 0.5]], (1000, 1))
+    np.save(tmp_path / "ics.npy", starts)
+    out = tmp_path / "run.npz"
+    rc = cli.main(["simulate", "--ics", str(tmp_path / "ics.npy"), "--t-final", "4e5", "--save-every", "1",
+                   "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err, err
+    assert ("--ics x --t-final / --save-every: 40,000,001,000 saved points (1,000 starts x 40,000,001 points each) "
+            "need about 7,152.6 GiB of host memory, more than the 4.0 GiB available; save fewer points (a larger "
+            "--save-every, a shorter --t-final) or simulate fewer starts") in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ics.npy"]
+    with pytest.raises(ValueError, match=r"^ics x t_final / saveat.every: 4,000,001,000 saved points"):
+        js.simulate(starts, t_final=4e5)
+    with pytest.raises(ValueError, match=r"^ics x t_final / saveat.every: 40,000,001 saved points \(1 start x"):
+        js.simulate(starts[0], t_final=4e5, saveat=js.SaveAt(every=1))
