@@ -295,6 +295,7 @@ def test_optimum_refuses_sizes_in_python(four_gib, monkeypatch):
     (["--t-final", "1e12", "--n-attempts", "5000"], "use --t-final 500 or less, or raise --n-attempts"),
     (["--steps", "100000000"], "--steps 100,000,000 is more than the 10,000 allowed"),
     (["--steps", "20000", "--controller", "sontag"], "--steps 20,000 is more than the 10,000 allowed"),
+    (["--pareto", "3", "--warm-steps", "100000000"], "--warm-steps 100,000,000 is more than the 10,000 allowed"),
     (["--pareto", "50", "--front-method", "vmap", "--batch", "100000"],
      "--batch x --pareto: 5,000,000 training starts need about 93.1 GiB"),
 ])
@@ -329,6 +330,8 @@ def test_tuners_refuse_sizes_in_python(four_gib, tmp_path, monkeypatch):
         tu.tune(loss=tu.LossConfig(t_final=1e9))
     with pytest.raises(ValueError, match=r"^t_final 1e\+12 s"):
         tu.pareto_front(3, loss=tu.LossConfig(t_final=1e12))
+    with pytest.raises(ValueError, match=r"^warm_steps 100,000,000 is more than the 10,000 allowed"):
+        tu.pareto_front(3, warm_steps=10**8)
     with pytest.raises(ValueError, match=r"^held_out.n: 1,000,000,000 starts need about 372\.5 GiB"):
         tune_run(tmp_path / "g.json", config=tu.TuneConfig(steps=1, batch=2), held_out=HeldOut(n=10**9))
     assert list(tmp_path.iterdir()) == []

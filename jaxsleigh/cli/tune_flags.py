@@ -95,14 +95,17 @@ SIZE_FLAGS = {"steps": "--steps", "batch": "--batch", "t_final": "--t-final", "m
 
 
 def check_sizes(args) -> None:
-    """The sizes of a gradient run, a front or a law's tuning (``--steps``, ``--batch``, ``--t-final`` against
-    ``--n-attempts``) and of the held-out check (``--validate``), checked before any work."""
+    """The sizes of a gradient run, a front or a law's tuning (``--steps``, ``--warm-steps``, ``--batch``,
+    ``--t-final`` against ``--n-attempts``) and of the held-out check (``--validate``), checked before any work."""
     from ..tuning.optimizer import check_sizes as check
 
     vmap = args.pareto is not None and args.front_method == "vmap"
     batch = args.batch * (args.pareto if vmap else 1)
     check(args.steps, batch, args.t_final, 10 * args.dt, args.n_attempts,
           names={**SIZE_FLAGS, "batch": "--batch x --pareto" if vmap else "--batch"})
+    if getattr(args, "warm_steps", None) is not None:
+        check(args.warm_steps, args.batch, args.t_final, 10 * args.dt, args.n_attempts,
+              names={**SIZE_FLAGS, "steps": "--warm-steps"})
     held_out(args)
 
 

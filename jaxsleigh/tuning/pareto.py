@@ -162,6 +162,8 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
+        check_sizes(warm_steps, config.batch, loss.t_final, loss.max_step, config.n_attempts,
+                    names={"steps": "warm_steps"})
     settings = front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
     if method == "warm":
         points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, settings, gains0=gains0, starts=starts,
