@@ -113,8 +113,8 @@ def check_memory(n: int, what: str, *, bytes_per_start: int = BYTES_PER_START, f
         if fix is None:
             fix = "use fewer starts (a coarser grid, fewer --samples) or split the study into several runs"
         for_what = " for the starts and their results" if unit == "starts" else ""
-        raise ValueError(f"{what}: {int(n):,} {unit} need about {need / 2**30:.1f} GiB of host memory{for_what}, "
-                         f"more than the {have / 2**30:.1f} GiB available; {fix}")
+        raise ValueError(f"{what}: {int(n):,} {unit} need about {need / 2**30:,.1f} GiB of host memory{for_what}, "
+                         f"more than the {have / 2**30:,.1f} GiB available; {fix}")
 
 
 def check_count(what: str, n: int, *, maximum: int, reason: str, fix: str) -> int:

@@ -226,3 +226,151 @@ def test_a_front_compiles_the_optimiser_step_once_per_setting_not_per_point():
     # optimiser per point added a compiled step (kept for good) per point, and memory grew with the points
     assert info.currsize == 2 and info.hits == 2
     assert compiled() - before == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# optimum, tune, bench, simulate: every size is estimated before any work, on the command line and in Python
+# ---------------------------------------------------------------------------------------------
+
+def _no_work(monkeypatch, target, name):
+    def refused(*a, **k):
+        raise AssertionError(f"{name} ran before the size check")
+
+    monkeypatch.setattr(target, name, refused)
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--samples", "4", "--horizons", "1e9"],
+     ("--horizons up to 1e+09 s: 80,000,000,064 RK4 steps held for the gradient (8 problems at once x "
+      "10,000,000,008 steps of at most 0.1 s) need about 40,233.1 GiB of host memory, more than the 4.0 GiB "
+      "available")),
+    (["--samples", "1000000000"], "--samples: 1,000,000,000 starts need about 3,434.7 GiB"),
+    (["--samples", "4", "--horizons", "5,1e12"], "--horizons up to 1e+12 s: 80,000,000,000,064 RK4 steps"),
+    (["--samples", "1", "--guesses", "1", "--horizons", "1e4", "--inner", "100000"],
+     ("--horizons up to 10000 s (100,008 RK4 steps) x --outer 20 x --inner 100,000: the steps of one problem's "
+      "iterations 200,016,000,000 is more than the 600,000,000 allowed")),
+    (["--samples", "4", "--inner", "100000"], "--inner 100,000: the steps of one problem's iterations 816,000,000"),
+])
+def test_cli_optimum_refuses_sizes_before_drawing_or_solving(four_gib, tmp_path, capsys, monkeypatch, argv, msg):
+    from jaxsleigh.studies import optimum
+    from jaxsleigh.tuning.starts import UniformStarts
+
+    _no_work(monkeypatch, optimum, "_solve_starts")
+    _no_work(monkeypatch, UniformStarts, "__call__")
+    out = tmp_path / "opt.npz"
+    rc = cli.main(["optimum", *argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err, err
+    assert not out.exists() and not (tmp_path / "opt.npz.chunks").exists()
+
+
+def test_optimum_refuses_sizes_in_python(four_gib, monkeypatch):
+    import jaxsleigh as js
+    from jaxsleigh.studies import optimum
+
+    _no_work(monkeypatch, optimum, "_solve_starts")
+    start = np.array([[1.0, 1.0, 0.5]])
+    with pytest.raises(ValueError, match=r"^horizons up to 1e\+09 s: 20,000,000,016 RK4 steps held for the gradient "
+                                         r".* use shorter horizons, or solve fewer problems at once \(a smaller "
+                                         r"run.chunk_size, options.guesses 1\)"):
+        js.optimum(start, horizons=(5.0, 1e9))
+    with pytest.raises(ValueError, match=r"^starts: 100,000 starts need about .* GiB .* give fewer starts, fewer "
+                                         r"horizons or fewer options.intervals"):
+        js.optimum(np.tile(start, (100_000, 1)), horizons=np.arange(1.0, 101.0),
+                   options=js.OptimumOptions(intervals=4096))
+    with pytest.raises(ValueError, match=r"options.inner 100,000: the steps of one problem's iterations .* more than "
+                                         r"the 600,000,000 allowed"):
+        js.optimum(start, options=js.OptimumOptions(inner=100_000))
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--batch", "1000000000"], ("--batch: 1,000,000,000 training starts need about 18,626.5 GiB of host memory, "
+                                 "more than the 4.0 GiB available; use a smaller --batch")),
+    (["--batch", "1099511627776"], "--batch must be <= 2147483646"),
+    (["--validate", "1000000000"], "--validate: 1,000,000,000 starts need about 372.5 GiB"),
+    (["--search", "--validate", "10000000000"], "--validate must be <= 2147483646"),
+    (["--search", "--validate", "20000000"], "--validate: 20,000,000 starts need about 7.5 GiB"),
+    (["--t-final", "1e9"], ("--t-final 1e+09 s needs at least 10,000,000,000 steps of at most the step cap "
+                            "(10 x --dt) 0.1 s, more than the 4,000 attempted steps a start may take (--n-attempts)")),
+    (["--t-final", "1e12", "--n-attempts", "5000"], "use --t-final 500 or less, or raise --n-attempts"),
+    (["--steps", "100000000"], "--steps 100,000,000 is more than the 10,000 allowed"),
+    (["--steps", "20000", "--controller", "sontag"], "--steps 20,000 is more than the 10,000 allowed"),
+    (["--pareto", "3", "--warm-steps", "100000000"], "--warm-steps 100,000,000 is more than the 10,000 allowed"),
+    (["--pareto", "50", "--front-method", "vmap", "--batch", "100000"],
+     "--batch x --pareto: 5,000,000 training starts need about 93.1 GiB"),
+])
+def test_cli_tune_refuses_sizes_before_tuning(four_gib, tmp_path, capsys, monkeypatch, argv, msg):
+    from jaxsleigh.tuning import cma_search, optimizer, pareto
+    from jaxsleigh.tuning.starts import UniformStarts
+
+    for module, name in ((optimizer, "prepare_run"), (UniformStarts, "__call__"), (cma_search, "search"),
+                         (pareto, "training_energy")):
+        _no_work(monkeypatch, module, name)
+    out = tmp_path / "g.json"
+    rc = cli.main(["tune", *argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_tuners_refuse_sizes_in_python(four_gib, tmp_path, monkeypatch):
+    from jaxsleigh import tuning as tu
+    from jaxsleigh.tuning import optimizer
+    from jaxsleigh.tuning.runs import HeldOut, tune_run
+    from jaxsleigh.tuning.starts import UniformStarts
+
+    _no_work(monkeypatch, optimizer, "prepare_run")
+    _no_work(monkeypatch, UniformStarts, "__call__")
+    with pytest.raises(ValueError, match=r"^steps 20,000 is more than the 10,000 allowed"):
+        tu.tune(config=tu.TuneConfig(steps=20_000))
+    with pytest.raises(ValueError, match=r"^batch: 1,000,000,000 training starts need about 18,626\.5 GiB"):
+        tu.tune(config=tu.TuneConfig(batch=10**9))
+    with pytest.raises(ValueError, match=r"^t_final 1e\+09 s needs at least 10,000,000,000 steps of at most max_step "
+                                         r"0\.1 s, more than the 4,000 attempted steps a start may take \(n_attempts\)"):
+        tu.tune(loss=tu.LossConfig(t_final=1e9))
+    with pytest.raises(ValueError, match=r"^t_final 1e\+12 s"):
+        tu.pareto_front(3, loss=tu.LossConfig(t_final=1e12))
+    with pytest.raises(ValueError, match=r"^warm_steps 100,000,000 is more than the 10,000 allowed"):
+        tu.pareto_front(3, warm_steps=10**8)
+    with pytest.raises(ValueError, match=r"^held_out.n: 1,000,000,000 starts need about 372\.5 GiB"):
+        tune_run(tmp_path / "g.json", config=tu.TuneConfig(steps=1, batch=2), held_out=HeldOut(n=10**9))
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--n-ics", "1000000000"], "--n-ics: 1,000,000,000 starts need about 1,862.6 GiB"),
+    (["--n-ics", "100000", "--t-final", "10000"],
+     ("--n-ics 100,000 x 1,000,000 base steps (--t-final / --dt): the trajectory-steps 100,000,000,000 is more "
+      "than the 10,485,760,000 allowed")),
+])
+def test_bench_refuses_sizes_before_drawing_the_workload(four_gib, capsys, monkeypatch, argv, msg):
+    from jaxsleigh.studies import bench
+
+    _no_work(monkeypatch, bench, "workload")
+    rc = cli.main(["bench", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "Traceback" not in err and "compiling" not in err, err
+    with pytest.raises(ValueError, match=r"^n_ics: 1,000,000,000 starts"):
+        bench.bench(n_ics=10**9)
+
+
+def test_simulate_refuses_saved_points_that_do_not_fit(four_gib, tmp_path, capsys, monkeypatch):
+    import jaxsleigh as js
+    from jaxsleigh.studies import simulate
+
+    _no_work(monkeypatch, simulate, "drive_saving")
+    starts = np.tile([[1.0, 1.0, 0.5]], (1000, 1))
+    np.save(tmp_path / "ics.npy", starts)
+    out = tmp_path / "run.npz"
+    rc = cli.main(["simulate", "--ics", str(tmp_path / "ics.npy"), "--t-final", "4e5", "--save-every", "1",
+                   "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err, err
+    assert ("--ics x --t-final / --save-every: 40,000,001,000 saved points (1,000 starts x 40,000,001 points each) "
+            "need about 7,152.6 GiB of host memory, more than the 4.0 GiB available; save fewer points (a larger "
+            "--save-every, a shorter --t-final) or simulate fewer starts") in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ics.npy"]
+    with pytest.raises(ValueError, match=r"^ics x t_final / saveat.every: 4,000,001,000 saved points"):
+        js.simulate(starts, t_final=4e5)
+    with pytest.raises(ValueError, match=r"^ics x t_final / saveat.every: 40,000,001 saved points \(1 start x"):
+        js.simulate(starts[0], t_final=4e5, saveat=js.SaveAt(every=1))

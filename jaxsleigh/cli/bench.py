@@ -31,9 +31,10 @@ def add_bench(subparsers) -> None:
 
 
 def _cmd_bench(args) -> int:
-    from ..studies.bench import bench
+    from ..studies.bench import bench, check_bench_sizes
 
     solve_config(t_final=args.t_final, dt=args.dt, x64=args.x64, flags=FLAGS)
+    check_bench_sizes(args.n_ics, args.t_final, args.dt, {"n_ics": "--n-ics", "t_final": "--t-final", "dt": "--dt"})
     check_outputs(folders=[args.cache] if args.cache else [])
     print(f"{PROG} bench: compiling, then timing {args.n_ics} starts over {args.t_final:g} s "
           f"(a float64 reference first; about a minute on 2 CPU cores)...", file=sys.stderr, flush=True)

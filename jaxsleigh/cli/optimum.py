@@ -23,7 +23,8 @@ from .chunked import add_run_options, run_chunked_command
 from .common import PROG
 from .common import number as _number
 from .common import whole as _whole
-from ..studies.optimum import OptimumOptions, OptimumStatus, as_horizons, optimum, save_optimum
+from ..studies.optimum import (OPTIMUM_CHUNK, OptimumOptions, OptimumStatus, as_horizons, check_sizes, optimum,
+                               save_optimum)
 from ..studies.options import RunOptions
 
 __all__ = ["add_optimum", "run_optimum_command"]
@@ -121,14 +122,19 @@ def run_optimum_command(args) -> int:
     def check() -> None:
         if args.eps <= 0 or args.p_tol <= 0:
             raise ValueError("--eps and --p-tol must be > 0, e.g. --eps 0.05 --p-tol 1e-3")
+        st["options"] = OptimumOptions(intervals=args.intervals, p_tol=args.p_tol, outer=args.outer,
+                                       inner=args.inner, guesses=args.guesses).check()
         if args.ics is not None:
             st["starts"] = load_ics(args.ics, hint="or use --samples N")
-        else:
+        flags = {"starts": "--samples" if args.ics is None else f"--ics {args.ics}", "horizons": "--horizons",
+                 "intervals": "--intervals", "guesses": "--guesses", "outer": "--outer", "inner": "--inner",
+                 "chunk_size": "--chunk-size"}
+        n = args.samples if args.ics is None else st["starts"].shape[0]
+        check_sizes(n, args.horizons, st["options"], args.chunk_size or OPTIMUM_CHUNK, flags)   # before the draw
+        if args.ics is None:
             from ..tuning.starts import UniformStarts
 
             st["starts"] = UniformStarts()(np.random.default_rng(args.seed), args.samples)
-        st["options"] = OptimumOptions(intervals=args.intervals, p_tol=args.p_tol, outer=args.outer,
-                                       inner=args.inner, guesses=args.guesses).check()
 
     def study(checkpoint_dir, resume, shard):
         return optimum(st["starts"], args.horizons, eps=args.eps, options=st["options"],

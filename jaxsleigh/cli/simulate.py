@@ -14,7 +14,7 @@ from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_pr
 from .options import stepsize_from_args
 from ..files.npz import npz_path, write_npz
 from ..studies.config import solve_config
-from ..studies.simulate import simulate
+from ..studies.simulate import check_saves, simulate
 
 __all__ = ["add_simulate"]
 
@@ -79,6 +79,8 @@ def _cmd_simulate(args) -> int:
     cfg = solve_config(plant=plant, **law_kwargs(law), t_final=args.t_final, dt=args.dt, save_every=save_every,
                        stepsize=stepsize, x64=args.x64, flags=FLAGS)
     ics = ics_from_args(args)
+    check_saves(ics, cfg, {"ics": "--ics" if args.ics else "--ic", "t_final": "--t-final",
+                           "every": "--sample-period" if args.sample_period is not None else "--save-every"})
     check_outputs(named={"--out": args.out}, suffix=".npz")
     with claim_output(npz_path(args.out), args):
         t0 = time.perf_counter()

@@ -28,7 +28,7 @@ import numpy as np
 
 from .common import EXIT_INTERRUPTED, EXIT_NONE_OK, PROG, model_from_args
 from .tune_flags import (GRADIENT_FLAGS, LAW_FLAGS, PARETO_FLAGS, SEARCH_FLAGS, SEARCH_ONLY, check_pareto, check_search,
-                         front_budgets, held_out, in_flags, loss_config, search_config, stepsize, tune_config,
+                         check_sizes, front_budgets, held_out, in_flags, loss_config, search_config, stepsize, tune_config,
                          tuning_run)
 from .tune_options import EPILOG, add_tune_options
 from ..model.params import Gains
@@ -80,6 +80,7 @@ def _tune_mode(args) -> int:
         verb, them = ("belongs", "it") if len(used) == 1 else ("belong", "them")   # --frontier belongs to --search
         raise ValueError(f"{', '.join(used)} {verb} to --search; add --search or drop {them}")
     stepsize(args)
+    check_sizes(args)
     if args.pareto is not None:
         return _cmd_pareto(args)
     if args.plot is not None:         # refused now, not silently ignored after the run

@@ -12,7 +12,7 @@ from ..integrate.stepsize import StepSizeController
 from ..validate import check_count, check_memory
 
 __all__ = ["LAW_FLAGS", "GRADIENT_FLAGS", "SEARCH_FLAGS", "tuning_run", "tune_config", "loss_config",
-           "search_config", "held_out", "stepsize", "check_search", "check_pareto", "front_budgets", "in_flags",
+           "search_config", "held_out", "stepsize", "check_search", "check_sizes", "check_pareto", "front_budgets", "in_flags",
            "PARETO_FLAGS"]
 
 #: The flags that determine a run of each mode, in the order a refused ``--resume`` names them (``--steps`` is
@@ -86,7 +86,27 @@ def held_out(args):
     """The ``--validate N`` check (`jaxsleigh.tuning.runs.HeldOut`): N starts drawn with seed ``--seed + 1000``."""
     from ..tuning.runs import HeldOut
 
-    return HeldOut(args.validate, args.seed + 1000, stepsize(args))
+    return HeldOut(args.validate, args.seed + 1000, stepsize(args)).check("--validate")
+
+
+#: The tuners' size keywords as flags (`jaxsleigh.tuning.optimizer.check_sizes`).
+SIZE_FLAGS = {"steps": "--steps", "batch": "--batch", "t_final": "--t-final", "max_step": "the step cap (10 x --dt)",
+              "n_attempts": "--n-attempts"}
+
+
+def check_sizes(args) -> None:
+    """The sizes of a gradient run, a front or a law's tuning (``--steps``, ``--warm-steps``, ``--batch``,
+    ``--t-final`` against ``--n-attempts``) and of the held-out check (``--validate``), checked before any work."""
+    from ..tuning.optimizer import check_sizes as check
+
+    vmap = args.pareto is not None and args.front_method == "vmap"
+    batch = args.batch * (args.pareto if vmap else 1)
+    check(args.steps, batch, args.t_final, 10 * args.dt, args.n_attempts,
+          names={**SIZE_FLAGS, "batch": "--batch x --pareto" if vmap else "--batch"})
+    if getattr(args, "warm_steps", None) is not None:
+        check(args.warm_steps, args.batch, args.t_final, 10 * args.dt, args.n_attempts,
+              names={**SIZE_FLAGS, "steps": "--warm-steps"})
+    held_out(args)
 
 
 def check_search(args) -> None:

@@ -32,6 +32,7 @@ from ..cores import available_cores, workers
 from ..integrate.engine import check_ics, drive_plain, initial_w, make_horizon
 from ..model.closed_loop import ClosedLoop
 from ..model.params import paper_gains, paper_plant
+from ..validate import BYTES_PER_START, check_count, check_memory, real, whole
 
 __all__ = ["workload", "reference_final", "final_state_error", "bench", "peak_rss_mb", "machine",
            "C_REFERENCE_SOURCE", "C_VARIANTS", "build_c_reference", "c_reference_run", "c_limit"]
@@ -368,9 +369,33 @@ def _agreement(yc, yc_var: dict, y0w, status0, args, horizon) -> dict:
     return agreement
 
 
+#: The most trajectory-steps (starts x base steps) of one benchmark: the default 4,096 starts x 10,000 steps take
+#: about a minute on 2 CPU cores (a float64 reference and four timed runs), so this bound about four hours.
+MAX_BENCH_WORK = 2**20 * 10_000
+
+
+def check_bench_sizes(n_ics, t_final, dt, names: dict | None = None) -> int:
+    """``n_ics`` checked before any work: the starts, the float64 reference and the results of the four timed runs
+    in host memory (5 x `jaxsleigh.validate.BYTES_PER_START` per start), and at most `MAX_BENCH_WORK`
+    trajectory-steps (``n_ics x t_final / dt``). ``names`` maps ``n_ics``, ``t_final`` and ``dt`` to the keywords
+    or flags the messages name. Returns ``n_ics``."""
+    w = {"n_ics": "n_ics", "t_final": "t_final", "dt": "dt", **(names or {})}
+    n = whole(w["n_ics"], n_ics, example=4096)
+    steps = round(real(w["t_final"], t_final, positive=True) / real(w["dt"], dt, positive=True))
+    check_memory(n, w["n_ics"], bytes_per_start=5 * BYTES_PER_START,
+                 fix=f"use a smaller {w['n_ics']} (4096 is the default)")
+    check_count(f"{w['n_ics']} {n:,} x {steps:,} base steps ({w['t_final']} / {w['dt']}): the trajectory-steps",
+                n * steps, maximum=MAX_BENCH_WORK,
+                reason="the default 4,096 x 10,000 take about a minute on 2 CPU cores, so this bound about four hours",
+                fix=f"use a smaller {w['n_ics']} or a shorter {w['t_final']}")
+    return n
+
+
 def bench(n_ics: int = 4096, t_final: float = 100.0, dt: float = 0.01, x64: bool = False, seed: int = 0,
           repeats: int = 1, cache_dir: Optional[str] = None) -> dict:
-    """jaxsleigh's own figures on the workload: see the module docstring and the README."""
+    """jaxsleigh's own figures on the workload: see the module docstring and the README. Sizes that do not fit
+    are refused before any work (`check_bench_sizes`)."""
+    n_ics = check_bench_sizes(n_ics, t_final, dt)
     ics = workload(n_ics, seed)
     steps = int(round(t_final / dt))
     ref = reference_final(ics, t_final=t_final, cache_dir=cache_dir)

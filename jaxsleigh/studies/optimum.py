@@ -65,7 +65,7 @@ from ..files.chunks import ChunkStore
 from ..files.npz import damaged, damping_name, read_npz, value_problem, write_npz_deterministic
 from ..progress import Progress
 from .options import RunOptions, study_options, takes_objects
-from ..validate import output_file
+from ..validate import check_count, check_memory, output_file
 
 __all__ = ["OptimumOptions", "OptimumStatus", "OptimumResult", "Gap", "optimum", "initial_guesses", "energy_for_time",
            "time_for_energy", "save_optimum", "load_optimum", "rollout"]
@@ -627,6 +627,52 @@ def _settings(plant, eps, opts, horizons) -> dict:
 #: Starts solved (and checkpointed) at once when ``run.chunk_size`` is ``None``.
 OPTIMUM_CHUNK = 64
 
+#: Host memory the reverse pass of one problem keeps per RK4 step (float64; XLA's memory analysis of the compiled
+#: value-and-gradient measured 534 bytes).
+BYTES_PER_RK4_STEP = 540
+#: The most RK4 steps of one problem's iterations: steps of one simulation x outer x inner (an L-BFGS iteration runs 14
+#: simulations: the gradient and 13 trial steps). 256 starts x 4 horizons with 2 guesses (750 steps x 600 iterations
+#: per start and guess) took 501 s on 2 CPU cores: 2.2 us per step and iteration of one guess, so 600,000,000 (a
+#: horizon of 100,000 s with the default 20 x 30 iterations) take about 45 minutes per start and horizon with 2 guesses.
+MAX_PROBLEM_STEPS = 600_000_000
+
+#: The names `check_sizes` gives in its messages: the Python keywords (the command line passes its flags).
+KEYWORDS = {"starts": "starts", "horizons": "horizons", "intervals": "options.intervals",
+            "guesses": "options.guesses", "outer": "options.outer", "inner": "options.inner",
+            "chunk_size": "run.chunk_size"}
+
+
+def check_sizes(n_starts: int, horizons, opts: OptimumOptions, chunk_size: int, names: dict | None = None) -> None:
+    r"""Refuse, before any work, a run that would not fit in memory or would take days (`ValueError` naming what to
+    change: ``names`` maps `KEYWORDS`' keys to the keywords or flags).
+
+    * results: per start \(8 \cdot 2 H (2N + 9)\) bytes (energy, u, status, final state, KKT, guess, kept per chunk
+      and concatenated), \(H\) horizons of \(N\) intervals;
+    * the gradient: \(B \cdot N \lceil T_{max} / (N\,\Delta t_{max}) \rceil\) RK4 steps of
+      `BYTES_PER_RK4_STEP`, \(B\) = min(chunk, S) x guesses problems solved at once;
+    * time: at most `MAX_PROBLEM_STEPS` RK4 steps x iterations for one problem (steps x outer x inner).
+    """
+    w = {**KEYWORDS, **(names or {})}
+    h = np.asarray(horizons, np.float64)
+    H, N, K = h.size, int(opts.intervals), int(opts.guesses)
+    check_memory(n_starts, w["starts"], bytes_per_start=40 + 16 * H * (2 * N + 9),
+                 fix=f"give fewer starts{'' if w['starts'] == 'starts' else ' (' + w['starts'] + ')'}, fewer "
+                     f"{w['horizons']} or fewer {w['intervals']}, or split the starts into several runs")
+    longest = float(h.max())
+    steps = N * _substeps(longest, N, float(opts.max_dt))
+    lanes = min(int(chunk_size), int(n_starts)) * K
+    check_memory(lanes * steps, f"{w['horizons']} up to {longest:g} s", bytes_per_start=BYTES_PER_RK4_STEP,
+                 unit=f"RK4 steps held for the gradient ({lanes:,} problems at once x {steps:,} steps of at most "
+                      f"{float(opts.max_dt):g} s)",
+                 fix=f"use shorter {w['horizons']}, or solve fewer problems at once (a smaller {w['chunk_size']}, "
+                     f"{w['guesses']} 1)")
+    outer, inner = int(opts.outer), int(opts.inner)
+    check_count(f"{w['horizons']} up to {longest:g} s ({steps:,} RK4 steps) x {w['outer']} {outer:,} x {w['inner']} "
+                f"{inner:,}: the steps of one problem's iterations", steps * outer * inner, maximum=MAX_PROBLEM_STEPS,
+                reason="every iteration runs 14 simulations, and 600,000,000 take about 45 minutes per start and "
+                       "horizon on 2 CPU cores",
+                fix=f"use shorter {w['horizons']} or fewer iterations ({w['outer']}, {w['inner']})")
+
 
 @takes_objects
 def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantParams] = None, eps: float = 0.05,
@@ -667,6 +713,7 @@ def optimum(starts, horizons=(5.0, 10.0, 20.0, 40.0), *, plant: Optional[PlantPa
     chunk_size = OPTIMUM_CHUNK if run.chunk_size is None else run.chunk_size
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
+    check_sizes(starts.shape[0], horizons, opts, chunk_size)
     settings = _settings(plant, eps, opts, horizons)
     S, H, N = starts.shape[0], horizons.size, opts.intervals
     bounds = [(lo, min(lo + chunk_size, S)) for lo in range(0, S, chunk_size)]

@@ -31,6 +31,7 @@ from .sampled import sampled_solution
 from ..status import CONVERGED, VALID, has_result
 from .ensemble import summary_repr
 from ..model.lanes import lane_table
+from ..validate import check_memory
 
 __all__ = ["Solution", "simulate", "DEFAULT_RTOL", "DEFAULT_ATOL"]
 
@@ -152,6 +153,30 @@ def _outputs_lanes(yw, t, args: ClosedLoop, chart=WChart()):
     return jax.vmap(lambda y, a: _outputs.__wrapped__(y[None], t, a, chart), in_axes=(0, axes))(yw, args)
 
 
+#: Host memory one saved point of one start takes: the state, its outputs (q, p, u, H_d) and their copies (the
+#: engine's trajectory, the host arrays, the file written), about 24 numbers of 8 bytes.
+BYTES_PER_SAVE = 192
+
+
+def check_saves(ics, cfg, names: dict | None = None) -> None:
+    r"""Refuse, before any work, trajectories that would not fit in memory: \(N\) starts x the saved points
+    (``t_final / (dt x saveat.every) + 1``, a sampled law's ``t_final / period + 1``) x `BYTES_PER_SAVE`.
+    ``names`` maps ``ics``, ``t_final`` and ``every`` to the keywords or flags the message names."""
+    w = {"ics": "ics", "t_final": "t_final", "every": "saveat.every", **(names or {})}
+    shape = np.shape(ics)
+    n = 1 if len(shape) < 2 else int(shape[0])
+    h = cfg.horizon
+    if is_sampled(cfg.controller):
+        saves = int(np.ceil(h.t_final / float(cfg.controller.sampler.period) - 1e-9)) + 1
+        every = w["every"] if "every" in (names or {}) else "the sample period"
+        fix = f"use a shorter {w['t_final']}, a longer {every} or fewer starts"
+    else:
+        saves = h.n_out + 1
+        fix = f"save fewer points (a larger {w['every']}, a shorter {w['t_final']}) or simulate fewer starts"
+    check_memory(n * saves, f"{w['ics']} x {w['t_final']} / {w['every']}", bytes_per_start=BYTES_PER_SAVE,
+                 unit=f"saved points ({n:,} start{'s' if n != 1 else ''} x {saves:,} points each)", fix=fix)
+
+
 def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float, dt: float,
               x64: bool, stepsize: StepSizeController, saveat: SaveAt, run: RunOptions) -> Solution:
     """`simulate` (see there) with its option objects checked (`study_options`; ``saveat.every``
@@ -165,6 +190,7 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     reject_traced("simulate", **locals())    # first: a NumPy front, neither jittable nor differentiable
     cfg = solve_config(plant=plant, gains=gains, t_final=t_final, dt=dt, save_every=saveat.every, x64=x64,
                        stepsize=stepsize, controller=controller)
+    check_saves(ics, cfg)
     progress = run.progress
     if is_sampled(cfg.controller):
         if cfg.lanes is not None:

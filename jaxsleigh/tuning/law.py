@@ -24,6 +24,7 @@ from ..integrate.engine import initial_w
 from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
 from .checkpoint import LawCheckpoint, Checkpoint, TuningInterrupted, check_resume, law_settings
+from .optimizer import check_sizes
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, valid_starts
 from ..controllers.paper import PaperLaw
@@ -214,6 +215,11 @@ def law_loss(law, y0, plant: PlantParams, cfg: LossConfig, *, n_attempts: int, a
     return loss_from_lanes(lanes, None, cfg)
 
 
+def law_attempts(loss: LossConfig, n_attempts: int | None = None) -> int:
+    """The attempted steps each start may take: ``n_attempts``, by default ``4 t_final / dt + 8``."""
+    return int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)
+
+
 def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Optional[PlantParams] = None,
              loss: LossConfig = LossConfig(), steps: int = 50, lr: float = 0.05, x64: bool = False,
              n_attempts: Optional[int] = None, checkpoint=None, resume: bool = False,
@@ -251,7 +257,8 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
                                  singular=chart.singular, name="training start")
     check_resume(checkpoint, resume)
     plant = as_plant(plant)
-    n_attempts = int(4 * round(loss.t_final / loss.dt) + 8) if n_attempts is None else int(n_attempts)
+    n_attempts = law_attempts(loss, n_attempts)
+    check_sizes(steps, ics5.shape[0], loss.t_final, loss.max_step, n_attempts)
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64

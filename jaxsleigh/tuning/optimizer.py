@@ -29,6 +29,7 @@ from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_p
     split_params
 from .probes import check, hardest, probe
 from .starts import PlantDistribution, UniformStarts, draw_starts, guard_starts, plant_groups
+from ..validate import check_count, check_memory
 
 __all__ = ["CandidateTrack", "TuneConfig", "TuneHistory", "TuneResult", "BacktrackState", "backtracking",
            "make_optimizer", "tune"]
@@ -386,7 +387,7 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
       TuningInterrupted: Ctrl-C during the loop; its ``partial`` is a `TuneResult` with the
         best valid gains so far (not re-checked with the accurate engine) and the history.
     """
-    names, steps, batch = _checked_tune_inputs(tune, config, loss)
+    names, steps, batch = _checked_tune_inputs(tune, config, loss, starts)
     check_resume(checkpoint, resume)
     g0 = load_gains(gains0)
     ics = draw_starts(starts, batch, config.seed)
@@ -410,8 +411,9 @@ def tune(gains0="paper", *, starts=UniformStarts(), config: TuneConfig = TuneCon
     return TuneResult(best_gains, g0, float(best[0]), float(track.rows[0]["loss"]), int(best[1]), history, settings)
 
 
-def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig) -> tuple:
-    """The gains to tune, the steps and the batch; refuses bad settings (ValueError, in a fixed order)."""
+def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig, starts=None) -> tuple:
+    """The gains to tune, the steps and the batch; refuses bad settings (ValueError, in a fixed order), and sizes
+    that cannot be run (`check_sizes`)."""
     names = parse_tune(tune)
     steps = _validate_number("steps", config.steps, integer=True)
     batch = _validate_number("batch", config.batch, integer=True)
@@ -420,7 +422,47 @@ def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig) -> tuple:
     _validate_number("dt", loss.dt)
     if config.mode not in GRADIENT_MODES:
         raise ValueError(f"mode must be one of {GRADIENT_MODES}, got {config.mode!r}")
+    rows = len(starts) if isinstance(starts, np.ndarray) and starts.ndim == 2 else batch
+    check_sizes(steps, rows, loss.t_final, loss.max_step, config.n_attempts)
     return names, steps, batch
+
+
+#: Host memory one training start takes in a gradient run: 17 KB measured (``jaxsleigh tune --steps 1``, peak
+#: resident memory of 1,000 against 16,000 starts, forward mode, float32), rounded up.
+BYTES_PER_TRAINING_START = 20_000
+#: The most optimiser steps of one run: the bound of the search's generations (a run continues with ``resume``).
+MAX_STEPS = 10_000
+#: What `check_sizes` calls each setting: the Python keywords (the command line passes its flags).
+SIZE_KEYWORDS = {"steps": "steps", "batch": "batch", "t_final": "t_final", "max_step": "max_step",
+                 "n_attempts": "n_attempts"}
+
+
+def check_sizes(steps: int, batch: int, t_final: float, max_step: float, n_attempts: int, *,
+                names: dict | None = None) -> None:
+    r"""Refuse, before any work, sizes a gradient run cannot honour (`ValueError` naming what to change; ``names``
+    maps `SIZE_KEYWORDS` to the keywords or flags):
+
+    * ``steps`` above `MAX_STEPS` (each step integrates the whole batch);
+    * ``batch`` starts of `BYTES_PER_TRAINING_START` bytes more than the host memory (`check_memory`);
+    * a horizon the step budget cannot reach, \(\lceil t_{final} / \Delta t_{max} 
+ceil > n_{attempts}\): a start
+      that has not converged runs out of attempts before ``t_final``, and the loss, the soft time divided by
+      ``t_final``, no longer measures the horizon (at ``t_final = 1e9`` it is flat: the starting gains come back).
+    """
+    w = {**SIZE_KEYWORDS, **(names or {})}
+    check_count(w["steps"], int(steps), maximum=MAX_STEPS,
+                reason="each step integrates the whole training batch (the search's generations have the same bound)",
+                fix=f"use {MAX_STEPS:,} or fewer (the learning rate's schedule spans them all)")
+    check_memory(int(batch), w["batch"], bytes_per_start=BYTES_PER_TRAINING_START, unit="training starts",
+                 fix=f"use a smaller {w['batch']} (256 is the default)")
+    need = math.ceil(float(t_final) / float(max_step) - 1e-9)
+    if need > int(n_attempts):
+        raise ValueError(f"{w['t_final']} {float(t_final):g} s needs at least {need:,} steps of at most "
+                         f"{w['max_step']} {float(max_step):g} s, more than the {int(n_attempts):,} attempted steps a "
+                         f"start may take ({w['n_attempts']}): a start that has not converged would stop short of the "
+                         f"horizon, and the loss (the soft time over {w['t_final']}) would not measure it; use "
+                         f"{w['t_final']} {int(n_attempts) * float(max_step):g} or less, or raise {w['n_attempts']} "
+                         f"to {need:,}")
 
 
 class GradientRun(NamedTuple):

@@ -33,7 +33,7 @@ from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dic
 from ..progress import Progress
 from .objective import LossConfig, make_training_set, objective
 from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume
-from .optimizer import CandidateTrack, GradientRun, TuneConfig, TuneHistory, prepare_run, tune
+from .optimizer import CandidateTrack, GradientRun, TuneConfig, TuneHistory, check_sizes, prepare_run, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
 from .starts import UniformStarts, draw_starts
@@ -152,6 +152,9 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
         best valid candidate so far, not re-checked; ``None`` if none).
     """
     budgets = _checked_budgets(method, budgets)
+    # the vmapped front runs every budget's batch at once
+    check_sizes(config.steps, int(config.batch) * (budgets.size if method == "vmap" else 1), loss.t_final,
+                loss.max_step, config.n_attempts)
     if method != "vmap" and (checkpoint is not None or resume):
         raise ValueError("checkpoint and resume are the vmapped front's; a warm front keeps its finished points "
                          "(on_point) and continues from them (done)")
@@ -159,6 +162,8 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
+        check_sizes(warm_steps, config.batch, loss.t_final, loss.max_step, config.n_attempts,
+                    names={"steps": "warm_steps"})
     settings = front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
     if method == "warm":
         points, evals = _front_warm(budgets, t0, warm_steps, on_point, done, settings, gains0=gains0, starts=starts,

@@ -46,13 +46,14 @@ from ..files.checkpoint import differences
 from ..files.runlock import RunLock, settings_fingerprint
 from ..files.runner import PYTHON_WORDS, Words
 from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
-from ..validate import writable_path
+from ..validate import check_memory, whole, writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
 from .history import save_arrays
 from .cma_search import NoFeasibleCandidate, SearchConfig
 from .objective import LossConfig
-from .optimizer import TuneConfig
+from .optimizer import TuneConfig, check_sizes
 from .starts import UniformStarts, draw_starts
+from .law import law_attempts
 from .law_file import save_law
 from .validation import validation_dict
 from .pareto import finished_points, front_settings, load_front
@@ -69,6 +70,13 @@ class HeldOut(NamedTuple):
     n: int = 256
     seed: int = 1000
     stepsize: Any = None
+
+    def check(self, name: str = "held_out.n") -> HeldOut:
+        """Self, or a `ValueError` naming ``name`` (the keyword, or ``--validate``) when the check's ``n`` starts
+        would not fit in memory: refused before the run, not after it (`jaxsleigh.validate.check_memory`)."""
+        n = whole(name, self.n, minimum=0, example=256)
+        check_memory(n, name, fix=f"check on fewer starts ({name} 256 is the default; 0 skips the check)")
+        return self
 
     def starts(self) -> np.ndarray:
         return UniformStarts()(np.random.default_rng(self.seed), self.n)
@@ -298,6 +306,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
                  history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **fields)
         return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
+    check_sizes(steps, batch, loss.t_final, loss.max_step, law_attempts(loss, n_attempts))
     met = (lambda r: _budget_met(loss.energy_budget, r.energy))
     o = _tuner_run(run, "tuning run", lambda: tu.tune_law(
         law, draw_starts(starts, batch, seed), tune=names, plant=plant, loss=loss, steps=steps, lr=lr, x64=x64,
@@ -313,6 +322,8 @@ def _tuner_run(run: TuningRun, what: str, work, write, check, held_out: Optional
     after Ctrl-C the best so far (if any) with ``interrupted=True``, else with ``wall_s`` and the fields of
     ``budget(result)`` (with an energy budget: ``energy_budget_met``, and ``training_energy`` for the outcome), then
     again with the ``held_out`` check's ``validation`` (``check(result)``: its rows, `_held_out_rows`)."""
+    if held_out is not None:
+        held_out.check()
     with run.owned(what):
         t0 = time.perf_counter()
         try:
@@ -345,7 +356,7 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
     that spends as many objective evaluations, and the front is drawn to ``plot`` (which needs the check)."""
     from .. import tuning as tu
 
-    run, names, held_out = as_run(run), tu.parse_tune(tune), held_out or HeldOut(n=0)
+    run, names, held_out = as_run(run), tu.parse_tune(tune), (held_out or HeldOut(n=0)).check()
     if plot is not None and not held_out.n:
         raise ValueError("plot draws the front measured on the held-out starts: give held_out with n > 0")
     kw = dict(config=config, loss=loss, plant=plant, x64=x64)
