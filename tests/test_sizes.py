@@ -374,3 +374,16 @@ def test_simulate_refuses_saved_points_that_do_not_fit(four_gib, tmp_path, capsy
         js.simulate(starts, t_final=4e5)
     with pytest.raises(ValueError, match=r"^ics x t_final / saveat.every: 40,000,001 saved points \(1 start x"):
         js.simulate(starts[0], t_final=4e5, saveat=js.SaveAt(every=1))
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--samples", "1000000000000"], "--samples: 1,000,000,000,000 starts need about"),
+    (["--x=-3:3:100000", "--theta=-3:3:100000"], "--x -3:3:100000 x --theta -3:3:100000: 10,000,000,000 starts"),
+])
+def test_cli_basin_names_the_flag_of_a_size_that_does_not_fit(four_gib, tmp_path, capsys, argv, msg):
+    """The command line's refusal names the flags a user typed, not the Python function behind them."""
+    out = tmp_path / "b.npz"
+    rc = cli.main(["basin", *argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and msg in err and "_starts" not in err and "Traceback" not in err, err
+    assert not out.exists()

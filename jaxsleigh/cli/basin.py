@@ -26,6 +26,7 @@ from .common import (FLAGS, add_horizon_options, add_model_options, add_sampler_
 from .options import stepsize_from_args
 from ..studies.basin import array_starts, grid_starts, parse_axis, run_basin, sample_starts, save_basin
 from ..studies.config import solve_config
+from ..validate import check_memory
 
 __all__ = ["add_basin", "run_basin_command"]
 
@@ -124,10 +125,12 @@ def starts_from_args(args):
         for k, v in coords.items():
             if v is not None:
                 _check_box(v, f"--{k}")
+        check_memory(args.samples, "--samples")
         return sample_starts(args.samples, seed=0 if args.seed is None else args.seed, **coords)
-    for k, v in coords.items():
-        if v is not None:
-            parse_axis(v, f"--{k}")          # the same checks as grid_starts, with the flag's name
+    given = {k: parse_axis(v, f"--{k}") for k, v in coords.items() if v is not None}  # grid_starts' checks, flagged
+    if given:
+        check_memory(math.prod(a.n for a in given.values()), " x ".join(f"--{k} {coords[k]}" for k in given),
+                     fix="use a coarser grid or split the study into several runs")
     return grid_starts(**coords)
 
 
