@@ -11,11 +11,15 @@ the plant's mass matrix or damping.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax.numpy as jnp
 
 from .coordinates import Q_entries, Q_w_entries, q_to_w
-from .params import Gains
 from .smallmat import rmatvec
+
+if TYPE_CHECKING:                      # `Gains` calls these functions: params imports this module
+    from .params import Gains
 
 __all__ = ["potential", "measured_velocity", "damping_injection", "damping_injection_components", "control_w",
            "control_w_components", "control"]

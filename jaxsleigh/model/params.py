@@ -14,6 +14,8 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
+from . import paper_law
+from .coordinates import q_to_w
 from .damping import CoulombDamping, ViscousDamping, as_damping
 from ..validate import real
 from ..files.npz import atomic_write_text
@@ -69,6 +71,36 @@ class Gains(NamedTuple):
     L: Any
     k: Any
     D_hat: Any
+
+    # The law interface (`jaxsleigh.model.controller`): class attributes, not fields (no annotation: a
+    # NamedTuple would make them leaves). The law is integrated in the w chart (`jaxsleigh.model.w_laws`),
+    # where it is port-Hamiltonian and its singular set theta = 0 is never crossed.
+    w_chart = True
+
+    def __call__(self, q, v):
+        r"""\(u\) from the measured \(q\) and \(v = \nabla_p H\), in the physical chart (infinite on
+        \(\theta = 0\)): what a law called as ``u = law(q, v)`` returns."""
+        return paper_law.control_w(q_to_w(q), v, self)
+
+    def potential(self, w):
+        r"""\(V(w) = \tfrac12 w^\top L w\) (`jaxsleigh.model.w_laws.potential`)."""
+        return paper_law.potential(w, self)
+
+    def control_w_components(self, w, v):
+        r"""\(u\) on components, from \(w\) and \(v = \nabla_p H\) (eq. 13)."""
+        return paper_law.control_w_components(w, v, self)
+
+    def injection_components(self, w, v):
+        r"""\((\hat D + \mathrm{diag}(0, k / w_1^2)) v\) on components."""
+        return paper_law.damping_injection_components(w, v, self)
+
+    def stiff_coeff(self, w):
+        r"""\(\hat D_{22} + k / w_1^2\): the coefficient of \(-v_2\) in the turning moment."""
+        return self.D_hat[1, 1] + self.k / (w[0] * w[0])
+
+    def w2_stiffness(self, w):
+        r"""\(\partial^2 V / \partial w_2^2 = L_2\), whatever \(w\)."""
+        return self.L[1]
 
 
 def is_concrete(x) -> bool:
