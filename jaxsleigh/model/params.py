@@ -102,6 +102,26 @@ class Gains(NamedTuple):
         r"""\(\partial^2 V / \partial w_2^2 = L_2\), whatever \(w\)."""
         return self.L[1]
 
+    def damping_floor(self):
+        r"""\(d\) with \(\hat D + \mathrm{diag}(0, k / w_1^2) \succeq d\, I\): the smallest eigenvalue of the
+        symmetric part of \(\hat D\), per lane (``(P,)`` with per-trajectory gains, else a scalar array), for the
+        certificate of `jaxsleigh.integrate.stragglers` (it needs \(H_d \ge 0\), so \(L, k \ge 0\)); ``None``
+        where it does not apply: values not concrete, \(L\) or \(k\) negative somewhere, \(d \le 0\) everywhere."""
+        try:
+            D = np.asarray(self.D_hat, np.float64)
+            L = np.asarray(self.L, np.float64)
+            k = np.asarray(self.k, np.float64)
+        except Exception:           # noqa: BLE001 - traced gains: no certificate
+            return None
+        if np.any(L < 0) or np.any(k < 0) or D.shape[:2] != (2, 2):
+            return None
+        a, c, b = D[0, 0], D[1, 1], 0.5 * (D[0, 1] + D[1, 0])
+        d = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+        d = np.where(np.isfinite(d), d, 0.0)
+        if not np.any(d > 0):
+            return None
+        return d
+
 
 def is_concrete(x) -> bool:
     """No leaf of ``x`` is a tracer (its numbers are known now, not inside ``jit``/``grad``/``vmap``)."""
