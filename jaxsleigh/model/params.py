@@ -76,6 +76,10 @@ class Gains(NamedTuple):
     # NamedTuple would make them leaves). The law is integrated in the w chart (`jaxsleigh.model.w_laws`),
     # where it is port-Hamiltonian and its singular set theta = 0 is never crossed.
     w_chart = True
+    # Per-trajectory leaves (`jaxsleigh.model.lanes`): each field with its number of axes for one trajectory; a
+    # per-trajectory field carries one more, last (L (3, N), k (N,), D_hat (2, 2, N)). The law is written on
+    # components, so such leaves broadcast against the batch-last state as they are (no `PerTrajectory`, no vmap).
+    lane_axes = (("L", 1), ("k", 0), ("D_hat", 2))
 
     def __call__(self, q, v):
         r"""\(u\) from the measured \(q\) and \(v = \nabla_p H\), in the physical chart (infinite on
@@ -101,6 +105,12 @@ class Gains(NamedTuple):
     def w2_stiffness(self, w):
         r"""\(\partial^2 V / \partial w_2^2 = L_2\), whatever \(w\)."""
         return self.L[1]
+
+    def lane_columns(self) -> dict:
+        """The per-row columns of a run's lane table (`jaxsleigh.model.lanes.lane_table`), from lanes broadcast to
+        one per row: ``k, l1, l2, l3, d11, d12, d22``."""
+        return dict(k=self.k, l1=self.L[0], l2=self.L[1], l3=self.L[2], d11=self.D_hat[0, 0], d12=self.D_hat[0, 1],
+                    d22=self.D_hat[1, 1])
 
     def damping_floor(self):
         r"""\(d\) with \(\hat D + \mathrm{diag}(0, k / w_1^2) \succeq d\, I\): the smallest eigenvalue of the
