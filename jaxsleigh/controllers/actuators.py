@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.controller import FunctionLaw, PerTrajectory, is_paper_law, is_time_varying
-from .paper import PaperLaw
+from ..model.controller import FunctionLaw, PerTrajectory, is_time_varying
+from .paper import measured_law
 
 __all__ = ["Saturation", "NormSaturation", "Sampler", "Sampled", "saturate", "sampler", "sampled", "is_sampled",
            "check_u_max", "check_sampler"]
@@ -162,7 +162,7 @@ def saturate(law, u_max, norm: bool = False):
     the measured q and v, as an actuator sees it).
     """
     a = check_u_max(u_max, norm=norm)
-    law = PaperLaw(law) if is_paper_law(law) else _as_law(law)
+    law = _as_law(measured_law(law))
     value = float(a) if a.ndim == 0 else tuple(float(x) for x in a)
     return NormSaturation(law, value) if norm else Saturation(law, value)
 
@@ -231,7 +231,7 @@ class Sampled(NamedTuple):
 def sampled(law, period, delay=0, noise=0.0, seed=0) -> Sampled:
     """Checked `Sampled`: ``law`` (any controller, the paper's gains included, possibly saturated) behind a
     `Sampler` of period ``period`` [s], ``delay`` whole samples, noise ``noise`` and ``seed``."""
-    law = PaperLaw(law) if is_paper_law(law) else _as_law(law)
+    law = _as_law(measured_law(law))
     return Sampled(law, sampler(period, delay, noise, seed))
 
 

@@ -13,9 +13,10 @@ from typing import NamedTuple
 
 from ..model.coordinates import q_to_w
 from ..model.paper_law import control_w
+from ..model.controller import is_paper_law
 from ..model.params import Gains, paper_gains
 
-__all__ = ["PaperLaw"]
+__all__ = ["PaperLaw", "measured_law"]
 
 
 class PaperLaw(NamedTuple):
@@ -31,3 +32,10 @@ class PaperLaw(NamedTuple):
 
     def __call__(self, q, v):
         return control_w(q_to_w(q), v, self.gains)
+
+
+def measured_law(law):
+    """The law as an actuator piece (saturation, sampling) evaluates it, from the measured \\(q\\) and \\(v\\):
+    the paper's `jaxsleigh.Gains` as `PaperLaw` (the same floating-point operations as ``gains(q, v)``; the wrapper
+    keeps the records' and the tuner's names ``law.gains.k``), any other law as it is."""
+    return PaperLaw(law) if is_paper_law(law) else law

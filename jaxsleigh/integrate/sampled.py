@@ -76,10 +76,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..controllers.actuators import check_sampler
-from ..controllers.paper import PaperLaw
+from ..controllers.paper import measured_law
 from ..model.charts import PhysicalChart, physical_chart_for
 from ..model.closed_loop import ClosedLoop
-from ..model.controller import FunctionLaw, PerTrajectory, apply_law, is_paper_law
+from ..model.controller import FunctionLaw, PerTrajectory, apply_law
 from ..model.params import PlantParams, is_concrete, plant_params
 from ..model.plant import velocity
 from ..status import Status
@@ -268,8 +268,7 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     # set per period (_period_budget)
     ctl = controls(ss, dtype, dt=period / substeps, eps=eps, max_steps=0)
     budget = _period_budget(ss, K, substeps, dtype)
-    if is_paper_law(law):                        # the paper's gains: the law from measurements, as sampled
-        law = PaperLaw(law)
+    law = measured_law(law)                      # the paper's gains: the law from measurements, as sampled
     if not callable(law):
         raise ValueError(f"law must be a feedback law u = law(q, v), got {type(law).__name__}")
     if not (isinstance(law, tuple) or hasattr(law, "tree_flatten")) and jax.tree_util.tree_leaves(law) == [law]:

@@ -49,7 +49,6 @@ from typing import Optional
 import numpy as np
 
 from ..status import Status
-from ..model.params import Gains
 
 __all__ = ["MARGIN", "damping_floor", "cannot_settle", "certify"]
 
@@ -58,27 +57,13 @@ MARGIN = 2.0
 
 
 def damping_floor(args, lanes: Optional[int] = None) -> Optional[np.ndarray]:
-    r"""\(d\): the smallest eigenvalue of the symmetric part of \(\hat D\), per lane (shape ``(lanes,)`` with
-    per-trajectory gains, else a scalar array), or ``None`` where the certificate does not apply: a law other than
-    the paper's (`jaxsleigh.Gains`), gains whose values are not concrete, \(L\) or \(k\) negative somewhere, or
-    \(d \le 0\) everywhere."""
-    g = args.controller
-    if not isinstance(g, Gains):
-        return None
-    try:
-        D = np.asarray(g.D_hat, np.float64)
-        L = np.asarray(g.L, np.float64)
-        k = np.asarray(g.k, np.float64)
-    except Exception:           # noqa: BLE001 - traced gains: no certificate
-        return None
-    if np.any(L < 0) or np.any(k < 0) or D.shape[:2] != (2, 2):
-        return None
-    a, c, b = D[0, 0], D[1, 1], 0.5 * (D[0, 1] + D[1, 0])
-    d = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
-    d = np.where(np.isfinite(d), d, 0.0)
-    if not np.any(d > 0):
-        return None
-    return d
+    r"""\(d\): a floor \(D_d \succeq d\, I\) under the law's injected damping, per lane (shape ``(lanes,)`` with
+    per-trajectory gains, else a scalar array), or ``None`` where the certificate does not apply: a law that gives no
+    ``damping_floor()`` (the paper's `jaxsleigh.Gains` gives the smallest eigenvalue of the symmetric part of
+    \(\hat D\)), or one whose floor is ``None`` (values not concrete, \(H_d\) not bounded below by 0, \(d \le 0\)
+    everywhere)."""
+    floor = getattr(args.controller, "damping_floor", None)
+    return floor() if callable(floor) else None
 
 
 def cannot_settle(t, y, Hd, status, *, t_final: float, eps: float, d) -> np.ndarray:

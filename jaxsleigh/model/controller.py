@@ -10,9 +10,11 @@ what a controller on the real sleigh measures (configuration and velocity; \(v =
 paper Remark 1), never the momentum or the plant's parameters. Its numeric leaves are traced: new
 values never recompile, and ``jax.grad`` differentiates through them.
 
-The paper's law (eq. 13) is the controller `jaxsleigh.Gains`: ``gains=`` keeps meaning it, and it
-declares the w chart (its singular set \(\theta = 0\) belongs to it, not to the plant), so the
-engine integrates it there (`jaxsleigh.model.charts.WChart`). Any other law is integrated in the
+The paper's law (eq. 13) is the controller `jaxsleigh.Gains`: ``gains=`` keeps meaning it, ``gains(q, v)`` is
+its ``u``, and it declares the w chart (``w_chart = True``: its singular set \(\theta = 0\) belongs to it, not to
+the plant), so the engine integrates it there (`jaxsleigh.model.charts.WChart`, `jaxsleigh.model.w_laws`). A law
+whose leaves carry a per-trajectory axis of their own declares ``lane_axes`` (`jaxsleigh.model.lanes`), and one that
+bounds its injected damping below, ``damping_floor()`` (`jaxsleigh.integrate.stragglers`). Any other law is integrated in the
 physical chart (`jaxsleigh.model.charts.PhysicalChart`). A law may declare its own chart with a class
 attribute ``chart``, and the parameters that must stay positive with a class attribute ``positive`` (names of
 its fields; the tuner then optimises their logarithm).

@@ -28,26 +28,31 @@ import jax
 import numpy as np
 
 from .damping import CoulombDamping, CustomDamping, NoDamping, ViscousDamping, as_damping, damping_from_name
-from .controller import PerTrajectory, as_controller, is_paper_law, law_leaf_names
+from .controller import PerTrajectory, as_controller, law_leaf_names
 from .params import Gains, PlantParams, as_gains, as_plant
 
 __all__ = ["lane_count", "check_lanes", "broadcast_lanes", "take_lanes", "has_lanes", "stack_plants",
            "stack_gains", "lane_table", "lanes_digest", "DAMPING_FIELDS"]
 
-#: Number of axes of each leaf for one trajectory (a per-lane leaf has one more, last).
-_GAIN_NDIM = {"L": 1, "k": 0, "D_hat": 2}
 #: Numeric fields of each damping family, with the names used in records and sweeps.
 DAMPING_FIELDS = {CoulombDamping: {"eps": "coulomb_eps", "scale": "coulomb_scale"},
                   ViscousDamping: {"c1": "c1", "c2": "c2"}, NoDamping: {}, CustomDamping: {}}
 
 
-def _named_leaves(plant: PlantParams, gains: Gains):
-    """``(path, leaf, base_ndim)`` for every numeric leaf of a plant and gains."""
+def _lane_axes(law):
+    """The law's own per-trajectory fields ``((field, base_ndim), ...)`` (``lane_axes``, `jaxsleigh.Gains`), or
+    ``None`` for a law whose lanes come wrapped in `PerTrajectory` (or that is no law: a preset name, file, dict)."""
+    return getattr(type(law), "lane_axes", None)
+
+
+def _named_leaves(plant: PlantParams, law):
+    """``(path, leaf, base_ndim)`` for every numeric leaf of a plant and of a law that carries its own lanes
+    (`_lane_axes`; none for another)."""
     out = [(f"plant.{f}", getattr(plant, f), 0) for f in ("m", "J", "l")]
     d = plant.damping
     if hasattr(d, "_fields"):
         out += [(f"plant.damping.{f}", getattr(d, f), 0) for f in d._fields]
-    out += [(f"gains.{f}", getattr(gains, f), _GAIN_NDIM[f]) for f in Gains._fields]
+    out += [(f"gains.{f}", getattr(law, f), base) for f, base in (_lane_axes(law) or ())]
     return out
 
 
@@ -76,14 +81,13 @@ def lane_count(plant: Any, gains: Any) -> Optional[int]:
     Leaves of size 1 broadcast; two leaves with different sizes > 1 are an error.
     """
     p = plant if isinstance(plant, PlantParams) else PlantParams()
-    g = gains if isinstance(gains, Gains) else Gains(np.ones(3), 1.0, np.eye(2))
     law_sizes = {}
     if isinstance(gains, PerTrajectory):          # a user's law with a lane axis on every leaf
         law_sizes = {f"controller.{k}": int(np.shape(v)[-1]) for k, v in law_leaf_names(gains).items()}
     if isinstance(p.damping, str):
         p = p._replace(damping=damping_from_name(p.damping))
     sizes = dict(law_sizes)
-    for path, leaf, base in _named_leaves(p, g):
+    for path, leaf, base in _named_leaves(p, gains):
         s = _lane_size(path, leaf, base)
         if s is not None:
             sizes[path] = s
@@ -160,7 +164,7 @@ def _resolved(plant: Any, gains: Any) -> tuple[Any, Any, Any]:
     law = None
     if gains is not None and not isinstance(gains, (Gains, str, dict)) and callable(gains):
         law, gains = as_controller(gains), None    # a user's law: checked as a controller, plant per lane
-    if not isinstance(gains, Gains) or lane_count(None, gains) is None:
+    if lane_count(None, gains) is None:          # no lanes (or a preset name, file, dict): checked whole
         gains = as_gains(gains)
     if not isinstance(plant, PlantParams):
         raise ValueError(f"plant must be a PlantParams, got {type(plant).__name__}")
@@ -226,14 +230,14 @@ def broadcast_lanes(plant: PlantParams, gains: Gains, n: int) -> tuple[PlantPara
     if hasattr(d, "_fields"):
         d = type(d)(*(bc(f"plant.damping.{f}", getattr(d, f), 0) for f in d._fields))
     p = PlantParams(*(bc(f"plant.{f}", getattr(plant, f), 0) for f in ("m", "J", "l")), d)
-    if not is_paper_law(gains):                   # a user's law: every leaf gets the lane axis
+    axes = _lane_axes(gains)
+    if axes is None:                              # a law with lanes wrapped: every leaf gets the lane axis
         laned = isinstance(gains, PerTrajectory)
         inner = gains.law if laned else gains
         g = PerTrajectory(jax.tree_util.tree_map(
             lambda a: bc("controller", a, np.ndim(a) - 1 if laned else np.ndim(a)), inner))
         return p, g
-    g = Gains(*(bc(f"gains.{f}", getattr(gains, f), _GAIN_NDIM[f]) for f in Gains._fields))
-    return p, g
+    return p, type(gains)(**{f: bc(f"gains.{f}", getattr(gains, f), base) for f, base in axes})
 
 
 def take_lanes(tree, idx):
@@ -274,10 +278,11 @@ def lane_table(plant: PlantParams, gains: Gains, n: int) -> dict:
     out = {"m": p.m, "J": p.J, "l": p.l}
     for f, name in DAMPING_FIELDS.get(type(p.damping), {}).items():
         out[name] = getattr(p.damping, f)
-    if not is_paper_law(g):                       # a user's law: its scalar leaves, by name
+    columns = getattr(g, "lane_columns", None)
+    if columns is None:                           # a law without its own columns: its scalar leaves, by name
         out.update({k: v for k, v in law_leaf_names(g).items() if np.ndim(v) == 1})
-        return {k: np.asarray(v, np.float64) for k, v in out.items()}
-    out.update(k=g.k, l1=g.L[0], l2=g.L[1], l3=g.L[2], d11=g.D_hat[0, 0], d12=g.D_hat[0, 1], d22=g.D_hat[1, 1])
+    else:
+        out.update(columns())
     return {k: np.asarray(v, np.float64) for k, v in out.items()}
 
 
@@ -285,12 +290,14 @@ def lanes_digest(plant: PlantParams, gains: Gains) -> str:
     """SHA-256 of every numeric leaf (as float64 bytes, with its shape): part of the fingerprint of a
     checkpointed run, so a resume with other per-lane values is refused."""
     h = hashlib.sha256()
-    if not is_paper_law(gains):
+    if _lane_axes(gains) is None:
         for path, leaf in law_leaf_names(gains).items():
             a = np.ascontiguousarray(np.asarray(leaf, np.float64))
             h.update(f"controller.{path}{a.shape}".encode())
             h.update(a.tobytes())
         h.update(repr(jax.tree_util.tree_structure(gains)).encode())
+        # then unit gains in the paper's leaves' place: the bytes every digest so far was made of (a checkpoint
+        # written before stays resumable)
         gains = Gains(np.ones(3), 1.0, np.eye(2))
     for path, leaf, _ in _named_leaves(plant, gains):
         a = np.ascontiguousarray(np.asarray(leaf, np.float64))

@@ -14,6 +14,8 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
+from . import paper_law
+from .coordinates import q_to_w
 from .damping import CoulombDamping, ViscousDamping, as_damping
 from ..validate import real
 from ..files.npz import atomic_write_text
@@ -69,6 +71,66 @@ class Gains(NamedTuple):
     L: Any
     k: Any
     D_hat: Any
+
+    # The law interface (`jaxsleigh.model.controller`): class attributes, not fields (no annotation: a
+    # NamedTuple would make them leaves). The law is integrated in the w chart (`jaxsleigh.model.w_laws`),
+    # where it is port-Hamiltonian and its singular set theta = 0 is never crossed.
+    w_chart = True
+    # Per-trajectory leaves (`jaxsleigh.model.lanes`): each field with its number of axes for one trajectory; a
+    # per-trajectory field carries one more, last (L (3, N), k (N,), D_hat (2, 2, N)). The law is written on
+    # components, so such leaves broadcast against the batch-last state as they are (no `PerTrajectory`, no vmap).
+    lane_axes = (("L", 1), ("k", 0), ("D_hat", 2))
+
+    def __call__(self, q, v):
+        r"""\(u\) from the measured \(q\) and \(v = \nabla_p H\), in the physical chart (infinite on
+        \(\theta = 0\)): what a law called as ``u = law(q, v)`` returns."""
+        return paper_law.control_w(q_to_w(q), v, self)
+
+    def potential(self, w):
+        r"""\(V(w) = \tfrac12 w^\top L w\) (`jaxsleigh.model.w_laws.potential`)."""
+        return paper_law.potential(w, self)
+
+    def control_w_components(self, w, v):
+        r"""\(u\) on components, from \(w\) and \(v = \nabla_p H\) (eq. 13)."""
+        return paper_law.control_w_components(w, v, self)
+
+    def injection_components(self, w, v):
+        r"""\((\hat D + \mathrm{diag}(0, k / w_1^2)) v\) on components."""
+        return paper_law.damping_injection_components(w, v, self)
+
+    def stiff_coeff(self, w):
+        r"""\(\hat D_{22} + k / w_1^2\): the coefficient of \(-v_2\) in the turning moment."""
+        return self.D_hat[1, 1] + self.k / (w[0] * w[0])
+
+    def w2_stiffness(self, w):
+        r"""\(\partial^2 V / \partial w_2^2 = L_2\), whatever \(w\)."""
+        return self.L[1]
+
+    def lane_columns(self) -> dict:
+        """The per-row columns of a run's lane table (`jaxsleigh.model.lanes.lane_table`), from lanes broadcast to
+        one per row: ``k, l1, l2, l3, d11, d12, d22``."""
+        return dict(k=self.k, l1=self.L[0], l2=self.L[1], l3=self.L[2], d11=self.D_hat[0, 0], d12=self.D_hat[0, 1],
+                    d22=self.D_hat[1, 1])
+
+    def damping_floor(self):
+        r"""\(d\) with \(\hat D + \mathrm{diag}(0, k / w_1^2) \succeq d\, I\): the smallest eigenvalue of the
+        symmetric part of \(\hat D\), per lane (``(P,)`` with per-trajectory gains, else a scalar array), for the
+        certificate of `jaxsleigh.integrate.stragglers` (it needs \(H_d \ge 0\), so \(L, k \ge 0\)); ``None``
+        where it does not apply: values not concrete, \(L\) or \(k\) negative somewhere, \(d \le 0\) everywhere."""
+        try:
+            D = np.asarray(self.D_hat, np.float64)
+            L = np.asarray(self.L, np.float64)
+            k = np.asarray(self.k, np.float64)
+        except Exception:           # noqa: BLE001 - traced gains: no certificate
+            return None
+        if np.any(L < 0) or np.any(k < 0) or D.shape[:2] != (2, 2):
+            return None
+        a, c, b = D[0, 0], D[1, 1], 0.5 * (D[0, 1] + D[1, 0])
+        d = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+        d = np.where(np.isfinite(d), d, 0.0)
+        if not np.any(d > 0):
+            return None
+        return d
 
 
 def is_concrete(x) -> bool:

@@ -9,46 +9,36 @@ so along the closed loop \(\dot H_d = -v^\top (D + \hat D + D_i) v \le 0\) whate
 it). Such a law provides ``potential(w)``, ``control_w_components(w, v)``, ``injection_components(w, v)`` and
 ``stiff_coeff(w)`` (the coefficient of \(-v_2\) in the turning moment) and ``w2_stiffness(w)``
 (\(\partial^2 V / \partial w_2^2\)), for the exponential step of `jaxsleigh.integrate.etd`; the paper's law has
-them as the functions of `jaxsleigh.model.paper_law`.
+them as methods of `jaxsleigh.Gains` (over the functions of `jaxsleigh.model.paper_law`), so these functions
+only call the law's own.
 """
 from __future__ import annotations
-
-from .params import Gains
-from . import paper_law
 
 __all__ = ["is_w_law", "potential", "control_w_components", "injection_components", "stiff_coeff", "w2_stiffness"]
 
 
 def is_w_law(controller) -> bool:
-    """True for a law integrated in the w chart: `jaxsleigh.Gains` or one that says ``w_chart = True``."""
-    return isinstance(controller, Gains) or bool(getattr(type(controller), "w_chart", False))
+    """True for a law integrated in the w chart: one that says ``w_chart = True`` (`jaxsleigh.Gains`, ...)."""
+    return bool(getattr(type(controller), "w_chart", False))
 
 
 def potential(w, law):
     """\\(V(w)\\), the shaped potential of \\(H_d\\)."""
-    if isinstance(law, Gains):
-        return paper_law.potential(w, law)
     return law.potential(w)
 
 
 def control_w_components(w, v, law):
     """\\(u\\) on components, from \\(w\\) and \\(v = \\nabla_p H\\)."""
-    if isinstance(law, Gains):
-        return paper_law.control_w_components(w, v, law)
     return law.control_w_components(w, v)
 
 
 def injection_components(w, v, law):
     """\\((\\hat D + D_i) v\\) on components."""
-    if isinstance(law, Gains):
-        return paper_law.damping_injection_components(w, v, law)
     return law.injection_components(w, v)
 
 
 def stiff_coeff(w, law):
     """\\(\\hat D_{22} + k / w_1^2\\) (may depend on \\(w\\)), or ``None`` for a law without that form."""
-    if isinstance(law, Gains):
-        return law.D_hat[1, 1] + law.k / (w[0] * w[0])
     fn = getattr(law, "stiff_coeff", None)
     return None if fn is None else fn(w)
 
@@ -57,7 +47,5 @@ def w2_stiffness(w, law):
     """\\(\\partial^2 V / \\partial w_2^2\\) (the paper's: \\(L_2\\)), or ``None`` for a law that does not say.
     With \\(\\dot w_2 = p_1 / (m w_1) + \\ldots\\) and \\(u_1 = -\\partial_{w_2} V / w_1 - \\ldots\\) it sets the
     frequency \\(\\sqrt{V_{22} / m} / |w_1|\\) of the (w2, p1) oscillation, stiff near \\(\\theta = 0\\)."""
-    if isinstance(law, Gains):
-        return law.L[1]
     fn = getattr(law, "w2_stiffness", None)
     return None if fn is None else fn(w)
