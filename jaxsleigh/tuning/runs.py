@@ -8,7 +8,8 @@ file, `law_run` (any other law, or the paper's behind an actuator, `jaxsleigh.tu
 
 1. **Before any work** the output, the history (if asked for) and the checkpoint ``OUT.ckpt.npz`` next to the output
    can be written, and the output is claimed: while another live run writes the same file, this one is refused
-   with `jaxsleigh.errors.RunLockedError` naming that run (host, pid, start), so two runs never both write it. A checkpoint left by an interrupted run is refused without ``resume=True`` (nothing is
+   with `jaxsleigh.errors.RunLockedError` naming that run (host, pid, start), so two runs never both write it. A
+   checkpoint left by an interrupted run is refused without ``resume=True`` (nothing is
    written over it), ``resume=True`` without one, and a resume whose options differ from those the checkpoint
    records names the first that differs, with both values.
 2. **During the work** the tuner writes its checkpoint, atomically, after every step (a front computed point by
@@ -43,7 +44,8 @@ import numpy as np
 
 from ..files.checkpoint import differences
 from ..files.run import PYTHON_WORDS, Run, Words
-from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
+from ..model.params import as_plant, gains_to_dict, load_gains, save_gains
+from ..studies.config import plant_to_dict
 from ..validate import writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
 from .history import save_arrays
@@ -54,7 +56,6 @@ from .starts import UniformStarts, draw_starts
 from .law_file import save_law
 from .validation import validation_dict
 from .pareto import finished_points, front_settings, load_front
-from ..model.damping import damping_from_name
 
 __all__ = ["TuningRun", "RunOutcome", "HeldOut", "tune_run", "search_run", "law_run", "front_run"]
 
@@ -215,7 +216,7 @@ def tune_run(run, gains0="paper", *, config: TuneConfig = TuneConfig(), loss: Lo
                        best_loss=res.best_loss, best_iteration=res.best_iteration,
                        iterations_run=res.settings["iterations_run"], seed=config.seed, batch=config.batch,
                        dtype=res.settings["dtype"], plant="sampled (robust)" if robust is not None else
-                       _plant_record(plant), objective=res.settings["loss"], **fields)
+                       plant_to_dict(as_plant(plant)), objective=res.settings["loss"], **fields)
         return (run.out, *_history(run, lambda p: tu.save_history(res.history, p)))
 
     return _tuner_run(run, "tuning run", lambda: tu.tune(
@@ -257,7 +258,7 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
                    initial_gains=gains_to_dict(res.initial), training_figures=res.figures,
                    reference_figures=res.reference, best_generation=res.best_generation,
                    generations_run=res.settings["generations_run"], seed=config.seed, batch=config.batch,
-                   population=config.population, plant=_plant_record(plant), x64=bool(x64), **fields)
+                   population=config.population, plant=plant_to_dict(as_plant(plant)), x64=bool(x64), **fields)
         return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
     return _tuner_run(run, "search", work, write,
@@ -284,7 +285,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
         save_law(res.law, name, run.out, how="jaxsleigh tune --controller: Adam on the soft convergence time"
                  + ("" if budget is None else f" under a training energy budget {budget:g}"), command=run.command,
                  tuned=list(names), training_loss=res.loss, training_energy=res.energy, energy_budget=budget,
-                 seed=seed, batch=batch, x64=bool(x64), plant=_plant_record(plant),
+                 seed=seed, batch=batch, x64=bool(x64), plant=plant_to_dict(as_plant(plant)),
                  history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **fields)
         return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
@@ -393,7 +394,8 @@ def _interrupted_front(run: TuningRun) -> Optional[dict]:
             earlier = None
         earlier = earlier if isinstance(earlier, dict) and earlier.get("interrupted") else None
     run.refuse_progress(None if earlier is None else f"{str(run.out)!r} holds the finished points of an interrupted "
-                        f"front", afresh="delete it", missing=f"{str(run.out)!r} is not an interrupted front to continue")
+                        f"front", afresh="delete it",
+                        missing=f"{str(run.out)!r} is not an interrupted front to continue")
     return earlier
 
 
@@ -449,13 +451,3 @@ def _budget_met(energy_budget, energy: float) -> Optional[bool]:
     b = _budget(energy_budget)
     return None if b is None else bool(math.isfinite(energy) and energy <= b)
 
-
-def _plant_record(plant) -> dict:
-    """``{"m", "J", "l", "damping"}`` of ``plant`` (``None``: the paper's), the damping by its name where it has one."""
-    plant = PlantParams() if plant is None else plant
-    num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))
-    d = plant.damping
-    named = [n for n in ("coulomb", "viscous", "none") if type(damping_from_name(n)) is type(d)
-             and all(np.array_equal(a, b) for a, b in zip(damping_from_name(n), d))]
-    return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
-            "damping": named[0] if named else type(d).__name__}
