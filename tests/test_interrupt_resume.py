@@ -321,3 +321,67 @@ def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun
             _same_npz(out / p, b)
         else:
             assert (out / p).read_bytes() == b, p
+
+
+# ---------------------------------------------------------------------------------------------
+# one lock per run, seen from another process: a chunk store used on its own on the chunk folder of a live run
+# ---------------------------------------------------------------------------------------------
+
+_HOLD = """
+import sys, time
+from pathlib import Path
+from jaxsleigh.files.runlock import RunLock
+out, chunks = Path(sys.argv[2]), Path(sys.argv[2] + ".chunks")
+if sys.argv[1] == "run":
+    RunLock(out, "a-run", covers=(chunks,)).acquire()          # a run on out, covering its chunk folder
+else:
+    RunLock(chunks, "a-store", folder=True).acquire()          # a chunk store used on its own
+print("ready", flush=True)
+time.sleep(120)
+"""
+
+
+def _hold(kind: str, out: Path):
+    import os
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    p = subprocess.Popen([sys.executable, "-c", _HOLD, kind, str(out)], stdout=subprocess.PIPE, env=env, text=True)
+    assert p.stdout.readline().strip() == "ready"
+    return p
+
+
+def _end(p) -> None:
+    import signal
+
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=30)
+    p.stdout.close()
+
+
+def test_a_chunk_store_on_its_own_is_refused_the_chunk_folder_of_a_live_run_in_another_process(tmp_path):
+    from jaxsleigh.errors import RunLockedError
+    from jaxsleigh.files.runlock import RunLock
+
+    out = tmp_path / "out.npz"
+    chunks = tmp_path / "out.npz.chunks"
+    p = _hold("run", out)
+    try:
+        assert _locks(tmp_path) == [f".out.npz.lock.{_locks(tmp_path)[0].rsplit('.lock.', 1)[1]}"]   # one lock
+        store = ChunkStore(chunks, "another-key")
+        with pytest.raises(RunLockedError, match="checkpoint folder .* is being written by another run"):
+            store.open(resume=False, manifest={})
+        assert [q.name for q in chunks.iterdir()] == [q.name for q in chunks.glob(".covered.*")]   # nothing written
+    finally:
+        _end(p)
+    store.open(resume=False, manifest={})                  # the run is gone: its mark is stale, never in the way
+    store.close()
+    p = _hold("store", out)                                 # and the other way round
+    try:
+        with pytest.raises(RunLockedError, match="checkpoint folder .* is being written by another run"):
+            RunLock(out, "a-run", covers=(chunks,)).acquire()
+        assert _locks(tmp_path) == [f"out.npz.chunks/{_locks(tmp_path)[0].rsplit('/', 1)[1]}"]
+    finally:
+        _end(p)
