@@ -9,8 +9,9 @@ and every Python run of a study or a tuner that owns an output lives the same fi
 3. **decide** whether to resume, in one place (`Run.refuse_progress`): the kept progress of an interrupted run
    (chunks, a tuner's checkpoint, an interrupted front) is never written over without ``resume``, and ``resume``
    without any progress is refused; both refusals say what to do, in the caller's words (`Words`);
-4. **finish** atomically: every file is written under a temporary name and renamed (`Run.write_text`, and the
-   savers of `jaxsleigh.files.npz`), so an interrupted run never leaves a partial file under the output's name;
+4. **finish** atomically: every file is written under a temporary name and renamed (`jaxsleigh.files.npz.atomic_write`,
+   which every saver uses), and the file that says the run finished (a result, a record, ``paper.npz``) last, so an
+   interrupted run never leaves a partial file, nor one that claims a finished run;
 5. **release** the lock however the run ends (its return, an error, Ctrl-C): a ``with`` block.
 
 What differs between the runs stays with them: a chunked run's chunks and processes (`jaxsleigh.files.runner`), a
@@ -23,7 +24,6 @@ import uuid
 from pathlib import Path
 from typing import Callable, NamedTuple, Optional
 
-from .npz import atomic_write_text
 from .runlock import RunLock, settings_fingerprint
 
 __all__ = ["Run", "refuse_progress", "Words", "PYTHON_WORDS", "COMMAND_WORDS"]
@@ -119,14 +119,6 @@ class Run:
         """The one resume decision (`refuse_progress`) for this run's ``resume`` and ``words``."""
         refuse_progress(kept, resume=self.resume, words=self.words, then=then, afresh=afresh, missing=missing,
                         error=error)
-
-    # -- finish ---------------------------------------------------------------------------------
-
-    @staticmethod
-    def write_text(path, text: str, *, when_full: str = "") -> Path:
-        """Write a text file of the run atomically (temporary name, fsync, rename): an interrupted run leaves the
-        earlier file or the complete new one, never a part."""
-        return atomic_write_text(Path(path), text, when_full=when_full)
 
 
 def refuse_progress(kept: Optional[str], *, resume: bool, words: Words = PYTHON_WORDS, then: str = "continue it",
