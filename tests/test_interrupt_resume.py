@@ -1,5 +1,7 @@
 """One run lifecycle for every command that writes: Ctrl-C after the first chunk (or iteration) of every chunked
-command and every tuner mode keeps the finished work, and ``--resume`` ends with the bytes of an uninterrupted run.
+command and every tuner mode keeps the finished work, and ``--resume`` ends with the bytes of an uninterrupted run;
+Ctrl-C while simulate, compare or paper writes leaves no output that claims to be complete, nor a lock, and the rerun
+writes what an uninterrupted run writes.
 While a chunked run works it holds one lock (next to its output, covering its chunk folder) and its chunk folder one
 record file (``manifest.json``: the chunk store's fields and the command's options)."""
 from __future__ import annotations
@@ -217,3 +219,169 @@ def test_every_tuner_mode_resumes_to_the_files_of_an_uninterrupted_run(tmp_path,
             for k in za.files:
                 if k not in wall:
                     np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+
+
+# ---------------------------------------------------------------------------------------------
+# simulate, compare, paper: Ctrl-C while they write leaves nothing claimed complete, and the rerun writes what an
+# uninterrupted run writes
+# ---------------------------------------------------------------------------------------------
+
+def _interrupt_writing(m, name: str):
+    """Ctrl-C while the file called ``name`` is written: its bytes are in the temporary file, not yet renamed."""
+    from jaxsleigh.files import npz
+    from jaxsleigh.plots import base
+
+    real = npz.atomic_write
+
+    def atomic_write(path, write, **k):
+        if Path(path).name != name:
+            return real(path, write, **k)
+
+        def part(f):
+            write(f)
+            raise KeyboardInterrupt
+        return real(path, part, **k)
+    m.setattr(npz, "atomic_write", atomic_write)
+    m.setattr(base, "atomic_write", atomic_write)
+
+
+def _left(root: Path) -> list:
+    """Every file under ``root`` (temporary files and locks are hidden names: listed too)."""
+    return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+
+
+def _same_npz(a: Path, b: bytes) -> None:
+    """``a`` holds what the bytes ``b`` hold: the same arrays, the same settings but the run's wall time (and so
+    the content digest)."""
+    import io
+
+    with np.load(a) as za, np.load(io.BytesIO(b)) as zb:
+        assert za.files == zb.files
+        for k in za.files:
+            if k not in ("settings_json", "__digest__"):         # the digest covers the wall time
+                np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+        sa, sb = (json.loads(str(z["settings_json"])) for z in (za, zb))
+    for s in (sa, sb):
+        s["run_info"].pop("wall_s")
+    assert sa == sb
+
+
+def test_simulate_interrupted_while_writing_leaves_no_output_and_the_rerun_writes_the_same(tmp_path, capsys):
+    argv = ["simulate", "--ic", "-1,1,0.5", "--ic", "0.5,-1,1", "--t-final", "2", "--no-progress",
+            "--out", tmp_path / "s.npz"]
+    assert _run(argv, capsys)[0] == 0
+    whole = (tmp_path / "s.npz").read_bytes()
+    (tmp_path / "s.npz").unlink()
+    with pytest.MonkeyPatch.context() as m:
+        _interrupt_writing(m, "s.npz")
+        rc, _, err = _run(argv, capsys)
+    assert rc == EXIT_INTERRUPTED and "interrupted" in err, err
+    assert _left(tmp_path) == []                         # no output, no part of it, no lock
+    assert _run(argv, capsys)[0] == 0
+    _same_npz(tmp_path / "s.npz", whole)
+
+
+def test_compare_interrupted_while_drawing_writes_no_record_and_the_rerun_writes_the_same(tmp_path, capsys):
+    argv = ["compare", "--controllers", "paper,astolfi", "--samples", "2", "--t-final", "3", "--seed", "1",
+            "--out", tmp_path / "c.json", "--plot", tmp_path / "c.png"]
+    assert _run(argv, capsys)[0] == 0
+    whole = {p: (tmp_path / p).read_bytes() for p in ("c.json", "c.png")}
+    for p in whole:
+        (tmp_path / p).unlink()
+    with pytest.MonkeyPatch.context() as m:
+        _interrupt_writing(m, "c.png")                   # every row computed, the figure half written
+        rc, _, err = _run(argv, capsys)
+    assert rc == EXIT_INTERRUPTED and _left(tmp_path) == [], (err, _left(tmp_path))
+    assert _run(argv, capsys)[0] == 0
+    assert (tmp_path / "c.png").read_bytes() == whole["c.png"]
+    a, b = (json.loads(x) for x in ((tmp_path / "c.json").read_text(), whole["c.json"]))
+    for d in (a, b):
+        d["run_info"].pop("wall_s")
+    assert a == b
+
+
+def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun_writes_the_same(tmp_path, capsys):
+    """The paper's data file is written last: a folder without it holds no finished run. (Its smallest run: half a
+    second of the paper's six starts, every figure drawn.)"""
+    out = tmp_path / "p"
+    argv = ["paper", "--out", out, "--dt", "0.05", "--t-final", "0.5"]
+    assert _run(argv, capsys)[0] == 0
+    whole = {p: (out / p).read_bytes() for p in _left(out)}
+    for p in whole:
+        (out / p).unlink()
+    with pytest.MonkeyPatch.context() as m:
+        _interrupt_writing(m, "fig4_momentum.png")
+        rc, _, err = _run(argv, capsys)
+    assert rc == EXIT_INTERRUPTED, err
+    assert _left(out) == ["fig2_paths.png", "fig3_configuration.png"]       # no paper.npz, no part, no lock
+    assert _run(argv, capsys)[0] == 0
+    assert _left(out) == sorted(whole)
+    for p, b in whole.items():
+        if p == "paper.npz":
+            _same_npz(out / p, b)
+        else:
+            assert (out / p).read_bytes() == b, p
+
+
+# ---------------------------------------------------------------------------------------------
+# one lock per run, seen from another process: a chunk store used on its own on the chunk folder of a live run
+# ---------------------------------------------------------------------------------------------
+
+_HOLD = """
+import sys, time
+from pathlib import Path
+from jaxsleigh.files.runlock import RunLock
+out, chunks = Path(sys.argv[2]), Path(sys.argv[2] + ".chunks")
+if sys.argv[1] == "run":
+    RunLock(out, "a-run", covers=(chunks,)).acquire()          # a run on out, covering its chunk folder
+else:
+    RunLock(chunks, "a-store", folder=True).acquire()          # a chunk store used on its own
+print("ready", flush=True)
+time.sleep(120)
+"""
+
+
+def _hold(kind: str, out: Path):
+    import os
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    p = subprocess.Popen([sys.executable, "-c", _HOLD, kind, str(out)], stdout=subprocess.PIPE, env=env, text=True)
+    assert p.stdout.readline().strip() == "ready"
+    return p
+
+
+def _end(p) -> None:
+    import signal
+
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=30)
+    p.stdout.close()
+
+
+def test_a_chunk_store_on_its_own_is_refused_the_chunk_folder_of_a_live_run_in_another_process(tmp_path):
+    from jaxsleigh.errors import RunLockedError
+    from jaxsleigh.files.runlock import RunLock
+
+    out = tmp_path / "out.npz"
+    chunks = tmp_path / "out.npz.chunks"
+    p = _hold("run", out)
+    try:
+        assert _locks(tmp_path) == [f".out.npz.lock.{_locks(tmp_path)[0].rsplit('.lock.', 1)[1]}"]   # one lock
+        store = ChunkStore(chunks, "another-key")
+        with pytest.raises(RunLockedError, match="checkpoint folder .* is being written by another run"):
+            store.open(resume=False, manifest={})
+        assert [q.name for q in chunks.iterdir()] == [q.name for q in chunks.glob(".covered.*")]   # nothing written
+    finally:
+        _end(p)
+    store.open(resume=False, manifest={})                  # the run is gone: its mark is stale, never in the way
+    store.close()
+    p = _hold("store", out)                                 # and the other way round
+    try:
+        with pytest.raises(RunLockedError, match="checkpoint folder .* is being written by another run"):
+            RunLock(out, "a-run", covers=(chunks,)).acquire()
+        assert _locks(tmp_path) == [f"out.npz.chunks/{_locks(tmp_path)[0].rsplit('/', 1)[1]}"]
+    finally:
+        _end(p)

@@ -13,7 +13,8 @@ import time
 import warnings
 from typing import Any, Callable
 
-from ..files.runner import Finished, Words, chunk_dir, leave, run_to_file, sidecar, start_processes
+from ..files.run import COMMAND_WORDS
+from ..files.runner import Finished, chunk_dir, leave, run_to_file, sidecar, start_processes
 from .common import EXIT_CLUSTER, PROG, check_outputs, exit_code, report_warnings, say_failure, status_line
 from .options import add_distributed_options, processes_from_args
 from .values import whole
@@ -24,8 +25,7 @@ from ..studies.audit import Audit, audit_line
 __all__ = ["CLI_WORDS", "add_run_options", "run_chunked_command", "shared_options", "how_it_ran"]
 
 #: How the runner's messages name the options on the command line.
-CLI_WORDS = Words(resume="--resume", out="--out", option=lambda k: "--" + k.replace("_", "-"),
-                  again="the same command")
+CLI_WORDS = COMMAND_WORDS
 
 #: Options that may differ between the processes of one run (everything else must be equal).
 _PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout", "progress", "no_compile_cache",

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import sys
 import textwrap
-import uuid
 from pathlib import Path
 from typing import Optional
 
@@ -16,7 +15,8 @@ import numpy as np
 
 from ..cache import compilation_cache_dir, enable_compilation_cache  # noqa: F401  (re-exported)
 from ..files.distributed import EXIT_CLUSTER
-from ..files.runlock import RunLock, settings_fingerprint
+from ..files.run import COMMAND_WORDS, Run
+from ..files.runlock import settings_fingerprint
 from .options import (add_distributed_options, add_horizon_options, add_model_options,  # noqa: F401
                       add_progress_option, add_sampler_options, add_tolerance_options, check_bound_fits,
                       check_delay, check_tolerance_flags, law_kwargs, model_from_args, processes_from_args,
@@ -98,14 +98,12 @@ def run_fingerprint(args) -> str:
     return settings_fingerprint(settings)
 
 
-def claim_output(path, args=None, *, folder: bool = False) -> RunLock:
-    """The claim of a command on its ``--out`` file (or ``folder``), to hold while it runs
-    (`jaxsleigh.files.runlock.RunLock`): meanwhile another run writing there is refused (exit code 5),
-    as "the same run is in progress" when its settings (``args``, `run_fingerprint`) are these, else as a
-    run with other settings."""
-    fingerprint = run_fingerprint(args) if args is not None else uuid.uuid4().hex
-    return RunLock(path, fingerprint, folder=folder, what="output folder" if folder else "output",
-                   hint="choose another --out", shared=False)
+def claim_output(path, args=None, *, folder: bool = False) -> Run:
+    """The run of a command on its ``--out`` file (or ``folder``), to hold in a ``with`` while it runs
+    (`jaxsleigh.files.run.Run`, the lifecycle of every run that writes): meanwhile another run writing there is
+    refused (exit code 5), as "the same run is in progress" when its settings (``args``, `run_fingerprint`) are
+    these, else as a run with other settings."""
+    return Run(path, run_fingerprint(args) if args is not None else None, folder=folder, words=COMMAND_WORDS)
 
 
 def figure_formats() -> list:

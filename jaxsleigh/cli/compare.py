@@ -219,13 +219,14 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
                    x64=args.x64, stepsize=stepsize, audit=audit_from_args(args))
     record = _record(args, rows, names, dists, time.perf_counter() - t0, dt=dt, equal=equal)
-    atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
     if args.plot:
         from ..plots.compare import plot_compare_ecdf
 
         plot_compare_ecdf(json_ready(record), args.plot,
                           title="Controllers on the same plant and starts"
                                 + (", at the paper's training energy" if equal is not None else ""))
+    # the record last: where it is, the run finished (an interrupted one leaves none)
+    atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     for r in rows:
         if (r.get("audit") or {}).get("rows"):

@@ -42,6 +42,7 @@ from ..errors import CheckpointError, DamagedCheckpointWarning, DamagedFileError
 from ..status import Status
 from .checkpoint import MANIFEST, Checkpoint, differences, joined, record, recorded
 from .npz import value_problem
+from .run import Words, refuse_progress
 from .runlock import RunLock
 from ..validate import writable_dir
 
@@ -61,6 +62,10 @@ def starts_digest(starts) -> str:
     h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
     h.update(a.tobytes())
     return h.hexdigest()[:32]
+
+
+#: how a chunk store used on its own names resume (from Python or the command line)
+_STORE_WORDS = Words(resume="resume=True (--resume)")
 
 
 def _afresh(folder: Path) -> str:
@@ -97,10 +102,11 @@ class ChunkStore:
         covers this folder (`RunLock.over`, one lock per run), else by a lock of its own.
         """
         writable_dir(self.folder, what="checkpoint folder")
-        self._lock = RunLock.over(self.folder) or RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
-                                                          hint="choose another --out / checkpoint folder").acquire()
+        covered = RunLock.over(self.folder)
+        self._lock = covered or RunLock(self.folder, self.key, folder=True, what="checkpoint folder",
+                                        hint="choose another --out / checkpoint folder").acquire()
         try:
-            self._check(resume, manifest)
+            self._check(resume, manifest, decided=covered is not None)
         except BaseException:
             self.close()
             raise
@@ -117,12 +123,12 @@ class ChunkStore:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _check(self, resume: bool, manifest: dict) -> None:
+    def _check(self, resume: bool, manifest: dict, decided: bool = False) -> None:
         have = self.chunks() + sorted(self.folder.glob("pending_*.npz"))
-        if have and not resume:
-            raise CheckpointError(f"checkpoint {str(self.folder)!r} already holds {len(have)} chunk(s) of an "
-                                  f"earlier run; pass resume=True (--resume) with the same settings to continue "
-                                  f"it, or {_afresh(self.folder)}")
+        if not decided:            # a run that covers the folder decided it when it claimed its output
+            refuse_progress(f"checkpoint {str(self.folder)!r} already holds {len(have)} chunk(s) of an earlier run"
+                            if have else None, resume=resume, words=_STORE_WORDS, error=CheckpointError,
+                            afresh=f"delete or move {str(self.folder)!r} (or choose another --out / checkpoint folder)")
         new = {"key": self.key, **manifest}
         old = recorded(self.folder) if resume and self.manifest.exists() else {}
         if old is None:

@@ -18,7 +18,10 @@ for its owner; an owner holds its file exclusively from before its name appears)
 
 One run holds one lock: the lock of a run's output covers the folder of its chunks (``covers``), and the chunk store
 of that folder shares it (`RunLock.over`) instead of taking a second one; a chunk store used on its own (a
-``checkpoint_dir`` outside a run that owns an output) locks its folder itself.
+``checkpoint_dir`` outside a run that owns an output) locks its folder itself. So that such a store in another
+process sees a run that covers its folder, the run leaves a mark there (``.covered.<host>.<pid>``, held and released
+with its lock, never stale): the store is refused while the run lives, and a run is refused a folder that a live
+store of another run holds.
 
 A newcomer publishes its own lock *before* it looks at the others, so of two runs started at the
 same moment at least one is refused: never both accepted. Where the filesystem has no ``flock``
@@ -62,6 +65,10 @@ def _host() -> str:
 #: call inside another one is not) shares the lock instead of fighting over it.
 _HELD: dict = {}
 
+#: The name of a run's mark in a folder its lock covers (``.covered.<host>.<pid>``): a lock taken in that folder by
+#: another process sees it as a live run's lock.
+COVERED = ".covered."
+
 #: Folders covered by a lock this process holds (`RunLock` ``covers``): resolved folder -> the lock's key in `_HELD`.
 _COVERED: dict = {}
 
@@ -94,6 +101,7 @@ class RunLock:
         self.path = self.dir / f"{self.prefix}{_host()}.{os.getpid()}"
         self.covers = tuple(str(Path(c).resolve()) for c in covers)
         self._fd: Optional[int] = None
+        self._marks: list = []          # (path, fd) of the marks in the folders it covers
         self._shared: Optional[RunLock] = None
 
     # -- acquire / release ---------------------------------------------------------------------
@@ -119,6 +127,7 @@ class RunLock:
             return self
         try:
             self._check_others()
+            self._mark_covers()
         except BaseException:
             self._drop()
             raise
@@ -170,9 +179,18 @@ class RunLock:
                 "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "target": str(self.target)}
 
     def _publish(self) -> bool:
-        """Create this process's lock file, locked and complete before its name appears (written
-        under a temporary name, then renamed: a reader never sees a half-written record)."""
-        tmp = self.dir / f".tmplock.{_host()}.{os.getpid()}"
+        """Create this process's lock file, locked and complete before its name appears (`_locked_file`)."""
+        fd = self._locked_file(self.path)
+        if fd is None:
+            return False
+        self._fd = fd
+        return True
+
+    def _locked_file(self, path: Path) -> Optional[int]:
+        """The descriptor of ``path``, held with an exclusive ``flock`` and holding this lock's record, written under a
+        temporary name, then renamed (a reader never sees a half-written record); ``None`` (with a `RunLockWarning`)
+        where the filesystem has no ``flock``."""
+        tmp = path.parent / f".tmplock.{_host()}.{os.getpid()}"
         fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -181,20 +199,38 @@ class RunLock:
             tmp.unlink(missing_ok=True)
             warnings.warn(RunLockWarning(f"could not lock {str(self.target)!r} ({e}); this filesystem has no "
                                          f"flock, so another run writing the same {self.what} is not detected"),
-                          stacklevel=4)
-            return False
+                          stacklevel=5)
+            return None
         try:
             os.write(fd, (json.dumps(self._record()) + "\n").encode())
             os.fsync(fd)
-            os.replace(tmp, self.path)
+            os.replace(tmp, path)
         except BaseException:
             os.close(fd)
             tmp.unlink(missing_ok=True)
             raise
-        self._fd = fd
-        return True
+        return fd
+
+    def _mark_covers(self) -> None:
+        """Leave a mark of this run in every folder it covers (``.covered.<host>.<pid>``, held like its lock file), so
+        that a chunk store used there on its own by another process is refused while the run lives: first refuse a
+        live store of another run already there (its own lock, in the folder)."""
+        for folder in self.covers:
+            folder = Path(folder)
+            folder.mkdir(parents=True, exist_ok=True)
+            RunLock(folder, self.fingerprint, folder=True, what="checkpoint folder", hint=self.hint,
+                    shared=self.shared)._check_others(folder, ".lock.")
+            fd = self._locked_file(folder / f"{COVERED}{_host()}.{os.getpid()}")
+            if fd is not None:
+                self._marks.append((folder / f"{COVERED}{_host()}.{os.getpid()}", fd))
 
     def _drop(self) -> None:
+        marks, self._marks = self._marks, []
+        for path, mark in marks:
+            try:
+                path.unlink(missing_ok=True)
+            finally:
+                os.close(mark)
         fd, self._fd = self._fd, None
         if fd is None:
             return
@@ -204,8 +240,12 @@ class RunLock:
         finally:
             os.close(fd)
 
-    def _check_others(self) -> None:
-        for other in sorted(self.dir.glob(self.prefix + "*")):
+    def _check_others(self, folder: Optional[Path] = None, prefix: Optional[str] = None) -> None:
+        """Refuse a live lock of another run among the lock files ``prefix*`` in ``folder`` (default: this lock's);
+        a folder lock also looks at the marks of runs that cover the folder (`COVERED`). Stale files are removed."""
+        folder = self.dir if folder is None else folder
+        names = [prefix or self.prefix] + ([COVERED] if prefix is None and self.dir == self.target else [])
+        for other in sorted(p for name in names for p in folder.glob(name + "*")):
             if other == self.path:
                 continue
             try:

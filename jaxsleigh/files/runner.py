@@ -5,9 +5,10 @@ takes the runner's ``checkpoint_dir``, ``resume`` and ``shard``, e.g. into `jaxs
 ``out`` in four steps, the same from Python and from the command line (``jaxsleigh basin`` and ``jaxsleigh
 sweep`` are `run_to_file` with their own checks and printing):
 
-1. **own** ``out``: one lock next to it, which covers ``out.chunks/`` too (`jaxsleigh.files.runlock.RunLock`;
-   another live run on the same file is refused with `jaxsleigh.errors.RunLockedError`, exit code 5 on the command line), then refuse
-   a chunk folder ``out.chunks/`` that holds the chunks of an earlier run unless ``resume=True``; a
+1. **own** ``out`` as every run that writes does (`jaxsleigh.files.run.Run`): one lock next to it, which covers
+   ``out.chunks/`` too (another live run on the same file is refused with `jaxsleigh.errors.RunLockedError`, exit code
+   5 on the command line), then refuse a chunk folder ``out.chunks/`` that holds the chunks of an earlier run unless
+   ``resume=True`` (decided there once: the chunk store does not decide it again); a
    fresh run records its options in the folder's one record file, ``out.chunks/manifest.json``
    (`jaxsleigh.files.checkpoint.record`, next to what the chunk store records there), so that a refused
    resume can name the options that differ;
@@ -52,7 +53,8 @@ from . import checkpoint
 from .checkpoint import MANIFEST, differences, recorded
 from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
 from .npz import atomic_write_text
-from .runlock import RunLock, settings_fingerprint
+from .run import PYTHON_WORDS, Run, Words
+from .runlock import settings_fingerprint
 from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
@@ -72,28 +74,6 @@ class Processes:
     timeout_s: float = CLUSTER_TIMEOUT_S
 
 
-class Words(NamedTuple):
-    """How the runner's messages name the caller's options: Python's keywords by default, the flags on the
-    command line (``resume='--resume'``, ``out='--out'``, ``option=lambda k: '--' + k.replace('_', '-')``)."""
-
-    resume: str = "resume=True"
-    out: str = "out"
-    option: Callable[[str], str] = lambda k: f"{k}="
-    again: str = "the same call"
-
-    def shown(self, name: str, value) -> str:
-        """An option with its value as the caller writes it: ``'seed=3'``, ``'--seed 3'``, ``'--x64'``, ``'no
-        --plot'`` (unset or off), a list's values one after the other."""
-        flag = self.option(name)
-        if value is None or value is False:
-            return f"no {flag.rstrip('=')}"
-        if value is True:
-            return flag.rstrip("=")
-        v = " ".join(map(str, value)) if isinstance(value, list) else value
-        return f"{flag}{v}" if flag.endswith("=") else f"{flag} {v}"
-
-
-PYTHON_WORDS = Words()
 
 
 class Finished(NamedTuple):
@@ -151,29 +131,28 @@ FINISHED = "finished.json"
 
 def own_output(out, chunks, *, resume: bool, run_id: Optional[str] = None, words: Words = PYTHON_WORDS,
                shared: Optional[bool] = None) -> tuple:
-    """Claim ``out`` and its chunk folder for this run, before looking at the folder: one lock next to ``out``, which
-    covers the folder (its chunk store shares it; `RunLockedError` names another live run), then refuse a folder that holds chunks without ``resume``.
-    ``run_id``: the run's fingerprint (``None``: one of its own); ``shared``: other processes with the same
-    fingerprint share the output (default: when ``run_id`` is given). Returns ``(lock, the chunk files found)``;
-    the caller releases the lock."""
+    """Claim ``out`` and its chunk folder for this run, before looking at the folder (`jaxsleigh.files.run.Run`: one
+    lock next to ``out``, which covers the folder, whose chunk store shares it; `RunLockedError` names another live
+    run), then decide, once for the run and its chunk store, whether the folder's chunks may be used: a folder that
+    holds chunks (or a chunk's work in progress) is refused without ``resume``. ``run_id``: the run's fingerprint
+    (``None``: one of its own); ``shared``: other processes with the same fingerprint share the output (default: when
+    ``run_id`` is given). Returns ``(the claimed Run, the chunk files found)``; the caller releases it."""
     shared = run_id is not None if shared is None else shared
-    lock = RunLock(out, run_id or _single_run_id(), what="output", hint=f"choose another {words.out}",
-                   shared=shared, covers=(chunks,)).acquire()
+    run = Run(out, run_id or _single_run_id(), resume=resume, words=words, covers=(chunks,), shared=shared).claim()
     try:
-        have = sorted(Path(chunks).glob("chunk_*.npz")) if Path(chunks).is_dir() else []
-        if have and not resume and (Path(chunks) / FINISHED).is_file():
-            raise ValueError(f"{str(chunks)!r} holds the kept chunks of a finished run for {str(out)!r} (kept after it "
-                             f"wrote its output); add {words.resume} (with the same options) to write the output again "
-                             f"from them, or delete or move that folder (or choose another {words.out}) to start "
-                             f"afresh")
-        if have and not resume:
-            raise ValueError(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}; add "
-                             f"{words.resume} (with the same options) to continue it, or delete or move that folder "
-                             f"(or choose another {words.out}) to start afresh")
+        folder = Path(chunks)
+        have = sorted(folder.glob("chunk_*.npz")) if folder.is_dir() else []
+        pending = sorted(folder.glob("pending_*.npz")) if folder.is_dir() else []
+        afresh = f"delete or move that folder (or choose another {words.out})"
+        if have and (folder / FINISHED).is_file():
+            run.refuse_progress(f"{str(chunks)!r} holds the kept chunks of a finished run for {str(out)!r} (kept "
+                                f"after it wrote its output)", then="write the output again from them", afresh=afresh)
+        run.refuse_progress(f"{str(chunks)!r} holds the chunks of an earlier, unfinished run for {str(out)!r}"
+                            if have or pending else None, afresh=afresh)
     except BaseException:
-        lock.release()
+        run.release()
         raise
-    return lock, have
+    return run, have
 
 
 def _record_options(chunks, options: dict, resume: bool) -> None:

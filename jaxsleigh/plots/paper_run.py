@@ -91,12 +91,14 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
     sol = simulate(ics, plant=paper_plant(), gains=paper_gains(), t_final=t_final, dt=dt, x64=x64,
                    stepsize=StepSizeController(method=method), saveat=SaveAt(every=_save_every(t_final, dt)),
                    run=RunOptions(progress=progress))
-    paths = {"npz": write_npz(out / "paper.npz", sol, ics=ics,
-                              command=list(command) if command is not None else ["run_paper", str(out)])}
+    paths = {}
     for stem, fn_name in FIGURES.items():
         fig = getattr(plotting, fn_name)(sol, stamp=stamp)
         paths[stem] = plotting.save_figure(fig, out / f"{stem}.png")
-    return paths
+    # the data last: where paper.npz is, every figure of its run is (an interrupted run leaves none)
+    npz = write_npz(out / "paper.npz", sol, ics=ics, command=list(command) if command is not None else
+                    ["run_paper", str(out)])
+    return {"npz": npz, **paths}
 
 
 def summary_table(path_or_solution) -> str:

@@ -95,8 +95,12 @@ class SolveConfig(NamedTuple):
 
 
 def plant_to_dict(plant: PlantParams) -> dict:
-    """JSON-ready record; a leaf that varies per trajectory is recorded as ``{"per_trajectory": P,
-    "min": .., "max": ..}`` (the values themselves go with the rows, see ``lane_table``)."""
+    """The one record of a plant in every file jaxsleigh writes (a result's settings, a checkpoint's, a tuner's gains,
+    law or front file, an optimum's settings): ``{"m", "J", "l", "damping": its class name, "damping_params": {its
+    fields}}``, JSON-ready; a leaf that varies per trajectory is recorded as ``{"per_trajectory": P, "min": ..,
+    "max": ..}`` (the values themselves go with the rows, see ``lane_table``). Files of earlier versions recorded the
+    damping by its short name (``"coulomb"``) in the tuners' files, with a list of parameters in the optimum's; the
+    readers take both (`jaxsleigh.files.npz.damping_name`)."""
     num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))  # noqa: E731
     d = plant.damping
     return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),

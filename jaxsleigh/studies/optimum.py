@@ -62,8 +62,9 @@ from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 from ..files.checkpoint import run_key
 from ..files.chunks import ChunkStore
-from ..files.npz import damaged, damping_name, read_npz, value_problem, write_npz_deterministic
+from ..files.npz import damaged, read_npz, value_problem, write_npz_deterministic
 from ..progress import Progress
+from .config import plant_to_dict
 from .options import RunOptions, study_options, takes_objects
 from ..validate import check_count, check_memory, output_file
 
@@ -618,9 +619,7 @@ def _solve_starts(starts, horizons, plant, eps, opts, progress=None):
 
 def _settings(plant, eps, opts, horizons) -> dict:
     return {"eps": float(eps), "horizons": [float(h) for h in horizons], "options": opts._asdict(),
-            "plant": {"m": float(plant.m), "J": float(plant.J), "l": float(plant.l),
-                      "damping": damping_name(type(plant.damping).__name__),
-                      "damping_params": [float(v) for v in plant.damping] if isinstance(plant.damping, tuple) else []},
+            "plant": plant_to_dict(plant),
             "dtype": "float64"}
 
 

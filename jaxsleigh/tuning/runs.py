@@ -3,12 +3,13 @@
 Every tuner writes a file that the other commands read back: `tune_run` (gradient descent on the paper's gains,
 `jaxsleigh.tuning.tune`) and `search_run` (CMA-ES on the accurate engine's figures, `jaxsleigh.tuning.search`) a gains
 file, `law_run` (any other law, or the paper's behind an actuator, `jaxsleigh.tuning.tune_law`) a tuned law's file,
-`front_run` (`jaxsleigh.tuning.pareto_front`) a front. The four share one lifecycle, `TuningRun`:
+`front_run` (`jaxsleigh.tuning.pareto_front`) a front. The four share one lifecycle, `TuningRun`, the
+`jaxsleigh.files.run.Run` of every run that writes with a tuner's checkpoint and history:
 
 1. **Before any work** the output, the history (if asked for) and the checkpoint ``OUT.ckpt.npz`` next to the output
-   can be written, and the output is claimed (`jaxsleigh.files.runlock.RunLock`): while another live run writes the
-   same file, this one is refused with `jaxsleigh.errors.RunLockedError` naming that run (host, pid, start), so two
-   runs never both write it. A checkpoint left by an interrupted run is refused without ``resume=True`` (nothing is
+   can be written, and the output is claimed: while another live run writes the same file, this one is refused
+   with `jaxsleigh.errors.RunLockedError` naming that run (host, pid, start), so two runs never both write it. A
+   checkpoint left by an interrupted run is refused without ``resume=True`` (nothing is
    written over it), ``resume=True`` without one, and a resume whose options differ from those the checkpoint
    records names the first that differs, with both values.
 2. **During the work** the tuner writes its checkpoint, atomically, after every step (a front computed point by
@@ -36,16 +37,15 @@ import contextlib
 import json
 import math
 import time
-import uuid
 from pathlib import Path
 from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
 from ..files.checkpoint import differences
-from ..files.runlock import RunLock, settings_fingerprint
-from ..files.runner import PYTHON_WORDS, Words
-from ..model.params import PlantParams, gains_to_dict, lane_record, load_gains, save_gains
+from ..files.run import PYTHON_WORDS, Run, Words
+from ..model.params import as_plant, gains_to_dict, load_gains, save_gains
+from ..studies.config import plant_to_dict
 from ..validate import check_memory, whole, writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
 from .history import save_arrays
@@ -57,7 +57,6 @@ from .law import law_attempts
 from .law_file import save_law
 from .validation import validation_dict
 from .pareto import finished_points, front_settings, load_front
-from ..model.damping import damping_from_name
 
 __all__ = ["TuningRun", "RunOutcome", "HeldOut", "tune_run", "search_run", "law_run", "front_run"]
 
@@ -110,8 +109,9 @@ class RunOutcome(NamedTuple):
     energy_budget_met: Optional[bool] = None
 
 
-class TuningRun:
-    """A tuning run's claim on its output ``out`` and the files beside it (module docstring).
+class TuningRun(Run):
+    """A tuning run's claim on its output ``out`` and the files beside it (module docstring): a
+    `jaxsleigh.files.run.Run` (its lock, its resume decision) with a tuner's checkpoint and history.
 
     Args:
       out: the file the run writes (a gains file, a tuned law's file or a front).
@@ -126,20 +126,17 @@ class TuningRun:
 
     def __init__(self, out, *, history=None, resume: bool = False, options: Optional[dict] = None,
                  command: Optional[list] = None, words: Words = PYTHON_WORDS):
-        self.out = Path(out)
         h = None if history is None else Path(history)
         self._history_given = h
         self.history = h if h is None or h.suffix == ".npz" else h.with_name(h.name + ".npz")
-        self.resume = bool(resume)
         # as they read back from the checkpoint's JSON (tuples as lists)
         self.options = None if options is None else json.loads(json.dumps({str(k): v for k, v in options.items()},
                                                                           default=str))
         self.command = command
-        self.words = words
         # one process's run, no other shares its output; known options make it the run's settings, so that the same
-        # run started twice is told it is in progress (`jaxsleigh.files.runlock.RunLock`)
-        self.run_id = (uuid.uuid4().hex if self.options is None
-                       else settings_fingerprint([str(self.out), self.options]))
+        # run started twice is told it is in progress
+        super().__init__(out, settings=None if self.options is None else [str(Path(out)), self.options],
+                         resume=resume, words=words)
 
     @property
     def checkpoint(self) -> Path:
@@ -158,26 +155,20 @@ class TuningRun:
         for p in (*(self.checkpoint,) * checkpointed, *also):
             if p is not None:
                 writable_path(p)
-        lock = RunLock(self.out, self.run_id, what="output", hint=f"choose another {self.words.out}",
-                       shared=False).acquire()
-        try:
+        with self:
             if checkpointed:
                 self._check_checkpoint(what)
             yield self
-        finally:
-            lock.release()
 
     def finished(self) -> None:
         """The run is complete: its checkpoint goes."""
         self.checkpoint.unlink(missing_ok=True)
 
     def _check_checkpoint(self, what: str) -> None:
-        ckpt, resume = self.checkpoint, self.words.resume
-        if ckpt.exists() and not self.resume:
-            raise ValueError(f"{str(ckpt)!r} holds the state of an earlier, interrupted {what} for {str(self.out)!r}; "
-                             f"add {resume} (with the same options) to continue it, or delete it to start afresh")
-        if self.resume and not ckpt.exists():
-            raise ValueError(f"{resume}: no checkpoint {str(ckpt)!r} to continue from; run without {resume}")
+        ckpt = self.checkpoint
+        self.refuse_progress(f"{str(ckpt)!r} holds the state of an earlier, interrupted {what} for {str(self.out)!r}"
+                             if ckpt.exists() else None, afresh="delete it",
+                             missing=f"no checkpoint {str(ckpt)!r} to continue from")
         if self.resume and self.options is not None:
             self._check_options(checkpoint_options(ckpt))
 
@@ -233,7 +224,7 @@ def tune_run(run, gains0="paper", *, config: TuneConfig = TuneConfig(), loss: Lo
                        best_loss=res.best_loss, best_iteration=res.best_iteration,
                        iterations_run=res.settings["iterations_run"], seed=config.seed, batch=config.batch,
                        dtype=res.settings["dtype"], plant="sampled (robust)" if robust is not None else
-                       _plant_record(plant), objective=res.settings["loss"], **fields)
+                       plant_to_dict(as_plant(plant)), objective=res.settings["loss"], **fields)
         return (run.out, *_history(run, lambda p: tu.save_history(res.history, p)))
 
     return _tuner_run(run, "tuning run", lambda: tu.tune(
@@ -275,7 +266,7 @@ def search_run(run, gains0="paper", *, config: SearchConfig = SearchConfig(), re
                    initial_gains=gains_to_dict(res.initial), training_figures=res.figures,
                    reference_figures=res.reference, best_generation=res.best_generation,
                    generations_run=res.settings["generations_run"], seed=config.seed, batch=config.batch,
-                   population=config.population, plant=_plant_record(plant), x64=bool(x64), **fields)
+                   population=config.population, plant=plant_to_dict(as_plant(plant)), x64=bool(x64), **fields)
         return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
     return _tuner_run(run, "search", work, write,
@@ -302,7 +293,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
         save_law(res.law, name, run.out, how="jaxsleigh tune --controller: Adam on the soft convergence time"
                  + ("" if budget is None else f" under a training energy budget {budget:g}"), command=run.command,
                  tuned=list(names), training_loss=res.loss, training_energy=res.energy, energy_budget=budget,
-                 seed=seed, batch=batch, x64=bool(x64), plant=_plant_record(plant),
+                 seed=seed, batch=batch, x64=bool(x64), plant=plant_to_dict(as_plant(plant)),
                  history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **fields)
         return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
@@ -413,12 +404,9 @@ def _interrupted_front(run: TuningRun) -> Optional[dict]:
         except ValueError:
             earlier = None
         earlier = earlier if isinstance(earlier, dict) and earlier.get("interrupted") else None
-    resume = run.words.resume
-    if earlier is not None and not run.resume:
-        raise ValueError(f"{str(run.out)!r} holds the finished points of an interrupted front; add {resume} (with the "
-                         f"same options) to continue it, or delete it to start afresh")
-    if run.resume and earlier is None:
-        raise ValueError(f"{resume}: {str(run.out)!r} is not an interrupted front to continue; run without {resume}")
+    run.refuse_progress(None if earlier is None else f"{str(run.out)!r} holds the finished points of an interrupted "
+                        f"front", afresh="delete it",
+                        missing=f"{str(run.out)!r} is not an interrupted front to continue")
     return earlier
 
 
@@ -474,13 +462,3 @@ def _budget_met(energy_budget, energy: float) -> Optional[bool]:
     b = _budget(energy_budget)
     return None if b is None else bool(math.isfinite(energy) and energy <= b)
 
-
-def _plant_record(plant) -> dict:
-    """``{"m", "J", "l", "damping"}`` of ``plant`` (``None``: the paper's), the damping by its name where it has one."""
-    plant = PlantParams() if plant is None else plant
-    num = (lambda v: float(v) if np.ndim(v) == 0 else lane_record(v))
-    d = plant.damping
-    named = [n for n in ("coulomb", "viscous", "none") if type(damping_from_name(n)) is type(d)
-             and all(np.array_equal(a, b) for a, b in zip(damping_from_name(n), d))]
-    return {"m": num(plant.m), "J": num(plant.J), "l": num(plant.l),
-            "damping": named[0] if named else type(d).__name__}
