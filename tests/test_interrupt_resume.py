@@ -102,18 +102,7 @@ def test_a_refused_resume_names_the_option_from_the_one_record_and_an_old_option
 # every tuner mode: Ctrl-C after its first iterations, --resume to an uninterrupted run's files
 # ---------------------------------------------------------------------------------------------
 
-GRADIENT = ["tune", "--steps", "3", "--batch", "4", "--t-final", "5", "--n-attempts", "2000", "--tune", "k",
-            "--validate", "0", "--no-progress"]
-SEARCH = ["tune", "--search", "--steps", "3", "--batch", "8", "--population", "4", "--validate", "0", "--no-progress"]
-FRONT = ["tune", "--pareto", "2", "--steps", "2", "--warm-steps", "1", "--batch", "4", "--t-final", "10",
-         "--n-attempts", "1500", "--tune", "L,k", "--validate", "0", "--budgets", "5:50", "--no-progress"]
-FRONT_VMAP = ["tune", "--pareto", "2", "--front-method", "vmap", "--steps", "3", "--batch", "4", "--t-final", "10",
-              "--n-attempts", "1500", "--tune", "L,k", "--validate", "0", "--budgets", "5:50", "--no-progress"]
-LAW = ["tune", "--controller", "astolfi", "--steps", "3", "--batch", "2", "--t-final", "2", "--validate", "0",
-       "--no-progress"]
-
-#: what differs between two runs of the same settings: when they ran and how they were called
-VOLATILE = {"wall_s", "command"}
+from tuner_runs import FRONT, FRONT_VMAP, GRADIENT, LAW, SEARCH, VOLATILE  # noqa: E402  (the smallest run of each mode)
 
 
 def _after_calls(module, name, n):
