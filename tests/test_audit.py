@@ -8,7 +8,7 @@ import pytest
 import jaxsleigh as js
 from jaxsleigh import cli
 from jaxsleigh.errors import AccuracyWarning
-from jaxsleigh.studies.audit import REFERENCE_COST, Audit, audit_line, audit_rows, audit_sample
+from jaxsleigh.studies.audit import REFERENCE_COST, REFERENCE_COST_FIXED, Audit, audit_line, audit_rows, audit_sample
 
 
 def test_how_many_rows_an_audit_reruns():
@@ -164,6 +164,9 @@ def test_the_sample_takes_the_unresolved_rows_first_and_fits_its_budget():
     cut = audit_sample(Audit(), n, unresolved=flags, steps=steps)
     assert cut.size == min(10, fits) and set(cut.tolist()) <= {7, 300, 901}
     assert audit_sample(Audit(budget=None), n, unresolved=flags, steps=steps).size == 10
+    # fixed steps are cheaper lane-steps: a reference row costs more of them
+    assert audit_sample(Audit(), n, unresolved=flags, steps=steps, fixed_step=True).size == int(
+        0.10 * n / REFERENCE_COST_FIXED)
     assert audit_sample(Audit(rows=5), n, unresolved=flags, steps=steps).size == 5     # asked for: whatever it costs
 
 

@@ -20,7 +20,7 @@ the same result). It takes the first \(k = \min(\text{max\_rows}, \lceil \text{f
 the longest prefix of those whose estimated cost fits ``budget`` (10%) of the run's wall time \(W\). A row's cost is
 estimated from the run's own steps: the run spent \(W / \sum_j n_j\) per lane-step, and a reference row of
 \(n_i\) run steps costs `REFERENCE_COST` \(\cdot\, n_i\) of those (more steps at 1e-10, float64, a batch of a few
-lanes), so rows are kept while \(\text{REFERENCE\_COST} \sum_{i \in S} n_i \le \text{budget} \sum_j n_j\),
+lanes; `REFERENCE_COST_FIXED` after fixed steps), so rows are kept while \(\text{REFERENCE\_COST} \sum_{i \in S} n_i \le \text{budget} \sum_j n_j\),
 which needs no clock and draws the same rows on any machine. It integrates them again in
 float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows that reached the horizon in both:
 
@@ -47,11 +47,18 @@ import numpy as np
 from ..status import Status
 from ..errors import AccuracyWarning
 
-__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve", "REFERENCE_COST"]
+__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve", "REFERENCE_COST",
+           "REFERENCE_COST_FIXED"]
 
-#: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the run it
-#: audits, in units of the run's own cost per lane-step (``experiments/accuracy/audit_power.py`` measures it)
+#: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the adaptive run
+#: it audits, in units of the run's own cost per lane-step: one row of the paper's gains over 100 s took 0.08 s
+#: against 0.43 s for a 512-start run of 918 steps a row (a factor of 94; eight rows together, 28), warm, on a
+#: 2-core x86_64 CPU (``experiments/studies/audit_power.py`` times the audit against the run)
 REFERENCE_COST = 100.0
+#: the same for a run of fixed steps, whose lane-steps cost a fraction of an adaptive one's and count every base
+#: step: four reference rows took 0.16 s against 0.34 s for the plain fixed-step path of 4,096 starts of 10,000
+#: steps each (a factor of about 480 a row; one row costs half of four)
+REFERENCE_COST_FIXED = 1000.0
 
 
 class Audit(NamedTuple):
@@ -159,12 +166,13 @@ def _agree(d: dict, audit: "Audit") -> np.ndarray:
     return d["same"] & (d["dT"] <= audit.T_eps_s) & (d["dE"] <= audit.energy_rel) & (d["dy"] <= audit.state)
 
 
-def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None) -> np.ndarray:
+def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_step: bool = False) -> np.ndarray:
     """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
     (bool, ``(n,)``) first, then the others, each in the seeded order of ``numpy.random.default_rng(audit.seed)``;
     the first ``audit.count(n)``, cut to the longest prefix whose estimated cost fits ``audit.budget`` of the run
-    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST`). They depend
-    on the result's rows and the audit only, never on a clock."""
+    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST`,
+    `REFERENCE_COST_FIXED` for a run of ``fixed_step`` steps). They depend on the result's rows and the audit only,
+    never on a clock."""
     k = audit.count(n)
     if not k:
         return np.zeros(0, np.int64)
@@ -180,7 +188,8 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None) -> np.n
         s = np.nan_to_num(np.asarray(steps, np.float64), nan=0.0)
         s = np.maximum(s, 0.0)
         allowance = audit.budget * float(np.sum(s))
-        rows = rows[:int(np.searchsorted(np.cumsum(REFERENCE_COST * s[rows]), allowance, side="right"))]
+        factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST
+        rows = rows[:int(np.searchsorted(np.cumsum(factor * s[rows]), allowance, side="right"))]
     return np.sort(rows)
 
 
@@ -208,7 +217,7 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     k = audit.count(n)
     if k == 0:
         return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON, **unresolved}
-    rows = audit_sample(audit, n, unresolved=flags, steps=getattr(result, "n_steps", None))
+    rows = audit_sample(audit, n, unresolved=flags, steps=getattr(result, "n_steps", None), fixed_step=fixed_step)
     if rows.size == 0:
         return {"rows": 0, "why": f"no row's reference fits {audit.budget:.0%} of the run's time", **unresolved,
                 "how": _SMALL_RUN_PYTHON, "wall_s": 0.0}
