@@ -660,11 +660,9 @@ def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, f
     return chunks.engine_part(lo, hi, ci, pending), True
 
 
-def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled,
-                after_parts=None) -> tuple:
+def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
     """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
-    returns the chunks' summaries (none with ``shard``) and the number of chunks reused. ``after_parts()`` is called
-    once every chunk's parts are done, while the last stragglers may still run (a core is then free)."""
+    returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
     n, chunk, ics5 = chunks.n, chunks.chunk, chunks.ics5
     chunks.store = store
     parts, reused = [], 0
@@ -696,8 +694,6 @@ def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, 
             while pending and (len(pending) > MAX_PENDING or ready(pending[0])):
                 done_chunk(*pending.popleft())
         chunks.close_stragglers()
-        if after_parts is not None:
-            after_parts()
     except BaseException:
         # interrupted: a chunk whose stragglers are in the pool still ends and is written (nothing finished is lost)
         chunks.close_stragglers()
@@ -904,8 +900,9 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       saveat: `jaxsleigh.SaveAt` (default: final states and summaries; ``every=k``: also the trajectories every
         ``k`` base steps, ``N * T * 5`` numbers; ``summaries=False``: the plain fixed-step path).
       run: `jaxsleigh.RunOptions` (chunks, devices, checkpoint and resume, progress, a process's share; its
-        ``audit``: a random 1% of the rows, at most 64, none below 500 starts, re-run in float64 at rtol = atol =
-        1e-10, the worst differences in ``run_info["audit"]`` and an `AccuracyWarning` beyond its thresholds,
+        ``audit``: 1% of the rows, at most 64, none below 500 starts, the ``unresolved`` ones first, as many as fit
+        10% of the run's time, re-run in float64 at rtol = atol = 1e-10, the worst differences and its cost in
+        ``run_info["audit"]`` and an `AccuracyWarning` beyond its thresholds or for unresolved rows,
         `jaxsleigh.studies.audit`; ``RunOptions(audit=False)``: none).
         Every finished chunk is written atomically and carries the fingerprint of its run; a chunk of another
         run stops the run with a `CheckpointError`, a damaged one is recomputed.
