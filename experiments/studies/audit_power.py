@@ -88,7 +88,7 @@ def power(tail: list, base: dict, n_run: int, shares, draws: int) -> dict:
     out = {}
     old_rows = np.random.default_rng(0).choice(n_run, size=Audit().count(n_run), replace=False)
     for share in shares:
-        m = max(1, int(round(share * n_run)))
+        m = max(1, round(share * n_run))
         said_new = said_old = by_flag = audited = 0
         for _ in range(draws):
             ti = rng.integers(0, off_flag.size, m)
@@ -123,7 +123,7 @@ def other_laws(names, n: int) -> dict:
         r = _run(ics, **law, run=js.RunOptions(progress=False, audit=False))
         wall = time.perf_counter() - t0
 
-        def ref(rows, tol):
+        def ref(rows, tol, law=law):
             return _run(ics[rows], **law, x64=True, run=js.RunOptions(progress=False, audit=False),
                         stepsize=js.StepSizeController(rtol=tol, atol=tol, max_steps=10**6))
         rows = np.arange(n)
@@ -145,10 +145,10 @@ def other_laws(names, n: int) -> dict:
 def cost(ns, reps: int) -> dict:
     import jaxsleigh as js
 
-    quiet = dict(progress=False)
+    quiet = {"progress": False}
     cases = {f"paper_{n}": (readme_starts(n, seed=11), {}) for n in ns}
-    cases["plain_fixed_step_4096"] = (readme_starts(4096, seed=11), dict(
-        saveat=js.SaveAt(summaries=False), stepsize=js.StepSizeController(method="rk4", check_passivity=False)))
+    cases["plain_fixed_step_4096"] = (readme_starts(4096, seed=11), {
+        "saveat": js.SaveAt(summaries=False), "stepsize": js.StepSizeController(method="rk4", check_passivity=False)})
     out = {}
     for name, (ics, kw) in cases.items():
         for audit in (False, None):                       # compile (and fill the caches) first

@@ -411,7 +411,7 @@ class BasinResult(NamedTuple):
     u_norm_peak: Optional[np.ndarray] = None
     u_energy: Optional[np.ndarray] = None
     u_abs_int: Optional[np.ndarray] = None
-    unresolved: Optional[np.ndarray] = None
+    unresolved: np.ndarray | None = None
 
     valid = VALID
     converged = CONVERGED

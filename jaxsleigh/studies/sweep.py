@@ -334,7 +334,7 @@ class SweepResult(NamedTuple):
     p_final: Optional[np.ndarray] = None
     Hd_final: Optional[np.ndarray] = None
     n_rejected: Optional[np.ndarray] = None
-    unresolved: Optional[np.ndarray] = None
+    unresolved: np.ndarray | None = None
 
     @property
     def effort(self) -> dict:
