@@ -249,7 +249,7 @@ def test_save_load_round_trip_and_deterministic_bytes(tmp_path, monkeypatch, xt_
         assert list(z["grid_axes"]) == ["x", "theta"] and float(z["fraction"]) == xt_result.fraction
         assert "wall" not in str(z["settings_json"])
     back = load_basin(p1)
-    for k in ("T_eps", "status", "Hd0", "max_excursion", "n_steps", "q_final"):
+    for k in ("T_eps", "status", "Hd0", "max_excursion", "n_steps", "q_final", "unresolved"):
         np.testing.assert_array_equal(getattr(back, k), getattr(xt_result, k))
     assert back.starts.shape == (5, 6) and back.starts.axes == ("x", "theta")
     assert back.fraction == xt_result.fraction and back.settings["eps"] == 0.3

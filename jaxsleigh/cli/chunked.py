@@ -13,6 +13,8 @@ import time
 import warnings
 from typing import Any, Callable
 
+import numpy as np
+
 from ..files.run import COMMAND_WORDS
 from ..files.runner import Finished, chunk_dir, leave, run_to_file, sidecar, start_processes
 from .common import EXIT_CLUSTER, PROG, check_outputs, exit_code, report_warnings, say_failure, status_line
@@ -55,9 +57,10 @@ def add_run_options(p, *, chunk_example: str, chunk_default, chunk_help: str, pl
                    help="progress bar with ETA on stderr (default: only on a terminal)")
     if audit:
         r.add_argument("--audit-rows", type=whole("--audit-rows", "64", minimum=0, maximum=4096), default=None,
-                       metavar="K", help="accuracy audit: re-run K random rows in float64 at rtol = atol = 1e-10 and "
-                                         "report the worst differences (default: 1%% of the rows, at most 64, from 500 "
-                                         "rows on; 0: no audit)")
+                       metavar="K", help="accuracy audit: re-run K rows (the unresolved ones first, then random ones) in "
+                                         "float64 at rtol = atol = 1e-10 and report the worst differences (default: 1%% "
+                                         "of the rows, at most 64, from 500 rows on, as many as fit 10%% of the run's "
+                                         "time; 0: no audit)")
     o = p.add_argument_group("output")
     o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
     o.add_argument("--plot", metavar="FILE.png", help=plot_help)
@@ -155,5 +158,10 @@ def say_study_done(command: str, res, record: dict, written: list, eps: float, h
     do, is on stderr already); `jaxsleigh.cli.common.exit_code`."""
     print(f"{PROG} {command}: {head}{status_line(res.status, res.T_eps, eps)}; {record['wall_s']:.1f} s wall "
           f"({how_it_ran(res, record)}); wrote {', '.join(written)}")
-    print(f"{PROG} {command}: {audit_line((res.run_info or {}).get('audit'), flag='--audit-rows')}")
+    rec = (res.run_info or {}).get("audit")
+    print(f"{PROG} {command}: {audit_line(rec, flag='--audit-rows')}")
+    flags = getattr(res, "unresolved", None)
+    if not rec and flags is not None and np.any(flags):        # no audit: the flags are still the run's own
+        print(f"{PROG} {command}: {int(np.sum(flags))} rows unresolved (settled oscillation grew: the file's "
+              f"'unresolved')")
     return exit_code(res.status, res.T_eps, eps)

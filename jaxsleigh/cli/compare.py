@@ -94,8 +94,9 @@ def add_compare(subparsers) -> None:
     g.add_argument("--steps", type=whole("--steps", "60", maximum=10_000), default=None, metavar="K",
                    help=f"tuner iterations per law (default {DEFAULT_STEPS})")
     p.add_argument("--audit-rows", type=whole("--audit-rows", "64", minimum=0, maximum=4096), default=None, metavar="K",
-                   help="accuracy audit of every law and start set: K random rows re-run in float64 at rtol = atol = "
-                        "1e-10 (default: 1%% of the rows, at most 64, from 500 starts on; 0: none)")
+                   help="accuracy audit of every law and start set: K rows (the unresolved ones first) re-run in "
+                        "float64 at rtol = atol = 1e-10 (default: 1%% of the rows, at most 64, from 500 starts on, as "
+                        "many as fit 10%% of the run's time; 0: none)")
     p.add_argument("--out", required=True, metavar="TABLE.json", help="the rows, with what made them")
     p.add_argument("--plot", default=None, metavar="FIG.png",
                    help="draw the laws side by side: per start distribution, the distribution over the starts "

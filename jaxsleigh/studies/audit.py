@@ -8,8 +8,20 @@ grows from an amplitude of \(10^{-9}\) to \(10^{-2}\) over tens of seconds: a ru
 gains: a median of 7.6 against 136 in float64; ``docs/evidence/accuracy.md``). No local estimate sees an error
 in a mode that is below the tolerance, so the library checks its result globally instead.
 
-`audit_rows` draws \(n = \min(\text{max\_rows}, \lceil \text{fraction}\cdot N\rceil)\) rows with
-``numpy.random.default_rng(seed)`` (the same rows on every run and in every process), integrates them again in
+**Unresolved rows, flagged row by row.** Such a row is seen in what the run computes anyway: it ends near the
+target with its settled pair weakly damped or growing and with \(|\theta(T)|\) back above its closest approach
+(``result.unresolved``, `jaxsleigh.integrate.guard.grown_settled_mode`). Every such row is counted
+(``unresolved_rows``) and an `jaxsleigh.errors.AccuracyWarning` names them: what they report hangs on a seed below
+every tolerance, and no sample is needed to say so.
+
+**The sample.** `audit_sample` orders the rows with ``numpy.random.default_rng(seed)``: the unresolved rows first
+(most at risk), then the others, each in a seeded random order (the same rows on every run and in every process for
+the same result). It takes the first \(k = \min(\text{max\_rows}, \lceil \text{fraction}\cdot N\rceil)\), then
+the longest prefix of those whose estimated cost fits ``budget`` (10%) of the run's wall time \(W\). A row's cost is
+estimated from the run's own steps: the run spent \(W / \sum_j n_j\) per lane-step, and a reference row of
+\(n_i\) run steps costs `REFERENCE_COST` \(\cdot\, n_i\) of those (more steps at 1e-10, float64, a batch of a few
+lanes; `REFERENCE_COST_FIXED` after fixed steps), so rows are kept while \(\text{REFERENCE\_COST} \sum_{i \in S} n_i \le \text{budget} \sum_j n_j\),
+which needs no clock and draws the same rows on any machine. It integrates them again in
 float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows that reached the horizon in both:
 
 * ``worst_energy_rel``: \(\max |E - E_{\text{ref}}| / |E_{\text{ref}}|\) (the row's energy, relative);
@@ -19,7 +31,9 @@ float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows t
 * ``status_mismatch``: rows whose status differs (``NOT_SETTLING`` and OK unsettled count as one answer);
 
 and ``passed``: every figure within its threshold (`Audit`). A result that fails says so: ``run_info["audit"]``,
-an `jaxsleigh.errors.AccuracyWarning` naming the settings that agree, and the command line's audit line.
+an `jaxsleigh.errors.AccuracyWarning` naming the settings that agree, and the command line's audit line. The record
+also says what the audit cost (``wall_s``, and ``share_of_run``: that over the run's wall time) and how many of the
+unresolved rows it re-ran (``unresolved_audited``).
 """
 from __future__ import annotations
 
@@ -33,7 +47,19 @@ import numpy as np
 from ..status import Status
 from ..errors import AccuracyWarning
 
-__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve"]
+__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve", "REFERENCE_COST",
+           "REFERENCE_COST_FIXED"]
+
+#: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the adaptive run
+#: it audits, in units of the run's own cost per lane-step: one row of the paper's gains over 100 s took 0.08 s
+#: against 0.43 s for a 512-start run of 918 steps a row (a factor of 94; eight rows together, 28), warm, on a
+#: 2-core x86_64 CPU; at 100, four rows of a 4,096-start run took 7-11% of it on that machine under a load of 7-10
+#: (``experiments/studies/audit_power.py``), so 150 keeps the audit inside 10% with room
+REFERENCE_COST = 150.0
+#: the same for a run of fixed steps, whose lane-steps cost a fraction of an adaptive one's and count every base
+#: step: four reference rows took 0.16 s against 0.34 s for the plain fixed-step path of 4,096 starts of 10,000
+#: steps each (a factor of about 480 a row; one row costs half of four)
+REFERENCE_COST_FIXED = 1000.0
 
 
 class Audit(NamedTuple):
@@ -47,6 +73,8 @@ class Audit(NamedTuple):
       rtol, atol: the reference's tolerances (float64).
       confirm_tol: the tolerance at which a row off its reference is re-run; that run is then its reference.
       energy_rel, T_eps_s, state: the thresholds of ``passed`` (relative energy, seconds, absolute state).
+      budget: the audit's largest estimated cost as a share of the run's wall time (`audit_sample`); ``None``:
+        no limit. ``rows`` given is re-run whatever it costs.
     """
 
     fraction: float = 0.01
@@ -60,6 +88,7 @@ class Audit(NamedTuple):
     energy_rel: float = 0.02
     T_eps_s: float = 0.05
     state: float = 1e-3
+    budget: float | None = 0.10
 
     def count(self, n: int) -> int:
         """How many of ``n`` rows this audit re-runs (0: none)."""
@@ -138,17 +167,36 @@ def _agree(d: dict, audit: "Audit") -> np.ndarray:
     return d["same"] & (d["dT"] <= audit.T_eps_s) & (d["dE"] <= audit.energy_rel) & (d["dy"] <= audit.state)
 
 
-def audit_sample(audit: "Audit", n: int) -> np.ndarray:
-    """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty). They depend on ``n`` and the
-    audit's seed only, so a run may start their reference before its own result is done (`audit_rows`'s
-    ``reference``)."""
+def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_step: bool = False) -> np.ndarray:
+    """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
+    (bool, ``(n,)``) first, then the others, each in the seeded order of ``numpy.random.default_rng(audit.seed)``;
+    the first ``audit.count(n)``, cut to the longest prefix whose estimated cost fits ``audit.budget`` of the run
+    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST`,
+    `REFERENCE_COST_FIXED` for a run of ``fixed_step`` steps). They depend on the result's rows and the audit only,
+    never on a clock."""
     k = audit.count(n)
-    return np.sort(np.random.default_rng(audit.seed).choice(n, size=k, replace=False)) if k else np.zeros(0, np.int64)
+    if not k:
+        return np.zeros(0, np.int64)
+    rng = np.random.default_rng(audit.seed)
+    if unresolved is None:
+        order = rng.permutation(n)
+    else:
+        flag = np.asarray(unresolved, bool)
+        first, rest = np.flatnonzero(flag), np.flatnonzero(~flag)
+        order = np.concatenate([rng.permutation(first), rng.permutation(rest)]).astype(np.int64)
+    rows = order[:k]
+    if steps is not None and audit.rows is None and audit.budget is not None:
+        s = np.nan_to_num(np.asarray(steps, np.float64), nan=0.0)
+        s = np.maximum(s, 0.0)
+        allowance = audit.budget * float(np.sum(s))
+        factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST
+        rows = rows[:int(np.searchsorted(np.cumsum(factor * s[rows]), allowance, side="right"))]
+    return np.sort(rows)
 
 
 def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audit: "Audit", *,
                what: str = "result", reference: Optional[Callable[[], object]] = None,
-               fixed_step: bool = False) -> dict:
+               fixed_step: bool = False, run_wall_s: float | None = None) -> dict:
     """Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
     ``rerun(rows, rtol, atol)``, the same study of the rows ``rows`` in float64 at those tolerances. Returns the
     record (also when nothing was re-run: ``{"rows": 0, "why": ...}``) and warns when it fails.
@@ -159,12 +207,22 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     other (``reference_unconverged`` counts those rows). ``reference()``, if given, returns what
     ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns, computed ahead (e.g. in a thread of its own
     while the run finished its last lanes). ``fixed_step``: the result came from fixed steps of ``dt``, which no
-    tolerance changes, and the warning says so."""
+    tolerance changes, and the warning says so. ``result.unresolved`` (if any) are re-run first and counted, and
+    warned about whatever the sample finds; ``run_wall_s``, the run's wall time, gives ``share_of_run``."""
     n = int(np.shape(result.status)[0])
+    flags = getattr(result, "unresolved", None)
+    flags = np.zeros(n, bool) if flags is None else np.asarray(flags, bool)
+    unresolved = {"unresolved_rows": int(flags.sum())}
+    if unresolved["unresolved_rows"]:
+        _warn_unresolved(flags, what)
     k = audit.count(n)
     if k == 0:
-        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON}
-    rows = audit_sample(audit, n)
+        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON, **unresolved}
+    rows = audit_sample(audit, n, unresolved=flags, steps=getattr(result, "n_steps", None), fixed_step=fixed_step)
+    if rows.size == 0:
+        return {"rows": 0, "why": f"no row's reference fits {audit.budget:.0%} of the run's time", **unresolved,
+                "how": _SMALL_RUN_PYTHON, "wall_s": 0.0}
+    k = int(rows.size)
     if reference is not None:               # computed ahead: its own seconds are for the caller to add, not the wait
         first = reference()
         t0 = time.perf_counter()
@@ -189,7 +247,10 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
            "share_energy_off_5pct": float(np.mean(d["dE"][d["both"]] > 0.05)) if d["both"].any() else None,
            "worst_T_eps_s": worst["dT"], "worst_state": worst["dy"],
            "thresholds": {"energy_rel": audit.energy_rel, "T_eps_s": audit.T_eps_s, "state": audit.state},
-           "wall_s": round(time.perf_counter() - t0, 3)}
+           "wall_s": round(time.perf_counter() - t0, 3), **unresolved,
+           "unresolved_audited": int(flags[rows].sum())}
+    if run_wall_s:
+        rec["share_of_run"] = round(rec["wall_s"] / run_wall_s, 4)
     rec["passed"] = bool(np.all(_agree(d, audit)))
     if not rec["passed"]:
         fix = ("it took fixed steps of dt, which no tolerance changes: run it with the adaptive method (the default; "
@@ -199,6 +260,16 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
                       f"float64 gives for this law at these settings; {fix}, or trust only what the audit confirms",
                       AccuracyWarning, stacklevel=3)
     return rec
+
+
+def _warn_unresolved(flags: np.ndarray, what: str) -> None:
+    rows = np.flatnonzero(flags)
+    shown = ", ".join(str(int(i)) for i in rows[:8]) + (", ..." if rows.size > 8 else "")
+    warnings.warn(f"{rows.size} of {flags.size} rows of this {what} are unresolved (rows {shown}; result.unresolved): "
+                  f"their settled oscillation grew back out near the target and is weakly damped or growing at the "
+                  f"horizon, so their control energy (and final state) hangs on the oscillation's seed, which is "
+                  f"below every tolerance; float64 at tight tolerances can disagree with itself there. Report these "
+                  f"rows apart, or judge the law on a shorter horizon", AccuracyWarning, stacklevel=4)
 
 
 #: How Python audits a run too small for the default audit (``run_info["audit"]["how"]`` of such a run).
@@ -217,10 +288,20 @@ def audit_line(rec: Optional[dict], *, flag: Optional[str] = None) -> str:
             how = f"{flag} K audits a small run"
         elif how is None and flag is not None and "RunOptions(" in why:   # a record written before "how" existed
             why, how = why.split(" (", 1)[0], f"{flag} K audits a small run"
-        return f"accuracy audit: not run ({why}{'; ' + how if how else ''})"
+        return f"accuracy audit: not run ({why}{'; ' + how if how else ''}){_unresolved_words(rec)}"
     f = lambda v, fmt: "n/a" if v is None else format(v, fmt)  # noqa: E731
     again = (f", {rec['rows_confirmed']} re-run at {rec['confirmed_at']}" if rec.get("rows_confirmed") else "")
     return (f"accuracy audit ({rec['rows']} rows against {rec['reference']}{again}): "
             f"{'passed' if rec['passed'] else 'FAILED'}; worst energy {f(rec['worst_energy_rel'], '.2%')}, "
             f"worst T_eps {f(rec['worst_T_eps_s'], '.2g')} s, worst final position {f(rec['worst_state'], '.2g')}, "
-            f"status mismatches {rec['status_mismatch']}")
+            f"status mismatches {rec['status_mismatch']}"
+            + (f"; cost {rec['wall_s']:.2g} s ({rec['share_of_run']:.1%} of the run)" if "share_of_run" in rec else "")
+            + _unresolved_words(rec))
+
+
+def _unresolved_words(rec: dict) -> str:
+    u = rec.get("unresolved_rows")
+    if not u:
+        return ""
+    return (f"; {u} rows unresolved (settled oscillation grew: result.unresolved"
+            + (f", {rec['unresolved_audited']} of them re-run" if "unresolved_audited" in rec else "") + ")")

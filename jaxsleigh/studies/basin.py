@@ -389,6 +389,8 @@ class BasinResult(NamedTuple):
         vary between runs); ``None`` when loaded from a file.
       u_peak, u_norm_peak, u_energy, u_abs_int: control effort (see
         `EnsembleResult`); ``None`` in files of jaxsleigh 0.1.
+      unresolved: ``(N,)`` bool, the starts whose settled oscillation grew (see `EnsembleResult`); ``None`` in
+        files written before it was saved.
     """
 
     starts: BasinStarts
@@ -409,6 +411,7 @@ class BasinResult(NamedTuple):
     u_norm_peak: Optional[np.ndarray] = None
     u_energy: Optional[np.ndarray] = None
     u_abs_int: Optional[np.ndarray] = None
+    unresolved: np.ndarray | None = None
 
     valid = VALID
     converged = CONVERGED
@@ -538,7 +541,7 @@ def run_basin(starts, *, plant: Optional[PlantParams] = None, gains: Optional[Ga
 
 _PER_START = ("T_eps", "status", "Hd0", "Hd_final", "min_abs_theta", "max_excursion", "n_steps", "n_rejected",
               "q_final", "p_final")
-_EFFORT = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int")
+_EFFORT = ("u_peak", "u_norm_peak", "u_energy", "u_abs_int", "unresolved")
 
 
 def save_basin(path, result: BasinResult) -> Path:
@@ -546,7 +549,7 @@ def save_basin(path, result: BasinResult) -> Path:
 
     Keys: the starts ``ics`` ``(N, 3)`` or ``(N, 5)`` (as given); per start ``T_eps``, ``status``,
     ``Hd0``, ``Hd_final``, ``min_abs_theta``, ``max_excursion``, ``n_steps``, ``n_rejected``,
-    ``q_final`` ``(N, 3)``, ``p_final`` ``(N, 2)``, ``converged`` and ``valid`` (bool); the summary
+    ``q_final`` ``(N, 3)``, ``p_final`` ``(N, 2)``, ``converged``, ``valid`` and ``unresolved`` (bool); the summary
     ``fraction``, ``fraction_se``, ``n_valid``, ``n_converged``, ``T_eps_percentiles`` (at
     ``T_eps_percentile_levels``); the starts' layout ``kind``, ``grid_shape``, ``grid_axes`` and, for
     grids, ``axis_x``, ``axis_y``, ``axis_theta`` (values; one entry for a fixed coordinate), for

@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import contextlib
+import functools
 import threading
 import time
 from typing import Any, NamedTuple, Optional
@@ -34,7 +35,8 @@ from ..files.checkpoint import run_key
 from ..files.chunks import ChunkStore, starts_digest
 from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, study_options, takes_objects
-from .audit import audit_rows, audit_sample, resolve as resolve_audit
+from .audit import audit_rows, resolve as resolve_audit
+from ..integrate.guard import GREW, NEAR, grown_settled_mode
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics, drive_final,
@@ -90,6 +92,10 @@ class EnsembleResult(NamedTuple):
         names ``m, J, l``, the damping's numbers, ``k, l1, l2, l3, d11, d12, d22``
         (`jaxsleigh.model.lanes.lane_table`); ``None`` for one plant and one set of gains.
       observed: the fields of observers beyond the standard ones, ``{name: (N, ...)}``.
+      unresolved: (N,) bool: the row's settled oscillation grew and is weakly damped or growing at the horizon
+        (`jaxsleigh.integrate.guard.grown_settled_mode`), so its energy hangs on a seed below every tolerance and
+        is not resolved by any setting; the accuracy audit re-runs these rows first (`jaxsleigh.studies.audit`).
+        All ``False`` for laws without the settled pair and on the plain fixed-step path (no ``min_abs_theta``).
     """
 
     ics: np.ndarray
@@ -115,6 +121,7 @@ class EnsembleResult(NamedTuple):
     params: Optional[dict] = None
     observed: Optional[dict] = None
     run_info: Optional[dict] = None
+    unresolved: np.ndarray | None = None
 
     converged = CONVERGED
     valid = VALID
@@ -654,11 +661,9 @@ def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, f
     return chunks.engine_part(lo, hi, ci, pending), True
 
 
-def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled,
-                after_parts=None) -> tuple:
+def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, fields, sampled) -> tuple:
     """Every chunk (of this ``shard``) in order: reused from ``store`` when resuming, else computed and written;
-    returns the chunks' summaries (none with ``shard``) and the number of chunks reused. ``after_parts()`` is called
-    once every chunk's parts are done, while the last stragglers may still run (a core is then free)."""
+    returns the chunks' summaries (none with ``shard``) and the number of chunks reused."""
     n, chunk, ics5 = chunks.n, chunks.chunk, chunks.ics5
     chunks.store = store
     parts, reused = [], 0
@@ -690,8 +695,6 @@ def _run_chunks(chunks: _Chunks, store: Optional[ChunkStore], *, resume, shard, 
             while pending and (len(pending) > MAX_PENDING or ready(pending[0])):
                 done_chunk(*pending.popleft())
         chunks.close_stragglers()
-        if after_parts is not None:
-            after_parts()
     except BaseException:
         # interrupted: a chunk whose stragglers are in the pool still ends and is written (nothing finished is lost)
         chunks.close_stragglers()
@@ -786,34 +789,68 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
-        audit = None if spec is None else _EarlyAudit(spec, n, _float64_rerun(
+        audit = None if spec is None else _RunAudit(spec, n, _float64_rerun(
             ics5, lane_args, cfg, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps),
             fixed_step=not cfg.adaptive)
         # the store's lock on the folder is held until the last chunk is written or read
-        try:
-            with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
-                    concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
-                chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
-                                 devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
-                                 tail_pool=tail_pool, rules=rules)
-                parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
-                                            sampled=sampled,
-                                            after_parts=audit.begin if audit is not None and shard is None else None)
-        except BaseException:               # interrupted: the audit's reference is not waited for
-            if audit is not None:
-                audit.stop(interrupted=True)
-            raise
-        if audit is not None:
-            audit.stop(interrupted=False)
+        with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
+                concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
+            chunks = _Chunks(cfg, step=step, observers=observers, saveat=saveat, segment=segment, dtype=dtype,
+                             devs=devs, lane_args=lane_args, ics5=ics5, status0=status0, chunk=chunk, bar=bar,
+                             tail_pool=tail_pool, rules=rules)
+            parts, reused = _run_chunks(chunks, store, resume=run.resume, shard=shard, fields=fields,
+                                        sampled=sampled)
         if shard is not None:
             return None
         out = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0]}
         run_info = {"wall_s": time.perf_counter() - t_start, "devices": devices_used, "chunks_reused": reused}
     result = _ensemble_result(out, ics5=ics5, settings=settings, horizon=cfg.horizon, save_every=save_every,
                               lane_args=lane_args, run_info=run_info)
+    result = result._replace(unresolved=unresolved_rows(result, cfg, None if sampled else lane_args,
+                                                        sampled=sampled))
     if audit is not None:
         run_info["audit"] = audit.record(result)
     return result
+
+
+def _float64(tree):
+    return jax.tree_util.tree_map(
+        lambda a: jnp.asarray(a, jnp.float64) if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, tree)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _grown(chart, t, y, args, min_abs_theta, eps):
+    return grown_settled_mode(chart, t, chart.to_chart(y), args, min_abs_theta, eps)
+
+
+def unresolved_rows(result, cfg, lane_args: ClosedLoop | None, *, sampled: bool = False) -> np.ndarray:
+    """``result.unresolved``: the rows whose settled oscillation grew (`grown_settled_mode`), judged in float64 at
+    their final states. Only rows that reached the horizon within `NEAR` radii of the target, ``|theta(T)|`` above
+    `GREW` times their smallest, are evaluated (three forward-mode products of the field each, on a padded batch
+    of a power of two rows: one compiled program per size)."""
+    n = int(np.shape(result.status)[0])
+    flags = np.zeros(n, bool)
+    chart = chart_for(cfg.law)
+    if sampled or not isinstance(chart, WChart):
+        return flags
+    q, p = np.asarray(result.q_final, np.float64), np.asarray(result.p_final, np.float64)
+    mn = np.asarray(result.min_abs_theta, np.float64)
+    with np.errstate(invalid="ignore"):
+        cand = ((np.asarray(result.status) == Status.OK) & np.isfinite(mn) & np.all(np.isfinite(q), axis=1)
+                & np.all(np.isfinite(p), axis=1) & (np.abs(q[:, 2]) > GREW * mn)
+                & (np.sum(q * q, axis=1) <= (NEAR * cfg.eps) ** 2 * 1.01))
+    idx = np.flatnonzero(cand)
+    if idx.size == 0:
+        return flags
+    size = max(64, 1 << int(np.ceil(np.log2(idx.size))))
+    pad = np.concatenate([idx, np.full(size - idx.size, idx[0])])
+    y = np.concatenate([q[pad], p[pad]], axis=1).T
+    with jax.enable_x64(True):
+        args = ClosedLoop(cfg.plant, cfg.law) if lane_args is None else take_lanes(lane_args, pad)
+        got = _grown(chart, jnp.float64(cfg.horizon.t_final), jnp.asarray(y), _float64(args), jnp.asarray(mn[pad]),
+                     jnp.float64(cfg.eps))
+        flags[idx] = np.asarray(got)[:idx.size]
+    return flags
 
 
 def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
@@ -831,36 +868,16 @@ def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, d
     return rerun
 
 
-class _EarlyAudit:
-    """The accuracy audit of an ensemble (`jaxsleigh.studies.audit`): its float64 reference begins in a thread of its
-    own as soon as the chunks' parts are done (on the core the last stragglers leave free), and the result is
-    audited against it once it is assembled."""
+class _RunAudit:
+    """The accuracy audit of an ensemble (`jaxsleigh.studies.audit`), once its result is assembled: the rows it
+    re-runs are chosen from the result (its unresolved rows first, within a budget set by the run's own steps)."""
 
     def __init__(self, spec, n: int, rerun, *, fixed_step: bool):
         self.spec, self.n, self.rerun, self.fixed_step = spec, n, rerun, fixed_step
-        self.pool, self.ref = concurrent.futures.ThreadPoolExecutor(1), None
-
-    def begin(self) -> None:
-        rows = audit_sample(self.spec, self.n)
-        if rows.size:
-            self.ref = self.pool.submit(_timed, self.rerun, rows, self.spec.rtol, self.spec.atol)
-
-    def stop(self, interrupted: bool) -> None:
-        """Let the reference's thread end with the reference; an interrupted run does not wait for it."""
-        self.pool.shutdown(wait=False, cancel_futures=interrupted)
 
     def record(self, result) -> dict:
-        ahead = (lambda: self.ref.result()[0]) if self.ref is not None else None
-        rec = audit_rows(result, self.rerun, self.spec, what="ensemble", reference=ahead, fixed_step=self.fixed_step)
-        if self.ref is not None and rec.get("rows"):    # the reference's own seconds, spent beside the last stragglers
-            rec["wall_s"] = round(rec["wall_s"] + self.ref.result()[1], 3)
-        return rec
-
-
-def _timed(fn, *args):
-    """``(fn(*args), seconds it took)``."""
-    t0 = time.perf_counter()
-    return fn(*args), time.perf_counter() - t0
+        return audit_rows(result, self.rerun, self.spec, what="ensemble", fixed_step=self.fixed_step,
+                          run_wall_s=(result.run_info or {}).get("wall_s"))
 
 
 @takes_objects
@@ -884,8 +901,9 @@ def run_ensemble(ics, *, plant: Optional[PlantParams] = None, gains: Any = None,
       saveat: `jaxsleigh.SaveAt` (default: final states and summaries; ``every=k``: also the trajectories every
         ``k`` base steps, ``N * T * 5`` numbers; ``summaries=False``: the plain fixed-step path).
       run: `jaxsleigh.RunOptions` (chunks, devices, checkpoint and resume, progress, a process's share; its
-        ``audit``: a random 1% of the rows, at most 64, none below 500 starts, re-run in float64 at rtol = atol =
-        1e-10, the worst differences in ``run_info["audit"]`` and an `AccuracyWarning` beyond its thresholds,
+        ``audit``: 1% of the rows, at most 64, none below 500 starts, the ``unresolved`` ones first, as many as fit
+        10% of the run's time, re-run in float64 at rtol = atol = 1e-10, the worst differences and its cost in
+        ``run_info["audit"]`` and an `AccuracyWarning` beyond its thresholds or for unresolved rows,
         `jaxsleigh.studies.audit`; ``RunOptions(audit=False)``: none).
         Every finished chunk is written atomically and carries the fingerprint of its run; a chunk of another
         run stops the run with a `CheckpointError`, a damaged one is recomputed.

@@ -36,8 +36,9 @@ class RunOptions(NamedTuple):
       checkpoint_dir: write every finished chunk there; resume: reuse them (same settings and starts).
       progress: ``True`` / ``False`` / ``None`` (auto: on a terminal).
       shard: ``(index, count)``: compute only this process's share of the chunks (multi-process runs).
-      audit: the accuracy audit (`jaxsleigh.Audit`; ``None``: the default one, rows from 500 starts on; ``False``:
-        none): it adds ``run_info["audit"]`` and changes no number of the result.
+      audit: the accuracy audit (`jaxsleigh.Audit`; ``None``: the default one, rows from 500 starts on, the
+        unresolved ones first, within 10% of the run's time; ``False``: none): it adds ``run_info["audit"]`` and
+        changes no number of the result (``result.unresolved`` is computed either way).
     """
 
     chunk_size: Optional[int] = None

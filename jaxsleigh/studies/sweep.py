@@ -310,6 +310,8 @@ class SweepResult(NamedTuple):
         them per value set.
       settings: base plant and gains, the sweep, the starts, the solver settings.
       run_info: wall time, devices, chunks reused (not saved: they vary between runs).
+      unresolved: ``(P, N)`` bool, the rows whose settled oscillation grew (as in `jaxsleigh.EnsembleResult`;
+        ``None`` in a file written before it was saved).
     """
 
     names: tuple
@@ -332,6 +334,7 @@ class SweepResult(NamedTuple):
     p_final: Optional[np.ndarray] = None
     Hd_final: Optional[np.ndarray] = None
     n_rejected: Optional[np.ndarray] = None
+    unresolved: np.ndarray | None = None
 
     @property
     def effort(self) -> dict:
@@ -410,7 +413,7 @@ class SweepResult(NamedTuple):
 
 
 #: each row's end, saved with the sweep (absent from files written before they were)
-FINAL_FIELDS = ("q_final", "p_final", "Hd_final", "n_rejected")
+FINAL_FIELDS = ("q_final", "p_final", "Hd_final", "n_rejected", "unresolved")
 
 #: effort summaries whose per-value medians (over the converged starts) a sweep reports
 EFFORT_MEDIANS = ("u_energy", "u_norm_peak")
@@ -499,7 +502,8 @@ def _sweep_result(res, names, values: np.ndarray, shape, axes, st: BasinStarts, 
                        ics=res.ics[:N], T_eps=per(res.T_eps), status=per(res.status), n_steps=per(res.n_steps),
                        min_abs_theta=per(res.min_abs_theta), Hd0=per(res.Hd0), **effort, settings=settings,
                        run_info=run_info, q_final=per(res.q_final), p_final=per(res.p_final),
-                       Hd_final=per(res.Hd_final), n_rejected=per(res.n_rejected))
+                       Hd_final=per(res.Hd_final), n_rejected=per(res.n_rejected),
+                       unresolved=None if res.unresolved is None else per(res.unresolved))
 
 
 def _sweep(starts, params, *, plant: Optional[PlantParams], gains: Any, controller: Any, t_final: float,
@@ -564,7 +568,7 @@ def save_sweep(path, result: SweepResult) -> Path:
 
     Keys: ``names`` (n_params,), ``values`` (P, n_params), ``grid_shape``, ``ics`` (N, 5);
     per value set and start ``T_eps``, ``status``, ``n_steps``, ``n_rejected``, ``min_abs_theta``, ``Hd0``,
-    ``Hd_final`` (P, N), ``q_final`` (P, N, 3), ``p_final`` (P, N, 2) (and the control-effort summaries when
+    ``Hd_final``, ``unresolved`` (bool) (P, N), ``q_final`` (P, N, 3), ``p_final`` (P, N, 2) (and the control-effort summaries when
     recorded); per value set ``fraction``, ``fraction_se``,
     ``n_valid``, ``n_converged`` (P,), ``T_eps_percentiles`` (P, 5) at ``T_eps_percentile_levels``,
     ``status_counts`` (P, K) for the codes ``status_codes`` (K,), and with the effort recorded
@@ -588,7 +592,8 @@ def save_sweep(path, result: SweepResult) -> Path:
         "status_codes": codes, "status_counts": counts,
     }
     arrays.update({k: np.asarray(v, np.float64) for k, v in sorted(r.effort.items())})
-    arrays.update({k: np.asarray(getattr(r, k), np.int64 if k == "n_rejected" else np.float64) for k in FINAL_FIELDS
+    kinds = {"n_rejected": np.int64, "unresolved": bool}
+    arrays.update({k: np.asarray(getattr(r, k), kinds.get(k, np.float64)) for k in FINAL_FIELDS
                    if getattr(r, k) is not None})
     arrays.update(r.effort_medians())
     for a in r.axes:
