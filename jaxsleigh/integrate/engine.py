@@ -264,19 +264,15 @@ def flying(state, ctl: Controls, stiff_after: int) -> np.ndarray:
 
 
 
-def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int,
-             mesh=None):
+def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bool, observers, stiff_after: int):
     """One segment of ``segment`` attempts of a batch; with ``stiff_after`` (adaptive; 0: never) the lanes that fly
     (`flying`) take the linearly implicit step, the others the explicit one (`_by_kind`)."""
     def step(st, implicit):
         return _segment_batch(st, target, args, ctl, np.int32(segment), adaptive, monitor, observers, implicit), None
 
-    def put(a):
-        return jnp.asarray(a) if mesh is None else shard_batch(jnp.asarray(a), mesh)
-
     if not (adaptive and stiff_after):
         return step(state, False)[0]
-    return _by_kind(state, flying(state, ctl, stiff_after), step, put)[0]
+    return _by_kind(state, flying(state, ctl, stiff_after), step, jnp.asarray)[0]
 
 
 def _by_kind(state, flies, step, put, merge=None):
@@ -377,7 +373,7 @@ def _finish(full: StepState, t_final: float) -> StepState:
 
 
 def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSizeController, *, eps: float,
-                segment: int = 1000, compact: bool = True, progress=None, mesh=None,
+                segment: int = 1000, compact: bool = True, progress=None,
                 observers=DEFAULT_OBSERVERS, state: Optional[StepState] = None, stop_at: int = 0,
                 finish: bool = True, certify: bool = False, stiff_after: int = 0, bitwise: bool = True) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
@@ -402,9 +398,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     Returns the final `StepState` as batch-last NumPy arrays, with
     trajectories that ran out of budget marked ``BUDGET_EXHAUSTED``. ``progress`` has
-    ``update(fraction_done)``. ``mesh`` (a 1-D `jax.sharding.Mesh` with axis ``"batch"``)
-    shards the batch axis across its devices; the batch size must then be a multiple of the
-    device count.
+    ``update(fraction_done)``. (Several devices: the plain fixed-step `drive_plain` takes a mesh; this adaptive
+    driver runs on one.)
 
     ``args`` may carry per-trajectory leaves (a trailing axis of size N or 1, see
     `jaxsleigh.model.lanes`); they are broadcast to N lanes and gathered with the state on compaction.
@@ -423,10 +418,10 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     ctl = step_controls(horizon, dtype, step, eps)
     adaptive, monitor, max_steps = step.method == "adaptive", step.check_passivity, step.max_steps
     target = np.asarray(horizon.t_final, np.dtype(dtype))
-    b = _first_batch(y0w, status0, state, args, ctl, observers, mesh, n, dtype)
+    b = _first_batch(y0w, status0, state, args, ctl, observers, n, dtype)
     for _ in range(-(-max_steps // segment) + 1):
         if adaptive and certify:
-            b = _certified(b, horizon, eps, mesh)
+            b = _certified(b, horizon, eps)
         act = np.asarray(_active(b.state, target, ctl))
         if progress is not None:
             frac = np.where(act, np.asarray(b.state.t, np.float64) / horizon.t_final, 1.0)
@@ -434,9 +429,9 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
         if not act.any() or act.sum() <= stop_at:
             break
         if compact and b.idx.size > smallest and act.sum() <= b.idx.size // 4:
-            b = _compacted(b, act, smallest, mesh, dtype)
+            b = _compacted(b, act, smallest, dtype)
         b = b._replace(state=_segment(b.state, target, b.args, ctl, segment, adaptive, monitor, observers,
-                                      stiff_after, mesh))
+                                      stiff_after))
     full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
     return _finish(full, horizon.t_final) if finish else full
 
@@ -460,11 +455,11 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
                    stiff_after)
     b = _Batch(dev, args, None, np.arange(state.t.shape[-1]), None)
     if certify and step.method == "adaptive":
-        b = _certified(b, horizon, eps, None)
+        b = _certified(b, horizon, eps)
     return jax.tree_util.tree_map(np.asarray, b.state)
 
 
-def _certified(b: "_Batch", horizon: Horizon, eps: float, mesh) -> "_Batch":
+def _certified(b: "_Batch", horizon: Horizon, eps: float) -> "_Batch":
     """``b`` with its lanes that cannot settle before the horizon stopped (status ``NOT_SETTLING``,
     `jaxsleigh.integrate.stragglers`); checked between segments, at the same attempt counts in every batch."""
     st = b.state
@@ -472,10 +467,7 @@ def _certified(b: "_Batch", horizon: Horizon, eps: float, mesh) -> "_Batch":
                      t_final=horizon.t_final, eps=eps)
     if status is None:
         return b
-    new = jnp.asarray(status)
-    if mesh is not None:
-        new = shard_batch(new, mesh)
-    return b._replace(state=st._replace(status=new))
+    return b._replace(state=st._replace(status=jnp.asarray(status)))
 
 
 class _Batch(NamedTuple):
@@ -489,18 +481,11 @@ class _Batch(NamedTuple):
     full: Optional[StepState]
 
 
-def _placed(state, args, lane_host, mesh):
-    """``state`` (and per-lane ``args``) sharded over ``mesh``'s devices; as they are without a mesh."""
-    if mesh is None:
-        return state, args
-    return shard_batch(state, mesh), (args if lane_host is None else shard_batch(args, mesh))
-
-
-def _first_batch(y0w, status0, state, args: ClosedLoop, ctl, observers, mesh, n: int, dtype) -> _Batch:
+def _first_batch(y0w, status0, state, args: ClosedLoop, ctl, observers, n: int, dtype) -> _Batch:
     """The whole batch of `drive_final`, from ``y0w`` and ``status0`` or a host ``state`` to continue."""
     lane_host, args, first = _started(y0w, status0, state is None, args, ctl, observers, n, dtype)
     state = first if state is None else jax.tree_util.tree_map(jnp.asarray, state)
-    return _Batch(*_placed(state, args, lane_host, mesh), lane_host, np.arange(n), None)
+    return _Batch(state, args, lane_host, np.arange(n), None)
 
 
 def _started(y0w, status0, start: bool, args: ClosedLoop, ctl, observers, n: int, dtype):
@@ -524,13 +509,11 @@ def _merged(full, idx: np.ndarray, host: StepState) -> StepState:
     return host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
 
 
-def _compacted(b: _Batch, act: np.ndarray, min_batch: int, mesh, dtype) -> _Batch:
-    """``b``'s active lanes (``act``) gathered into a smaller batch: a power of two >= ``min_batch`` (a multiple
-    of the mesh's devices), padded with copies of one active lane; the rows left behind go to ``full``."""
+def _compacted(b: _Batch, act: np.ndarray, min_batch: int, dtype) -> _Batch:
+    """``b``'s active lanes (``act``) gathered into a smaller batch: a power of two >= ``min_batch``, padded
+    with copies of one active lane; the rows left behind go to ``full``."""
     keep = np.flatnonzero(act)
     size = bucket(max(keep.size, min_batch))
-    if mesh is not None:
-        size = -(-size // mesh.size) * mesh.size
     host = jax.tree_util.tree_map(np.asarray, b.state)
     full = _merged(b.full, b.idx, host)
     # pad with copies of one active lane; only real lanes are written back
@@ -541,7 +524,7 @@ def _compacted(b: _Batch, act: np.ndarray, min_batch: int, mesh, dtype) -> _Batc
         lane_host = take_lanes(lane_host, pad)
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), lane_host)
     idx = np.concatenate([b.idx[keep], np.full(size - keep.size, -1)])
-    return _Batch(*_placed(state, args, lane_host, mesh), lane_host, idx, full)
+    return _Batch(state, args, lane_host, idx, full)
 
 
 def active_lanes(full: StepState, horizon: Horizon, step: StepSizeController) -> np.ndarray:
