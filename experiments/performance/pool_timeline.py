@@ -39,9 +39,11 @@ def timed_basin(ics, calls: list):
     """`jaxsleigh.run_basin` of ``ics`` with the ensemble's engine calls appended to ``calls`` as
     ``(what, start_s, end_s, real_lanes, most_attempts)``; returns ``(result, wall_s)``."""
     import jaxsleigh as js
+    import jaxsleigh.integrate.engine as engine
     import jaxsleigh.studies.ensemble as ens
 
-    drive, advance, lock = ens.drive_final, ens.advance_lanes, threading.Lock()
+    # the parts call drive_final from the ensemble; the pool's batches call advance_lanes from engine.advance_pool
+    drive, advance, lock = ens.drive_final, engine.advance_lanes, threading.Lock()
     t0 = time.perf_counter()
 
     def part(*a, **k):
@@ -61,13 +63,13 @@ def timed_basin(ics, calls: list):
                           int(attempts[real].max()) if real.any() else 0))
         return out
 
-    ens.drive_final, ens.advance_lanes = part, segment
+    ens.drive_final, engine.advance_lanes = part, segment
     try:
         t0 = time.perf_counter()
         res = js.run_basin(ics, run=js.RunOptions(progress=False, audit=False))
         return res, time.perf_counter() - t0
     finally:
-        ens.drive_final, ens.advance_lanes = drive, advance
+        ens.drive_final, engine.advance_lanes = drive, advance
 
 
 def main():

@@ -26,12 +26,14 @@ from .stepsize import StepSizeController
 from .horizon import (BUDGET_FACTOR, FLIGHT_STEP, MAX_BASE_STEPS, STIFF_AFTER, Horizon,  # noqa: F401  (re-exported)
                       default_max_steps, flight_step, make_horizon)
 from .stragglers import certify
+from .pool import Ladder, bucket, padded, put_lanes, take_lanes_of  # (bucket and the last two re-exported)
 from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
                       run_stops)
 from ..errors import FlaggedStartsWarning
 from ..model.params import paper_gains, paper_plant
 
-__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "drive_saving", "drive_plain",
+__all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "advance_pool",
+           "drive_saving", "drive_plain",
            "make_controls",
            "shard_batch", "batch_mesh", "active_lanes", "bucket", "take_lanes_of", "put_lanes", "finish_state",
            "working_dtype", "default_max_steps", "METHODS"]
@@ -360,11 +362,6 @@ def min_batch(dtype, backend: Optional[str] = None, *, bitwise: bool = True) -> 
     return small if cpu else max(small, ACCELERATOR_MIN_BATCH)
 
 
-def bucket(n: int) -> int:
-    """The batch size ``n`` lanes are padded to: the next power of two (few shapes compile)."""
-    return 1 << max(0, (n - 1).bit_length())
-
-
 def _finish(full: StepState, t_final: float) -> StepState:
     """Mark trajectories that stopped short of the horizon while still OK (out of budget)."""
     status = np.array(full.status)
@@ -383,8 +380,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which
     trajectories are still active and, when at most a quarter are, gathers them into a smaller
-    batch (a power of two, >= `min_batch`, so few shapes compile): the cost then follows the sum over
-    trajectories of the steps each needs, not the batch's maximum.
+    batch (a power of two, >= `min_batch`, so few shapes compile: the `jaxsleigh.integrate.pool.Ladder` with that
+    floor): the cost then follows the sum over trajectories of the steps each needs, not the batch's maximum.
 
     With ``certify``, between segments the adaptive engine stops the lanes that cannot settle before the horizon
     (`jaxsleigh.integrate.stragglers`: far from the target with too little H_d left; status ``NOT_SETTLING``):
@@ -412,7 +409,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     """
     dtype = y0w.dtype if state is None else state.y.dtype
     n = y0w.shape[0] if state is None else state.t.shape[-1]
-    smallest = min_batch(dtype, bitwise=bitwise)
+    ladder = Ladder(floor=min_batch(dtype, bitwise=bitwise))
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
     ctl = step_controls(horizon, dtype, step, eps)
@@ -428,8 +425,8 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
             progress.update((n - b.idx.size + frac.sum()) / n)
         if not act.any() or act.sum() <= stop_at:
             break
-        if compact and b.idx.size > smallest and act.sum() <= b.idx.size // 4:
-            b = _compacted(b, act, smallest, dtype)
+        if compact and ladder.shrinks(b.idx.size, int(act.sum())):
+            b = _compacted(b, act, ladder, dtype)
         b = b._replace(state=_segment(b.state, target, b.args, ctl, segment, adaptive, monitor, observers,
                                       stiff_after))
     full = _merged(b.full, b.idx, jax.tree_util.tree_map(np.asarray, b.state))
@@ -457,6 +454,30 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
     if certify and step.method == "adaptive":
         b = _certified(b, horizon, eps)
     return jax.tree_util.tree_map(np.asarray, b.state)
+
+
+def advance_pool(lanes: StepState, args_of, horizon: Horizon, step: StepSizeController, *, eps: float,
+                 ladder: Ladder, segment: int = 1000, observers=DEFAULT_OBSERVERS, certify: bool = False,
+                 stiff_after: int = 0) -> StepState:
+    """One segment (`advance_lanes`) of every lane of a pool's batch-last host ``lanes``, in batches of the
+    ``ladder``'s sizes (at most its ceiling each, padded with idle copies of a lane); ``args_of(rows)`` gives the
+    closed loop's ``args`` for the lanes ``rows`` of ``lanes``. The lanes on the implicit step (`flying`) run in
+    batches of their own: a batch that held both kinds would run both programs over all its lanes. What the loop of
+    a `jaxsleigh.integrate.pool.StragglerPool` calls once per segment."""
+    flies = flying(lanes, step_controls(horizon, lanes.y.dtype, step, eps), stiff_after)
+    kinds = [np.flatnonzero(~flies), np.flatnonzero(flies)]
+    out = []
+    for idx in (group for kind in kinds for group in ladder.groups(kind)):
+        m = idx.size
+        fill = padded(idx, ladder.size(m))
+        batch = take_lanes_of(lanes, fill)
+        idle = np.where(np.arange(fill.size) < m, batch.status, Status.INVALID_INPUT)
+        batch = batch._replace(status=idle.astype(batch.status.dtype))
+        done = advance_lanes(batch, args_of(fill), horizon, step, eps=eps, segment=segment, observers=observers,
+                             certify=certify, stiff_after=stiff_after)
+        out.append(take_lanes_of(done, np.arange(m)))
+    joined = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1), *out)
+    return take_lanes_of(joined, np.argsort(np.concatenate(kinds)))
 
 
 def _certified(b: "_Batch", horizon: Horizon, eps: float) -> "_Batch":
@@ -506,18 +527,17 @@ def _started(y0w, status0, start: bool, args: ClosedLoop, ctl, observers, n: int
 def _merged(full, idx: np.ndarray, host: StepState) -> StepState:
     """The full batch with the rows ``idx`` of the host batch ``host`` written back (``host`` itself before the
     first compaction, ``full`` None)."""
-    return host if full is None else jax.tree_util.tree_map(lambda f, h: _scatter(f, idx, h), full, host)
+    return host if full is None else put_lanes(full, idx, host)
 
 
-def _compacted(b: _Batch, act: np.ndarray, min_batch: int, dtype) -> _Batch:
-    """``b``'s active lanes (``act``) gathered into a smaller batch: a power of two >= ``min_batch``, padded
-    with copies of one active lane; the rows left behind go to ``full``."""
+def _compacted(b: _Batch, act: np.ndarray, ladder: Ladder, dtype) -> _Batch:
+    """``b``'s active lanes (``act``) gathered into a smaller batch of the ``ladder``'s size, padded with copies of
+    one active lane; the rows left behind go to ``full``."""
     keep = np.flatnonzero(act)
-    size = bucket(max(keep.size, min_batch))
+    size = ladder.size(keep.size)
     host = jax.tree_util.tree_map(np.asarray, b.state)
     full = _merged(b.full, b.idx, host)
-    # pad with copies of one active lane; only real lanes are written back
-    pad = np.concatenate([keep, np.repeat(keep[:1], size - keep.size)])
+    pad = padded(keep, size)                 # only real lanes are written back
     state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
     args, lane_host = b.args, b.lane_host
     if lane_host is not None:                # the parameters follow their trajectories
@@ -533,16 +553,6 @@ def active_lanes(full: StepState, horizon: Horizon, step: StepSizeController) ->
     t_final = np.asarray(horizon.t_final, np.asarray(full.t).dtype)
     return ((np.asarray(full.status) == Status.OK) & (np.asarray(full.t) < t_final)
             & (np.asarray(full.n_accept) + np.asarray(full.n_reject) < step.max_steps))
-
-
-def take_lanes_of(full: StepState, rows: np.ndarray) -> StepState:
-    """Lanes ``rows`` of a batch-last host state."""
-    return jax.tree_util.tree_map(lambda a: np.asarray(a)[..., rows], full)
-
-
-def put_lanes(full: StepState, rows: np.ndarray, part: StepState) -> StepState:
-    """``full`` with its lanes ``rows`` replaced by those of ``part`` (in order)."""
-    return jax.tree_util.tree_map(lambda f, h: _scatter(f, rows, h), full, part)
 
 
 def finish_state(full: StepState, horizon: Horizon) -> StepState:
@@ -787,9 +797,3 @@ def drive_plain(y0w, status0, args: ClosedLoop, horizon: Horizon, *, segment: in
         status[ok & finite & (np.sign(y[:, 0]) != np.sign(np.asarray(y0w)[:, 0]))] = Status.CROSSED_SINGULAR
     return y, status
 
-
-def _scatter(full: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
-    out = np.array(full)
-    real = idx >= 0
-    out[..., idx[real]] = part[..., real]
-    return out

@@ -39,9 +39,10 @@ from .audit import audit_rows, resolve as resolve_audit
 from ..integrate.guard import GREW, NEAR, grown_settled_mode
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
-from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_lanes, bucket, check_ics, drive_final,
-                                drive_plain, drive_saving, finish_state, flight_step, flying, initial_w, put_lanes,
-                                step_controls, take_lanes_of, working_dtype)
+from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_pool, check_ics, drive_final, drive_plain,
+                                drive_saving, finish_state, flight_step, initial_w, put_lanes, step_controls,
+                                take_lanes_of, working_dtype)
+from ..integrate.pool import Ladder, StragglerPool
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
 from ..model.params import Gains, PlantParams
 from ..controllers.actuators import is_sampled
@@ -59,10 +60,11 @@ __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 #: stragglers; python experiments/performance/engine_defaults.py)
 TAIL_LANES = 128
 
-#: the pool of stragglers' batches (`_Stragglers`): powers of two from TAIL_MIN to TAIL_MAX lanes. On XLA:CPU the
+#: the pool of stragglers' batches (`TAIL_LADDER`): powers of two from TAIL_MIN to TAIL_MAX lanes. On XLA:CPU the
 #: compiled step gives every lane the same bits at 64, 128 and 256 lanes (float32; 8, 16-32 and 1024 each round
 #: otherwise; float64 from 32 on), so a straggler's result does not depend on the lanes that share its batch
 TAIL_MIN, TAIL_MAX = 64, 256
+TAIL_LADDER = Ladder(floor=TAIL_MIN, ceiling=TAIL_MAX)
 
 #: chunks whose parts are done may wait this many at most for their stragglers before the next chunk starts
 MAX_PENDING = 16
@@ -481,7 +483,7 @@ class _Chunks:
 
     def _tail(self, fulls, where, y0w, st, rows, lo):
         """The parts' still-active lanes (a few stiff stragglers each) handed to the run's one pool of stragglers
-        (`_Stragglers`), which steps them with every other chunk's in the background while the next chunks' parts
+        (`stragglers`), which steps them with every other chunk's in the background while the next chunks' parts
         run; returns a function that waits for them and gives the chunk's summaries (``ready()``: they are back).
         Neither the gathering nor the pool's batches change a lane's bits, so neither do the number of cores."""
         active = [active_lanes(f, self.horizon, self.step) for f in fulls]
@@ -490,8 +492,7 @@ class _Chunks:
         if sel.size:
             lanes = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1),
                                            *[take_lanes_of(f, np.flatnonzero(a)) for f, a in zip(fulls, active)])
-            owner = _Waiting(lanes)
-            self.stragglers().add(lanes, rows[sel], owner)
+            owner = self.stragglers().add(lanes, rows[sel])
 
         def result():
             done = None if owner is None else self.stragglers().wait(owner)
@@ -500,11 +501,13 @@ class _Chunks:
         result.ready = lambda: owner is None or owner.event.is_set()
         return result
 
-    def stragglers(self) -> "_Stragglers":
-        """The run's pool of stragglers, started in the tail thread on first use."""
+    def stragglers(self) -> StragglerPool:
+        """The run's pool of stragglers (its loop stepping them with `run_stragglers` until every chunk's are
+        done), started in the tail thread on first use."""
         with self._pool_lock:
             if self._pool is None:
-                self._pool = _Stragglers(self)
+                self._pool = StragglerPool(self.run_stragglers,
+                                           lambda lanes: active_lanes(lanes, self.horizon, self.step))
                 self._pool.future = self.tail_pool.submit(self._pool.run)
             return self._pool
 
@@ -515,27 +518,13 @@ class _Chunks:
                 self._pool.close()
 
     def run_stragglers(self, lanes, rows):
-        """One segment of the pool's ``lanes`` (host, batch-last; their ``rows`` give per-lane parameters) in batches
-        of `TAIL_MIN` to `TAIL_MAX` lanes (padded with idle copies of a lane), then the lanes that cannot settle
-        stopped (`jaxsleigh.integrate.engine.advance_lanes`)."""
-        # the lanes on the implicit step (`jaxsleigh.integrate.engine.flying`) in batches of their own: a batch that
-        # held both kinds would run both programs over all its lanes
-        flies = flying(lanes, step_controls(self.horizon, lanes.y.dtype, self.step, self.eps), STIFF_AFTER)
-        kinds = [np.flatnonzero(~flies), np.flatnonzero(flies)]
-        order = np.concatenate(kinds)
-        out = []
+        """One segment of the pool's ``lanes`` (host, batch-last; their ``rows`` give per-lane parameters) in the
+        batches of `TAIL_LADDER`, then the lanes that cannot settle stopped, on the first device
+        (`jaxsleigh.integrate.engine.advance_pool`)."""
         with jax.default_device(self.devs[0]), jax.enable_x64(self.cfg.x64):
-            for idx in (kind[g:g + TAIL_MAX] for kind in kinds for g in range(0, kind.size, TAIL_MAX)):
-                m = idx.size
-                fill = np.concatenate([idx, np.full(max(TAIL_MIN, bucket(m)) - m, idx[0])])
-                batch = take_lanes_of(lanes, fill)
-                idle = np.where(np.arange(fill.size) < m, batch.status, Status.INVALID_INPUT)
-                batch = batch._replace(status=idle.astype(batch.status.dtype))
-                done = advance_lanes(batch, self._lanes_args(rows[fill]), self.horizon, self.step, eps=self.eps,
-                                     segment=self.segment, observers=self.observers, certify=self.rules.certify,
-                                     stiff_after=STIFF_AFTER)
-                out.append(take_lanes_of(done, np.arange(m)))
-        return take_lanes_of(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=-1), *out), np.argsort(order))
+            return advance_pool(lanes, lambda fill: self._lanes_args(rows[fill]), self.horizon, self.step,
+                                eps=self.eps, ladder=TAIL_LADDER, segment=self.segment, observers=self.observers,
+                                certify=self.rules.certify, stiff_after=STIFF_AFTER)
 
     def _tail_summaries(self, fulls, where, active, done, y0w, st, rows):
         """The chunk's summaries: every part's final state with its finished tail lanes (``done``) put back."""
@@ -549,99 +538,6 @@ class _Chunks:
                 out.append(_chunk_summaries(finish_state(f, self.horizon), y0w[w], st[w], self._lanes_args(rows[w]),
                                             self.observers))
         return {key: np.concatenate([p[key] for p in out]) for key in out[0]}
-
-
-class _Waiting:
-    """A chunk's stragglers in the pool: their host states (batch-last), filled in as each lane finishes; ``event`` is
-    set when the last one has."""
-
-    def __init__(self, lanes):
-        self.state, self.left, self.event = lanes, int(lanes.t.shape[-1]), threading.Event()
-
-    def put(self, ks: np.ndarray, lanes) -> None:
-        self.state = put_lanes(self.state, ks, lanes)
-        self.left -= ks.size
-        if self.left == 0:
-            self.event.set()
-
-
-class _Stragglers:
-    """The run's one pool of stragglers: every chunk's parts hand it their still-active lanes, and one thread steps
-    them together, one segment at a time, taking in new lanes between segments and handing every finished lane back
-    to its chunk (`_Waiting`). One fixed cost per attempted step for the whole run instead of one per chunk.
-
-    Its batches hold `TAIL_MIN` to `TAIL_MAX` lanes, sizes at which the compiled step gives each lane the same bits
-    whatever the others are, and lanes are stepped in segments at the same attempt counts as in their parts: a
-    lane's result does not depend on when it came or with which lanes it ran."""
-
-    def __init__(self, chunks: "_Chunks"):
-        self.chunks = chunks
-        self.cond = threading.Condition()
-        self.incoming: list = []
-        self.closed = False
-        self.error: Optional[BaseException] = None
-        self.future = None
-        self.owners: list = []
-
-    def add(self, lanes, rows, owner: _Waiting) -> None:
-        with self.cond:
-            if self.error is not None:
-                raise RuntimeError("the pool of stragglers failed") from self.error
-            self.incoming.append((lanes, np.asarray(rows), owner))
-            self.owners.append(owner)
-            self.cond.notify_all()
-
-    def close(self) -> None:
-        with self.cond:
-            self.closed = True
-            self.cond.notify_all()
-
-    def wait(self, owner: _Waiting):
-        """``owner``'s lanes once all are done (raises the pool's error if it failed)."""
-        owner.event.wait()
-        if self.error is not None and owner.left:
-            raise RuntimeError("the pool of stragglers failed") from self.error
-        return owner.state
-
-    def run(self) -> None:
-        try:
-            self._run()
-        except BaseException as e:
-            with self.cond:
-                self.error = e
-                for o in self.owners:
-                    o.event.set()
-            raise
-
-    def _run(self) -> None:
-        lanes, rows, who = None, np.zeros(0, np.int64), []      # who: (owner, k) of each lane
-        while True:
-            with self.cond:
-                while not self.incoming and not self.closed and not who:
-                    self.cond.wait()
-                new, self.incoming = self.incoming, []
-                closed = self.closed
-            for st, r, owner in new:
-                lanes = st if lanes is None or not who else jax.tree_util.tree_map(
-                    lambda a, b: np.concatenate([a, b], axis=-1), lanes, st)
-                rows = r if not who else np.concatenate([rows, r])
-                who += [(owner, k) for k in range(r.size)]
-            if not who:
-                if closed:
-                    return
-                continue
-            lanes = self.chunks.run_stragglers(lanes, rows)
-            act = active_lanes(lanes, self.chunks.horizon, self.chunks.step)
-            done = np.flatnonzero(~act)
-            by_owner: dict = {}
-            for i in done:
-                owner, k = who[i]
-                by_owner.setdefault(id(owner), (owner, [], []))[1].append(k)
-                by_owner[id(owner)][2].append(i)
-            for owner, ks, idx in by_owner.values():
-                owner.put(np.asarray(ks), take_lanes_of(lanes, np.asarray(idx)))
-            keep = np.flatnonzero(act)
-            lanes, rows, who = take_lanes_of(lanes, keep), rows[keep], [who[i] for i in keep]
 
 
 def _chunk_result(chunks: _Chunks, store: Optional[ChunkStore], ci, lo, hi, *, fields, sampled) -> tuple:

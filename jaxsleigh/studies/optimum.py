@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..integrate.open_loop import piecewise_constant_final, piecewise_constant_path
+from ..integrate.pool import Ladder, padded
 from ..model.params import PlantParams, as_plant
 from ..model.plant import momentum_rhs
 from ..files.checkpoint import run_key
@@ -285,12 +286,16 @@ def _functions(plant, eps: float, substeps: int):
     return jax.jit(jax.vmap(start)), jax.jit(jax.vmap(step)), jax.jit(jax.vmap(measure))
 
 
+#: the optimum's batches: a batch of 128 problems or more shrinks to the next power of two of its working ones
+_LADDER = Ladder(floor=1, shrink_from=128)
+
+
 def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: int, progress=None):
     """Augmented Lagrangian on a batch: ``y0`` (B, 5), ``T`` (B,), ``z0`` (B, N, 2), all float64.
 
     Problems that converge leave the batch: once at most a quarter of a batch of 128 or more is still working, the
-    rest continues in a batch of the next power of two (padded with copies of a working problem), so that a
-    few slow problems do not keep the whole batch busy (each new size compiles once)."""
+    rest continues in a batch of the next power of two (`_LADDER`, padded with copies of a working problem), so that
+    a few slow problems do not keep the whole batch busy (each new size compiles once)."""
     try:
         start, step, measure = _functions(plant, eps, substeps)
     except TypeError:                               # a plant with unhashable leaves: compiled afresh
@@ -302,9 +307,9 @@ def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: i
     yT_h, kkt_h, zn_h = np.full((B, 5), np.nan), np.full(B, np.nan), np.full(B, np.nan)
     active, size, fresh = np.arange(B), B, True
     for k in range(opts.outer):
-        if k == 0 or (size >= 128 and active.size <= size // 4):
-            size = B if k == 0 else int(2 ** math.ceil(math.log2(active.size)))
-            lanes = np.concatenate([active, np.full(size - active.size, active[0])])
+        if k == 0 or _LADDER.shrinks(size, active.size):
+            size = B if k == 0 else _LADDER.size(active.size)
+            lanes = padded(active, size)
             z, y0j, Tj = jnp.asarray(z_h[lanes]), jnp.asarray(y0_h[lanes]), jnp.asarray(T_h[lanes])
             lam, mu, rho, vp = jnp.asarray(lam_h[lanes]), jnp.asarray(mu_h[lanes]), rho_h[lanes], vp_h[lanes]
             fresh = True
@@ -335,13 +340,12 @@ def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: i
         keep = st[:n] != OptimumStatus.CONVERGED
         if not keep.any():
             break
-        if not keep.all():          # the lanes of the batch stay where they are until the batch shrinks
-            lanes_now = np.concatenate([active[keep], np.full(size - int(keep.sum()), active[keep][0])])
-            order = np.concatenate([np.flatnonzero(keep), np.full(size - int(keep.sum()), np.flatnonzero(keep)[0])])
+        if not keep.all():          # the working problems move to the front; the batch keeps its size until it shrinks
+            order = padded(np.flatnonzero(keep), size)
             z, y0j, Tj, lam, mu = (a[order] for a in (z, y0j, Tj, lam, mu))
             S, Y, r = S[order], Y[order], r[order]
             rho, vp, rho_before = rho[order], vp[order], rho_before[order]
-            active = lanes_now[:int(keep.sum())]
+            active = active[keep]
     return z_h, status_h, yT_h, kkt_h / np.maximum(2 * zn_h, 1e-12), lam_h, mu_h
 
 
