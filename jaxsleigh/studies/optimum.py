@@ -305,7 +305,7 @@ def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: i
     lam_h, mu_h, rho_h, vp_h = np.zeros((B, 2)), np.zeros(B), np.full(B, float(opts.rho0)), np.full(B, np.inf)
     status_h = np.full(B, int(OptimumStatus.INFEASIBLE), np.int32)
     yT_h, kkt_h, zn_h = np.full((B, 5), np.nan), np.full(B, np.nan), np.full(B, np.nan)
-    active, size, fresh = np.arange(B), B, True
+    active, size, fresh, rho_before = np.arange(B), B, True, None   # rho_before: the penalty weights of the last pass
     for k in range(opts.outer):
         if k == 0 or _LADDER.shrinks(size, active.size):
             size = B if k == 0 else _LADDER.size(active.size)
