@@ -66,10 +66,11 @@ def test_the_first_runs_core_count_follows_the_settings():
                                 "import jax, jaxsleigh as js; jax.config.update('jax_num_cpu_devices', 3)")) == "3 3"
 
 
-def test_results_are_byte_identical_on_one_two_and_three_cores():
+def test_results_are_byte_identical_on_one_and_three_cores():
     """Three forced CPU devices, so the test holds on a machine of any size: the adaptive engine (starts
     near theta = 0 included, so compaction and stragglers happen in some parts), float64 too, the plain
-    fixed-step path, decimated trajectories and per-trajectory gains give the same bytes on 1, 2 and 3."""
+    fixed-step path, decimated trajectories and per-trajectory gains give the same bytes on 1 and 3 (an uneven
+    split of every batch; 2 cores, the even split, added a third of the test's time and no case of its own)."""
     out = _python("""
         import hashlib, json, numpy as np, jaxsleigh as js
         rng = np.random.default_rng(4)
@@ -81,7 +82,7 @@ def test_results_are_byte_identical_on_one_two_and_three_cores():
                 h.update(np.ascontiguousarray(getattr(r, f)).tobytes())
             return h.hexdigest()
         runs = {}
-        for c in (1, 2, 3):
+        for c in (1, 3):
             # (no accuracy audit: it changes no number of a result, and its float64 programs cost a third of the time)
             run = lambda chunk=None: js.RunOptions(chunk_size=chunk, cores=c, progress=False, audit=False)
             a = js.run_ensemble(ics, t_final=8.0, run=run(1200))
@@ -98,8 +99,8 @@ def test_results_are_byte_identical_on_one_two_and_three_cores():
         print(json.dumps(runs))
     """, JAX_NUM_CPU_DEVICES="3")
     runs = json.loads(out)
-    assert runs["1"][:5] == runs["2"][:5] == runs["3"][:5]
-    assert [len(runs[c][5]) for c in ("1", "2", "3")] == [1, 2, 3]
+    assert runs["1"][:5] == runs["3"][:5]
+    assert [len(runs[c][5]) for c in ("1", "3")] == [1, 3]
     assert runs["1"][6] == "float64"
 
 
