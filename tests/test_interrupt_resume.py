@@ -136,10 +136,10 @@ def _law(m):
 
     real = law._Descent._step
 
-    def step(self, step_fn, it):
+    def step(self, step_fn, it, *rest):
         if it == 2:
             raise KeyboardInterrupt
-        return real(self, step_fn, it)
+        return real(self, step_fn, it, *rest)
     m.setattr(law._Descent, "_step", step)
 
 

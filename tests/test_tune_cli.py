@@ -28,10 +28,10 @@ def _interrupt_after(monkeypatch, n: int) -> None:
 
     real = law_mod._Descent._step
 
-    def step(self, step_fn, it):
+    def step(self, step_fn, it, *rest):
         if it == n:
             raise KeyboardInterrupt
-        return real(self, step_fn, it)
+        return real(self, step_fn, it, *rest)
 
     monkeypatch.setattr(law_mod._Descent, "_step", step)
 

@@ -55,6 +55,7 @@ from ..status import Status
 from ..studies.options import RunOptions
 from .checkpoint import Checkpoint, TuningInterrupted, checked_state
 from .cmaes import CMAState, cma_ask, cma_init, cma_tell
+from .loops import ask_tell
 from .params import D_FLOOR, params_from_gains, parse_tune
 from .starts import UniformStarts, draw_starts, guard_starts
 from ..model.lanes import stack_gains
@@ -463,26 +464,33 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
 
 def _generations(run: _SearchState, space: _Space, ev: _Evaluator, budget: _Budget, config: SearchConfig,
                  ckpt: Optional[Path], stamp: Checkpoint, progress: Any) -> None:
-    """The remaining generations of ``run`` (updated in place), each checkpointed and reported."""
+    """The remaining generations of ``run`` (updated in place) by `ask_tell`, each checkpointed and reported."""
+
+    def evaluate(state, xs):
+        """The candidates' penalised scores, in one ensemble; with their figures and feasibility."""
+        figs = ev.evaluate([space.gains(x) for x in xs])
+        scored = [_score(figs, i, budget.e_max, budget.f_min, config) for i in range(len(xs))]
+        return np.array([s for s, _ in scored]), (figs, scored)
+
+    def save(state) -> None:
+        _save(ckpt, stamp, run.state, run.rng, run.hist, run.top)
+
     with Progress(progress, desc="search (CMA-ES)") as bar:
-        while int(run.state.generation) < config.generations:
-            gen = int(run.state.generation)
-            _generation(run, gen, space, ev, budget, config)
-            if ckpt is not None:
-                _save(ckpt, stamp, run.state, run.rng, run.hist, run.top)
-            bar.update((gen + 1) / config.generations)
+        def report(state) -> None:
+            bar.update(int(state.generation) / config.generations)
             bar.postfix(median_T=f"{run.top[0][3][0]:.2f}" if run.top else "-", sigma=f"{float(run.state.sigma):.3f}")
 
+        ask_tell(run.state, lambda state: cma_ask(state, run.rng, config.population), evaluate, cma_tell,
+                 done=lambda state: int(state.generation) >= config.generations,
+                 observe=lambda state, xs, scores, info: _record(run, state, xs, scores, *info, config),
+                 save=None if ckpt is None else save, report=report)
 
-def _generation(run: _SearchState, gen: int, space: _Space, ev: _Evaluator, budget: _Budget,
-                config: SearchConfig) -> None:
-    """One generation: ask, evaluate the candidates in one ensemble, tell, keep the best feasible ones and
-    append the generation's row to the history."""
-    xs, ys = cma_ask(run.state, run.rng, config.population)
-    figs = ev.evaluate([space.gains(x) for x in xs])
-    scored = [_score(figs, i, budget.e_max, budget.f_min, config) for i in range(len(xs))]
-    scores = np.array([s for s, _ in scored])
-    run.state = cma_tell(run.state, ys, scores)
+
+def _record(run: _SearchState, state: CMAState, xs, scores, figs: PopulationFigures, scored: list,
+            config: SearchConfig) -> None:
+    """A generation told: the strategy's new ``state`` in ``run``, the best feasible candidates kept, and the
+    generation's row (its best candidate) appended to the history."""
+    run.state, gen = state, int(state.generation) - 1
     for i, (s, feas) in enumerate(scored):
         if feas:
             run.top.append((float(s), gen, np.asarray(xs[i]), _scalars(figs, i)))

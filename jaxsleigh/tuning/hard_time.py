@@ -51,6 +51,7 @@ from ..status import Status
 from .cmaes import cma_ask, cma_init, cma_tell
 from .event_time import settling
 from .law import law_coordinates
+from .loops import ask_tell, descend, step_if
 from .objective import valid_starts
 
 __all__ = ["HardTimeConfig", "HardTimeProblem", "hard_time_problem", "tune_by_gradient", "tune_by_cma", "TuneRun"]
@@ -237,22 +238,35 @@ def tune_by_gradient(problem: HardTimeProblem, *, steps: int = 40, lr: float = 0
         raise ValueError(f"multiplier_every must be a whole number >= 0, got {multiplier_every!r}")
     x = jnp.asarray(problem.x0 if x0 is None else x0)
     opt = optax.adam(lr, b1=b1)
-    state = opt.init(x)
     rec = _Record(problem, progress)
-    lam = _no_multipliers(problem.cfg)
-    for i in range(steps):
-        (f, aux), g = problem.value_and_grad(x, lam)
+    mult = _Multipliers(problem.cfg, multiplier_every)
+
+    def observe(i, x, state, out) -> bool:
+        (f, aux), g = out
         rec.add(x, f, aux)
-        rec.history[-1]["lam"] = lam.tolist()
-        if multiplier_every and (i + 1) % multiplier_every == 0:
-            c = np.minimum(np.asarray(aux["constraints"], np.float64), MULTIPLIER_STEP_CAP)
-            lam = np.maximum(0.0, lam + _mu(problem.cfg) * c)
+        rec.history[-1]["lam"] = mult.lam.tolist()
+        mult.update(i, aux)
         rec.history[-1]["gradient_finite"] = finite = bool(jnp.all(jnp.isfinite(g)))
-        if not finite:                          # said in the history, not hidden: the run stops there
-            break
-        updates, state = opt.update(g, state, x)
-        x = optax.apply_updates(x, updates)
+        return finite
+
+    descend(lambda i, x: problem.value_and_grad(x, mult.lam), observe, step_if(opt), x, opt.init(x), steps=steps,
+            stop=lambda x, state, finite: not finite)     # said in the history, not hidden: the run stops there
     return rec.result()
+
+
+class _Multipliers:
+    r"""The method of multipliers of `tune_by_gradient`: after every ``every``-th evaluation (none with
+    ``every = 0``: the penalty alone), \(\lambda \leftarrow \max(0, \lambda + \mu \min(c, 0.1))\) with that
+    evaluation's constraints \(c\) (the cap: `MULTIPLIER_STEP_CAP`)."""
+
+    def __init__(self, cfg: HardTimeConfig, every: int):
+        self.cfg, self.every, self.lam = cfg, int(every), _no_multipliers(cfg)
+
+    def update(self, i: int, aux) -> None:
+        """The update after evaluation ``i`` (0-based), whose figures ``aux`` hold the constraints."""
+        if self.every and (i + 1) % self.every == 0:
+            c = np.minimum(np.asarray(aux["constraints"], np.float64), MULTIPLIER_STEP_CAP)
+            self.lam = np.maximum(0.0, self.lam + _mu(self.cfg) * c)
 
 
 def tune_by_cma(problem: HardTimeProblem, *, evaluations: int = 120, population: int = 12, sigma0: float = 0.3,
@@ -260,15 +274,17 @@ def tune_by_cma(problem: HardTimeProblem, *, evaluations: int = 120, population:
     """CMA-ES (`jaxsleigh.tuning.cmaes`) on the same \\(f\\) (values only), ``evaluations`` in all; keeps the best
     feasible candidate."""
     rng = np.random.default_rng(seed)
-    state = cma_init(np.asarray(problem.x0 if x0 is None else x0, np.float64), sigma0)
     rec = _Record(problem, progress)
-    while len(rec.history) < evaluations:
-        xs, ys = cma_ask(state, rng, population)
+
+    def evaluate(state, xs):
+        # the last generation may be cut short by the budget: it is then not told, and the run ends
         scores = []
         for x in xs[: evaluations - len(rec.history)]:
             f = rec.add(x, *problem.value(jnp.asarray(x)))
             scores.append(f if np.isfinite(f) else 1e6)
-        if len(scores) < len(xs):
-            break
-        state = cma_tell(state, ys, np.asarray(scores))
+        return np.asarray(scores), None
+
+    ask_tell(cma_init(np.asarray(problem.x0 if x0 is None else x0, np.float64), sigma0),
+             lambda state: cma_ask(state, rng, population), evaluate, cma_tell,
+             done=lambda state: len(rec.history) >= evaluations)
     return rec.result()

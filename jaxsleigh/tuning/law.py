@@ -24,6 +24,7 @@ from ..integrate.engine import initial_w
 from ..model.params import Gains, PlantParams, as_plant
 from ..status import Status
 from .checkpoint import LawCheckpoint, Checkpoint, TuningInterrupted, check_resume, law_settings
+from .loops import descend, step_if
 from .optimizer import check_sizes
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, valid_starts
@@ -290,16 +291,17 @@ class InvalidStartingLaw(ValueError):
 
 
 def _adam_descent(descent: "_Descent", step_fn, steps: int) -> None:
-    """The work of `tune_law`: ``descent``'s steps ``descent.it`` to ``steps`` (none once stopped);
+    """The work of `tune_law`: ``descent``'s steps ``descent.it`` to ``steps`` by `descend` (none once stopped);
     ``step_fn(params) -> ((loss, aux), grads)``."""
-    for it in range(descent.it, steps):
-        if descent.stopped:
-            break
-        descent._step(step_fn, it)
+    descent.params, descent.state, descent.stopped = descend(
+        lambda it, params: descent._step(step_fn, it, params), descent.observe, step_if(descent.opt), descent.params,
+        descent.state, steps=steps, start=descent.it, stopped=descent.stopped, stop=lambda p, s, valid: not valid,
+        save=descent.save, report=descent.report)
 
 
 class _Descent:
-    """Adam from ``params``, stopping at the first invalid candidate, checkpointed after every step (``store``).
+    """The pieces `tune_law` gives `descend`: Adam from ``params``, stopping at the first invalid candidate,
+    checkpointed after every step (``store``).
 
     ``best`` is ``(params, loss, energy)`` of the lowest-loss valid candidate (``None`` while none was valid),
     ``hist`` the per-step lists ``loss``, ``energy``, ``valid``. With a ``store`` holding an earlier run's state
@@ -310,23 +312,33 @@ class _Descent:
         self.opt, self.store, self.callback = opt, store, callback
         self.params, self.state = params, opt.init(params)
         self.best, self.hist, self.it, self.stopped = None, {"loss": [], "energy": [], "valid": []}, 0, False
+        self.row = None
         saved = None if store is None else store.load(self.params, self.state)
         if saved is not None:
             self.it, self.params, self.state, self.best, self.hist, self.stopped = saved
 
-    def _step(self, step_fn, it: int) -> None:
-        (value, aux), grads = step_fn(self.params)
+    def _step(self, step_fn, it: int, params):
+        """Evaluate candidate ``it``: ``((loss, aux), grads)``."""
+        return step_fn(params)
+
+    def observe(self, it: int, params, state, out) -> bool:
+        """Record candidate ``it`` (its row of the history; the best valid one); returns whether it is valid (every
+        lane OK, finite gradient)."""
+        (value, aux), grads = out
         valid = bool(aux["valid"]) and bool(jnp.all(jnp.isfinite(grads)))
-        row = {"loss": float(value), "energy": float(aux["energy"]), "valid": valid}
+        self.row = row = {"loss": float(value), "energy": float(aux["energy"]), "valid": valid}
         for k, v in row.items():
             self.hist[k].append(v)
         if valid and (self.best is None or row["loss"] < self.best[1]):
-            self.best = (self.params, row["loss"], row["energy"])
-        if valid:
-            updates, self.state = self.opt.update(grads, self.state, self.params)
-            self.params = optax.apply_updates(self.params, updates)
-        self.it, self.stopped = it + 1, not valid
+            self.best = (params, row["loss"], row["energy"])
+        return valid
+
+    def save(self, it: int, params, state, stopped: bool) -> None:
+        """The state step ``it`` starts from, in the checkpoint."""
+        self.it, self.stopped = it, stopped
         if self.store is not None:
-            self.store.save(self.it, self.params, self.state, self.best, self.hist, self.stopped)
+            self.store.save(it, params, state, self.best, self.hist, stopped)
+
+    def report(self, it: int, valid: bool) -> None:
         if self.callback is not None:
-            self.callback(it, row)
+            self.callback(it, self.row)

@@ -24,6 +24,7 @@ from ..model.params import Gains, PlantParams, gains_to_dict, load_gains
 from ..progress import Progress
 from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume, tune_settings
 from .gradients import GRADIENT_MODES, make_value_and_grad
+from .loops import descend
 from .objective import LossConfig, make_training_set
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_params, parse_tune, params_from_gains, \
     split_params
@@ -477,6 +478,11 @@ class GradientRun(NamedTuple):
     step: Callable
     ctx: TuneContext
 
+    def descent_step(self, trainable, opt_state, out, valid):
+        """The step piece of `descend`: the backtracking optimiser's step with the candidate's gradient (``out[1]``)
+        and whether it was valid (per lane in the vmapped front)."""
+        return self.step(trainable, opt_state, out[1], jnp.asarray(valid))
+
 
 def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64, d_floor,
                 lanes: int = 0) -> tuple:
@@ -506,30 +512,40 @@ def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, pla
 
 def _iterate(run: GradientRun, track: CandidateTrack, trainable, opt_state, it0: int, steps: int, store, progress: Any,
              callback: Optional[Callable], t_start: float) -> None:
-    """Iterations ``it0`` to ``steps`` (or until backtracking gives up), each checkpointed, reported and
+    """Iterations ``it0`` to ``steps`` (or until backtracking gives up) of `descend`, each checkpointed, reported and
     passed to ``callback``; ``track`` records them."""
-    config, cfg = run.ctx.config, run.cfg
+    config = run.ctx.config
+
+    def evaluate(it, trainable):
+        cfg = run.cfg._replace(multiplier=jnp.asarray(track.lam, run.dtype))       # the multiplier's latest step
+        return run.vg(trainable, run.ctx.frozen, run.data, cfg)
+
+    def observe(it, trainable, opt_state, out) -> bool:
+        (value, aux), grad = out
+        value, gnorm = float(value), float(optax.tree.norm(grad))
+        return track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
+                            float(opt_state.scale), run.ctx, time.perf_counter() - t_start,
+                            lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
+
+    def stop(trainable, opt_state, valid) -> bool:
+        """Backtracking gives up: too many invalid candidates in a row, or a step shrunk below ``min_scale``."""
+        return track.rejections >= config.max_rejections or float(opt_state.scale) < config.min_scale
+
+    def save(it, trainable, opt_state, stopped) -> None:
+        # a run that stopped is saved as finished: its resume does nothing more
+        store.save(steps if stopped else it, trainable, opt_state, track)
+
     with _Bar(progress, steps) as bar:
         bar.skip(it0)
-        for it in range(it0, steps):
-            cfg = cfg._replace(multiplier=jnp.asarray(track.lam, run.dtype))
-            (value, aux), grad = run.vg(trainable, run.ctx.frozen, run.data, cfg)
-            value = float(value)
-            gnorm = float(optax.tree.norm(grad))
-            valid = track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
-                                 float(opt_state.scale), run.ctx, time.perf_counter() - t_start,
-                                 lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
+
+        def report(it, valid) -> None:
             row = track.rows[-1]
-            trainable, opt_state = run.step(trainable, opt_state, grad, jnp.asarray(valid))
-            stop = (track.rejections >= config.max_rejections
-                    or float(opt_state.scale) < config.min_scale)
-            if store is not None:
-                store.save(it + 1 if not stop else steps, trainable, opt_state, track)
             bar.update(it, row)
             if callback is not None:
                 callback(it, row)
-            if stop:
-                break
+
+        descend(evaluate, observe, run.descent_step, trainable, opt_state, steps=steps, start=it0, stop=stop,
+                save=None if store is None else save, report=report)
 
 
 def _interrupted(track: CandidateTrack, ctx: TuneContext) -> Optional[TuneResult]:

@@ -33,6 +33,7 @@ from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dic
 from ..progress import Progress
 from .objective import LossConfig, make_training_set, objective
 from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume
+from .loops import descend
 from .optimizer import CandidateTrack, GradientRun, TuneConfig, TuneHistory, check_sizes, prepare_run, tune
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, params_from_gains, parse_tune, \
     split_params
@@ -320,27 +321,40 @@ def _vmap_iterations(run: _VmapRun, it0: int, evals: int, trainable, opt_state, 
     """Run the vmapped optimiser from iteration ``it0`` (``evals`` objective evaluations so far; the budgets'
     parameters and optax state) until ``config.steps`` iterations or every budget's track stops; the tracks record
     each candidate, and the state is checkpointed after every iteration (``run.store``). Returns the number of
-    objective evaluations (of budgets still alive)."""
+    objective evaluations (of budgets still alive). The loop is `descend`; a budget whose backtracking gave up stays
+    in the vmapped batch (its candidates are no longer assessed), and the run stops once every budget has."""
     base, alive = run.base, run.alive
     config = base.ctx.config
     t_start = time.perf_counter()
+
+    def evaluate(it, trainable):
+        nonlocal evals
+        lam = np.array([t.lam for t in run.tracks])
+        c = base.cfg._replace(energy_budget=jnp.asarray(run.budgets, base.dtype),
+                              multiplier=jnp.asarray(lam, base.dtype))
+        out = base.vg(trainable, base.ctx.frozen, base.data, c)          # ((values, aux), grads)
+        evals += int(alive.sum())
+        return out
+
+    def stop(trainable, opt_state, ok) -> bool:
+        """A budget stops where its backtracking gives up; the run, once every budget has."""
+        rej = np.array([t.rejections for t in run.tracks])
+        alive[:] = alive & (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
+        return not alive.any()
+
+    def save(it, trainable, opt_state, stopped) -> None:
+        run.store.save(it, trainable, opt_state, run.tracks, evals=np.int64(evals), alive=np.asarray(alive))
+
     with Progress(progress, desc=f"front (vmap x{run.budgets.size})") as bar:
-        for it in range(it0, config.steps):
-            if not alive.any():
-                break
-            lam = np.array([t.lam for t in run.tracks])
-            c = base.cfg._replace(energy_budget=jnp.asarray(run.budgets, base.dtype),
-                                  multiplier=jnp.asarray(lam, base.dtype))
-            out = base.vg(trainable, base.ctx.frozen, base.data, c)          # ((values, aux), grads)
-            evals += int(alive.sum())
-            ok = _assess_candidates(run, it, out, trainable, opt_state, t_start)
-            trainable, opt_state = base.step(trainable, opt_state, out[1], jnp.asarray(ok))
-            rej = np.array([t.rejections for t in run.tracks])
-            alive &= (rej < config.max_rejections) & (np.asarray(opt_state.scale) >= config.min_scale)
-            if run.store is not None:
-                run.store.save(it + 1, trainable, opt_state, run.tracks, evals=np.int64(evals), alive=np.asarray(alive))
+        def report(it, ok) -> None:
             bar.update((it + 1) / config.steps)
             bar.postfix(feasible=int(sum(t.rows[-1]["feasible"] for t in run.tracks if t.rows)))
+
+        def observe(it, trainable, opt_state, out):
+            return _assess_candidates(run, it, out, trainable, opt_state, t_start)
+
+        descend(evaluate, observe, base.descent_step, trainable, opt_state, steps=config.steps, start=it0,
+                stopped=not alive.any(), stop=stop, save=None if run.store is None else save, report=report)
     return evals
 
 
