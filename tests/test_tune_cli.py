@@ -162,8 +162,9 @@ def test_a_tuned_law_file_is_read_back_as_the_law(tmp_path, capsys):
 
 
 def test_an_invalid_starting_law_is_explained_in_command_line_terms(tmp_path, capsys):
+    # 20 attempts: the fewest the up-front check lets through for 2 s (steps of at most 10 x --dt), too few to get there
     rc, _, err = _run(["tune", "--controller", "astolfi", "--steps", "1", "--out", tmp_path / "a.json",
-                       "--n-attempts", "1", *TINY], capsys)
+                       "--n-attempts", "20", *TINY], capsys)
     assert rc == 2 and "--n-attempts" in err and "jaxsleigh simulate --controller astolfi" in err, err
     assert "jaxsleigh.run_ensemble" not in err
 
@@ -193,7 +194,8 @@ def test_a_refused_gradient_resume_names_the_flag_not_the_settings(tmp_path, cap
 
 
 def test_the_gradient_tuners_advice_names_flags(tmp_path, capsys):
-    rc, _, err = _run([*GRADIENT[:8], "1", *GRADIENT[9:], "--out", tmp_path / "g.json"], capsys)
+    # 50 attempts: the fewest the up-front check lets through for 5 s, too few for the starts to get there
+    rc, _, err = _run([*GRADIENT[:8], "50", *GRADIENT[9:], "--out", tmp_path / "g.json"], capsys)
     assert rc == 2 and "not a valid candidate" in err and "raise --n-attempts, shorten --t-final" in err, err
     assert "n_attempts" not in err and "t_final" not in err
 

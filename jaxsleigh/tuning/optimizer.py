@@ -456,7 +456,11 @@ ceil > n_{attempts}\): a start
                 fix=f"use {MAX_STEPS:,} or fewer (the learning rate's schedule spans them all)")
     check_memory(int(batch), w["batch"], bytes_per_start=BYTES_PER_TRAINING_START, unit="training starts",
                  fix=f"use a smaller {w['batch']} (256 is the default)")
-    need = math.ceil(float(t_final) / float(max_step) - 1e-9)
+    ratio = float(t_final) / float(max_step)
+    if not math.isfinite(ratio):                  # a subnormal step: no budget reaches the horizon
+        raise ValueError(f"{w['max_step']} {float(max_step):g} s is too small to reach {w['t_final']} "
+                         f"{float(t_final):g} s in any number of steps; use a larger one")
+    need = math.ceil(ratio - 1e-9)
     if need > int(n_attempts):
         raise ValueError(f"{w['t_final']} {float(t_final):g} s needs at least {need:,} steps of at most "
                          f"{w['max_step']} {float(max_step):g} s, more than the {int(n_attempts):,} attempted steps a "
