@@ -1,7 +1,8 @@
 r"""Does a run with a tail of unresolved rows say so? And what does the audit cost?
 
     python experiments/studies/audit_power.py [--n-tail 256] [--n-held 128] [--n-base 512] [--draws 2000]
-        [--cost-n 512,4096] [--reps 3] [--out docs/figures/audit_power.json]
+        [--cost-n 512,4096] [--reps 3] [--law aicardi --n-law 128 --law-seeds 20240611,7]
+        [--out docs/figures/audit_power.json]
 
 **Power.** The 0.2 release's ``balanced`` gains (k = 0.001467) let the settled (w2, p1) oscillation grow from a seed
 below every tolerance; on the README's starts (``readme_starts``) the float32 energy of some rows is more than 5% off
@@ -23,6 +24,16 @@ budget leaves at the default 10% of the run, from the rows' own steps). The audi
 literature's laws (``aicardi``, ``astolfi``, ``samson``, `jaxsleigh.controllers`) on ``n_other`` README starts (seed
 7), float32 defaults against float64 at 1e-10 (1e-12 where that disagrees, as the audit confirms): the rows more
 than 2% and 5% off, the rows flagged, and the largest difference of a row not flagged.
+
+**A law's own tail** (``--law aicardi``): the law on ``n_law`` README starts of each of ``law_seeds``, float32
+defaults against float64 at 1e-10, rows more than 2% off confirmed at 1e-12 (as the audit does): the off rows (> 5%)
+and, for each cheap per-row quantity the run reports (``RISK_QUANTITIES``), the ranks of the off rows when the rows
+are ordered by it (1: first; ties broken against the off rows). Then runs of ``n_run`` (and 4,096) rows of that law with a 2% and
+a 5% tail of off rows (the rest its rows that agree, all seeds pooled) are assembled ``draws`` times, and the share of
+runs in which the audit's sample (`audit_sample`, the default budget, from the rows' own steps) holds an off row is
+reported for the sample's seeded order (what the library does) and for an order by each quantity, and how many rows
+the budget let the audit re-run. The law's rows are never flagged (it has no settled pair), so only the sample can
+say so.
 
 **Cost.** Warm (every configuration run once before it is timed; medians of ``reps``): the paper's gains on README
 starts with ``audit=False`` and with the default audit, for each N in ``cost_n``, and the plain fixed-step path
@@ -142,6 +153,93 @@ def other_laws(names, n: int) -> dict:
     return out
 
 
+#: cheap per-row quantities a run reports, each oriented so that a larger value is meant to be more at risk
+RISK_QUANTITIES = {
+    "n_steps": lambda r: r["n_steps"], "-n_steps": lambda r: -r["n_steps"],
+    "n_rejected": lambda r: r["n_rejected"], "rejected_share": lambda r: r["n_rejected"] / np.maximum(r["n_steps"], 1),
+    "T_eps": lambda r: r["T_eps"], "time_near_target": lambda r: -r["T_eps"],
+    "u_energy": lambda r: r["u_energy"], "-u_energy": lambda r: -r["u_energy"], "u_norm_peak": lambda r: r["u_norm_peak"],
+    "min_abs_theta": lambda r: r["min_abs_theta"], "-min_abs_theta": lambda r: -r["min_abs_theta"],
+    "final_xy": lambda r: r["xy"], "-final_xy": lambda r: -r["xy"],
+    "final_abs_theta": lambda r: r["th"], "-final_abs_theta": lambda r: -r["th"],
+    "final_theta_over_min": lambda r: r["th"] / np.maximum(r["min_abs_theta"], 1e-30),
+    "max_excursion": lambda r: r["max_excursion"],
+}
+
+
+def law_tail(name: str, n: int, seeds, n_run: int, draws: int) -> dict:
+    """``name``'s off rows against float64 and how the cheap per-row quantities rank them (module docstring)."""
+    import jaxsleigh as js
+    from jaxsleigh.controllers.registry import make_controller
+    from jaxsleigh.studies.audit import REFERENCE_COST, Audit, audit_sample
+
+    law = {} if name == "paper" else {"controller": make_controller(name)}
+    cols = {k: [] for k in ("rel", "n_steps", "n_rejected", "T_eps", "u_energy", "u_norm_peak", "min_abs_theta", "xy",
+                            "th", "max_excursion")}
+    out = {"law": name, "sets": {}}
+    for seed in seeds:
+        ics = readme_starts(n, seed=seed)
+        r = _run(ics, **law, run=js.RunOptions(progress=False, audit=False))
+
+        def ref(rows, tol):
+            return _run(ics[rows], **law, x64=True, run=js.RunOptions(progress=False, audit=False),
+                        stepsize=js.StepSizeController(rtol=tol, atol=tol, max_steps=10**6))
+        e = ref(np.arange(n), 1e-10)
+        ok = (r.status == 0) & (e.status == 0)
+        rel = np.where(ok, np.abs(r.u_energy / np.where(ok, e.u_energy, 1.0) - 1.0), np.nan)
+        again = np.flatnonzero(~(rel <= 0.02))
+        if again.size:                                   # confirmed at 1e-12, as the audit does
+            e12 = ref(again, 1e-12)
+            ok = (e12.status == 0) & (r.status[again] == 0)
+            rel[again] = np.where(ok, np.abs(r.u_energy[again] / np.where(ok, e12.u_energy, 1.0) - 1.0), np.nan)
+        T = np.where(np.isfinite(r.T_eps), r.T_eps, 2 * 100.0)
+        row = {"rel": rel, "n_steps": r.n_steps.astype(np.float64), "n_rejected": r.n_rejected.astype(np.float64),
+               "T_eps": T, "u_energy": r.u_energy.astype(np.float64), "u_norm_peak": r.u_norm_peak.astype(np.float64),
+               "min_abs_theta": r.min_abs_theta.astype(np.float64), "max_excursion": r.max_excursion.astype(np.float64),
+               "xy": np.max(np.abs(r.q_final[:, :2]), axis=1).astype(np.float64),
+               "th": np.abs(r.q_final[:, 2]).astype(np.float64)}
+        off = rel > 0.05
+        ranks = {}
+        for q, f in RISK_QUANTITIES.items():
+            score = np.nan_to_num(f(row), nan=-np.inf)
+            # rank 1 = first in the order; an off row tied with others takes the last of their ranks
+            ranks[q] = sorted(int(np.sum(score >= score[i])) for i in np.flatnonzero(off))
+        out["sets"][f"readme_seed_{seed}_n{n}"] = {
+            "off_5pct": np.flatnonzero(off).tolist(), "off_2pct": int((rel > 0.02).sum()),
+            "unjudged": int(np.isnan(rel).sum()), "flagged": int(r.unresolved.sum()), "ranks_of_off_rows": ranks}
+        print(name, seed, json.dumps(out["sets"][f"readme_seed_{seed}_n{n}"]), flush=True)
+        for k in cols:
+            cols[k].append(row[k])
+    rows = {k: np.concatenate(v) for k, v in cols.items()}
+    judged = np.isfinite(rows["rel"])
+    off_i, good_i = np.flatnonzero(judged & (rows["rel"] > 0.05)), np.flatnonzero(judged & (rows["rel"] <= 0.02))
+    orders = {"seeded (the library)": None, **{q: f for q, f in RISK_QUANTITIES.items()}}
+    rng = np.random.default_rng(2024)
+    out["power"] = {}
+    for n_run, share in ((n_run, 0.02), (n_run, 0.05), (4096, 0.02), (4096, 0.05)):
+        m = max(1, round(share * n_run))
+        hit = {k: 0 for k in orders}
+        fits = []
+        for _ in range(draws):
+            pick = np.concatenate([rng.choice(off_i, m), rng.choice(good_i, n_run - m)])[rng.permutation(n_run)]
+            is_off = rows["rel"][pick] > 0.05
+            for k, f in orders.items():
+                if f is None:
+                    sel = audit_sample(Audit(), n_run, unresolved=np.zeros(n_run, bool), steps=rows["n_steps"][pick])
+                    fits.append(sel.size)
+                else:                                    # the same budget, the rows taken by the quantity first
+                    score = np.nan_to_num(f({c: v[pick] for c, v in rows.items()}), nan=-np.inf)
+                    base = np.random.default_rng(0).permutation(n_run)
+                    order = base[np.argsort(-score[base], kind="stable")][:Audit().count(n_run)]
+                    cum = np.cumsum(REFERENCE_COST * rows["n_steps"][pick][order])
+                    sel = order[:int(np.searchsorted(cum, Audit().budget * rows["n_steps"][pick].sum(), side="right"))]
+                hit[k] += bool(np.any(is_off[sel]))
+        out["power"][f"{share:g} of {n_run}"] = {"tail_rows": m, "rows_re_run": [int(min(fits)), int(max(fits))],
+                                      "said_so": {k: v / draws for k, v in hit.items()}}
+    print(name, json.dumps(out["power"]), flush=True)
+    return out
+
+
 def cost(ns, reps: int) -> dict:
     import jaxsleigh as js
 
@@ -185,6 +283,9 @@ def main(argv=None) -> None:
     ap.add_argument("--skip-cost", action="store_true")
     ap.add_argument("--other-laws", default="", help="e.g. balanced,tuned,shaped,paper,aicardi,astolfi,samson")
     ap.add_argument("--n-other", type=int, default=128)
+    ap.add_argument("--law", default="", help="a law's own tail and the order of the audit (e.g. aicardi)")
+    ap.add_argument("--n-law", type=int, default=128)
+    ap.add_argument("--law-seeds", default="20240611,7")
     ap.add_argument("--out", default="out/audit_power.json")
     a = ap.parse_args(argv)
     import jax
@@ -205,6 +306,8 @@ def main(argv=None) -> None:
         print(json.dumps({k: doc[k] for k in ("tail_sets", "base", "power")}, indent=1), flush=True)
     if a.other_laws:
         doc["other_laws"] = other_laws(a.other_laws.split(","), a.n_other)
+    if a.law:
+        doc["law_tail"] = law_tail(a.law, a.n_law, [int(x) for x in a.law_seeds.split(",")], a.n_run, a.draws)
     if not a.skip_cost:
         doc["cost"] = cost([int(x) for x in a.cost_n.split(",")], a.reps)
     doc["load_end"] = load()
