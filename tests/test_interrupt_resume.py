@@ -38,7 +38,8 @@ def _locks(root: Path) -> list:
     return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if ".lock." in p.name)
 
 
-@pytest.mark.parametrize("command", sorted(CHUNKED))
+@pytest.mark.parametrize("command", [pytest.param(c, marks=pytest.mark.slow) if c == "optimum" else c  # optimum: 14 s cold
+                                     for c in sorted(CHUNKED)])
 def test_every_chunked_command_resumes_to_the_bytes_of_an_uninterrupted_run(tmp_path, capsys, monkeypatch, command):
     argv = CHUNKED[command]
     real, seen, saved = ChunkStore.save, {}, []
