@@ -13,11 +13,10 @@ traced (only ``N`` and ``substeps`` fix the program).
 """
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from ..model.plant import open_loop
-from .rk4 import rk4_steps
+from .rk4 import rk4_intervals
 
 __all__ = ["plant_field_u", "piecewise_constant_final", "piecewise_constant_path"]
 
@@ -31,15 +30,10 @@ def plant_field_u(t, y, args):
 
 
 def _intervals(y0, u, T, params, substeps: int):
-    """``lax.scan`` over the intervals; yields the state at the end of each."""
+    """``(final, ys)`` of `rk4_intervals` with ``u`` held on each interval."""
     u = jnp.asarray(u, y0.dtype)
     dt = jnp.asarray(T, y0.dtype) / (u.shape[0] * substeps)
-
-    def interval(y, uk):
-        y = rk4_steps(plant_field_u, y, (uk, params), dt=dt, n_steps=substeps)
-        return y, y
-
-    return jax.lax.scan(interval, y0, u)
+    return rk4_intervals(plant_field_u, y0, params, dt=dt, n_intervals=u.shape[0], substeps=substeps, inputs=u)
 
 
 def piecewise_constant_final(y0, u, T, params, *, substeps: int):
