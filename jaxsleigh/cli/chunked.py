@@ -18,8 +18,9 @@ import numpy as np
 from ..files.run import COMMAND_WORDS
 from ..files.runner import Finished, chunk_dir, leave, run_to_file, sidecar, start_processes
 from .common import EXIT_CLUSTER, PROG, check_outputs, exit_code, report_warnings, say_failure, status_line
-from .options import add_distributed_options, processes_from_args
+from .options import add_distributed_options, add_workers_options, processes_from_args, workers_from_args
 from .values import whole
+from ..cache import enable_compilation_cache
 from ..errors import FlaggedStartsWarning
 from ..files.distributed import ClusterError
 from ..studies.audit import Audit, audit_line
@@ -31,7 +32,7 @@ CLI_WORDS = COMMAND_WORDS
 
 #: Options that may differ between the processes of one run (everything else must be equal).
 _PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout", "progress", "no_compile_cache",
-                "func"}
+                "func", "workers", "scheduler"}
 
 
 def shared_options(args) -> dict:
@@ -64,6 +65,7 @@ def add_run_options(p, *, chunk_example: str, chunk_default, chunk_help: str, pl
     o = p.add_argument_group("output")
     o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
     o.add_argument("--plot", metavar="FILE.png", help=plot_help)
+    add_workers_options(p)
     add_distributed_options(p)
 
 
@@ -82,6 +84,8 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
 
     def observed(**kw):
         t0 = time.perf_counter()
+        if not getattr(args, "no_compile_cache", True):     # in a Dask worker too: the programs compiled before are reused
+            enable_compilation_cache()
         try:
             with warnings.catch_warnings(record=True) as got:
                 warnings.simplefilter("always")
@@ -93,7 +97,7 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
         report_warnings(got, skip=(FlaggedStartsWarning,))
         caught[:] = got
         shard = kw.get("shard")
-        if shard is not None and shard[0] != 0:
+        if shard is not None and shard[0] != 0 and workers is None:
             print(f"{PROG} {command}: process {shard[0]} of {shard[1]}: share of the chunks done in "
                   f"{time.perf_counter() - t0:.1f} s; process 0 writes {out}", file=sys.stderr)
         return result
@@ -103,8 +107,9 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
         check_outputs(sidecar(out), named={"--out": args.out}, figures={"--plot": args.plot}, folders=[chunks],
                       suffix=out.suffix or None)
 
+    workers = workers_from_args(args)
     try:
-        cluster = start_processes(processes_from_args(args))
+        cluster = None if workers is not None else start_processes(processes_from_args(args))
     except ClusterError as e:
         say_failure(e)
         return EXIT_CLUSTER
@@ -112,7 +117,7 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
     try:
         done = run_to_file(out, observed, save, options=shared_options(args), resume=args.resume,
                            keep_chunks=args.keep_chunks, check=checked, info=info, cluster=cluster,
-                           processes=processes_from_args(args),
+                           processes=None if workers is not None else processes_from_args(args), workers=workers,
                            finish=lambda res, written, record: finish(res, written, record, caught),
                            command=[PROG, *argv] if argv else None, words=CLI_WORDS)
         code = done.code

@@ -10,14 +10,16 @@ import numpy as np
 from ..files.distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from .values import number, parse_triple, whole
 from ..controllers.actuators import sampled, sampler, saturate
-from ..files.runner import Processes
+from ..files.runner import Processes, Workers
+from ..files.workers import WORKERS_TIMEOUT_S
 from ..integrate.sampled import sample_count
 from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains, load_gains, plant_params, preset_names
 
 __all__ = ["add_model_options", "model_from_args", "check_bound_fits", "add_sampler_options", "sampler_from_args",
            "check_delay", "law_kwargs", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags",
-           "add_progress_option", "add_distributed_options", "processes_from_args"]
+           "add_progress_option", "add_distributed_options", "processes_from_args", "add_workers_options",
+           "workers_from_args"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,6 +210,34 @@ def add_distributed_options(parser) -> None:
                    metavar="S", help=f"seconds to wait for a process that shows no sign of life: the coordinator "
                                      f"and the others at the start, a silent process during the run (then declared "
                                      f"dead; exit code {EXIT_CLUSTER}) (default {CLUSTER_TIMEOUT_S})")
+
+
+def add_workers_options(parser) -> None:
+    """--workers N (a local Dask cluster) or --scheduler ADDRESS (an existing one; see
+    `jaxsleigh.files.workers`)."""
+    g = parser.add_argument_group(
+        "workers", "the chunks computed by the workers of a Dask cluster (pip install \"jaxsleigh[cluster]\"); "
+                   "this process checks the input and writes the output. A lost worker's chunks are computed by "
+                   "the others; the checkpoint folder must be on a filesystem that every worker sees.")
+    w = g.add_mutually_exclusive_group()
+    w.add_argument("--workers", type=whole("--workers", "4"), metavar="N",
+                   help="start N worker processes on this machine (one thread each) for the run")
+    w.add_argument("--scheduler", metavar="ADDRESS",
+                   help="the address of a running Dask scheduler whose workers compute the chunks (e.g. "
+                        "tcp://10.0.0.1:8786; start it with 'dask scheduler' and 'dask worker ADDRESS')")
+
+
+def workers_from_args(args):
+    """The `jaxsleigh.files.workers.Workers` of `add_workers_options` (``None``: neither given); ``ValueError``
+    when they come with the options of jax.distributed's processes."""
+    n, at = getattr(args, "workers", None), getattr(args, "scheduler", None)
+    if n is None and at is None:
+        return None
+    if any(getattr(args, k, None) is not None for k in ("coordinator", "num_processes", "process_id")):
+        raise ValueError(f"{'--workers' if n is not None else '--scheduler'} (a Dask cluster) and --coordinator/"
+                         f"--num-processes/--process-id (jax.distributed's processes) are two ways to share a run: "
+                         f"give one")
+    return Workers(n, at, getattr(args, "cluster_timeout", None) or WORKERS_TIMEOUT_S)
 
 
 def processes_from_args(args):

@@ -55,10 +55,11 @@ from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
 from .npz import atomic_write_text
 from .run import PYTHON_WORDS, Run, Words
 from .runlock import settings_fingerprint
+from .workers import Workers, compute_shares, require_dask
 from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
-__all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
+__all__ = ["Processes", "Workers", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
            "FINISHED", "other_command", "sidecar", "options_differ", "load_average", "start_processes", "leave"]
 
 
@@ -269,7 +270,7 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
                 resume: bool = False, keep_chunks: bool = False, processes: Optional[Processes] = None,
                 check: Optional[Callable[[], None]] = None, finish: Optional[Callable[..., int]] = None,
                 info: Optional[Callable[[Any], dict]] = None, command: Optional[list] = None,
-                words: Words = PYTHON_WORDS, cluster=None) -> Finished:
+                words: Words = PYTHON_WORDS, cluster=None, workers: Optional[Workers] = None) -> Finished:
     """Run ``study(checkpoint_dir=, resume=, shard=)`` chunk by chunk into the file ``out`` (steps 1-4 of the
     module's docstring); ``save(out, result)`` writes the result.
 
@@ -286,6 +287,8 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
       info: ``info(result) -> dict`` added to the sidecar.
       command: the command line recorded in the sidecar.
       cluster: the cluster already joined (`start_processes`) for ``processes``.
+      workers: compute the chunks on the workers of a Dask cluster (`jaxsleigh.files.workers`); this process
+        checks, owns the output and writes it. Not with ``processes``.
 
     Returns a `Finished`; in a multi-process run end every process with `leave`. An ``out`` that is not a
     regular file (a folder, a device such as ``/dev/full``, a named pipe), or whose ``.npz`` (which jaxsleigh's
@@ -298,16 +301,24 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
     output_file(out, what, suffix=".npz")
     output_file(side, "run record file")
     options = json.loads(json.dumps(options or {}, default=str))
-    if cluster is None:
+    if workers is not None:
+        if processes is not None or cluster is not None:
+            raise ValueError("workers (a Dask cluster) and processes (jax.distributed) are two ways to share a run: "
+                             "give one")
+        require_dask()
+    elif cluster is None:
         cluster = start_processes(processes)
     run_id = _cluster_run_id(processes, cluster) if cluster is not None else _single_run_id([str(out), options])
+    if workers is not None:                     # the workers share the driver's lock: a fingerprint of this run
+        run_id = f"workers:{_single_run_id()}"
     t0, load_start, kept = time.perf_counter(), load_average(), {}
 
     def owned() -> dict:
         if check is not None:
             check()
         chunks.mkdir(parents=True, exist_ok=True)
-        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=cluster is not None)
+        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words,
+                                shared=cluster is not None or workers is not None)
         other = other_command(chunks, options, words) if resume else None
         if other is not None:                   # another command's folder: said in one line, before any work
             lock.release()
@@ -319,13 +330,18 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
         study(checkpoint_dir=chunks, resume=True, shard=shard)
 
     def assemble(state, multi):
-        result = study(checkpoint_dir=chunks, resume=resume or multi, shard=None)
+        lost = None
+        if workers is not None:                 # the workers compute the chunks, this process assembles them
+            lost = compute_shares(workers, study, out=out, chunks=chunks, run_id=run_id)
+        result = study(checkpoint_dir=chunks, resume=resume or multi or workers is not None, shard=None)
         written = [str(save(out, result))]
         run_info = getattr(result, "run_info", None) or {}
-        reused = state["had"] if multi else int(run_info.get("chunks_reused") or 0)
+        reused = state["had"] if multi or workers is not None else int(run_info.get("chunks_reused") or 0)
         record = {"command": command, "wall_s": time.perf_counter() - t0, "devices": run_info.get("devices"),
                   "chunks_reused": reused, "loadavg_start": load_start, "loadavg_end": load_average(),
                   "cpu_count": os.cpu_count(), **({"processes": cluster.count} if multi else {}),
+                  **({"workers": workers.count or workers.scheduler, "lost_workers": lost} if lost is not None
+                     else {}),
                   **(info(result) if info is not None else {})}
         atomic_write_text(side, json.dumps(record, indent=1, default=str) + "\n")
         written.append(str(side))

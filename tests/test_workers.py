@@ -1,0 +1,182 @@
+"""Runs whose chunks are computed by the workers of a Dask cluster (``--workers N``): the same ``.npz``, byte for
+byte, as one process on 1 and 2 workers; a worker killed mid-run is named (on stderr and in the run's record) and
+its chunks are finished by the others; after every process of the run is killed, ``--resume`` computes exactly the
+missing chunks; bad options are refused before any work, with a message and exit code 2, never a traceback.
+
+The runs are real ones (``python -m jaxsleigh.cli basin ... --workers N``, ``JAX_PLATFORMS=cpu``) with a small
+workload (200 Monte-Carlo starts, 2 s horizon, chunks of 16).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from jaxsleigh.cli import main
+
+pytest.importorskip("distributed")
+
+WORK = ["--samples", "200", "--seed", "3", "--t-final", "2", "--chunk-size", "16"]
+N_CHUNKS = 13                      # ceil(200 / 16)
+
+
+def _env():
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONUNBUFFERED="1")
+    for k in [k for k in env if k.startswith(("SLURM_", "OMPI_"))]:
+        del env[k]
+    return env
+
+
+def _cmd(out, extra=()):
+    return [sys.executable, "-m", "jaxsleigh.cli", "basin", *WORK, "--out", str(out), *extra]
+
+
+def _start(out, extra=()):
+    """The driver of a run, in a session of its own (its workers are in it: one signal reaches them all)."""
+    return subprocess.Popen(_cmd(out, extra), env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def _chunks(folder: Path) -> set:
+    return {p.name for p in folder.glob("chunk_*.npz")}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> bytes:
+    """The single-process run's .npz."""
+    out = tmp_path_factory.mktemp("single") / "ref.npz"
+    r = subprocess.run(_cmd(out), env=_env(), capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stderr
+    return out.read_bytes()
+
+
+# ---------------------------------------------------------------------------------------------
+# fast: refused before any work
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--workers", "0"], "--workers"),
+    (["--workers", "two"], "--workers"),
+    (["--scheduler", "10.0.0.1"], "PROTOCOL://HOST:PORT"),
+    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "not allowed with argument"),
+    (["--workers", "2", "--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0"],
+     "two ways to share a run"),
+    (["--workers", "2", "--samples", "0"], "--samples"),
+    (["--workers", "2", "--t-final", "-1"], "--t-final"),
+])
+def test_bad_options_are_refused_before_any_worker_starts(tmp_path, capsys, extra, needle):
+    t0 = time.perf_counter()
+    rc = main(["basin", *WORK, "--out", str(tmp_path / "x.npz"), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert needle in err and "Traceback" not in err
+    assert "worker(s)" not in err                     # no cluster was started
+    assert not list(tmp_path.iterdir())
+    assert time.perf_counter() - t0 < 20
+
+
+def test_a_missing_dask_names_the_extra_to_install(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)        # import distributed -> ImportError
+    rc = main(["basin", *WORK, "--out", str(tmp_path / "x.npz"), "--workers", "2"])
+    err = capsys.readouterr().err
+    assert rc == 2 and 'pip install "jaxsleigh[cluster]"' in err and "Traceback" not in err
+    assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------------------------------------
+# real runs
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_workers_write_the_single_process_bytes(tmp_path, reference, n):
+    out = tmp_path / "w.npz"
+    r = subprocess.run(_cmd(out, ["--workers", str(n)]), env=_env(), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert out.read_bytes() == reference
+    record = json.loads((tmp_path / "w.run.json").read_text())
+    assert record["workers"] == n and record["lost_workers"] == []
+    assert not (tmp_path / "w.npz.chunks").exists()
+
+
+def _worker_pids(p, deadline) -> list:
+    """The pids the driver names in its line ``N worker(s): tcp://... (pid P), ...``."""
+    while time.monotonic() < deadline:
+        line = p.stderr.readline()
+        assert line or p.poll() is None, "the driver ended before naming its workers"
+        if "worker(s): " in line:
+            return [int(x) for x in re.findall(r"\(pid (\d+)\)", line)]
+    raise AssertionError("the driver never named its workers")
+
+
+def test_a_killed_worker_is_named_and_the_others_finish_its_chunks(tmp_path, reference):
+    out, chunks = tmp_path / "k.npz", tmp_path / "k.npz.chunks"
+    p = _start(out, ["--workers", "2"])
+    try:
+        deadline = time.monotonic() + 240
+        pids = _worker_pids(p, deadline)
+        assert len(pids) == 2
+        while not _chunks(chunks):                    # mid-run: the first chunk is written
+            assert time.monotonic() < deadline and p.poll() is None, "no chunk was written"
+            time.sleep(0.01)
+        os.kill(pids[1], signal.SIGKILL)
+        rest, err = p.communicate(timeout=240)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == 0, err[-3000:]
+    assert re.search(rf"worker tcp://\S+ \(pid {pids[1]}\) was lost", err), err[-3000:]
+    assert out.read_bytes() == reference
+    record = json.loads((tmp_path / "k.run.json").read_text())
+    assert any(f"(pid {pids[1]})" in w for w in record["lost_workers"])
+
+
+def test_after_every_process_is_killed_resume_computes_exactly_the_missing_chunks(tmp_path, reference):
+    out, chunks = tmp_path / "a.npz", tmp_path / "a.npz.chunks"
+    p = _start(out, ["--workers", "2", "--keep-chunks"])
+    try:
+        deadline = time.monotonic() + 240
+        pids = _worker_pids(p, deadline)
+        while len(_chunks(chunks)) < 2:
+            assert time.monotonic() < deadline and p.poll() is None, "fewer than 2 chunks were written"
+            time.sleep(0.01)
+        os.killpg(p.pid, signal.SIGKILL)              # the driver and every worker
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
+    t = time.monotonic()
+    while any(_alive(q) for q in pids) and time.monotonic() - t < 10:
+        time.sleep(0.1)
+    assert not any(_alive(q) for q in pids)
+    assert not out.exists()
+    before = {n: (chunks / n).stat().st_mtime_ns for n in _chunks(chunks)}
+    assert 2 <= len(before) < N_CHUNKS, "the run finished before it was killed: nothing to test"
+
+    # without --resume the kept chunks are refused, before any worker starts
+    r = subprocess.run(_cmd(out, ["--workers", "2"]), env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--resume" in r.stderr and "worker(s)" not in r.stderr
+
+    r = subprocess.run(_cmd(out, ["--workers", "2", "--resume", "--keep-chunks"]), env=_env(), capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert out.read_bytes() == reference
+    after = {n: (chunks / n).stat().st_mtime_ns for n in _chunks(chunks)}
+    assert len(after) == N_CHUNKS
+    assert {n: after[n] for n in before} == before     # the kept chunks were not computed again
+    assert json.loads((tmp_path / "a.run.json").read_text())["chunks_reused"] == len(before)
