@@ -138,6 +138,8 @@ def how_it_ran(res, record: dict) -> str:
     n = record.get("chunks_reused") or 0
     return (f"{res.settings['dtype']}, {res.settings['method']}"
             + (f", {record['processes']} processes" if "processes" in record else "")
+            + (f", {record['workers']} workers" if isinstance(record.get("workers"), int) else "")
+            + (f", {len(record['lost_workers'])} worker(s) lost" if record.get("lost_workers") else "")
             + (f", {n} chunk(s) resumed" if n else ""))
 
 
