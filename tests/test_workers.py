@@ -14,6 +14,7 @@ import re
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -74,8 +75,8 @@ def reference(tmp_path_factory) -> bytes:
     (["--workers", "two"], "--workers"),
     (["--scheduler", "10.0.0.1"], "PROTOCOL://HOST:PORT"),
     (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "not allowed with argument"),
-    (["--workers", "2", "--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0"],
-     "two ways to share a run"),
+    (["--workers", "2", "--cluster-timeout", "0"], "--cluster-timeout"),
+    (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0"], "unrecognized arguments"),
     (["--workers", "2", "--samples", "0"], "--samples"),
     (["--workers", "2", "--t-final", "-1"], "--t-final"),
 ])
@@ -96,6 +97,20 @@ def test_a_missing_dask_names_the_extra_to_install(tmp_path, capsys, monkeypatch
     err = capsys.readouterr().err
     assert rc == 2 and 'pip install "jaxsleigh[cluster]"' in err and "Traceback" not in err
     assert not list(tmp_path.iterdir())
+
+
+def test_a_scheduler_that_does_not_answer_is_said_with_exit_6(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:                         # a port where nothing listens
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc = main(["basin", *WORK, "--out", str(tmp_path / "x.npz"), "--scheduler", f"tcp://127.0.0.1:{port}",
+               "--cluster-timeout", "2"])
+    err = capsys.readouterr().err
+    assert rc == 6, err
+    assert f"no Dask worker at the Dask cluster at tcp://127.0.0.1:{port} within 2 s" in err
+    assert "Traceback" not in err and not (tmp_path / "x.npz").exists()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,3 +195,64 @@ def test_after_every_process_is_killed_resume_computes_exactly_the_missing_chunk
     assert len(after) == N_CHUNKS
     assert {n: after[n] for n in before} == before     # the kept chunks were not computed again
     assert json.loads((tmp_path / "a.run.json").read_text())["chunks_reused"] == len(before)
+
+
+#: a Python program that runs the basin of WORK on Dask workers with the library's runner (no command line)
+PYTHON_BASIN = textwrap.dedent("""
+    import sys
+    from jaxsleigh import RunOptions, run_basin, sample_starts, save_basin
+    from jaxsleigh.files.runner import Workers, run_to_file
+
+    if __name__ == "__main__":            # the local workers start by importing this file anew
+        out, n = sys.argv[1], int(sys.argv[2])
+        starts = sample_starts(200, seed=3)
+        done = run_to_file(out, lambda **kw: run_basin(starts, t_final=2.0,
+                                                       run=RunOptions(chunk_size=16, progress=False, **kw)),
+                           save_basin, options={"samples": 200, "seed": 3, "t_final": 2.0}, workers=Workers(n))
+        print("fraction", float(done.result.fraction))
+""")
+
+
+def test_a_python_program_runs_a_basin_on_workers_with_the_library_runner(tmp_path, reference):
+    script = tmp_path / "basin_run.py"
+    script.write_text(PYTHON_BASIN)
+    out = tmp_path / "py.npz"
+    r = subprocess.run([sys.executable, str(script), str(out), "2"], env=_env(), capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "fraction" in r.stdout
+    assert out.read_bytes() == reference                                # the command line's bytes, one process
+    info = json.loads((tmp_path / "py.run.json").read_text())
+    assert info["workers"] == 2 and info["lost_workers"] == [] and info["command"] is None
+    assert not (tmp_path / "py.npz.chunks").exists()
+
+
+def test_the_library_runner_owns_its_output_and_resumes_with_python_words(tmp_path):
+    """One process: a second run on a file whose chunks an interrupted run left is refused in Python's words
+    (resume=True), continued with resume=True, and its options compared with the interrupted run's."""
+    from jaxsleigh import RunOptions, run_basin, sample_starts, save_basin
+    from jaxsleigh.errors import CheckpointError
+    from jaxsleigh.files.runner import chunk_dir, run_to_file
+
+    starts, out = sample_starts(40, seed=1), tmp_path / "b.npz"
+
+    def run(t_final, interrupt=False, **resume):
+        def study(**kw):
+            if interrupt:                      # the run is interrupted after its chunks are written
+                run_basin(starts, t_final=t_final, run=RunOptions(chunk_size=16, progress=False,
+                                                                 checkpoint_dir=kw["checkpoint_dir"], resume=False))
+                raise KeyboardInterrupt
+            return run_basin(starts, t_final=t_final, run=RunOptions(chunk_size=16, progress=False, **kw))
+        return run_to_file(out, study, save_basin, options={"t_final": t_final}, **resume)
+
+    with pytest.raises(KeyboardInterrupt):
+        run(1.0, interrupt=True)
+    assert not out.exists() and any(chunk_dir(out).glob("chunk_*.npz"))
+    with pytest.raises(ValueError, match=r"add resume=True"):
+        run(1.0)
+    with pytest.raises(CheckpointError, match=r"t_final=1.0 in the checkpoint vs t_final=2.0 now"):
+        run(2.0, resume=True)
+    done = run(1.0, resume=True)
+    assert out.exists() and done.code == 0 and done.result.status.size == 40
+    assert json.loads((tmp_path / "b.run.json").read_text())["chunks_reused"] >= 1
+    assert not chunk_dir(out).exists()

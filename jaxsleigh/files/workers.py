@@ -6,8 +6,8 @@ The chunks of a study never talk to each other: the run is a task map. Dask's di
 * the driver alone checks the input, claims the output (`jaxsleigh.files.runner.own_output`) and decides whether
   to resume: bad input is refused before any worker starts, and no two processes can disagree about options;
 * it submits ``shares`` tasks, share ``k`` computing the chunks ``i`` with ``i % shares == k`` of the study
-  (``shard=(k, shares)``) into the chunk folder (shared by every worker, as for the processes of
-  `jaxsleigh.files.distributed`); JAX runs inside each worker, one thread each;
+  (``shard=(k, shares)``) into the chunk folder, which every worker must see at the same path (a shared
+  filesystem, or one host); JAX runs inside each worker, one thread each;
 * a worker that dies (killed, crashed, its host down) is noticed by the scheduler, which runs its unfinished
   tasks again on the others; the rerun skips the chunks already written (``resume=True``), so only the dead
   worker's unfinished chunks are computed twice. The driver names the lost worker (address and pid) on stderr
@@ -30,9 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
-from .distributed import ClusterError
-
-__all__ = ["Workers", "compute_shares", "require_dask", "SHARES_PER_WORKER", "WORKERS_TIMEOUT_S"]
+__all__ = ["Workers", "ClusterError", "compute_shares", "require_dask", "SHARES_PER_WORKER", "WORKERS_TIMEOUT_S",
+           "EXIT_CLUSTER"]
 
 #: Tasks submitted per worker: enough that a dead worker's tasks spread over the others and a slow one
 #: holds up little, few enough that the study's set-up per task stays small.
@@ -40,7 +39,17 @@ SHARES_PER_WORKER = 4
 #: How long the driver waits for a worker (at the start, or when every worker is gone), in seconds.
 WORKERS_TIMEOUT_S = 120
 
+#: Exit code of a run whose cluster failed (`ClusterError`).
+EXIT_CLUSTER = 6
+
 _INSTALL = 'pip install "jaxsleigh[cluster]"'
+
+
+class ClusterError(RuntimeError):
+    """The workers could not finish the run (none came, none is left, or a task killed several in turn); the
+    message says which and what to do. The command line exits with `EXIT_CLUSTER`; the finished chunks are kept."""
+
+    exit_code = EXIT_CLUSTER
 
 
 def require_dask() -> None:
