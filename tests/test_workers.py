@@ -128,6 +128,23 @@ def test_workers_write_the_single_process_bytes(tmp_path, reference, n):
     assert not (tmp_path / "w.npz.chunks").exists()
 
 
+#: a small sweep: 3 values of k x 24 starts = 72 rows in 5 chunks of 16
+SWEEP = ["sweep", "--param", "k=0.05:0.4:3:log", "--samples", "24", "--seed", "3", "--t-final", "2",
+         "--chunk-size", "16", "--no-progress"]
+
+
+def test_a_sweep_on_workers_writes_the_single_process_bytes(tmp_path):
+    runs = {}
+    for name, extra in (("single", []), ("workers", ["--workers", "2"])):
+        out = tmp_path / f"{name}.npz"
+        r = subprocess.run([sys.executable, "-m", "jaxsleigh.cli", *SWEEP, "--out", str(out), *extra], env=_env(),
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-3000:]
+        runs[name] = (out.read_bytes(), r.stdout)
+    assert runs["workers"][0] == runs["single"][0]
+    assert "2 workers" in runs["workers"][1] and "fraction +- s.e." in runs["workers"][1]
+
+
 def _worker_pids(p, deadline) -> list:
     """The pids the driver names in its line ``N worker(s): tcp://... (pid P), ...``."""
     while time.monotonic() < deadline:

@@ -114,7 +114,8 @@ def how_it_ran(res, record: dict) -> str:
     """The run's description for the summary line: dtype, method, workers, chunks resumed."""
     n = record.get("chunks_reused") or 0
     return (f"{res.settings['dtype']}, {res.settings['method']}"
-            + (f", {record['workers']} workers" if isinstance(record.get("workers"), int) else "")
+            + (f", {record['workers']} worker{'s' if record['workers'] != 1 else ''}"
+               if isinstance(record.get("workers"), int) else "")
             + (f", {len(record['lost_workers'])} worker(s) lost" if record.get("lost_workers") else "")
             + (f", {n} chunk(s) resumed" if n else ""))
 
