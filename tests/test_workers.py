@@ -99,6 +99,22 @@ def test_a_missing_dask_names_the_extra_to_install(tmp_path, capsys, monkeypatch
     assert not list(tmp_path.iterdir())
 
 
+def test_a_study_that_cannot_be_sent_to_the_workers_is_refused_before_they_start(tmp_path, capsys):
+    import threading
+
+    from jaxsleigh.files.runner import Workers, run_to_file
+
+    lock = threading.Lock()                            # a lock does not pickle
+
+    def study(**kw):
+        with lock:
+            return None
+
+    with pytest.raises(ValueError, match="cannot be sent to the workers"):
+        run_to_file(tmp_path / "x.npz", study, lambda out, res: out, workers=Workers(2))
+    assert "worker(s)" not in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
+
+
 def test_a_scheduler_that_does_not_answer_is_said_with_exit_6(tmp_path, capsys):
     import socket
 

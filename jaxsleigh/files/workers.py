@@ -87,6 +87,7 @@ class Workers:
             raise ValueError(f"--cluster-timeout must be a number of seconds in (0, 86400], got {self.timeout_s!r}")
 
     def describe(self) -> str:
+        """``'4 local worker(s)'`` or ``'the Dask cluster at tcp://...'``, for messages."""
         return f"{self.count} local worker(s)" if self.scheduler is None else f"the Dask cluster at {self.scheduler}"
 
 
@@ -108,6 +109,18 @@ def _held(value):
     """A task that returns its argument: the study is sent once and fetched by each share (and made again by the
     scheduler if the worker that held it dies)."""
     return value
+
+
+def _check_sendable(study: Callable) -> None:
+    """``ValueError`` before any worker starts when ``study`` cannot be sent to them (Dask pickles it with
+    cloudpickle: a closure over an open file, a lock or a generator cannot be)."""
+    import cloudpickle
+
+    try:
+        cloudpickle.dumps(study)
+    except Exception as e:
+        raise ValueError(f"the study cannot be sent to the workers ({type(e).__name__}: {e}); give run_to_file a "
+                         f"study that pickles (plain data, functions and arrays), or run it without workers") from None
 
 
 def _start(workers: Workers):
@@ -154,6 +167,7 @@ def compute_shares(workers: Workers, study: Callable, *, out, chunks, run_id: st
     a full disk) is raised here as it was raised there; `ClusterError` when no worker is left for ``timeout_s``
     or a task killed several workers in turn. The finished chunks stay either way.
     """
+    _check_sendable(study)
     client, local = _start(workers)
     try:
         return _run(client, workers, study, out=str(out), chunks=str(chunks), run_id=run_id)
