@@ -8,10 +8,12 @@ workload (200 Monte-Carlo starts, 2 s horizon, chunks of 16).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -47,6 +49,14 @@ def _start(out, extra=()):
 
 def _chunks(folder: Path) -> set:
     return {p.name for p in folder.glob("chunk_*.npz")}
+
+
+@contextlib.contextmanager
+def socket_port():
+    """A free TCP port of 127.0.0.1 (free again once the block ends)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        yield s.getsockname()[1]
 
 
 def _alive(pid: int) -> bool:
@@ -116,11 +126,8 @@ def test_a_study_that_cannot_be_sent_to_the_workers_is_refused_before_they_start
 
 
 def test_a_scheduler_that_does_not_answer_is_said_with_exit_6(tmp_path, capsys):
-    import socket
-
-    with socket.socket() as s:                         # a port where nothing listens
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    with socket_port() as port:                        # a port where nothing listens
+        pass
     rc = main(["basin", *WORK, "--out", str(tmp_path / "x.npz"), "--scheduler", f"tcp://127.0.0.1:{port}",
                "--cluster-timeout", "2"])
     err = capsys.readouterr().err
@@ -289,3 +296,57 @@ def test_the_library_runner_owns_its_output_and_resumes_with_python_words(tmp_pa
     assert out.exists() and done.code == 0 and done.result.status.size == 40
     assert json.loads((tmp_path / "b.run.json").read_text())["chunks_reused"] >= 1
     assert not chunk_dir(out).exists()
+
+
+def _dask(*args):
+    """``dask scheduler ...`` or ``dask worker ...`` in a session of its own (stopped with `_stop`)."""
+    dask = Path(sys.executable).with_name("dask")
+    return subprocess.Popen([str(dask), *args], env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
+def _stop(*procs):
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+
+
+def test_on_a_scheduler_whose_workers_all_die_the_run_stops_with_exit_6_and_resume_finishes(tmp_path, reference):
+    """``--scheduler``: the workers of a running Dask cluster compute the chunks; when every one of them dies the
+    command says so after ``--cluster-timeout`` (exit code 6, the chunks kept), and ``--resume`` on a new worker
+    computes exactly the missing chunks."""
+    with socket_port() as port:
+        pass
+    address = f"tcp://127.0.0.1:{port}"
+    scheduler = _dask("scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard")
+    workers = [_dask("worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard") for _ in range(2)]
+    out, chunks = tmp_path / "s.npz", tmp_path / "s.npz.chunks"
+    try:
+        p = _start(out, ["--scheduler", address, "--cluster-timeout", "5", "--keep-chunks"])
+        try:
+            deadline = time.monotonic() + 240
+            while len(_chunks(chunks)) < 2:
+                assert time.monotonic() < deadline and p.poll() is None, "fewer than 2 chunks were written"
+                time.sleep(0.01)
+            _stop(*workers)
+            _, err = p.communicate(timeout=120)
+        finally:
+            _stop(p)
+        assert p.returncode == 6, err[-3000:]
+        assert "was lost" in err and "no Dask worker left for 5 s" in err and "--resume" in err, err[-3000:]
+        assert not out.exists()
+        before = {n: (chunks / n).stat().st_mtime_ns for n in _chunks(chunks)}
+        assert 2 <= len(before) < N_CHUNKS, "the run finished before its workers were killed: nothing to test"
+
+        workers = [_dask("worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard")]
+        r = subprocess.run(_cmd(out, ["--scheduler", address, "--resume", "--keep-chunks"]), env=_env(),
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert out.read_bytes() == reference
+        after = {n: (chunks / n).stat().st_mtime_ns for n in _chunks(chunks)}
+        assert len(after) == N_CHUNKS and {n: after[n] for n in before} == before
+        record = json.loads((tmp_path / "s.run.json").read_text())
+        assert record["workers"] == address and record["chunks_reused"] == len(before)
+    finally:
+        _stop(scheduler, *workers)
