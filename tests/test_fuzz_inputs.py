@@ -158,7 +158,7 @@ COMMAND_ARGS = {"simulate": ["--ic", "1,1,0.5", "--t-final", "1"],
                 "optimum": ["--samples", "1", "--horizons", "1"]}
 OUTPUTS = {"simulate": "s.npz", "basin": "b.npz", "sweep": "w.npz", "compare": "c.npz", "tune": "t.json", "paper": "p",
            "optimum": "o.npz"}
-PATH_OPTIONS = {"--out", "--coordinator", "--plot", "--ics", "--gains-out", "--cache-dir", "--cache", "--history", "--json",
+PATH_OPTIONS = {"--out", "--plot", "--ics", "--gains-out", "--cache-dir", "--cache", "--history", "--json",
                 "--help"}
 
 

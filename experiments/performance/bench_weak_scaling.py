@@ -1,8 +1,8 @@
-"""Weak scaling of multi-process basin runs: P processes, each with the same share of starts.
+"""Weak scaling of basin runs on P local Dask workers, each with the same share of starts.
 
-For every P in --procs it starts P processes of ``jaxsleigh basin --samples P*W`` on 127.0.0.1
-(``jax.distributed``, one CPU device per process; P = 1 is a plain single-process run) and times
-them from launch to the last exit (start-up, compilation, integration, assembly and the .npz).
+For every P in --procs it runs ``jaxsleigh basin --samples P*W --workers P`` (P = 1 is a plain single-process
+run, without workers) and times it from launch to its exit (start-up, the workers' start and compilation,
+integration, assembly and the .npz).
 Weak-scaling efficiency per process: E(P) = T(1) / T(P) (1 = perfect: P times the work in the same
 time). Also the throughput in starts/s and the machine's load average before and after.
 
@@ -17,7 +17,6 @@ import argparse
 import json
 import os
 import platform
-import socket
 import subprocess
 import sys
 import tempfile
@@ -25,20 +24,12 @@ import time
 from pathlib import Path
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run(p: int, per: int, t_final: float, chunk: int, folder: Path, method: str) -> dict:
     out = folder / f"weak_p{p}.npz"
     base = [sys.executable, "-m", "jaxsleigh.cli", "basin", "--samples", str(p * per), "--seed", "1",
             "--t-final", str(t_final), "--chunk-size", str(chunk), "--method", method, "--out", str(out)]
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    port = _port()
-    cmds = [base] if p == 1 else [base + ["--coordinator", f"127.0.0.1:{port}", "--num-processes", str(p),
-                                          "--process-id", str(i)] for i in range(p)]
+    cmds = [base] if p == 1 else [base + ["--workers", str(p)]]
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     procs = [subprocess.Popen(c, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in cmds]

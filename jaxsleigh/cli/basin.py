@@ -155,8 +155,8 @@ def run_basin_command(args) -> int:
     """Handler of ``jaxsleigh basin`` (``args`` from the parser of `add_basin`); returns the exit code.
 
     The run is `jaxsleigh.files.runner.run_to_file` (`jaxsleigh.cli.chunked.run_chunked_command`): with
-    ``--coordinator/--num-processes/--process-id`` (or under SLURM / Open MPI) every process computes its
-    share of the chunks and process 0 writes the output.
+    ``--workers N`` or ``--scheduler ADDRESS`` the workers of a Dask cluster compute the chunks and this
+    process writes the output.
     """
     out = npz_path(args.out)
     st = {}

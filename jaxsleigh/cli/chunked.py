@@ -9,19 +9,19 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 import warnings
 from typing import Any, Callable
 
 import numpy as np
 
 from ..files.run import COMMAND_WORDS
-from ..files.runner import Finished, chunk_dir, leave, run_to_file, sidecar, start_processes
-from .common import EXIT_CLUSTER, PROG, check_outputs, exit_code, report_warnings, say_failure, status_line
-from .options import add_distributed_options, processes_from_args
+from ..files.runner import chunk_dir, run_to_file, sidecar
+from ..files.workers import ClusterError
+from .common import PROG, check_outputs, exit_code, report_warnings, say_failure, status_line
+from .options import add_workers_options, workers_from_args
 from .values import whole
+from ..cache import enable_compilation_cache
 from ..errors import FlaggedStartsWarning
-from ..files.distributed import ClusterError
 from ..studies.audit import Audit, audit_line
 
 __all__ = ["CLI_WORDS", "add_run_options", "run_chunked_command", "shared_options", "how_it_ran"]
@@ -29,16 +29,14 @@ __all__ = ["CLI_WORDS", "add_run_options", "run_chunked_command", "shared_option
 #: How the runner's messages name the options on the command line.
 CLI_WORDS = COMMAND_WORDS
 
-#: Options that may differ between the processes of one run (everything else must be equal).
-_PER_PROCESS = {"coordinator", "num_processes", "process_id", "cluster_timeout", "progress", "no_compile_cache",
-                "func"}
+#: Options that say how the run is computed, not what (a later ``--resume`` may change them).
+_HOW = {"cluster_timeout", "progress", "no_compile_cache", "func", "workers", "scheduler"}
 
 
 def shared_options(args) -> dict:
-    """The options that must be equal in every process, as JSON (what the processes compare and a fresh run
-    records for a later ``--resume``)."""
+    """The options that define the run's result, as JSON (what a fresh run records for a later ``--resume``)."""
     options = {k: v for k, v in sorted(vars(args).items())
-               if k not in _PER_PROCESS and not k.startswith("_") and not callable(v)}
+               if k not in _HOW and not k.startswith("_") and not callable(v)}
     return json.loads(json.dumps(options, default=str))
 
 
@@ -46,7 +44,7 @@ def add_run_options(p, *, chunk_example: str, chunk_default, chunk_help: str, pl
                     keep_help: str = "keep FILE.npz.chunks/ after the .npz is written") -> None:
     """The option groups that end the parser of every chunked command: the run (``--chunk-size``, ``--resume``,
     ``--keep-chunks``, ``--progress``, ``--audit-rows`` with ``audit``), the output (``--out``, ``--plot``) and the
-    processes (`jaxsleigh.cli.options.add_distributed_options`); the help texts that differ are given."""
+    workers (`jaxsleigh.cli.options.add_workers_options`); the help texts that differ are given."""
     r = p.add_argument_group("run")
     r.add_argument("--chunk-size", type=whole("--chunk-size", chunk_example, minimum=1, maximum=2**31 - 1),
                    default=chunk_default, metavar="N", help=chunk_help)
@@ -64,13 +62,13 @@ def add_run_options(p, *, chunk_example: str, chunk_default, chunk_help: str, pl
     o = p.add_argument_group("output")
     o.add_argument("--out", required=True, metavar="FILE.npz", help="results and settings")
     o.add_argument("--plot", metavar="FILE.png", help=plot_help)
-    add_distributed_options(p)
+    add_workers_options(p)
 
 
 def run_chunked_command(args, command: str, out, *, check: Callable[[], None], study: Callable[..., Any], save,
                         info: Callable[[Any], dict], finish: Callable[[Any, list, dict, list], int]) -> int:
     """Run ``study(checkpoint_dir=, resume=, shard=)`` into ``out`` with the options of ``args`` (`run_to_file`);
-    returns the exit code, process 0's in every process.
+    returns the exit code.
 
     ``check()`` validates before anything is written, then the outputs are checked (``out``, its sidecar and chunk
     folder, ``--plot``: `jaxsleigh.cli.common.check_outputs`); ``finish(result, written, record, caught)`` (process 0)
@@ -81,7 +79,8 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
     chunks, caught = chunk_dir(out), []
 
     def observed(**kw):
-        t0 = time.perf_counter()
+        if not getattr(args, "no_compile_cache", True):     # in a Dask worker too: the programs compiled before are reused
+            enable_compilation_cache()
         try:
             with warnings.catch_warnings(record=True) as got:
                 warnings.simplefilter("always")
@@ -92,10 +91,6 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
             raise
         report_warnings(got, skip=(FlaggedStartsWarning,))
         caught[:] = got
-        shard = kw.get("shard")
-        if shard is not None and shard[0] != 0:
-            print(f"{PROG} {command}: process {shard[0]} of {shard[1]}: share of the chunks done in "
-                  f"{time.perf_counter() - t0:.1f} s; process 0 writes {out}", file=sys.stderr)
         return result
 
     def checked() -> None:
@@ -103,36 +98,25 @@ def run_chunked_command(args, command: str, out, *, check: Callable[[], None], s
         check_outputs(sidecar(out), named={"--out": args.out}, figures={"--plot": args.plot}, folders=[chunks],
                       suffix=out.suffix or None)
 
-    try:
-        cluster = start_processes(processes_from_args(args))
-    except ClusterError as e:
-        say_failure(e)
-        return EXIT_CLUSTER
+    workers = workers_from_args(args)
     argv = list(getattr(args, "_argv", None) or [])
     try:
         done = run_to_file(out, observed, save, options=shared_options(args), resume=args.resume,
-                           keep_chunks=args.keep_chunks, check=checked, info=info, cluster=cluster,
-                           processes=processes_from_args(args),
+                           keep_chunks=args.keep_chunks, check=checked, info=info, workers=workers,
                            finish=lambda res, written, record: finish(res, written, record, caught),
                            command=[PROG, *argv] if argv else None, words=CLI_WORDS)
-        code = done.code
-    except ClusterError as e:
-        say_failure(e)
-        code = EXIT_CLUSTER
-    except (ValueError, OSError, KeyboardInterrupt) as e:
-        if cluster is None or not cluster.synced:
-            raise                                   # one process, or a refusal before any work: as usual
-        # process 0 failed while writing (a full disk, Ctrl-C): the others have left already, so JAX's
-        # shutdown would wait for them and abort; say it as a single process would, and leave
-        code = say_failure(e)
-    return leave(Finished(None, code, (), cluster))
+    except ClusterError as e:                   # no worker came or none is left: exit code 6, the chunks kept
+        return say_failure(e)
+    return done.code
 
 
 def how_it_ran(res, record: dict) -> str:
-    """The run's description for the summary line: dtype, method, processes, chunks resumed."""
+    """The run's description for the summary line: dtype, method, workers, chunks resumed."""
     n = record.get("chunks_reused") or 0
     return (f"{res.settings['dtype']}, {res.settings['method']}"
-            + (f", {record['processes']} processes" if "processes" in record else "")
+            + (f", {record['workers']} worker{'s' if record['workers'] != 1 else ''}"
+               if isinstance(record.get("workers"), int) else "")
+            + (f", {len(record['lost_workers'])} worker(s) lost" if record.get("lost_workers") else "")
             + (f", {n} chunk(s) resumed" if n else ""))
 
 

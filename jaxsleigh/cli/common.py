@@ -14,12 +14,12 @@ from typing import Optional
 import numpy as np
 
 from ..cache import compilation_cache_dir, enable_compilation_cache  # noqa: F401  (re-exported)
-from ..files.distributed import EXIT_CLUSTER
+from ..files.workers import EXIT_CLUSTER
 from ..files.run import COMMAND_WORDS, Run
 from ..files.runlock import settings_fingerprint
-from .options import (add_distributed_options, add_horizon_options, add_model_options,  # noqa: F401
+from .options import (add_workers_options, add_horizon_options, add_model_options,  # noqa: F401
                       add_progress_option, add_sampler_options, add_tolerance_options, check_bound_fits,
-                      check_delay, check_tolerance_flags, law_kwargs, model_from_args, processes_from_args,
+                      check_delay, check_tolerance_flags, law_kwargs, model_from_args,
                       sampler_from_args)
 from .values import Parser, UsageError, ics_from_args, number, parse_ic, parse_triple, whole  # noqa: F401
 from ..status import Status, converged, counts_in_words, describe
@@ -47,8 +47,8 @@ EXIT_CODES = {EXIT_OK: "done; at least one trajectory ended OK",
                               "once there is space)",
               EXIT_LOCKED: "another run is writing the same output or checkpoint folder (it is named); nothing "
                            "was computed",
-              EXIT_CLUSTER: "the cluster failed: a process of a multi-process run died, never came or could not "
-                            "start the coordinator (the message names it); finished chunks are kept (--resume)",
+              EXIT_CLUSTER: "the cluster failed: no Dask worker came, none is left, or a task killed several in "
+                            "turn (the message says which); finished chunks are kept (--resume)",
               EXIT_INTERRUPTED: "interrupted (Ctrl-C); finished work is kept (--resume continues)"}
 
 #: Keyword -> flag, so that messages of the shared validation name the flag the user typed.

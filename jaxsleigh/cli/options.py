@@ -1,5 +1,5 @@
 """The option groups the subcommands share (model, digital controller, horizon, tolerances, progress,
-processes) and what they build: the plant and the law (`model_from_args`), the sampler, the processes."""
+workers) and what they build: the plant and the law (`model_from_args`), the sampler, the workers."""
 from __future__ import annotations
 
 import argparse
@@ -7,17 +7,16 @@ from typing import Optional
 
 import numpy as np
 
-from ..files.distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER
 from .values import number, parse_triple, whole
 from ..controllers.actuators import sampled, sampler, saturate
-from ..files.runner import Processes
+from ..files.workers import EXIT_CLUSTER, WORKERS_TIMEOUT_S, Workers
 from ..integrate.sampled import sample_count
 from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains, load_gains, plant_params, preset_names
 
 __all__ = ["add_model_options", "model_from_args", "check_bound_fits", "add_sampler_options", "sampler_from_args",
            "check_delay", "law_kwargs", "add_horizon_options", "add_tolerance_options", "check_tolerance_flags",
-           "add_progress_option", "add_distributed_options", "processes_from_args"]
+           "add_progress_option", "add_workers_options", "workers_from_args"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -190,28 +189,29 @@ def add_progress_option(parser) -> None:
                         help="progress bar on stderr (default: only on a terminal)")
 
 
-def add_distributed_options(parser) -> None:
-    """--coordinator HOST:PORT, --num-processes N, --process-id I (all three or none; see
-    `jaxsleigh.files.runner.run_to_file`)."""
+def add_workers_options(parser) -> None:
+    """--workers N (a local Dask cluster) or --scheduler ADDRESS (an existing one), --cluster-timeout S (see
+    `jaxsleigh.files.workers`)."""
     g = parser.add_argument_group(
-        "processes", "several processes or hosts share the run through jax.distributed; start the same command "
-                     "in every process (only --process-id differs). Give all three options, or none under "
-                     "SLURM (srun) / Open MPI (mpirun), where they are detected. The checkpoint folder must be on "
-                     "a filesystem that every process sees; process 0 writes the output.")
-    g.add_argument("--coordinator", metavar="HOST:PORT",
-                   help="address of process 0 and a free port for the coordinator (e.g. 10.0.0.1:12345)")
-    g.add_argument("--num-processes", type=whole("--num-processes", "2"), metavar="N",
-                   help="number of processes in the run")
-    g.add_argument("--process-id", type=whole("--process-id", "0", minimum=0), metavar="I",
-                   help="this process's id, 0..N-1 (0 runs the coordinator and writes the output)")
-    g.add_argument("--cluster-timeout", type=number("--cluster-timeout", "60"), default=CLUSTER_TIMEOUT_S,
-                   metavar="S", help=f"seconds to wait for a process that shows no sign of life: the coordinator "
-                                     f"and the others at the start, a silent process during the run (then declared "
-                                     f"dead; exit code {EXIT_CLUSTER}) (default {CLUSTER_TIMEOUT_S})")
+        "workers", "the chunks computed by the workers of a Dask cluster (pip install \"jaxsleigh[cluster]\"); "
+                   "this process checks the input and writes the output. A lost worker's chunks are computed by "
+                   "the others; the checkpoint folder must be on a filesystem that every worker sees.")
+    w = g.add_mutually_exclusive_group()
+    w.add_argument("--workers", type=whole("--workers", "4"), metavar="N",
+                   help="start N worker processes on this machine (one thread each) for the run")
+    w.add_argument("--scheduler", metavar="ADDRESS",
+                   help="the address of a running Dask scheduler whose workers compute the chunks (e.g. "
+                        "tcp://10.0.0.1:8786; start it with 'dask scheduler' and 'dask worker ADDRESS')")
+    g.add_argument("--cluster-timeout", type=number("--cluster-timeout", "60"), default=WORKERS_TIMEOUT_S,
+                   metavar="S", help=f"seconds to wait for a worker: at the start, and when none is left (then the "
+                                     f"run stops with exit code {EXIT_CLUSTER}, its chunks kept) (default "
+                                     f"{WORKERS_TIMEOUT_S})")
 
 
-def processes_from_args(args):
-    """The `jaxsleigh.files.runner.Processes` of `add_distributed_options` (none given: one process, or SLURM /
-    Open MPI detected)."""
-    return Processes(getattr(args, "coordinator", None), getattr(args, "num_processes", None),
-                     getattr(args, "process_id", None), getattr(args, "cluster_timeout", None) or CLUSTER_TIMEOUT_S)
+def workers_from_args(args):
+    """The `jaxsleigh.files.workers.Workers` of `add_workers_options` (``None``: neither given: this process
+    computes the chunks)."""
+    n, at = getattr(args, "workers", None), getattr(args, "scheduler", None)
+    if n is None and at is None:
+        return None
+    return Workers(n, at, getattr(args, "cluster_timeout", None) or WORKERS_TIMEOUT_S)

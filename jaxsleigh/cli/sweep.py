@@ -9,9 +9,9 @@ Registered by `add_sweep`::
 Every start runs under every value (set) as one chunked, checkpointed ensemble
 (`jaxsleigh.studies.sweep.sweep`); chunks go to ``FILE.npz.chunks/`` and ``--resume`` continues an
 interrupted run, ending with the same ``.npz``, byte for byte. Wall time, devices and the command
-go to ``FILE.run.json``. With ``--coordinator/--num-processes/--process-id`` (or under SLURM /
-Open MPI) several processes share the chunks, as for ``jaxsleigh basin``
-(`jaxsleigh.files.runner.run_to_file`), and process 0 writes the same ``.npz``.
+go to ``FILE.run.json``. With ``--workers N`` or ``--scheduler ADDRESS`` the workers of a Dask cluster
+compute the chunks, as for ``jaxsleigh basin`` (`jaxsleigh.files.runner.run_to_file`), and the command writes
+the same ``.npz``.
 """
 from __future__ import annotations
 
@@ -63,8 +63,8 @@ def _epilog() -> str:
         "  jaxsleigh sweep --param k=0.01:1:9:log --samples 512 --out k.npz --plot k.png\n"
         "  jaxsleigh sweep --param m=0.5:8:5:log --param l=0:2:5 --out ml.npz --plot ml.png\n"
         "  jaxsleigh sweep ... --resume      (continue an interrupted run; same options)\n"
-        "  jaxsleigh sweep ... --coordinator 10.0.0.1:12345 --num-processes 4 --process-id I\n"
-        "                                    (one of 4 processes sharing the chunks; process 0 writes)")
+        "  jaxsleigh sweep ... --workers 4   (4 worker processes compute the chunks; pip install "
+        "\"jaxsleigh[cluster]\")")
 
 
 def add_sweep(subparsers) -> argparse.ArgumentParser:

@@ -1,9 +1,10 @@
-"""The host runner: a long, chunked run that owns its output file, in one process or in several.
+"""The host runner: a long, chunked run that owns its output file, its chunks computed here or by the workers of a
+Dask cluster.
 
 A study that writes its result chunk by chunk (`jaxsleigh.run_basin`, `jaxsleigh.sweep`, or any function that
 takes the runner's ``checkpoint_dir``, ``resume`` and ``shard``, e.g. into `jaxsleigh.RunOptions`) runs to one file
-``out`` in four steps, the same from Python and from the command line (``jaxsleigh basin`` and ``jaxsleigh
-sweep`` are `run_to_file` with their own checks and printing):
+``out`` in three steps, the same from Python and from the command line (``jaxsleigh basin``, ``jaxsleigh sweep``
+and ``jaxsleigh optimum`` are `run_to_file` with their own checks and printing):
 
 1. **own** ``out`` as every run that writes does (`jaxsleigh.files.run.Run`): one lock next to it, which covers
    ``out.chunks/`` too (another live run on the same file is refused with `jaxsleigh.errors.RunLockedError`, exit code
@@ -12,79 +13,56 @@ sweep`` are `run_to_file` with their own checks and printing):
    fresh run records its options in the folder's one record file, ``out.chunks/manifest.json``
    (`jaxsleigh.files.checkpoint.record`, next to what the chunk store records there), so that a refused
    resume can name the options that differ;
-2. **compute** the chunks: one process does them all; in a multi-process run (`Processes`, or detected
-   under SLURM / Open MPI) every process computes the chunks ``i`` with ``i % count == index``
-   (`jaxsleigh.files.distributed.run_shared`);
-3. **assemble** (process 0, or the only process): the result read from the chunks (a missing chunk is
-   computed), saved to ``out`` atomically, a sidecar ``out.run.json`` of what varies between runs (wall
-   time, devices, load, processes, the command), the chunk folder removed unless ``keep_chunks`` (then marked
-   finished, `FINISHED`: a later run is told it holds a finished run);
-4. **leave**: every process gets process 0's result code (`leave`).
+2. **compute** the chunks: this process does them all, or, with ``workers`` (`Workers`), the workers of a Dask
+   cluster do (`jaxsleigh.files.workers.compute_shares`: a dead worker's tasks run again on the others);
+3. **assemble**: the result read from the chunks (a missing chunk is computed), saved to ``out`` atomically, a
+   sidecar ``out.run.json`` of what varies between runs (wall time, devices, load, workers, the command), the chunk
+   folder removed unless ``keep_chunks`` (then marked finished, `FINISHED`: a later run is told it holds a finished
+   run).
 
 An interrupted run (Ctrl-C, a killed process, a full disk) keeps its finished chunks; the same call
-with ``resume=True`` continues it and writes the same file, byte for byte, on any number of processes.
+with ``resume=True`` continues it and writes the same file, byte for byte, with any number of workers or none.
 
-Example, a basin over four processes of one machine (start the same script four times, ``I`` = 0..3)::
+Example, a basin on four worker processes of this machine::
 
     from jaxsleigh import RunOptions, run_basin, sample_starts, save_basin
-    from jaxsleigh.files.runner import Processes, leave, run_to_file
+    from jaxsleigh.files.runner import Workers, run_to_file
 
     starts = sample_starts(10**6, seed=1)
     # the runner passes checkpoint_dir, resume and shard: the study puts them into its RunOptions
     done = run_to_file("mc.npz", lambda **kw: run_basin(starts, eps=0.05, run=RunOptions(**kw)), save_basin,
-                       options={"samples": 10**6, "seed": 1, "eps": 0.05},
-                       processes=Processes("127.0.0.1:12345", 4, I))
-    leave(done)             # every process ends here with process 0's code
+                       options={"samples": 10**6, "seed": 1, "eps": 0.05}, workers=Workers(4))
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import platform
 import shutil
-import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Optional
 
 from . import checkpoint
-from .checkpoint import MANIFEST, differences, recorded
-from .distributed import CLUSTER_TIMEOUT_S, EXIT_CLUSTER, run_shared, start
+from .checkpoint import differences, recorded
 from .npz import atomic_write_text
 from .run import PYTHON_WORDS, Run, Words
 from .runlock import settings_fingerprint
+from .workers import Workers, compute_shares, require_dask
 from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
-__all__ = ["Processes", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
-           "FINISHED", "other_command", "sidecar", "options_differ", "load_average", "start_processes", "leave"]
-
-
-@dataclass(frozen=True)
-class Processes:
-    """A multi-process run: the address ``HOST:PORT`` of process 0's coordinator, the number of processes and
-    this process's id (all three, or leave ``processes=None`` for one process, or under SLURM / Open MPI where
-    they are detected); ``timeout_s`` is how long a silent process is waited for before the run fails."""
-
-    coordinator: Optional[str] = None
-    num_processes: Optional[int] = None
-    process_id: Optional[int] = None
-    timeout_s: float = CLUSTER_TIMEOUT_S
-
-
+__all__ = ["Workers", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
+           "FINISHED", "other_command", "sidecar", "options_differ", "load_average"]
 
 
 class Finished(NamedTuple):
-    """What `run_to_file` returns: ``result`` (process 0 or the only process; ``None`` elsewhere), ``code``
-    (what ``finish`` returned, process 0's in every process; 0 without ``finish``), the files written, and
-    ``cluster`` (``None`` for one process), for `leave`."""
+    """What `run_to_file` returns: ``result``, ``code`` (what ``finish`` returned; 0 without ``finish``) and the
+    files written."""
 
     result: Any
     code: int
     written: tuple
-    cluster: Any
 
 
 def chunk_dir(out) -> Path:
@@ -109,19 +87,10 @@ def load_average() -> list:
 
 def _single_run_id(options: Any = None) -> str:
     """The fingerprint of a single-process run: its options (what defines the result) hashed, so that the same run
-    started twice on one output is told "the same run is in progress"; without options, one of its own. No other
-    process shares its output (its lock is not shared)."""
+    started twice on one output is told "the same run is in progress"; without options, one of its own."""
     if options is None:
         return f"{platform.node()}:{os.getpid()}:{time.time_ns()}"
     return "single:" + settings_fingerprint(options)
-
-
-def _cluster_run_id(processes: Optional[Processes], cluster) -> str:
-    """The fingerprint the processes of one run share (their output and chunk folder are one): their
-    coordinator (or the SLURM / Open MPI job) and their count."""
-    where = (processes.coordinator if processes is not None else None) or os.environ.get(
-        "SLURM_JOB_ID") or os.environ.get("OMPI_MCA_orte_hnp_uri", "")
-    return hashlib.sha256(json.dumps([where, cluster.count], default=str).encode()).hexdigest()
 
 
 #: The mark a run leaves in the chunk folder it keeps (``keep_chunks``) once its output is written: the next run
@@ -216,79 +185,53 @@ def _explained(e, chunks, options: dict, words: Words):
                            f"another {words.out}) to start afresh")
 
 
-def start_processes(processes: Optional[Processes]):
-    """Join the processes of a multi-process run (`jaxsleigh.files.distributed.start`): its `Cluster`, or
-    ``None`` for one process. Call it before any JAX computation in this process."""
-    p = processes or Processes()
-    return start(p.coordinator, p.num_processes, p.process_id, timeout_s=p.timeout_s or CLUSTER_TIMEOUT_S)
-
-
-def run_owned(check: Callable[[], dict], compute: Callable[[dict, tuple], None], assemble: Callable[[dict, bool], int],
-              *, cluster, options: dict, recorded: dict, resume: bool, prepare=None, shared_dirs=None,
+def run_owned(check: Callable[[], dict], assemble: Callable[[dict], int], *, recorded: dict, resume: bool,
               words: Words = PYTHON_WORDS) -> int:
-    """Run a chunked job in one process (``cluster=None``) or in every process of ``cluster``; returns
-    ``assemble``'s code (process 0's, in every process).
+    """Run a chunked job; returns ``assemble``'s code.
 
     ``check()`` validates and owns the output (`own_output`), returning a state dict with ``"chunks"`` and
-    ``"lock"``; ``compute(state, (index, count))`` writes a process's share of the chunks; ``assemble(state,
-    multi)`` (process 0) reads them and writes the output; ``prepare(state)`` (process 0, before anyone
-    computes) and ``shared_dirs(state)`` as in `jaxsleigh.files.distributed.run_shared`. ``options`` must be
-    equal in every process; ``recorded`` is what a fresh run records for a later resume to compare. The
-    lock is released however the run ends; a full disk or a refused resume is told with what to do.
+    ``"lock"``; ``assemble(state)`` computes the chunks, reads them and writes the output. ``recorded`` is what a
+    fresh run records for a later resume to compare. The lock is released however the run ends; a full disk or a
+    refused resume is told with what to do.
     """
-    held: dict = {}
-
-    def checked():
-        held["state"] = state = check()
-        return state
-
-    def prepared(state):
-        if prepare is not None:
-            prepare(state)
-        _record_options(state["chunks"], recorded, resume)
-
+    state: dict = {}
     try:
-        if cluster is None:
-            state = checked()
-            _record_options(state["chunks"], recorded, resume)
-            return int(assemble(state, False))
-        return run_shared(cluster, check=checked, compute=compute, assemble=lambda state: assemble(state, True),
-                          prepare=prepared, shared_dirs=shared_dirs or (lambda state: []), options=options)
+        state = check()
+        _record_options(state["chunks"], recorded, resume)
+        return int(assemble(state))
     except (DiskFullError, CheckpointError) as e:
-        better = _explained(e, (held.get("state") or {}).get("chunks"), recorded, words)
+        better = _explained(e, state.get("chunks"), recorded, words)
         if better is None:
             raise
         raise better from None
     finally:
-        lock = (held.get("state") or {}).get("lock")
+        lock = state.get("lock")
         if lock is not None:
             lock.release()
 
 
 def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any], *, options: Optional[dict] = None,
-                resume: bool = False, keep_chunks: bool = False, processes: Optional[Processes] = None,
+                resume: bool = False, keep_chunks: bool = False, workers: Optional[Workers] = None,
                 check: Optional[Callable[[], None]] = None, finish: Optional[Callable[..., int]] = None,
                 info: Optional[Callable[[Any], dict]] = None, command: Optional[list] = None,
-                words: Words = PYTHON_WORDS, cluster=None) -> Finished:
-    """Run ``study(checkpoint_dir=, resume=, shard=)`` chunk by chunk into the file ``out`` (steps 1-4 of the
+                words: Words = PYTHON_WORDS) -> Finished:
+    """Run ``study(checkpoint_dir=, resume=, shard=)`` chunk by chunk into the file ``out`` (steps 1-3 of the
     module's docstring); ``save(out, result)`` writes the result.
 
     Args:
-      options: what defines the result (JSON-able; equal in every process; recorded for a later resume).
+      options: what defines the result (JSON-able; recorded for a later resume).
       resume: continue from the chunks of an interrupted run with the same options.
       keep_chunks: keep ``out.chunks/`` after ``out`` is written.
-      processes: a multi-process run (`Processes`); ``None``: one process, or SLURM / Open MPI detected.
+      workers: compute the chunks on the workers of a Dask cluster (`Workers`, `jaxsleigh.files.workers`); this
+        process checks, owns the output and writes it. ``None``: this process computes them.
       check: validates the input before anything is written or claimed (raise ``ValueError``).
-      finish: ``finish(result, written, record) -> code`` (process 0, after the sidecar, before the chunks
-        are removed; ``record``: the sidecar's dict, with ``wall_s``, ``chunks_reused`` and, for several
-        processes, ``processes``): e.g. a figure (append its path to ``written``) and a summary; its code is
-        every process's.
+      finish: ``finish(result, written, record) -> code`` (after the sidecar, before the chunks are removed;
+        ``record``: the sidecar's dict, with ``wall_s``, ``chunks_reused`` and, with ``workers``, ``workers`` and
+        ``lost_workers``): e.g. a figure (append its path to ``written``) and a summary; its code is returned.
       info: ``info(result) -> dict`` added to the sidecar.
       command: the command line recorded in the sidecar.
-      cluster: the cluster already joined (`start_processes`) for ``processes``.
 
-    Returns a `Finished`; in a multi-process run end every process with `leave`. An ``out`` that is not a
-    regular file (a folder, a device such as ``/dev/full``, a named pipe), or whose ``.npz`` (which jaxsleigh's
+    Returns a `Finished`. An ``out`` that is not a regular file (a folder, a device such as ``/dev/full``, a named pipe), or whose ``.npz`` (which jaxsleigh's
     savers append to a name without it) or sidecar is, is refused with a ``ValueError`` before any work
     (`jaxsleigh.validate.output_file`).
     """
@@ -298,16 +241,20 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
     output_file(out, what, suffix=".npz")
     output_file(side, "run record file")
     options = json.loads(json.dumps(options or {}, default=str))
-    if cluster is None:
-        cluster = start_processes(processes)
-    run_id = _cluster_run_id(processes, cluster) if cluster is not None else _single_run_id([str(out), options])
+    if workers is not None:
+        if not isinstance(workers, Workers):
+            raise ValueError(f"workers must be a jaxsleigh.files.runner.Workers (e.g. Workers(4)), got {workers!r}")
+        require_dask()
+        run_id = f"workers:{_single_run_id()}"  # the workers share this run's lock: a fingerprint of its own
+    else:
+        run_id = _single_run_id([str(out), options])
     t0, load_start, kept = time.perf_counter(), load_average(), {}
 
     def owned() -> dict:
         if check is not None:
             check()
         chunks.mkdir(parents=True, exist_ok=True)
-        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=cluster is not None)
+        lock, have = own_output(out, chunks, resume=resume, run_id=run_id, words=words, shared=workers is not None)
         other = other_command(chunks, options, words) if resume else None
         if other is not None:                   # another command's folder: said in one line, before any work
             lock.release()
@@ -315,17 +262,19 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
         (chunks / FINISHED).unlink(missing_ok=True)       # this run is not finished until it says so
         return {"chunks": chunks, "lock": lock, "had": len(have)}
 
-    def compute(state, shard):
-        study(checkpoint_dir=chunks, resume=True, shard=shard)
-
-    def assemble(state, multi):
-        result = study(checkpoint_dir=chunks, resume=resume or multi, shard=None)
+    def assemble(state):
+        lost = None
+        if workers is not None:                 # the workers compute the chunks, this process assembles them
+            lost = compute_shares(workers, study, out=out, chunks=chunks, run_id=run_id)
+        result = study(checkpoint_dir=chunks, resume=resume or workers is not None, shard=None)
         written = [str(save(out, result))]
         run_info = getattr(result, "run_info", None) or {}
-        reused = state["had"] if multi else int(run_info.get("chunks_reused") or 0)
+        reused = state["had"] if workers is not None else int(run_info.get("chunks_reused") or 0)
         record = {"command": command, "wall_s": time.perf_counter() - t0, "devices": run_info.get("devices"),
                   "chunks_reused": reused, "loadavg_start": load_start, "loadavg_end": load_average(),
-                  "cpu_count": os.cpu_count(), **({"processes": cluster.count} if multi else {}),
+                  "cpu_count": os.cpu_count(),
+                  **({"workers": workers.count or workers.scheduler, "lost_workers": lost} if lost is not None
+                     else {}),
                   **(info(result) if info is not None else {})}
         atomic_write_text(side, json.dumps(record, indent=1, default=str) + "\n")
         written.append(str(side))
@@ -337,31 +286,10 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
         kept.update(result=result, written=tuple(written))
         return code
 
-    def prepare(state):                         # a fresh multi-process run: no stale manifest
-        if not resume:
-            (chunks / MANIFEST).unlink(missing_ok=True)
-
-    code = run_owned(owned, compute, assemble, cluster=cluster, options=options,
-                     recorded={k: v for k, v in options.items() if k not in _NOT_RECORDED}, resume=resume,
-                     prepare=prepare, shared_dirs=lambda state: [chunks], words=words)
-    return Finished(kept.get("result"), code, kept.get("written", ()), cluster)
+    code = run_owned(owned, assemble, recorded={k: v for k, v in options.items() if k not in _NOT_RECORDED},
+                     resume=resume, words=words)
+    return Finished(kept.get("result"), code, kept.get("written", ()))
 
 
 #: Options that do not change the chunks (left out of the checkpoint's recorded options).
 _NOT_RECORDED = {"out", "plot", "resume", "keep_chunks", "audit_rows"}
-
-
-def leave(done: Finished) -> int:
-    """End a run: stop this process's heartbeat and return its code; in a multi-process run whose processes
-    have process 0's result, exit the process at once with it (JAX's shutdown would wait at its barrier
-    for a process that died, then abort; every file is written, atomically, already)."""
-    cluster = done.cluster
-    if cluster is None:
-        return done.code
-    if done.code == EXIT_CLUSTER or cluster.synced:
-        cluster.stop()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(done.code)
-    cluster.stop()
-    return done.code

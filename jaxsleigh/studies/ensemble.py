@@ -645,7 +645,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
     and shown by the progress bar at once (default 16384 on CPU, 2^22 per device on an accelerator,
     `jaxsleigh.cores.default_chunk_size`). ``run.shard = (index, count)``: compute only the chunks
     ``i % count == index`` not already in ``run.checkpoint_dir``, write them there and return ``None``
-    (`jaxsleigh.files.distributed`); a later call without it assembles the result.
+    (the tasks of `jaxsleigh.files.workers`); a later call without it assembles the result.
 
     ``rules`` (`LaneRules`): a basin stops the starts that cannot settle; the audit's reference gives up bits.
 
