@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxsleigh import StepSizeController
 from jaxsleigh.model.params import paper_gains
 from jaxsleigh.model.shaped_law import shaped_from_gains, shaped_gains
 from jaxsleigh.tuning.hard_time import HardTimeConfig, hard_time_problem, tune_by_cma, tune_by_gradient
@@ -150,7 +151,8 @@ def test_a_force_that_is_exactly_zero_keeps_the_gradient_finite():
     plant = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), paper_plant())
 
     def energy(kp):
-        r = settling(PD(kp=kp, kd=2.0), y0, plant, t_final=5.0, max_steps=2000, reverse=True, segment=100)
+        r = settling(PD(kp=kp, kd=2.0), y0, plant, t_final=5.0, stepsize=StepSizeController(max_steps=2000),
+                     reverse=True, segment=100)
         return jnp.sum(r.u_energy[:2])
 
     g = jax.grad(energy)(jnp.asarray(1.0, jnp.float32))

@@ -45,6 +45,7 @@ import optax
 
 from ..controllers.actuators import is_sampled
 from ..integrate.engine import initial_w
+from ..integrate.stepsize import StepSizeController
 from ..model.charts import chart_for
 from ..model.params import PlantParams, as_plant, paper_gains
 from ..status import Status
@@ -130,8 +131,8 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     y0_law, y0_ref = (initial_w(ics5, status0, dtype, chart_for(c)) for c in (law, ref))    # each in its own chart
 
     def run(c, y0w):
-        return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps, max_steps=cfg.max_steps, reverse=True,
-                        segment=cfg.segment)
+        return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps,
+                        stepsize=StepSizeController(max_steps=cfg.max_steps), reverse=True, segment=cfg.segment)
 
     # the budgets: the reference's energy quantiles times energy_margin; the floor: its settled fraction minus
     # settled_margin
