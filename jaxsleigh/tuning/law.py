@@ -30,6 +30,7 @@ from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
 from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, valid_starts
 from ..controllers.paper import PaperLaw
 from ..integrate.sampled import solve_sampled
+from ..integrate.stepsize import StepSizeController
 from ..studies.sampled import plain_sampler, substeps_for
 
 __all__ = ["LawTuneResult", "tune_law", "law_loss", "gain_names", "LawCoordinates", "law_coordinates",
@@ -190,8 +191,8 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     then invalid)."""
     smp = plain_sampler(law.sampler)
     r = solve_sampled(law.law, plant, y0, t_final=float(cfg.t_final), sampler=smp, eps=float(cfg.eps),
-                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype, rtol=float(cfg.rtol),
-                      atol=float(cfg.atol))
+                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype,
+                      stepsize=StepSizeController(rtol=float(cfg.rtol), atol=float(cfg.atol)))
     ok = r.status == Status.OK
     q = jnp.where(jnp.isfinite(r.q), r.q, 0.0)                              # (N, K+1, 3); no NaN in the gradient
     y = jnp.moveaxis(jnp.concatenate([q, jnp.zeros(q.shape[:2] + (2,), q.dtype)], axis=-1), -1, 0)
