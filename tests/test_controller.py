@@ -218,7 +218,7 @@ def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_di
     from jaxsleigh.tuning.law import law_loss
 
     starts = np.array([[1.0, 0.5, 0.4], [-1.0, 1.0, -0.5], [0.5, -1.0, 1.0]])
-    cfg = LossConfig(t_final=6.0, rtol=1e-8, atol=1e-8)
+    cfg = LossConfig(t_final=6.0, stepsize=js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.1))
     with jax.enable_x64(True):
         y0 = jnp.asarray(np.concatenate([starts, np.zeros((3, 2))], axis=1))
         f = lambda kp: law_loss(PD(kp, 1.5), y0, js.paper_plant(), cfg, n_attempts=2000, adaptive=False)[0]  # noqa
