@@ -34,7 +34,6 @@ from ..model.params import paper_gains, paper_plant
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "advance_pool",
            "drive_saving", "drive_plain",
-           "make_controls",
            "shard_batch", "batch_mesh", "active_lanes", "bucket", "take_lanes_of", "put_lanes", "finish_state",
            "working_dtype", "default_max_steps", "METHODS"]
 
@@ -305,15 +304,6 @@ def _by_kind(state, flies, step, put, merge=None):
 def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observers=DEFAULT_OBSERVERS, implicit=False):
     return run_stops(state, save_times, args, ctl, adaptive=adaptive, monitor=monitor, observers=observers,
                       implicit=implicit)
-
-
-def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
-                  factor_min=0.1, factor_max=5.0) -> Controls:
-    """The stepper's traced numbers for a run from the numbers themselves (`jaxsleigh.integrate.stepper.controls`;
-    ``max_step`` defaults to the base step here)."""
-    policy = StepSizeController(rtol=rtol, atol=atol, safety=safety, factor_min=factor_min, factor_max=factor_max,
-                                max_step=horizon.dt if max_step is None else max_step)
-    return controls(policy, dtype, dt=horizon.dt, eps=eps, max_steps=max_steps, xp=np)
 
 
 def step_controls(horizon: Horizon, dtype, step: StepSizeController, eps) -> Controls:

@@ -37,6 +37,7 @@ from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, study_options, takes_objects
 from .audit import audit_rows, resolve as resolve_audit
 from ..integrate.guard import GREW, NEAR, grown_settled_mode
+from ..integrate.horizon import reference_max_steps
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_pool, check_ics, drive_final, drive_plain,
@@ -756,7 +757,7 @@ def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, d
     is too, and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
     def rerun(rows, rtol, atol):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
-        budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
+        budget = reference_max_steps(cfg.horizon)
         return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                      stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
                                      saveat=SaveAt(), run=RunOptions(progress=False, audit=False),
