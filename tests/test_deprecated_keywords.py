@@ -19,7 +19,8 @@ import jaxsleigh as js
 from jaxsleigh.integrate.sampled import SAMPLED_KEYWORDS
 from jaxsleigh.integrate.solve import SOLVE_KEYWORDS, solve
 from jaxsleigh.tuning.event_time import SETTLING_KEYWORDS
-from jaxsleigh.tuning.objective import LOSS_KEYWORDS
+from jaxsleigh.tuning.hard_time import HardTimeConfig
+from jaxsleigh.tuning.objective import LOSS_KEYWORDS, LossConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([[1.0, 1.0, 0.5]])
@@ -37,7 +38,7 @@ FRONTS = {"simulate": OLD_KEYWORDS, "run_ensemble": OLD_KEYWORDS, "run_basin": O
           "solve": frozenset(SOLVE_KEYWORDS)}
 #: the traced doors' removed keywords too (the library's own calls are scanned for them)
 SCANNED = {**FRONTS, "settling": frozenset(SETTLING_KEYWORDS), "solve_sampled": frozenset(SAMPLED_KEYWORDS),
-           "LossConfig": frozenset(LOSS_KEYWORDS)}
+           "LossConfig": frozenset(LOSS_KEYWORDS), "HardTimeConfig": frozenset({"max_steps"})}
 #: the fields of the objects each front has a use for (the others: "has no use for")
 USED = {"simulate": {"rtol", "atol", "method", "max_steps", "max_step", "save_every", "progress"},
         "run_ensemble": set(OLD_KEYWORDS),
@@ -148,17 +149,20 @@ def _solve_sampled(**kw):
     (lambda: _settling(max_steps=2000, stepsize=js.StepSizeController(max_steps=9)),
      "settling() got an unexpected keyword argument 'max_steps': pass "
      "stepsize=jaxsleigh.StepSizeController(max_steps=...)"),
-    (lambda: js.tuning.LossConfig(t_final=5.0, rtol=1e-8, max_step=0.1),
+    (lambda: LossConfig(t_final=5.0, rtol=1e-8, max_step=0.1),
      "LossConfig() got unexpected keyword arguments 'rtol', 'max_step': pass "
      "stepsize=jaxsleigh.StepSizeController(rtol=..., max_step=...) (LossConfig's rtol=, atol= and max_step= were "
      "removed in jaxsleigh 0.4)"),
+    (lambda: HardTimeConfig(max_steps=20_000),
+     "HardTimeConfig() got an unexpected keyword argument 'max_steps': pass "
+     "stepsize=jaxsleigh.StepSizeController(max_steps=...)"),
     (lambda: _solve_sampled(atol=1e-8),
      "solve_sampled() got an unexpected keyword argument 'atol': pass stepsize=jaxsleigh.StepSizeController(atol=...) "
      "(solve_sampled's rtol= and atol= were removed in jaxsleigh 0.4)"),
 ])
 def test_the_traced_doors_refuse_their_removed_keywords_naming_the_field(call, says):
-    """`jaxsleigh.tuning.event_time.settling`, `jaxsleigh.integrate.sampled.solve_sampled` and the tuner's
-    `jaxsleigh.tuning.LossConfig` take their step policy as a `StepSizeController`, as `solve` does; refused before
+    """`jaxsleigh.tuning.event_time.settling`, `jaxsleigh.integrate.sampled.solve_sampled` and the tuners'
+    `jaxsleigh.tuning.LossConfig` and `HardTimeConfig` take their step policy as a `StepSizeController`, as `solve` does; refused before
     anything is traced."""
     with pytest.raises(TypeError) as e:
         call()

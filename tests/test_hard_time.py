@@ -15,7 +15,7 @@ from jaxsleigh.tuning.starts import UniformStarts
 LAW = shaped_gains(L=[0.5, 0.5, 0.5], B=[2.0, 2.0, 2.0], C=[0.5, 0.5, 0.5], k=0.1, D_near=[4.0, 8.0],
                    D_far=[2.0, 4.0], s=1.0)
 CFG = HardTimeConfig(t_final=60.0, time_quantiles=(0.5,), time_weights=(1.0,), energy_quantiles=(0.5, 0.9),
-                     energy_margin=1.0, max_steps=20_000)
+                     energy_margin=1.0, stepsize=StepSizeController(max_steps=20_000))
 
 
 @pytest.fixture(scope="module")
