@@ -204,16 +204,17 @@ def writable_path(path, what: str = "output file", *, suffix: Optional[str] = No
 OPTION_CLASSES = {"stepsize": "StepSizeController", "saveat": "SaveAt", "run": "RunOptions"}
 
 
-def refuses_removed_keywords(removed: dict, uses: dict, since: str):
+def refuses_removed_keywords(removed: dict, uses: dict, since: str, name: str = ""):
     """A decorator: a keyword of ``removed`` (``keyword -> (parameter, field)`` of the option object that holds it
     now) given to the decorated front is a ``TypeError`` naming that object and field, e.g. ``run_basin() got an
     unexpected keyword argument 'rtol': pass stepsize=jaxsleigh.StepSizeController(rtol=...)``, or saying that the
     front has no use for it (a field not in ``uses``, ``parameter -> fields``); ``since`` ends the message (which
     keywords, removed when). Any other unexpected keyword gets Python's own ``TypeError``; the signature, name and
-    docstring are the front's."""
+    docstring are the front's. ``name``: what the message calls the front (default: its ``__name__``; a class's
+    ``__new__`` gives the class's name)."""
     def decorate(front):
         params = inspect.signature(front).parameters
-        name = front.__name__
+        label = name or front.__name__
 
         @functools.wraps(front)
         def call(*args, **kwargs):
@@ -231,9 +232,9 @@ def refuses_removed_keywords(removed: dict, uses: dict, since: str):
                        for h in OPTION_CLASSES if h in fields]
             says = ["pass " + ", ".join(objects)] if objects else []
             if unused:
-                says.append(f"{name}() has no use for {', '.join(unused)}")
+                says.append(f"{label}() has no use for {', '.join(unused)}")
             got = "an unexpected keyword argument" if len(given) == 1 else "unexpected keyword arguments"
-            raise TypeError(f"{name}() got {got} {', '.join(repr(k) for k in given)}: {'; '.join(says)} ({since})")
+            raise TypeError(f"{label}() got {got} {', '.join(repr(k) for k in given)}: {'; '.join(says)} ({since})")
 
         return call
 

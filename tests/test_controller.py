@@ -113,12 +113,12 @@ def test_gradient_of_a_law_through_the_stepper_matches_finite_differences():
     """The stepper is a pure JAX function of the law's parameters: d(final x)/d(kp) by jax.grad equals
     central finite differences (float64, fixed-step RK4)."""
     from jaxsleigh.model.closed_loop import ClosedLoop
-    from jaxsleigh.integrate.engine import make_controls, make_horizon
+    from jaxsleigh.integrate.stepper import controls
     from jaxsleigh.integrate.stepper import WhileActive, init_state, run
 
     with jax.enable_x64(True):
-        horizon = make_horizon(2.0, 0.01)
-        ctl = make_controls(horizon, jnp.float64, rtol=1e-8, atol=1e-8, eps=0.05, max_steps=10**4)
+        ctl = controls(js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.01), jnp.float64, dt=0.01, eps=0.05,
+                       max_steps=10**4)
         y0 = jnp.array([1.0, -0.5, 0.4, 0.0, 0.0])
 
         def final_x(kp):
@@ -218,7 +218,7 @@ def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_di
     from jaxsleigh.tuning.law import law_loss
 
     starts = np.array([[1.0, 0.5, 0.4], [-1.0, 1.0, -0.5], [0.5, -1.0, 1.0]])
-    cfg = LossConfig(t_final=6.0, rtol=1e-8, atol=1e-8)
+    cfg = LossConfig(t_final=6.0, stepsize=js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.1))
     with jax.enable_x64(True):
         y0 = jnp.asarray(np.concatenate([starts, np.zeros((3, 2))], axis=1))
         f = lambda kp: law_loss(PD(kp, 1.5), y0, js.paper_plant(), cfg, n_attempts=2000, adaptive=False)[0]  # noqa

@@ -16,7 +16,11 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
+from jaxsleigh.integrate.sampled import SAMPLED_KEYWORDS
 from jaxsleigh.integrate.solve import SOLVE_KEYWORDS, solve
+from jaxsleigh.tuning.event_time import SETTLING_KEYWORDS
+from jaxsleigh.tuning.hard_time import HardTimeConfig
+from jaxsleigh.tuning.objective import LOSS_KEYWORDS, LossConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([[1.0, 1.0, 0.5]])
@@ -32,6 +36,9 @@ OLD_KEYWORDS = frozenset(NOW)
 FRONTS = {"simulate": OLD_KEYWORDS, "run_ensemble": OLD_KEYWORDS, "run_basin": OLD_KEYWORDS,
           "sweep": OLD_KEYWORDS, "optimum": frozenset({"chunk_size", "progress", "checkpoint_dir", "resume", "shard"}),
           "solve": frozenset(SOLVE_KEYWORDS)}
+#: the traced doors' removed keywords too (the library's own calls are scanned for them)
+SCANNED = {**FRONTS, "settling": frozenset(SETTLING_KEYWORDS), "solve_sampled": frozenset(SAMPLED_KEYWORDS),
+           "LossConfig": frozenset(LOSS_KEYWORDS), "HardTimeConfig": frozenset({"max_steps"})}
 #: the fields of the objects each front has a use for (the others: "has no use for")
 USED = {"simulate": {"rtol", "atol", "method", "max_steps", "max_step", "save_every", "progress"},
         "run_ensemble": set(OLD_KEYWORDS),
@@ -121,6 +128,57 @@ def test_solve_refuses_its_removed_keywords_naming_the_field():
         _front("solve")(START, t_final=-1.0, method="rk4", max_attempts=50)
 
 
+def _settling(**kw):
+    import jax.numpy as jnp
+
+    from jaxsleigh.tuning.event_time import settling
+    return settling(js.paper_gains(), jnp.ones((1, 5)), js.paper_plant(), **kw)
+
+
+def _solve_sampled(**kw):
+    from jaxsleigh.controllers.actuators import Sampler
+    from jaxsleigh.integrate.sampled import solve_sampled
+    return solve_sampled(js.paper_gains(), None, START, t_final=1.0, sampler=Sampler(0.1), **kw)
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda: _settling(rtol=1e-6, atol=1e-8, max_steps=2000),
+     "settling() got unexpected keyword arguments 'rtol', 'atol', 'max_steps': pass "
+     "stepsize=jaxsleigh.StepSizeController(rtol=..., atol=..., max_steps=...) (settling's rtol=, atol= and "
+     "max_steps= were removed in jaxsleigh 0.4)"),
+    (lambda: _settling(max_steps=2000, stepsize=js.StepSizeController(max_steps=9)),
+     "settling() got an unexpected keyword argument 'max_steps': pass "
+     "stepsize=jaxsleigh.StepSizeController(max_steps=...)"),
+    (lambda: LossConfig(t_final=5.0, rtol=1e-8, max_step=0.1),
+     "LossConfig() got unexpected keyword arguments 'rtol', 'max_step': pass "
+     "stepsize=jaxsleigh.StepSizeController(rtol=..., max_step=...) (LossConfig's rtol=, atol= and max_step= were "
+     "removed in jaxsleigh 0.4)"),
+    (lambda: HardTimeConfig(max_steps=20_000),
+     "HardTimeConfig() got an unexpected keyword argument 'max_steps': pass "
+     "stepsize=jaxsleigh.StepSizeController(max_steps=...)"),
+    (lambda: _solve_sampled(atol=1e-8),
+     "solve_sampled() got an unexpected keyword argument 'atol': pass stepsize=jaxsleigh.StepSizeController(atol=...) "
+     "(solve_sampled's rtol= and atol= were removed in jaxsleigh 0.4)"),
+])
+def test_the_traced_doors_refuse_their_removed_keywords_naming_the_field(call, says):
+    """`jaxsleigh.tuning.event_time.settling`, `jaxsleigh.integrate.sampled.solve_sampled` and the tuners'
+    `jaxsleigh.tuning.LossConfig` and `HardTimeConfig` take their step policy as a `StepSizeController`, as `solve` does; refused before
+    anything is traced."""
+    with pytest.raises(TypeError) as e:
+        call()
+    assert str(e.value).startswith(says), str(e.value)
+
+
+def test_settling_refuses_fixed_steps_and_a_traced_horizon_without_a_budget():
+    """Its entry time is read off the adaptive step's dense output; the default budget needs t_final / dt."""
+    import jax
+
+    with pytest.raises(ValueError, match="stepsize.method must be 'adaptive'"):
+        _settling(stepsize=js.StepSizeController(method="rk4"))
+    with pytest.raises(ValueError, match=re.escape("give stepsize=jaxsleigh.StepSizeController(max_steps=...)")):
+        jax.jit(lambda t: _settling(t_final=t).T)(1.0)
+
+
 @pytest.mark.parametrize("name", sorted(FRONTS))
 def test_arguments_that_are_not_options_are_taken(name):
     """``t_final``, ``dt``, ``eps``, ``x64``, ``plant``, ``gains``, ``labels`` and the objects themselves: taken, and
@@ -199,13 +257,13 @@ def _calls_with_old_keywords(source: str, where: str) -> list:
             continue
         f = node.func
         name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
-        if name not in FRONTS:
+        if name not in SCANNED:
             continue
         given = {k.arg for k in node.keywords if k.arg}
         for k in node.keywords:
             if k.arg is None and isinstance(k.value, ast.Name):
                 given |= dicts.get(k.value.id, set())
-        bad = sorted(given & FRONTS[name])
+        bad = sorted(given & SCANNED[name])
         if bad:
             found.append(f"{where}:{node.lineno} {name}({', '.join(b + '=' for b in bad)})")
     return found
@@ -230,10 +288,10 @@ def _sources():
 def test_the_scan_finds_what_it_should():
     code = ("RUN = dict(t_final=1.0, chunk_size=4)\nGOOD = dict(t_final=1.0)\n"
             "js.sweep(s, p, **RUN)\njs.sweep(s, p, **GOOD)\nrun_basin(s, progress=False)\n"
-            "solve(g, y, method='rk4')\nsolve(g, y, stepsize=ss)\nsimulate(s, t_final=1.0, dt=0.01, x64=True)\n"
+            "solve(g, y, method='rk4')\nsolve(g, y, stepsize=ss)\nsettling(c, y, p, rtol=1e-9)\nsimulate(s, t_final=1.0, dt=0.01, x64=True)\n"
             "m.run_ensemble(s, run=RunOptions(chunk_size=4), stepsize=StepSizeController(method='rk4'))\n")
     assert _calls_with_old_keywords(code, "x") == ["x:3 sweep(chunk_size=)", "x:5 run_basin(progress=)",
-                                                   "x:6 solve(method=)"]
+                                                   "x:6 solve(method=)", "x:8 settling(rtol=)"]
 
 
 def test_no_code_or_page_of_the_library_passes_a_deprecated_keyword():

@@ -104,14 +104,14 @@ def test_observers_only_watch_and_effort_integrals_are_under_error_control():
     """Observers without quadrature rows only watch: the stepper with none of them steps exactly as with them. The
     effort integrals (ControlEffort's rows) are under the step's error norm, so with them a step may be refused that
     the state alone would accept: at least as many steps, the same trajectory to the tolerance."""
-    from jaxsleigh.integrate.engine import initial_w, make_controls, make_horizon
+    from jaxsleigh.integrate.engine import initial_w
     from jaxsleigh.integrate.observers import ClosestApproach, ConvergenceTime, Excursion
-    from jaxsleigh.integrate.stepper import Scan, init_batch, run
+    from jaxsleigh.integrate.stepper import Scan, controls, init_batch, run
 
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
-        h = make_horizon(5.0, 0.01)
-        ctl = make_controls(h, jnp.float64, rtol=1e-8, atol=1e-8, eps=0.05, max_steps=10**5, max_step=0.1)
+        ctl = controls(js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.1), jnp.float64, dt=0.01, eps=0.05,
+                       max_steps=10**5)
         st = np.zeros(len(STARTS), np.int32)
         y0 = initial_w(STARTS, st, jnp.float64)
         finals = []

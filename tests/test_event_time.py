@@ -26,7 +26,8 @@ def _run(ics, t_final):
     ics5, st = check_ics(ics)
     y0w = initial_w(ics5, st, jnp.float64, WChart())
     plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), paper_plant())
-    return jax.jit(lambda c: settling(c, y0w, plant, t_final=t_final, rtol=1e-9, atol=1e-9))
+    return jax.jit(lambda c: settling(c, y0w, plant, t_final=t_final,
+                                          stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9)))
 
 
 @pytest.mark.parametrize("law,field,index", [("shaped", "L", 0), ("shaped", "B", 1), ("paper", "k", None)])

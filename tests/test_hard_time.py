@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxsleigh import StepSizeController
 from jaxsleigh.model.params import paper_gains
 from jaxsleigh.model.shaped_law import shaped_from_gains, shaped_gains
 from jaxsleigh.tuning.hard_time import HardTimeConfig, hard_time_problem, tune_by_cma, tune_by_gradient
@@ -14,7 +15,7 @@ from jaxsleigh.tuning.starts import UniformStarts
 LAW = shaped_gains(L=[0.5, 0.5, 0.5], B=[2.0, 2.0, 2.0], C=[0.5, 0.5, 0.5], k=0.1, D_near=[4.0, 8.0],
                    D_far=[2.0, 4.0], s=1.0)
 CFG = HardTimeConfig(t_final=60.0, time_quantiles=(0.5,), time_weights=(1.0,), energy_quantiles=(0.5, 0.9),
-                     energy_margin=1.0, max_steps=20_000)
+                     energy_margin=1.0, stepsize=StepSizeController(max_steps=20_000))
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +151,8 @@ def test_a_force_that_is_exactly_zero_keeps_the_gradient_finite():
     plant = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), paper_plant())
 
     def energy(kp):
-        r = settling(PD(kp=kp, kd=2.0), y0, plant, t_final=5.0, max_steps=2000, reverse=True, segment=100)
+        r = settling(PD(kp=kp, kd=2.0), y0, plant, t_final=5.0, stepsize=StepSizeController(max_steps=2000),
+                     reverse=True, segment=100)
         return jnp.sum(r.u_energy[:2])
 
     g = jax.grad(energy)(jnp.asarray(1.0, jnp.float32))

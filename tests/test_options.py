@@ -95,15 +95,18 @@ def test_wrong_options_are_named(call, err, match):
     (js.StepSizeController(max_steps=0), r"stepsize.max_steps must be >= 1"),
     (js.StepSizeController(method="euler"), r"stepsize.method must be 'adaptive' or 'rk4'")])
 def test_one_policy_check_for_every_front(policy, says):
-    """The studies, `jaxsleigh.solve` and the sampled-data loop check a step policy in one place, with one message
+    """The studies, `jaxsleigh.solve`, the sampled-data loop and the traced settling time check a step policy in one
+    place, with one message
     (`jaxsleigh.integrate.stepsize.check_policy`): ``solve`` ran a safety factor of 1.5 and the sampled loop a
     ``factor_min`` of 1 without a word before."""
     from jaxsleigh.controllers.actuators import Sampler
     from jaxsleigh.integrate.sampled import solve_sampled
+    from jaxsleigh.tuning.event_time import settling
 
     for call in (lambda: js.run_ensemble(STARTS, stepsize=policy),
                  lambda: js.solve(js.paper_gains(), STARTS[0], t_final=1.0, stepsize=policy),
                  lambda: solve_sampled(js.paper_gains(), None, STARTS, t_final=1.0, sampler=Sampler(0.1),
-                                       stepsize=policy)):
+                                       stepsize=policy),
+                 lambda: settling(js.paper_gains(), np.ones((1, 5)), js.paper_plant(), t_final=1.0, stepsize=policy)):
         with pytest.raises(ValueError, match=says):
             call()

@@ -60,7 +60,7 @@ _ICS = np.array([[1.0, -0.5, 0.8], [-0.6, 0.4, -1.2], [0.3, 0.2, 0.5]])
 
 def _setup(gains, **loss):
     data = tu.make_training_set(_ICS, guard=np.zeros((0, 3)))
-    cfg = tu.LossConfig(*(jnp.asarray(v) for v in tu.LossConfig(**loss)))
+    cfg = tu.traced_loss(tu.LossConfig(**loss), jnp.zeros(()).dtype)
     theta = tu.GainParams(*(jnp.asarray(x) for x in tu.params_from_gains(gains)))
     trainable, frozen = tu.split_params(theta, None)
     return data, cfg, trainable, frozen
@@ -70,7 +70,8 @@ def _setup(gains, **loss):
 def test_objective_energy_agrees_with_the_accurate_engine():
     """int |u|^2 dt accumulated (trapezoid) in the objective's scan = the engine's effort over the
     same horizon (no lane stops: stop_fraction tiny), float64, tight tolerances."""
-    data, cfg, tr, fr = _setup("paper", t_final=5.0, stop_fraction=1e-6, rtol=1e-8, atol=1e-8)
+    data, cfg, tr, fr = _setup("paper", t_final=5.0, stop_fraction=1e-6,
+                                 stepsize=js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.1))
     _, aux = tu.objective(tr, fr, data, cfg, n_attempts=6000)
     assert np.all(np.asarray(aux["lanes"].t_reached) == 5.0)
     v = tu.validate("paper", _ICS, t_final=5.0, x64=True, stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9))

@@ -150,7 +150,8 @@ def test_noise_makes_astolfi_s_law_diverge_whatever_the_tolerances():
 
     law, ics = make_controller("astolfi"), np.array([[1.0, 1.0, 0.5, 0.0, 0.0], [-2.0, 1.0, 1.0, 0.0, 0.0]])
     for tol in (None, 1e-8):
-        noisy = solve_sampled(law, None, ics, t_final=20.0, sampler=Sampler(0.05, 0, 1e-3, 0), rtol=tol, atol=tol)
+        noisy = solve_sampled(law, None, ics, t_final=20.0, sampler=Sampler(0.05, 0, 1e-3, 0),
+                              stepsize=js.StepSizeController(rtol=tol, atol=tol))
         assert np.asarray(noisy.status).tolist() == [js.Status.BUDGET_EXHAUSTED] * 2
         assert np.all(np.asarray(noisy.t_reached) < 20.0)
         assert np.all(np.nanmax(np.abs(np.asarray(noisy.u)), axis=(1, 2)) > 1e5)

@@ -79,9 +79,34 @@ _FD_ICS = np.array([[1.0, -0.5, 0.8], [-0.6, 0.4, -1.2], [0.3, 0.2, 0.5]])
 _FD_GAINS = js.gains([3.0, 0.8, 1.2], 0.05, [[3.0, 0.4], [0.4, 6.0]])
 
 
+def test_a_loss_config_holds_a_step_policy_that_jit_grad_and_vmap_trace():
+    """The policy's numbers are leaves of the config (changing them does not recompile), its method, passivity switch
+    and budget static; the settings record keeps one key per number, as before the policy was an object."""
+    loss = tu.LossConfig(t_final=5.0)
+    cfg = tu.traced_loss(loss, jnp.float32)
+    leaves = jax.tree_util.tree_leaves(cfg)
+    assert all(isinstance(x, jax.Array) for x in leaves) and cfg.stepsize.method == "adaptive"
+    f = jax.jit(lambda c: c.stepsize.rtol * c.t_final)
+    assert float(f(cfg)) == pytest.approx(5e-5) and f._cache_size() == 1
+    f(tu.traced_loss(loss._replace(stepsize=loss.stepsize._replace(rtol=1e-6)), jnp.float32))
+    assert f._cache_size() == 1
+    assert float(jax.grad(lambda c: c.stepsize.atol * c.dt)(cfg).stepsize.atol) == pytest.approx(0.01)
+    axes = tu.LossConfig(*([None] * len(tu.LossConfig._fields)))._replace(energy_budget=0)
+    out = jax.vmap(lambda c: c.energy_budget * c.stepsize.max_step, in_axes=(axes,))(
+        cfg._replace(energy_budget=jnp.arange(3.0)))
+    np.testing.assert_allclose(out, [0.0, 0.1, 0.2], rtol=1e-6)
+    from jaxsleigh.tuning.objective import loss_record
+    rec = loss_record(loss)
+    assert list(rec)[:8] == ["t_final", "guard_t_final", "probe_t_final", "dt", "max_step", "rtol", "atol", "eps"]
+    assert (rec["max_step"], rec["rtol"], rec["atol"]) == (0.1, 1e-5, 1e-5) and "method" not in rec
+    with pytest.raises(ValueError, match="loss.stepsize.method must be 'adaptive'"):
+        tu.tune(loss=tu.LossConfig(stepsize=js.StepSizeController(method="rk4")), progress=False)
+
+
 def _fd_setup(t_final, rtol):
     data = tu.make_training_set(_FD_ICS, guard=np.zeros((0, 3)))
-    cfg = tu.LossConfig(*(jnp.asarray(v) for v in tu.LossConfig(t_final=t_final, rtol=rtol, atol=rtol)))
+    loss = tu.LossConfig(t_final=t_final, stepsize=js.StepSizeController(rtol=rtol, atol=rtol, max_step=0.1))
+    cfg = tu.traced_loss(loss, jnp.zeros(()).dtype)
     theta = tu.GainParams(*(jnp.asarray(x) for x in tu.params_from_gains(_FD_GAINS)))
     trainable, frozen = tu.split_params(theta, None)
     return data, cfg, trainable, frozen

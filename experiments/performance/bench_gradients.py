@@ -76,8 +76,9 @@ def _one(name: str, steps: int, batch: int, x64: bool, repeat: int) -> dict:
         dtype = jnp.zeros(()).dtype
         ics = tu.sample_starts(tu.UniformStarts(), batch, 0)
         data = tu.make_training_set(ics, guard=np.zeros((0, 3)), dtype=dtype)
-        cfg = tu.LossConfig(t_final=steps * 0.01, dt=0.01, max_step=0.01, stop_fraction=1e-9)
-        cfg = tu.LossConfig(*(jnp.asarray(v, dtype) for v in cfg))
+        cfg = tu.LossConfig(t_final=steps * 0.01, dt=0.01, stepsize=tu.TRAINING_STEPSIZE._replace(max_step=0.01),
+                            stop_fraction=1e-9)
+        cfg = tu.traced_loss(cfg, dtype)
         theta = tu.GainParams(*(jnp.asarray(x, dtype) for x in tu.params_from_gains("paper")))
         trainable, frozen = tu.split_params(theta, None)
         if spec["kind"] == "value":

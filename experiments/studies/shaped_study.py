@@ -114,7 +114,7 @@ def main(argv=None) -> int:
     cfg = HardTimeConfig(energy_margin=1.0)
     out = {"command": ["python", "experiments/studies/shaped_study.py"] + list(argv if argv is not None else sys.argv[1:]),
            "dtype": "float32", "machine": machine(),
-           "family": args.family, "config": cfg._asdict(), "n_train": args.n,
+           "family": args.family, "config": {**cfg._asdict(), "stepsize": cfg.stepsize._asdict()}, "n_train": args.n,
            "multiplier_every": args.multiplier_every,
            "coordinates": list(coords.names), "x0": coords.x0.tolist()}
     path = Path(args.out)

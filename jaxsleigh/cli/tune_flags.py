@@ -54,9 +54,10 @@ def tune_config(args):
 
 def loss_config(args):
     """The surrogate's settings (`jaxsleigh.tuning.LossConfig`); no --energy-budget: none (inf)."""
-    from ..tuning import LossConfig
+    from ..tuning import TRAINING_STEPSIZE, LossConfig
 
-    return LossConfig(t_final=args.t_final, dt=args.dt, max_step=10 * args.dt, stop_fraction=args.stop_fraction,
+    return LossConfig(t_final=args.t_final, dt=args.dt, stepsize=TRAINING_STEPSIZE._replace(max_step=10 * args.dt),
+                      stop_fraction=args.stop_fraction,
                       energy_budget=math.inf if args.energy_budget is None else args.energy_budget)
 
 

@@ -34,7 +34,6 @@ from ..model.params import paper_gains, paper_plant
 
 __all__ = ["Horizon", "check_ics", "make_horizon", "initial_w", "drive_final", "advance_lanes", "advance_pool",
            "drive_saving", "drive_plain",
-           "make_controls",
            "shard_batch", "batch_mesh", "active_lanes", "bucket", "take_lanes_of", "put_lanes", "finish_state",
            "working_dtype", "default_max_steps", "METHODS"]
 
@@ -307,20 +306,6 @@ def _saving_batch(state, save_times, args, ctl, adaptive, monitor=True, observer
                       implicit=implicit)
 
 
-def make_controls(horizon: Horizon, dtype, *, rtol, atol, eps, max_steps, max_step=None, safety=0.9,
-                  factor_min=0.1, factor_max=5.0) -> Controls:
-    """The stepper's traced numbers for a run from the numbers themselves (`jaxsleigh.integrate.stepper.controls`;
-    ``max_step`` defaults to the base step here)."""
-    policy = StepSizeController(rtol=rtol, atol=atol, safety=safety, factor_min=factor_min, factor_max=factor_max,
-                                max_step=horizon.dt if max_step is None else max_step)
-    return controls(policy, dtype, dt=horizon.dt, eps=eps, max_steps=max_steps, xp=np)
-
-
-def step_controls(horizon: Horizon, dtype, step: StepSizeController, eps) -> Controls:
-    """`jaxsleigh.integrate.stepper.controls` from a resolved `StepSizeController` and the ball's radius ``eps``."""
-    return controls(step, dtype, dt=horizon.dt, eps=eps, max_steps=step.max_steps, xp=np)
-
-
 def shard_batch(tree, mesh):
     """Place every leaf of a batch-last pytree with its last axis split over ``mesh``'s devices."""
     def put(a):
@@ -412,7 +397,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
     ladder = Ladder(floor=min_batch(dtype, bitwise=bitwise))
     # a short horizon needs no more attempts than its base steps (+ rounding slack) per segment
     segment = max(1, min(segment, horizon.n_steps + 8))
-    ctl = step_controls(horizon, dtype, step, eps)
+    ctl = controls(step, dtype, dt=horizon.dt, eps=eps, xp=np)
     adaptive, monitor, max_steps = step.method == "adaptive", step.check_passivity, step.max_steps
     target = np.asarray(horizon.t_final, np.dtype(dtype))
     b = _first_batch(y0w, status0, state, args, ctl, observers, n, dtype)
@@ -443,7 +428,7 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
     lanes."""
     dtype = state.y.dtype
     segment = max(1, min(segment, horizon.n_steps + 8))
-    ctl = step_controls(horizon, dtype, step, eps)
+    ctl = controls(step, dtype, dt=horizon.dt, eps=eps, xp=np)
     if has_lanes(args.plant, args.gains):
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), args)
     target = np.asarray(horizon.t_final, np.dtype(dtype))
@@ -464,7 +449,7 @@ def advance_pool(lanes: StepState, args_of, horizon: Horizon, step: StepSizeCont
     closed loop's ``args`` for the lanes ``rows`` of ``lanes``. The lanes on the implicit step (`flying`) run in
     batches of their own: a batch that held both kinds would run both programs over all its lanes. What the loop of
     a `jaxsleigh.integrate.pool.StragglerPool` calls once per segment."""
-    flies = flying(lanes, step_controls(horizon, lanes.y.dtype, step, eps), stiff_after)
+    flies = flying(lanes, controls(step, lanes.y.dtype, dt=horizon.dt, eps=eps, xp=np), stiff_after)
     kinds = [np.flatnonzero(~flies), np.flatnonzero(flies)]
     out = []
     for idx in (group for kind in kinds for group in ladder.groups(kind)):
@@ -573,7 +558,7 @@ def drive_saving(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSiz
     ``stiff_after`` attempts and then every ``segment`` (a per-lane budget, `_saving_block`), at the attempt counts
     where `drive_final` checks it, and goes on from where it stopped: bit for bit as without the checks."""
     dtype = y0w.dtype
-    ctl = step_controls(horizon, dtype, step, eps)
+    ctl = controls(step, dtype, dt=horizon.dt, eps=eps, xp=np)
     adaptive, monitor = step.method == "adaptive", step.check_passivity
     _, args, state = _started(y0w, status0, True, args, ctl, observers, y0w.shape[0], dtype)
     save_times = horizon.save_times()

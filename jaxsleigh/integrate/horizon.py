@@ -2,7 +2,10 @@ r"""The time grid of a run and its step budget: one rule for every door, traced 
 
 * `Horizon` / `make_horizon`: ``t_final`` in whole base steps ``dt``, saved every ``save_every`` of them.
 * `default_max_steps`: the attempted steps a trajectory may take (the base steps, times `BUDGET_FACTOR` when
-  adaptive): `jaxsleigh.solve`, `jaxsleigh.simulate` and the ensembles take it.
+  adaptive): `jaxsleigh.solve`, `jaxsleigh.simulate` and the ensembles take it; `step_budget` is a step policy's
+  budget, its own ``max_steps`` or this default, for a traced door (`jaxsleigh.solve`,
+  `jaxsleigh.tuning.event_time.settling`); `reference_max_steps` is the budget of a float64 reference run at tight
+  tolerances (the accuracy audit, a validation re-run at its settings).
 * The flight rule (`STIFF_AFTER`, `FLIGHT_STEP`, `flight_step`): when a lane still in a stiff flight near
   \(\theta = 0\) moves to the linearly implicit step of `jaxsleigh.integrate.rosenbrock`. The host's engine reads
   it between segments (`jaxsleigh.integrate.engine.flying`); the traced loop of `jaxsleigh.solve` after every attempt
@@ -17,9 +20,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL
+from ..model.params import is_concrete
+from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, StepSizeController
 
-__all__ = ["Horizon", "MAX_BASE_STEPS", "make_horizon", "BUDGET_FACTOR", "default_max_steps", "STIFF_AFTER",
+__all__ = ["Horizon", "MAX_BASE_STEPS", "make_horizon", "BUDGET_FACTOR", "default_max_steps", "step_budget",
+           "reference_max_steps", "REFERENCE_FACTOR",
+           "STIFF_AFTER",
            "FLIGHT_STEP", "flight_step", "default_tolerance"]
 
 
@@ -92,6 +98,36 @@ def default_max_steps(horizon: Horizon, adaptive: bool, dtype="float32") -> int:
     adaptive. A start that uses it up (one near theta = 0 that does not settle) ends ``BUDGET_EXHAUSTED``."""
     base = horizon.n_steps + horizon.n_out + 8
     return min(BUDGET_FACTOR.get(np.dtype(dtype).name, 30) * base if adaptive else base, 2**31 - 2)
+
+
+#: attempts per base step of a float64 reference run at the audit's tight tolerances (`reference_max_steps`)
+REFERENCE_FACTOR = 100
+
+
+def reference_max_steps(horizon: Horizon) -> int:
+    r"""The budget of a float64 reference run at tight tolerances (the accuracy audit's re-run of some rows,
+    `jaxsleigh.studies.audit`, and a validation re-run at the audit's settings, `jaxsleigh.tuning.validate`):
+    \(100\,n + 1000\) attempts for \(n = t_{final}/dt\) base steps (`REFERENCE_FACTOR`), at most 2e9 (the
+    engine's int32 counters). Larger than `default_max_steps` (30x in float64), for tolerances far tighter than the
+    dtype's default."""
+    return min(REFERENCE_FACTOR * horizon.n_steps + 1000, 2_000_000_000)
+
+
+def step_budget(stepsize: StepSizeController, t_final, dt, dtype, *, save_every=None, flags=None) -> int:
+    r"""The attempted steps per trajectory of a run under the checked policy ``stepsize``
+    (`jaxsleigh.integrate.stepsize.check_policy`): its ``max_steps`` where given, else `default_max_steps` of the
+    horizon ``t_final`` / ``dt`` (saved every ``save_every`` base steps), \(20\,(n + n_{out} + 8)\) attempts in
+    float32 and \(30\,(n + n_{out} + 8)\) in float64 for ``"adaptive"``, \(n + n_{out} + 8\) for ``"rk4"``, with
+    \(n = t_{final}/dt\). A static number (a Python ``int``): the default needs ``t_final`` and ``dt`` concrete,
+    a ``ValueError`` says so where they are traced. ``flags`` names the keywords in messages, as in
+    `make_horizon`."""
+    if stepsize.max_steps is not None:
+        return int(stepsize.max_steps)
+    if not is_concrete((t_final, dt)):
+        raise ValueError("the default step budget comes from t_final / dt: give them as concrete numbers, or give "
+                         "stepsize=jaxsleigh.StepSizeController(max_steps=...)")
+    return default_max_steps(make_horizon(t_final, dt, save_every, flags=flags), stepsize.method == "adaptive",
+                             dtype)
 
 
 #: attempts after which the ensembles' adaptive engine steps a lane that is still in a stiff flight (its mean step

@@ -87,9 +87,10 @@ from .horizon import BUDGET_FACTOR, MAX_BASE_STEPS
 from .observers import DEFAULT_OBSERVERS, collect_values
 from .stepper import Controls, StepState, controls, init_state, integrands, run_stops
 from .stepsize import StepSizeController, check_policy
-from ..validate import real, whole
+from ..validate import real, refuses_removed_keywords, whole
 
 __all__ = ["SampledRun", "HeldInput", "held_input_type", "solve_sampled", "sample_count", "substeps_for", "SEGMENT",
+           "SAMPLED_KEYWORDS",
            "BLOCK"]
 
 #: Attempts per checkpointed segment of a period (adaptive): a period costs its attempts rounded up to this.
@@ -187,18 +188,6 @@ def substeps_for(period: float, dt: float) -> int:
     return max(4, math.ceil(period / dt - 1e-9))
 
 
-def _step_policy(stepsize, rtol, atol) -> StepSizeController:
-    """``stepsize`` (default `StepSizeController()`) with ``rtol`` / ``atol`` put in; ``ValueError`` for a tolerance
-    given twice, a method that is neither ``"adaptive"`` nor ``"rk4"``, or something that is not a policy."""
-    ss = check_policy(stepsize)
-    for name, value in (("rtol", rtol), ("atol", atol)):
-        if value is not None:
-            if getattr(ss, name) is not None:
-                raise ValueError(f"{name} is given twice (as {name}= and in stepsize): give it once")
-            ss = ss._replace(**{name: value})
-    return check_policy(ss)
-
-
 def _period_budget(ss: StepSizeController, K: int, substeps: int, dtype) -> int:
     """Attempted steps per period and start (static). Fixed RK4 takes ``substeps``. Adaptive: ``max_steps`` (per start,
     over the run) shared evenly between the ``K`` periods; by default, as in the continuous loop,
@@ -214,9 +203,15 @@ def _period_budget(ss: StepSizeController, K: int, substeps: int, dtype) -> int:
     return -(-int(m) // K) if adaptive else substeps
 
 
+#: The keywords `solve_sampled` took before jaxsleigh 0.4: ``keyword -> ("stepsize", field)`` of the object that
+#: holds it now.
+SAMPLED_KEYWORDS = {"rtol": ("stepsize", "rtol"), "atol": ("stepsize", "atol")}
+
+
+@refuses_removed_keywords(SAMPLED_KEYWORDS, {"stepsize": frozenset(StepSizeController._fields)},
+                          "solve_sampled's rtol= and atol= were removed in jaxsleigh 0.4")
 def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final: float, sampler,
                   substeps: int = 20, eps: float = 0.05, dtype=jnp.float32, save: bool = True,
-                  rtol: Optional[float] = None, atol: Optional[float] = None,
                   stepsize: Optional[StepSizeController] = None, observers: tuple = OBSERVERS) -> SampledRun:
     """Integrate the sampled-data closed loop (module docstring) from a batch of starts.
 
@@ -230,14 +225,16 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
         ``(5,)``/``(3,)`` is a batch of one).
       t_final: horizon [s], a whole number of sampling periods.
       sampler: `jaxsleigh.controllers.actuators.Sampler` (period, delay, noise, seed).
-      substeps: the first step tried is ``period / substeps`` (adaptive); the fixed RK4 steps per period with
-        ``stepsize=StepSizeController(method="rk4")``. eps: radius of the ball of ``T_eps``.
+      substeps: the base step of the sampled loop as a fraction of the period, ``dt = period / substeps``:
+        the first step tried in each period (adaptive), the fixed RK4 steps per period with
+        ``stepsize=StepSizeController(method="rk4")``. It is the sampled loop's ``dt`` (`jaxsleigh.solve` takes
+        ``dt`` and converts it, `substeps_for`), not a field of the step policy: a whole number of steps per period
+        keeps the fixed steps on the sample instants whatever the period, and the policy (tolerances, budget) is the
+        same object every front takes. eps: radius of the ball of ``T_eps``.
       dtype: ``jnp.float32`` or ``jnp.float64`` (the latter needs ``jax.enable_x64(True)``).
       save: keep the samples (``t``, ``q``, ``p``, ``u``); ``False``: summaries and final states only.
-      rtol, atol: tolerances of the adaptive steps (default: the continuous loop's in ``dtype``, 1e-6 in float32,
-        1e-8 in float64); the same as ``stepsize``'s, give them in one place.
       stepsize: `jaxsleigh.StepSizeController`: ``method`` (``"adaptive"``, or ``"rk4"``: fixed steps), the
-        tolerances, ``safety``, ``factor_min``, ``factor_max``, ``max_step`` (default: 100 base steps, as in the
+        tolerances (default: the continuous loop's in ``dtype``, 1e-6 in float32, 1e-8 in float64), ``safety``, ``factor_min``, ``factor_max``, ``max_step`` (default: 100 base steps, as in the
         continuous loop; the steps never cross a sample instant) and ``max_steps``
         (attempted steps per start over the run, shared evenly between the periods; default 20 (float32) or 30
         (float64) times ``substeps`` per period, as the continuous loop's 20x or 30x its base steps).
@@ -263,7 +260,7 @@ def solve_sampled(law, plant: Optional[PlantParams] = None, ics=None, *, t_final
     substeps = whole("substeps", substeps)
     K = sample_count(t_final, period)
     eps = real("eps", eps, positive=True)
-    ss = _step_policy(stepsize, rtol, atol)
+    ss = check_policy(stepsize)
     # the stepper's traced numbers after checking those given: the first step tried is T_s / substeps; the budget is
     # set per period (_period_budget)
     ctl = controls(ss, dtype, dt=period / substeps, eps=eps, max_steps=0)

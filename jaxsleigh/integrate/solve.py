@@ -34,7 +34,7 @@ from .observers import DEFAULT_OBSERVERS, collect_values
 from ..model.params import is_concrete, paper_plant
 from ..status import NO_RESULT, Status
 from .sampled import solve_sampled, substeps_for
-from .horizon import default_max_steps, make_horizon
+from .horizon import make_horizon, step_budget
 from .saveat import SaveAt
 from .stepper import Checkpointed, FlightSwitch, controls, init_state, run, run_stops
 from .stepsize import StepSizeController, check_policy
@@ -152,13 +152,7 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         return _solve_held(controller, y0, plant, t_final, dt, ss, eps, observers, every)
     dtype = y0.dtype
     adaptive = ss.method == "adaptive"
-    max_attempts = ss.max_steps
-    if max_attempts is None:
-        if not is_concrete((t_final, dt)):
-            raise ValueError("the default step budget comes from t_final / dt: give them as concrete numbers, or give "
-                             "stepsize=jaxsleigh.StepSizeController(max_steps=...)")
-        max_attempts = default_max_steps(make_horizon(t_final, dt, every, flags={"save_every": "saveat.every"}),
-                                         adaptive, dtype)
+    max_attempts = step_budget(ss, t_final, dt, dtype, save_every=every, flags={"save_every": "saveat.every"})
     args = ClosedLoop(paper_plant() if plant is None else plant, controller)
     chart = chart_for(controller)
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)

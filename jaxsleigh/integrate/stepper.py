@@ -101,12 +101,19 @@ class Controls(NamedTuple):
     factor_max: jax.Array = 5.0
 
 
-def controls(stepsize: StepSizeController, dtype, *, dt, eps, max_steps, xp=jnp) -> Controls:
+def controls(stepsize: StepSizeController, dtype, *, dt, eps, max_steps=None, xp=jnp) -> Controls:
     """The stepper's traced numbers for a run: the policy ``stepsize`` (its defaults resolved for ``dtype`` and the
-    base step ``dt``, `StepSizeController.resolved`), the ball's radius ``eps`` and the budget ``max_steps``.
+    base step ``dt``, `StepSizeController.resolved`), the ball's radius ``eps`` and the budget ``max_steps``
+    (default: the policy's own, which must then be set: the host's drivers take a policy whose every number is
+    resolved, `jaxsleigh.studies.config.SolveConfig.step_controller`).
     ``xp=np`` makes NumPy scalars (a host driver passes them to a compiled step as arguments; made on the device,
     each cast was a program of its own). Every front builds its controls here."""
     ss = stepsize.resolved(dtype, dt)
+    if max_steps is None:
+        if ss.max_steps is None:
+            raise ValueError("controls needs a step budget: give max_steps= or a policy with max_steps set "
+                             "(jaxsleigh.integrate.horizon.step_budget)")
+        max_steps = ss.max_steps
     dtype = xp.dtype(dtype)
     return Controls(*(xp.asarray(v, dtype) for v in (dt, ss.max_step, ss.rtol, ss.atol, eps)),
                     max_steps=xp.asarray(max_steps, xp.int32),

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from ..model.params import is_concrete
 from ..validate import INT32_MAX, whole
 
-__all__ = ["StepSizeController", "check_policy", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL",
+__all__ = ["StepSizeController", "STATIC_FIELDS", "check_policy", "error_ratio", "next_step", "DEFAULT_RTOL", "DEFAULT_ATOL",
            "MAX_STEP_FACTOR"]
 
 #: Tolerances of the adaptive method, per dtype (chosen from measured accuracy, see the docs).
@@ -63,6 +63,9 @@ class StepSizeController(NamedTuple):
       method: ``"adaptive"`` (this policy) or ``"rk4"`` (fixed steps of the base step ``dt``; the policy's
         numbers are then unused).
       check_passivity: reject (adaptive) or flag (``"rk4"``) steps that increase the paper's H_d.
+
+    As a pytree, ``max_steps``, ``method`` and ``check_passivity`` are static (`STATIC_FIELDS`) and the other
+    numbers are leaves, so a policy may sit in a config that ``jit``, ``grad`` or ``vmap`` traces.
     """
 
     rtol: Optional[float] = None
@@ -83,6 +86,25 @@ class StepSizeController(NamedTuple):
         return self._replace(rtol=DEFAULT_RTOL.get(name, 1e-6) if self.rtol is None else self.rtol,
                              atol=DEFAULT_ATOL.get(name, 1e-6) if self.atol is None else self.atol,
                              max_step=MAX_STEP_FACTOR * dt if self.max_step is None else self.max_step)
+
+
+#: The fields of `StepSizeController` that stay static under ``jit``, ``grad`` and ``vmap`` (the pytree's auxiliary
+#: data): the method and the passivity switch choose the compiled program, and the budget ``max_steps`` is the length
+#: of a scan. Its other numbers (tolerances, ``safety``, the factor limits, ``max_step``) are leaves: a policy inside a
+#: traced config (the tuner's `jaxsleigh.tuning.LossConfig`) has them traced, and changing them does not recompile.
+STATIC_FIELDS = ("max_steps", "method", "check_passivity")
+_LEAF_FIELDS = tuple(f for f in StepSizeController._fields if f not in STATIC_FIELDS)
+
+
+def _flatten(ss: StepSizeController):
+    return tuple(getattr(ss, f) for f in _LEAF_FIELDS), tuple(getattr(ss, f) for f in STATIC_FIELDS)
+
+
+def _unflatten(static, leaves) -> StepSizeController:
+    return StepSizeController(**dict(zip(_LEAF_FIELDS, leaves)), **dict(zip(STATIC_FIELDS, static)))
+
+
+jax.tree_util.register_pytree_node(StepSizeController, _flatten, _unflatten)
 
 
 #: the policy's numbers and what each must be: ``(field, lowest, lowest allowed, highest, highest allowed, words)``

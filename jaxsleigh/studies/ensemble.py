@@ -37,10 +37,11 @@ from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, study_options, takes_objects
 from .audit import audit_rows, resolve as resolve_audit
 from ..integrate.guard import GREW, NEAR, grown_settled_mode
+from ..integrate.horizon import reference_max_steps
 from ..integrate.stepsize import StepSizeController
 from ..integrate.observers import DEFAULT_OBSERVERS, collect
 from ..integrate.engine import (STIFF_AFTER, active_lanes, advance_pool, check_ics, drive_final, drive_plain,
-                                drive_saving, finish_state, flight_step, initial_w, put_lanes, step_controls,
+                                drive_saving, finish_state, flight_step, initial_w, put_lanes,
                                 take_lanes_of, working_dtype)
 from ..integrate.pool import Ladder, StragglerPool
 from ..cores import PART_SIZE, default_chunk_size, run_parts, workers
@@ -50,7 +51,7 @@ from ..progress import Progress
 from .sampled import sampled_settings, sampled_summaries
 from ..status import CONVERGED, VALID, Status, converged, counts_in_words, has_result, integrated
 from ..validate import check_memory, whole
-from ..integrate.stepper import init_batch
+from ..integrate.stepper import controls, init_batch
 from ..model.lanes import has_lanes, lane_table, take_lanes
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
@@ -442,7 +443,7 @@ class _Chunks:
     def _pieces_from(self, arrays: dict, n_parts: int) -> list:
         """`_pieces_to` read back: the parts' host states (the tree of the stepper's state, from its shape)."""
         with jax.enable_x64(self.cfg.x64):
-            ctl = step_controls(self.horizon, self.dtype, self.step, self.eps)
+            ctl = controls(self.step, self.dtype, dt=self.horizon.dt, eps=self.eps, xp=np)
             shape = jax.eval_shape(lambda y, s: init_batch(y, s, self.args, ctl, observers=self.observers),
                                    jax.ShapeDtypeStruct((1, 5), self.dtype), jax.ShapeDtypeStruct((1,), jnp.int32))
         tree = jax.tree_util.tree_structure(shape)
@@ -756,7 +757,7 @@ def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, d
     is too, and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
     def rerun(rows, rtol, atol):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
-        budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000)
+        budget = reference_max_steps(cfg.horizon)
         return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                      stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
                                      saveat=SaveAt(), run=RunOptions(progress=False, audit=False),

@@ -80,7 +80,8 @@ from __future__ import annotations
 from .checkpoint import TuningInterrupted
 from .gradients import GRADIENT_MODES, make_value_and_grad
 from .history import load_history, save_history
-from .objective import LaneSummary, LossConfig, TrainingSet, make_training_set, objective, soft_convergence
+from .objective import (TRAINING_STEPSIZE, LaneSummary, LossConfig, TrainingSet, make_training_set, objective,
+                        soft_convergence, traced_loss)
 from .optimizer import BacktrackState, TuneConfig, TuneHistory, TuneResult, backtracking, make_optimizer, tune
 from .pareto import (FRONT_METHODS, Front, FrontPoint, budgets_between, default_budgets, evaluate_front, front_dict,
                      load_front, pareto_front, point_gains, random_search, save_front, training_energy)
@@ -99,7 +100,8 @@ __all__ = [
     "merge_params",
     "UniformStarts", "draw_starts", "sample_starts", "guard_starts", "PlantDistribution", "sample_plants",
     "validation_plants",
-    "LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "soft_convergence", "objective",
+    "LossConfig", "TRAINING_STEPSIZE", "traced_loss", "LaneSummary", "TrainingSet", "make_training_set",
+    "soft_convergence", "objective",
     "make_value_and_grad", "GRADIENT_MODES",
     "TuneConfig", "TuneHistory", "TuneResult", "TuningInterrupted", "BacktrackState", "backtracking",
     "make_optimizer", "tune", "save_history", "load_history",

@@ -26,6 +26,7 @@ from ..files.checkpoint import Checkpoint, refused
 from ..model.params import gains_to_dict
 from ..model.controller import law_leaf_names
 from ..studies.config import plant_to_dict
+from .objective import loss_record
 
 __all__ = ["TuningInterrupted", "TunerCheckpoint", "tune_settings", "LawCheckpoint", "law_settings",
            "checkpoint_options", "Checkpoint", "tree_arrays", "tree_from", "track_arrays",
@@ -47,7 +48,7 @@ def tune_settings(g0, names, config, loss, plant, robust, guard, x64, d_floor, s
     """Everything that determines a `jaxsleigh.tuning.tune` run but its training starts, as JSON (`Checkpoint.of_run`
     adds those: a checkpoint only resumes the same run)."""
     return {"gains0": gains_to_dict(g0), "names": list(names), "config": config._asdict(),
-            "loss": {k: float(v) for k, v in loss._asdict().items()},
+            "loss": loss_record(loss),
             "plant": None if plant is None else plant_to_dict(plant), "robust": None if robust is None else repr(robust),
             "guard": None if guard is None else np.asarray(guard, np.float64).tolist(), "x64": bool(x64),
             "d_floor": float(d_floor), "starts": repr(starts) if callable(starts) else "array"}
@@ -222,7 +223,7 @@ def law_settings(law, names, plant, loss, lr, x64, n_attempts) -> dict:
     and its number of steps (a resumed run may go on for more), as JSON."""
     leaves = {n: np.asarray(v, np.float64).tolist() for n, v in law_leaf_names(law).items()}
     return {"law": str(jax.tree_util.tree_structure(law)), "leaves": leaves, "tuned": list(names),
-            "plant": plant_to_dict(plant), "loss": {k: float(v) for k, v in loss._asdict().items()}, "lr": float(lr),
+            "plant": plant_to_dict(plant), "loss": loss_record(loss), "lr": float(lr),
             "x64": bool(x64), "n_attempts": int(n_attempts)}
 
 

@@ -23,19 +23,21 @@ median.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 
 from ..integrate.observers import ControlEffort, ConvergenceTime, hermite
+from ..integrate.horizon import step_budget
 from ..integrate.stepper import Checkpointed, WhileActive, controls, run
-from ..integrate.stepsize import StepSizeController
+from ..integrate.stepsize import StepSizeController, check_policy
 from ..model.closed_loop import ClosedLoop
 from ..status import Status
+from ..validate import refuses_removed_keywords
 from .objective import _initial_states
 
-__all__ = ["EntryState", "Settling", "settling"]
+__all__ = ["EntryState", "Settling", "settling", "SETTLING_KEYWORDS"]
 
 
 @dataclass(frozen=True)
@@ -91,23 +93,41 @@ class Settling(NamedTuple):
 _OBSERVERS = (EntryState(), ControlEffort())
 
 
+#: The keywords `settling` took before jaxsleigh 0.4: ``keyword -> ("stepsize", field)`` of the object that holds it
+#: now.
+SETTLING_KEYWORDS = {k: ("stepsize", k) for k in ("rtol", "atol", "max_steps")}
+
+
+@refuses_removed_keywords(SETTLING_KEYWORDS, {"stepsize": frozenset(StepSizeController._fields)},
+                          "settling's rtol=, atol= and max_steps= were removed in jaxsleigh 0.4")
 def settling(controller, y0w, plant, *, t_final: float = 100.0, eps: float = 0.05, dt: float = 0.01,
-             rtol=None, atol=None, max_steps: int = 100_000, reverse: bool = False, segment: int = 200) -> Settling:
+             stepsize: Optional[StepSizeController] = None, reverse: bool = False, segment: int = 200) -> Settling:
     r"""Integrate the chart starts ``y0w`` (N, 5) under ``controller`` to ``t_final`` with the engine's adaptive
-    stepper and return `Settling`. Traced code (``jit`` it). ``max_steps``: attempted steps per start (a start that
-    needs more ends ``BUDGET_EXHAUSTED``, not settled).
+    stepper and return `Settling`. Traced code (``jit`` it).
+
+    ``dt`` is the base step (the first step tried), as in `jaxsleigh.solve`. ``stepsize``: the
+    `jaxsleigh.StepSizeController` of the adaptive steps (static; checked and resolved as `jaxsleigh.solve` does:
+    tolerances per dtype by default; ``method`` must be ``"adaptive"``). Its ``max_steps`` is the budget of attempted
+    steps per start (a start that needs more ends ``BUDGET_EXHAUSTED``, not settled); by default the budget of every
+    front (`jaxsleigh.integrate.horizon.step_budget`: \(20\,(t_{final}/dt + 9)\) attempts in float32,
+    \(30\,(t_{final}/dt + 9)\) in float64), which needs ``t_final`` and ``dt`` concrete.
 
     ``reverse=False`` (static) steps in a ``while_loop``: differentiate in forward mode (``jax.jvp``,
     ``jax.jacfwd``, one tangent per parameter). ``reverse=True`` steps in checkpointed segments of ``segment``
     attempts (`jaxsleigh.integrate.stepper.Checkpointed`): ``jax.grad`` too, whose cost does not grow with the
-    number of parameters (``max_steps`` is then static)."""
+    number of parameters (the budget is then the number of attempts the segments hold, a static number)."""
+    ss = check_policy(stepsize)
+    if ss.method != "adaptive":
+        raise ValueError(f"settling steps with the adaptive method (its entry time is read off the adaptive step's "
+                         f"dense output): stepsize.method must be 'adaptive', got {ss.method!r}")
     dtype = y0w.dtype
-    ctl = controls(StepSizeController(rtol=rtol, atol=atol), dtype, dt=dt, eps=eps, max_steps=max_steps)
+    max_steps = step_budget(ss, t_final, dt, dtype)
+    ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_steps)
     args = ClosedLoop(plant, controller)
     s = _initial_states(y0w, args, ctl, True, _OBSERVERS)
     T_end = jnp.asarray(t_final, dtype)
     if reverse:
-        s = run(s, T_end, args, ctl, Checkpointed(int(max_steps), int(segment)), adaptive=True, observers=_OBSERVERS)
+        s = run(s, T_end, args, ctl, Checkpointed(max_steps, int(segment)), adaptive=True, observers=_OBSERVERS)
     else:
         s = run(s, T_end, args, ctl, WhileActive(), adaptive=True, observers=_OBSERVERS)
     (t_hard, q2, rate), (_, _, peak) = s.obs

@@ -45,9 +45,11 @@ import optax
 
 from ..controllers.actuators import is_sampled
 from ..integrate.engine import initial_w
+from ..integrate.stepsize import StepSizeController
 from ..model.charts import chart_for
 from ..model.params import PlantParams, as_plant, paper_gains
 from ..status import Status
+from ..validate import refuses_removed_keywords
 from .cmaes import cma_ask, cma_init, cma_tell
 from .event_time import settling
 from .law import law_coordinates
@@ -57,18 +59,7 @@ from .objective import valid_starts
 __all__ = ["HardTimeConfig", "HardTimeProblem", "hard_time_problem", "tune_by_gradient", "tune_by_cma", "TuneRun"]
 
 
-class HardTimeConfig(NamedTuple):
-    """Numbers of the hard-time objective (module docstring).
-
-    Attributes:
-      t_final, eps: horizon [s] and ball radius of \\(T_\\epsilon\\).
-      time_quantiles, time_weights: the \\(q_j\\) and \\(a_j\\).
-      energy_quantiles: the \\(r_k\\); energy_margin: the budgets are ``margin x`` the reference's quantiles.
-      settled_margin: the floor \\(s_{min}\\) is the reference's settled fraction minus this.
-      penalty: \\(\\rho\\).
-      max_steps: attempted steps per start (static); segment: checkpointed segment length.
-    """
-
+class _HardTimeFields(NamedTuple):
     t_final: float = 100.0
     eps: float = 0.05
     time_quantiles: tuple = (0.5, 0.9)
@@ -77,8 +68,33 @@ class HardTimeConfig(NamedTuple):
     energy_margin: float = 0.95
     settled_margin: float = 0.0
     penalty: float = 10.0
-    max_steps: int = 40_000
+    stepsize: StepSizeController = StepSizeController(max_steps=40_000)
     segment: int = 200
+
+
+class HardTimeConfig(_HardTimeFields):
+    """Numbers of the hard-time objective (module docstring).
+
+    Attributes:
+      t_final, eps: horizon [s] and ball radius of \\(T_\\epsilon\\).
+      time_quantiles, time_weights: the \\(q_j\\) and \\(a_j\\).
+      energy_quantiles: the \\(r_k\\); energy_margin: the budgets are ``margin x`` the reference's quantiles.
+      settled_margin: the floor \\(s_{min}\\) is the reference's settled fraction minus this.
+      penalty: \\(\\rho\\).
+      stepsize: the `jaxsleigh.StepSizeController` of `jaxsleigh.tuning.event_time.settling` (adaptive, tolerances per
+        dtype); its ``max_steps`` is the attempts per start (default 40,000, 4x the base steps of 100 s: the
+        reverse-mode gradient stores a checkpoint per segment of them; ``None``: every front's budget,
+        `jaxsleigh.integrate.horizon.step_budget`). segment: checkpointed segment length.
+
+    ``HardTimeConfig(max_steps=...)`` (before jaxsleigh 0.4) is a ``TypeError`` naming
+    ``stepsize=jaxsleigh.StepSizeController(max_steps=...)``.
+    """
+
+    __slots__ = ()
+    __new__ = refuses_removed_keywords({"max_steps": ("stepsize", "max_steps")},
+                                       {"stepsize": frozenset(StepSizeController._fields)},
+                                       "HardTimeConfig's max_steps= was removed in jaxsleigh 0.4",
+                                       name="HardTimeConfig")(_HardTimeFields.__new__)
 
 
 class HardTimeProblem(NamedTuple):
@@ -130,8 +146,8 @@ def hard_time_problem(law, starts, *, reference=None, plant: Optional[PlantParam
     y0_law, y0_ref = (initial_w(ics5, status0, dtype, chart_for(c)) for c in (law, ref))    # each in its own chart
 
     def run(c, y0w):
-        return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps, max_steps=cfg.max_steps, reverse=True,
-                        segment=cfg.segment)
+        return settling(c, y0w, plant, t_final=cfg.t_final, eps=cfg.eps,
+                        stepsize=cfg.stepsize, reverse=True, segment=cfg.segment)
 
     # the budgets: the reference's energy quantiles times energy_margin; the floor: its settled fraction minus
     # settled_margin

@@ -27,7 +27,8 @@ from .checkpoint import LawCheckpoint, Checkpoint, TuningInterrupted, check_resu
 from .loops import descend, step_if
 from .optimizer import check_sizes
 from .params import TUNABLE, GainParams, gains_from_params, params_from_gains
-from .objective import LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, valid_starts
+from .objective import (LaneSummary, LossConfig, loss_from_lanes, soft_convergence, soft_indicator, training_max_step,
+                        valid_starts)
 from ..controllers.paper import PaperLaw
 from ..integrate.sampled import solve_sampled
 from ..studies.sampled import plain_sampler, substeps_for
@@ -190,8 +191,8 @@ def sampled_lanes(law, y0, plant: PlantParams, cfg: LossConfig) -> LaneSummary:
     then invalid)."""
     smp = plain_sampler(law.sampler)
     r = solve_sampled(law.law, plant, y0, t_final=float(cfg.t_final), sampler=smp, eps=float(cfg.eps),
-                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype, rtol=float(cfg.rtol),
-                      atol=float(cfg.atol))
+                      substeps=substeps_for(smp.period, float(cfg.dt)), dtype=y0.dtype,
+                      stepsize=jax.tree_util.tree_map(float, cfg.stepsize))
     ok = r.status == Status.OK
     q = jnp.where(jnp.isfinite(r.q), r.q, 0.0)                              # (N, K+1, 3); no NaN in the gradient
     y = jnp.moveaxis(jnp.concatenate([q, jnp.zeros(q.shape[:2] + (2,), q.dtype)], axis=-1), -1, 0)
@@ -259,7 +260,7 @@ def tune_law(law, starts, *, tune: Optional[Sequence[str]] = None, plant: Option
     check_resume(checkpoint, resume)
     plant = as_plant(plant)
     n_attempts = law_attempts(loss, n_attempts)
-    check_sizes(steps, ics5.shape[0], loss.t_final, loss.max_step, n_attempts)
+    check_sizes(steps, ics5.shape[0], loss.t_final, training_max_step(loss), n_attempts)
     with jax.enable_x64(bool(x64)):
         dtype = jnp.zeros(()).dtype
         y0 = initial_w(ics5, status0, dtype, chart)          # the law's chart, mapped in float64

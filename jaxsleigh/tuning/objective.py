@@ -19,19 +19,50 @@ from ..status import Status
 from ..integrate.observers import ClosestApproach, Excursion
 from ..model.charts import WChart, chart_for
 from ..integrate.stepper import Checkpointed, Controls, StepState, controls, init_state, run, starting_step
-from ..integrate.stepsize import StepSizeController
+from ..integrate.stepsize import StepSizeController, check_policy
+from ..validate import refuses_removed_keywords
 
 from .params import D_FLOOR, GainParams, gains_from_params, merge_params
 from .starts import PlantDistribution, guard_starts, plant_groups
 
-__all__ = ["LossConfig", "LaneSummary", "TrainingSet", "make_training_set", "valid_starts", "soft_convergence",
+__all__ = ["LossConfig", "LOSS_KEYWORDS", "TRAINING_STEPSIZE", "check_loss_stepsize", "training_max_step",
+           "traced_loss", "loss_record",
+           "LaneSummary", "TrainingSet", "make_training_set", "valid_starts", "soft_convergence",
            "objective", "loss_from_lanes"]
 
 #: The stepper's observers inside the differentiated objective: only what LaneSummary reports.
 _OBSERVERS = (ClosestApproach(), Excursion())
 
 
-class LossConfig(NamedTuple):
+#: The training integrator of the tuner: the adaptive RK4 at rtol = atol = 1e-5 with steps of at most 0.1 s (ten base
+#: steps of 0.01 s; the command line's ``--dt`` sets it to 10 dt).
+TRAINING_STEPSIZE = StepSizeController(rtol=1e-5, atol=1e-5, max_step=0.1)
+
+
+class _LossFields(NamedTuple):
+    t_final: float = 30.0
+    guard_t_final: float = 10.0
+    probe_t_final: float = 100.0
+    dt: float = 0.01
+    stepsize: StepSizeController = TRAINING_STEPSIZE
+    eps: float = 0.05
+    temperature: float = 1.0
+    stop_fraction: float = 0.5
+    theta_barrier: float = 0.02
+    barrier_weight: float = 0.1
+    guard_weight: float = 0.01
+    energy_budget: float = float("inf")
+    penalty: float = 10.0
+    multiplier: float = 0.0
+    dual_step: float = 0.05
+
+
+#: The keywords `LossConfig` took before jaxsleigh 0.4: ``keyword -> ("stepsize", field)`` of the object that holds it
+#: now.
+LOSS_KEYWORDS = {k: ("stepsize", k) for k in ("rtol", "atol", "max_step")}
+
+
+class LossConfig(_LossFields):
     r"""Numbers of the objective and of its integrator (leaves: changing them does not recompile).
 
     Attributes:
@@ -39,7 +70,11 @@ class LossConfig(NamedTuple):
       guard_t_final: horizon [s] of the guard starts (their danger is early, near theta = 0).
       probe_t_final: horizon [s] of the integration-cost probe and of the final check (the
         validation horizon).
-      dt: base (first) step; max_step: largest step; rtol, atol: tolerances of the adaptive RK4.
+      dt: base (first) step, as `jaxsleigh.solve`'s ``dt``.
+      stepsize: `jaxsleigh.StepSizeController` of the training integrator (default `TRAINING_STEPSIZE`: rtol = atol
+        = 1e-5, ``max_step`` 0.1 s); its numbers are leaves of the config like the others, its ``method``,
+        ``check_passivity`` and ``max_steps`` static (`jaxsleigh.integrate.stepsize.STATIC_FIELDS`). The attempts per
+        lane are the tuner's (`TuneConfig.n_attempts`); ``method`` must be ``"adaptive"``, and ``max_steps`` unset.
       eps: radius of the ball ``|q| <= eps``.
       temperature: width ``tau`` of the soft indicator in ``log |q|``.
       stop_fraction: a lane stops once ``|q| <= stop_fraction * eps``.
@@ -51,25 +86,62 @@ class LossConfig(NamedTuple):
       penalty: \(\rho\) of the augmented Lagrangian; multiplier: its \(\lambda \ge 0\)
         (updated by the optimiser loop, see `objective`); dual_step: the loop's step
         \(\eta\) of the multiplier, \(\lambda \leftarrow \max(0, \lambda + \eta g)\).
+
+    ``LossConfig(rtol=...)``, ``atol=``, ``max_step=`` (before jaxsleigh 0.4) are a ``TypeError`` naming
+    ``stepsize=jaxsleigh.StepSizeController(...)``.
     """
 
-    t_final: float = 30.0
-    guard_t_final: float = 10.0
-    probe_t_final: float = 100.0
-    dt: float = 0.01
-    max_step: float = 0.1
-    rtol: float = 1e-5
-    atol: float = 1e-5
-    eps: float = 0.05
-    temperature: float = 1.0
-    stop_fraction: float = 0.5
-    theta_barrier: float = 0.02
-    barrier_weight: float = 0.1
-    guard_weight: float = 0.01
-    energy_budget: float = float("inf")
-    penalty: float = 10.0
-    multiplier: float = 0.0
-    dual_step: float = 0.05
+    __slots__ = ()
+    __new__ = refuses_removed_keywords(LOSS_KEYWORDS, {"stepsize": frozenset(StepSizeController._fields)},
+                                       "LossConfig's rtol=, atol= and max_step= were removed in jaxsleigh 0.4",
+                                       name="LossConfig")(_LossFields.__new__)
+
+
+def check_loss_stepsize(loss: LossConfig) -> StepSizeController:
+    """The training integrator's policy of ``loss``, checked (`jaxsleigh.integrate.stepsize.check_policy`, named
+    ``loss.stepsize``): adaptive, and without a ``max_steps`` (the attempts per lane are `TuneConfig.n_attempts`,
+    the length of the differentiated scan)."""
+    ss = check_policy(loss.stepsize, "loss.stepsize")
+    if ss.method != "adaptive":
+        raise ValueError(f"loss.stepsize.method must be 'adaptive' (the tuner differentiates the adaptive RK4), got "
+                         f"{ss.method!r}")
+    if ss.max_steps is not None:
+        raise ValueError("loss.stepsize.max_steps is not used by the tuner: its attempts per lane are "
+                         "TuneConfig.n_attempts (--n-attempts); leave max_steps unset")
+    return ss
+
+
+def training_max_step(loss: LossConfig) -> float:
+    """The largest step of the training integrator: ``loss.stepsize.max_step``, by default
+    (`jaxsleigh.integrate.stepsize.MAX_STEP_FACTOR`) 100 base steps ``loss.dt``; the policy checked first
+    (`check_loss_stepsize`). What the size check of a gradient run reads (`jaxsleigh.tuning.optimizer.check_sizes`)."""
+    return float(check_loss_stepsize(loss).resolved("float32", float(loss.dt)).max_step)
+
+
+def traced_loss(loss: LossConfig, dtype) -> LossConfig:
+    """``loss`` with every number (its step policy's too, `jaxsleigh.integrate.stepsize.STATIC_FIELDS` aside) an
+    array of ``dtype``: the leaves a compiled objective takes, so that changing them does not recompile."""
+    return jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), loss)
+
+
+def loss_record(loss: LossConfig) -> dict:
+    """``loss`` as JSON numbers, one key per number, the step policy's ``max_step``, ``rtol`` and ``atol`` in its
+    place (``None`` where unset) and any other field of the policy only where it differs from its default: the
+    record of the settings files and checkpoints (a tuner's checkpoint written before the policy was an object
+    resumes)."""
+    out = {}
+    for k, v in loss._asdict().items():
+        if k != "stepsize":
+            out[k] = float(v)
+            continue
+        base = StepSizeController()
+        for f in ("max_step", "rtol", "atol"):
+            out[f] = None if getattr(v, f) is None else float(getattr(v, f))
+        for f in v._fields:
+            if f not in ("max_step", "rtol", "atol") and getattr(v, f) != getattr(base, f):
+                value = getattr(v, f)
+                out[f] = value if isinstance(value, (str, bool, int)) or value is None else float(value)
+    return out
 
 
 class LaneSummary(NamedTuple):
@@ -168,8 +240,7 @@ def _soft_setup(gains, plant, cfg: LossConfig, t_final, n_attempts, dtype):
     chart = chart_for(gains)
     gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
     args = ClosedLoop(plant, gains)
-    ctl = controls(StepSizeController(rtol=cfg.rtol, atol=cfg.atol, max_step=cfg.max_step), dtype, dt=cfg.dt,
-                   eps=cfg.eps, max_steps=n_attempts)
+    ctl = controls(cfg.stepsize, dtype, dt=cfg.dt, eps=cfg.eps, max_steps=n_attempts)
     T = jnp.asarray(cfg.t_final if t_final is None else t_final, dtype)
     eps, tau = jnp.asarray(cfg.eps, dtype), jnp.asarray(cfg.temperature, dtype)
     theta_b = jnp.asarray(cfg.theta_barrier, dtype)

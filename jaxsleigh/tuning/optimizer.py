@@ -25,7 +25,7 @@ from ..progress import Progress
 from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume, tune_settings
 from .gradients import GRADIENT_MODES, make_value_and_grad
 from .loops import descend
-from .objective import LossConfig, make_training_set
+from .objective import LossConfig, loss_record, make_training_set, traced_loss, training_max_step
 from .params import D_FLOOR, GainParams, gains_from_params, gains_numpy, merge_params, parse_tune, params_from_gains, \
     split_params
 from .probes import check, hardest, probe
@@ -424,7 +424,7 @@ def _checked_tune_inputs(tune, config: TuneConfig, loss: LossConfig, starts=None
     if config.mode not in GRADIENT_MODES:
         raise ValueError(f"mode must be one of {GRADIENT_MODES}, got {config.mode!r}")
     rows = len(starts) if isinstance(starts, np.ndarray) and starts.ndim == 2 else batch
-    check_sizes(steps, rows, loss.t_final, loss.max_step, config.n_attempts)
+    check_sizes(steps, rows, loss.t_final, training_max_step(loss), config.n_attempts)
     return names, steps, batch
 
 
@@ -495,7 +495,7 @@ def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, pla
     and the objective (its energy budget and multiplier mapped) and the step are jitted and vmapped."""
     dtype = jnp.zeros(()).dtype
     data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
-    cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss))
+    cfg = traced_loss(loss, dtype)
     theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
     trainable, frozen = split_params(theta, names)
     vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
@@ -560,7 +560,7 @@ def _interrupted(track: CandidateTrack, ctx: TuneContext) -> Optional[TuneResult
                       float(track.best[0]), float(track.rows[0]["loss"]), int(track.best[1]), track.history(),
                       {"interrupted": True, "verified_iteration": None, "iterations_run": len(track.rows),
                        "dtype": "float64" if ctx.x64 else "float32", "tuned": list(ctx.names),
-                       "loss": {k: float(v) for k, v in ctx.loss._asdict().items()},
+                       "loss": loss_record(ctx.loss),
                        "method": "interrupted; best valid candidate so far, not re-checked"})
 
 
@@ -589,7 +589,7 @@ def _tune_settings(run: GradientRun, track: CandidateTrack, robust, starts, t_st
                             "(augmented Lagrangian)" if budgeted else "") +
                   ", adaptive RK4 in the w chart, gradients through the integrator",
         "tuned": list(ctx.names), "initial_gains": gains_to_dict(ctx.g0), "config": config._asdict(),
-        "loss": {k: float(v) for k, v in loss._asdict().items()}, "x64": bool(x64),
+        "loss": loss_record(loss), "x64": bool(x64),
         "dtype": "float64" if x64 else "float32", "robust": None if robust is None else robust._asdict(),
         "starts": repr(starts) if callable(starts) else "fixed array", "n_guard": int(run.data.guard.shape[0]),
         "iterations_run": len(rows), "wall_s": time.perf_counter() - t_start, "d_floor": ctx.d_floor,

@@ -31,7 +31,7 @@ import optax
 
 from ..model.params import Gains, PlantParams, gains as make_gains, gains_to_dict, load_gains
 from ..progress import Progress
-from .objective import LossConfig, make_training_set, objective
+from .objective import LossConfig, loss_record, make_training_set, objective, traced_loss, training_max_step
 from .checkpoint import Checkpoint, TunerCheckpoint, TuningInterrupted, check_resume
 from .loops import descend
 from .optimizer import CandidateTrack, GradientRun, TuneConfig, TuneHistory, check_sizes, prepare_run, tune
@@ -101,7 +101,7 @@ def _training_value(ics, config: TuneConfig, loss: LossConfig, plant, d_floor: f
     budget on the starts ``ics`` at the `GainParams` ``theta`` (one evaluation, no gradient)."""
     dtype = jnp.zeros(()).dtype
     data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
-    cfg = LossConfig(*(jnp.asarray(v, dtype) for v in loss._replace(energy_budget=float("inf"), multiplier=0.0)))
+    cfg = traced_loss(loss._replace(energy_budget=float("inf"), multiplier=0.0), dtype)
     f = _value(config.n_attempts, config.segment, d_floor)
     return dtype, lambda theta: f(*split_params(theta, None), data, cfg)
 
@@ -155,7 +155,7 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     budgets = _checked_budgets(method, budgets)
     # the vmapped front runs every budget's batch at once
     check_sizes(config.steps, int(config.batch) * (budgets.size if method == "vmap" else 1), loss.t_final,
-                loss.max_step, config.n_attempts)
+                training_max_step(loss), config.n_attempts)
     if method != "vmap" and (checkpoint is not None or resume):
         raise ValueError("checkpoint and resume are the vmapped front's; a warm front keeps its finished points "
                          "(on_point) and continues from them (done)")
@@ -163,7 +163,7 @@ def pareto_front(budgets, *, method: str = "warm", gains0="paper", starts=Unifor
     t0 = time.perf_counter()
     if method == "warm":
         warm_steps = max(1, config.steps // 2) if warm_steps is None else int(warm_steps)
-        check_sizes(warm_steps, config.batch, loss.t_final, loss.max_step, config.n_attempts,
+        check_sizes(warm_steps, config.batch, loss.t_final, training_max_step(loss), config.n_attempts,
                     names={"steps": "warm_steps"})
     settings = front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts)
     if method == "warm":
@@ -228,7 +228,7 @@ def _front_warm(budgets, t0, warm_steps, on_point, done, settings, *, gains0, st
 def front_settings(method, budgets, config, loss, warm_steps, x64, gains0, tune_names, starts) -> dict:
     """What determines a front (recorded in its file; a resume or a checkpoint must match it)."""
     return {"method": method, "budgets": budgets.tolist(), "config": config._asdict(),
-            "loss": {k: float(v) for k, v in loss._asdict().items() if k != "energy_budget"},
+            "loss": {k: v for k, v in loss_record(loss).items() if k != "energy_budget"},
             "warm_steps": warm_steps if method == "warm" else None, "x64": bool(x64),
             "gains0": gains_to_dict(load_gains(gains0)), "tuned": list(parse_tune(tune_names)),
             "starts": repr(starts) if callable(starts) else "fixed array"}

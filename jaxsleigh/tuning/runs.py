@@ -50,7 +50,7 @@ from ..validate import check_memory, whole, writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
 from .history import save_arrays
 from .cma_search import NoFeasibleCandidate, SearchConfig
-from .objective import LossConfig
+from .objective import LossConfig, training_max_step
 from .optimizer import TuneConfig, check_sizes
 from .starts import UniformStarts, draw_starts
 from .law import law_attempts
@@ -297,7 +297,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
                  history={k: np.asarray(v).tolist() for k, v in res.history.items()}, **fields)
         return (run.out, *_history(run, lambda p: save_arrays(p, res.history)))
 
-    check_sizes(steps, batch, loss.t_final, loss.max_step, law_attempts(loss, n_attempts))
+    check_sizes(steps, batch, loss.t_final, training_max_step(loss), law_attempts(loss, n_attempts))
     met = (lambda r: _budget_met(loss.energy_budget, r.energy))
     o = _tuner_run(run, "tuning run", lambda: tu.tune_law(
         law, draw_starts(starts, batch, seed), tune=names, plant=plant, loss=loss, steps=steps, lr=lr, x64=x64,

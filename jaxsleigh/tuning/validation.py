@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import AccuracyWarning
+from ..integrate.horizon import make_horizon, reference_max_steps
 from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains, PlantParams, load_gains, paper_plant
 from ..studies.audit import Audit
@@ -97,7 +98,8 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
     if resolved:
         # the settings misreport these gains (an unresolved settled phase flatters them): a tuner must see what
         # they really do, so every figure comes from float64 at the audit's reference tolerances
-        kw["stepsize"] = StepSizeController(rtol=audit.rtol, atol=audit.atol, max_steps=100 * int(round(t_final / kw.get("dt", 0.01))) + 1000)
+        budget = reference_max_steps(make_horizon(t_final, kw.get("dt", 0.01)))
+        kw["stepsize"] = StepSizeController(rtol=audit.rtol, atol=audit.atol, max_steps=budget)
         r = run_ensemble(ics, plant=plant, t_final=t_final, eps=eps, x64=True, run=run._replace(audit=False), **kw)
     T = np.where(r.status == Status.OK, r.T_eps, np.nan)
     n = T.size
