@@ -77,6 +77,22 @@ def test_a_row_is_off_only_against_a_reference_that_converged():
         audit_line(bad)
 
 
+def test_a_flagged_row_is_not_re_run_at_the_tightest_tolerance():
+    """An unresolved row's figures hang on a seed below every tolerance: off at 1e-10 and 1e-12, it is judged against
+    1e-12 and reported, without a 1e-13 run that would not settle it."""
+    result = _fake([1.0, 2.0])
+    result.unresolved = np.array([False, True])
+    calls = []
+
+    def rerun(rows, rtol, atol):
+        calls.append((tuple(int(i) for i in rows), rtol))
+        return _fake(np.array([1.0, 3.0])[rows])
+
+    with pytest.warns(AccuracyWarning):
+        rec = audit_rows(result, rerun, Audit(rows=2))
+    assert calls == [((0, 1), 1e-10), ((1,), 1e-12)] and rec["rows_confirmed_tighter"] == 0 and not rec["passed"]
+
+
 def test_the_record_says_what_the_audit_does_not_check():
     """A law without a per-row flag (``flag=None``: the physical chart's) is checked only by the sample: the record
     and the line say so, with the probability that the sample re-runs a row of a 2% tail. At 512 starts the budget

@@ -246,7 +246,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     energy (at 1e-10 on most starts, at 1e-12 on some, depending on the last bits of the batch), while at 1e-13 and
     1e-14 float64 agrees with itself, with SciPy's DOP853 and with float32 at its defaults
     (``docs/evidence/accuracy.md``). ``reference_unconverged`` counts the rows whose reference moved between
-    tolerances.
+    tolerances. A flagged row (``result.unresolved``) is not re-run at \(\tau_2\): it is reported as unresolved
+    whatever its references say, and they hang on a seed below every tolerance.
 
     ``reference()``, if given, returns what ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns,
     computed ahead (e.g. in a thread of its own while the run finished its last lanes). ``fixed_step``: the result
@@ -287,7 +288,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
         done = np.isin(tight.status, finished)
         moved[off] = ~_agree(_differences(ref.take(off), tight), audit) & done
         ref = ref.put(off[done], tight.take(done))
-        still = off[done & ~_agree(_differences(mine.take(off), tight), audit)]
+        # a flagged row's figures hang on a seed below every tolerance: a tighter reference would not settle them
+        still = off[done & ~_agree(_differences(mine.take(off), tight), audit) & ~flags[rows[off]]]
         if still.size and audit.tightest_tol < audit.confirm_tol:
             tighter = _Rows.of(rerun(rows[still], audit.tightest_tol, audit.tightest_tol))
             done = np.isin(tighter.status, finished)
