@@ -93,6 +93,34 @@ def test_a_flagged_row_is_not_re_run_at_the_tightest_tolerance():
     assert calls == [((0, 1), 1e-10), ((1,), 1e-12)] and rec["rows_confirmed_tighter"] == 0 and not rec["passed"]
 
 
+def test_a_budgeted_reference_is_held_to_its_steps():
+    """A budgeted audit gives its reference at most `REFERENCE_STEPS` steps a row per step of the row in the run (more
+    at tighter tolerances); a reference that runs out is not judged, the record's sample counts only the rows judged,
+    and the line says so. An audit of rows asked for is not held."""
+    from jaxsleigh.studies.audit import REFERENCE_STEPS
+
+    n = 6400
+    result = _fake(np.ones(n))
+    result.n_steps = np.full(n, 700.0)
+    result.n_steps[:10] = 70.0                        # cheap rows: the budget affords some
+    asked = []
+
+    def rerun(rows, rtol, atol, max_steps=None):
+        asked.append(max_steps)
+        return _fake(np.ones(len(rows)), status=np.full(len(rows), js.Status.BUDGET_EXHAUSTED),
+                     T=np.full(len(rows), np.nan))
+
+    budgeted = Audit(seed=0, budget=1.0)
+    rec = audit_rows(result, rerun, budgeted)
+    assert rec["rows"] > 0 and asked[0] == int(np.ceil(REFERENCE_STEPS * result.n_steps[
+        audit_sample(budgeted, n, steps=result.n_steps)].max()))
+    assert rec["reference_unfinished"] == rec["rows"] and rec["coverage"]["sampled_rows"] == 0
+    assert "no row judged" in audit_line(rec) and f"{rec['rows']} rows not judged" in audit_line(rec)
+    asked.clear()
+    audit_rows(result, rerun, Audit(rows=2))
+    assert asked == [None]
+
+
 def test_the_record_says_what_the_audit_does_not_check():
     """A law without a per-row flag (``flag=None``: the physical chart's) is checked only by the sample: the record
     and the line say so, with the probability that the sample re-runs a row of a 2% tail. At 512 starts the budget

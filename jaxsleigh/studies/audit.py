@@ -42,8 +42,11 @@ settings that agree, and the command line's audit line. The record also says wha
 laws of the w chart; a law of the physical chart (Aicardi's, Astolfi's, Samson's, any ``u = law(q, v)``), a sampled
 law and the plain fixed-step path have no per-row flag, and their rows are checked only by the sample: a 2% tail of
 rows drawn at random is re-run with probability \(1 - \binom{N - m}{k} / \binom{N}{k}\) (`tail_detection`;
-\(m = \lceil 0.02 N\rceil\), \(k\) the rows re-run), 0 where the budget affords no row (512 starts), 95% only
-from 146 rows of 4,096. The record states both, and the audit's line states the second for such a law.
+\(m = \lceil 0.02 N\rceil\), \(k\) the rows judged), 0 where the budget affords no row (512 starts), 95% only
+from 146 rows of 4,096. The record states both, and the audit's line states the second for such a law. A budgeted
+audit holds each reference row to `REFERENCE_STEPS` per step of the row in the run; a reference that runs out of
+them (one that would cost a multiple of the budget's estimate) is not judged, and the record counts it
+(``reference_unfinished``).
 """
 from __future__ import annotations
 
@@ -58,17 +61,24 @@ from ..status import Status
 from ..errors import AccuracyWarning
 
 __all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "resolve", "tail_detection",
-           "REFERENCE_COST", "REFERENCE_COST_FIXED"]
+           "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS"]
 
 #: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the adaptive run
 #: it audits, in units of the run's own cost per lane-step: one row of the paper's gains over 100 s took 0.08 s
 #: against 0.43 s for a 512-start run of 918 steps a row (a factor of 94; eight rows together, 28), warm, on a
 #: 2-core x86_64 CPU; at 100, four rows of a 4,096-start run took 7-11% of it on that machine under a load of 7-10
 #: (``experiments/studies/audit_power.py``), so 150 keeps the audit inside 10% with room. It is the paper's law's: a
-#: law whose reference takes far more steps than its run overruns it (Aicardi's law, whose float64 reference takes
-#: 18,000-57,000 steps a row against the run's 740: 2 rows of a 4,096-start run took 50-59% of it, warm; its record's
-#: ``share_of_run`` says so)
+#: law whose reference takes far more steps than its run would overrun it (Aicardi's law, whose float64 reference
+#: takes 18,000-57,000 steps a row against the run's 740: 2 rows of a 4,096-start run took 50-59% of it, warm), so
+#: a budgeted audit holds each reference to `REFERENCE_STEPS` (then 16-32%; the record's ``share_of_run`` says so)
 REFERENCE_COST = 150.0
+#: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
+#: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
+#: \(\tau^{-1/5}\)): the paper's law takes 2-17 (16.6 at most on 144 held-out starts, near theta = 0 and wide ones
+#: included, ``docs/evidence/accuracy.md``), so 35 stops none of its rows, while it stops the references that would
+#: cost a multiple of what `REFERENCE_COST` assumes (Aicardi's law at 1e-10, 72 a row: it chatters about its goal),
+#: which then end unfinished and are not judged (``reference_unfinished``) instead of overrunning the budget
+REFERENCE_STEPS = 35.0
 #: the same for a run of fixed steps, whose lane-steps cost a fraction of an adaptive one's and count every base
 #: step: four reference rows took 0.16 s against 0.34 s for the plain fixed-step path of 4,096 starts of 10,000
 #: steps each (a factor of about 480 a row; one row costs half of four)
@@ -211,6 +221,17 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
     return np.sort(rows)
 
 
+def _cap(audit: "Audit", steps, rows: np.ndarray, tol: float) -> dict:
+    r"""``{"max_steps": m}`` for a budgeted audit's reference of ``rows`` at ``tol`` (``{}`` for an audit of
+    ``rows`` asked for, without a budget or without the run's steps): \(m = \lceil\) `REFERENCE_STEPS`
+    \(\cdot (10^{-10}/\tau)^{1/5} \max_{i} n_i \rceil\) over the rows' run steps \(n_i\)."""
+    if steps is None or audit.rows is not None or audit.budget is None:
+        return {}
+    s = np.nan_to_num(np.asarray(steps, np.float64)[rows], nan=0.0)
+    scale = max(1.0, (1e-10 / float(tol)) ** 0.2)
+    return {"max_steps": int(math.ceil(REFERENCE_STEPS * scale * max(float(np.max(s)), 1.0)))}
+
+
 def tail_detection(n: int, k: int, share: float = 0.02) -> float:
     r"""The probability that ``k`` rows drawn at random without replacement from ``n`` hold at least one row of a
     tail of \(m = \lceil \text{share} \cdot n \rceil\) rows: \(1 - \binom{n - m}{k} / \binom{n}{k}
@@ -224,7 +245,7 @@ def tail_detection(n: int, k: int, share: float = 0.02) -> float:
 
 def coverage(flag: Optional[str], n: int, sampled: int) -> dict:
     """What the audit of a result of ``n`` rows checks: the per-row ``flag`` (what it detects, or ``None``: the law
-    has none) and the sample of ``sampled`` rows, with the probability that it re-runs a row of a 2% tail drawn at
+    has none) and the sample of ``sampled`` rows judged (their reference finished), with the probability that it re-runs a row of a 2% tail drawn at
     random (`tail_detection`; the rows the flag does not see are found only so)."""
     return {"flag": flag or "none: no per-row check of what this law reports; only the sampled rows are checked",
             "sampled_rows": int(sampled), "tail_2pct_detection": round(tail_detection(n, sampled), 4)}
@@ -269,7 +290,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     if k == 0:
         return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON, **unresolved,
                 "coverage": coverage(flag, n, 0)}
-    rows = audit_sample(audit, n, unresolved=flags, steps=getattr(result, "n_steps", None), fixed_step=fixed_step)
+    steps = getattr(result, "n_steps", None)
+    rows = audit_sample(audit, n, unresolved=flags, steps=steps, fixed_step=fixed_step)
     if rows.size == 0:
         return {"rows": 0, "why": f"no row's reference fits {audit.budget:.0%} of the run's time", **unresolved,
                 "how": _SMALL_RUN_PYTHON, "wall_s": 0.0, "coverage": coverage(flag, n, 0)}
@@ -279,7 +301,7 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
         t0 = time.perf_counter()
     else:
         t0 = time.perf_counter()
-        first = rerun(rows, audit.rtol, audit.atol)
+        first = rerun(rows, audit.rtol, audit.atol, **_cap(audit, steps, rows, audit.rtol))
     mine, ref = _Rows.of(result, rows), _Rows.of(first)
     finished = (Status.OK, Status.NOT_SETTLING)
     off = np.where(~_agree(_differences(mine, ref), audit))[0]
@@ -287,14 +309,16 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     unjudged = np.zeros(k, bool)                    # two tightest references disagree, and with the result
     still = np.zeros(0, np.int64)
     if off.size:
-        tight = _Rows.of(rerun(rows[off], audit.confirm_tol, audit.confirm_tol))
+        tight = _Rows.of(rerun(rows[off], audit.confirm_tol, audit.confirm_tol,
+                               **_cap(audit, steps, rows[off], audit.confirm_tol)))
         done = np.isin(tight.status, finished)
         moved[off] = ~_agree(_differences(ref.take(off), tight), audit) & done
         ref = ref.put(off[done], tight.take(done))
         # a flagged row's figures hang on a seed below every tolerance: a tighter reference would not settle them
         still = off[done & ~_agree(_differences(mine.take(off), tight), audit) & ~flags[rows[off]]]
         if still.size and audit.tightest_tol < audit.confirm_tol:
-            tighter = _Rows.of(rerun(rows[still], audit.tightest_tol, audit.tightest_tol))
+            tighter = _Rows.of(rerun(rows[still], audit.tightest_tol, audit.tightest_tol,
+                                     **_cap(audit, steps, rows[still], audit.tightest_tol)))
             done = np.isin(tighter.status, finished)
             converged = _agree(_differences(ref.take(still), tighter), audit)
             agrees = _agree(_differences(mine.take(still), tighter), audit)
@@ -315,7 +339,7 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
            "worst_T_eps_s": worst["dT"], "worst_state": worst["dy"],
            "thresholds": {"energy_rel": audit.energy_rel, "T_eps_s": audit.T_eps_s, "state": audit.state},
            "wall_s": round(time.perf_counter() - t0, 3), **unresolved,
-           "unresolved_audited": int(flags[rows].sum()), "coverage": coverage(flag, n, k)}
+           "unresolved_audited": int(flags[rows].sum()), "coverage": coverage(flag, n, int(np.sum(d["judged"])))}
     if run_wall_s:
         rec["share_of_run"] = round(rec["wall_s"] / run_wall_s, 4)
     rec["passed"] = bool(np.all(_agree(d, audit)))
@@ -366,8 +390,12 @@ def audit_line(rec: Optional[dict], *, flag: Optional[str] = None) -> str:
         again += f", {rec['rows_confirmed_tighter']} at {rec['tightest']}"
     unjudged = (f"; {rec['reference_not_converged']} rows off a reference that did not converge ("
                 f"{rec['confirmed_at']} and {rec['tightest']} disagree)" if rec.get("reference_not_converged") else "")
+    judged = rec["rows"] - rec.get("reference_unfinished", 0)
+    verdict = "FAILED" if not rec["passed"] else "passed" if judged else "no row judged"
+    if rec.get("reference_unfinished"):
+        unjudged += f"; {rec['reference_unfinished']} rows not judged (their reference did not finish in its steps)"
     return (f"accuracy audit ({rec['rows']} rows against {rec['reference']}{again}): "
-            f"{'passed' if rec['passed'] else 'FAILED'}; worst energy {f(rec['worst_energy_rel'], '.2%')}, "
+            f"{verdict}; worst energy {f(rec['worst_energy_rel'], '.2%')}, "
             f"worst T_eps {f(rec['worst_T_eps_s'], '.2g')} s, worst final position {f(rec['worst_state'], '.2g')}, "
             f"status mismatches {rec['status_mismatch']}"
             + (f"; cost {rec['wall_s']:.2g} s ({rec['share_of_run']:.1%} of the run)" if "share_of_run" in rec else "")
