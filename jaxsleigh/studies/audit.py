@@ -75,7 +75,8 @@ REFERENCE_COST = 150.0
 #: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
 #: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
 #: \(\tau^{-1/5}\)): the paper's law takes 2-17 (16.6 at most on 144 held-out starts, near theta = 0 and wide ones
-#: included, ``docs/evidence/accuracy.md``), so 35 stops none of its rows, while it stops the references that would
+#: included, ``docs/evidence/accuracy.md``), the presets ``balanced``, ``tuned``, ``shaped`` and the laws of Astolfi
+#: and Samson 1.3-19.7 (24 README and 24 wide starts each), so 35 stops none of their rows, while it stops the references that would
 #: cost a multiple of what `REFERENCE_COST` assumes (Aicardi's law at 1e-10, 72 a row: it chatters about its goal),
 #: which then end unfinished and are not judged (``reference_unfinished``) instead of overrunning the budget
 REFERENCE_STEPS = 35.0
