@@ -75,10 +75,11 @@ REFERENCE_COST = 150.0
 #: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
 #: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
 #: \(\tau^{-1/5}\)): the paper's law takes 2-17 (16.6 at most on 144 held-out starts, near theta = 0 and wide ones
-#: included, ``docs/evidence/accuracy.md``), the presets ``balanced``, ``tuned``, ``shaped`` and the laws of Astolfi
-#: and Samson 1.3-19.7 (24 README and 24 wide starts each), so 35 stops none of their rows, while it stops the references that would
-#: cost a multiple of what `REFERENCE_COST` assumes (Aicardi's law at 1e-10, 72 a row: it chatters about its goal),
-#: which then end unfinished and are not judged (``reference_unfinished``) instead of overrunning the budget
+#: included, ``docs/evidence/accuracy.md``; scratch runs on a 2-core x86_64 machine), the presets ``balanced``,
+#: ``tuned``, ``shaped`` and the laws of Astolfi and Samson 1.3-19.7 (24 README and 24 wide starts each), so 35 stops
+#: none of their rows, while it stops the references that would cost a multiple of what `REFERENCE_COST` assumes
+#: (Aicardi's law at 1e-10, 72 a row: it chatters about its goal), which then end unfinished and are not judged
+#: (``reference_unfinished``) instead of overrunning the budget
 REFERENCE_STEPS = 35.0
 #: the same for a run of fixed steps, whose lane-steps cost a fraction of an adaptive one's and count every base
 #: step: four reference rows took 0.16 s against 0.34 s for the plain fixed-step path of 4,096 starts of 10,000
@@ -246,8 +247,8 @@ def tail_detection(n: int, k: int, share: float = 0.02) -> float:
 
 def coverage(flag: Optional[str], n: int, sampled: int) -> dict:
     """What the audit of a result of ``n`` rows checks: the per-row ``flag`` (what it detects, or ``None``: the law
-    has none) and the sample of ``sampled`` rows judged (their reference finished), with the probability that it re-runs a row of a 2% tail drawn at
-    random (`tail_detection`; the rows the flag does not see are found only so)."""
+    has none) and the sample of ``sampled`` rows judged (their reference finished), with the probability that it
+    re-runs a row of a 2% tail drawn at random (`tail_detection`; the rows the flag does not see are found only so)."""
     return {"flag": flag or "none: no per-row check of what this law reports; only the sampled rows are checked",
             "sampled_rows": int(sampled), "tail_2pct_detection": round(tail_detection(n, sampled), 4)}
 
@@ -260,19 +261,19 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     record (also when nothing was re-run: ``{"rows": 0, "why": ...}``) and warns when it fails.
 
     **The reference converges or the row is not judged.** A row off its reference at ``audit.rtol`` is re-run at
-    ``audit.confirm_tol`` \(\tau_1\), and one still off that at ``audit.tightest_tol`` \(\tau_2\). With
-    \(r_\tau\) the row's float64 run at \(\tau\) and \(a \approx b\) agreement within the thresholds:
-    \(r_{\tau_1} \approx\) result or \(r_{\tau_2} \approx\) result: the row agrees (two computations give its
-    figures; the looser reference was not converged); \(r_{\tau_1} \approx r_{\tau_2} \not\approx\) result:
-    the row is off (a converged reference); otherwise the row is judged against \(r_{\tau_2}\) and counted in
-    ``reference_not_converged``: the audit cannot confirm it either way, and does not pass it. Float64 at 1e-10 is itself wrong for some laws: Aicardi's law is discontinuous at
-    its goal, and once the distance \(e\) to the goal is below the absolute tolerance the angle of \((x, y)\),
-    which the law turns towards, is not resolved: the run chatters about the goal and spends 10-1000x the
-    energy (at 1e-10 on most starts, at 1e-12 on some, depending on the last bits of the batch), while at 1e-13 and
-    1e-14 float64 agrees with itself, with SciPy's DOP853 and with float32 at its defaults
-    (``docs/evidence/accuracy.md``). ``reference_unconverged`` counts the rows whose reference moved between
-    tolerances. A flagged row (``result.unresolved``) is not re-run at \(\tau_2\): it is reported as unresolved
-    whatever its references say, and they hang on a seed below every tolerance.
+    ``audit.confirm_tol`` \(\tau_1\), and one still off that at ``audit.tightest_tol`` \(\tau_2\). With \(r_\tau\) the
+    row's float64 run at \(\tau\) and \(a \approx b\) agreement within the thresholds: \(r_{\tau_1} \approx\) result or
+    \(r_{\tau_2} \approx\) result: the row agrees (two computations give its figures; the looser reference was not
+    converged); \(r_{\tau_1} \approx r_{\tau_2} \not\approx\) result: the row is off (a converged reference); otherwise
+    the row is judged against \(r_{\tau_2}\) and counted in ``reference_not_converged``: the audit cannot confirm it
+    either way, and does not pass it. Float64 at 1e-10 is itself wrong for some laws: Aicardi's law is discontinuous at
+    its goal, and once the distance \(e\) to the goal is below the absolute tolerance the angle of \((x, y)\), which the
+    law turns towards, is not resolved: the run chatters about the goal and spends up to \(10^{14}\) times the energy
+    (at 1e-10 on most starts, at 1e-12 on some, depending on the last bits of the batch), while at 1e-13 and 1e-14
+    float64 agrees with itself, with SciPy's DOP853 and with float32 at its defaults (``docs/evidence/accuracy.md``).
+    ``reference_unconverged`` counts the rows whose reference moved between tolerances. A flagged row
+    (``result.unresolved``) is not re-run at \(\tau_2\): it is reported as unresolved whatever its references say, and
+    they hang on a seed below every tolerance.
 
     ``reference()``, if given, returns what ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns,
     computed ahead (e.g. in a thread of its own while the run finished its last lanes). ``fixed_step``: the result

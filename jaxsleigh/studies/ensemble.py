@@ -761,9 +761,10 @@ def unresolved_flag(chart, *, sampled: bool, summaries: bool) -> Optional[str]:
 
 def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
     """``rerun(rows, rtol, atol, max_steps=None)``: the same study of some rows of ``ics5``, in float64 at the
-    tolerances given, within ``max_steps`` a row if given (the accuracy audit's reference, `jaxsleigh.studies.audit`). Its last stragglers are gathered down to one lane
-    (``LaneRules(bitwise=False)``): the rows and their batch are the same in every run of the study, so the reference
-    is too, and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
+    tolerances given, within ``max_steps`` a row if given (the accuracy audit's reference, `jaxsleigh.studies.audit`).
+    Its last stragglers are gathered down to one lane (``LaneRules(bitwise=False)``): the rows and their batch are the
+    same in every run of the study, so the reference is too, and a lone stiff row steps at its own cost, not at a
+    batch of 32's (half the tuned preset's validation)."""
     def rerun(rows, rtol, atol, max_steps=None):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
         budget = min(100 * cfg.horizon.n_steps + 1000, 2_000_000_000, max_steps or 2_000_000_000)
