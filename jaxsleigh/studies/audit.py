@@ -30,10 +30,23 @@ float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows t
   that still oscillates at the horizon hangs on the oscillation's phase, not on the accuracy of what is reported);
 * ``status_mismatch``: rows whose status differs (``NOT_SETTLING`` and OK unsettled count as one answer);
 
-and ``passed``: every figure within its threshold (`Audit`). A result that fails says so: ``run_info["audit"]``,
-an `jaxsleigh.errors.AccuracyWarning` naming the settings that agree, and the command line's audit line. The record
-also says what the audit cost (``wall_s``, and ``share_of_run``: that over the run's wall time) and how many of the
-unresolved rows it re-ran (``unresolved_audited``).
+and ``passed``: every figure within its threshold (`Audit`). A row off its 1e-10 reference is re-run at 1e-12 and,
+if still off, at 1e-13: it is off only against a reference that converged (1e-12 and 1e-13 agree), and the record
+counts the rows whose reference moved (``reference_unconverged``) or did not converge (``reference_not_converged``,
+`audit_rows`). A result that fails says so: ``run_info["audit"]``, an `jaxsleigh.errors.AccuracyWarning` naming the
+settings that agree, and the command line's audit line. The record also says what the audit cost (``wall_s``, and
+``share_of_run``: that over the run's wall time) and how many of the unresolved rows it re-ran
+(``unresolved_audited``).
+
+**What it does not check** (``coverage``, `coverage`): the flag detects one mechanism, the grown settled mode of the
+laws of the w chart; a law of the physical chart (Aicardi's, Astolfi's, Samson's, any ``u = law(q, v)``), a sampled
+law and the plain fixed-step path have no per-row flag, and their rows are checked only by the sample: a 2% tail of
+rows drawn at random is re-run with probability \(1 - \binom{N - m}{k} / \binom{N}{k}\) (`tail_detection`;
+\(m = \lceil 0.02 N\rceil\), \(k\) the rows judged), 0 where the budget affords no row (512 starts), 95% only
+from 146 rows of 4,096. The record states both, and the audit's line states the second for such a law. A budgeted
+audit holds each reference row to `REFERENCE_STEPS` per step of the row in the run; a reference that runs out of
+them (one that would cost a multiple of the budget's estimate) is not judged, and the record counts it
+(``reference_unfinished``).
 """
 from __future__ import annotations
 
@@ -47,15 +60,27 @@ import numpy as np
 from ..status import Status
 from ..errors import AccuracyWarning
 
-__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "resolve", "REFERENCE_COST",
-           "REFERENCE_COST_FIXED"]
+__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "resolve", "tail_detection",
+           "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS"]
 
 #: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the adaptive run
 #: it audits, in units of the run's own cost per lane-step: one row of the paper's gains over 100 s took 0.08 s
 #: against 0.43 s for a 512-start run of 918 steps a row (a factor of 94; eight rows together, 28), warm, on a
 #: 2-core x86_64 CPU; at 100, four rows of a 4,096-start run took 7-11% of it on that machine under a load of 7-10
-#: (``experiments/studies/audit_power.py``), so 150 keeps the audit inside 10% with room
+#: (``experiments/studies/audit_power.py``), so 150 keeps the audit inside 10% with room. It is the paper's law's: a
+#: law whose reference takes far more steps than its run would overrun it (Aicardi's law, whose float64 reference
+#: takes 18,000-57,000 steps a row against the run's 740: 2 rows of a 4,096-start run took 50-59% of it, warm), so
+#: a budgeted audit holds each reference to `REFERENCE_STEPS` (then 16-32%; the record's ``share_of_run`` says so)
 REFERENCE_COST = 150.0
+#: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
+#: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
+#: \(\tau^{-1/5}\)): the paper's law takes 2-17 (16.6 at most on 144 held-out starts, near theta = 0 and wide ones
+#: included, ``docs/evidence/accuracy.md``; scratch runs on a 2-core x86_64 machine), the presets ``balanced``,
+#: ``tuned``, ``shaped`` and the laws of Astolfi and Samson 1.3-19.7 (24 README and 24 wide starts each), so 35 stops
+#: none of their rows, while it stops the references that would cost a multiple of what `REFERENCE_COST` assumes
+#: (Aicardi's law at 1e-10, 72 a row: it chatters about its goal), which then end unfinished and are not judged
+#: (``reference_unfinished``) instead of overrunning the budget
+REFERENCE_STEPS = 35.0
 #: the same for a run of fixed steps, whose lane-steps cost a fraction of an adaptive one's and count every base
 #: step: four reference rows took 0.16 s against 0.34 s for the plain fixed-step path of 4,096 starts of 10,000
 #: steps each (a factor of about 480 a row; one row costs half of four)
@@ -72,6 +97,9 @@ class Audit(NamedTuple):
       seed: of the draw of the rows.
       rtol, atol: the reference's tolerances (float64).
       confirm_tol: the tolerance at which a row off its reference is re-run; that run is then its reference.
+      tightest_tol: the tolerance at which a row still off its ``confirm_tol`` reference is re-run: the row is off
+        only where that run agrees with the ``confirm_tol`` one (a converged reference); where it agrees with the
+        result, the result stands; where it agrees with neither, the row is not judged (`audit_rows`).
       energy_rel, T_eps_s, state: the thresholds of ``passed`` (relative energy, seconds, absolute state).
       budget: the audit's largest estimated cost as a share of the run's wall time (`audit_sample`); ``None``:
         no limit. ``rows`` given is re-run whatever it costs.
@@ -89,6 +117,7 @@ class Audit(NamedTuple):
     T_eps_s: float = 0.05
     state: float = 1e-3
     budget: float | None = 0.10
+    tightest_tol: float = 1e-13
 
     def count(self, n: int) -> int:
         """How many of ``n`` rows this audit re-runs (0: none)."""
@@ -194,21 +223,65 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
     return np.sort(rows)
 
 
+def _cap(audit: "Audit", steps, rows: np.ndarray, tol: float) -> dict:
+    r"""``{"max_steps": m}`` for a budgeted audit's reference of ``rows`` at ``tol`` (``{}`` for an audit of
+    ``rows`` asked for, without a budget or without the run's steps): \(m = \lceil\) `REFERENCE_STEPS`
+    \(\cdot (10^{-10}/\tau)^{1/5} \max_{i} n_i \rceil\) over the rows' run steps \(n_i\)."""
+    if steps is None or audit.rows is not None or audit.budget is None:
+        return {}
+    s = np.nan_to_num(np.asarray(steps, np.float64)[rows], nan=0.0)
+    scale = max(1.0, (1e-10 / float(tol)) ** 0.2)
+    return {"max_steps": int(math.ceil(REFERENCE_STEPS * scale * max(float(np.max(s)), 1.0)))}
+
+
+def tail_detection(n: int, k: int, share: float = 0.02) -> float:
+    r"""The probability that ``k`` rows drawn at random without replacement from ``n`` hold at least one row of a
+    tail of \(m = \lceil \text{share} \cdot n \rceil\) rows: \(1 - \binom{n - m}{k} / \binom{n}{k}
+    = 1 - \prod_{i=0}^{k-1} \frac{n - m - i}{n - i}\) (0 for ``k = 0``)."""
+    m = min(n, math.ceil(share * n - 1e-9))
+    miss = 1.0
+    for i in range(max(int(k), 0)):
+        miss *= max(n - m - i, 0) / (n - i)
+    return 1.0 - miss
+
+
+def coverage(flag: Optional[str], n: int, sampled: int) -> dict:
+    """What the audit of a result of ``n`` rows checks: the per-row ``flag`` (what it detects, or ``None``: the law
+    has none) and the sample of ``sampled`` rows judged (their reference finished), with the probability that it
+    re-runs a row of a 2% tail drawn at random (`tail_detection`; the rows the flag does not see are found only so)."""
+    return {"flag": flag or "none: no per-row check of what this law reports; only the sampled rows are checked",
+            "sampled_rows": int(sampled), "tail_2pct_detection": round(tail_detection(n, sampled), 4)}
+
+
 def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audit: "Audit", *,
                what: str = "result", reference: Optional[Callable[[], object]] = None,
-               fixed_step: bool = False, run_wall_s: float | None = None) -> dict:
-    """Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
+               fixed_step: bool = False, run_wall_s: float | None = None, flag: Optional[str] = None) -> dict:
+    r"""Audit ``result`` (per-row ``status``, ``T_eps``, ``u_energy``, ``q_final``, ``p_final``) against
     ``rerun(rows, rtol, atol)``, the same study of the rows ``rows`` in float64 at those tolerances. Returns the
     record (also when nothing was re-run: ``{"rows": 0, "why": ...}``) and warns when it fails.
 
-    A row off its reference is re-run at ``audit.confirm_tol`` and that run becomes its reference: at 1e-10, float64
-    itself is wrong for some laws (Aicardi's chatters at the target and never settles there; at 1e-12 it settles as
-    float32 does at its defaults), and where the settled phase is unstable 1e-10 and 1e-12 can disagree with each
-    other (``reference_unconverged`` counts those rows). ``reference()``, if given, returns what
-    ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns, computed ahead (e.g. in a thread of its own
-    while the run finished its last lanes). ``fixed_step``: the result came from fixed steps of ``dt``, which no
-    tolerance changes, and the warning says so. ``result.unresolved`` (if any) are re-run first and counted, and
-    warned about whatever the sample finds; ``run_wall_s``, the run's wall time, gives ``share_of_run``."""
+    **The reference converges or the row is not judged.** A row off its reference at ``audit.rtol`` is re-run at
+    ``audit.confirm_tol`` \(\tau_1\), and one still off that at ``audit.tightest_tol`` \(\tau_2\). With \(r_\tau\) the
+    row's float64 run at \(\tau\) and \(a \approx b\) agreement within the thresholds: \(r_{\tau_1} \approx\) result or
+    \(r_{\tau_2} \approx\) result: the row agrees (two computations give its figures; the looser reference was not
+    converged); \(r_{\tau_1} \approx r_{\tau_2} \not\approx\) result: the row is off (a converged reference); otherwise
+    the row is judged against \(r_{\tau_2}\) and counted in ``reference_not_converged``: the audit cannot confirm it
+    either way, and does not pass it. Float64 at 1e-10 is itself wrong for some laws: Aicardi's law is discontinuous at
+    its goal, and once the distance \(e\) to the goal is below the absolute tolerance the angle of \((x, y)\), which the
+    law turns towards, is not resolved: the run chatters about the goal and spends up to \(10^{14}\) times the energy
+    (at 1e-10 on most starts, at 1e-12 on some, depending on the last bits of the batch), while at 1e-13 and 1e-14
+    float64 agrees with itself, with SciPy's DOP853 and with float32 at its defaults (``docs/evidence/accuracy.md``).
+    ``reference_unconverged`` counts the rows whose reference moved between tolerances. A flagged row
+    (``result.unresolved``) is not re-run at \(\tau_2\): it is reported as unresolved whatever its references say, and
+    they hang on a seed below every tolerance.
+
+    ``reference()``, if given, returns what ``rerun(audit_sample(audit, n), audit.rtol, audit.atol)`` returns,
+    computed ahead (e.g. in a thread of its own while the run finished its last lanes). ``fixed_step``: the result
+    came from fixed steps of ``dt``, which no tolerance changes, and the warning says so. ``result.unresolved`` (if
+    any) are re-run first and counted, and warned about whatever the sample finds; ``run_wall_s``, the run's wall
+    time, gives ``share_of_run``. ``flag``: what ``result.unresolved`` detects for this law (``None``: the law has
+    no per-row check); the record's ``coverage`` (`coverage`) says so, with the probability that the sample sees a
+    2% tail."""
     n = int(np.shape(result.status)[0])
     flags = getattr(result, "unresolved", None)
     flags = np.zeros(n, bool) if flags is None else np.asarray(flags, bool)
@@ -217,45 +290,68 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
         _warn_unresolved(flags, what)
     k = audit.count(n)
     if k == 0:
-        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON, **unresolved}
-    rows = audit_sample(audit, n, unresolved=flags, steps=getattr(result, "n_steps", None), fixed_step=fixed_step)
+        return {"rows": 0, "why": f"fewer than {audit.min_starts} starts", "how": _SMALL_RUN_PYTHON, **unresolved,
+                "coverage": coverage(flag, n, 0)}
+    steps = getattr(result, "n_steps", None)
+    rows = audit_sample(audit, n, unresolved=flags, steps=steps, fixed_step=fixed_step)
     if rows.size == 0:
         return {"rows": 0, "why": f"no row's reference fits {audit.budget:.0%} of the run's time", **unresolved,
-                "how": _SMALL_RUN_PYTHON, "wall_s": 0.0}
+                "how": _SMALL_RUN_PYTHON, "wall_s": 0.0, "coverage": coverage(flag, n, 0)}
     k = int(rows.size)
     if reference is not None:               # computed ahead: its own seconds are for the caller to add, not the wait
         first = reference()
         t0 = time.perf_counter()
     else:
         t0 = time.perf_counter()
-        first = rerun(rows, audit.rtol, audit.atol)
+        first = rerun(rows, audit.rtol, audit.atol, **_cap(audit, steps, rows, audit.rtol))
     mine, ref = _Rows.of(result, rows), _Rows.of(first)
+    finished = (Status.OK, Status.NOT_SETTLING)
     off = np.where(~_agree(_differences(mine, ref), audit))[0]
-    unconverged = 0
+    moved = np.zeros(k, bool)                       # the reference changed between tolerances
+    unjudged = np.zeros(k, bool)                    # two tightest references disagree, and with the result
+    still = np.zeros(0, np.int64)
     if off.size:
-        tight = _Rows.of(rerun(rows[off], audit.confirm_tol, audit.confirm_tol))
-        done = np.isin(tight.status, [Status.OK, Status.NOT_SETTLING])
-        unconverged = int(np.sum(~_agree(_differences(ref.take(off), tight), audit) & done))
+        tight = _Rows.of(rerun(rows[off], audit.confirm_tol, audit.confirm_tol,
+                               **_cap(audit, steps, rows[off], audit.confirm_tol)))
+        done = np.isin(tight.status, finished)
+        moved[off] = ~_agree(_differences(ref.take(off), tight), audit) & done
         ref = ref.put(off[done], tight.take(done))
+        # a flagged row's figures hang on a seed below every tolerance: a tighter reference would not settle them
+        still = off[done & ~_agree(_differences(mine.take(off), tight), audit) & ~flags[rows[off]]]
+        if still.size and audit.tightest_tol < audit.confirm_tol:
+            tighter = _Rows.of(rerun(rows[still], audit.tightest_tol, audit.tightest_tol,
+                                     **_cap(audit, steps, rows[still], audit.tightest_tol)))
+            done = np.isin(tighter.status, finished)
+            converged = _agree(_differences(ref.take(still), tighter), audit)
+            agrees = _agree(_differences(mine.take(still), tighter), audit)
+            moved[still] |= ~converged & done
+            unjudged[still] = done & ~converged & ~agrees
+            ref = ref.put(still[done], tighter.take(done))
     d = _differences(mine, ref)
     worst = {k_: float(np.max(d[k_])) for k_ in ("dE", "dT", "dy")}
     rec = {"rows": k, "seed": audit.seed, "reference": f"float64, rtol = atol = {audit.rtol:g}",
            "rows_confirmed": int(off.size), "confirmed_at": f"rtol = atol = {audit.confirm_tol:g}",
-           "reference_unconverged": unconverged, "reference_unfinished": int(np.sum(~d["judged"])),
+           "rows_confirmed_tighter": int(still.size) if audit.tightest_tol < audit.confirm_tol else 0,
+           "tightest": f"rtol = atol = {audit.tightest_tol:g}",
+           "reference_unconverged": int(moved.sum()), "reference_not_converged": int(unjudged.sum()),
+           "reference_unfinished": int(np.sum(~d["judged"])),
            "compared": int(d["both"].sum()),
            "status_mismatch": int(np.sum(~d["same"])), "worst_energy_rel": worst["dE"],
            "share_energy_off_5pct": float(np.mean(d["dE"][d["both"]] > 0.05)) if d["both"].any() else None,
            "worst_T_eps_s": worst["dT"], "worst_state": worst["dy"],
            "thresholds": {"energy_rel": audit.energy_rel, "T_eps_s": audit.T_eps_s, "state": audit.state},
            "wall_s": round(time.perf_counter() - t0, 3), **unresolved,
-           "unresolved_audited": int(flags[rows].sum())}
+           "unresolved_audited": int(flags[rows].sum()), "coverage": coverage(flag, n, int(np.sum(d["judged"])))}
     if run_wall_s:
         rec["share_of_run"] = round(rec["wall_s"] / run_wall_s, 4)
     rec["passed"] = bool(np.all(_agree(d, audit)))
     if not rec["passed"]:
+        # the tolerance of the tightest reference the failing rows were judged against
+        tol = (audit.tightest_tol if rec["rows_confirmed_tighter"] else audit.confirm_tol if off.size else audit.rtol)
         fix = ("it took fixed steps of dt, which no tolerance changes: run it with the adaptive method (the default; "
                "--method adaptive) or a smaller dt" if fixed_step else
-               "run it with x64=True and StepSizeController(rtol=1e-10, atol=1e-10) (--x64 --rtol 1e-10 --atol 1e-10)")
+               f"run it with x64=True and StepSizeController(rtol={tol:g}, atol={tol:g}) (--x64 --rtol {tol:g} --atol "
+               f"{tol:g})")
         warnings.warn(f"the accuracy audit of this {what} failed: {audit_line(rec)}. What it reports is not what "
                       f"float64 gives for this law at these settings; {fix}, or trust only what the audit confirms",
                       AccuracyWarning, stacklevel=3)
@@ -288,15 +384,33 @@ def audit_line(rec: Optional[dict], *, flag: Optional[str] = None) -> str:
             how = f"{flag} K audits a small run"
         elif how is None and flag is not None and "RunOptions(" in why:   # a record written before "how" existed
             why, how = why.split(" (", 1)[0], f"{flag} K audits a small run"
-        return f"accuracy audit: not run ({why}{'; ' + how if how else ''}){_unresolved_words(rec)}"
+        return (f"accuracy audit: not run ({why}{'; ' + how if how else ''}){_unresolved_words(rec)}"
+                + _coverage_words(rec))
     f = lambda v, fmt: "n/a" if v is None else format(v, fmt)  # noqa: E731
     again = (f", {rec['rows_confirmed']} re-run at {rec['confirmed_at']}" if rec.get("rows_confirmed") else "")
+    if rec.get("rows_confirmed_tighter"):
+        again += f", {rec['rows_confirmed_tighter']} at {rec['tightest']}"
+    unjudged = (f"; {rec['reference_not_converged']} rows off a reference that did not converge ("
+                f"{rec['confirmed_at']} and {rec['tightest']} disagree)" if rec.get("reference_not_converged") else "")
+    judged = rec["rows"] - rec.get("reference_unfinished", 0)
+    verdict = "FAILED" if not rec["passed"] else "passed" if judged else "no row judged"
+    if rec.get("reference_unfinished"):
+        unjudged += f"; {rec['reference_unfinished']} rows not judged (their reference did not finish in its steps)"
     return (f"accuracy audit ({rec['rows']} rows against {rec['reference']}{again}): "
-            f"{'passed' if rec['passed'] else 'FAILED'}; worst energy {f(rec['worst_energy_rel'], '.2%')}, "
+            f"{verdict}; worst energy {f(rec['worst_energy_rel'], '.2%')}, "
             f"worst T_eps {f(rec['worst_T_eps_s'], '.2g')} s, worst final position {f(rec['worst_state'], '.2g')}, "
             f"status mismatches {rec['status_mismatch']}"
             + (f"; cost {rec['wall_s']:.2g} s ({rec['share_of_run']:.1%} of the run)" if "share_of_run" in rec else "")
-            + _unresolved_words(rec))
+            + unjudged + _unresolved_words(rec) + _coverage_words(rec))
+
+
+def _coverage_words(rec: dict) -> str:
+    """What a record of a law without a per-row flag does not check (nothing for a law with one, or an old record)."""
+    cov = rec.get("coverage")
+    if not cov or not str(cov.get("flag", "")).startswith("none"):
+        return ""
+    return (f"; no per-row flag for this law: a 2% tail of off rows is re-run with probability "
+            f"{cov['tail_2pct_detection']:.0%} ({cov['sampled_rows']} sampled rows)")
 
 
 def _unresolved_words(rec: dict) -> str:

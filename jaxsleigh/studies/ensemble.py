@@ -688,7 +688,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         t_start = time.perf_counter()
         audit = None if spec is None else _RunAudit(spec, n, _float64_rerun(
             ics5, lane_args, cfg, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps),
-            fixed_step=not cfg.adaptive)
+            fixed_step=not cfg.adaptive, flag=unresolved_flag(chart, sampled=sampled, summaries=saveat.summaries))
         # the store's lock on the folder is held until the last chunk is written or read
         with Progress(run.progress, desc=f"ensemble ({n} ics)") as bar, (store or contextlib.nullcontext()), \
                 concurrent.futures.ThreadPoolExecutor(len(devs)) as tail_pool:
@@ -750,14 +750,25 @@ def unresolved_rows(result, cfg, lane_args: ClosedLoop | None, *, sampled: bool 
     return flags
 
 
+def unresolved_flag(chart, *, sampled: bool, summaries: bool) -> Optional[str]:
+    """What ``result.unresolved`` detects for a law integrated in ``chart`` (the audit's ``coverage``), or ``None``
+    where it flags no row: a law of the physical chart (no settled pair to test), a sampled law, and the plain
+    fixed-step path (no ``min_abs_theta``)."""
+    if sampled or not summaries or not isinstance(chart, WChart):
+        return None
+    return ("rows whose settled (w2, p1) oscillation grew back out near the target, weakly damped or growing "
+            "(result.unresolved)")
+
+
 def _float64_rerun(ics5, lane_args, cfg, *, plant, gains, controller, t_final, dt, eps):
-    """``rerun(rows, rtol, atol)``: the same study of some rows of ``ics5``, in float64 at the tolerances given (the
-    accuracy audit's reference, `jaxsleigh.studies.audit`). Its last stragglers are gathered down to one lane
-    (``LaneRules(bitwise=False)``): the rows and their batch are the same in every run of the study, so the reference
-    is too, and a lone stiff row steps at its own cost, not at a batch of 32's (half the tuned preset's validation)."""
-    def rerun(rows, rtol, atol):
+    """``rerun(rows, rtol, atol, max_steps=None)``: the same study of some rows of ``ics5``, in float64 at the
+    tolerances given, within ``max_steps`` a row if given (the accuracy audit's reference, `jaxsleigh.studies.audit`).
+    Its last stragglers are gathered down to one lane (``LaneRules(bitwise=False)``): the rows and their batch are the
+    same in every run of the study, so the reference is too, and a lone stiff row steps at its own cost, not at a
+    batch of 32's (half the tuned preset's validation)."""
+    def rerun(rows, rtol, atol, max_steps=None):
         law = _rows_law(lane_args, rows, plant=plant, gains=gains, controller=controller)
-        budget = reference_max_steps(cfg.horizon)
+        budget = min(reference_max_steps(cfg.horizon), max_steps or 2_000_000_000)
         return run_ensemble_resolved(ics5[rows], **law, t_final=t_final, dt=dt, eps=eps, x64=True, observers=None,
                                      stepsize=StepSizeController(rtol=rtol, atol=atol, max_steps=budget),
                                      saveat=SaveAt(), run=RunOptions(progress=False, audit=False),
@@ -769,12 +780,12 @@ class _RunAudit:
     """The accuracy audit of an ensemble (`jaxsleigh.studies.audit`), once its result is assembled: the rows it
     re-runs are chosen from the result (its unresolved rows first, within a budget set by the run's own steps)."""
 
-    def __init__(self, spec, n: int, rerun, *, fixed_step: bool):
-        self.spec, self.n, self.rerun, self.fixed_step = spec, n, rerun, fixed_step
+    def __init__(self, spec, n: int, rerun, *, fixed_step: bool, flag: Optional[str] = None):
+        self.spec, self.n, self.rerun, self.fixed_step, self.flag = spec, n, rerun, fixed_step, flag
 
     def record(self, result) -> dict:
         return audit_rows(result, self.rerun, self.spec, what="ensemble", fixed_step=self.fixed_step,
-                          run_wall_s=(result.run_info or {}).get("wall_s"))
+                          run_wall_s=(result.run_info or {}).get("wall_s"), flag=self.flag)
 
 
 @takes_objects
