@@ -92,3 +92,31 @@ def test_each_command_line_module_only_parses_calls_and_prints():
     run does lives in the library, reachable from Python)."""
     long = {p.name: n for p in sorted((PKG / "cli").glob("*.py")) if (n := len(p.read_text().splitlines())) > 300}
     assert not long, long
+
+
+def test_one_step_budget_rule():
+    """Every default step budget comes from one rule, `jaxsleigh.integrate.horizon.attempt_budget` (a factor of the
+    step and tolerance class times base steps, capped for int32): its factors and caps are read nowhere else, and its
+    callers give the budgets of every front (a run, a float64 reference, a sampling period) as before."""
+    import ast
+
+    from jaxsleigh import StepSizeController
+    from jaxsleigh.integrate.horizon import Horizon, default_max_steps, reference_max_steps
+    from jaxsleigh.integrate.sampled import _period_budget
+
+    names = {"BUDGET_FACTOR", "REFERENCE_FACTOR", "MAX_ATTEMPTS", "REFERENCE_MAX_ATTEMPTS"}
+    found = []
+    for path in sorted(PKG.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        rule = [n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "attempt_budget"]
+        inside = {id(x) for f in rule for x in ast.walk(f)}
+        found += [f"{path.relative_to(PKG)}:{n.lineno} {n.id}" for n in ast.walk(tree)
+                  if isinstance(n, ast.Name) and n.id in names and isinstance(n.ctx, ast.Load) and id(n) not in inside]
+    assert not found, found
+    h = Horizon(100.0, 0.01, 10_000, 10_000)                       # 100 s at dt = 0.01, the final state saved
+    assert (default_max_steps(h, True, "float32"), default_max_steps(h, True, "float64"),
+            default_max_steps(h, False, "float32")) == (200_180, 300_270, 10_009)
+    assert reference_max_steps(h) == 1_001_000 and reference_max_steps(Horizon(5e5, 0.01, 50_000_000, 1)) == 2 * 10**9
+    assert default_max_steps(Horizon(5e5, 0.01, 50_000_000, 1), True, "float64") == 2**31 - 2
+    assert [_period_budget(StepSizeController(method=m), 100, 10, d) for m, d in
+            (("adaptive", "float32"), ("adaptive", "float64"), ("rk4", "float32"))] == [200, 300, 10]

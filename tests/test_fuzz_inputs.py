@@ -68,12 +68,12 @@ def test_solve_config_accepts_exactly_the_valid_options(t_final, dt, save_every,
     except ValueError as e:
         assert len(str(e)) > 10
         return
-    h = cfg.horizon
+    h, ss = cfg.horizon, cfg.stepsize
     assert 1 <= h.n_steps and h.n_steps % h.save_every == 0
-    assert np.isfinite([h.t_final, h.dt, cfg.rtol, cfg.atol, cfg.max_step, cfg.eps]).all()
-    assert min(h.dt, cfg.rtol, cfg.atol, cfg.max_step, cfg.eps) > 0
-    assert 1 <= cfg.max_steps < 2**31 - 1 and isinstance(cfg.max_steps, int)
-    assert cfg.method in ("adaptive", "rk4") and isinstance(cfg.x64, bool)
+    assert np.isfinite([h.t_final, h.dt, ss.rtol, ss.atol, ss.max_step, cfg.eps]).all()
+    assert min(h.dt, ss.rtol, ss.atol, ss.max_step, cfg.eps) > 0
+    assert 1 <= ss.max_steps < 2**31 - 1 and isinstance(ss.max_steps, int)
+    assert ss.method in ("adaptive", "rk4") and isinstance(cfg.x64, bool)
 
 
 class _Reached(Exception):

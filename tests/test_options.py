@@ -63,6 +63,25 @@ def test_the_policy_reaches_the_stepper():
     assert np.all(c.n_steps[~ran] <= b.n_steps[~ran])
 
 
+def test_the_configuration_holds_the_policy_resolved_once():
+    """`solve_config` resolves the step policy once into `SolveConfig.stepsize` (every number set, the caller's
+    safety and factor limits kept): the one object the engine runs and the settings record, with no copies of its
+    fields beside it."""
+    from jaxsleigh.integrate.horizon import default_max_steps
+    from jaxsleigh.studies.config import SolveConfig, solve_config
+
+    assert not {"method", "rtol", "atol", "max_step", "max_steps", "check_passivity"} & set(SolveConfig._fields)
+    assert not hasattr(SolveConfig, "step_controller")
+    given = js.StepSizeController(rtol=1e-7, safety=0.8, factor_min=0.2, factor_max=3.0)
+    cfg = solve_config(t_final=5.0, x64=True, stepsize=given)
+    assert cfg.stepsize == given._replace(atol=1e-8, max_step=1.0, max_steps=default_max_steps(cfg.horizon, True,
+                                                                                                  "float64"))
+    assert all(v is not None for v in cfg.stepsize)
+    s = cfg.settings()
+    assert {k: s[k] for k in ("method", "rtol", "atol", "max_step", "max_steps", "check_passivity")} == \
+        {k: getattr(cfg.stepsize, k) for k in ("method", "rtol", "atol", "max_step", "max_steps", "check_passivity")}
+
+
 @pytest.mark.parametrize("call, err, match", [
     (lambda: js.run_ensemble(STARTS, rtoll=1e-6), TypeError, "unexpected keyword argument 'rtoll'"),
     (lambda: js.run_ensemble(STARTS, rtol=1e-6, stepsize=js.StepSizeController(rtol=1e-7)), TypeError,

@@ -68,6 +68,15 @@ def test_a_sampled_run_checkpoints_and_resumes_like_any_other(tmp_path):
                         run=RunOptions(chunk_size=1, checkpoint_dir=ck, resume=True))
 
 
+def test_the_ensembles_step_a_sampled_law_with_the_whole_policy():
+    """The policy given to `run_ensemble` reaches the sampled loop whole, its safety and factor limits included (as
+    in `simulate`): a smaller safety and a tighter growth limit take more steps."""
+    policy = js.StepSizeController(safety=0.5, factor_max=2.0)
+    a = js.run_ensemble(ICS, controller=LAW, t_final=2.0)
+    b = js.run_ensemble(ICS, controller=LAW, t_final=2.0, stepsize=policy)
+    assert np.all(b.n_steps >= a.n_steps) and b.n_steps.sum() > a.n_steps.sum()
+
+
 def test_the_tuner_tunes_a_sampled_law_on_the_sampled_loop():
     """tune_law differentiates through the sampled-data loop: its energy is the studies' energy of the same law,
     and the energy budget pulls it down; the sampler's numbers and the plant model are not tuned."""

@@ -42,7 +42,7 @@ def main():
     from jaxsleigh.studies.config import solve_config
 
     cfg = solve_config(t_final=100.0)
-    step = cfg.step_controller(js.StepSizeController())
+    step = cfg.stepsize
     args = ClosedLoop(cfg.plant, cfg.law)
     theta = np.geomspace(1e-3, 5e-3, 8) * np.array([1, -1] * 4)
     starts = np.column_stack([np.linspace(-2.5, 2.5, 8), np.linspace(2.0, -2.0, 8), theta])

@@ -360,7 +360,7 @@ def drive_final(y0w, status0, args: ClosedLoop, horizon: Horizon, step: StepSize
                 finish: bool = True, certify: bool = False, stiff_after: int = 0, bitwise: bool = True) -> StepState:
     """Run a batch to the horizon keeping only the final state and the on-line summaries
     (``observers``, `jaxsleigh.integrate.observers`), taking steps as ``step`` says (a resolved
-    `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.step_controller`);
+    `StepSizeController`: every number set, e.g. `jaxsleigh.studies.config.SolveConfig.stepsize`);
     ``eps`` is the radius of the ball of ``T_eps``.
 
     The jitted kernel runs ``segment`` attempted steps; between segments the host checks which

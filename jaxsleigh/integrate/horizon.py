@@ -1,11 +1,14 @@
 r"""The time grid of a run and its step budget: one rule for every door, traced or not.
 
 * `Horizon` / `make_horizon`: ``t_final`` in whole base steps ``dt``, saved every ``save_every`` of them.
-* `default_max_steps`: the attempted steps a trajectory may take (the base steps, times `BUDGET_FACTOR` when
-  adaptive): `jaxsleigh.solve`, `jaxsleigh.simulate` and the ensembles take it; `step_budget` is a step policy's
-  budget, its own ``max_steps`` or this default, for a traced door (`jaxsleigh.solve`,
-  `jaxsleigh.tuning.event_time.settling`); `reference_max_steps` is the budget of a float64 reference run at tight
-  tolerances (the accuracy audit, a validation re-run at its settings).
+* `attempt_budget`: the one step-budget rule, attempts = a factor of the step and tolerance class times base steps
+  (1 for fixed RK4, `BUDGET_FACTOR` adaptive, `REFERENCE_FACTOR` for a float64 reference at tight tolerances),
+  capped for the engine's int32 counters. Its callers only say what the base steps are: `default_max_steps`, the
+  attempted steps a trajectory may take (`jaxsleigh.solve`, `jaxsleigh.simulate` and the ensembles take it);
+  `reference_max_steps`, the budget of a float64 reference run (the accuracy audit, a validation re-run at its
+  settings); the sampled loop's budget per period (`jaxsleigh.integrate.sampled`). `step_budget` is a step
+  policy's budget, its own ``max_steps`` or `default_max_steps`, for a traced door (`jaxsleigh.solve`,
+  `jaxsleigh.tuning.event_time.settling`).
 * The flight rule (`STIFF_AFTER`, `FLIGHT_STEP`, `flight_step`): when a lane still in a stiff flight near
   \(\theta = 0\) moves to the linearly implicit step of `jaxsleigh.integrate.rosenbrock`. The host's engine reads
   it between segments (`jaxsleigh.integrate.engine.flying`); the traced loop of `jaxsleigh.solve` after every attempt
@@ -23,8 +26,8 @@ import numpy as np
 from ..model.params import is_concrete
 from .stepsize import DEFAULT_ATOL, DEFAULT_RTOL, StepSizeController
 
-__all__ = ["Horizon", "MAX_BASE_STEPS", "make_horizon", "BUDGET_FACTOR", "default_max_steps", "step_budget",
-           "reference_max_steps", "REFERENCE_FACTOR",
+__all__ = ["Horizon", "MAX_BASE_STEPS", "make_horizon", "BUDGET_FACTOR", "attempt_budget", "default_max_steps",
+           "step_budget", "reference_max_steps", "REFERENCE_FACTOR", "MAX_ATTEMPTS", "REFERENCE_MAX_ATTEMPTS",
            "STIFF_AFTER",
            "FLIGHT_STEP", "flight_step", "default_tolerance"]
 
@@ -92,25 +95,47 @@ def make_horizon(t_final, dt, save_every=None, *, flags=None) -> Horizon:
 #: steps; python experiments/performance/engine_defaults.py)
 BUDGET_FACTOR = {"float32": 20, "float64": 30}
 
-
-def default_max_steps(horizon: Horizon, adaptive: bool, dtype="float32") -> int:
-    """Per-trajectory budget of attempted steps: the base steps, plus `BUDGET_FACTOR` times room when
-    adaptive. A start that uses it up (one near theta = 0 that does not settle) ends ``BUDGET_EXHAUSTED``."""
-    base = horizon.n_steps + horizon.n_out + 8
-    return min(BUDGET_FACTOR.get(np.dtype(dtype).name, 30) * base if adaptive else base, 2**31 - 2)
-
-
 #: attempts per base step of a float64 reference run at the audit's tight tolerances (`reference_max_steps`)
 REFERENCE_FACTOR = 100
+
+#: most attempts of one trajectory: the engine counts them in int32 (a reference run's budget stops at 2e9)
+MAX_ATTEMPTS = 2**31 - 2
+REFERENCE_MAX_ATTEMPTS = 2_000_000_000
+
+
+def attempt_budget(base_steps: int, *, adaptive: bool, dtype="float32", reference: bool = False) -> int:
+    r"""The step-budget rule, from which every default budget of the library comes: a trajectory may attempt
+    \(f \cdot b\) steps for \(b\) = ``base_steps``, with the factor \(f\) of its step and tolerance class,
+
+    * fixed-step RK4 (``adaptive=False``): 1, its base steps;
+    * adaptive at the dtype's default tolerances: `BUDGET_FACTOR`, 20 in float32 and 30 in float64;
+    * ``reference``: a float64 reference run at tolerances far tighter than the dtype's default (the accuracy
+      audit's re-run, `jaxsleigh.studies.audit`, and `jaxsleigh.tuning.validate`'s): `REFERENCE_FACTOR`, 100,
+
+    at most `MAX_ATTEMPTS` (`REFERENCE_MAX_ATTEMPTS` for a reference run), for the engine's int32 counters. The base
+    steps are the caller's: a run's \(n + n_{out} + 8\) (`default_max_steps`), a reference run's \(n + 10\)
+    (`reference_max_steps`), a sampling period's ``substeps`` (`jaxsleigh.integrate.sampled`), for \(n\) =
+    ``t_final / dt`` base steps and \(n_{out}\) saves."""
+    if reference:
+        return min(REFERENCE_FACTOR * base_steps, REFERENCE_MAX_ATTEMPTS)
+    factor = BUDGET_FACTOR.get(np.dtype(dtype).name, 30) if adaptive else 1
+    return min(factor * base_steps, MAX_ATTEMPTS)
+
+
+def default_max_steps(horizon: Horizon, adaptive: bool, dtype="float32") -> int:
+    """Per-trajectory budget of attempted steps: `attempt_budget` of the base steps plus the saves and 8 of room,
+    times `BUDGET_FACTOR` when adaptive. A start that uses it up (one near theta = 0 that does not settle) ends
+    ``BUDGET_EXHAUSTED``."""
+    return attempt_budget(horizon.n_steps + horizon.n_out + 8, adaptive=adaptive, dtype=dtype)
 
 
 def reference_max_steps(horizon: Horizon) -> int:
     r"""The budget of a float64 reference run at tight tolerances (the accuracy audit's re-run of some rows,
     `jaxsleigh.studies.audit`, and a validation re-run at the audit's settings, `jaxsleigh.tuning.validate`):
-    \(100\,n + 1000\) attempts for \(n = t_{final}/dt\) base steps (`REFERENCE_FACTOR`), at most 2e9 (the
-    engine's int32 counters). Larger than `default_max_steps` (30x in float64), for tolerances far tighter than the
+    `attempt_budget` with ``reference=True``, \(100\,(n + 10) = 100\,n + 1000\) attempts for \(n = t_{final}/dt\)
+    base steps, at most 2e9. Larger than `default_max_steps` (30x in float64), for tolerances far tighter than the
     dtype's default."""
-    return min(REFERENCE_FACTOR * horizon.n_steps + 1000, 2_000_000_000)
+    return attempt_budget(horizon.n_steps + 10, adaptive=True, dtype="float64", reference=True)
 
 
 def step_budget(stepsize: StepSizeController, t_final, dt, dtype, *, save_every=None, flags=None) -> int:

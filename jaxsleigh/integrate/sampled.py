@@ -83,7 +83,7 @@ from ..model.controller import FunctionLaw, PerTrajectory, apply_law
 from ..model.params import PlantParams, is_concrete, plant_params
 from ..model.plant import velocity
 from ..status import Status
-from .horizon import BUDGET_FACTOR, MAX_BASE_STEPS
+from .horizon import MAX_BASE_STEPS, attempt_budget
 from .observers import DEFAULT_OBSERVERS, collect_values
 from .stepper import Controls, StepState, controls, init_state, integrands, run_stops
 from .stepsize import StepSizeController, check_policy
@@ -190,13 +190,13 @@ def substeps_for(period: float, dt: float) -> int:
 
 def _period_budget(ss: StepSizeController, K: int, substeps: int, dtype) -> int:
     """Attempted steps per period and start (static). Fixed RK4 takes ``substeps``. Adaptive: ``max_steps`` (per start,
-    over the run) shared evenly between the ``K`` periods; by default, as in the continuous loop,
-    `jaxsleigh.integrate.engine.BUDGET_FACTOR` (20 in float32, 30 in float64) times the base steps, here the
+    over the run) shared evenly between the ``K`` periods; by default the rule of every budget,
+    `jaxsleigh.integrate.horizon.attempt_budget` (20 in float32, 30 in float64 times the base steps), of the
     ``substeps`` of a period."""
     adaptive = ss.method == "adaptive"
     m = ss.max_steps
     if m is None:
-        return BUDGET_FACTOR.get(jnp.dtype(dtype).name, 30) * substeps if adaptive else substeps
+        return attempt_budget(substeps, adaptive=adaptive, dtype=jnp.dtype(dtype))
     if not adaptive and int(m) < K * substeps:
         raise ValueError(f"max_steps {int(m)} is below the {K * substeps} steps fixed RK4 takes ({substeps} per "
                          f"period over {K} periods); raise it to at least {K * substeps}")

@@ -105,7 +105,7 @@ def controls(stepsize: StepSizeController, dtype, *, dt, eps, max_steps=None, xp
     """The stepper's traced numbers for a run: the policy ``stepsize`` (its defaults resolved for ``dtype`` and the
     base step ``dt``, `StepSizeController.resolved`), the ball's radius ``eps`` and the budget ``max_steps``
     (default: the policy's own, which must then be set: the host's drivers take a policy whose every number is
-    resolved, `jaxsleigh.studies.config.SolveConfig.step_controller`).
+    resolved, `jaxsleigh.studies.config.SolveConfig.stepsize`).
     ``xp=np`` makes NumPy scalars (a host driver passes them to a compiled step as arguments; made on the device,
     each cast was a program of its own). Every front builds its controls here."""
     ss = stepsize.resolved(dtype, dt)

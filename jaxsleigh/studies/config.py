@@ -32,14 +32,11 @@ class SolveConfig(NamedTuple):
     plant: PlantParams
     gains: Gains
     horizon: Horizon
-    method: str
-    rtol: float
-    atol: float
-    max_step: float
-    max_steps: int
+    #: the step policy, resolved: every number set (tolerances for the dtype, ``max_step`` and the budget
+    #: ``max_steps`` from the horizon) with the caller's ``safety`` and factor limits; what the engine's drivers take
+    stepsize: StepSizeController
     eps: float
     x64: bool
-    check_passivity: bool
     #: number of per-trajectory parameter lanes (``None``: one plant and one set of gains)
     lanes: Optional[int] = None
     #: a feedback law other than the paper's (`jaxsleigh.model.controller`); ``None``: the paper's law with ``gains``
@@ -50,17 +47,10 @@ class SolveConfig(NamedTuple):
         """The controller the engine runs: ``controller``, or the paper's law with ``gains``."""
         return self.gains if self.controller is None else self.controller
 
-    def step_controller(self, policy: StepSizeController = StepSizeController()) -> StepSizeController:
-        """The resolved `jaxsleigh.StepSizeController` (every number set) with the policy (``safety``,
-        ``factor_min``, ``factor_max``) of ``policy``: what the engine's drivers take."""
-        return StepSizeController(rtol=self.rtol, atol=self.atol, safety=policy.safety,
-                                  factor_min=policy.factor_min, factor_max=policy.factor_max,
-                                  max_step=self.max_step, max_steps=self.max_steps, method=self.method,
-                                  check_passivity=self.check_passivity)
-
     @property
     def adaptive(self) -> bool:
-        return self.method == "adaptive"
+        """Whether the steps are adaptive (``stepsize.method == "adaptive"``) rather than fixed RK4."""
+        return self.stepsize.method == "adaptive"
 
     def lane_loop(self, n: int) -> Optional[ClosedLoop]:
         """The closed loop with its per-trajectory parameters broadcast to one lane per start (``n``); ``None`` for
@@ -79,12 +69,13 @@ class SolveConfig(NamedTuple):
 
     def settings(self) -> dict:
         """JSON-ready record of the configuration (written into every result file)."""
+        ss = self.stepsize
         out = {
             "plant": plant_to_dict(self.plant),
             "gains": gains_to_dict(self.gains) if self.controller is None else None,
-            "t_final": self.horizon.t_final, "dt": self.horizon.dt, "eps": self.eps, "method": self.method,
-            "rtol": self.rtol, "atol": self.atol, "max_step": self.max_step, "max_steps": self.max_steps,
-            "dtype": self.dtype, "check_passivity": self.check_passivity,
+            "t_final": self.horizon.t_final, "dt": self.horizon.dt, "eps": self.eps, "method": ss.method,
+            "rtol": ss.rtol, "atol": ss.atol, "max_step": ss.max_step, "max_steps": ss.max_steps,
+            "dtype": self.dtype, "check_passivity": ss.check_passivity,
         }
         if self.controller is not None:
             out["controller"] = controller_record(self.controller)
@@ -185,16 +176,17 @@ def _resolve_horizon(t_final, dt, save_every, f, flags) -> Horizon:
     return make_horizon(t_final, dt, save_every, flags=flags)
 
 
-def _resolve_steps(stepsize: StepSizeController, horizon: Horizon, dtype: str, f):
-    """The step-size numbers with their defaults filled in (tolerances for ``dtype``, ``max_step`` and
-    ``max_steps`` from the horizon); fixed-step RK4 needs a budget of at least the horizon's base steps.
-    Returns ``(rtol, atol, max_step, max_steps)``."""
+def _resolve_steps(stepsize: StepSizeController, horizon: Horizon, dtype: str, f) -> StepSizeController:
+    """``stepsize`` resolved: its numbers checked, their defaults filled in (tolerances for ``dtype``, ``max_step``
+    and ``max_steps`` from the horizon), ``check_passivity`` a bool; fixed-step RK4 needs a budget of at least the
+    horizon's base steps. ``safety`` and the factor limits stay as given (checked by
+    `jaxsleigh.integrate.stepsize.check_policy`)."""
     adaptive = stepsize.method == "adaptive"
     checked = {k: real(f(k), v, positive=True, example=ex) for k, v, ex in
                (("rtol", stepsize.rtol, 1e-6), ("atol", stepsize.atol, 1e-6), ("max_step", stepsize.max_step, 0.1))
                if v is not None}
     full = stepsize._replace(**checked).resolved(dtype, horizon.dt)     # the defaults, in one place
-    rtol, atol, max_step, max_steps = full.rtol, full.atol, full.max_step, full.max_steps
+    max_steps = full.max_steps
     if max_steps is None:
         max_steps = default_max_steps(horizon, adaptive, dtype)
     else:
@@ -203,7 +195,7 @@ def _resolve_steps(stepsize: StepSizeController, horizon: Horizon, dtype: str, f
             raise ValueError(f"{f('max_steps')} {max_steps} is below the {horizon.n_steps} base steps of the "
                              f"horizon (t_final / dt) that fixed-step RK4 takes; raise it to at least "
                              f"{horizon.n_steps}")
-    return rtol, atol, max_step, max_steps
+    return full._replace(max_steps=max_steps, check_passivity=bool(stepsize.check_passivity))
 
 
 def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None, t_final: Any = 100.0,
@@ -213,7 +205,8 @@ def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None
 
     Args mean the same as in `jaxsleigh.simulate`. ``stepsize`` is a `jaxsleigh.StepSizeController` (its
     ``method``, ``rtol``, ``atol``, ``max_step``, ``max_steps`` and ``check_passivity`` are checked here;
-    default: ``StepSizeController()``). ``gains`` may be a `Gains`, a preset
+    default: ``StepSizeController()``), resolved here once into `SolveConfig.stepsize` (every number set, ``safety``
+    and the factor limits as given): the policy the engine runs and the settings record. ``gains`` may be a `Gains`, a preset
     name (``"paper"``, ``"tuned"``, ...), a gains-file path or a dict; ``plant`` a
     `PlantParams` (both re-validated). ``controller`` is any feedback law ``u = law(q, v)``
     (`jaxsleigh.model.controller`; a `Gains` there means the paper's law, as ``gains``). ``flags`` maps keyword names to the command-line
@@ -229,8 +222,7 @@ def solve_config(*, plant: Any = None, gains: Any = None, controller: Any = None
     plant, gains, controller, lanes = _resolve_law(plant, gains, controller, f, flags)
     horizon = _resolve_horizon(t_final, dt, save_every, f, flags)
     eps = real(f("eps"), eps, positive=True, example=0.05)
-    rtol, atol, max_step, max_steps = _resolve_steps(stepsize, horizon, dtype, f)
+    stepsize = _resolve_steps(stepsize, horizon, dtype, f)
     if controller is not None:
         gains = None
-    return SolveConfig(plant, gains, horizon, stepsize.method, rtol, atol, max_step, max_steps, eps, x64,
-                       bool(stepsize.check_passivity), lanes, controller)
+    return SolveConfig(plant, gains, horizon, stepsize, eps, x64, lanes, controller)

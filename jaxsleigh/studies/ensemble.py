@@ -667,7 +667,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
     lane_args = _lane_args(cfg, ics5, summaries)
-    step = cfg.step_controller(stepsize)
+    step = cfg.stepsize
     cores = None if run.cores is None else whole("cores", run.cores, example=2)
     devs = workers(run.devices, cores)
     with jax.enable_x64(cfg.x64):

@@ -10,7 +10,6 @@ sampled one has not is NaN: ``Hd`` (the closed loop is no longer port-Hamiltonia
 from __future__ import annotations
 
 import time
-from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -55,7 +54,7 @@ def sampled_settings(cfg) -> dict:
     s = cfg.settings()
     s.pop("check_passivity", None)               # the held loop has no H_d
     substeps = substeps_for(smp.period, cfg.horizon.dt)
-    s.update(method="sampled", step_method=cfg.method, sampler=dict(smp._asdict()), substeps=substeps)
+    s.update(method="sampled", step_method=cfg.stepsize.method, sampler=dict(smp._asdict()), substeps=substeps)
     if not cfg.adaptive:                         # fixed RK4: its steps, no tolerances
         for k in ("rtol", "atol", "max_step"):
             s.pop(k, None)
@@ -63,20 +62,19 @@ def sampled_settings(cfg) -> dict:
     return s
 
 
-def _stepsize(cfg, policy: Optional[StepSizeController] = None) -> StepSizeController:
-    """The step options of a sampled run: the configuration's method, tolerances, largest step and (adaptive) budget,
-    with ``policy``'s safety and factor limits."""
-    ss = cfg.step_controller(policy or StepSizeController())
-    return ss if cfg.adaptive else ss._replace(max_steps=None)
+def _stepsize(cfg) -> StepSizeController:
+    """The step options of a sampled run: the configuration's resolved policy (`jaxsleigh.studies.config.SolveConfig`),
+    without a budget for fixed RK4 (its steps per period are ``substeps``)."""
+    return cfg.stepsize if cfg.adaptive else cfg.stepsize._replace(max_steps=None)
 
 
-def _run(cfg, ics5, *, save: bool, args=None, policy: Optional[StepSizeController] = None):
+def _run(cfg, ics5, *, save: bool, args=None):
     plant, law = (cfg.plant, cfg.controller) if args is None else (args.plant, args.controller)
     held, smp = split_sampled(law)
     with jax.enable_x64(cfg.x64):
         r = solve_sampled(held, plant, ics5, t_final=cfg.horizon.t_final, sampler=smp,
                           substeps=substeps_for(smp.period, cfg.horizon.dt), eps=cfg.eps,
-                          dtype=jnp.float64 if cfg.x64 else jnp.float32, save=save, stepsize=_stepsize(cfg, policy))
+                          dtype=jnp.float64 if cfg.x64 else jnp.float32, save=save, stepsize=_stepsize(cfg))
         return jax.tree_util.tree_map(lambda a: None if a is None else np.asarray(a), r)
 
 
@@ -94,14 +92,13 @@ def sampled_summaries(cfg, ics5, args=None) -> dict:
             "u_norm_peak": f64(r.u_norm_peak), "u_energy": f64(r.u_energy), "u_abs_int": f64(r.u_abs_int)}
 
 
-def sampled_solution(cfg, ics, progress=None, stepsize: Optional[StepSizeController] = None) -> dict:
+def sampled_solution(cfg, ics, progress=None) -> dict:
     """The fields of the `jaxsleigh.Solution` of a sampled law: the state and the held input at every sample
-    instant (``save_every`` = 1 sample; the last input is the one held up to the horizon). ``stepsize``: the step-size
-    policy whose safety and factor limits the run uses (its tolerances are the configuration's)."""
+    instant (``save_every`` = 1 sample; the last input is the one held up to the horizon)."""
     ics5, _ = check_ics(ics, cfg.dtype, singular=False)
     t0 = time.perf_counter()
     with Progress(progress, desc="simulate (sampled)") as bar:
-        r = _run(cfg, ics5, save=True, policy=stepsize)
+        r = _run(cfg, ics5, save=True)
         bar.update(1.0)
     u = np.concatenate([r.u, r.u[:, -1:]], axis=1)
     settings = {**sampled_settings(cfg), "save_every": 1}      # every sample instant

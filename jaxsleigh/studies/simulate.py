@@ -195,7 +195,7 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
     if is_sampled(cfg.controller):
         if cfg.lanes is not None:
             raise ValueError("per-trajectory parameters are not available for a sampled law yet; drop them")
-        return Solution(**sampled_solution(cfg, ics, progress, stepsize))
+        return Solution(**sampled_solution(cfg, ics, progress))
     horizon = cfg.horizon
     chart = chart_for(cfg.law)
     ics5, status0 = check_ics(ics, cfg.dtype, singular=chart.singular)
@@ -205,7 +205,7 @@ def _simulate(ics, *, plant: Optional[PlantParams], gains: Any, controller: Any,
         y0w = initial_w(ics5, status0, dtype, chart)
         t_start = time.perf_counter()
         with Progress(progress, desc="simulate") as bar:
-            step = cfg.step_controller(stepsize)
+            step = cfg.stepsize
             final, ys = drive_saving(y0w, status0, args, horizon, step, eps=cfg.eps, progress=bar,
                                      stiff_after=STIFF_AFTER)
         yw = np.concatenate([np.asarray(y0w)[:, None], ys], axis=1)
@@ -243,7 +243,7 @@ def _solution_settings(cfg, args: ClosedLoop, n: int, adaptive: bool = False) ->
     ``check_passivity`` and ``eps``."""
     settings = {**cfg.settings(), "save_every": cfg.horizon.save_every}
     if adaptive:
-        settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, flight_step(cfg.rtol, cfg.atol, cfg.dtype)
+        settings["stiff_after"], settings["flight_step"] = STIFF_AFTER, flight_step(cfg.stepsize.rtol, cfg.stepsize.atol, cfg.dtype)
     if cfg.lanes is not None:
         settings["params"] = {k: v.tolist() for k, v in lane_table(args.plant, args.controller, n).items()}
     settings.pop("check_passivity")
