@@ -347,6 +347,10 @@ def test_a_refused_resume_names_the_setting_and_both_values(tmp_path):
     assert "{" not in str(info.value) and "drop --resume" not in str(info.value)
     with pytest.raises(CheckpointError, match="other initial conditions"):
         js.run_ensemble(ics + 0.1, **KW, run=_quiet(chunk_size=4, checkpoint_dir=d, resume=True))
+    # the step policy's safety and factor limits decide the chunks too: another value is refused, not reused
+    with pytest.raises(CheckpointError, match=r"safety"):
+        js.run_ensemble(ics, **KW, stepsize=js.StepSizeController(safety=0.8),
+                        run=_quiet(chunk_size=4, checkpoint_dir=d, resume=True))
 
 
 def test_cli_refusals_name_the_option_and_never_suggest_what_is_refused(tmp_path, capsys):

@@ -77,6 +77,10 @@ class SolveConfig(NamedTuple):
             "rtol": ss.rtol, "atol": ss.atol, "max_step": ss.max_step, "max_steps": ss.max_steps,
             "dtype": self.dtype, "check_passivity": ss.check_passivity,
         }
+        default = StepSizeController().resolved(self.dtype, self.horizon.dt)
+        for k in ("safety", "factor_min", "factor_max"):  # recorded where not the default: earlier records unchanged
+            if float(getattr(ss, k)) != float(getattr(default, k)):
+                out[k] = float(getattr(ss, k))
         if self.controller is not None:
             out["controller"] = controller_record(self.controller)
         if self.lanes is not None:
