@@ -240,20 +240,10 @@ def _left(root: Path) -> list:
     return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
 
 
-def _same_npz(a: Path, b: bytes) -> None:
-    """``a`` holds what the bytes ``b`` hold: the same arrays, the same settings but the run's wall time (and so
-    the content digest)."""
-    import io
-
-    with np.load(a) as za, np.load(io.BytesIO(b)) as zb:
-        assert za.files == zb.files
-        for k in za.files:
-            if k not in ("settings_json", "__digest__"):         # the digest covers the wall time
-                np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
-        sa, sb = (json.loads(str(z["settings_json"])) for z in (za, zb))
-    for s in (sa, sb):
-        s["run_info"].pop("wall_s")
-    assert sa == sb
+def _ran(side: Path, command: str) -> None:
+    """The sidecar ``side`` records what varies between runs: the command, its wall time and devices."""
+    run = json.loads(side.read_text())
+    assert run["command"][:2] == ["jaxsleigh", command] and run["wall_s"] > 0 and run["devices"], run
 
 
 def test_simulate_interrupted_while_writing_leaves_no_output_and_the_rerun_writes_the_same(tmp_path, capsys):
@@ -261,14 +251,19 @@ def test_simulate_interrupted_while_writing_leaves_no_output_and_the_rerun_write
             "--out", tmp_path / "s.npz"]
     assert _run(argv, capsys)[0] == 0
     whole = (tmp_path / "s.npz").read_bytes()
-    (tmp_path / "s.npz").unlink()
+    for p in ("s.npz", "s.run.json"):
+        (tmp_path / p).unlink()
     with pytest.MonkeyPatch.context() as m:
         _interrupt_writing(m, "s.npz")
         rc, _, err = _run(argv, capsys)
     assert rc == EXIT_INTERRUPTED and "interrupted" in err, err
     assert _left(tmp_path) == []                         # no output, no part of it, no lock
-    assert _run(argv, capsys)[0] == 0
-    _same_npz(tmp_path / "s.npz", whole)
+    rc, out, _ = _run(argv, capsys)
+    assert rc == 0 and " s wall " in out, out
+    assert (tmp_path / "s.npz").read_bytes() == whole    # the same command, the same bytes
+    _ran(tmp_path / "s.run.json", "simulate")
+    with np.load(tmp_path / "s.npz") as z:
+        assert "wall_s" not in str(z["settings_json"]) and "devices" not in str(z["settings_json"])
 
 
 def test_compare_interrupted_while_drawing_writes_no_record_and_the_rerun_writes_the_same(tmp_path, capsys):
@@ -276,18 +271,18 @@ def test_compare_interrupted_while_drawing_writes_no_record_and_the_rerun_writes
             "--out", tmp_path / "c.json", "--plot", tmp_path / "c.png"]
     assert _run(argv, capsys)[0] == 0
     whole = {p: (tmp_path / p).read_bytes() for p in ("c.json", "c.png")}
-    for p in whole:
+    for p in (*whole, "c.run.json"):
         (tmp_path / p).unlink()
     with pytest.MonkeyPatch.context() as m:
         _interrupt_writing(m, "c.png")                   # every row computed, the figure half written
         rc, _, err = _run(argv, capsys)
     assert rc == EXIT_INTERRUPTED and _left(tmp_path) == [], (err, _left(tmp_path))
-    assert _run(argv, capsys)[0] == 0
-    assert (tmp_path / "c.png").read_bytes() == whole["c.png"]
-    a, b = (json.loads(x) for x in ((tmp_path / "c.json").read_text(), whole["c.json"]))
-    for d in (a, b):
-        d["run_info"].pop("wall_s")
-    assert a == b
+    rc, out, _ = _run(argv, capsys)
+    assert rc == 0 and " s wall " in out, out
+    for p, b in whole.items():                          # the same command, the same bytes
+        assert (tmp_path / p).read_bytes() == b, p
+    assert "run_info" not in json.loads(whole["c.json"])
+    _ran(tmp_path / "c.run.json", "compare")
 
 
 def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun_writes_the_same(tmp_path, capsys):
@@ -299,6 +294,7 @@ def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun
     whole = {p: (out / p).read_bytes() for p in _left(out)}
     for p in whole:
         (out / p).unlink()
+    assert "paper.run.json" in whole
     with pytest.MonkeyPatch.context() as m:
         _interrupt_writing(m, "fig4_momentum.png")
         rc, _, err = _run(argv, capsys)
@@ -306,11 +302,10 @@ def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun
     assert _left(out) == ["fig2_paths.png", "fig3_configuration.png"]       # no paper.npz, no part, no lock
     assert _run(argv, capsys)[0] == 0
     assert _left(out) == sorted(whole)
-    for p, b in whole.items():
-        if p == "paper.npz":
-            _same_npz(out / p, b)
-        else:
+    for p, b in whole.items():                          # the same command, the same bytes, but its run record
+        if p != "paper.run.json":
             assert (out / p).read_bytes() == b, p
+    _ran(out / "paper.run.json", "paper")
 
 
 # ---------------------------------------------------------------------------------------------
