@@ -103,7 +103,7 @@ def test_a_refused_resume_names_the_option_from_the_one_record_and_an_old_option
 # every tuner mode: Ctrl-C after its first iterations, --resume to an uninterrupted run's files
 # ---------------------------------------------------------------------------------------------
 
-from tuner_runs import FRONT, FRONT_VMAP, GRADIENT, LAW, SEARCH, VOLATILE  # noqa: E402  (the smallest run of each mode)
+from tuner_runs import FRONT, FRONT_VMAP, GRADIENT, LAW, SEARCH  # noqa: E402  (the smallest run of each mode)
 
 
 def _after_calls(module, name, n):
@@ -162,53 +162,64 @@ def _front_vmap(m):
     _after_calls(pareto, "_assess_candidates", 3)(m)
 
 
-#: mode -> (argv, interrupter, writes a history, the history's fields that hold wall time, what Ctrl-C says)
-TUNERS = {"gradient": (GRADIENT, _gradient, True, ("wall",), "interrupted after 2 iterations"),
-          "search": (SEARCH, _search, True, ("wall_s",), "interrupted after 2 generations"),
-          "law": (LAW, _law, True, (), "interrupted after 2 steps"),
-          "front": (FRONT, _front, False, (), "interrupted after 1 of 2 points"),
-          "front-vmap": (FRONT_VMAP, _front_vmap, False, (), "interrupted after 2 of 3 iterations; wrote the best "
-                                                             "candidate so far of 2 of 2 budgets")}
+#: mode -> (argv, interrupter, writes a history, what Ctrl-C says)
+TUNERS = {"gradient": (GRADIENT, _gradient, True, "interrupted after 2 iterations"),
+          "search": (SEARCH, _search, True, "interrupted after 2 generations"),
+          "law": (LAW, _law, True, "interrupted after 2 steps"),
+          "front": (FRONT, _front, False, "interrupted after 1 of 2 points"),
+          "front-vmap": (FRONT_VMAP, _front_vmap, False, "interrupted after 2 of 3 iterations; wrote the best "
+                                                         "candidate so far of 2 of 2 budgets")}
 
 
-def _doc(path) -> dict:
-    def strip(d):
-        return {k: strip(v) if isinstance(v, dict) else v for k, v in d.items() if k not in VOLATILE}
-
-    return strip(json.loads(Path(path).read_text()))
+def _files(root: Path) -> dict:
+    """The bytes of every result file under ``root``: all but the sidecars ``*.run.json``."""
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and not p.name.endswith(".run.json")}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", sorted(TUNERS))
-def test_every_tuner_mode_resumes_to_the_files_of_an_uninterrupted_run(tmp_path, capsys, mode):
-    argv, interrupt, history, wall, says = TUNERS[mode]
-    hist = (lambda p: ["--history", p.with_suffix(".npz")]) if history else (lambda p: [])
-    whole, out = tmp_path / "whole.json", tmp_path / "out.json"
-    rc, _, err = _run([*argv, "--out", whole, *hist(whole)], capsys)
-    assert rc == 0, err
+def test_every_tuner_mode_resumes_to_the_files_of_an_uninterrupted_run(tmp_path, capsys, monkeypatch, mode):
+    """The same command, uninterrupted or interrupted and resumed, writes the same bytes (the command line recorded
+    in the files is the same: relative names, in two folders); wall time, devices and ``--resume`` are in the
+    sidecar ``out.run.json``."""
+    argv, interrupt, history, says = TUNERS[mode]
+    argv = [*argv, "--out", "out.json", *(["--history", "out.npz"] if history else [])]
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    for d in (whole, part):
+        d.mkdir()
+    monkeypatch.chdir(whole)
+    rc, out, err = _run(argv, capsys)
+    assert rc == 0 and " s" in out, err
+    assert "wall_s" not in (whole / "out.json").read_text()
+    side = json.loads((whole / "out.run.json").read_text())
+    assert side["wall_s"] > 0 and side["devices"] and side["command"][:2] == ["jaxsleigh", "tune"], side
+    monkeypatch.chdir(part)
     with pytest.MonkeyPatch.context() as m:
         interrupt(m)
-        rc, _, err = _run([*argv, "--out", out, *hist(out)], capsys)
+        rc, _, err = _run(argv, capsys)
     assert rc == EXIT_INTERRUPTED and "--resume" in err and says in err, err
-    kept = json.loads(out.read_text())                                       # the best so far, flagged
+    kept = json.loads((part / "out.json").read_text())                       # the best so far, flagged
     assert kept.get("interrupted", kept.get("meta", {}).get("interrupted")) is True
     assert _locks(tmp_path) == []
-    rc, _, err = _run([*argv, "--out", out, *hist(out)], capsys)              # never over the progress, silently
+    rc, _, err = _run(argv, capsys)                                           # never over the progress, silently
     assert rc == 2 and "--resume" in err, err
-    rc, _, err = _run([*argv, "--out", out, *hist(out), "--resume"], capsys)
+    rc, _, err = _run([*argv, "--resume"], capsys)
     assert rc == 0, err
-    a = _doc(out)
-    assert _doc(whole) == a and "interrupted" not in a and "interrupted" not in a.get("meta", {})
-    assert not (tmp_path / "out.json.ckpt.npz").exists() and _locks(tmp_path) == []
+    a = json.loads((part / "out.json").read_text())
+    assert "interrupted" not in a and "interrupted" not in a.get("meta", {})
+    assert not (part / "out.json.ckpt.npz").exists() and _locks(tmp_path) == []
+    assert json.loads((part / "out.run.json").read_text())["resumed"] is True
+    got, want = _files(part), _files(whole)
+    assert sorted(got) == sorted(want)
+    for name, b in want.items():                        # the same bytes
+        assert got[name] == b, name
+    monkeypatch.chdir(whole)                            # and the same command again: the same bytes
+    (whole / "out.json").unlink()
     if history:
-        a, b = (tmp_path / "whole.npz").read_bytes(), (tmp_path / "out.npz").read_bytes()
-        if not wall:                                   # one deterministic writer: the same bytes
-            assert a == b
-        with np.load(tmp_path / "whole.npz") as za, np.load(tmp_path / "out.npz") as zb:
-            assert za.files == zb.files
-            for k in za.files:
-                if k not in wall:
-                    np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+        (whole / "out.npz").unlink()
+    assert _run(argv, capsys)[0] == 0
+    assert _files(whole) == want
 
 
 # ---------------------------------------------------------------------------------------------
