@@ -381,3 +381,47 @@ def test_a_chunk_store_on_its_own_is_refused_the_chunk_folder_of_a_live_run_in_a
         assert _locks(tmp_path) == [f"out.npz.chunks/{_locks(tmp_path)[0].rsplit('/', 1)[1]}"]
     finally:
         _end(p)
+
+
+# ---------------------------------------------------------------------------------------------
+# the wall time lives in the sidecar; files that still hold it (jaxsleigh 0.3) load
+# ---------------------------------------------------------------------------------------------
+
+def test_a_history_reads_its_wall_time_from_itself_or_its_sidecar_and_an_old_simulate_file_loads(tmp_path):
+    from jaxsleigh.files.npz import write_npz_deterministic
+    from jaxsleigh.files.runner import sidecar, steady, write_sidecar
+    from jaxsleigh.plots.paper_figures import _run_info, load_solution
+    from jaxsleigh.tuning import load_history
+    from jaxsleigh.tuning.history import save_arrays
+    from jaxsleigh.tuning.optimizer import TuneHistory
+
+    rows = {f: np.zeros((2, 3)) if f == "L" else np.arange(2.0) + 1 for f in TuneHistory._fields}
+    old = write_npz_deterministic(tmp_path / "old.npz", rows, compress=False, stamped=False)   # wall inside
+    np.testing.assert_array_equal(load_history(old).wall, [1.0, 2.0])
+    new = save_arrays(tmp_path / "new.npz", rows)
+    with np.load(new) as z:
+        assert "wall" not in z.files
+    assert np.isnan(load_history(new).wall).all()                           # no sidecar: not known
+    write_sidecar(new, {"wall_s": 3.0, "history": {"wall": [0.5, 1.5]}})
+    assert sidecar(new).name == "new.run.json"
+    np.testing.assert_array_equal(load_history(new).wall, [0.5, 1.5])
+    assert steady({"wall_s": 1.0, "devices": ["cpu:0"], "audit": {"rows": 0}}) == {"audit": {"rows": 0}}
+    assert steady({"wall_s": 1.0, "devices": ["cpu:0"]}) is None
+
+    # a simulate file of 0.3 kept wall time and devices in settings_json["run_info"]: it loads, and names its device
+    import jaxsleigh as js
+    from jaxsleigh.files.npz import write_npz
+
+    sol = js.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01,
+                      stepsize=js.StepSizeController(method="rk4"), run=js.RunOptions(progress=False))
+    path = write_npz(tmp_path / "s.npz", sol, ics=np.array([[1.0, 1.0, 0.5]]))
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files if k != "__digest__"}
+    settings = json.loads(str(arrays["settings_json"]))
+    assert settings["run_info"] is None                                     # nothing of the run's timing inside
+    settings["run_info"] = {"wall_s": 0.25, "devices": ["cpu:0"]}
+    arrays["settings_json"] = np.array(json.dumps(settings))
+    old_sim = write_npz_deterministic(tmp_path / "old_s.npz", arrays)
+    loaded = load_solution(old_sim)
+    np.testing.assert_array_equal(loaded.q, sol.q)
+    assert _run_info(loaded)["devices"] == ["cpu:0"]
