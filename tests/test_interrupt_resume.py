@@ -279,7 +279,7 @@ def test_simulate_interrupted_while_writing_leaves_no_output_and_the_rerun_write
 
 def test_compare_interrupted_while_drawing_writes_no_record_and_the_rerun_writes_the_same(tmp_path, capsys):
     argv = ["compare", "--controllers", "paper,astolfi", "--samples", "2", "--t-final", "3", "--seed", "1",
-            "--out", tmp_path / "c.json", "--plot", tmp_path / "c.png"]
+            "--audit-rows", "1", "--out", tmp_path / "c.json", "--plot", tmp_path / "c.png"]
     assert _run(argv, capsys)[0] == 0
     whole = {p: (tmp_path / p).read_bytes() for p in ("c.json", "c.png")}
     for p in (*whole, "c.run.json"):
@@ -292,8 +292,13 @@ def test_compare_interrupted_while_drawing_writes_no_record_and_the_rerun_writes
     assert rc == 0 and " s wall " in out, out
     for p, b in whole.items():                          # the same command, the same bytes
         assert (tmp_path / p).read_bytes() == b, p
-    assert "run_info" not in json.loads(whole["c.json"])
+    table = json.loads(whole["c.json"])
+    assert "run_info" not in table and all(r["audit"]["rows"] == 1 for r in table["rows"])
+    assert not any("wall_s" in r["audit"] or "share_of_run" in r["audit"] for r in table["rows"])
     _ran(tmp_path / "c.run.json", "compare")
+    cost = json.loads((tmp_path / "c.run.json").read_text())["audit_cost"]   # what the audit cost, this time
+    assert sorted(cost) == sorted(f"{law} on {d}" for law in ("paper", "astolfi") for d in ("near", "uniform", "wide"))
+    assert all(c["wall_s"] > 0 for c in cost.values()), cost
 
 
 def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun_writes_the_same(tmp_path, capsys):

@@ -147,6 +147,23 @@ def _record(args, rows, names, dists, *, dt, equal=None) -> dict:
             "equal_energy": None if equal is None else equal.record()}
 
 
+#: What an audit's record says of its cost, which varies between runs (the rows it re-runs do not: they are chosen
+#: from the run's steps, not from a clock): in the sidecar, not in the table.
+_AUDIT_COST = ("wall_s", "share_of_run")
+
+
+def _audit_cost(rows) -> tuple:
+    """``(rows without their audit's cost, {"LAW on STARTS": that cost})``: the table's rows and the sidecar's."""
+    kept, cost = [], {}
+    for r in rows:
+        audit = r.get("audit")
+        if isinstance(audit, dict):
+            cost[f"{r['controller']} on {r['starts']}"] = {k: audit[k] for k in _AUDIT_COST if k in audit}
+            r = {**r, "audit": {k: v for k, v in audit.items() if k not in _AUDIT_COST}}
+        kept.append(r)
+    return kept, cost
+
+
 def _time(v: float, t_final: float) -> str:
     """A percentile of T_eps in seconds; ``'>T s'`` when that share of the starts did not settle by the horizon."""
     return f"{v:.3g} s" if math.isfinite(v) else f">{t_final:g} s"
@@ -220,7 +237,8 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     stepsize = StepSizeController(rtol=args.rtol, atol=args.atol)
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
                    x64=args.x64, stepsize=stepsize, audit=audit_from_args(args))
-    record = _record(args, rows, names, dists, dt=dt, equal=equal)
+    steady_rows, audit_cost = _audit_cost(rows)
+    record = _record(args, steady_rows, names, dists, dt=dt, equal=equal)
     devices = [str(d) for d in jax.devices()]
     if args.plot:
         from ..plots.compare import plot_compare_ecdf
@@ -231,7 +249,8 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
                                 + (", at the paper's training energy" if equal is not None else ""))
     # the record last: where it is, the run finished (an interrupted one leaves none)
     atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
-    side = write_sidecar(args.out, run_record(record["command"], time.perf_counter() - t0, devices))
+    side = write_sidecar(args.out, run_record(record["command"], time.perf_counter() - t0, devices,
+                                                         audit_cost=audit_cost))
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     for r in rows:
         if (r.get("audit") or {}).get("rows"):
