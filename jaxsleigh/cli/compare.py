@@ -152,6 +152,14 @@ def _record(args, rows, names, dists, *, dt, equal=None) -> dict:
 _AUDIT_COST = ("wall_s", "share_of_run")
 
 
+def _tuning_wall(equal) -> dict:
+    """``{"tuning_wall_s": {law: seconds}}`` of ``--equal-energy``'s tuned laws (their records in the table leave it
+    out); ``{}`` without it."""
+    if equal is None:
+        return {}
+    return {"tuning_wall_s": {k: v["wall_s"] for k, v in equal.laws_info.items() if "wall_s" in v}}
+
+
 def _audit_cost(rows) -> tuple:
     """``(rows without their audit's cost, {"LAW on STARTS": that cost})``: the table's rows and the sidecar's."""
     kept, cost = [], {}
@@ -250,7 +258,7 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     # the record last: where it is, the run finished (an interrupted one leaves none)
     atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
     side = write_sidecar(args.out, run_record(record["command"], time.perf_counter() - t0, devices,
-                                                         audit_cost=audit_cost))
+                                                         audit_cost=audit_cost, **_tuning_wall(equal)))
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     for r in rows:
         if (r.get("audit") or {}).get("rows"):
