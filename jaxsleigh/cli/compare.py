@@ -8,7 +8,7 @@ import time
 
 import jax
 
-from ..studies.audit import audit_line
+from ..studies.audit import COST, audit_line, without_cost
 from .chunked import audit_from_args
 from .common import (EXIT_NONE_OK, PROG, add_progress_option, add_sampler_options, add_tolerance_options,
                      check_outputs, claim_output, number, sampler_from_args, whole)
@@ -147,11 +147,6 @@ def _record(args, rows, names, dists, *, dt, equal=None) -> dict:
             "equal_energy": None if equal is None else equal.record()}
 
 
-#: What an audit's record says of its cost, which varies between runs (the rows it re-runs do not: they are chosen
-#: from the run's steps, not from a clock): in the sidecar, not in the table.
-_AUDIT_COST = ("wall_s", "share_of_run")
-
-
 def _tuning_wall(equal) -> dict:
     """``{"tuning_wall_s": {law: seconds}}`` of ``--equal-energy``'s tuned laws (their records in the table leave it
     out); ``{}`` without it."""
@@ -161,13 +156,14 @@ def _tuning_wall(equal) -> dict:
 
 
 def _audit_cost(rows) -> tuple:
-    """``(rows without their audit's cost, {"LAW on STARTS": that cost})``: the table's rows and the sidecar's."""
+    """``(rows without their audit's cost (`jaxsleigh.studies.audit.COST`), {"LAW on STARTS": that cost})``: the
+    table's rows and the sidecar's."""
     kept, cost = [], {}
     for r in rows:
         audit = r.get("audit")
         if isinstance(audit, dict):
-            cost[f"{r['controller']} on {r['starts']}"] = {k: audit[k] for k in _AUDIT_COST if k in audit}
-            r = {**r, "audit": {k: v for k, v in audit.items() if k not in _AUDIT_COST}}
+            cost[f"{r['controller']} on {r['starts']}"] = {k: audit[k] for k in COST if k in audit}
+            r = {**r, "audit": without_cost(audit)}
         kept.append(r)
     return kept, cost
 
