@@ -103,7 +103,7 @@ def test_a_refused_resume_names_the_option_from_the_one_record_and_an_old_option
 # every tuner mode: Ctrl-C after its first iterations, --resume to an uninterrupted run's files
 # ---------------------------------------------------------------------------------------------
 
-from tuner_runs import FRONT, FRONT_VMAP, GRADIENT, LAW, SEARCH, VOLATILE  # noqa: E402  (the smallest run of each mode)
+from tuner_runs import FRONT, FRONT_VMAP, GRADIENT, LAW, SEARCH  # noqa: E402  (the smallest run of each mode)
 
 
 def _after_calls(module, name, n):
@@ -162,53 +162,64 @@ def _front_vmap(m):
     _after_calls(pareto, "_assess_candidates", 3)(m)
 
 
-#: mode -> (argv, interrupter, writes a history, the history's fields that hold wall time, what Ctrl-C says)
-TUNERS = {"gradient": (GRADIENT, _gradient, True, ("wall",), "interrupted after 2 iterations"),
-          "search": (SEARCH, _search, True, ("wall_s",), "interrupted after 2 generations"),
-          "law": (LAW, _law, True, (), "interrupted after 2 steps"),
-          "front": (FRONT, _front, False, (), "interrupted after 1 of 2 points"),
-          "front-vmap": (FRONT_VMAP, _front_vmap, False, (), "interrupted after 2 of 3 iterations; wrote the best "
-                                                             "candidate so far of 2 of 2 budgets")}
+#: mode -> (argv, interrupter, writes a history, what Ctrl-C says)
+TUNERS = {"gradient": (GRADIENT, _gradient, True, "interrupted after 2 iterations"),
+          "search": (SEARCH, _search, True, "interrupted after 2 generations"),
+          "law": (LAW, _law, True, "interrupted after 2 steps"),
+          "front": (FRONT, _front, False, "interrupted after 1 of 2 points"),
+          "front-vmap": (FRONT_VMAP, _front_vmap, False, "interrupted after 2 of 3 iterations; wrote the best "
+                                                         "candidate so far of 2 of 2 budgets")}
 
 
-def _doc(path) -> dict:
-    def strip(d):
-        return {k: strip(v) if isinstance(v, dict) else v for k, v in d.items() if k not in VOLATILE}
-
-    return strip(json.loads(Path(path).read_text()))
+def _files(root: Path) -> dict:
+    """The bytes of every result file under ``root``: all but the sidecars ``*.run.json``."""
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and not p.name.endswith(".run.json")}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", sorted(TUNERS))
-def test_every_tuner_mode_resumes_to_the_files_of_an_uninterrupted_run(tmp_path, capsys, mode):
-    argv, interrupt, history, wall, says = TUNERS[mode]
-    hist = (lambda p: ["--history", p.with_suffix(".npz")]) if history else (lambda p: [])
-    whole, out = tmp_path / "whole.json", tmp_path / "out.json"
-    rc, _, err = _run([*argv, "--out", whole, *hist(whole)], capsys)
-    assert rc == 0, err
+def test_every_tuner_mode_resumes_to_the_files_of_an_uninterrupted_run(tmp_path, capsys, monkeypatch, mode):
+    """The same command, uninterrupted or interrupted and resumed, writes the same bytes (the command line recorded
+    in the files is the same: relative names, in two folders); wall time, devices and ``--resume`` are in the
+    sidecar ``out.run.json``."""
+    argv, interrupt, history, says = TUNERS[mode]
+    argv = [*argv, "--out", "out.json", *(["--history", "out.npz"] if history else [])]
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    for d in (whole, part):
+        d.mkdir()
+    monkeypatch.chdir(whole)
+    rc, out, err = _run(argv, capsys)
+    assert rc == 0 and " s" in out, err
+    assert "wall_s" not in (whole / "out.json").read_text()
+    side = json.loads((whole / "out.run.json").read_text())
+    assert side["wall_s"] > 0 and side["devices"] and side["command"][:2] == ["jaxsleigh", "tune"], side
+    monkeypatch.chdir(part)
     with pytest.MonkeyPatch.context() as m:
         interrupt(m)
-        rc, _, err = _run([*argv, "--out", out, *hist(out)], capsys)
+        rc, _, err = _run(argv, capsys)
     assert rc == EXIT_INTERRUPTED and "--resume" in err and says in err, err
-    kept = json.loads(out.read_text())                                       # the best so far, flagged
+    kept = json.loads((part / "out.json").read_text())                       # the best so far, flagged
     assert kept.get("interrupted", kept.get("meta", {}).get("interrupted")) is True
     assert _locks(tmp_path) == []
-    rc, _, err = _run([*argv, "--out", out, *hist(out)], capsys)              # never over the progress, silently
+    rc, _, err = _run(argv, capsys)                                           # never over the progress, silently
     assert rc == 2 and "--resume" in err, err
-    rc, _, err = _run([*argv, "--out", out, *hist(out), "--resume"], capsys)
+    rc, _, err = _run([*argv, "--resume"], capsys)
     assert rc == 0, err
-    a = _doc(out)
-    assert _doc(whole) == a and "interrupted" not in a and "interrupted" not in a.get("meta", {})
-    assert not (tmp_path / "out.json.ckpt.npz").exists() and _locks(tmp_path) == []
+    a = json.loads((part / "out.json").read_text())
+    assert "interrupted" not in a and "interrupted" not in a.get("meta", {})
+    assert not (part / "out.json.ckpt.npz").exists() and _locks(tmp_path) == []
+    assert json.loads((part / "out.run.json").read_text())["resumed"] is True
+    got, want = _files(part), _files(whole)
+    assert sorted(got) == sorted(want)
+    for name, b in want.items():                        # the same bytes
+        assert got[name] == b, name
+    monkeypatch.chdir(whole)                            # and the same command again: the same bytes
+    (whole / "out.json").unlink()
     if history:
-        a, b = (tmp_path / "whole.npz").read_bytes(), (tmp_path / "out.npz").read_bytes()
-        if not wall:                                   # one deterministic writer: the same bytes
-            assert a == b
-        with np.load(tmp_path / "whole.npz") as za, np.load(tmp_path / "out.npz") as zb:
-            assert za.files == zb.files
-            for k in za.files:
-                if k not in wall:
-                    np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+        (whole / "out.npz").unlink()
+    assert _run(argv, capsys)[0] == 0
+    assert _files(whole) == want
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,20 +251,10 @@ def _left(root: Path) -> list:
     return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
 
 
-def _same_npz(a: Path, b: bytes) -> None:
-    """``a`` holds what the bytes ``b`` hold: the same arrays, the same settings but the run's wall time (and so
-    the content digest)."""
-    import io
-
-    with np.load(a) as za, np.load(io.BytesIO(b)) as zb:
-        assert za.files == zb.files
-        for k in za.files:
-            if k not in ("settings_json", "__digest__"):         # the digest covers the wall time
-                np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
-        sa, sb = (json.loads(str(z["settings_json"])) for z in (za, zb))
-    for s in (sa, sb):
-        s["run_info"].pop("wall_s")
-    assert sa == sb
+def _ran(side: Path, command: str) -> None:
+    """The sidecar ``side`` records what varies between runs: the command, its wall time and devices."""
+    run = json.loads(side.read_text())
+    assert run["command"][:2] == ["jaxsleigh", command] and run["wall_s"] > 0 and run["devices"], run
 
 
 def test_simulate_interrupted_while_writing_leaves_no_output_and_the_rerun_writes_the_same(tmp_path, capsys):
@@ -261,33 +262,43 @@ def test_simulate_interrupted_while_writing_leaves_no_output_and_the_rerun_write
             "--out", tmp_path / "s.npz"]
     assert _run(argv, capsys)[0] == 0
     whole = (tmp_path / "s.npz").read_bytes()
-    (tmp_path / "s.npz").unlink()
+    for p in ("s.npz", "s.run.json"):
+        (tmp_path / p).unlink()
     with pytest.MonkeyPatch.context() as m:
         _interrupt_writing(m, "s.npz")
         rc, _, err = _run(argv, capsys)
     assert rc == EXIT_INTERRUPTED and "interrupted" in err, err
     assert _left(tmp_path) == []                         # no output, no part of it, no lock
-    assert _run(argv, capsys)[0] == 0
-    _same_npz(tmp_path / "s.npz", whole)
+    rc, out, _ = _run(argv, capsys)
+    assert rc == 0 and " s wall " in out, out
+    assert (tmp_path / "s.npz").read_bytes() == whole    # the same command, the same bytes
+    _ran(tmp_path / "s.run.json", "simulate")
+    with np.load(tmp_path / "s.npz") as z:
+        assert "wall_s" not in str(z["settings_json"]) and "devices" not in str(z["settings_json"])
 
 
 def test_compare_interrupted_while_drawing_writes_no_record_and_the_rerun_writes_the_same(tmp_path, capsys):
     argv = ["compare", "--controllers", "paper,astolfi", "--samples", "2", "--t-final", "3", "--seed", "1",
-            "--out", tmp_path / "c.json", "--plot", tmp_path / "c.png"]
+            "--audit-rows", "1", "--out", tmp_path / "c.json", "--plot", tmp_path / "c.png"]
     assert _run(argv, capsys)[0] == 0
     whole = {p: (tmp_path / p).read_bytes() for p in ("c.json", "c.png")}
-    for p in whole:
+    for p in (*whole, "c.run.json"):
         (tmp_path / p).unlink()
     with pytest.MonkeyPatch.context() as m:
         _interrupt_writing(m, "c.png")                   # every row computed, the figure half written
         rc, _, err = _run(argv, capsys)
     assert rc == EXIT_INTERRUPTED and _left(tmp_path) == [], (err, _left(tmp_path))
-    assert _run(argv, capsys)[0] == 0
-    assert (tmp_path / "c.png").read_bytes() == whole["c.png"]
-    a, b = (json.loads(x) for x in ((tmp_path / "c.json").read_text(), whole["c.json"]))
-    for d in (a, b):
-        d["run_info"].pop("wall_s")
-    assert a == b
+    rc, out, _ = _run(argv, capsys)
+    assert rc == 0 and " s wall " in out, out
+    for p, b in whole.items():                          # the same command, the same bytes
+        assert (tmp_path / p).read_bytes() == b, p
+    table = json.loads(whole["c.json"])
+    assert "run_info" not in table and all(r["audit"]["rows"] == 1 for r in table["rows"])
+    assert not any("wall_s" in r["audit"] or "share_of_run" in r["audit"] for r in table["rows"])
+    _ran(tmp_path / "c.run.json", "compare")
+    cost = json.loads((tmp_path / "c.run.json").read_text())["audit_cost"]   # what the audit cost, this time
+    assert sorted(cost) == sorted(f"{law} on {d}" for law in ("paper", "astolfi") for d in ("near", "uniform", "wide"))
+    assert all(c["wall_s"] > 0 for c in cost.values()), cost
 
 
 def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun_writes_the_same(tmp_path, capsys):
@@ -299,6 +310,7 @@ def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun
     whole = {p: (out / p).read_bytes() for p in _left(out)}
     for p in whole:
         (out / p).unlink()
+    assert "paper.run.json" in whole
     with pytest.MonkeyPatch.context() as m:
         _interrupt_writing(m, "fig4_momentum.png")
         rc, _, err = _run(argv, capsys)
@@ -306,11 +318,10 @@ def test_paper_interrupted_between_its_figures_leaves_no_data_file_and_the_rerun
     assert _left(out) == ["fig2_paths.png", "fig3_configuration.png"]       # no paper.npz, no part, no lock
     assert _run(argv, capsys)[0] == 0
     assert _left(out) == sorted(whole)
-    for p, b in whole.items():
-        if p == "paper.npz":
-            _same_npz(out / p, b)
-        else:
+    for p, b in whole.items():                          # the same command, the same bytes, but its run record
+        if p != "paper.run.json":
             assert (out / p).read_bytes() == b, p
+    _ran(out / "paper.run.json", "paper")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -375,3 +386,47 @@ def test_a_chunk_store_on_its_own_is_refused_the_chunk_folder_of_a_live_run_in_a
         assert _locks(tmp_path) == [f"out.npz.chunks/{_locks(tmp_path)[0].rsplit('/', 1)[1]}"]
     finally:
         _end(p)
+
+
+# ---------------------------------------------------------------------------------------------
+# the wall time lives in the sidecar; files that still hold it (jaxsleigh 0.3) load
+# ---------------------------------------------------------------------------------------------
+
+def test_a_history_reads_its_wall_time_from_itself_or_its_sidecar_and_an_old_simulate_file_loads(tmp_path):
+    from jaxsleigh.files.npz import write_npz_deterministic
+    from jaxsleigh.files.runner import sidecar, steady, write_sidecar
+    from jaxsleigh.plots.paper_figures import _run_info, load_solution
+    from jaxsleigh.tuning import load_history
+    from jaxsleigh.tuning.history import save_arrays
+    from jaxsleigh.tuning.optimizer import TuneHistory
+
+    rows = {f: np.zeros((2, 3)) if f == "L" else np.arange(2.0) + 1 for f in TuneHistory._fields}
+    old = write_npz_deterministic(tmp_path / "old.npz", rows, compress=False, stamped=False)   # wall inside
+    np.testing.assert_array_equal(load_history(old).wall, [1.0, 2.0])
+    new = save_arrays(tmp_path / "new.npz", rows)
+    with np.load(new) as z:
+        assert "wall" not in z.files
+    assert np.isnan(load_history(new).wall).all()                           # no sidecar: not known
+    write_sidecar(new, {"wall_s": 3.0, "history": {"wall": [0.5, 1.5]}})
+    assert sidecar(new).name == "new.run.json"
+    np.testing.assert_array_equal(load_history(new).wall, [0.5, 1.5])
+    assert steady({"wall_s": 1.0, "devices": ["cpu:0"], "audit": {"rows": 0}}) == {"audit": {"rows": 0}}
+    assert steady({"wall_s": 1.0, "devices": ["cpu:0"]}) is None
+
+    # a simulate file of 0.3 kept wall time and devices in settings_json["run_info"]: it loads, and names its device
+    import jaxsleigh as js
+    from jaxsleigh.files.npz import write_npz
+
+    sol = js.simulate(np.array([[1.0, 1.0, 0.5]]), t_final=0.1, dt=0.01,
+                      stepsize=js.StepSizeController(method="rk4"), run=js.RunOptions(progress=False))
+    path = write_npz(tmp_path / "s.npz", sol, ics=np.array([[1.0, 1.0, 0.5]]))
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files if k != "__digest__"}
+    settings = json.loads(str(arrays["settings_json"]))
+    assert settings["run_info"] is None                                     # nothing of the run's timing inside
+    settings["run_info"] = {"wall_s": 0.25, "devices": ["cpu:0"]}
+    arrays["settings_json"] = np.array(json.dumps(settings))
+    old_sim = write_npz_deterministic(tmp_path / "old_s.npz", arrays)
+    loaded = load_solution(old_sim)
+    np.testing.assert_array_equal(loaded.q, sol.q)
+    assert _run_info(loaded)["devices"] == ["cpu:0"]

@@ -227,8 +227,9 @@ def test_cli_search_writes_gains_with_their_figures(tmp_path, capsys):
     assert meta["command"][:3] == ["jaxsleigh", "tune", "--search"] and meta["generations_run"] == 2
     assert meta["training_figures"]["median_energy"] <= meta["reference_figures"]["energy_budget"]
     assert set(meta["validation"]) == {"initial", "searched"}
+    assert "wall_s" not in out.read_text() and "share_of_run" not in out.read_text()    # in the sidecar g.run.json
     with np.load(hist) as z:
-        assert len(z["generation"]) == 2
+        assert len(z["generation"]) == 2 and "wall_s" not in z.files
     assert not (tmp_path / "g.json.ckpt.npz").exists()
 
 

@@ -139,7 +139,7 @@ def test_simulate_gives_its_out_back_when_it_ends(tmp_path, capsys):
     for _ in range(2):                                    # the second run is not refused by the first's lock
         rc, _, err = _run(["simulate", "--ic", "1,1,0.5", "--t-final", "0.1", "--out", out], capsys)
         assert rc == 0, err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.npz", "run.run.json"]   # and its sidecar
     with RunLock(out, "another-run"):
         rc, _, err = _run(["simulate", "--ic", "1,1,0.5", "--t-final", "0.1", "--out", out], capsys)
     assert rc == EXIT_LOCKED and "in use by another run" in err, err

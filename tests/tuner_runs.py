@@ -10,5 +10,6 @@ FRONT_VMAP = ["tune", "--pareto", "2", "--front-method", "vmap", "--steps", "3",
 LAW = ["tune", "--controller", "astolfi", "--steps", "3", "--batch", "2", "--t-final", "2", "--validate", "0",
        "--no-progress"]
 
-#: what differs between two runs of the same settings: when they ran and how they were called
-VOLATILE = {"wall_s", "command"}
+#: what differs between the files of two runs of the same settings to different --out names: the command line (the
+#: wall time is in the sidecar FILE.run.json)
+VOLATILE = {"command"}

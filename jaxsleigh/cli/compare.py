@@ -8,11 +8,12 @@ import time
 
 import jax
 
-from ..studies.audit import audit_line
+from ..studies.audit import COST, audit_line, without_cost
 from .chunked import audit_from_args
 from .common import (EXIT_NONE_OK, PROG, add_progress_option, add_sampler_options, add_tolerance_options,
                      check_outputs, claim_output, number, sampler_from_args, whole)
 from ..files.npz import atomic_write_text
+from ..files.runner import run_record, write_sidecar
 from ..integrate.stepsize import StepSizeController
 
 __all__ = ["add_controllers", "add_compare"]
@@ -130,8 +131,9 @@ def _tuning(args) -> tuple:
     return (DEFAULT_TRAIN if args.train is None else args.train), (DEFAULT_STEPS if args.steps is None else args.steps)
 
 
-def _record(args, rows, names, dists, wall_s, *, dt, equal=None) -> dict:
-    """What `jaxsleigh compare --out` writes: the rows, the command and every setting that made them."""
+def _record(args, rows, names, dists, *, dt, equal=None) -> dict:
+    """What `jaxsleigh compare --out` writes: the rows, the command and every setting that made them (the wall time
+    and devices, which vary between runs, go to its sidecar ``TABLE.run.json``)."""
     from ..studies.compare import START_DISTRIBUTIONS
 
     return {"rows": rows, "command": [PROG, *getattr(args, "_argv", [])],
@@ -142,8 +144,28 @@ def _record(args, rows, names, dists, wall_s, *, dt, equal=None) -> dict:
                          "saturation": args.saturation, "sample_period": args.sample_period, "delay": args.delay,
                          "noise": args.noise, "rtol": args.rtol, "atol": args.atol,
                          "equal_energy": bool(args.equal_energy)},
-            "equal_energy": None if equal is None else equal.record(),
-            "run_info": {"wall_s": wall_s, "devices": [str(d) for d in jax.devices()]}}
+            "equal_energy": None if equal is None else equal.record()}
+
+
+def _tuning_wall(equal) -> dict:
+    """``{"tuning_wall_s": {law: seconds}}`` of ``--equal-energy``'s tuned laws (their records in the table leave it
+    out); ``{}`` without it."""
+    if equal is None:
+        return {}
+    return {"tuning_wall_s": {k: v["wall_s"] for k, v in equal.laws_info.items() if "wall_s" in v}}
+
+
+def _audit_cost(rows) -> tuple:
+    """``(rows without their audit's cost (`jaxsleigh.studies.audit.COST`), {"LAW on STARTS": that cost})``: the
+    table's rows and the sidecar's."""
+    kept, cost = [], {}
+    for r in rows:
+        audit = r.get("audit")
+        if isinstance(audit, dict):
+            cost[f"{r['controller']} on {r['starts']}"] = {k: audit[k] for k in COST if k in audit}
+            r = {**r, "audit": without_cost(audit)}
+        kept.append(r)
+    return kept, cost
 
 
 def _time(v: float, t_final: float) -> str:
@@ -219,15 +241,20 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
     stepsize = StepSizeController(rtol=args.rtol, atol=args.atol)
     rows = compare(laws, starts, t_final=args.t_final, eps=args.eps, saturation=args.saturation, sampler=sampler,
                    x64=args.x64, stepsize=stepsize, audit=audit_from_args(args))
-    record = _record(args, rows, names, dists, time.perf_counter() - t0, dt=dt, equal=equal)
+    steady_rows, audit_cost = _audit_cost(rows)
+    record = _record(args, steady_rows, names, dists, dt=dt, equal=equal)
+    devices = [str(d) for d in jax.devices()]
     if args.plot:
         from ..plots.compare import plot_compare_ecdf
 
-        plot_compare_ecdf(json_ready(record), args.plot,
+        # the figure names the devices it was computed on, as every figure does; the record leaves them out
+        plot_compare_ecdf({**json_ready(record), "run_info": {"devices": devices}}, args.plot,
                           title="Controllers on the same plant and starts"
                                 + (", at the paper's training energy" if equal is not None else ""))
     # the record last: where it is, the run finished (an interrupted one leaves none)
     atomic_write_text(args.out, json.dumps(json_ready(record), indent=1, allow_nan=False))
+    side = write_sidecar(args.out, run_record(record["command"], time.perf_counter() - t0, devices,
+                                                         audit_cost=audit_cost, **_tuning_wall(equal)))
     print("\n".join(row_lines(rows, eps=args.eps, t_final=args.t_final)))
     for r in rows:
         if (r.get("audit") or {}).get("rows"):
@@ -237,7 +264,8 @@ def _run_compare(args, names, dists, train, steps, sampler, dt) -> int:
             if info.get("budget_reached") is False:
                 print(f"{PROG} compare: {name}: not at equal energy: its training energy is "
                       f"{info['energy_ratio']:.2f}x the budget{budget_note(info['energy_ratio'])}")
-    print(f"{PROG} compare: wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
+    print(f"{PROG} compare: wrote {args.out}" + (f" and {args.plot}" if args.plot else "")
+          + f" in {time.perf_counter() - t0:.1f} s wall (wall time and devices: {side.name})")
     dead = failed_laws(rows)
     if dead:
         print(f"{PROG}: error: every start of {', '.join(dead)} failed (see the statuses above and in --help); "

@@ -13,6 +13,7 @@ from .common import (FLAGS, PROG, add_horizon_options, add_model_options, add_pr
                      model_from_args, report_warnings, status_epilog, status_line)
 from .options import stepsize_from_args
 from ..files.npz import npz_path, write_npz
+from ..files.runner import run_record, write_sidecar
 from ..studies.config import solve_config
 from ..studies.simulate import check_saves, simulate
 
@@ -91,8 +92,10 @@ def _cmd_simulate(args) -> int:
         wall = time.perf_counter() - t0
         report_warnings(caught)
         out = write_npz(args.out, sol, ics=ics, command=[PROG, *args._argv])
+        side = write_sidecar(out, run_record([PROG, *args._argv], wall, (sol.run_info or {}).get("devices")))
     n_flag = sum(len(w.message.rows) for w in caught if isinstance(w.message, FlaggedStartsWarning))
     print(f"{PROG} simulate: {status_line(sol.status, sol.T_eps, cfg.eps)}"
           f"{f' ({n_flag} flagged, not integrated)' if n_flag else ''}; "
-          f"{wall:.2f} s wall ({sol.settings['dtype']}, {sol.settings['method']}); wrote {out}")
+          f"{wall:.2f} s wall ({sol.settings['dtype']}, {sol.settings['method']}); wrote {out} "
+          f"(wall time and devices: {side.name})")
     return exit_code(sol.status, sol.T_eps, cfg.eps)

@@ -138,7 +138,8 @@ def _cmd_law(args, plant, law) -> int:
             + " and ".join(map(str, o.written))))
     res = o.result
     print(f"{PROG} tune --controller {args.controller}: tuned {', '.join(names)} in {len(res.history['loss'])} "
-          f"steps; training loss {res.loss:.4g}, energy {res.energy:.4g}; wrote " + " and ".join(map(str, o.written)))
+          f"steps ({o.wall_s:.1f} s wall); training loss {res.loss:.4g}, energy {res.energy:.4g}; wrote "
+          + " and ".join(map(str, o.written)))
     _print_held_out(o)
     return _budget_exit(args, o)
 

@@ -41,7 +41,13 @@ def tuning_run(args, flags=None, *, history: bool = True):
 
     options = None if flags is None else {k: getattr(args, k, None) for k in flags}
     return TuningRun(args.out, history=args.history if history else None, resume=args.resume, options=options,
-                     command=[PROG, *getattr(args, "_argv", _canonical_argv(args))], words=CLI_WORDS)
+                     command=recorded_command(getattr(args, "_argv", _canonical_argv(args))), words=CLI_WORDS)
+
+
+def recorded_command(argv) -> list:
+    """The command line a tuner's files record: ``--resume`` left out, since a resumed run writes what the
+    uninterrupted one does (its sidecar ``FILE.run.json`` says how the run went)."""
+    return [PROG, *(str(a) for a in argv if str(a) != "--resume")]
 
 
 def tune_config(args):

@@ -53,6 +53,19 @@ def npz_kind(keys) -> Optional[str]:
     return None
 
 
+#: What varies between two runs of the same command (wall time, devices, chunks reused): recorded in the run's
+#: sidecar ``FILE.run.json`` (`jaxsleigh.files.runner.write_sidecar`), never in its result file, whose bytes
+#: depend on the command alone.
+RUN_VARIES = ("wall_s", "devices", "chunks_reused")
+
+
+def steady(run_info: Optional[dict]) -> Optional[dict]:
+    """A result's ``run_info`` without what varies between runs (`RUN_VARIES`): what a result file may keep of it
+    (``None`` when nothing is left)."""
+    kept = {k: v for k, v in (run_info or {}).items() if k not in RUN_VARIES}
+    return kept or None
+
+
 def _npz_to_read(path, what: str) -> Path:
     """The file a reader opens: ``path`` itself when it ends in ``.npz`` or exists; ``path + '.npz'``
     when that exists or ``path`` has no extension (the writers append it); else a ``ValueError``.
@@ -87,7 +100,9 @@ def write_npz(path, sol, *, ics, command: Optional[Sequence[str]] = None) -> Pat
         ics = np.concatenate([ics, np.zeros((ics.shape[0], 2))], axis=1)
     s = dict(sol.settings)
     settings = {**s, "ics": ics.tolist(), "command": list(command) if command is not None else None,
-                "status_codes": describe(), "run_info": getattr(sol, "run_info", None)}
+                "status_codes": describe(),
+                # what varies between runs (wall time, devices) goes to the run's sidecar FILE.run.json
+                "run_info": steady(getattr(sol, "run_info", None))}
     plant, g = s["plant"], s["gains"]
     # a law of the user's own has no paper gains: its record is in settings_json ("controller")
     gains = {} if g is None else {"gains_L": np.asarray(g["L"], dtype=np.float64), "gains_k": np.float64(g["k"]),

@@ -45,7 +45,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 from . import checkpoint
 from .checkpoint import differences, recorded
-from .npz import atomic_write_text
+from .npz import RUN_VARIES, atomic_write_text, steady
 from .run import PYTHON_WORDS, Run, Words
 from .runlock import settings_fingerprint
 from .workers import Workers, compute_shares, require_dask
@@ -53,7 +53,8 @@ from ..errors import CheckpointError, DiskFullError, RunLockedError
 from ..validate import output_file
 
 __all__ = ["Workers", "Words", "PYTHON_WORDS", "Finished", "run_to_file", "run_owned", "own_output", "chunk_dir",
-           "FINISHED", "other_command", "sidecar", "options_differ", "load_average"]
+           "FINISHED", "other_command", "sidecar", "write_sidecar", "run_record", "RUN_VARIES", "steady", "options_differ",
+           "load_average"]
 
 
 class Finished(NamedTuple):
@@ -75,6 +76,22 @@ def sidecar(out) -> Path:
     """The run's sidecar next to ``out``: ``FILE.run.json`` (what varies between runs)."""
     out = Path(out)
     return out.with_name(out.stem + ".run.json")
+
+
+def run_record(command, wall_s: float, devices=None, **more) -> dict:
+    """What a single-process run writes in its sidecar (`write_sidecar`): its ``command``, ``wall_s``, the
+    ``devices`` it used, the machine's load at the end and its CPU count, then ``more``."""
+    return {"command": None if command is None else [str(c) for c in command], "wall_s": wall_s,
+            "devices": devices, "loadavg_end": load_average(), "cpu_count": os.cpu_count(), **more}
+
+
+def write_sidecar(out, record: dict) -> Path:
+    """Write the run's sidecar ``FILE.run.json`` next to ``out`` (`sidecar`), atomically: what varies between
+    runs of the same command (``wall_s``, ``devices``, the ``command``, ...), kept out of the result file so that
+    the same command writes the same bytes. Every command that writes records its run here. Returns its path."""
+    side = output_file(sidecar(out), "run record file")
+    atomic_write_text(side, json.dumps(record, indent=1, default=str) + "\n")
+    return side
 
 
 def load_average() -> list:
@@ -276,8 +293,7 @@ def run_to_file(out, study: Callable[..., Any], save: Callable[[Path, Any], Any]
                   **({"workers": workers.count or workers.scheduler, "lost_workers": lost} if lost is not None
                      else {}),
                   **(info(result) if info is not None else {})}
-        atomic_write_text(side, json.dumps(record, indent=1, default=str) + "\n")
-        written.append(str(side))
+        written.append(str(write_sidecar(out, record)))
         code = int(finish(result, written, record)) if finish is not None else 0
         if not keep_chunks:                     # after the figure: a full disk there leaves resume to finish
             shutil.rmtree(chunks, ignore_errors=True)

@@ -17,6 +17,7 @@ Numerics modules never import this (nor any plotting module).
 """
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
@@ -65,11 +66,31 @@ def save_figure(fig, path, *, dpi: int = 150) -> Path:
 
     Written as the result files are (`jaxsleigh.files.npz.atomic_write`): into a temporary file in the same
     folder, then renamed into place, so that a failed write (a full disk) leaves no truncated figure; a full
-    disk or quota raises `jaxsleigh.errors.DiskFullError` naming the file."""
+    disk or quota raises `jaxsleigh.errors.DiskFullError` naming the file. The same figure saves as the same bytes
+    (no date in a ``.pdf``, ``.svg`` or ``.ps``; fixed ids in an ``.svg``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fmt = path.suffix.lower().lstrip(".") or None
-    return atomic_write(path, lambda f: fig.savefig(f, format=fmt, dpi=dpi))
+    meta = {"metadata": _NO_DATE[fmt]} if fmt in _NO_DATE else {}
+
+    def write(f):
+        import matplotlib
+
+        # fixed ids in an .svg; a .ps dates itself from SOURCE_DATE_EPOCH only
+        was = os.environ.get("SOURCE_DATE_EPOCH")
+        os.environ["SOURCE_DATE_EPOCH"] = was or "0"
+        try:
+            with matplotlib.rc_context({"svg.hashsalt": "jaxsleigh"}):
+                fig.savefig(f, format=fmt, dpi=dpi, **meta)
+        finally:
+            if was is None:
+                os.environ.pop("SOURCE_DATE_EPOCH", None)
+    return atomic_write(path, write)
+
+
+#: The metadata a figure format would date with the time it was saved: left out, so that the same command
+#: draws the same bytes (a ``.png`` holds no date).
+_NO_DATE = {"pdf": {"CreationDate": None}, "svg": {"Date": None}}
 
 
 def provenance(settings: Mapping, *, fields: Sequence[str] = ("dt",)) -> str:

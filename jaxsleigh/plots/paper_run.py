@@ -9,6 +9,7 @@ others here are a well-spread assortment of positions and headings, all with zer
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -20,6 +21,7 @@ from ..integrate.stepsize import StepSizeController
 from ..studies.options import RunOptions, SaveAt
 from ..studies.simulate import simulate
 from ..files.npz import write_npz
+from ..files.runner import run_record, write_sidecar
 from ..status import Status
 from ..validate import output_file
 
@@ -68,26 +70,28 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
     Args:
       out_dir: folder (created) for ``fig2_paths.png``, ``fig3_configuration.png``,
         ``fig4_momentum.png``, ``fig5_control.png``, ``fig_hamiltonian.png`` and ``paper.npz``
-        (same keys as ``jaxsleigh simulate``).
+        (same keys as ``jaxsleigh simulate``), and the run's sidecar ``paper.run.json`` (wall time, devices,
+        command: what varies between runs, so that the figures and ``paper.npz`` are the same bytes every time).
       x64: compute in float64 (default float32).
       dt: base step [s]; outputs are kept about every 0.05 s (smooth paths in the fast first second).
       progress: passed to `simulate`.
       t_final: horizon [s] (the paper's 100 s; shorter for quick looks and tests).
       ics: starts (default `PAPER_ICS`).
       method: ``"adaptive"`` (default) or ``"rk4"``.
-      command: recorded in the npz's ``settings_json``.
+      command: recorded in the npz's ``settings_json`` and in the sidecar.
       stamp: draw the provenance line on the figures (``False``: for a publication).
 
     Returns:
-      ``{stem: Path}`` for the five figures and ``"npz"``.
+      ``{stem: Path}`` for the five figures, ``"npz"`` and ``"run"`` (the sidecar).
     """
     from . import paper_figures as plotting
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for name in ("paper.npz", *(f"{stem}.png" for stem in FIGURES)):     # regular files only, before any work
+    for name in ("paper.npz", "paper.run.json", *(f"{stem}.png" for stem in FIGURES)):     # regular files only, before any work
         output_file(out / name)
     ics = PAPER_ICS if ics is None else np.asarray(ics, dtype=np.float64)
+    t0 = time.perf_counter()
     sol = simulate(ics, plant=paper_plant(), gains=paper_gains(), t_final=t_final, dt=dt, x64=x64,
                    stepsize=StepSizeController(method=method), saveat=SaveAt(every=_save_every(t_final, dt)),
                    run=RunOptions(progress=progress))
@@ -96,9 +100,10 @@ def run_paper(out_dir, *, x64: bool = False, dt: float = 0.01, progress: Any = N
         fig = getattr(plotting, fn_name)(sol, stamp=stamp)
         paths[stem] = plotting.save_figure(fig, out / f"{stem}.png")
     # the data last: where paper.npz is, every figure of its run is (an interrupted run leaves none)
-    npz = write_npz(out / "paper.npz", sol, ics=ics, command=list(command) if command is not None else
-                    ["run_paper", str(out)])
-    return {"npz": npz, **paths}
+    command = list(command) if command is not None else ["run_paper", str(out)]
+    npz = write_npz(out / "paper.npz", sol, ics=ics, command=command)
+    side = write_sidecar(npz, run_record(command, time.perf_counter() - t0, (sol.run_info or {}).get("devices")))
+    return {"npz": npz, **paths, "run": side}
 
 
 def summary_table(path_or_solution) -> str:

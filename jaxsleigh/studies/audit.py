@@ -61,7 +61,16 @@ from ..status import Status
 from ..errors import AccuracyWarning
 
 __all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "resolve", "tail_detection",
-           "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS"]
+           "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS", "COST", "without_cost"]
+
+#: What an audit's record says of its cost (``wall_s``, ``share_of_run``): it varies between runs, so a result file
+#: leaves it out (the rows re-run do not vary: they are chosen from the run's steps, not from a clock).
+COST = ("wall_s", "share_of_run")
+
+
+def without_cost(rec: Optional[dict]) -> Optional[dict]:
+    """An audit's record without its cost (`COST`), as a result file keeps it; ``None`` stays ``None``."""
+    return None if rec is None else {k: v for k, v in rec.items() if k not in COST}
 
 #: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the adaptive run
 #: it audits, in units of the run's own cost per lane-step: one row of the paper's gains over 100 s took 0.08 s

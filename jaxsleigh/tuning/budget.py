@@ -42,8 +42,10 @@ class EqualEnergy(NamedTuple):
     settings: dict
 
     def record(self) -> dict:
-        """JSON-ready: budget, settings and each law's record."""
-        return json_ready({"budget": self.budget, "settings": self.settings, "laws": self.laws_info})
+        """JSON-ready: budget, settings and each law's record, but its tuning's wall time (``laws_info``'s
+        ``wall_s``), which varies between runs."""
+        laws = {k: {f: v for f, v in info.items() if f != "wall_s"} for k, info in self.laws_info.items()}
+        return json_ready({"budget": self.budget, "settings": self.settings, "laws": laws})
 
 
 #: The band of training energy / budget in which a tuned law counts as at the budget (``budget_reached``).

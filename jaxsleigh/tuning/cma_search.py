@@ -89,6 +89,8 @@ class NoFeasibleCandidate(RuntimeError):
 _SLICES = {"L": slice(0, 3), "k": slice(3, 4), "D_hat": slice(4, 7)}
 _HISTORY = ("generation", "score", "median_T", "median_energy", "frac_converged", "n_bad", "feasible", "sigma",
             "best_score", "wall_s", "median_gap")
+#: The columns of ``_HISTORY`` that are not floats, with their types.
+_HISTORY_TYPES = {"generation": int, "n_bad": int, "feasible": bool}
 
 
 class SearchConfig(NamedTuple):
@@ -452,7 +454,9 @@ def _start(space: _Space, ref: PopulationFigures, budget: _Budget, config: Searc
         def restore():
             rng.bit_generator.state = json.loads(str(a["rng"]))
             state = CMAState(*(a[f"cma/{f}"] for f in CMAState._fields))
-            hist = [{f: a[f"hist/{f}"][i].item() for f in _HISTORY if f"hist/{f}" in a}
+            # the types of a fresh row (the checkpoint keeps every column as float64): a resumed search writes
+            # the history of an uninterrupted one, byte for byte
+            hist = [{f: _HISTORY_TYPES.get(f, float)(a[f"hist/{f}"][i].item()) for f in _HISTORY if f"hist/{f}" in a}
                     for i in range(len(a["hist/generation"]))]
             top = [(float(s), int(g), x, tuple(f)) for s, g, x, f in
                    zip(a["top/score"], a["top/generation"], a["top/x"], a["top/figures"])]

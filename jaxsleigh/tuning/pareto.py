@@ -443,7 +443,8 @@ def evaluate_front(front: Front, ics, *, plant: Optional[PlantParams] = None, x6
 def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> dict:
     """The JSON document of a front: per point the gains (the gains-file format: ``L``, ``k``,
     ``D_hat``), the budget, the training figures and the held-out evaluation; ``references``
-    (``{name: Validation}``, e.g. paper / tuned) and ``meta`` alongside."""
+    (``{name: Validation}``, e.g. paper / tuned) and ``meta`` alongside. Not the wall time, which varies between
+    runs: a run that writes a front records it in its sidecar ``FILE.run.json``."""
     def pdict(p: FrontPoint) -> dict:
         d = {**gains_to_dict(p.gains), "budget": p.budget, "train": p.train}
         if p.evaluation is not None:
@@ -451,7 +452,7 @@ def front_dict(front: Front, *, references: Optional[dict] = None, **meta) -> di
         return d
 
     return _as_json(
-        {"method": front.method, "wall_s": front.wall_s, "evaluations": front.evaluations,
+        {"method": front.method, "evaluations": front.evaluations,
          "settings": front.settings, "points": [pdict(p) for p in front.points],
          "references": {k: validation_dict(v) for k, v in (references or {}).items()}, **meta})
 

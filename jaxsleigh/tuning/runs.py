@@ -48,7 +48,7 @@ from ..model.params import as_plant, gains_to_dict, load_gains, save_gains
 from ..studies.config import plant_to_dict
 from ..validate import check_memory, whole, writable_path
 from .checkpoint import TuningInterrupted, checkpoint_options
-from .history import save_arrays
+from .history import history_wall, save_arrays
 from .cma_search import NoFeasibleCandidate, SearchConfig
 from .objective import LossConfig, training_max_step
 from .optimizer import TuneConfig, check_sizes
@@ -94,7 +94,8 @@ class RunOutcome(NamedTuple):
         far (``None``: nothing valid yet, and nothing was written).
       written: the files written, the output first.
       interrupted: Ctrl-C stopped the run; its checkpoint is kept and ``resume=True`` continues it.
-      wall_s: seconds the tuner ran (the held-out check not counted).
+      wall_s: seconds the tuner ran (the held-out check not counted; recorded in the sidecar ``FILE.run.json``,
+        not in the files written).
       held_out: ``{label: Validation}`` of the held-out check (e.g. ``initial`` and ``tuned``; ``{}`` without one).
       energy: the result's training energy where the run had an energy budget (else ``None``);
       energy_budget_met: whether it is within that budget (``None`` without one).
@@ -310,8 +311,7 @@ def law_run(run, law, name: str, *, starts=UniformStarts(), batch: int = 256, se
 def _tuner_run(run: TuningRun, what: str, work, write, check, held_out: Optional[HeldOut], budget=None) -> RunOutcome:
     """The life of a tuner's run (module docstring) under the claim of ``run.out`` (``what`` names it in a refusal):
     ``work()`` runs the tuner; ``write(result, **fields)`` writes the output and the history and returns the paths:
-    after Ctrl-C the best so far (if any) with ``interrupted=True``, else with ``wall_s`` and the fields of
-    ``budget(result)`` (with an energy budget: ``energy_budget_met``, and ``training_energy`` for the outcome), then
+    after Ctrl-C the best so far (if any) with ``interrupted=True``, else with the fields of ``budget(result)`` (with an energy budget: ``energy_budget_met``, and ``training_energy`` for the outcome), then
     again with the ``held_out`` check's ``validation`` (``check(result)``: its rows, `_held_out_rows`)."""
     if held_out is not None:
         held_out.check()
@@ -323,8 +323,9 @@ def _tuner_run(run: TuningRun, what: str, work, write, check, held_out: Optional
             wall, part = time.perf_counter() - t0, stop.partial
             return RunOutcome(part, () if part is None else write(part, interrupted=True), True, wall, {})
         wall = time.perf_counter() - t0
-        fields = {"wall_s": wall, **(budget(res) if budget else {})}
+        fields = budget(res) if budget else {}
         written = write(res, **fields)          # before the held-out check, so that it cannot lose it
+        written = (*written, _sidecar(run, wall, history=history_wall(getattr(res, "history", None))))
         run.finished()
         rows = check(res)
         if rows:          # as every tuner's file records it: with the seed and the tolerances of the check
@@ -385,13 +386,26 @@ def front_run(run, budgets, *, method: str = "warm", gains0="paper", config: Tun
         if base is not None:
             meta["baseline"] = tu.front_dict(base)
         tu.save_front(front, run.out, references=refs, **meta)
-        written = [run.out]
+        written = [run.out, _sidecar(run, front.wall_s, **({} if base is None else {"baseline_wall_s": base.wall_s}))]
         if plot is not None:
             from ..plots import tuning as tp
 
             doc = tu.load_front(run.out)
             written.append(tp.save_figure(tp.plot_front(doc, baseline=doc.get("baseline")), plot))
     return RunOutcome(front, tuple(written), False, front.wall_s, rows)
+
+
+def _sidecar(run: TuningRun, wall_s: float, **more) -> Path:
+    """The run's sidecar next to ``run.out`` (`jaxsleigh.files.runner.write_sidecar`): its command, wall time and
+    devices (and ``more``: the history's wall time per row), which vary between runs and so stay out of the files
+    the tuner writes."""
+    import jax
+
+    from ..files.runner import run_record, write_sidecar
+
+    resumed = {"resumed": True} if getattr(run, "resume", False) else {}
+    return write_sidecar(run.out, run_record(run.command, wall_s, [str(d) for d in jax.devices()], **resumed,
+                                             **more))
 
 
 def _interrupted_front(run: TuningRun) -> Optional[dict]:

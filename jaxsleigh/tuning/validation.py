@@ -13,7 +13,7 @@ from ..errors import AccuracyWarning
 from ..integrate.horizon import make_horizon, reference_max_steps
 from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains, PlantParams, load_gains, paper_plant
-from ..studies.audit import Audit
+from ..studies.audit import Audit, without_cost
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
 from ..model.coordinates import q_to_w
@@ -157,7 +157,8 @@ def markdown_table(rows: dict) -> str:
 
 
 def validation_dict(v: Validation, **extra) -> dict:
-    """The figures of a `Validation` as a JSON-ready dict (``extra`` merged in)."""
+    """The figures of a `Validation` as a JSON-ready dict (``extra`` merged in): what a file keeps of them, so its
+    audit without what it cost (`jaxsleigh.studies.audit.without_cost`: that varies between runs)."""
     def num(x):
         x = float(x)
         return x if math.isfinite(x) else str(x)
@@ -166,4 +167,4 @@ def validation_dict(v: Validation, **extra) -> dict:
             "frac_converged": v.frac_converged, "frac_se": v.frac_se, "median_energy": num(v.median_energy),
             "median_peak_u": num(v.median_peak_u), "mean_adaptive_steps": v.mean_steps,
             "max_attempts": v.max_attempts, "n_status_not_ok": v.n_failed, "n_crossed_theta0": v.n_crossed,
-            "audit": v.audit, "resolved_in_float64": v.resolved, **extra}
+            "audit": without_cost(v.audit), "resolved_in_float64": v.resolved, **extra}
