@@ -86,7 +86,8 @@ def reference(tmp_path_factory) -> bytes:
     (["--scheduler", "10.0.0.1"], "PROTOCOL://HOST:PORT"),
     (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "not allowed with argument"),
     (["--workers", "2", "--cluster-timeout", "0"], "--cluster-timeout"),
-    (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0"], "unrecognized arguments"),
+    (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "0"], "removed in jaxsleigh 0.4"),
+    (["--process-id", "1"], "--workers N"),
     (["--workers", "2", "--samples", "0"], "--samples"),
     (["--workers", "2", "--t-final", "-1"], "--t-final"),
 ])

@@ -206,6 +206,17 @@ def add_workers_options(parser) -> None:
                    metavar="S", help=f"seconds to wait for a worker: at the start, and when none is left (then the "
                                      f"run stops with exit code {EXIT_CLUSTER}, its chunks kept) (default "
                                      f"{WORKERS_TIMEOUT_S})")
+    for flag in ("--coordinator", "--num-processes", "--process-id"):
+        g.add_argument(flag, action=_Removed, help=argparse.SUPPRESS)
+
+
+class _Removed(argparse.Action):
+    """A flag of jaxsleigh 0.3's processes sharing a run: refused with what replaces it."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string} was removed in jaxsleigh 0.4: one command runs the whole study and its chunks "
+                     f"go to Dask workers, --workers N on this machine or --scheduler ADDRESS for a cluster "
+                     f"(e.g. --workers 2)")
 
 
 def workers_from_args(args):
