@@ -6,10 +6,10 @@
 Calls `jaxsleigh.run_ensemble` on ``--n`` of the README's starts (x, y ~ U(-3, 3), theta0 ~ U(0.3, 3), at rest)
 for ``--t-final`` seconds, first with the paper's gains, then with the README's other gains
 (``L = (4, 1, 1.6), k = 0.2, D_hat = diag(4, 8)``), and prints per call its seconds, the XLA programs it compiled
-(JAX's ``/jax/core/compile/backend_compile_duration`` events) and their seconds. With ``--basin N``, then times the default basin (`jaxsleigh.run_basin` of
-``jaxsleigh.sample_starts(N)``, its defaults) ``--repeats`` times, warm, in the same process, and with ``--save``
-writes its statuses, T_eps and final states to an ``.npz`` (to compare two trees' bytes). ``--n 0`` skips the
-ensemble's calls.
+(JAX's ``/jax/core/compile/backend_compile_duration`` events) and their seconds. With ``--basin N``, then times
+the default basin (`jaxsleigh.run_basin` of ``jaxsleigh.sample_starts(N)``, its defaults) ``--repeats`` times,
+warm, in the same process, and with ``--save`` writes its statuses, T_eps and final states to an ``.npz`` (to
+compare two trees' bytes). ``--n 0`` skips the ensemble's calls.
 """
 from __future__ import annotations
 
