@@ -56,16 +56,38 @@ from ..model.lanes import has_lanes, lane_table, take_lanes
 
 __all__ = ["EnsembleResult", "run_ensemble", "SUMMARY_FIELDS"]
 
-#: a part hands its still-active lanes to the chunk's tail batch once at most this many are left (of 1024); the
-#: default 10^5-start basin took 20.9 s with 128, 24.7 s with 16, 67.3 s with 0 (every part finishing its own
-#: stragglers; python experiments/performance/engine_defaults.py)
+#: a part hands its still-active lanes to the chunk's tail batch once at most this many are left (or, on CPU, a
+#: quarter of the part if that is more: `hand_off_at`); the default 10^5-start basin took 20.9 s with 128, 24.7 s
+#: with 16, 67.3 s with 0 (every part finishing its own stragglers; python experiments/performance/engine_defaults.py)
 TAIL_LANES = 128
 
-#: the pool of stragglers' batches (`TAIL_LADDER`): powers of two from TAIL_MIN to TAIL_MAX lanes. On XLA:CPU the
-#: compiled step gives every lane the same bits at 64, 128 and 256 lanes (float32; 8, 16-32 and 1024 each round
-#: otherwise; float64 from 32 on), so a straggler's result does not depend on the lanes that share its batch
+#: the pool of stragglers' batches (`tail_ladder`). On XLA:CPU the compiled step gives every lane the same bits at
+#: 64, 128 and 256 lanes (float32; 8, 16-32 and 1024 each round otherwise; float64 from 32 on), so a straggler's
+#: result does not depend on the lanes that share its batch. On CPU the pool runs batches of TAIL_MIN lanes only
+#: (`CPU_TAIL_LADDER`): one shape whatever the lanes, so a later call with other numbers finds its programs compiled;
+#: an accelerator's pool (several devices) takes powers of two from TAIL_MIN to TAIL_MAX (`TAIL_LADDER`).
 TAIL_MIN, TAIL_MAX = 64, 256
 TAIL_LADDER = Ladder(floor=TAIL_MIN, ceiling=TAIL_MAX)
+CPU_TAIL_LADDER = Ladder(floor=TAIL_MIN, ceiling=TAIL_MIN)
+
+
+def tail_ladder(backend: Optional[str] = None) -> Ladder:
+    """The pool of stragglers' batch sizes on ``backend`` (default JAX's): `CPU_TAIL_LADDER` on CPU, else
+    `TAIL_LADDER`."""
+    return CPU_TAIL_LADDER if (backend or jax.default_backend()) == "cpu" else TAIL_LADDER
+
+
+def hand_off_at(lanes: int, backend: Optional[str] = None) -> int:
+    """How few still-active lanes a part of ``lanes`` runs down to before it hands them to the pool of stragglers.
+    On CPU: `TAIL_LANES`, or a quarter of the part if that is more, where the engine would otherwise compact the
+    part to a smaller batch (`jaxsleigh.integrate.pool.Ladder.shrinks`): a part then only ever runs at its own size,
+    and its last lanes at the pool's one size (`tail_ladder`), so no batch shape depends on how fast the lanes
+    settle. On an accelerator (a compaction floor of 8,192 lanes, `jaxsleigh.integrate.engine.min_batch`):
+    `TAIL_LANES`."""
+    if (backend or jax.default_backend()) != "cpu":
+        return TAIL_LANES
+    return max(TAIL_LANES, lanes // 4)
+
 
 #: chunks whose parts are done may wait this many at most for their stragglers before the next chunk starts
 MAX_PENDING = 16
@@ -415,8 +437,11 @@ class _Chunks:
         cuts = np.cumsum([0] + part_sizes)
         bar_lock = threading.Lock()
         done = np.zeros(len(part_sizes))
-        # the adaptive engine's few stiff stragglers are gathered from the parts into one batch (_tail)
-        tails = self.summaries and self.save_every is None and self.adaptive and len(part_sizes) > 1
+        # the adaptive engine's few stiff stragglers are gathered from the parts into one batch (_tail); on CPU a
+        # lone part's too, unless its run lets compaction change bits (its batch shapes then never depend on how
+        # fast its lanes settle: `hand_off_at`)
+        lone = self.rules.bitwise and jax.default_backend() == "cpu"
+        tails = self.summaries and self.save_every is None and self.adaptive and (len(part_sizes) > 1 or lone)
 
         def part(i):
             a0, a1 = cuts[i], cuts[i + 1]
@@ -467,7 +492,7 @@ class _Chunks:
             part = _plain_summaries(*drive_plain(y0w, st, a, horizon, segment=segment, progress=sub),
                                     y0w, st, a, horizon)
         elif tails:
-            return drive_final(y0w, st, a, horizon, step, segment=segment, stop_at=TAIL_LANES, finish=False,
+            return drive_final(y0w, st, a, horizon, step, segment=segment, stop_at=hand_off_at(st.size), finish=False,
                                **kw, **fin)
         elif self.save_every is None:
             final = drive_final(y0w, st, a, horizon, step, segment=segment, **kw, **fin)
@@ -520,11 +545,11 @@ class _Chunks:
 
     def run_stragglers(self, lanes, rows):
         """One segment of the pool's ``lanes`` (host, batch-last; their ``rows`` give per-lane parameters) in the
-        batches of `TAIL_LADDER`, then the lanes that cannot settle stopped, on the first device
+        batches of `tail_ladder`, then the lanes that cannot settle stopped, on the first device
         (`jaxsleigh.integrate.engine.advance_pool`)."""
         with jax.default_device(self.devs[0]), jax.enable_x64(self.cfg.x64):
             return advance_pool(lanes, lambda fill: self._lanes_args(rows[fill]), self.horizon, self.step,
-                                eps=self.eps, ladder=TAIL_LADDER, segment=self.segment, observers=self.observers,
+                                eps=self.eps, ladder=tail_ladder(), segment=self.segment, observers=self.observers,
                                 certify=self.rules.certify, stiff_after=STIFF_AFTER)
 
     def _tail_summaries(self, fulls, where, active, done, y0w, st, rows):
