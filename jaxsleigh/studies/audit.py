@@ -59,8 +59,9 @@ import numpy as np
 
 from ..status import Status
 from ..errors import AccuracyWarning
+from ..model.controller import PerTrajectory
 
-__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "resolve", "tail_detection",
+__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "for_law", "resolve", "tail_detection",
            "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS"]
 
 #: the cost of a reference row (float64, rtol = atol = 1e-10, in a batch of a few lanes) per step of the adaptive run
@@ -139,6 +140,26 @@ def resolve(audit) -> Optional[Audit]:
     raise ValueError(f"audit must be True, False, None or a jaxsleigh.Audit(...), got {audit!r}")
 
 
+def for_law(audit: Optional[Audit], law) -> Optional[Audit]:
+    r"""``audit`` for a run of ``law`` (a `jaxsleigh.model.controller.PerTrajectory` is its law's): a law that
+    declares a class attribute ``reference_tol`` \(\tau\), the loosest tolerance at which float64 resolves it,
+    starts the ladder there where \(\tau\) is tighter than ``audit.rtol``: the reference at \(\tau\), a row off it
+    confirmed at \(\tau / 10\) and one still off at \(\tau / 100\) (where ``confirm_tol`` and ``tightest_tol``
+    are not already tighter); `audit_sample` then counts its rows \((10^{-10} / \tau)^{1/5}\) times dearer.
+    Aicardi's law declares 1e-12: at 1e-10 its reference chatters about the goal (the law is discontinuous there),
+    and a budgeted audit stopped it unjudged at 8-14% of a 4,096-start run; at 1e-12 the row the budget affords
+    converges (``docs/evidence/accuracy.md``). What the law is decides, never a clock: the same tolerances and rows
+    on any machine."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    tol = getattr(type(inner), "reference_tol", None)
+    if audit is None or tol is None or not float(tol) < audit.rtol:
+        return audit
+    tol = float(tol)
+    confirm = min(audit.confirm_tol, tol / 10)
+    return audit._replace(rtol=tol, atol=min(audit.atol, tol), confirm_tol=confirm,
+                          tightest_tol=min(audit.tightest_tol, confirm / 10))
+
+
 def _answers(status, T_eps) -> np.ndarray:
     """Statuses as answers: ``NOT_SETTLING`` (certified not to settle, `jaxsleigh.integrate.stragglers`) and OK without
     settling (``T_eps = inf``) say the same, so they compare equal."""
@@ -200,9 +221,9 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
     """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
     (bool, ``(n,)``) first, then the others, each in the seeded order of ``numpy.random.default_rng(audit.seed)``;
     the first ``audit.count(n)``, cut to the longest prefix whose estimated cost fits ``audit.budget`` of the run
-    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST`,
-    `REFERENCE_COST_FIXED` for a run of ``fixed_step`` steps). They depend on the result's rows and the audit only,
-    never on a clock."""
+    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST` times
+    \((10^{-10} / \text{rtol})^{1/5}\) for a reference tighter than 1e-10, `for_law`; `REFERENCE_COST_FIXED` for a
+    run of ``fixed_step`` steps). They depend on the result's rows and the audit only, never on a clock."""
     k = audit.count(n)
     if not k:
         return np.zeros(0, np.int64)
@@ -218,7 +239,7 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
         s = np.nan_to_num(np.asarray(steps, np.float64), nan=0.0)
         s = np.maximum(s, 0.0)
         allowance = audit.budget * float(np.sum(s))
-        factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST
+        factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST * _steps_scale(audit.rtol)
         rows = rows[:int(np.searchsorted(np.cumsum(factor * s[rows]), allowance, side="right"))]
     return np.sort(rows)
 
@@ -230,8 +251,13 @@ def _cap(audit: "Audit", steps, rows: np.ndarray, tol: float) -> dict:
     if steps is None or audit.rows is not None or audit.budget is None:
         return {}
     s = np.nan_to_num(np.asarray(steps, np.float64)[rows], nan=0.0)
-    scale = max(1.0, (1e-10 / float(tol)) ** 0.2)
-    return {"max_steps": int(math.ceil(REFERENCE_STEPS * scale * max(float(np.max(s)), 1.0)))}
+    return {"max_steps": int(math.ceil(REFERENCE_STEPS * _steps_scale(tol) * max(float(np.max(s)), 1.0)))}
+
+
+def _steps_scale(tol: float) -> float:
+    r"""How many times its steps at 1e-10 an adaptive reference takes at ``tol``: \((10^{-10} / \tau)^{1/5}\), at
+    least 1 (an explicit step's count grows like \(\tau^{-1/5}\))."""
+    return max(1.0, (1e-10 / float(tol)) ** 0.2)
 
 
 def tail_detection(n: int, k: int, share: float = 0.02) -> float:
