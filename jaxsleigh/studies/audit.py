@@ -22,7 +22,9 @@ estimated from the run's own steps: the run spent \(W / \sum_j n_j\) per lane-st
 \(n_i\) run steps costs `REFERENCE_COST` \(\cdot\, n_i\) of those (more steps at 1e-10, float64, a batch of a few
 lanes; `REFERENCE_COST_FIXED` after fixed steps), so rows are kept while \(\text{REFERENCE\_COST} \sum_{i \in S} n_i \le \text{budget} \sum_j n_j\),
 which needs no clock and draws the same rows on any machine. It integrates them again in
-float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows that reached the horizon in both:
+float64 at ``rtol = atol = 1e-10`` (the reference; a law that float64 resolves only at a tighter \(\tau\) declares it,
+``reference_tol``, and its ladder starts there, its rows counted \((10^{-10}/\tau)^{1/5}\) times dearer, `for_law`:
+Aicardi's law, 1e-12), and records, over the rows that reached the horizon in both:
 
 * ``worst_energy_rel``: \(\max |E - E_{\text{ref}}| / |E_{\text{ref}}|\) (the row's energy, relative);
 * ``worst_T_eps_s``: \(\max |T_\epsilon - T_{\epsilon,\text{ref}}|\) (``inf`` where one settled and the other not);
@@ -70,8 +72,12 @@ __all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "for
 #: 2-core x86_64 CPU; at 100, four rows of a 4,096-start run took 7-11% of it on that machine under a load of 7-10
 #: (``experiments/studies/audit_power.py``), so 150 keeps the audit inside 10% with room. It is the paper's law's: a
 #: law whose reference takes far more steps than its run would overrun it (Aicardi's law, whose float64 reference
-#: takes 18,000-57,000 steps a row against the run's 740: 2 rows of a 4,096-start run took 50-59% of it, warm), so
-#: a budgeted audit holds each reference to `REFERENCE_STEPS` (then 16-32%; the record's ``share_of_run`` says so)
+#: takes 18,000-57,000 steps a row against the run's 740 at 1e-10, where it chatters about its goal: 2 rows of a
+#: 4,096-start run took 50-59% of it, warm), so a budgeted audit holds each reference to `REFERENCE_STEPS`, and that
+#: law's audit starts at 1e-12 (`for_law`), where its rows converge in 20-25 steps a run step. The laws of the
+#: physical chart had also paid 0.1-0.2 s a reference call to compile the law check again (`as_controller`), now
+#: compiled once: at 4,096 starts the audits of Aicardi's, Astolfi's and Samson's laws and the paper's took 7%, 7-8%,
+#: 2-6% and 4-6% of their runs (``docs/evidence/accuracy.md``)
 REFERENCE_COST = 150.0
 #: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
 #: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
