@@ -224,7 +224,7 @@ def _agree(d: dict, audit: "Audit") -> np.ndarray:
 
 
 def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_step: bool = False) -> np.ndarray:
-    """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
+    r"""The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
     (bool, ``(n,)``) first, then the others, each in the seeded order of ``numpy.random.default_rng(audit.seed)``;
     the first ``audit.count(n)``, cut to the longest prefix whose estimated cost fits ``audit.budget`` of the run
     when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST` times
