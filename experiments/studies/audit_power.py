@@ -2,6 +2,7 @@ r"""Does a run with a tail of unresolved rows say so? And what does the audit co
 
     python experiments/studies/audit_power.py [--n-tail 256] [--n-held 128] [--n-base 512] [--draws 2000]
         [--cost-n 512,4096] [--reps 3] [--cost-law paper] [--law aicardi --n-law 128 --law-seeds 20240611,7]
+        [--share-laws aicardi,astolfi,samson,paper --share-n 500,4096,16384]
         [--out docs/figures/audit_power.json]
 
 **Power.** The 0.2 release's ``balanced`` gains (k = 0.001467) let the settled (w2, p1) oscillation grow from a seed
@@ -40,6 +41,10 @@ starts with ``audit=False`` and with the default audit, for each N in ``cost_n``
 (``SaveAt(summaries=False)``, RK4, no passivity check) of 4,096 starts both ways, each first in turn. Reported: the audit's own
 ``wall_s`` and ``share_of_run`` (its record), its line and ``coverage``, and the wall time of the whole call with the
 audit over that without. ``--cost-law aicardi``: the same for another law (without the fixed-step path).
+
+**Share per law** (``--share-laws aicardi,astolfi,samson,paper --share-n 500,4096,16384``): each law's default run
+(audit on, README starts of seed 11, 100 s), warm, ``reps`` times: the run's ``wall_s`` and the audit's rows,
+reference, ``wall_s``, ``share_of_run``, rows judged and not finished (its record), without runs of the audit off.
 """
 from __future__ import annotations
 
@@ -280,6 +285,30 @@ def cost(ns, reps: int, law: str = "paper") -> dict:
     return out
 
 
+def shares(laws, ns, reps: int) -> dict:
+    import jaxsleigh as js
+    from jaxsleigh.controllers.registry import make_controller
+
+    out = {}
+    for n in ns:
+        ics = readme_starts(n, seed=11)
+        for law in laws:
+            kw = {} if law == "paper" else {"controller": make_controller(law)}
+            _run(ics, run=js.RunOptions(progress=False), **kw)           # compile (and fill the caches) first
+            recs = []
+            for _ in range(reps):
+                r = _run(ics, run=js.RunOptions(progress=False), **kw)
+                a = r.run_info["audit"]
+                recs.append({"run_wall_s": round(r.run_info["wall_s"], 3), "rows": a.get("rows"),
+                             "reference": a.get("reference"), "wall_s": a.get("wall_s"),
+                             "share_of_run": a.get("share_of_run"), "why": a.get("why"),
+                             "judged": (a.get("coverage") or {}).get("sampled_rows"),
+                             "unfinished": a.get("reference_unfinished"), "passed": a.get("passed")})
+            out[f"{law}_{n}"] = recs
+            print(law, n, json.dumps(recs), flush=True)
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n-tail", type=int, default=256)
@@ -297,6 +326,8 @@ def main(argv=None) -> None:
     ap.add_argument("--law", default="", help="a law's own tail and the order of the audit (e.g. aicardi)")
     ap.add_argument("--n-law", type=int, default=128)
     ap.add_argument("--law-seeds", default="20240611,7")
+    ap.add_argument("--share-laws", default="", help="e.g. aicardi,astolfi,samson,paper: the audit's share per law")
+    ap.add_argument("--share-n", default="500,4096,16384")
     ap.add_argument("--out", default="out/audit_power.json")
     a = ap.parse_args(argv)
     import jax
@@ -305,7 +336,7 @@ def main(argv=None) -> None:
 
     doc = {"command": "python experiments/studies/audit_power.py " + " ".join(sys.argv[1:]),
            "machine": {"arch": platform.machine(), "python": platform.python_version(), "jax": jax.__version__},
-           "dtype": "float32 runs, float64 reference (rtol = atol = 1e-10)", "load_start": load()}
+           "dtype": "float32 runs, float64 reference (rtol = atol = 1e-10; a law's reference_tol where tighter)", "load_start": load()}
     if not a.skip_power:
         tail = [tail_set(a.n_tail, 20240611), tail_set(a.n_held, 7)]
         ics = readme_starts(a.n_base, seed=11)
@@ -321,6 +352,8 @@ def main(argv=None) -> None:
         doc["law_tail"] = law_tail(a.law, a.n_law, [int(x) for x in a.law_seeds.split(",")], a.n_run, a.draws)
     if not a.skip_cost:
         doc["cost"] = cost([int(x) for x in a.cost_n.split(",")], a.reps, a.cost_law)
+    if a.share_laws:
+        doc["share"] = shares(a.share_laws.split(","), [int(x) for x in a.share_n.split(",")], a.reps)
     doc["load_end"] = load()
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(doc, indent=1) + "\n")

@@ -22,7 +22,9 @@ estimated from the run's own steps: the run spent \(W / \sum_j n_j\) per lane-st
 \(n_i\) run steps costs `REFERENCE_COST` \(\cdot\, n_i\) of those (more steps at 1e-10, float64, a batch of a few
 lanes; `REFERENCE_COST_FIXED` after fixed steps), so rows are kept while \(\text{REFERENCE\_COST} \sum_{i \in S} n_i \le \text{budget} \sum_j n_j\),
 which needs no clock and draws the same rows on any machine. It integrates them again in
-float64 at ``rtol = atol = 1e-10`` (the reference), and records, over the rows that reached the horizon in both:
+float64 at ``rtol = atol = 1e-10`` (the reference; a law that float64 resolves only at a tighter \(\tau\) declares it,
+``reference_tol``, and its ladder starts there, its rows counted \((10^{-10}/\tau)^{1/5}\) times dearer, `for_law`:
+Aicardi's law, 1e-12), and records, over the rows that reached the horizon in both:
 
 * ``worst_energy_rel``: \(\max |E - E_{\text{ref}}| / |E_{\text{ref}}|\) (the row's energy, relative);
 * ``worst_T_eps_s``: \(\max |T_\epsilon - T_{\epsilon,\text{ref}}|\) (``inf`` where one settled and the other not);
@@ -59,8 +61,9 @@ import numpy as np
 
 from ..status import Status
 from ..errors import AccuracyWarning
+from ..model.controller import PerTrajectory
 
-__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "resolve", "tail_detection",
+__all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "for_law", "resolve", "tail_detection",
            "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS", "COST", "without_cost"]
 
 #: What an audit's record says of its cost (``wall_s``, ``share_of_run``): it varies between runs, so a result file
@@ -78,8 +81,12 @@ def without_cost(rec: Optional[dict]) -> Optional[dict]:
 #: 2-core x86_64 CPU; at 100, four rows of a 4,096-start run took 7-11% of it on that machine under a load of 7-10
 #: (``experiments/studies/audit_power.py``), so 150 keeps the audit inside 10% with room. It is the paper's law's: a
 #: law whose reference takes far more steps than its run would overrun it (Aicardi's law, whose float64 reference
-#: takes 18,000-57,000 steps a row against the run's 740: 2 rows of a 4,096-start run took 50-59% of it, warm), so
-#: a budgeted audit holds each reference to `REFERENCE_STEPS` (then 16-32%; the record's ``share_of_run`` says so)
+#: takes 18,000-57,000 steps a row against the run's 740 at 1e-10, where it chatters about its goal: 2 rows of a
+#: 4,096-start run took 50-59% of it, warm), so a budgeted audit holds each reference to `REFERENCE_STEPS`, and that
+#: law's audit starts at 1e-12 (`for_law`), where its rows converge in 20-25 steps a run step. The laws of the
+#: physical chart had also paid 0.1-0.2 s a reference call to compile the law check again (`as_controller`), now
+#: compiled once: at 4,096 starts the audits of Aicardi's, Astolfi's and Samson's laws and the paper's took 7%, 7-8%,
+#: 2-6% and 4-6% of their runs (``docs/evidence/accuracy.md``)
 REFERENCE_COST = 150.0
 #: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
 #: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
@@ -148,6 +155,26 @@ def resolve(audit) -> Optional[Audit]:
     raise ValueError(f"audit must be True, False, None or a jaxsleigh.Audit(...), got {audit!r}")
 
 
+def for_law(audit: Optional[Audit], law) -> Optional[Audit]:
+    r"""``audit`` for a run of ``law`` (a `jaxsleigh.model.controller.PerTrajectory` is its law's): a law that
+    declares a class attribute ``reference_tol`` \(\tau\), the loosest tolerance at which float64 resolves it,
+    starts the ladder there where \(\tau\) is tighter than ``audit.rtol``: the reference at \(\tau\), a row off it
+    confirmed at \(\tau / 10\) and one still off at \(\tau / 100\) (where ``confirm_tol`` and ``tightest_tol``
+    are not already tighter); `audit_sample` then counts its rows \((10^{-10} / \tau)^{1/5}\) times dearer.
+    Aicardi's law declares 1e-12: at 1e-10 its reference chatters about the goal (the law is discontinuous there),
+    and a budgeted audit stopped it unjudged at 8-14% of a 4,096-start run; at 1e-12 the row the budget affords
+    converges (``docs/evidence/accuracy.md``). What the law is decides, never a clock: the same tolerances and rows
+    on any machine."""
+    inner = law.law if isinstance(law, PerTrajectory) else law
+    tol = getattr(type(inner), "reference_tol", None)
+    if audit is None or tol is None or not float(tol) < audit.rtol:
+        return audit
+    tol = float(tol)
+    confirm = min(audit.confirm_tol, tol / 10)
+    return audit._replace(rtol=tol, atol=min(audit.atol, tol), confirm_tol=confirm,
+                          tightest_tol=min(audit.tightest_tol, confirm / 10))
+
+
 def _answers(status, T_eps) -> np.ndarray:
     """Statuses as answers: ``NOT_SETTLING`` (certified not to settle, `jaxsleigh.integrate.stragglers`) and OK without
     settling (``T_eps = inf``) say the same, so they compare equal."""
@@ -206,12 +233,12 @@ def _agree(d: dict, audit: "Audit") -> np.ndarray:
 
 
 def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_step: bool = False) -> np.ndarray:
-    """The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
+    r"""The rows of a result of ``n`` rows that ``audit`` re-runs, sorted (none: empty): the ``unresolved`` rows
     (bool, ``(n,)``) first, then the others, each in the seeded order of ``numpy.random.default_rng(audit.seed)``;
     the first ``audit.count(n)``, cut to the longest prefix whose estimated cost fits ``audit.budget`` of the run
-    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST`,
-    `REFERENCE_COST_FIXED` for a run of ``fixed_step`` steps). They depend on the result's rows and the audit only,
-    never on a clock."""
+    when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST` times
+    \((10^{-10} / \text{rtol})^{1/5}\) for a reference tighter than 1e-10, `for_law`; `REFERENCE_COST_FIXED` for a
+    run of ``fixed_step`` steps). They depend on the result's rows and the audit only, never on a clock."""
     k = audit.count(n)
     if not k:
         return np.zeros(0, np.int64)
@@ -227,7 +254,7 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
         s = np.nan_to_num(np.asarray(steps, np.float64), nan=0.0)
         s = np.maximum(s, 0.0)
         allowance = audit.budget * float(np.sum(s))
-        factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST
+        factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST * _steps_scale(audit.rtol)
         rows = rows[:int(np.searchsorted(np.cumsum(factor * s[rows]), allowance, side="right"))]
     return np.sort(rows)
 
@@ -239,8 +266,13 @@ def _cap(audit: "Audit", steps, rows: np.ndarray, tol: float) -> dict:
     if steps is None or audit.rows is not None or audit.budget is None:
         return {}
     s = np.nan_to_num(np.asarray(steps, np.float64)[rows], nan=0.0)
-    scale = max(1.0, (1e-10 / float(tol)) ** 0.2)
-    return {"max_steps": int(math.ceil(REFERENCE_STEPS * scale * max(float(np.max(s)), 1.0)))}
+    return {"max_steps": int(math.ceil(REFERENCE_STEPS * _steps_scale(tol) * max(float(np.max(s)), 1.0)))}
+
+
+def _steps_scale(tol: float) -> float:
+    r"""How many times its steps at 1e-10 an adaptive reference takes at ``tol``: \((10^{-10} / \tau)^{1/5}\), at
+    least 1 (an explicit step's count grows like \(\tau^{-1/5}\))."""
+    return max(1.0, (1e-10 / float(tol)) ** 0.2)
 
 
 def tail_detection(n: int, k: int, share: float = 0.02) -> float:

@@ -35,7 +35,7 @@ from ..files.checkpoint import run_key
 from ..files.chunks import ChunkStore, starts_digest
 from .config import reject_traced, solve_config
 from .options import RunOptions, SaveAt, study_options, takes_objects
-from .audit import audit_rows, resolve as resolve_audit
+from .audit import audit_rows, for_law, resolve as resolve_audit
 from ..integrate.guard import GREW, NEAR, grown_settled_mode
 from ..integrate.horizon import reference_max_steps
 from ..integrate.stepsize import StepSizeController
@@ -711,7 +711,7 @@ def run_ensemble_resolved(ics, *, plant: Optional[PlantParams], gains: Any, cont
         extra = tuple(f for o in observers for f in o.fields if f not in SUMMARY_FIELDS)
         fields = SUMMARY_FIELDS + extra + (("q_traj", "p_traj") if save_every is not None else ())
         t_start = time.perf_counter()
-        audit = None if spec is None else _RunAudit(spec, n, _float64_rerun(
+        audit = None if spec is None else _RunAudit(for_law(spec, cfg.controller), n, _float64_rerun(
             ics5, lane_args, cfg, plant=plant, gains=gains, controller=controller, t_final=t_final, dt=dt, eps=eps),
             fixed_step=not cfg.adaptive, flag=unresolved_flag(chart, sampled=sampled, summaries=saveat.summaries))
         # the store's lock on the folder is held until the last chunk is written or read
