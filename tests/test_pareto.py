@@ -67,15 +67,44 @@ def _setup(gains, **loss):
 
 
 @pytest.mark.usefixtures("x64")
+def test_objective_energy_is_the_engines_for_the_same_steps():
+    """The objective's u_energy and u_norm_peak are the engine's effort observer's: on the same steps they equal what
+    `solve` reports to rounding, fixed RK4 steps of dt as the engine takes them and adaptive steps from the same
+    first step (the energy's own error estimate is under the step's norm in both, so the steps agree too)."""
+    from jaxsleigh.integrate.stepper import WhileActive, controls, init_batch, run, starting_step
+    from jaxsleigh.model.closed_loop import ClosedLoop
+    data, cfg, tr, fr = _setup("paper", t_final=2.0, stop_fraction=1e-6)
+    gains = tu.gains_from_params(fr)
+    _, aux = tu.objective(tr, fr, data, cfg, n_attempts=220, adaptive=False)
+    lanes = aux["lanes"]
+    assert np.all(np.asarray(lanes.t_reached) == 2.0)
+    rk4 = [js.solve(gains, jnp.asarray(y0), t_final=2.0, dt=0.01, stepsize=js.StepSizeController(method="rk4"))
+           for y0 in _ICS]
+    np.testing.assert_allclose(np.asarray(lanes.u_energy), [float(o.u_energy) for o in rk4], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(lanes.u_norm_peak), [float(o.u_norm_peak) for o in rk4], rtol=1e-12)
+    # adaptive: the objective's lanes against the engine's stepper with every default observer, same first step
+    _, aux = tu.objective(tr, fr, data, cfg, n_attempts=2000)
+    lanes = aux["lanes"]
+    y0w = data.groups[0][0]
+    args = ClosedLoop(js.paper_plant(), gains)
+    ctl = controls(cfg.stepsize, y0w.dtype, dt=cfg.dt, eps=cfg.eps, max_steps=2000)
+    s = starting_step(init_batch(y0w, jnp.zeros(y0w.shape[0], jnp.int32), args, ctl), ctl)
+    s = run(s, 2.0, args, ctl, WhileActive(), adaptive=True)
+    assert np.all(np.asarray(s.t) == 2.0)
+    np.testing.assert_array_equal(np.asarray(lanes.n_attempts), np.asarray(s.n_accept + s.n_reject))
+    np.testing.assert_allclose(np.asarray(lanes.u_energy), np.asarray(s.quad[0]), rtol=1e-12)
+
+
+@pytest.mark.usefixtures("x64")
 def test_objective_energy_agrees_with_the_accurate_engine():
-    """int |u|^2 dt accumulated (trapezoid) in the objective's scan = the engine's effort over the
-    same horizon (no lane stops: stop_fraction tiny), float64, tight tolerances."""
+    """int |u|^2 dt integrated in the objective's run (the engine's quadrature) = the accurate engine's effort over
+    the same horizon (no lane stops: stop_fraction tiny), float64, tight tolerances."""
     data, cfg, tr, fr = _setup("paper", t_final=5.0, stop_fraction=1e-6,
                                  stepsize=js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.1))
     _, aux = tu.objective(tr, fr, data, cfg, n_attempts=6000)
     assert np.all(np.asarray(aux["lanes"].t_reached) == 5.0)
     v = tu.validate("paper", _ICS, t_final=5.0, x64=True, stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9))
-    # trapezoid (second order) on the adaptive steps vs the engine's RK4-order quadrature
+    # the objective's steps at 1e-8 vs the accurate engine's at 1e-9
     np.testing.assert_allclose(np.asarray(aux["lanes"].u_energy), v.u_energy, rtol=1e-3)
     assert float(aux["energy"]) == pytest.approx(np.exp(np.mean(np.log(v.u_energy))), rel=1e-3)
     np.testing.assert_allclose(np.asarray(aux["lanes"].u_norm_peak), v.u_norm_peak, rtol=5e-3)

@@ -13,9 +13,10 @@ averaged over a batch of starts (``tau`` is the temperature: the band
 \(\phi = 0\) there the stopped integral has the same value and exact gradient as the full one as
 long as the trajectory stays in the ball (validation with the accurate engine checks that it does).
 
-**Effort.** The same scan accumulates the control energy \(E = \int |u|^2 dt\) (trapezoid on the
-accepted steps, differentiable), and the loss may carry a budget on the batch's geometric-mean energy,
-enforced by an augmented Lagrangian (`objective` argues the choice):
+**Effort.** The same scan integrates the control energy \(E = \int |u|^2 dt\) by the engine's quadrature (the
+`jaxsleigh.integrate.observers.ControlEffort` observer: each accepted step's RK4 weights over its stages, so a lane's
+\(E\) is the one `jaxsleigh.run_ensemble` reports for the same steps; differentiable), and the loss may carry a
+budget on the batch's geometric-mean energy, enforced by an augmented Lagrangian (`objective` argues the choice):
 minimise the soft time subject to "effort <= budget". `pareto` sweeps the
 budget (the time-effort front). The ``balanced`` preset answers a question the surrogate does not
 weigh directly (the fastest *median* \(T_{0.05}\) at no more *median* energy than the paper's gains'):

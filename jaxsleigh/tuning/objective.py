@@ -1,5 +1,17 @@
 r"""The tuner's objective: the soft convergence time integrated differentiably by its own scan over
 `jaxsleigh.integrate.stepper.attempt` (see the package docstring for the formulas).
+
+Two kinds of integral ride along one run of the stepper. The control energy \(E = \int \|u\|^2 dt\) is the
+engine's own: the `jaxsleigh.integrate.observers.ControlEffort` observer's quadrature row, integrated with each
+accepted step's RK4 weights over its stages,
+
+\[ E_{n+1} = E_n + \tfrac{h}{6}\left(g_1 + 2 g_2 + 2 g_3 + g_4\right), \qquad g_j = \|u(y_j)\|^2, \]
+
+and held to the step's tolerances like the state (its embedded estimate is under the same error norm), so that the
+tuner's \(E_i\) and \(\max\|u\|\) of a lane are those `jaxsleigh.run_ensemble` and `jaxsleigh.solve` report
+for the same steps. The soft time \(S\) and the barrier \(B\) are the objective's own, accumulated by the
+trapezoid on the accepted steps from the states at both ends of each (`jaxsleigh.integrate.stepper.run`'s
+``accumulate``).
 """
 from __future__ import annotations
 
@@ -11,12 +23,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.closed_loop import ClosedLoop
-from ..model.w_laws import control_w_components
 from ..integrate.engine import check_ics, initial_w
 from ..model.params import PlantParams
-from ..model.plant import velocity_components
 from ..status import Status
-from ..integrate.observers import ClosestApproach, Excursion
+from ..integrate.observers import ClosestApproach, ControlEffort, Excursion
 from ..model.charts import WChart, chart_for
 from ..integrate.stepper import Checkpointed, Controls, StepState, controls, init_state, run, starting_step
 from ..integrate.stepsize import StepSizeController, check_policy
@@ -30,8 +40,9 @@ __all__ = ["LossConfig", "LOSS_KEYWORDS", "TRAINING_STEPSIZE", "check_loss_steps
            "LaneSummary", "TrainingSet", "make_training_set", "valid_starts", "soft_convergence",
            "objective", "loss_from_lanes"]
 
-#: The stepper's observers inside the differentiated objective: only what LaneSummary reports.
-_OBSERVERS = (ClosestApproach(), Excursion())
+#: The stepper's observers inside the differentiated objective: only what LaneSummary reports. `ControlEffort` is
+#: the engine's (its quadrature rows are under the step's error norm, so the tuner's lanes take the engine's steps).
+_OBSERVERS = (ClosestApproach(), Excursion(), ControlEffort())
 
 
 #: The training integrator of the tuner: the adaptive RK4 at rtol = atol = 1e-5 with steps of at most 0.1 s (ten base
@@ -154,9 +165,10 @@ class LaneSummary(NamedTuple):
       stopped: stopped in the ball (``|q| <= stop_fraction * eps``).
       t_reached: time reached; for stopped lanes the first passage into the stopping ball.
       status, n_attempts, min_abs_theta, max_excursion: as the stepper reports them.
-      u_energy: control energy \(\int |u|^2 dt\) over the lane's integration (trapezoid on the
-        accepted steps, differentiable) [N^2 s]; u_norm_peak: largest \(|u|\) at a step's end [N]
-        (the names of `jaxsleigh.EnsembleResult`).
+      u_energy: control energy \(\int |u|^2 dt\) over the lane's integration [N^2 s], differentiable: the
+        engine's `jaxsleigh.integrate.observers.ControlEffort` quadrature (each accepted step's RK4 weights over
+        its stages); u_norm_peak: largest \(|u|\) at the start and the accepted steps' ends [N] (the names, and
+        the values for the same steps, of `jaxsleigh.EnsembleResult`).
     """
 
     soft_time: jax.Array
@@ -187,15 +199,6 @@ def _near_singular(y, theta_b, chart=WChart()):
     return jnp.square(jnp.maximum(jnp.log(theta_b) - jnp.log(chart.abs_theta(y) + 1e-30), 0.0))
 
 
-def _effort_rate(y, args: ClosedLoop, chart=WChart()):
-    """\\(|u|^2\\) of the controller at the state ``y`` (batch-last) of ``chart``."""
-    if chart.name == "w":
-        u = control_w_components((y[0], y[1], y[2]), velocity_components((y[3], y[4]), args.plant), args.controller)
-    else:
-        u = chart.field_and_control(0.0, y, args)[1]
-    return u[0] * u[0] + u[1] * u[1]
-
-
 def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final=None,
                      n_attempts: int, segment: int = 100, adaptive: bool = True) -> LaneSummary:
     r"""Integrate a batch from the w-chart starts ``y0w`` (N, 5) and accumulate the soft convergence
@@ -216,9 +219,9 @@ def soft_convergence(gains, y0w, plant: PlantParams, cfg: LossConfig, *, t_final
     n, dtype = y0w.shape[0], y0w.dtype
     args, ctl, terms = _soft_setup(gains, plant, cfg, t_final, n_attempts, dtype)
     s0 = _initial_states(y0w, args, ctl, adaptive)
-    s, soft, bar, (energy, _, peak2) = _integrate_soft(s0, n, dtype, args, ctl, terms, n_attempts=n_attempts,
-                                                       segment=segment, adaptive=adaptive)
-    return _lane_summary(s, soft, bar, energy, peak2, terms)
+    s, soft, bar = _integrate_soft(s0, n, dtype, args, ctl, terms, n_attempts=n_attempts, segment=segment,
+                                   adaptive=adaptive)
+    return _lane_summary(s, soft, bar, terms)
 
 
 class _SoftTerms(NamedTuple):
@@ -276,47 +279,33 @@ def _soft_and_barrier(soft, bar, h, y0, y1, terms: _SoftTerms):
     return soft, bar
 
 
-def _effort(effort, h, y1, args: ClosedLoop, chart):
-    """``(energy, e0, peak2)`` advanced over a step of length ``h`` ending at ``y1``."""
-    energy, e0, peak2 = effort
-    # control energy, trapezoid on the accepted step like S (u is carried: one evaluation per attempt)
-    e1 = _effort_rate(y1, args, chart)
-    energy = energy + h * 0.5 * (e0 + e1)
-    accepted = jax.lax.stop_gradient(h > 0)
-    e0 = jnp.where(accepted, e1, e0)
-    peak2 = jnp.where(accepted, jnp.maximum(peak2, e1), peak2)
-    return energy, e0, peak2
-
-
 def _integrate_soft(s0, n, dtype, args: ClosedLoop, ctl: Controls, terms: _SoftTerms, *, n_attempts: int,
                     segment: int, adaptive: bool):
     """The checkpointed segments of `soft_convergence` (`jaxsleigh.integrate.stepper.Checkpointed`, a lane
-    idling once in the stopping ball): ``(state, S, B, (energy, last |u|^2, peak |u|^2))``."""
+    idling once in the stopping ball): ``(state, S, B)``; the control energy is the state's quadrature row of
+    `ControlEffort` (`_lane_summary`)."""
     def accumulate(acc, s, s_new):
-        soft, bar, effort = acc
+        soft, bar = acc
         h = (s_new.t - s.t) + (s_new.t_lo - s.t_lo)       # 0 unless accepted; no gradient (times are fixed)
-        soft, bar = _soft_and_barrier(soft, bar, h, s.y, s_new.y, terms)
-        return soft, bar, _effort(effort, h, s_new.y, args, terms.chart)
+        return _soft_and_barrier(soft, bar, h, s.y, s_new.y, terms)
 
     zeros = jnp.zeros(n, dtype)
-    e_start = _effort_rate(s0.y, args, terms.chart)
-    s, (soft, bar, effort) = run(s0, lambda s: _target_of(s, terms), args, ctl, Checkpointed(n_attempts, segment),
-                                 adaptive=adaptive, observers=_OBSERVERS, accumulate=accumulate,
-                                 acc=(zeros, zeros, (zeros, e_start, e_start)))
-    return s, soft, bar, effort
+    s, (soft, bar) = run(s0, lambda s: _target_of(s, terms), args, ctl, Checkpointed(n_attempts, segment),
+                         adaptive=adaptive, observers=_OBSERVERS, accumulate=accumulate, acc=(zeros, zeros))
+    return s, soft, bar
 
 
-def _lane_summary(s: StepState, soft, bar, energy, peak2, terms: _SoftTerms) -> LaneSummary:
-    """The `LaneSummary` of the final states ``s`` and the accumulated integrals."""
+def _lane_summary(s: StepState, soft, bar, terms: _SoftTerms) -> LaneSummary:
+    """The `LaneSummary` of the final states ``s`` (their observers: ``_OBSERVERS``) and the accumulated ``S``,
+    ``B``."""
     T = terms.T
     stopped = terms.chart.q_norm2(s.y) <= terms.r_stop2
     ok = (s.status == Status.OK) & (stopped | (s.t >= T))
     # a failed lane counts as never converging for the rest of the horizon (value only)
     soft = soft + jax.lax.stop_gradient(jnp.where(ok, 0.0, jnp.maximum(T - s.t, 0.0)))
-    (min_abs_theta,), (max_q2,) = s.obs
-    lanes = LaneSummary(soft, bar, ok, stopped, s.t, s.status, s.n_accept + s.n_reject, min_abs_theta,
-                        jnp.sqrt(max_q2))
-    return lanes._replace(u_energy=energy, u_norm_peak=jnp.sqrt(peak2))
+    (min_abs_theta,), (max_q2,), (_, _, u_norm_peak) = s.obs
+    return LaneSummary(soft, bar, ok, stopped, s.t, s.status, s.n_accept + s.n_reject, min_abs_theta,
+                       jnp.sqrt(max_q2), u_energy=s.quad[0], u_norm_peak=u_norm_peak)
 
 
 class TrainingSet(NamedTuple):
@@ -369,9 +358,10 @@ def objective(trainable: dict, frozen: GainParams, data: TrainingSet, cfg: LossC
 
     (the augmented Lagrangian of the inequality in Rockafellar's form: it equals
     \(f - \lambda^2 / 2\rho\) where the budget is slack, and its gradient is continuous).
-    \(E_i = \int |u|^2 dt\) is accumulated in the same scan as \(S_i\) (trapezoid on accepted
-    steps, differentiable). With ``cfg.energy_budget = inf`` and ``multiplier = 0``,
-    \(\mathcal{L} = f\) exactly (the unconstrained objective).
+    \(E_i = \int |u|^2 dt\) is integrated in the same run as \(S_i\) by the engine's quadrature (the
+    `ControlEffort` observer: each accepted step's RK4 weights over its stages, the module docstring),
+    differentiable; \(S_i\) and \(B_i\) by the trapezoid on the accepted steps. With
+    ``cfg.energy_budget = inf`` and ``multiplier = 0``, \(\mathcal{L} = f\) exactly (the unconstrained objective).
 
     **Why a budget, not a weighted sum.** Time alone is ill-posed (larger gains are faster until the
     integrator breaks), and the question users ask is "how fast for this much effort": a budget in
