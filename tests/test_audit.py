@@ -381,3 +381,24 @@ def test_the_law_check_compiles_once_per_kind_of_law():
         as_controller(make_controller(name))
         as_controller(law._replace(**{law._fields[0]: getattr(law, law._fields[0]) * 2.0}))
         assert _at_test_point._cache_size() == size
+
+
+def test_a_validation_resolved_in_float64_uses_the_tolerance_its_law_needs(monkeypatch):
+    """A validation whose audit fails re-runs every start in float64 at the audit's reference tolerance: for a law
+    that float64 resolves only tighter (Aicardi's declares 1e-12), at that tolerance, as the audit itself does, not
+    at the 1e-10 where its reference chatters."""
+    from jaxsleigh.controllers.registry import make_controller
+    from jaxsleigh.tuning import validation
+
+    seen = []
+    real = validation.run_ensemble
+
+    def spy(*args, **kw):
+        seen.append(kw.get("stepsize"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(validation, "run_ensemble", spy)
+    ics = np.array([[1.0, 1.0, 0.5], [-2.0, 1.5, -1.0]])
+    v = validation.validate(make_controller("aicardi"), ics, t_final=1.0, audit=Audit(rows=2, energy_rel=1e-12))
+    assert v.resolved and len(seen) == 2
+    assert seen[1].rtol == seen[1].atol == 1e-12

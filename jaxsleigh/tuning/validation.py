@@ -13,7 +13,7 @@ from ..errors import AccuracyWarning
 from ..integrate.horizon import make_horizon, reference_max_steps
 from ..integrate.stepsize import StepSizeController
 from ..model.params import Gains, PlantParams, load_gains, paper_plant
-from ..studies.audit import Audit, without_cost
+from ..studies.audit import Audit, for_law, without_cost
 from ..status import Status
 from ..studies.options import RunOptions, SaveAt
 from ..model.coordinates import q_to_w
@@ -99,7 +99,8 @@ def validate(gains, ics, *, plant: Optional[PlantParams] = None, t_final: float 
         # the settings misreport these gains (an unresolved settled phase flatters them): a tuner must see what
         # they really do, so every figure comes from float64 at the audit's reference tolerances
         budget = reference_max_steps(make_horizon(t_final, kw.get("dt", 0.01)))
-        kw["stepsize"] = StepSizeController(rtol=audit.rtol, atol=audit.atol, max_steps=budget)
+        ref = for_law(audit, law) if law is not None else audit   # the tolerance at which float64 resolves the law
+        kw["stepsize"] = StepSizeController(rtol=ref.rtol, atol=ref.atol, max_steps=budget)
         r = run_ensemble(ics, plant=plant, t_final=t_final, eps=eps, x64=True, run=run._replace(audit=False), **kw)
     T = np.where(r.status == Status.OK, r.T_eps, np.nan)
     n = T.size
