@@ -485,7 +485,7 @@ class GradientRun(NamedTuple):
     def descent_step(self, trainable, opt_state, out, valid):
         """The step piece of `descend`: the backtracking optimiser's step with the candidate's gradient (``out[1]``)
         and whether it was valid (per lane in the vmapped front)."""
-        return self.step(trainable, opt_state, out[1], jnp.asarray(valid))
+        return self.step(trainable, opt_state, out[1], np.asarray(valid))    # (jnp.asarray compiles a copy)
 
 
 def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64, d_floor,
@@ -493,10 +493,11 @@ def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, pla
     """Build the run (`GradientRun`, in the current precision) and the starting ``(trainable, opt_state)``. With
     ``lanes`` > 0 (the vmapped Pareto front: one lane per energy budget) the parameters are broadcast over the lanes,
     and the objective (its energy budget and multiplier mapped) and the step are jitted and vmapped."""
-    dtype = jnp.zeros(()).dtype
+    dtype = jnp.result_type(float)             # the working precision, without compiling a zero for it
     data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
     cfg = traced_loss(loss, dtype)
-    theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
+    # cast on the host (jnp.asarray of float64 NumPy to float32 compiles a conversion per shape)
+    theta = GainParams(*(jax.device_put(np.asarray(x, dtype)) for x in params_from_gains(g0, d_floor=d_floor)))
     trainable, frozen = split_params(theta, names)
     vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
                              d_floor=d_floor)
@@ -505,7 +506,8 @@ def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, pla
     if not lanes:
         opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
                                         float(config.final_lr))
-        return GradientRun(data, cfg, dtype, vg, functools.partial(step, opt), ctx), trainable, opt.init(trainable)
+        return (GradientRun(data, cfg, dtype, vg, functools.partial(step, opt), ctx), trainable,
+                jax.jit(opt.init)(trainable))                     # one program, not one per operation
     trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (lanes,) + jnp.shape(x)), trainable)
     cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
     opt = make_optimizer(config.lr, steps, clip=config.clip, warmup=config.warmup, final_lr=config.final_lr)
