@@ -488,6 +488,20 @@ class GradientRun(NamedTuple):
         return self.step(trainable, opt_state, out[1], np.asarray(valid))    # (jnp.asarray compiles a copy)
 
 
+def host_norm(tree) -> float:
+    """`optax.tree.norm` of a pytree of real arrays, on the host: the same operations in the same order and dtype
+    (each leaf's squares summed in order, the leaves' sums added in order, the square root), the same bits, without
+    the ten or so programs that compiled, one per operation and shape."""
+    leaves = [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(tree)]
+    total = 0
+    for a in leaves:
+        s = a.dtype.type(0)
+        for x in np.square(a).ravel():
+            s = s + x
+        total = total + s
+    return float(np.sqrt(np.asarray(total, np.result_type(*(a.dtype for a in leaves)))))
+
+
 def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64, d_floor,
                 lanes: int = 0) -> tuple:
     """Build the run (`GradientRun`, in the current precision) and the starting ``(trainable, opt_state)``. With
@@ -506,8 +520,7 @@ def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, pla
     if not lanes:
         opt, step = _optimizer_and_step(float(config.lr), int(steps), float(config.clip), int(config.warmup),
                                         float(config.final_lr))
-        return (GradientRun(data, cfg, dtype, vg, functools.partial(step, opt), ctx), trainable,
-                jax.jit(opt.init)(trainable))                     # one program, not one per operation
+        return GradientRun(data, cfg, dtype, vg, functools.partial(step, opt), ctx), trainable, opt.init(trainable)
     trainable = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (lanes,) + jnp.shape(x)), trainable)
     cfg_axes = LossConfig(*([None] * len(LossConfig._fields)))._replace(energy_budget=0, multiplier=0)
     opt = make_optimizer(config.lr, steps, clip=config.clip, warmup=config.warmup, final_lr=config.final_lr)
@@ -528,7 +541,7 @@ def _iterate(run: GradientRun, track: CandidateTrack, trainable, opt_state, it0:
 
     def observe(it, trainable, opt_state, out) -> bool:
         (value, aux), grad = out
-        value, gnorm = float(value), float(optax.tree.norm(grad))
+        value, gnorm = float(value), host_norm(grad)
         return track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
                             float(opt_state.scale), run.ctx, time.perf_counter() - t_start,
                             lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))
