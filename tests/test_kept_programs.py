@@ -20,7 +20,7 @@ from jaxsleigh.integrate import engine
 from jaxsleigh.studies import ensemble
 from jaxsleigh.studies import simulate as simulate_module
 
-PROGRAMS = [engine._w_check, engine._to_w_batch, engine._init_batch, engine._active, engine._segment_batch,
+PROGRAMS = [engine._w_check, engine._to_w_batch, engine._init_batch, engine._segment_batch,
             engine._saving_batch, simulate_module._outputs, ensemble._hd_batch, ensemble._hd_lanes,
             ensemble._to_q_batch]
 ICS = np.array([[-3.0, -2.0, np.pi / 8], [1.0, 1.0, 0.5]])

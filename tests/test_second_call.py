@@ -17,6 +17,9 @@ COMPILED, CACHE_HIT = "/jax/core/compile/backend_compile_duration", "/jax/compil
 class _Programs:
     """Counts the programs compiled or read from the persistent cache while it is open (from any thread)."""
 
+    def __init__(self, events=(COMPILED, CACHE_HIT)):
+        self.events = events
+
     def __enter__(self):
         self.count, self._lock = 0, threading.Lock()
         jax.monitoring.register_event_duration_secs_listener(self._duration)
@@ -31,7 +34,7 @@ class _Programs:
         self._event(event)
 
     def _event(self, event, **kw):
-        if event in (COMPILED, CACHE_HIT):
+        if event in self.events:
             with self._lock:
                 self.count += 1
 
@@ -50,3 +53,24 @@ def test_an_ensemble_with_other_gains_compiles_nothing_more():
     assert first.count > 0                   # the count sees what a call compiles
     assert np.median(b.n_steps) > 1.5 * np.median(a.n_steps)    # the second gains do keep lanes working longer
     assert second.count == 0
+
+
+def test_a_validation_compiles_only_the_programs_it_steps_with():
+    """`jaxsleigh.tuning.validate` of 16 starts for 30 s: the float32 run and the audit's float64 reference of the same
+    starts. Each run compiles its first state, step and summaries (chart change, H_d) at its batch size, the chart
+    change of the starts once: 9 programs. The host's own work between segments compiles nothing (which lanes still
+    step, read on the host; the states copied to the device without `jnp.asarray`, which compiled a copy per array
+    shape: 19 programs before). Counted as programs compiled or loaded from the persistent cache (one compile event
+    each, either way). The tuned preset's gains then compile one: the reference's step at 4 lanes, where its last
+    stragglers were gathered (its batches are the rows' own, so its bits, and the audit's figures, hang on them)."""
+    from jaxsleigh import tuning as tu
+
+    held = tu.UniformStarts()(np.random.default_rng(4), 16)
+    jax.clear_caches()
+    with _Programs(events=(COMPILED,)) as first:
+        v = tu.validate("paper", held, t_final=30.0, progress=False)
+    with _Programs(events=(COMPILED,)) as second:
+        w = tu.validate(js.load_gains("tuned"), held, t_final=30.0, progress=False)
+    assert v.audit["rows"] == w.audit["rows"] == 16 and v.audit["passed"] and w.audit["passed"]
+    assert 0 < first.count <= 9
+    assert second.count <= 1

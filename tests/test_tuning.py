@@ -251,3 +251,22 @@ def test_tuned_preset_meets_the_target_on_held_out_starts():
     assert tuned.frac_converged >= paper.frac_converged
     guard = tu.validate(g, np.concatenate([tu.guard_starts(), [[0.5, -0.5, 0.05], [-1.0, 2.0, -0.05]]]), t_final=20.0)
     assert guard.n_failed == 0
+
+
+def test_the_gradient_norm_on_the_host_is_optaxs_to_the_bit():
+    """The tuner's history records the gradient's norm computed on the host (no program per operation): the same
+    bits as `optax.tree.norm` for gradients of every scale, in float32 and float64."""
+    import optax
+
+    from jaxsleigh.tuning.optimizer import host_norm
+
+    rng = np.random.default_rng(1)
+    for x64 in (False, True):
+        with jax.enable_x64(x64):
+            dt = np.float64 if x64 else np.float32
+            for _ in range(200):
+                s = 10.0 ** rng.uniform(-8, 8, 3)
+                g = {"log_L": jnp.asarray((s[0] * rng.standard_normal(3)).astype(dt)),
+                     "log_k": jnp.asarray(dt(s[1] * rng.standard_normal())),
+                     "d_chol": jnp.asarray((s[2] * rng.standard_normal(3)).astype(dt))}
+                assert host_norm(g) == float(optax.tree.norm(g))

@@ -27,7 +27,7 @@ from .horizon import (BUDGET_FACTOR, FLIGHT_STEP, MAX_BASE_STEPS, STIFF_AFTER, H
                       default_max_steps, flight_step, make_horizon)
 from .stragglers import certify
 from .pool import Ladder, bucket, padded, put_lanes, take_lanes_of  # (bucket and the last two re-exported)
-from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, is_active, run, run_plain,
+from .stepper import (Controls, Count, StepState, controls, init_batch, init_batch_lanes, run, run_plain,
                       run_stops)
 from ..errors import FlaggedStartsWarning
 from ..model.params import paper_gains, paper_plant
@@ -236,10 +236,17 @@ def _init_batch(y0w, status0, args, ctl, observers=DEFAULT_OBSERVERS):
     return init_batch(y0w, status0, args, ctl, observers=observers)
 
 
-#: which lanes still step, compiled (the host asks once per segment; op by op it was five programs)
-@kept_jit()
-def _active(s, target, ctl):
-    return is_active(s, target, ctl)
+def _active(s, target, ctl) -> np.ndarray:
+    """Which lanes still step (`is_active`), on the host: four small reads instead of a compiled program per
+    batch size (the host asks once per segment)."""
+    return ((np.asarray(s.status) == Status.OK) & (np.asarray(s.t) < target)
+            & (np.asarray(s.n_accept) + np.asarray(s.n_reject) < ctl.max_steps))
+
+
+def _put(a):
+    """A host array on the default device, copied, without a program: `jnp.asarray` of a NumPy array compiles one
+    (``lax.stage``) per shape and dtype, five per batch size of a state."""
+    return jax.device_put(a) if isinstance(a, (np.ndarray, np.generic)) else jnp.asarray(a)
 
 
 #: ``n_attempts`` is traced: one program serves every segment length (a short horizon's, a tail's)
@@ -273,7 +280,7 @@ def _segment(state, target, args, ctl, segment: int, adaptive: bool, monitor: bo
 
     if not (adaptive and stiff_after):
         return step(state, False)[0]
-    return _by_kind(state, flying(state, ctl, stiff_after), step, jnp.asarray)[0]
+    return _by_kind(state, flying(state, ctl, stiff_after), step, _put)[0]
 
 
 def _by_kind(state, flies, step, put, merge=None):
@@ -432,7 +439,7 @@ def advance_lanes(state: StepState, args: ClosedLoop, horizon: Horizon, step: St
     if has_lanes(args.plant, args.gains):
         args = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), args)
     target = np.asarray(horizon.t_final, np.dtype(dtype))
-    dev = jax.tree_util.tree_map(jnp.asarray, state)
+    dev = jax.tree_util.tree_map(_put, state)
     dev = _segment(dev, target, args, ctl, segment, step.method == "adaptive", step.check_passivity, observers,
                    stiff_after)
     b = _Batch(dev, args, None, np.arange(state.t.shape[-1]), None)
@@ -473,7 +480,7 @@ def _certified(b: "_Batch", horizon: Horizon, eps: float) -> "_Batch":
                      t_final=horizon.t_final, eps=eps)
     if status is None:
         return b
-    return b._replace(state=st._replace(status=jnp.asarray(status)))
+    return b._replace(state=st._replace(status=_put(status)))
 
 
 class _Batch(NamedTuple):
@@ -490,7 +497,7 @@ class _Batch(NamedTuple):
 def _first_batch(y0w, status0, state, args: ClosedLoop, ctl, observers, n: int, dtype) -> _Batch:
     """The whole batch of `drive_final`, from ``y0w`` and ``status0`` or a host ``state`` to continue."""
     lane_host, args, first = _started(y0w, status0, state is None, args, ctl, observers, n, dtype)
-    state = first if state is None else jax.tree_util.tree_map(jnp.asarray, state)
+    state = first if state is None else jax.tree_util.tree_map(_put, state)
     return _Batch(state, args, lane_host, np.arange(n), None)
 
 
@@ -523,7 +530,7 @@ def _compacted(b: _Batch, act: np.ndarray, ladder: Ladder, dtype) -> _Batch:
     host = jax.tree_util.tree_map(np.asarray, b.state)
     full = _merged(b.full, b.idx, host)
     pad = padded(keep, size)                 # only real lanes are written back
-    state = jax.tree_util.tree_map(lambda a: jnp.asarray(a[..., pad]), host)
+    state = jax.tree_util.tree_map(lambda a: _put(a[..., pad]), host)
     args, lane_host = b.args, b.lane_host
     if lane_host is not None:                # the parameters follow their trajectories
         lane_host = take_lanes(lane_host, pad)
@@ -597,7 +604,7 @@ def _saving_block(state, times, args, ctl, monitor: bool, observers, stiff_after
             st, y = _saving_batch(st, times, args, per_lane, True, monitor, observers, implicit)
             return st, np.asarray(y)
 
-        state, y = _by_kind(state, flies, step, jnp.asarray, _first_reached)
+        state, y = _by_kind(state, flies, step, _put, _first_reached)
         ys = y if ys is None else _first_reached(ys, y)
         n = np.asarray(state.n_accept) + np.asarray(state.n_reject)
         stopped = (np.asarray(state.status) == Status.OK) & (np.asarray(state.t) < times[-1]) & (n >= cap) \

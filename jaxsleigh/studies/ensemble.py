@@ -245,7 +245,7 @@ def _ends(y, ok, y0w, status0, args) -> tuple:
     did not end OK (``ok``); ``Hd0`` NaN where the start was not integrated (``invalid``) and for a law without the
     paper's H_d."""
     chart = chart_for(args.controller)
-    yq = np.array(_to_q_batch(jnp.asarray(y), chart), np.float64)
+    yq = np.array(_to_q_batch(jax.device_put(y), chart), np.float64)   # (jnp.asarray compiles a copy)
     yq[~ok] = np.nan
     invalid = np.asarray(status0) != Status.OK
     hd0 = np.array(_hd_any(y0w, args), np.float64) if chart.has_energy else np.full(len(ok), np.nan)
@@ -447,7 +447,7 @@ class _Chunks:
             a0, a1 = cuts[i], cuts[i + 1]
             with jax.enable_x64(self.cfg.x64):       # the dtype switch is per thread
                 sub = _PartProgress(i, done, bar_lock, self.bar, cuts, lo, hi, self.n)
-                return self._engine_rows(jnp.asarray(y0w[a0:a1]), st[a0:a1], rows[a0:a1], sub, tails)
+                return self._engine_rows(jax.device_put(y0w[a0:a1]), st[a0:a1], rows[a0:a1], sub, tails)
 
         if tails and pending is not None:
             pieces = self._pieces_from(pending, len(part_sizes))

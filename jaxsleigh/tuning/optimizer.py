@@ -485,7 +485,21 @@ class GradientRun(NamedTuple):
     def descent_step(self, trainable, opt_state, out, valid):
         """The step piece of `descend`: the backtracking optimiser's step with the candidate's gradient (``out[1]``)
         and whether it was valid (per lane in the vmapped front)."""
-        return self.step(trainable, opt_state, out[1], jnp.asarray(valid))
+        return self.step(trainable, opt_state, out[1], np.asarray(valid))    # (jnp.asarray compiles a copy)
+
+
+def host_norm(tree) -> float:
+    """`optax.tree.norm` of a pytree of real arrays, on the host: the same operations in the same order and dtype
+    (each leaf's squares summed in order, the leaves' sums added in order, the square root), the same bits, without
+    the ten or so programs that compiled, one per operation and shape."""
+    leaves = [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(tree)]
+    total = 0
+    for a in leaves:
+        s = a.dtype.type(0)
+        for x in np.square(a).ravel():
+            s = s + x
+        total = total + s
+    return float(np.sqrt(np.asarray(total, np.result_type(*(a.dtype for a in leaves)))))
 
 
 def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, plant, robust, guard, x64, d_floor,
@@ -493,10 +507,11 @@ def prepare_run(g0, names, ics, steps, config: TuneConfig, loss: LossConfig, pla
     """Build the run (`GradientRun`, in the current precision) and the starting ``(trainable, opt_state)``. With
     ``lanes`` > 0 (the vmapped Pareto front: one lane per energy budget) the parameters are broadcast over the lanes,
     and the objective (its energy budget and multiplier mapped) and the step are jitted and vmapped."""
-    dtype = jnp.zeros(()).dtype
+    dtype = jnp.result_type(float)             # the working precision, without compiling a zero for it
     data = make_training_set(ics, plant=plant, robust=robust, guard=guard, seed=config.seed + 1, dtype=dtype)
     cfg = traced_loss(loss, dtype)
-    theta = GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(g0, d_floor=d_floor)))
+    # cast on the host (jnp.asarray of float64 NumPy to float32 compiles a conversion per shape)
+    theta = GainParams(*(jax.device_put(np.asarray(x, dtype)) for x in params_from_gains(g0, d_floor=d_floor)))
     trainable, frozen = split_params(theta, names)
     vg = make_value_and_grad(mode=config.mode, n_attempts=config.n_attempts, segment=config.segment,
                              d_floor=d_floor)
@@ -526,7 +541,7 @@ def _iterate(run: GradientRun, track: CandidateTrack, trainable, opt_state, it0:
 
     def observe(it, trainable, opt_state, out) -> bool:
         (value, aux), grad = out
-        value, gnorm = float(value), float(optax.tree.norm(grad))
+        value, gnorm = float(value), host_norm(grad)
         return track.assess(it, value, gnorm, bool(aux["valid"]) and math.isfinite(gnorm), trainable, aux,
                             float(opt_state.scale), run.ctx, time.perf_counter() - t_start,
                             lambda a, v, gn, pa: _invalid_start_message(a, v, gn, pa, config))

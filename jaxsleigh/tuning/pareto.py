@@ -92,14 +92,15 @@ def training_energy(gains, *, starts=UniformStarts(), config: TuneConfig = TuneC
     ics = draw_starts(starts, config.batch, config.seed)
     with jax.enable_x64(bool(x64)):
         dtype, f = _training_value(ics, config, loss, plant, d_floor)
-        _, aux = f(GainParams(*(jnp.asarray(x, dtype) for x in params_from_gains(gains, d_floor=d_floor))))
+        _, aux = f(GainParams(*(jax.device_put(np.asarray(x, dtype))      # cast on the host: no program for it
+                                for x in params_from_gains(gains, d_floor=d_floor))))
     return {"energy": float(aux["energy"]), "soft_loss": float(aux["soft"]), "valid": bool(aux["valid"])}
 
 
 def _training_value(ics, config: TuneConfig, loss: LossConfig, plant, d_floor: float) -> tuple:
     """``(dtype, f)`` in the current precision: ``f(theta) -> (value, aux)``, the training objective without a
     budget on the starts ``ics`` at the `GainParams` ``theta`` (one evaluation, no gradient)."""
-    dtype = jnp.zeros(()).dtype
+    dtype = jnp.result_type(float)             # the working precision, without compiling a zero for it
     data = make_training_set(ics, plant=plant, seed=config.seed + 1, dtype=dtype)
     cfg = traced_loss(loss._replace(energy_budget=float("inf"), multiplier=0.0), dtype)
     f = _value(config.n_attempts, config.segment, d_floor)
