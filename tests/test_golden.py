@@ -1,7 +1,9 @@
 """Golden outputs: the numbers of a handful of runs (simulate in float32 and float64, an ensemble with
 the default observers, the plain fixed-step path, a basin, a sweep, three iterations of the gradient
 tuner), recorded by ``tests/golden/make_golden.py`` and re-recorded only for a documented change of arithmetic
-(the exponential RK4 step with a PI controller in the w chart; the settled phase's (w2, p1) oscillation in that step).
+(the exponential RK4 step with a PI controller in the w chart; the settled phase's (w2, p1) oscillation in that step;
+the tuner's control energy by the engine's RK4-weighted quadrature instead of a trapezoid sum: ``tune/energy`` only,
+0.5% lower, the tuner's gains and losses unchanged).
 
 They must hold on every x86-64 CPU, so they are bitwise only where the arithmetic is: statuses equal; step counts
 within a step or two (1%) per lane and 0.5% in total; float32 results within 1e-4 relative plus 3e-4 of each field's
