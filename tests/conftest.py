@@ -78,6 +78,32 @@ def _bounded_memory_maps():
         gc.collect()
 
 
+#: ``JAXSLEIGH_TEST_COMPILES=FILE``: every XLA program the test processes compile, as JSON lines of
+#: ``[test, program, seconds]`` in ``FILE.<worker>`` (programs found in the persistent cache are not compiled)
+_COMPILES_TO = os.environ.get("JAXSLEIGH_TEST_COMPILES")
+_COMPILES: list = []
+_CURRENT_TEST = ["(collection)"]
+
+if _COMPILES_TO:
+    def _on_compile(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            _COMPILES.append((_CURRENT_TEST[0], str(kw.get("fun_name", "?")), round(float(duration), 3)))
+
+    jax.monitoring.register_event_duration_secs_listener(_on_compile)
+
+
+def pytest_runtest_logstart(nodeid, location):
+    _CURRENT_TEST[0] = nodeid
+
+
+def pytest_sessionfinish(session):
+    if _COMPILES_TO:
+        import json
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(f"{_COMPILES_TO}.{worker}", "w") as f:
+            f.writelines(json.dumps(row) + "\n" for row in _COMPILES)
+
+
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of `SLOW` slow, so that ``-m "not slow"`` leaves them out of the quick tier."""
     for item in items:
