@@ -267,6 +267,19 @@ def test_the_sample_takes_the_unresolved_rows_first_and_fits_its_budget():
     assert audit_sample(Audit(rows=5), n, unresolved=flags, steps=steps).size == 5     # asked for: whatever it costs
 
 
+def test_a_large_run_is_taken_to_cost_less_per_lane_step():
+    """Above `BATCH_STARTS` the budget takes a run's lane-steps to cost less (it batches its lanes better and keeps
+    both cores busy, the reference's few lanes do not): 16,384 starts of 720 steps a row afford 6 rows, not the 10 of
+    an estimate linear in the steps; 4,096 starts and fewer are unchanged. A function of N, not of the machine."""
+    from jaxsleigh.studies.audit import BATCH_STARTS, run_scale
+
+    assert run_scale(500) == run_scale(BATCH_STARTS) == 1.0 and run_scale(16384) == pytest.approx(4 ** -0.4)
+    assert run_scale(65536) < run_scale(16384) < run_scale(8192) < 1.0
+    assert audit_sample(Audit(), 4096, steps=np.full(4096, 720.0)).size == 2
+    assert audit_sample(Audit(), 16384, steps=np.full(16384, 720.0)).size == 6
+    assert audit_sample(Audit(budget=None), 16384, steps=np.full(16384, 720.0)).size == 64
+
+
 def test_unresolved_rows_are_counted_warned_and_in_the_line():
     result = _fake([1.0, 2.0, 3.0, 4.0])
     result.unresolved = np.array([False, True, False, False])

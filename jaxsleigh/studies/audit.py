@@ -21,7 +21,8 @@ the longest prefix of those whose estimated cost fits ``budget`` (10%) of the ru
 estimated from the run's own steps: the run spent \(W / \sum_j n_j\) per lane-step, and a reference row of
 \(n_i\) run steps costs `REFERENCE_COST` \(\cdot\, n_i\) of those (more steps at 1e-10, float64, a batch of a few
 lanes; `REFERENCE_COST_FIXED` after fixed steps), so rows are kept while \(\text{REFERENCE\_COST} \sum_{i \in S} n_i \le \text{budget} \sum_j n_j\),
-which needs no clock and draws the same rows on any machine. It integrates them again in
+times `run_scale` \((N)\) above `BATCH_STARTS` starts (a large run batches its lanes better, so its lane-steps
+cost less), which needs no clock and draws the same rows on any machine. It integrates them again in
 float64 at ``rtol = atol = 1e-10`` (the reference; a law that float64 resolves only at a tighter \(\tau\) declares it,
 ``reference_tol``, and its ladder starts there, its rows counted \((10^{-10}/\tau)^{1/5}\) times dearer, `for_law`:
 Aicardi's law, 1e-12), and records, over the rows that reached the horizon in both:
@@ -64,7 +65,8 @@ from ..errors import AccuracyWarning
 from ..model.controller import PerTrajectory
 
 __all__ = ["Audit", "audit_rows", "audit_sample", "audit_line", "coverage", "for_law", "resolve", "tail_detection",
-           "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS", "COST", "without_cost"]
+           "REFERENCE_COST", "REFERENCE_COST_FIXED", "REFERENCE_STEPS", "BATCH_STARTS", "BATCH_EXPONENT", "COST",
+           "run_scale", "without_cost"]
 
 #: What an audit's record says of its cost (``wall_s``, ``share_of_run``): it varies between runs, so a result file
 #: leaves it out (the rows re-run do not vary: they are chosen from the run's steps, not from a clock).
@@ -88,6 +90,21 @@ def without_cost(rec: Optional[dict]) -> Optional[dict]:
 #: compiled once: at 4,096 starts the audits of Aicardi's, Astolfi's and Samson's laws and the paper's took 7%, 7-8%,
 #: 2-6% and 4-6% of their runs (``docs/evidence/accuracy.md``)
 REFERENCE_COST = 150.0
+#: the number of starts at which `REFERENCE_COST` was measured: up to it, the budget takes a run's wall time to be
+#: linear in its lane-steps, and above it, a run of \(N\) starts to spend \((\text{BATCH\_STARTS} / N)^{\beta}\) of
+#: that per lane-step (`run_scale`, \(\beta\) = `BATCH_EXPONENT`), since a large run batches its lanes better and
+#: keeps both cores busy while the reference's few lanes do not: under a light load (about 1) the paper's law's run of
+#: 16,384 starts took 2.0-2.4 s against 0.81 s for 4,096 (0.62-0.74 of 4 times as much; Astolfi's, under a load of
+#: 1.6-5.6, 2.1-2.4 s against 0.9-0.96 s: 0.55-0.67), and the paper's law's audit of 11 rows (what an estimate linear
+#: in the steps affords) took 10.4-13.6% of the run, 0.21-0.28 s, where 2 rows of 4,096 took 7.0-7.7%
+#: (``docs/evidence/accuracy.md``)
+BATCH_STARTS = 4096
+#: \(\beta\) of `BATCH_STARTS`: \(4^{-0.4}\) = 0.57 at 16,384 starts, at the low end of the 0.55-0.74 measured there,
+#: so the paper's law audits 6 rows of 16,384 README starts (11 before): 0.14-0.16 s by the cost of 2 and 11 rows
+#: (about 0.022 s a call and 0.020 s a row), 6-8% of its 2.0-2.4 s under a light load; 4,096 starts and fewer are
+#: unchanged (2 rows of the paper's law). Above 16,384 (one CPU chunk, `jaxsleigh.cores.CPU_CHUNK`) it is not
+#: measured: a run's lane-steps cannot grow much cheaper there, so the estimate only grows more cautious
+BATCH_EXPONENT = 0.4
 #: the most steps a budgeted audit lets a reference row take at ``rtol = atol = 1e-10``, per step of the row in the
 #: run, and \((10^{-10} / \tau)^{1/5}\) times that at a tighter \(\tau\) (an explicit step's count grows like
 #: \(\tau^{-1/5}\)): the paper's law takes 2-17 (16.6 at most on 144 held-out starts, near theta = 0 and wide ones
@@ -238,7 +255,8 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
     the first ``audit.count(n)``, cut to the longest prefix whose estimated cost fits ``audit.budget`` of the run
     when ``steps`` (each row's steps in the run) is given and ``audit.rows`` is not (`REFERENCE_COST` times
     \((10^{-10} / \text{rtol})^{1/5}\) for a reference tighter than 1e-10, `for_law`; `REFERENCE_COST_FIXED` for a
-    run of ``fixed_step`` steps). They depend on the result's rows and the audit only, never on a clock."""
+    run of ``fixed_step`` steps; the budget times `run_scale` of ``n``). They depend on the result's rows and the
+    audit only, never on a clock."""
     k = audit.count(n)
     if not k:
         return np.zeros(0, np.int64)
@@ -253,10 +271,16 @@ def audit_sample(audit: "Audit", n: int, *, unresolved=None, steps=None, fixed_s
     if steps is not None and audit.rows is None and audit.budget is not None:
         s = np.nan_to_num(np.asarray(steps, np.float64), nan=0.0)
         s = np.maximum(s, 0.0)
-        allowance = audit.budget * float(np.sum(s))
+        allowance = audit.budget * float(np.sum(s)) * run_scale(n)
         factor = REFERENCE_COST_FIXED if fixed_step else REFERENCE_COST * _steps_scale(audit.rtol)
         rows = rows[:int(np.searchsorted(np.cumsum(factor * s[rows]), allowance, side="right"))]
     return np.sort(rows)
+
+
+def run_scale(n: int) -> float:
+    r"""The run's estimated wall time per lane-step at ``n`` rows, relative to a run of `BATCH_STARTS`:
+    \(\min(1, (\text{BATCH\_STARTS} / n)^{\text{BATCH\_EXPONENT}})\). A function of ``n`` alone, never of the machine."""
+    return min(1.0, (BATCH_STARTS / max(int(n), 1)) ** BATCH_EXPONENT)
 
 
 def _cap(audit: "Audit", steps, rows: np.ndarray, tol: float) -> dict:
