@@ -175,7 +175,7 @@ def initial_guesses(start, T: float, intervals: int, plant: Optional[PlantParams
         p = np.stack([float(plant.m) * v, Jt * w])
         pdot = np.stack([float(plant.m) * av, Jt * aw])
         with jax.enable_x64(True):
-            free = np.asarray(_free_rhs(jnp.asarray(p), plant))
+            free = np.asarray(_free_rhs(p, plant))
         u = (pdot - free).T.reshape(N, samples, 2).mean(axis=1)
         out.append(u)
     return np.stack(out)
@@ -310,23 +310,24 @@ def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: i
         if k == 0 or _LADDER.shrinks(size, active.size):
             size = B if k == 0 else _LADDER.size(active.size)
             lanes = padded(active, size)
-            z, y0j, Tj = jnp.asarray(z_h[lanes]), jnp.asarray(y0_h[lanes]), jnp.asarray(T_h[lanes])
-            lam, mu, rho, vp = jnp.asarray(lam_h[lanes]), jnp.asarray(mu_h[lanes]), rho_h[lanes], vp_h[lanes]
+            z, y0j, Tj = z_h[lanes], y0_h[lanes], T_h[lanes]
+            lam, mu, rho, vp = lam_h[lanes], mu_h[lanes], rho_h[lanes], vp_h[lanes]
             fresh = True
-        f, g, S0, Y0, r0 = start(z, y0j, Tj, lam, mu, jnp.asarray(rho))
+        f, g, S0, Y0, r0 = start(z, y0j, Tj, lam, mu, rho)
         if fresh:
             S, Y, r = S0, Y0, r0
             fresh = False
         else:                       # keep the curvature pairs where the penalty weight did not change
-            r = jnp.where(jnp.asarray(rho == rho_before)[:, None], r, 0.0)
+            r = np.where((rho == rho_before)[:, None], np.asarray(r), 0.0)
         rho_before = rho.copy()
-        rj = jnp.asarray(rho)
         for _ in range(opts.inner):
-            z, f, g, S, Y, r = step(z, f, g, S, Y, r, y0j, Tj, lam, mu, rj)
-        c, gq, _, _, _ = measure(z, y0j, Tj, lam, mu)
-        lam = lam + rj[:, None] * c
-        mu = jnp.maximum(0.0, mu + rj * gq)
-        viol = np.maximum(np.linalg.norm(np.asarray(c), axis=1), np.maximum(np.asarray(gq), 0.0))
+            z, f, g, S, Y, r = step(z, f, g, S, Y, r, y0j, Tj, lam, mu, rho)
+        # the multipliers' update is host work (NumPy, the same float64 operations one by one): on the device each
+        # operation compiled a program of its own per batch size
+        c, gq = (np.asarray(a) for a in measure(z, y0j, Tj, lam, mu)[:2])
+        lam = lam + rho[:, None] * c
+        mu = np.maximum(0.0, mu + rho * gq)
+        viol = np.maximum(np.linalg.norm(c, axis=1), np.maximum(gq, 0.0))
         rho = np.where(viol > 0.5 * vp, np.minimum(rho * 4.0, 1e8), rho)
         vp = np.minimum(viol, vp)
         c, gq, yT, kkt, zn = (np.asarray(a) for a in measure(z, y0j, Tj, lam, mu))
@@ -342,8 +343,7 @@ def _solve_batch(y0, T, z0, plant, eps: float, opts: OptimumOptions, substeps: i
             break
         if not keep.all():          # the working problems move to the front; the batch keeps its size until it shrinks
             order = padded(np.flatnonzero(keep), size)
-            z, y0j, Tj, lam, mu = (a[order] for a in (z, y0j, Tj, lam, mu))
-            S, Y, r = S[order], Y[order], r[order]
+            z, y0j, Tj, lam, mu, S, Y, r = (np.asarray(a)[order] for a in (z, y0j, Tj, lam, mu, S, Y, r))
             rho, vp, rho_before = rho[order], vp[order], rho_before[order]
             active = active[keep]
     return z_h, status_h, yT_h, kkt_h / np.maximum(2 * zn_h, 1e-12), lam_h, mu_h
