@@ -369,29 +369,8 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
     else:
         t0 = time.perf_counter()
         first = rerun(rows, audit.rtol, audit.atol, **_cap(audit, steps, rows, audit.rtol))
-    mine, ref = _Rows.of(result, rows), _Rows.of(first)
-    finished = (Status.OK, Status.NOT_SETTLING)
-    off = np.where(~_agree(_differences(mine, ref), audit))[0]
-    moved = np.zeros(k, bool)                       # the reference changed between tolerances
-    unjudged = np.zeros(k, bool)                    # two tightest references disagree, and with the result
-    still = np.zeros(0, np.int64)
-    if off.size:
-        tight = _Rows.of(rerun(rows[off], audit.confirm_tol, audit.confirm_tol,
-                               **_cap(audit, steps, rows[off], audit.confirm_tol)))
-        done = np.isin(tight.status, finished)
-        moved[off] = ~_agree(_differences(ref.take(off), tight), audit) & done
-        ref = ref.put(off[done], tight.take(done))
-        # a flagged row's figures hang on a seed below every tolerance: a tighter reference would not settle them
-        still = off[done & ~_agree(_differences(mine.take(off), tight), audit) & ~flags[rows[off]]]
-        if still.size and audit.tightest_tol < audit.confirm_tol:
-            tighter = _Rows.of(rerun(rows[still], audit.tightest_tol, audit.tightest_tol,
-                                     **_cap(audit, steps, rows[still], audit.tightest_tol)))
-            done = np.isin(tighter.status, finished)
-            converged = _agree(_differences(ref.take(still), tighter), audit)
-            agrees = _agree(_differences(mine.take(still), tighter), audit)
-            moved[still] |= ~converged & done
-            unjudged[still] = done & ~converged & ~agrees
-            ref = ref.put(still[done], tighter.take(done))
+    mine = _Rows.of(result, rows)
+    ref, off, still, moved, unjudged = _ladder(mine, _Rows.of(first), rows, rerun, audit, steps, flags)
     d = _differences(mine, ref)
     worst = {k_: float(np.max(d[k_])) for k_ in ("dE", "dT", "dy")}
     rec = {"rows": k, "seed": audit.seed, "reference": f"float64, rtol = atol = {audit.rtol:g}",
@@ -421,6 +400,38 @@ def audit_rows(result, rerun: Callable[[np.ndarray, float, float], object], audi
                       f"float64 gives for this law at these settings; {fix}, or trust only what the audit confirms",
                       AccuracyWarning, stacklevel=3)
     return rec
+
+
+def _ladder(mine: "_Rows", ref: "_Rows", rows: np.ndarray, rerun, audit: "Audit", steps, flags: np.ndarray):
+    """The audit's ladder of references (`audit_rows`): the rows of ``mine`` off their first reference ``ref`` re-run
+    at ``audit.confirm_tol``, and those still off it at ``audit.tightest_tol``. Returns ``(ref, off, still, moved,
+    unjudged)``: each row's tightest finished reference, the rows off the first one, those re-run at the tightest
+    tolerance, those whose reference moved between tolerances, and those whose two tightest references disagree with
+    each other and with the result (not judged)."""
+    k = rows.size
+    finished = (Status.OK, Status.NOT_SETTLING)
+    off = np.where(~_agree(_differences(mine, ref), audit))[0]
+    moved = np.zeros(k, bool)                       # the reference changed between tolerances
+    unjudged = np.zeros(k, bool)                    # two tightest references disagree, and with the result
+    still = np.zeros(0, np.int64)
+    if off.size:
+        tight = _Rows.of(rerun(rows[off], audit.confirm_tol, audit.confirm_tol,
+                               **_cap(audit, steps, rows[off], audit.confirm_tol)))
+        done = np.isin(tight.status, finished)
+        moved[off] = ~_agree(_differences(ref.take(off), tight), audit) & done
+        ref = ref.put(off[done], tight.take(done))
+        # a flagged row's figures hang on a seed below every tolerance: a tighter reference would not settle them
+        still = off[done & ~_agree(_differences(mine.take(off), tight), audit) & ~flags[rows[off]]]
+        if still.size and audit.tightest_tol < audit.confirm_tol:
+            tighter = _Rows.of(rerun(rows[still], audit.tightest_tol, audit.tightest_tol,
+                                     **_cap(audit, steps, rows[still], audit.tightest_tol)))
+            done = np.isin(tighter.status, finished)
+            converged = _agree(_differences(ref.take(still), tighter), audit)
+            agrees = _agree(_differences(mine.take(still), tighter), audit)
+            moved[still] |= ~converged & done
+            unjudged[still] = done & ~converged & ~agrees
+            ref = ref.put(still[done], tighter.take(done))
+    return ref, off, still, moved, unjudged
 
 
 def _warn_unresolved(flags: np.ndarray, what: str) -> None:
