@@ -8,6 +8,8 @@ import pytest
 
 import jaxsleigh as js
 from jaxsleigh.integrate.engine import check_ics, initial_w
+from jaxsleigh.integrate.horizon import step_budget
+from jaxsleigh.integrate.stepsize import check_policy
 from jaxsleigh.model.charts import WChart
 from jaxsleigh.model.params import paper_gains, paper_plant
 from jaxsleigh.model.shaped_law import shaped_gains
@@ -22,12 +24,37 @@ def _starts(n=33, seed=0):
     return np.column_stack([rng.uniform(-3, 3, (n, 2)), rng.choice([-1, 1], n) * rng.uniform(0.3, np.pi, n)])
 
 
-def _run(ics, t_final):
+#: the budget of attempts given explicitly (the default of a 100 s horizon in float64), so that the horizon is a
+#: traced argument: one program per law family serves every horizon, parameter and direction of this module
+STEPSIZE = js.StepSizeController(rtol=1e-9, atol=1e-9)
+_BUDGETED = STEPSIZE._replace(max_steps=step_budget(check_policy(STEPSIZE), 100.0, 0.01, jnp.float64))
+
+
+@jax.jit
+def _settle_jvp(c, dc, y0w, plant, t_final):
+    """``(settling, median T), (their tangents along dc)`` of the law ``c`` on the chart starts ``y0w``: forward mode
+    through the adaptive RK4 and its dense output (the implicit function theorem), the median of the hard T."""
+    def run(c):
+        r = settling(c, y0w, plant, t_final=t_final, stepsize=_BUDGETED)
+        return r, jnp.median(r.T)
+
+    return jax.jvp(run, (c,), (dc,))
+
+
+def _setup(ics, law):
+    """Arguments of `_settle_jvp` in float64 NumPy (one signature): the law's leaves, the chart starts, the plant."""
     ics5, st = check_ics(ics)
-    y0w = initial_w(ics5, st, jnp.float64, WChart())
-    plant = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), paper_plant())
-    return jax.jit(lambda c: settling(c, y0w, plant, t_final=t_final,
-                                          stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9)))
+    y0w = np.asarray(initial_w(ics5, st, jnp.float64, WChart()))
+    plant = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), paper_plant())
+    c = jax.tree_util.tree_map(lambda x: np.array(x, np.float64), law)
+    return c, y0w, plant
+
+
+def _direction(c, field, index):
+    """The tangent of ``c`` that moves ``field`` (entry ``index``, or the scalar) alone by 1."""
+    dc = jax.tree_util.tree_map(np.zeros_like, c)
+    getattr(dc, field)[... if index is None else index] = 1.0
+    return dc
 
 
 @pytest.mark.parametrize("law,field,index", [("shaped", "L", 0), ("shaped", "B", 1), ("paper", "k", None)])
@@ -36,35 +63,33 @@ def test_median_settling_time_derivative_matches_finite_differences(law, field, 
     its dense output) against central differences of the hard median; and the value is the engine's T_eps."""
     ics = _starts()
     with jax.enable_x64(True):
-        c = jax.tree_util.tree_map(jnp.asarray, SHAPED if law == "shaped" else paper_gains())
-        f = _run(ics, 100.0)
-
-        def with_value(x):
-            leaf = getattr(c, field)
-            return c._replace(**{field: x if index is None else leaf.at[index].set(x)})
-
-        x0 = getattr(c, field) if index is None else getattr(c, field)[index]
-        r = f(c)
-        ref = js.run_ensemble(ics, controller=c, t_final=100.0, x64=True,
-                              stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9))
+        c, y0w, plant = _setup(ics, SHAPED if law == "shaped" else paper_gains())
+        dc = _direction(c, field, index)
+        (r, _), (_, grad) = _settle_jvp(c, dc, y0w, plant, 100.0)
+        ref = js.run_ensemble(ics, controller=c, t_final=100.0, x64=True, stepsize=STEPSIZE)
         settled = np.isfinite(ref.T_eps)
         assert settled.sum() >= 20
         np.testing.assert_array_equal(np.asarray(r.settled), settled)
         np.testing.assert_allclose(np.asarray(r.T)[settled], ref.T_eps[settled], atol=1e-4)
-        med = lambda x: jnp.median(f(with_value(x)).T)  # noqa: E731
-        _, grad = jax.jvp(med, (x0,), (jnp.ones_like(x0),))
-        h = 1e-3 * float(x0)
+        x0 = float(getattr(c, field)[... if index is None else index])
+        h = 1e-3 * x0
+
+        def med(x):                                   # the hard median at the parameter x (the same program)
+            return float(_settle_jvp(jax.tree_util.tree_map(lambda a, d: a + (x - x0) * d, c, dc), dc, y0w, plant,
+                                     100.0)[0][1])
+
         fd = (med(x0 + h) - med(x0 - h)) / (2 * h)
+        assert _settle_jvp._cache_size() <= 2          # one program per law family, whatever the parameter
         assert abs(float(grad)) > 1e-2
         assert abs(float(grad) - float(fd)) <= 1e-3 * abs(float(fd)) + 1e-6
 
 
 def test_unsettled_starts_count_the_horizon_with_no_derivative():
-    ics = _starts(9, seed=3)
+    """The starts of the test above (and its program) with a horizon too short for any start to settle: T is the
+    horizon and its derivative 0."""
     with jax.enable_x64(True):
-        c = jax.tree_util.tree_map(jnp.asarray, SHAPED)
-        f = _run(ics, 5.0)                             # too short a horizon for any start to settle
-        T, dT = jax.jvp(lambda x: f(c._replace(k=x)).T, (c.k,), (jnp.ones_like(c.k),))
-        assert not np.any(np.asarray(f(c).settled))
-        np.testing.assert_array_equal(np.asarray(T), 5.0)
-        np.testing.assert_array_equal(np.asarray(dT), 0.0)
+        c, y0w, plant = _setup(_starts(), SHAPED)
+        (r, _), (dr, _) = _settle_jvp(c, _direction(c, "k", None), y0w, plant, 5.0)
+        assert not np.any(np.asarray(r.settled))
+        np.testing.assert_array_equal(np.asarray(r.T), 5.0)
+        np.testing.assert_array_equal(np.asarray(dr.T), 0.0)

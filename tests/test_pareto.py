@@ -10,7 +10,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from jax.flatten_util import ravel_pytree
 
 import jaxsleigh as js
 from jaxsleigh import tuning as tu
@@ -75,21 +74,29 @@ def test_objective_energy_is_the_engines_for_the_same_steps():
     from jaxsleigh.model.closed_loop import ClosedLoop
     data, cfg, tr, fr = _setup("paper", t_final=2.0, stop_fraction=1e-6)
     gains = tu.gains_from_params(fr)
-    _, aux = tu.objective(tr, fr, data, cfg, n_attempts=220, adaptive=False)
+    # the objective's lanes by the value-and-gradient programs that tests/test_tuning.py compiles (same shapes and
+    # static settings), not by an eager objective (a program per operation)
+    (_, aux), _ = tu.make_value_and_grad(mode="reverse", n_attempts=220, adaptive=False)(tr, fr, data, cfg)
     lanes = aux["lanes"]
     assert np.all(np.asarray(lanes.t_reached) == 2.0)
-    rk4 = [js.solve(gains, jnp.asarray(y0), t_final=2.0, dt=0.01, stepsize=js.StepSizeController(method="rk4"))
-           for y0 in _ICS]
+    solve = jax.jit(lambda y0: js.solve(gains, y0, t_final=2.0, dt=0.01,          # one program for the 3 starts
+                                        stepsize=js.StepSizeController(method="rk4")))
+    rk4 = [solve(jnp.asarray(y0)) for y0 in _ICS]
     np.testing.assert_allclose(np.asarray(lanes.u_energy), [float(o.u_energy) for o in rk4], rtol=1e-12)
     np.testing.assert_allclose(np.asarray(lanes.u_norm_peak), [float(o.u_norm_peak) for o in rk4], rtol=1e-12)
     # adaptive: the objective's lanes against the engine's stepper with every default observer, same first step
-    _, aux = tu.objective(tr, fr, data, cfg, n_attempts=2000)
+    (_, aux), _ = tu.make_value_and_grad(mode="reverse", n_attempts=2000)(tr, fr, data, cfg)
     lanes = aux["lanes"]
     y0w = data.groups[0][0]
     args = ClosedLoop(js.paper_plant(), gains)
     ctl = controls(cfg.stepsize, y0w.dtype, dt=cfg.dt, eps=cfg.eps, max_steps=2000)
-    s = starting_step(init_batch(y0w, jnp.zeros(y0w.shape[0], jnp.int32), args, ctl), ctl)
-    s = run(s, 2.0, args, ctl, WhileActive(), adaptive=True)
+
+    @jax.jit                                  # one program, not an eager program per operation of the stepper
+    def engine(y0w):
+        s = starting_step(init_batch(y0w, jnp.zeros(y0w.shape[0], jnp.int32), args, ctl), ctl)
+        return run(s, 2.0, args, ctl, WhileActive(), adaptive=True)
+
+    s = engine(y0w)
     assert np.all(np.asarray(s.t) == 2.0)
     np.testing.assert_array_equal(np.asarray(lanes.n_attempts), np.asarray(s.n_accept + s.n_reject))
     np.testing.assert_allclose(np.asarray(lanes.u_energy), np.asarray(s.quad[0]), rtol=1e-12)
@@ -101,7 +108,7 @@ def test_objective_energy_agrees_with_the_accurate_engine():
     the same horizon (no lane stops: stop_fraction tiny), float64, tight tolerances."""
     data, cfg, tr, fr = _setup("paper", t_final=5.0, stop_fraction=1e-6,
                                  stepsize=js.StepSizeController(rtol=1e-8, atol=1e-8, max_step=0.1))
-    _, aux = tu.objective(tr, fr, data, cfg, n_attempts=6000)
+    (_, aux), _ = tu.make_value_and_grad(mode="reverse", n_attempts=2000)(tr, fr, data, cfg)   # the program above
     assert np.all(np.asarray(aux["lanes"].t_reached) == 5.0)
     v = tu.validate("paper", _ICS, t_final=5.0, x64=True, stepsize=js.StepSizeController(rtol=1e-9, atol=1e-9))
     # the objective's steps at 1e-8 vs the accurate engine's at 1e-9
@@ -116,18 +123,29 @@ def test_augmented_lagrangian_gradient_equals_central_differences():
     its AD gradient matches central differences; without a budget the loss is the soft time exactly."""
     data, cfg, tr, fr = _setup("paper", t_final=2.0)
     kw = dict(n_attempts=220, adaptive=False)
-    (value0, aux0), _ = tu.make_value_and_grad(mode="reverse", **kw)(tr, fr, data, cfg)
+    vg = tu.make_value_and_grad(mode="reverse", **kw)       # tests/test_tuning.py's program: same shapes and settings
+    (value0, aux0), _ = vg(tr, fr, data, cfg)
     assert float(value0) == float(aux0["soft"]) and np.isneginf(float(aux0["constraint"]))
     cfg = cfg._replace(energy_budget=jnp.asarray(0.5 * float(aux0["energy"])), multiplier=jnp.asarray(0.3),
                        penalty=jnp.asarray(2.0))
-    (value, aux), grad = tu.make_value_and_grad(mode="reverse", **kw)(tr, fr, data, cfg)
+    (value, aux), grad = vg(tr, fr, data, cfg)
     assert float(aux["constraint"]) == pytest.approx(np.log(2.0))
     assert float(value) > float(aux["soft"]) + 0.3 * np.log(2.0)
-    flat, unravel = ravel_pytree(tr)
-    f = jax.jit(lambda v: tu.objective(unravel(v), fr, data, cfg, **kw)[0])
+    # central differences of the value, by the same compiled program (no jitted objective of its own)
+    keys = sorted(tr)
+    flat = np.concatenate([np.ravel(np.asarray(tr[k])) for k in keys])
+    sizes = np.cumsum([np.size(tr[k]) for k in keys])[:-1]
+
+    def f(v):
+        tv = {k: jnp.asarray(x.reshape(np.shape(tr[k]))) for k, x in zip(keys, np.split(v, sizes))}   # as tr's
+        return float(vg(tv, fr, data, cfg)[0][0])
+
+    n = vg._cache_size()
     h = 1e-5
     fd = np.array([(f(flat + h * e) - f(flat - h * e)) / (2 * h) for e in np.eye(flat.size)])
-    np.testing.assert_allclose(np.asarray(ravel_pytree(grad)[0]), fd, rtol=1e-6, atol=1e-7 * np.max(np.abs(fd)))
+    assert vg._cache_size() == n
+    g = np.concatenate([np.ravel(np.asarray(grad[k])) for k in keys])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-7 * np.max(np.abs(fd)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -154,8 +172,10 @@ def test_budgeted_tune_returns_gains_within_the_budget_with_the_probe_inactive()
 # the front: both methods, its JSON, the command line
 # ---------------------------------------------------------------------------------------------
 
-TINY = tu.TuneConfig(steps=3, batch=8, lr=0.2, warmup=1, seed=1, n_attempts=1500, probe=4, verify=1)
-TINY_LOSS = tu.LossConfig(t_final=10.0)
+# the budgeted run's shapes and static settings (SMALL: batch, step budget, probe size; SMALL_LOSS), so that the
+# fronts and the command line reuse its compiled objective, gradient, probe and verification programs
+TINY = tu.TuneConfig(steps=3, lr=0.2, warmup=1, seed=1, verify=1, **SMALL)
+TINY_LOSS = SMALL_LOSS
 
 
 @pytest.mark.parametrize("method", ["warm", "vmap"])
@@ -194,7 +214,7 @@ def test_cli_pareto_writes_the_front_and_its_figure(tmp_path, capsys, monkeypatc
     monkeypatch.setattr(tu.pareto, "validate", spy)
     out, png = tmp_path / "front.json", tmp_path / "front.png"
     rc = cli_main(["tune", "--pareto", "2", "--out", str(out), "--plot", str(png), "--steps", "2", "--warm-steps", "1",
-                   "--batch", "8", "--t-final", "10", "--n-attempts", "1500", "--tune", "L,k", "--validate", "4",
+                   "--batch", str(SMALL["batch"]), "--t-final", "15", "--n-attempts", str(SMALL["n_attempts"]), "--tune", "L,k", "--validate", "4",
                    "--budgets", "5:50", "--atol", "1e-7", "--no-progress"])
     assert rc == 0, capsys.readouterr().err
     doc = json.loads(out.read_text())

@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.flatten_util import ravel_pytree
 
 import jaxsleigh as js
 from jaxsleigh import tuning as tu
@@ -112,9 +111,34 @@ def _fd_setup(t_final, rtol):
     return data, cfg, trainable, frozen
 
 
-def _central_differences(f, x, h=1e-5):
-    f = jax.jit(f)
-    return np.array([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(x.size)])
+def _flat(tree):
+    """``ravel_pytree(tree)[0]`` of a dict of arrays, in NumPy (sorted keys): no eager program."""
+    return np.concatenate([np.ravel(np.asarray(tree[key])) for key in sorted(tree)])
+
+
+def _unravel(v, like):
+    """``v`` (flat, NumPy) as the dict ``like`` (``ravel_pytree``'s order: sorted keys), split in NumPy (no eager
+    program) and put on the device as ``like``'s leaves are (NumPy arguments would retrace the jitted function)."""
+    out, i = {}, 0
+    for key in sorted(like):
+        n = int(np.size(like[key]))
+        out[key] = jnp.asarray(np.asarray(v[i:i + n]).reshape(np.shape(like[key])))   # a device array, as ``like``'s
+        i += n
+    return out
+
+
+def _central_differences(vg, trainable, frozen, data, cfg, h=1e-5):
+    """Central differences of the objective's value, evaluated by the (already compiled) value-and-gradient program
+    ``vg`` itself: no second program (a jitted objective) to compile, and the same primal computation."""
+    flat = _flat(trainable)
+    n = vg._cache_size()
+
+    def f(v):
+        return float(vg(_unravel(v, trainable), frozen, data, cfg)[0][0])
+
+    fd = np.array([(f(flat + h * e) - f(flat - h * e)) / (2 * h) for e in np.eye(flat.size)])
+    assert vg._cache_size() == n                 # the differences reused the program, not a retrace
+    return fd
 
 
 @pytest.mark.usefixtures("x64")
@@ -123,11 +147,11 @@ def test_fixed_step_gradients_equal_central_differences():
     agree with central differences (float64) to the differences' own accuracy."""
     data, cfg, trainable, frozen = _fd_setup(t_final=2.0, rtol=1e-9)
     kw = dict(n_attempts=220, adaptive=False)
-    (value, aux), grad = tu.make_value_and_grad(mode="reverse", **kw)(trainable, frozen, data, cfg)
+    vg = tu.make_value_and_grad(mode="reverse", **kw)
+    (value, aux), grad = vg(trainable, frozen, data, cfg)
     assert bool(aux["valid"]) and np.all(np.asarray(aux["lanes"].t_reached) == 2.0)
-    flat, unravel = ravel_pytree(trainable)
-    fd = _central_differences(lambda v: tu.objective(unravel(v), frozen, data, cfg, **kw)[0], flat)
-    g = np.asarray(ravel_pytree(grad)[0])
+    fd = _central_differences(vg, trainable, frozen, data, cfg)
+    g = _flat(grad)
     assert np.max(np.abs(g)) > 1e-4            # a real signal, not two zeros
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-7 * np.max(np.abs(fd)))
 
@@ -140,14 +164,14 @@ def test_adaptive_gradients_forward_reverse_and_central_differences():
     agree to rounding."""
     data, cfg, trainable, frozen = _fd_setup(t_final=4.0, rtol=1e-9)
     kw = dict(n_attempts=2000)
-    (v_r, aux), g_r = tu.make_value_and_grad(mode="reverse", **kw)(trainable, frozen, data, cfg)
+    vg = tu.make_value_and_grad(mode="reverse", **kw)
+    (v_r, aux), g_r = vg(trainable, frozen, data, cfg)
     (v_f, _), g_f = tu.make_value_and_grad(mode="forward", **kw)(trainable, frozen, data, cfg)
     assert bool(aux["valid"])
-    g_r, g_f = np.asarray(ravel_pytree(g_r)[0]), np.asarray(ravel_pytree(g_f)[0])
+    g_r, g_f = _flat(g_r), _flat(g_f)
     assert float(v_r) == pytest.approx(float(v_f), rel=1e-13)
     np.testing.assert_allclose(g_f, g_r, rtol=1e-9, atol=1e-12)
-    flat, unravel = ravel_pytree(trainable)
-    fd = _central_differences(lambda v: tu.objective(unravel(v), frozen, data, cfg, **kw)[0], flat)
+    fd = _central_differences(vg, trainable, frozen, data, cfg)
     np.testing.assert_allclose(g_r, fd, rtol=1e-3, atol=1e-4 * np.max(np.abs(fd)))
 
 
