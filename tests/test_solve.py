@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import jaxsleigh as js
+from jaxsleigh.integrate.horizon import step_budget
 from jaxsleigh.integrate.solve import solve
 
 
@@ -19,6 +20,15 @@ from laws import PD  # noqa: E402
 Y0 = np.array([1.0, 1.0, 0.5, 0.1, -0.2])
 RK4 = js.StepSizeController(method="rk4")
 
+# The tests share compiled programs (a cold run of this file compiled 36 programs of 0.5-120 s, 730 s in all): outside
+# ``jit``, `solve` runs one jitted program per dtype, step budget (static), options and saving, whatever t_final, start,
+# gains and tolerances (traced). So every eager float32 run here without saving is at t_final = 2 with its default
+# budget `N32` (or that budget given), every one with saving at t_final = 2, every = 50, and every eager float64 adaptive
+# run is at the budget `N64` of t_final = 10 (its default there); the float64 saving runs share `TIGHT`, 3 s, every 30.
+N32 = step_budget(js.StepSizeController(), 2.0, 0.01, "float32")
+N64 = step_budget(js.StepSizeController(), 10.0, 0.01, "float64")
+TIGHT = js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=20_000)
+
 
 def _fd(f, x, h):
     return (f(x + h) - f(x - h)) / (2 * h)
@@ -26,7 +36,7 @@ def _fd(f, x, h):
 
 def test_solve_equals_the_ensemble_engine():
     with jax.enable_x64(True):
-        out = jax.jit(lambda y: solve(js.paper_gains(), y, t_final=10.0))(jnp.asarray(Y0))
+        out = solve(js.paper_gains(), jnp.asarray(Y0), t_final=10.0)      # jitted inside: budget N64
     res = js.run_ensemble(Y0[None], t_final=10.0, x64=True)
     np.testing.assert_allclose(np.asarray(out.q_final), res.q_final[0], rtol=1e-12)
     np.testing.assert_allclose(float(out.summaries["u_energy"]), res.u_energy[0], rtol=1e-12)
@@ -39,8 +49,9 @@ def test_gradient_wrt_paper_gain_k_matches_finite_differences(method, rtol):
     g = js.paper_gains()
     with jax.enable_x64(True):
         def energy(k):
-            law = js.Gains(jnp.asarray(g.L), k, jnp.asarray(g.D_hat))
-            stepsize = js.StepSizeController(rtol=1e-11, atol=1e-11, method=method, max_steps=8000)
+            law = js.Gains(jnp.asarray(g.L), jnp.asarray(k, jnp.float64), jnp.asarray(g.D_hat))  # strong type:
+            # the finite differences' runs are then those of test_solve_equals_the_ensemble_engine's program
+            stepsize = js.StepSizeController(rtol=1e-11, atol=1e-11, method=method, max_steps=N64)
             return solve(law, jnp.asarray(Y0), t_final=8.0, stepsize=stepsize).summaries["u_energy"]
         grad = jax.jit(jax.grad(energy))(0.1)
         fd = _fd(energy, 0.1, 1e-5)
@@ -64,8 +75,12 @@ def test_forward_mode_and_vmap_over_starts():
         starts = jnp.asarray(np.random.default_rng(0).uniform([-2, -2, 0.3], [2, 2, 2], (4, 3)))
         def final_q(kp, y0):
             return solve(PD(kp, 1.5), y0, t_final=3.0, stepsize=RK4).q_final
-        jac = jax.vmap(jax.jacfwd(final_q), in_axes=(None, 0))(2.0, starts)
-        fd = jax.vmap(lambda y: _fd(lambda a: final_q(a, y), 2.0, 1e-5))(starts)
+
+        @jax.jit
+        def both(starts):       # one program (eager, the vmapped transforms compiled some 130 small ones)
+            jac = jax.vmap(jax.jacfwd(final_q), in_axes=(None, 0))(2.0, starts)
+            return jac, jax.vmap(lambda y: _fd(lambda a: final_q(a, y), 2.0, 1e-5))(starts)
+        jac, fd = both(starts)
     assert jac.shape == (4, 3)
     np.testing.assert_allclose(np.asarray(jac), np.asarray(fd), rtol=1e-6, atol=1e-10)
 
@@ -78,12 +93,12 @@ def test_calling_solve_again_compiles_nothing(caplog):
     y0, y1 = jnp.asarray([1.0, 1.0, 0.5], jnp.float32), jnp.asarray([-1.0, 2.0, -0.4], jnp.float32)
     g = js.paper_gains()
     first = solve(g, y0, t_final=2.0)
-    solve(g, y0, t_final=2.0, saveat=js.SaveAt(every=10))
+    solve(g, y0, t_final=2.0, saveat=js.SaveAt(every=50))
     other = g._replace(k=g.k * 2)                  # the same structure and dtypes
     with jax.log_compiles(True), caplog.at_level(logging.DEBUG):
         caplog.clear()
         again = solve(other, y1, t_final=2.0)
-        saved = solve(other, y1, t_final=2.0, saveat=js.SaveAt(every=10))
+        saved = solve(other, y1, t_final=2.0, saveat=js.SaveAt(every=50))
         jax.block_until_ready((again, saved))
     compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
     assert compiled == []
@@ -91,9 +106,12 @@ def test_calling_solve_again_compiles_nothing(caplog):
 
 
 def test_solve_reports_an_exhausted_budget():
-    with jax.enable_x64(True):
-        out = solve(js.paper_gains(), jnp.asarray(Y0), t_final=10.0, stepsize=js.StepSizeController(max_steps=10))
-    assert int(out.status) == js.Status.BUDGET_EXHAUSTED and float(out.t_reached) < 10.0
+    """A horizon the budget cannot reach (N32 attempts of at most 100 base steps cover < 4,200 s) ends
+    ``BUDGET_EXHAUSTED`` short of it, every attempt spent."""
+    out = solve(js.paper_gains(), jnp.asarray(Y0, jnp.float32), t_final=1e5,
+                stepsize=js.StepSizeController(max_steps=N32))
+    assert int(out.status) == js.Status.BUDGET_EXHAUSTED and 0 < float(out.t_reached) < 1e5
+    assert int(out.n_steps) + int(out.n_rejected) == N32
 
 
 def test_solve_carries_a_stiff_flight_as_simulate_does():
@@ -154,16 +172,19 @@ def test_solve_reports_a_start_that_cannot_be_integrated():
     traced: vmapped with a good start, whose result is unchanged and whose gradient stays finite."""
     good = [1.0, 1.0, 0.5]
     starts = jnp.asarray(np.array([good, [np.nan, 1.0, 0.5], [1.0, 1.0, 0.0], [1.0, 1.0, 1e-30]], np.float32))
-    run = jax.jit(jax.vmap(lambda y: solve(js.paper_gains(), y, t_final=1.0)))
-    out = run(starts)
+
+    def first_energy(y):
+        out = jax.vmap(lambda y: solve(js.paper_gains(), y, t_final=2.0))(y)
+        return out.summaries["u_energy"][0], out
+
+    (_, out), g = jax.jit(jax.value_and_grad(first_energy, has_aux=True))(starts)   # one program: batch and gradient
     S = js.Status
     assert np.asarray(out.status).tolist() == [S.OK, S.INVALID_INPUT, S.SINGULAR_START, S.OUT_OF_RANGE]
     assert np.all(np.isnan(np.asarray(out.q_final[1:]))) and np.all(np.isnan(np.asarray(out.summaries["u_energy"][1:])))
-    alone = solve(js.paper_gains(), np.asarray(good, np.float32), t_final=1.0)
+    alone = solve(js.paper_gains(), np.asarray(good, np.float32), t_final=2.0)
     np.testing.assert_allclose(np.asarray(out.q_final[0]), np.asarray(alone.q_final), rtol=1e-5)  # batched code
-    g = jax.grad(lambda y: run(y).summaries["u_energy"][0])(starts)
-    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g[1:]) == 0)
-    assert int(solve(js.paper_gains(), np.array([1.0, 1.0, 0.0]), t_final=1.0).status) == S.SINGULAR_START
+    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g[1:]) == 0) and np.any(np.asarray(g[0]) != 0)
+    assert int(solve(js.paper_gains(), np.array([1.0, 1.0, 0.0]), t_final=2.0).status) == S.SINGULAR_START
 
 
 def test_a_float32_start_too_close_to_theta_zero_is_out_of_range_with_nan_outputs():
@@ -171,7 +192,7 @@ def test_a_float32_start_too_close_to_theta_zero_is_out_of_range_with_nan_output
     accepted; it ended ``STEP_UNDERFLOW`` with the start as its final state and 0 as its energy. It is
     ``OUT_OF_RANGE`` now, as the host fronts flag it, every output NaN; a start whose H_d overflows too."""
     for y0 in ([1.0, 0.0, 1e-7], [1e30, 1e30, 0.5]):
-        out = solve(js.paper_gains(), jnp.asarray(y0, jnp.float32), t_final=1.0)
+        out = solve(js.paper_gains(), jnp.asarray(y0, jnp.float32), t_final=2.0)
         assert int(out.status) == js.Status.OUT_OF_RANGE, y0
         assert np.all(np.isnan(np.asarray(out.q_final))) and np.all(np.isnan(np.asarray(out.p_final)))
         for name in ("T_eps", "u_energy", "u_abs_int", "u_norm_peak", "min_abs_theta", "max_excursion"):
@@ -185,26 +206,29 @@ def test_a_float32_start_too_close_to_theta_zero_is_out_of_range_with_nan_output
 def test_saveat_gives_the_trajectory_of_the_host_front():
     """``saveat=SaveAt(every=n)``: the traced trajectory at the save times, as `js.simulate` saves it (float64, the
     same steps landing on the same save times: equal to rounding), the input there too, and its final state."""
-    with jax.enable_x64(True):
-        out = jax.jit(lambda y: solve(js.paper_gains(), y, t_final=10.0, saveat=js.SaveAt(every=50)))(jnp.asarray(Y0))
-        sim = js.simulate(Y0, t_final=10.0, saveat=js.SaveAt(every=50), x64=True)
-    assert out.t.shape == (21,) and out.q.shape == (21, 3) and out.p.shape == (21, 2) and out.u.shape == (21, 2)
+    with jax.enable_x64(True):      # the settings of the trajectory loss below: one compiled program for both
+        out = solve(js.paper_gains(), jnp.asarray(Y0), t_final=3.0, stepsize=TIGHT, saveat=js.SaveAt(every=30))
+        sim = js.simulate(Y0, t_final=3.0, stepsize=TIGHT, saveat=js.SaveAt(every=30), x64=True)
+    assert out.t.shape == (11,) and out.q.shape == (11, 3) and out.p.shape == (11, 2) and out.u.shape == (11, 2)
     np.testing.assert_allclose(np.asarray(out.t), np.asarray(sim.t), rtol=1e-15)
-    np.testing.assert_allclose(np.asarray(out.q), np.asarray(sim.q).reshape(21, 3), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(out.p), np.asarray(sim.p).reshape(21, 2), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(out.u), np.asarray(sim.u).reshape(21, 2), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.q), np.asarray(sim.q).reshape(11, 3), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.p), np.asarray(sim.p).reshape(11, 2), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.u), np.asarray(sim.u).reshape(11, 2), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(np.asarray(out.q[-1]), np.asarray(out.q_final), rtol=1e-12)
-    assert int(out.status) == 0 and solve(js.paper_gains(), Y0[:3], t_final=10.0).t is None
+    assert int(out.status) == 0 and solve(js.paper_gains(), Y0[:3], t_final=2.0).t is None
 
 
 def test_saveat_shares_the_budget_between_the_save_intervals():
     """A save interval that needs more than its share of ``max_steps`` ends the run ``BUDGET_EXHAUSTED`` there: the
     states it did not reach are NaN, never stale (the summaries are up to ``t_reached``, as without saving)."""
-    out = solve(js.paper_gains(), jnp.asarray(Y0, jnp.float32), t_final=2.0, saveat=js.SaveAt(every=20),
-                stepsize=js.StepSizeController(max_steps=20))
+    # the stiff flight's start (test_solve_carries_a_stiff_flight_as_simulate_does): its explicit steps need some
+    # 1e5 attempts in the first save interval, far more than its share of the default budget (N32 / 4)
+    out = solve(js.paper_gains(), jnp.asarray([1.9, -0.04, 2e-4], jnp.float32), t_final=2.0, saveat=js.SaveAt(every=50))
     assert int(out.status) == js.Status.BUDGET_EXHAUSTED
     q = np.asarray(out.q)
-    assert np.all(np.isfinite(q[0])) and np.all(np.isnan(q[-1])) and float(out.t_reached) < 2.0
+    after = np.asarray(out.t) > float(out.t_reached)
+    assert float(out.t_reached) < 2.0 and after.sum() >= 1 and np.all(np.isnan(q[after]))
+    assert np.all(np.isfinite(q[~after])) and np.isfinite(float(out.u_energy))   # start saved; summaries to t_reached
 
 
 def test_saveat_near_and_on_the_singular_set():
@@ -231,17 +255,15 @@ def test_saveat_near_and_on_the_singular_set():
 def test_gradient_of_a_trajectory_loss_matches_finite_differences():
     """d/dk of the summed squared distance along the saved trajectory (float64, tight tolerances)."""
     g = js.paper_gains()
-    tight = js.StepSizeController(rtol=1e-10, atol=1e-10, max_steps=20_000)
 
     def loss(k):
-        out = solve(g._replace(k=k), jnp.asarray(Y0), t_final=3.0, stepsize=tight, saveat=js.SaveAt(every=30))
+        out = solve(g._replace(k=k), jnp.asarray(Y0), t_final=3.0, stepsize=TIGHT, saveat=js.SaveAt(every=30))
         return jnp.sum(out.q ** 2)
 
     with jax.enable_x64(True):
-        k0 = jnp.asarray(float(g.k))
+        k0 = jnp.asarray(g.k)       # float64, as the host-front test's gains (one program for both)
         grad = float(jax.jit(jax.grad(loss))(k0))
-        f = jax.jit(loss)
-        fd = float(_fd(lambda k: f(k), k0, 1e-6))
+        fd = float(_fd(loss, k0, 1e-6))      # eager: the jitted saving run of the host-front test
     np.testing.assert_allclose(grad, fd, rtol=1e-5)
     assert abs(grad) > 1e-3
 
