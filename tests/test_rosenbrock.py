@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 
 import jaxsleigh as js
 from jaxsleigh.integrate.engine import STIFF_AFTER, advance_lanes, check_ics, drive_final, initial_w, make_horizon
-from jaxsleigh.integrate.rosenbrock import lu_factor, lu_solve, rosenbrock_stages
+from jaxsleigh.integrate.rosenbrock import D, lu_factor, lu_solve, lu_solve_transposed, rosenbrock_stages
 from jaxsleigh.model.closed_loop import ClosedLoop, state_from_w, state_to_w, vector_field_w, vector_field_w_control
 from numpy_field import numpy_field
 
@@ -28,8 +28,63 @@ def test_the_pivoted_solve_agrees_with_numpy():
     with jax.enable_x64(True):
         x = np.stack(lu_solve(lu_factor([[jnp.asarray(a[r, c]) for c in range(5)] for r in range(5)]),
                               [jnp.asarray(v) for v in b]))
+        lu = lu_factor([[jnp.asarray(a[r, c]) for c in range(5)] for r in range(5)])
+        xt = np.stack(lu_solve_transposed(lu, [jnp.asarray(v) for v in b]))
     ref = np.stack([np.linalg.solve(a[:, :, k], b[:, k]) for k in range(16)], axis=1)
     np.testing.assert_allclose(x, ref, rtol=1e-10, atol=1e-12)
+    ref_t = np.stack([np.linalg.solve(a[:, :, k].T, b[:, k]) for k in range(16)], axis=1)   # the reverse pass's solve
+    np.testing.assert_allclose(xt, ref_t, rtol=1e-10, atol=1e-12)
+
+
+def test_the_steps_derivatives_match_finite_differences_and_the_elimination_differentiated():
+    """The solves with W are differentiated through their own transposed solve, not through the elimination
+    (`jax.lax.custom_linear_solve`): reverse and forward mode of a stiff step from the flier's neighbourhood
+    (h |J| >> 1) agree with central differences, and with differentiating the written-out elimination itself."""
+    args = ClosedLoop(js.paper_plant(), js.paper_gains())
+
+    def plain(y, h):                  # the same step, the elimination differentiated as written
+        f0 = vector_field_w(0.0, y, args)
+        hd = h * D
+        jac = jax.jacfwd(lambda yy: vector_field_w(0.0, yy, args))(y)
+        ft = jnp.zeros_like(y)
+        lu = lu_factor([[(1.0 if r == c else 0.0) - hd * jac[r, c] for c in range(5)] for r in range(5)])
+        solve = lambda v: jnp.stack(lu_solve(lu, list(v)))  # noqa: E731
+        k1 = solve(f0 + hd * ft)
+        f1 = vector_field_w(0.5 * h, y + 0.5 * h * k1, args)
+        k2 = solve(f1 - k1) + k1
+        return h * k2
+
+    with jax.enable_x64(True):
+        y0 = state_to_w(jnp.asarray(FLIER + [0.0, 0.0], jnp.float64))
+        c = jnp.asarray(np.random.default_rng(1).normal(size=5) / (np.abs(np.asarray(y0)) + 1.0))
+
+        def loss(y, h):
+            dy = rosenbrock_stages(vector_field_w_control, 0.0, y, h, args, vector_field_w(0.0, y, args))[0]
+            return jnp.sum(c * dy)
+
+        @jax.jit
+        def derivatives(y, h):
+            rev = jax.grad(loss, argnums=(0, 1))(y, h)
+            fwd = jax.jacfwd(loss, argnums=(0, 1))(y, h)
+            ref = jax.grad(lambda y, h: jnp.sum(c * plain(y, h)), argnums=(0, 1))(y, h)
+            return rev, fwd, ref, jax.jacfwd(lambda yy: vector_field_w(0.0, yy, args))(y)
+
+        h0 = 1e-3
+        (gy, gh), fwd, ref, jac = derivatives(y0, h0)
+        d = 1e-6 * np.maximum(np.abs(np.asarray(y0)), 1e-3)     # relative steps: the first entry is ~theta
+        pts = np.concatenate([np.asarray(y0) + np.diag(d), np.asarray(y0) - np.diag(d)])
+        vals = np.asarray(jax.jit(jax.vmap(loss))(jnp.asarray(pts), jnp.full(10, h0)))
+        fd = (vals[:5] - vals[5:]) / (2 * d)
+        hs = jnp.asarray([h0 * (1 + 1e-6), h0 * (1 - 1e-6)])
+        vh = np.asarray(jax.jit(jax.vmap(loss))(jnp.stack([y0, y0]), hs))
+        fd_h = (vh[0] - vh[1]) / (2e-6 * h0)
+    assert h0 * np.abs(np.asarray(jac)).max() > 10                    # a stiff step: h |J| >> 1
+    np.testing.assert_allclose(np.asarray(gy), np.asarray(ref[0]), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(float(gh), float(ref[1]), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(fwd[0]), np.asarray(gy), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(float(fwd[1]), float(gh), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(gy), fd, rtol=1e-5, atol=1e-7 * np.abs(np.asarray(gy)).max())
+    np.testing.assert_allclose(float(gh), fd_h, rtol=1e-5)
 
 
 def _fixed(y0, t1, n, args):

@@ -32,6 +32,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .jacobian import jacobian_columns
+
 __all__ = ["pair_damping", "oscillation_guard", "grown_settled_mode", "DAMPING", "PHASE", "ATOL_FACTOR", "NEAR",
            "FASTEST", "ATOL_FLOOR", "GREW"]
 
@@ -69,11 +71,7 @@ def pair_damping(field, t, y, args):
     r"""\((\sigma, \omega^2)\): the real part of the complex pair of the Jacobian block on \((w_2, p_1, p_2)\) of
     ``field`` at ``y`` (``(5,)`` or batch-last ``(5, N)``) and the square of its imaginary part (\(\le 0\): the
     block has three real eigenvalues there, no oscillation)."""
-    f = lambda v: field(t, v, args)  # noqa: E731
-    cols = []
-    for j in _BLOCK:
-        e = jnp.zeros_like(y).at[j].set(1.0)
-        cols.append(jax.jvp(f, (y,), (e,))[1])
+    _, cols = jacobian_columns(lambda tt, v: field(tt, v, args), t, y, _BLOCK)   # three products batched into one
     B = [[cols[c][_BLOCK[r]] for c in range(3)] for r in range(3)]
     tr = B[0][0] + B[1][1] + B[2][2]
     m2 = (B[0][0] * B[1][1] - B[0][1] * B[1][0] + B[0][0] * B[2][2] - B[0][2] * B[2][0]
