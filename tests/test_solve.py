@@ -11,7 +11,9 @@ import pytest
 
 import jaxsleigh as js
 from jaxsleigh.integrate.horizon import step_budget
+from jaxsleigh.integrate.pool import bucket
 from jaxsleigh.integrate.solve import solve
+from jaxsleigh.integrate.stepper import any_lane
 
 
 from laws import PD  # noqa: E402
@@ -87,7 +89,10 @@ def test_forward_mode_and_vmap_over_starts():
 
 def test_calling_solve_again_compiles_nothing(caplog):
     """Outside ``jit`` the loop over time (with or without saving) is one jitted program per law, shapes and options:
-    a second call, from another start and with another gain (of the same structure), compiles nothing."""
+    a second call, from another start and with another gain (of the same structure), compiles nothing; nor does a
+    third at another horizon whose step budget rounds up to the same power of two (2 s and 3 s: 4,160 and 6,160
+    attempts, one loop of 8,192; each lane still stops at its own budget, and the result is that of a loop exactly
+    as long as the attempts it made)."""
     import logging
 
     y0, y1 = jnp.asarray([1.0, 1.0, 0.5], jnp.float32), jnp.asarray([-1.0, 2.0, -0.4], jnp.float32)
@@ -99,10 +104,16 @@ def test_calling_solve_again_compiles_nothing(caplog):
         caplog.clear()
         again = solve(other, y1, t_final=2.0)
         saved = solve(other, y1, t_final=2.0, saveat=js.SaveAt(every=50))
-        jax.block_until_ready((again, saved))
+        longer = solve(other, y1, t_final=3.0)
+        jax.block_until_ready((again, saved, longer))
     compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
     assert compiled == []
     assert not np.allclose(np.asarray(first.q_final), np.asarray(again.q_final))
+    used = int(longer.n_steps + longer.n_rejected)
+    exact = solve(other, y1, t_final=3.0, stepsize=js.StepSizeController(max_steps=used))
+    assert int(longer.status) == int(exact.status) == js.Status.OK and bucket(used) < 8192
+    np.testing.assert_array_equal(np.asarray(exact.q_final), np.asarray(longer.q_final))
+    assert float(exact.u_energy) == float(longer.u_energy)
 
 
 def test_solve_reports_an_exhausted_budget():
@@ -185,6 +196,30 @@ def test_solve_reports_a_start_that_cannot_be_integrated():
     np.testing.assert_allclose(np.asarray(out.q_final[0]), np.asarray(alone.q_final), rtol=1e-5)  # batched code
     assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g[1:]) == 0) and np.any(np.asarray(g[0]) != 0)
     assert int(solve(js.paper_gains(), np.array([1.0, 1.0, 0.0]), t_final=2.0).status) == S.SINGULAR_START
+
+
+def _conds(jaxpr) -> int:
+    """The ``cond`` equations of a jaxpr, nested ones included."""
+    n = 0
+    for e in jaxpr.eqns:
+        n += e.primitive.name == "cond"
+        for p in e.params.values():
+            for q in p if isinstance(p, (tuple, list)) else [p]:
+                inner = getattr(q, "jaxpr", q)
+                n += _conds(getattr(inner, "jaxpr", inner)) if hasattr(getattr(inner, "jaxpr", inner), "eqns") else 0
+    return n
+
+
+def test_a_vmapped_solve_skips_the_segments_after_every_start_is_done():
+    """Under `jax.vmap` a segment of the loop is skipped once every start of the batch is done, as for one start: the
+    test is one branch for the batch (`any_lane`: the batch's any, unbatched), where a select per start ran every
+    start to the end of the static budget (a 64-start gradient over 20 s: 61 s, now 0.5 s). So the static length,
+    the budget rounded up to a power of two, costs nothing (`test_calling_solve_again_compiles_nothing`)."""
+    assert jax.vmap(any_lane)(jnp.asarray([[False, False], [False, True]])).tolist() == [True, True]
+    assert jax.vmap(any_lane)(jnp.zeros((3, 2), bool)).tolist() == [False] * 3
+    starts = jnp.asarray([[1.0, 1.0, 0.5], [2.0, -1.0, 1.0]], jnp.float32)
+    jaxpr = jax.make_jaxpr(jax.vmap(lambda y: solve(js.paper_gains(), y, t_final=1.0).q_final))(starts).jaxpr
+    assert _conds(jaxpr) >= 1                 # the segments' skip (every per-start cond became a select)
 
 
 def test_a_float32_start_too_close_to_theta_zero_is_out_of_range_with_nan_outputs():

@@ -36,6 +36,7 @@ from ..status import NO_RESULT, Status
 from .sampled import solve_sampled, substeps_for
 from .horizon import make_horizon, step_budget
 from .saveat import SaveAt
+from .pool import bucket
 from .stepper import Checkpointed, FlightSwitch, controls, init_state, run, run_stops
 from .stepsize import StepSizeController, check_policy
 from ..validate import real, refuses_removed_keywords
@@ -120,8 +121,9 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         base steps \(t_{final}/dt\) plus the saves and 8 for ``"rk4"``, 20x that in float32 and 30x in float64 for
         ``"adaptive"``); a start that needs more ends ``BUDGET_EXHAUSTED`` (its summaries are then up to
         ``t_reached``). The attempts run in checkpointed segments, and a segment after the lane is done is
-        skipped, so a large budget costs a lone start nothing it does not use; under ``vmap`` every segment runs
-        for every start (the skip becomes a select), so there a budget near what the starts need is cheaper. A
+        skipped (under ``vmap``, once every start of the batch is done: `jaxsleigh.integrate.stepper.any_lane`),
+        so a large budget costs nothing it does not use; the program's static length is the budget rounded up to a
+        power of two, so horizons and budgets within a factor of two share one compiled program. A
         stiff flight near \(\theta = 0\) moves to the implicit step of `jaxsleigh.integrate.rosenbrock` by the
         flight rule of every front (`jaxsleigh.integrate.stepper.FlightSwitch`): from ``(1.9, -0.04, 2e-4)`` in
         float32 `solve` carries it to 100 s as `jaxsleigh.simulate` does.
@@ -162,7 +164,10 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
                implicit=FlightSwitch() if adaptive else False)
     traj = {}
     if every is None:
-        s = _scan(s0, jnp.asarray(t_final, dtype), args, ctl, int(max_attempts), **how)
+        # the loop's static length is the budget rounded up to a power of two (ctl.max_steps, traced, still ends each
+        # lane at its budget, and the segments past every lane's end are skipped): horizons and budgets within a
+        # factor of two share one program
+        s = _scan(s0, jnp.asarray(t_final, dtype), args, ctl, bucket(int(max_attempts)), **how)
     else:
         if not is_concrete((t_final, dt)):
             raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")

@@ -199,12 +199,13 @@ def _guard_at(chart, t, y, args, ctl: Controls) -> tuple:
 def _guard_now(chart, s: "StepState", active, args, ctl: Controls) -> tuple:
     """The guard for this attempt: refreshed at the step's start on a lane's every `GUARD_EVERY`-th attempt, carried
     otherwise. A lane's guard depends on its own attempts only, not on the batch it is in; the refresh runs when some
-    lane is due (the lanes of one batch attempt together, so they are due together). Its three forward-mode products
-    cost about a step; every eighth attempt keeps them near a tenth of the run."""
+    lane is due (the lanes of one batch attempt together, so they are due together; under `jax.vmap` too, by
+    `any_lane`). Its three forward-mode products (one batched product) cost about a step; every eighth attempt keeps
+    them near a tenth of the run."""
     if not s.guard:
         return ()
     due = active & ((s.n_accept + s.n_reject) % GUARD_EVERY == 0)
-    return jax.lax.cond(jnp.any(due),
+    return jax.lax.cond(any_lane(due),
                         lambda: tuple(jnp.where(due, new, old)
                                       for new, old in zip(_guard_at(chart, s.t, s.y, args, ctl), s.guard)),
                         lambda: s.guard)
@@ -260,6 +261,20 @@ def _two_sum(a, b):
     s = a + b
     bb = s - a
     return s, (a - (s - bb)) + (b - bb)
+
+
+@jax.custom_batching.custom_vmap
+def any_lane(active):
+    """Whether some lane of the batch is ``active``, also across `jax.vmap`: vmapped (a user's ``vmap`` of
+    `jaxsleigh.solve`, a tuner's batch of starts), the answer is one for the whole mapped batch, not one per member,
+    so a loop's ``cond`` on it stays a branch, skipped once every member is done, rather than a select that runs
+    for every member to the end of the static budget. Boolean: nothing to differentiate."""
+    return jnp.any(active)
+
+
+@any_lane.def_vmap
+def _any_lane_vmap(axis_size, in_batched, active):
+    return jnp.any(active), False
 
 
 def is_active(s: StepState, target, ctl: Controls):
@@ -597,7 +612,7 @@ def run(s: StepState, target, args: ClosedLoop, ctl: Controls, loop, *, adaptive
         return c_new, (a if accumulate is None else accumulate(a, c, c_new))
 
     def busy(carry):
-        return jnp.any(is_active(carry[0], target_of(carry[0]), ctl))
+        return any_lane(is_active(carry[0], target_of(carry[0]), ctl))
 
     out, acc = loop(body, busy, (s, acc))
     return out if accumulate is None else (out, acc)
