@@ -11,8 +11,7 @@ import pytest
 
 import jaxsleigh as js
 from jaxsleigh.integrate.horizon import step_budget
-from jaxsleigh.integrate.pool import bucket
-from jaxsleigh.integrate.solve import solve
+from jaxsleigh.integrate.solve import loop_length, solve
 from jaxsleigh.integrate.stepper import any_lane
 
 
@@ -90,8 +89,8 @@ def test_forward_mode_and_vmap_over_starts():
 def test_calling_solve_again_compiles_nothing(caplog):
     """Outside ``jit`` the loop over time (with or without saving) is one jitted program per law, shapes and options:
     a second call, from another start and with another gain (of the same structure), compiles nothing; nor does a
-    third at another horizon whose step budget rounds up to the same power of two (2 s and 3 s: 4,160 and 6,160
-    attempts, one loop of 8,192; each lane still stops at its own budget, and the result is that of a loop exactly
+    third at another horizon whose step budget rounds up to the same power of four (2 s and 3 s: 4,160 and 6,160
+    attempts, one loop of 16,384; each lane still stops at its own budget, and the result is that of a loop exactly
     as long as the attempts it made)."""
     import logging
 
@@ -111,7 +110,7 @@ def test_calling_solve_again_compiles_nothing(caplog):
     assert not np.allclose(np.asarray(first.q_final), np.asarray(again.q_final))
     used = int(longer.n_steps + longer.n_rejected)
     exact = solve(other, y1, t_final=3.0, stepsize=js.StepSizeController(max_steps=used))
-    assert int(longer.status) == int(exact.status) == js.Status.OK and bucket(used) < 8192
+    assert int(longer.status) == int(exact.status) == js.Status.OK and loop_length(used) < loop_length(6160)
     np.testing.assert_array_equal(np.asarray(exact.q_final), np.asarray(longer.q_final))
     assert float(exact.u_energy) == float(longer.u_energy)
 
@@ -214,7 +213,7 @@ def test_a_vmapped_solve_skips_the_segments_after_every_start_is_done():
     """Under `jax.vmap` a segment of the loop is skipped once every start of the batch is done, as for one start: the
     test is one branch for the batch (`any_lane`: the batch's any, unbatched), where a select per start ran every
     start to the end of the static budget (a 64-start gradient over 20 s: 61 s, now 0.5 s). So the static length,
-    the budget rounded up to a power of two, costs nothing (`test_calling_solve_again_compiles_nothing`)."""
+    the budget rounded up to a power of four, costs nothing (`test_calling_solve_again_compiles_nothing`)."""
     assert jax.vmap(any_lane)(jnp.asarray([[False, False], [False, True]])).tolist() == [True, True]
     assert jax.vmap(any_lane)(jnp.zeros((3, 2), bool)).tolist() == [False] * 3
     starts = jnp.asarray([[1.0, 1.0, 0.5], [2.0, -1.0, 1.0]], jnp.float32)

@@ -1,10 +1,11 @@
-"""Columns of a field's Jacobian by forward mode, as one batched product.
+r"""Columns of a field's Jacobian by forward mode, as one batched product.
 
-The linearly implicit step (`jaxsleigh.integrate.rosenbrock`) needs every column of \\(J = \\partial f / \\partial y\\)
-and \\(\\partial f / \\partial t\\); the settled oscillation's guard (`jaxsleigh.integrate.guard`) three of them. Written
-as one `jax.jvp` per direction, a traced program holds one copy of the field's derivative per column (and its
-transpose per column under reverse mode); one `jax.linearize` pushed through ``vmap`` over the unit directions holds
-one batched copy, and gives the same values (every operation of the field is elementwise over the directions).
+The linearly implicit step (`jaxsleigh.integrate.rosenbrock`) needs every column of
+\(J = \partial f / \partial y\) and \(\partial f / \partial t\); the settled oscillation's guard
+(`jaxsleigh.integrate.guard`) three of them. Written as one `jax.jvp` per direction, a traced program holds one copy
+of the field's derivative per column (and its transpose per column under reverse mode); one `jax.linearize` pushed
+through ``vmap`` over the unit directions holds one batched copy, and gives the same values (every operation of the
+field is elementwise over the directions: the engine's runs and the golden runs are the same bytes).
 """
 from __future__ import annotations
 

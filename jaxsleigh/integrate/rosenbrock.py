@@ -32,8 +32,9 @@ over the lanes, so a lane's bits do not depend on the lanes beside it.
 gives \(\dot x = W^{-1}(\dot b - \dot W x)\) and, in reverse mode, \(\bar b = W^{-\top} \bar x\),
 \(\bar W = -\bar b\, x^\top\), with \(W^{-\top}\) from the same factors (\(P W = L U\) gives
 \(W^\top = U^\top L^\top P\): `lu_solve_transposed`). So the elimination is never differentiated, only \(W\)'s
-product with a vector is: what a reverse-mode program holds of this step is about a third smaller and compiles about
-a third faster (`experiments/performance/step_program.py`), and the values are the same bits.
+product with a vector is. With the batched Jacobian, the step's reverse-mode program is a third smaller (StableHLO
+lines of one attempt, `experiments/performance/step_program.py`: 3,681 where 5,598); the values are the same bits,
+the derivatives agree with those of the differentiated elimination to rounding (``tests/test_rosenbrock.py``).
 """
 from __future__ import annotations
 
