@@ -229,7 +229,7 @@ def _radau(y0, t_final):
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
         f, jac = numpy_field(args)
-        sol = solve_ivp(f, (0.0, t_final), np.asarray(y0, float), method="Radau", rtol=1e-10, atol=1e-10, jac=jac)
+        sol = solve_ivp(f, (0.0, t_final), np.asarray(y0, float), method="Radau", rtol=1e-9, atol=1e-9, jac=jac)
     assert sol.status == 0
     return sol.y[:, -1]
 
@@ -238,7 +238,8 @@ def _radau(y0, t_final):
 @pytest.mark.parametrize("ic", [(1.0, 1.0, 1e-2), (-4.0, 5.0, -1e-2), (5.0, -5.0, 0.03)])
 def test_near_singular_matches_stiff_reference(ic):
     """|theta0| = 1e-2 with |x|, |y| <= 5, float64 defaults: finite, and the final position within
-    1e-3 of the trajectory's largest excursion of a Radau (rtol 1e-10) reference."""
+    1e-3 of the trajectory's largest excursion of a Radau (rtol = atol = 1e-9) reference. (The engine is 5e-9 of it
+    off; Radau at 1e-9 is 1e-11 of it from Radau at 1e-10, which took 227k evaluations on the second start, 12x.)"""
     T = 30.0
     r = run_ensemble(np.array([ic]), t_final=T, x64=True)
     assert r.status[0] == Status.OK
