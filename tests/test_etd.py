@@ -186,8 +186,8 @@ def test_energy_spent_after_settling_is_resolved_at_the_default_tolerances():
     (w2, p1) and spend most of their 100 s energy. The oscillation is seeded at amplitudes far below float32's default
     atol (1e-6), which once missed it (5-20% of the energy); the oscillation guard (`jaxsleigh.integrate.guard`: the
     settled pair is weakly damped there) resolves it at the defaults, as atol 1e-8 did. The reference is float64 at
-    rtol = atol = 1e-9 (57% of 1e-10's steps; within 5e-6 of 1e-12's energy and heading, where 1e-10 is 8e-5 and 4e-4
-    off them; float64's default 1e-8 is 7e-3 off the heading, too near the 2% bar to judge it)."""
+    rtol = atol = 1e-9 (57% of 1e-10's steps): at most 4e-5 off rtol 1e-12's energy and 1e-3 off its heading (1e-10:
+    8e-5 and 4.5e-4), a twentieth of the 2% bar; float64's default 1e-8 is 7e-3 off the heading, a third of it."""
     from laws import OLD_BALANCED, OLD_BALANCED_STARTS
 
     ics, old = np.array(OLD_BALANCED_STARTS), js.gains(**OLD_BALANCED)
