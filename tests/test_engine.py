@@ -252,7 +252,7 @@ def test_near_singular_matches_stiff_reference(ic):
 def test_tiny_theta0_budget_is_reported_then_raised():
     """theta0 = 1e-3: the default budget runs out and says so; a larger budget gets through and agrees
     with a tighter run (float64, rtol = atol = 1e-9 against the default 1e-8: 167k steps, where 1e-10 took 426k; the
-    two references differ by 1e-9 of the excursion, the run under test from either by 9e-9, the bar is 1e-6).
+    two references differ by 1e-9 of the excursion, the run under test from them by 9e-9 and 1e-8, the bar is 1e-6).
     The Radau comparison at this theta0 is in experiments/studies/near_singular_accuracy.py."""
     ic = np.array([[3.0, 3.0, 1e-3]])
     short = run_ensemble(ic, t_final=2.0, x64=True)
