@@ -1,6 +1,6 @@
 """simulate() against an independent reference: scipy's Radau (rtol 1e-9, atol 1e-11) on the
 physical-chart closed loop ``vector_field`` in float64, with its Jacobian from ``jax.jacfwd``,
-over the paper's 100 s horizon. (At rtol 1e-10, atol 1e-12 it took 1.8x the calls and moved q by at most 2.3e-10,
+over the paper's 100 s horizon. (At rtol 1e-10, atol 1e-12 it took 1.7x the calls and moved q by at most 2.3e-10,
 p by 2.1e-9: four orders below the tightest bar here, 1e-5; the table below was measured against it.)
 
 Measured when these tolerances were set (max over the 0.1 s output grid of max |q - q_ref|):
