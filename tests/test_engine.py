@@ -229,7 +229,7 @@ def _radau(y0, t_final):
     with jax.enable_x64(True):
         args = ClosedLoop(js.paper_plant(), js.paper_gains())
         f, jac = numpy_field(args)
-        sol = solve_ivp(f, (0.0, t_final), np.asarray(y0, float), method="Radau", rtol=1e-10, atol=1e-10, jac=jac)
+        sol = solve_ivp(f, (0.0, t_final), np.asarray(y0, float), method="Radau", rtol=1e-9, atol=1e-9, jac=jac)
     assert sol.status == 0
     return sol.y[:, -1]
 
@@ -238,7 +238,8 @@ def _radau(y0, t_final):
 @pytest.mark.parametrize("ic", [(1.0, 1.0, 1e-2), (-4.0, 5.0, -1e-2), (5.0, -5.0, 0.03)])
 def test_near_singular_matches_stiff_reference(ic):
     """|theta0| = 1e-2 with |x|, |y| <= 5, float64 defaults: finite, and the final position within
-    1e-3 of the trajectory's largest excursion of a Radau (rtol 1e-10) reference."""
+    1e-3 of the trajectory's largest excursion of a Radau (rtol = atol = 1e-9) reference. (The engine is 5e-9 of it
+    off; Radau at 1e-9 is 1e-11 of it from Radau at 1e-10, which took 227k evaluations on the second start, 12x.)"""
     T = 30.0
     r = run_ensemble(np.array([ic]), t_final=T, x64=True)
     assert r.status[0] == Status.OK
@@ -250,14 +251,16 @@ def test_near_singular_matches_stiff_reference(ic):
 
 def test_tiny_theta0_budget_is_reported_then_raised():
     """theta0 = 1e-3: the default budget runs out and says so; a larger budget gets through and agrees
-    with a tighter run (float64). The Radau comparison at this theta0 is in experiments/studies/near_singular_accuracy.py."""
+    with a tighter run (float64, rtol = atol = 1e-9 against the default 1e-8: 167k steps, where 1e-10 took 426k; the
+    two references differ by 1e-9 of the excursion, the run under test from them by 9e-9 and 1e-8, the bar is 1e-6).
+    The Radau comparison at this theta0 is in experiments/studies/near_singular_accuracy.py."""
     ic = np.array([[3.0, 3.0, 1e-3]])
     short = run_ensemble(ic, t_final=2.0, x64=True)
     assert short.status[0] == Status.BUDGET_EXHAUSTED
     assert 0.0 < short.t_reached[0] < 2.0 and np.isnan(short.q_final[0]).all()
     ok = run_ensemble(ic, t_final=2.0, x64=True, stepsize=js.StepSizeController(max_steps=2_000_000))
     tight = run_ensemble(ic, t_final=2.0, x64=True,
-                         stepsize=js.StepSizeController(max_steps=4_000_000, rtol=1e-10, atol=1e-10))
+                         stepsize=js.StepSizeController(max_steps=2_000_000, rtol=1e-9, atol=1e-9))
     assert ok.status[0] == Status.OK and tight.status[0] == Status.OK
     assert np.abs(ok.q_final[0] - tight.q_final[0]).max() <= 1e-6 * ok.max_excursion[0]
     assert ok.max_excursion[0] > 1e5

@@ -263,7 +263,11 @@ def test_second_run_and_cli_do_not_recompile(small_run, tmp_path, capsys):
 
 def test_tuned_preset_meets_the_target_on_held_out_starts():
     """Median T_0.05 at least 5x shorter than the paper's gains, fraction converged within 100 s no
-    lower, every trajectory OK, with the accurate engine on starts the tuner never saw."""
+    lower, every trajectory OK, with the accurate engine on starts the tuner never saw. The hard starts near the
+    singular set fail their audit at 1e-10 (worst state 0.19: they are chaotic), so their figures are float64's at
+    1e-10 (``resolved``); the audit's ladder, which re-ran them at 1e-12 and 1e-13 (about half of this test's time)
+    and failed all the same, changes none of those figures (bit for bit), and is left out: ``confirm_tol`` and
+    ``tightest_tol`` at the reference's 1e-10."""
     g = js.load_gains("tuned")
     meta = json.loads((__import__("pathlib").Path(js.__file__).parent / "presets" / "tuned.json").read_text())["meta"]
     assert "how" in meta and "validation" in meta
@@ -273,7 +277,8 @@ def test_tuned_preset_meets_the_target_on_held_out_starts():
     assert paper.n_failed == 0 and tuned.n_failed == 0
     assert tuned.median_T * 5 <= paper.median_T
     assert tuned.frac_converged >= paper.frac_converged
-    guard = tu.validate(g, np.concatenate([tu.guard_starts(), [[0.5, -0.5, 0.05], [-1.0, 2.0, -0.05]]]), t_final=20.0)
+    hard = np.concatenate([tu.guard_starts(), [[0.5, -0.5, 0.05], [-1.0, 2.0, -0.05]]])
+    guard = tu.validate(g, hard, t_final=20.0, audit=js.Audit(rows=len(hard), confirm_tol=1e-10, tightest_tol=1e-10))
     assert guard.n_failed == 0
 
 
