@@ -17,20 +17,24 @@ __all__ = ["GRADIENT_MODES", "make_value_and_grad"]
 GRADIENT_MODES = ("reverse", "forward")
 
 
-@functools.lru_cache(maxsize=32)
 def make_value_and_grad(*, mode: str = "forward", n_attempts: int, segment: int = 100, adaptive: bool = True,
                         d_floor: float = D_FLOOR):
     """A jitted ``f(trainable, frozen, data, cfg) -> ((loss, aux), grad)`` of `objective`.
 
     ``mode="reverse"``: ``jax.value_and_grad`` through the checkpointed scan;
     ``mode="forward"``: ``jax.jacfwd`` over the flattened trainable parameters (one tangent each).
-    The same settings return the same (cached) function, so a second tuning run with the same
-    shapes does not recompile.
+    The same settings return the same (cached) function, whether a default is given or left out, so a second tuning
+    run with the same shapes does not recompile.
     """
     if mode not in GRADIENT_MODES:
         raise ValueError(f"mode must be one of {GRADIENT_MODES}, got {mode!r}")
-    loss = functools.partial(objective, n_attempts=int(n_attempts), segment=int(segment), adaptive=bool(adaptive),
-                             d_floor=float(d_floor))
+    return _value_and_grad(mode, int(n_attempts), int(segment), bool(adaptive), float(d_floor))
+
+
+@functools.lru_cache(maxsize=32)
+def _value_and_grad(mode: str, n_attempts: int, segment: int, adaptive: bool, d_floor: float):
+    """`make_value_and_grad` for settings in one normal form (the cache's key)."""
+    loss = functools.partial(objective, n_attempts=n_attempts, segment=segment, adaptive=adaptive, d_floor=d_floor)
     if mode == "reverse":
         return jax.jit(jax.value_and_grad(loss, has_aux=True))
 
