@@ -78,17 +78,29 @@ def _bounded_memory_maps():
         gc.collect()
 
 
-#: ``JAXSLEIGH_TEST_COMPILES=FILE``: every XLA program the test processes compile, as JSON lines of
-#: ``[test, program, seconds]`` in ``FILE.<worker>`` (programs found in the persistent cache are not compiled)
+#: ``JAXSLEIGH_TEST_COMPILES=FILE``: every XLA program the test processes compile or read from the persistent cache,
+#: as JSON lines of ``[test, program, seconds, from_cache]`` in ``FILE.<worker>``. JAX reports a program read from the
+#: cache with the same duration event as a compiled one (its seconds then the load's), right after a cache-hit event
+#: of the same thread: that is how the two are told apart.
 _COMPILES_TO = os.environ.get("JAXSLEIGH_TEST_COMPILES")
 _COMPILES: list = []
 _CURRENT_TEST = ["(collection)"]
 
 if _COMPILES_TO:
+    import threading
+
+    _HIT = threading.local()
+
+    def _on_event(event, **kw):
+        if event == "/jax/compilation_cache/cache_hits":
+            _HIT.pending = True
+
     def _on_compile(event, duration, **kw):
         if event == "/jax/core/compile/backend_compile_duration":
-            _COMPILES.append((_CURRENT_TEST[0], str(kw.get("fun_name", "?")), round(float(duration), 3)))
+            hit, _HIT.pending = getattr(_HIT, "pending", False), False
+            _COMPILES.append((_CURRENT_TEST[0], str(kw.get("fun_name", "?")), round(float(duration), 3), hit))
 
+    jax.monitoring.register_event_listener(_on_event)
     jax.monitoring.register_event_duration_secs_listener(_on_compile)
 
 
