@@ -231,8 +231,9 @@ def _entry(name: str, quick: bool, x64: bool, scratch: Path):
     ltol = (1.0, 2.0, 3.0)                                             # x LossConfig's tolerances
 
     def loss_of(horizon_, tolerances):
-        return loss._replace(t_final=loss.t_final * horizon[horizon_], rtol=loss.rtol * ltol[tolerances],
-                             atol=loss.atol * ltol[tolerances])
+        ss = loss.stepsize
+        return loss._replace(t_final=loss.t_final * horizon[horizon_],
+                             stepsize=ss._replace(rtol=ss.rtol * ltol[tolerances], atol=ss.atol * ltol[tolerances]))
 
     config = (tu.TuneConfig(steps=2, batch=8, probe=2, verify=1, n_attempts=1000) if quick
               else tu.TuneConfig(steps=5, batch=64, probe=4, verify=1))
