@@ -86,13 +86,15 @@ def test_forward_mode_and_vmap_over_starts():
     np.testing.assert_allclose(np.asarray(jac), np.asarray(fd), rtol=1e-6, atol=1e-10)
 
 
-def test_calling_solve_again_compiles_nothing(caplog):
+def test_calling_solve_again_compiles_nothing(caplog, monkeypatch):
     """Outside ``jit`` the loop over time (with or without saving) is one jitted program per law, shapes and options:
-    a second call, from another start and with another gain (of the same structure), compiles nothing; nor does a
-    third at another horizon whose step budget rounds up to the same power of four (2 s and 3 s: 4,160 and 6,160
-    attempts, one loop of 16,384; each lane still stops at its own budget, and the result is that of a loop exactly
-    as long as the attempts it made)."""
+    a second call, from another start and with another gain (of the same structure), compiles nothing; nor do calls
+    at other horizons whose step budgets round up to the same loop (3 s and 100 s: 6,160 and 200,008 attempts, one
+    loop of `MIN_LOOP`; each lane still stops at its own budget, and the result is that of a loop exactly as long as
+    the attempts it made)."""
     import logging
+
+    import jaxsleigh.integrate.solve as solve_module
 
     y0, y1 = jnp.asarray([1.0, 1.0, 0.5], jnp.float32), jnp.asarray([-1.0, 2.0, -0.4], jnp.float32)
     g = js.paper_gains()
@@ -104,13 +106,17 @@ def test_calling_solve_again_compiles_nothing(caplog):
         again = solve(other, y1, t_final=2.0)
         saved = solve(other, y1, t_final=2.0, saveat=js.SaveAt(every=50))
         longer = solve(other, y1, t_final=3.0)
-        jax.block_until_ready((again, saved, longer))
+        default_horizon = solve(other, y1)
+        jax.block_until_ready((again, saved, longer, default_horizon))
     compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
     assert compiled == []
+    assert loop_length(6160) == loop_length(200_008) == solve_module.MIN_LOOP
+    assert int(default_horizon.status) == js.Status.OK and float(default_horizon.t_reached) == 100.0
     assert not np.allclose(np.asarray(first.q_final), np.asarray(again.q_final))
     used = int(longer.n_steps + longer.n_rejected)
+    monkeypatch.setattr(solve_module, "loop_length", lambda n: n)      # a loop of exactly the attempts made
     exact = solve(other, y1, t_final=3.0, stepsize=js.StepSizeController(max_steps=used))
-    assert int(longer.status) == int(exact.status) == js.Status.OK and loop_length(used) < loop_length(6160)
+    assert int(longer.status) == int(exact.status) == js.Status.OK
     np.testing.assert_array_equal(np.asarray(exact.q_final), np.asarray(longer.q_final))
     assert float(exact.u_energy) == float(longer.u_energy)
 

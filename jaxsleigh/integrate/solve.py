@@ -122,7 +122,8 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
         ``t_reached``). The attempts run in checkpointed segments, and a segment after the lane is done is
         skipped (under ``vmap``, once every start of the batch is done: `jaxsleigh.integrate.stepper.any_lane`),
         so a large budget costs nothing it does not use; the program's static length is the budget rounded up to a
-        power of four (`loop_length`), so nearby horizons and budgets share one compiled program. A
+        power of four, at least 4^9 (`loop_length`), so every default horizon up to 131 s (float32) shares one
+        compiled program. A
         stiff flight near \(\theta = 0\) moves to the implicit step of `jaxsleigh.integrate.rosenbrock` by the
         flight rule of every front (`jaxsleigh.integrate.stepper.FlightSwitch`): from ``(1.9, -0.04, 2e-4)`` in
         float32 `solve` carries it to 100 s as `jaxsleigh.simulate` does.
@@ -155,21 +156,14 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
     adaptive = ss.method == "adaptive"
     max_attempts = step_budget(ss, t_final, dt, dtype, save_every=every, flags={"save_every": "saveat.every"})
     args = ClosedLoop(paper_plant() if plant is None else plant, controller)
-    chart = chart_for(controller)
     ctl = controls(ss, dtype, dt=dt, eps=eps, max_steps=max_attempts)
-    yc, status0 = _start_in_chart(y0, chart, args)
-    s0 = init_state(yc, status0, args, ctl, observers=observers)
     how = dict(adaptive=adaptive, monitor=bool(ss.check_passivity), observers=observers,
                implicit=FlightSwitch() if adaptive else False)
-    traj = {}
     if every is None:
-        s = _scan(s0, jnp.asarray(t_final, dtype), args, ctl, loop_length(int(max_attempts)), **how)
-    else:
-        if not is_concrete((t_final, dt)):
-            raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")
-        s, traj = _run_saving(s0, y0, status0, args, ctl, chart, float(t_final), float(dt), every, int(max_attempts),
-                              **how)
-    return _output(s, s0, status0, chart, t_final, observers, traj)
+        return _scan(y0, jnp.asarray(t_final, dtype), args, ctl, loop_length(int(max_attempts)), **how)
+    if not is_concrete((t_final, dt)):
+        raise ValueError("with saveat, t_final and dt must be concrete (they set the number of saves)")
+    return _run_saving(y0, args, ctl, float(t_final), float(dt), every, int(max_attempts), **how)
 
 
 #: attempts per checkpointed segment of `solve` without saving (`stepper.Checkpointed`, one level: a second level of
@@ -178,21 +172,33 @@ def solve(controller, y0, *, plant=None, t_final: float = 100.0, dt: float = 0.0
 SEGMENT = 256
 
 
+#: the shortest static loop of `solve` (attempts): 4^9, the default float32 budget of a 131 s horizon at ``dt = 0.01``
+MIN_LOOP = 4 ** 9
+
+
 def loop_length(max_attempts: int) -> int:
-    """The static length of `solve`'s loop for a budget of ``max_attempts``: the next power of four. Each lane still
-    stops at its own budget (``ctl.max_steps``, a traced number), and the segments after every lane is done are
-    skipped (`jaxsleigh.integrate.stepper.any_lane`, also under ``vmap``), so the rounding costs a check per skipped
-    segment and the carry it keeps for reverse mode; in return, budgets within the same power of four share one
-    compiled program (the default float32 budgets at ``dt = 0.01``: every horizon from 8.2 s to 32.7 s, or from
-    32.8 s to 131 s)."""
-    return 1 << (2 * -(-max(int(max_attempts) - 1, 1).bit_length() // 2))
+    """The static length of `solve`'s loop for a budget of ``max_attempts``: the next power of four, at least
+    `MIN_LOOP`. Each lane still stops at its own budget (``ctl.max_steps``, a traced number), and the segments after
+    every lane is done are skipped (`jaxsleigh.integrate.stepper.any_lane`, also under ``vmap``), so the rounding costs
+    a check per skipped segment (the README's gradient over 10 s ran as fast with 1,024 segments as with 256) and,
+    in reverse mode, the carry it keeps per segment (1,024 of them per lane up to `MIN_LOOP`). In return, budgets
+    within the same power of four share one compiled program: in float32 at ``dt = 0.01`` every default horizon up to
+    131 s (in float64, up to 87 s; then 87-349 s)."""
+    return max(MIN_LOOP, 1 << (2 * -(-max(int(max_attempts) - 1, 1).bit_length() // 2)))
 
 
 @functools.partial(jax.jit, static_argnames=("n", "adaptive", "monitor", "observers", "implicit"))
-def _scan(s0, target, args, ctl, n: int, **how):
-    """`run` of at most ``n`` attempted steps in checkpointed segments, those after the lane is done skipped, jitted:
-    a second `solve` of the same law, shapes and options compiles nothing."""
-    return run(s0, target, args, ctl, Checkpointed(n, min(SEGMENT, n)), **how)
+def _scan(y0, t_final, args, ctl, n: int, **how) -> SolveOutput:
+    """`solve` of the physical start ``y0`` to ``t_final`` without saving, as one jitted program: the start in the
+    law's chart, `run` of at most ``n`` attempted steps in checkpointed segments (those after the lane is done
+    skipped), the output. A second `solve` of the same law, shapes and options compiles nothing, and `jax.grad` of a
+    `solve` outside ``jit`` differentiates this one program (the chart's maps op by op compiled some 130 small
+    programs and ran 8x slower)."""
+    chart = chart_for(args.controller)
+    yc, status0 = _start_in_chart(y0, chart, args)
+    s0 = init_state(yc, status0, args, ctl, observers=how["observers"])
+    s = run(s0, t_final, args, ctl, Checkpointed(n, min(SEGMENT, n)), **how)
+    return _output(s, s0, status0, chart, t_final, how["observers"], {})
 
 
 def _checked_start(controller, y0, **numbers) -> jax.Array:
@@ -254,14 +260,17 @@ def _save_every(saveat) -> Optional[int]:
     return int(e)
 
 
-@functools.partial(jax.jit, static_argnames=("chart", "t_final", "dt", "every", "max_attempts", "adaptive", "monitor",
+@functools.partial(jax.jit, static_argnames=("t_final", "dt", "every", "max_attempts", "adaptive", "monitor",
                                              "observers", "implicit"))
-def _run_saving(s0, y0, status0, args, ctl, chart, t_final: float, dt: float, every: int, max_attempts: int, **how):
-    """The stepper's final state and the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of ``every`` base
-    steps: `jaxsleigh.integrate.stepper.run_stops` through them, each interval at most its share of ``max_attempts``
-    attempts. A state the lane did not reach (it stopped, or its share ran out: ``BUDGET_EXHAUSTED``) is NaN.
-    Jitted, as `_scan`."""
+def _run_saving(y0, args, ctl, t_final: float, dt: float, every: int, max_attempts: int, **how) -> SolveOutput:
+    """`solve` of the physical start ``y0`` with the trajectory (``t``, ``q``, ``p``, ``u``) at the save times of
+    ``every`` base steps, as one jitted program (as `_scan`): `jaxsleigh.integrate.stepper.run_stops` through them,
+    each interval at most its share of ``max_attempts`` attempts. A state the lane did not reach (it stopped, or its
+    share ran out: ``BUDGET_EXHAUSTED``) is NaN."""
     horizon = make_horizon(t_final, dt, every, flags={"save_every": "saveat.every"})
+    chart = chart_for(args.controller)
+    yc, status0 = _start_in_chart(y0, chart, args)
+    s0 = init_state(yc, status0, args, ctl, observers=how["observers"])
     dtype = s0.y.dtype
 
     def record(s, a, target, extra):
@@ -276,7 +285,8 @@ def _run_saving(s0, y0, status0, args, ctl, chart, t_final: float, dt: float, ev
     y_first = jnp.where(ok0, y0, jnp.nan)
     u_first = jnp.where(ok0, jnp.stack(chart.field_and_control(s0.t, s0.y, args)[1]), jnp.nan)
     ys, us = jnp.concatenate([y_first[None], ys]), jnp.concatenate([u_first[None], us])
-    return s, dict(t=jnp.asarray(horizon.t(), dtype), q=ys[:, :3], p=ys[:, 3:], u=us)
+    traj = dict(t=jnp.asarray(horizon.t(), dtype), q=ys[:, :3], p=ys[:, 3:], u=us)
+    return _output(s, s0, status0, chart, t_final, how["observers"], traj)
 
 
 def _solve_held(controller, y0, plant, t_final, dt, ss: StepSizeController, eps, observers, every) -> SolveOutput:
