@@ -317,8 +317,8 @@ def test_the_readme_times_are_the_measured_ones_with_the_machine_named():
     # (each measured by experiments/performance/fresh_machine.py, which writes docs/figures/fresh_machine.json)
     assert f"19-23 min on a {MACHINE}, empty compilation cache" in text
     assert "quick tier for every change (2 min 30 s there; both timed from a fresh clone" in text
-    assert f"float32; 115 s on a {MACHINE}, empty compilation cache)" in text
-    assert "(this example: 37 s cold, 2-core x86_64)" in text
+    assert f"float32; 90 s on a {MACHINE}, empty compilation cache)" in text
+    assert "(this example: 40 s cold, 2-core x86_64)" in text
     for stale in ("about 3 min cold", "2-core x86_64, about a minute"):
         assert stale not in text, stale
 
