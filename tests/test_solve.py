@@ -121,6 +121,16 @@ def test_calling_solve_again_compiles_nothing(caplog, monkeypatch):
     assert float(exact.u_energy) == float(longer.u_energy)
 
 
+def test_solve_outside_jit_is_one_program():
+    """`solve` called outside ``jit`` (as ``jax.grad(energy)(k)`` in the README) traces into one jitted program, with or
+    without saving: the start's checks, the maps into and out of the law's chart and the output are inside it (traced
+    op by op around the loop, they made ``jax.grad`` compile some 130 small programs)."""
+    g, y = js.paper_gains(), jnp.asarray([1.0, 1.0, 0.5, 0.0, 0.0], jnp.float32)   # (5,): no momentum to append
+    for saveat in (None, js.SaveAt(every=50)):
+        jaxpr = jax.make_jaxpr(lambda k: solve(g._replace(k=k), y, t_final=2.0, saveat=saveat).u_energy)(0.1).jaxpr
+        assert [e.primitive.name for e in jaxpr.eqns] in (["jit"], ["pjit"]), [e.primitive for e in jaxpr.eqns]
+
+
 def test_solve_reports_an_exhausted_budget():
     """A horizon the budget cannot reach (N32 attempts of at most 100 base steps cover < 4,200 s) ends
     ``BUDGET_EXHAUSTED`` short of it, every attempt spent."""

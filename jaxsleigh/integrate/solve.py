@@ -192,8 +192,8 @@ def _scan(y0, t_final, args, ctl, n: int, **how) -> SolveOutput:
     """`solve` of the physical start ``y0`` to ``t_final`` without saving, as one jitted program: the start in the
     law's chart, `run` of at most ``n`` attempted steps in checkpointed segments (those after the lane is done
     skipped), the output. A second `solve` of the same law, shapes and options compiles nothing, and `jax.grad` of a
-    `solve` outside ``jit`` differentiates this one program (the chart's maps op by op compiled some 130 small
-    programs and ran 8x slower)."""
+    `solve` outside ``jit`` differentiates this one program (traced op by op around the loop, the chart's maps and the
+    output compiled some 130 small programs, and a second gradient took 0.16 s where it takes 0.05 s)."""
     chart = chart_for(args.controller)
     yc, status0 = _start_in_chart(y0, chart, args)
     s0 = init_state(yc, status0, args, ctl, observers=how["observers"])
