@@ -217,7 +217,11 @@ def test_user_law_through_run_basin():
     assert res.settings["controller"]["type"] == "PD"
 
 
-def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_differences():
+def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_differences(caplog):
+    """... and a second `tune_law` with other starts, another starting gain and other tolerances (the same horizon,
+    which sets the static step budget) compiles nothing."""
+    import logging
+
     from jaxsleigh.tuning import LossConfig, tune_law
     from jaxsleigh.tuning.law import law_loss
 
@@ -235,6 +239,13 @@ def test_a_user_law_is_tuned_by_gradient_and_its_loss_gradient_matches_finite_di
     assert res.history["loss"].shape == (6,) and np.all(res.history["valid"])
     assert res.loss < res.history["loss"][0]                      # it improved on the starting law
     assert isinstance(res.law, PD) and res.law.kd == 1.5 and res.law.kp != 1.0
+    other = np.array([[0.8, -0.5, 0.6], [1.0, 1.0, -0.4], [-0.5, -1.0, 0.9]])
+    looser = LossConfig(t_final=6.0, stepsize=js.StepSizeController(rtol=2e-5, atol=2e-5, max_step=0.1))
+    with jax.log_compiles(True), caplog.at_level(logging.DEBUG):
+        caplog.clear()
+        again = tune_law(PD(0.8, 1.5), other, tune=["kp"], loss=looser, steps=2, lr=0.2, x64=True)
+    assert [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()] == []
+    assert np.all(again.history["valid"]) and again.law.kp != 0.8
 
 
 def test_user_law_through_a_sweep_of_its_parameter_and_the_plant():
