@@ -296,9 +296,9 @@ def _law_value_and_grad(law, tune, coords: LawCoordinates, dtype, n_attempts: in
     every call whose program would be the same: the law's structure, the leaves it does not tune (constants of
     ``coords.law_of``), ``tune``, the dtype and ``n_attempts``, and for a sampled law the loss settings (its sampler's
     loop takes them as Python numbers). The starts, the plant, the loss (otherwise) and the tuned leaves' values are
-    arguments, so a second `tune_law` with other starts, gains, horizon or tolerances compiles nothing (each call
-    compiled its objective again: 12.5 s for Aicardi's law). A law whose fixed leaves are not arrays of numbers gets
-    a function of its own."""
+    arguments, so a second `tune_law` with other starts, starting gains or tolerances compiles nothing (each call
+    compiled its objective again: 12.5 s for Aicardi's law); another horizon changes the default ``n_attempts`` and
+    compiles. A law whose fixed leaves are not arrays of numbers gets a function of its own."""
     leaves, tree, _, idx = _split(law, tune)
     sampled = is_sampled(law)
     try:
